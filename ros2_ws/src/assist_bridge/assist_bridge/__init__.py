@@ -1,0 +1,1 @@
+"""MAVLink bridge to ArduPilot (pymavlink) and keyboard teleop."""

@@ -1,0 +1,1 @@
+"""Depth noise model, RGB-D dataset generation, denoising CM-VAE and the encoder node."""

@@ -1,0 +1,34 @@
+"""Build script for the assist_perception ament_python package (colcon and pip)."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = 'assist_perception'
+
+setup(
+    name=PACKAGE,
+    version='0.1.0',
+    packages=find_packages(exclude=['test']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
+        ('share/' + PACKAGE, ['package.xml']),
+        ('share/' + PACKAGE + '/config', glob('config/*.yaml')),
+        ('share/' + PACKAGE + '/launch', glob('launch/*.launch.py')),
+    ],
+    package_data={PACKAGE: ['data/*']},
+    install_requires=['setuptools'],
+    zip_safe=True,
+    maintainer='Assisted landing maintainers',
+    maintainer_email='maintainers@assist-landing.dev',
+    description='Depth noise model, RGB-D dataset generation, denoising CM-VAE and the encoder node',
+    license='Apache-2.0',
+    tests_require=['pytest'],
+    entry_points={
+        'console_scripts': [
+            'encoder_node = assist_perception.encoder_node:main',
+            'make_dataset = assist_perception.dataset:main',
+            'train_cmvae = assist_perception.train:main',
+            'evaluate_cmvae = assist_perception.evaluate:main',
+        ],
+    },
+)

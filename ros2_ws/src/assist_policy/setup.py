@@ -1,0 +1,33 @@
+"""Build script for the assist_policy ament_python package (colcon and pip)."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = 'assist_policy'
+
+setup(
+    name=PACKAGE,
+    version='0.1.0',
+    packages=find_packages(exclude=['test']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
+        ('share/' + PACKAGE, ['package.xml']),
+        ('share/' + PACKAGE + '/config', glob('config/*.yaml')),
+        ('share/' + PACKAGE + '/launch', glob('launch/*.launch.py')),
+    ],
+    package_data={PACKAGE: ['data/*']},
+    install_requires=['setuptools'],
+    zip_safe=True,
+    maintainer='Assisted landing maintainers',
+    maintainer_email='maintainers@assist-landing.dev',
+    description='Observation building, blending rule, TD3 assistant training and evaluation against simulated pilots, policy node',
+    license='Apache-2.0',
+    tests_require=['pytest'],
+    entry_points={
+        'console_scripts': [
+            'policy_node = assist_policy.policy_node:main',
+            'train_td3 = assist_policy.train:main',
+            'evaluate = assist_policy.evaluate:main',
+        ],
+    },
+)

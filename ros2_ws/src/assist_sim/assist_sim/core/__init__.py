@@ -1,0 +1,1 @@
+"""Pure-Python simulation core (pybullet, numpy): no rclpy import anywhere below here."""
