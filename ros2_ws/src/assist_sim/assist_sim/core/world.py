@@ -1,0 +1,531 @@
+"""The landing world: pybullet scene, quadrotor with legs, velocity flight controller,
+ground-effect turbulence, downward RGB-D camera and the landing judge. No rclpy here."""
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import pybullet as p
+from pybullet_utils import bullet_client
+
+from .config import WorldConfig
+from .scene import PadSpec, SceneSpec, generate_scene
+from .textures import texture_path
+
+_LOG = logging.getLogger(__name__)
+N_LEGS = 4
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """Kinematic state of base_link in odom (ENU), velocities in odom except angular (body)."""
+
+    time: float
+    position: np.ndarray
+    quaternion: np.ndarray          # x, y, z, w (odom -> base_link)
+    velocity: np.ndarray            # m/s, odom frame
+    angular_velocity: np.ndarray    # rad/s, body frame
+    yaw: float
+    height_above_surface: float     # base_link above whatever is straight below it
+
+
+@dataclass(frozen=True)
+class CameraFrame:
+    """One downward RGB-D frame with intrinsics (optical frame: z out of the lens)."""
+
+    rgb: np.ndarray                 # HxWx3 uint8
+    depth: np.ndarray               # HxW float32, metres along the optical axis
+    K: np.ndarray                   # 3x3 intrinsics
+    time: float = 0.0
+
+    @property
+    def width(self) -> int:
+        """Image width in pixels."""
+        return int(self.rgb.shape[1])
+
+    @property
+    def height(self) -> int:
+        """Image height in pixels."""
+        return int(self.rgb.shape[0])
+
+
+@dataclass
+class LandingResult:
+    """Outcome of one landing, serialised as the contract's /sim/landing JSON."""
+
+    episode: int
+    goal_index: int
+    landed_index: int | None
+    nearest_index: int
+    error_m: float
+    nearest_error_m: float
+    success: bool
+    crash: bool
+    duration_s: float
+    assisted: bool = False
+    outcome: str = 'success'        # success | wrong_pad | edge | crash | timeout
+    reason: str = ''
+
+    def to_dict(self) -> dict:
+        """Plain dict with JSON-friendly values."""
+        return asdict(self)
+
+    def to_json(self) -> str:
+        """One JSON object (the /sim/landing message payload)."""
+        return json.dumps(self.to_dict())
+
+
+def yaw_rotation(yaw: float) -> np.ndarray:
+    """3x3 rotation about +z."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def camera_intrinsics(width: int, height: int, vertical_fov_deg: float) -> np.ndarray:
+    """Pinhole intrinsics of the OpenGL projection used by the renderer (square pixels)."""
+    fy = (height / 2.0) / math.tan(math.radians(vertical_fov_deg) / 2.0)
+    return np.array([[fy, 0.0, (width - 1) / 2.0], [0.0, fy, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
+
+
+def linearize_depth(zbuf: np.ndarray, near: float, far: float) -> np.ndarray:
+    """OpenGL z-buffer in [0,1] -> metric depth along the optical axis."""
+    return (far * near / (far - (far - near) * zbuf)).astype(np.float32)
+
+
+# Optical frame axes expressed in base_link (FLU): x_opt = -y_body, y_opt = -x_body, z_opt = -z_body.
+R_BODY_FROM_OPTICAL = np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+
+
+class LandingWorld:
+    """One pybullet world (own DIRECT client) that training, tests and sim_node all drive."""
+
+    def __init__(self, cfg: WorldConfig | None = None, seed: int = 0, gui: bool = False):
+        self.cfg = cfg or WorldConfig()
+        if self.cfg.physics_hz < 240:
+            raise ValueError('physics_hz must be >= 240')
+        if self.cfg.physics_hz % self.cfg.control_hz:
+            raise ValueError('physics_hz must be a multiple of control_hz')
+        self._bc = bullet_client.BulletClient(p.GUI if gui else p.DIRECT)
+        self._bc.setGravity(0, 0, -self.cfg.gravity_mps2)
+        self._bc.setPhysicsEngineParameter(fixedTimeStep=1.0 / self.cfg.physics_hz, numSubSteps=0,
+                                           deterministicOverlappingPairs=1)
+        self._seed_seq = np.random.SeedSequence(seed)
+        self._textures: dict[int, int] = {}
+        self._scene_bodies: list[int] = []
+        self._pad_ids: list[int] = []
+        self._floor_id = -1
+        self.scene: SceneSpec | None = None
+        self.goal_index = 0
+        self.episode = -1
+        self.time = 0.0
+        self._episode_start = 0.0
+        self._rng = np.random.default_rng(seed)
+        self._noise = np.zeros(3)
+        self._cmd_world = np.zeros(3)
+        self._yaw_target = 0.0
+        self._armed = True
+        self._judge_active = False
+        self._settle_timer = 0.0
+        self._was_touching = False
+        self.result: LandingResult | None = None
+        self._K = camera_intrinsics(self.cfg.camera.width, self.cfg.camera.height,
+                                    self.cfg.camera.vertical_fov_deg)
+        self._proj = self._bc.computeProjectionMatrixFOV(
+            self.cfg.camera.vertical_fov_deg, self.cfg.camera.width / self.cfg.camera.height,
+            self.cfg.camera.near_m, self.cfg.camera.far_m)
+        self._vehicle = self._build_vehicle()
+        self._mass = self.cfg.vehicle.mass_kg
+        self._inertia = np.array(self._bc.getDynamicsInfo(self._vehicle, -1)[2])
+
+    # ------------------------------------------------------------------ building
+    def _texture(self, material: int) -> int:
+        if material not in self._textures:
+            self._textures[material] = self._bc.loadTexture(
+                str(texture_path(material, self.cfg.scene.texture_px)))
+        return self._textures[material]
+
+    def _textured_quad(self, corners: np.ndarray, normal, tile_m: float) -> int:
+        """Visual shape of a flat quad (4 corners CCW seen from the normal) with tiled UVs."""
+        e1 = np.linalg.norm(corners[1] - corners[0]) / tile_m
+        e2 = np.linalg.norm(corners[3] - corners[0]) / tile_m
+        return self._bc.createVisualShape(
+            p.GEOM_MESH, vertices=corners.tolist(), indices=[0, 1, 2, 0, 2, 3],
+            uvs=[[0, 0], [e1, 0], [e1, e2], [0, e2]], normals=[list(normal)] * 4)
+
+    def _build_vehicle(self) -> int:
+        v = self.cfg.vehicle
+        bc = self._bc
+        body_col = bc.createCollisionShape(p.GEOM_BOX, halfExtents=v.body_half_extents_m)
+        body_vis = bc.createVisualShape(p.GEOM_BOX, halfExtents=v.body_half_extents_m,
+                                        rgbaColor=[0.15, 0.15, 0.15, 1])
+        leg_len = v.leg_length_m - v.body_half_extents_m[2]
+        leg_col = bc.createCollisionShape(p.GEOM_CAPSULE, radius=v.leg_radius_m,
+                                          height=max(leg_len - 2 * v.leg_radius_m, 1e-3))
+        leg_vis = bc.createVisualShape(p.GEOM_CAPSULE, radius=v.leg_radius_m,
+                                       length=max(leg_len - 2 * v.leg_radius_m, 1e-3),
+                                       rgbaColor=[0.3, 0.3, 0.3, 1])
+        o = v.leg_offset_m
+        zc = -v.body_half_extents_m[2] - leg_len / 2
+        leg_pos = [[o, o, zc], [o, -o, zc], [-o, o, zc], [-o, -o, zc]]
+        leg_mass = 0.02
+        vid = bc.createMultiBody(
+            baseMass=v.mass_kg - N_LEGS * leg_mass, baseCollisionShapeIndex=body_col,
+            baseVisualShapeIndex=body_vis, basePosition=[0, 0, 3],
+            linkMasses=[leg_mass] * N_LEGS, linkCollisionShapeIndices=[leg_col] * N_LEGS,
+            linkVisualShapeIndices=[leg_vis] * N_LEGS, linkPositions=leg_pos,
+            linkOrientations=[[0, 0, 0, 1]] * N_LEGS, linkInertialFramePositions=[[0, 0, 0]] * N_LEGS,
+            linkInertialFrameOrientations=[[0, 0, 0, 1]] * N_LEGS, linkParentIndices=[0] * N_LEGS,
+            linkJointTypes=[p.JOINT_FIXED] * N_LEGS, linkJointAxis=[[0, 0, 1]] * N_LEGS)
+        for link in range(-1, N_LEGS):
+            bc.changeDynamics(vid, link, lateralFriction=v.lateral_friction, linearDamping=0.0,
+                              angularDamping=0.0)
+        return vid
+
+    def _clear_scene(self) -> None:
+        for b in self._scene_bodies:
+            self._bc.removeBody(b)
+        self._scene_bodies, self._pad_ids = [], []
+
+    def _build_scene(self, scene: SceneSpec) -> None:
+        bc = self._bc
+        self._clear_scene()
+        (x0, y0), (x1, y1) = scene.room_min, scene.room_max
+        floor_vis = self._textured_quad(np.array([[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0]]),
+                                        (0, 0, 1), tile_m=1.5)
+        self._floor_id = bc.createMultiBody(0, bc.createCollisionShape(p.GEOM_PLANE), floor_vis)
+        bc.changeVisualShape(self._floor_id, -1, textureUniqueId=self._texture(scene.floor_material),
+                             rgbaColor=[1, 1, 1, 1])
+        bc.changeDynamics(self._floor_id, -1, lateralFriction=0.9)
+        self._scene_bodies.append(self._floor_id)
+        h = scene.wall_height
+        walls = [  # inward-facing quads
+            ([[x0, y1, 0], [x1, y1, 0], [x1, y1, h], [x0, y1, h]], (0, -1, 0)),
+            ([[x1, y0, 0], [x0, y0, 0], [x0, y0, h], [x1, y0, h]], (0, 1, 0)),
+            ([[x0, y0, 0], [x0, y1, 0], [x0, y1, h], [x0, y0, h]], (1, 0, 0)),
+            ([[x1, y1, 0], [x1, y0, 0], [x1, y0, h], [x1, y1, h]], (-1, 0, 0)),
+        ]
+        for corners, normal in walls:
+            corners = np.array(corners, dtype=float)
+            centre = corners.mean(axis=0)
+            vis = self._textured_quad(corners - centre, normal, tile_m=1.5)
+            half = np.abs(corners - centre).max(axis=0)
+            half = np.maximum(half, 0.05)
+            col = bc.createCollisionShape(p.GEOM_BOX, halfExtents=half.tolist())
+            wid = bc.createMultiBody(0, col, vis, basePosition=centre.tolist())
+            bc.changeVisualShape(wid, -1, textureUniqueId=self._texture(scene.wall_material),
+                                 rgbaColor=[1, 1, 1, 1])
+            self._scene_bodies.append(wid)
+        for pad in scene.pads:
+            half = [pad.length / 2, pad.width / 2, pad.height / 2]
+            col = bc.createCollisionShape(p.GEOM_BOX, halfExtents=half)
+            vis = bc.createVisualShape(p.GEOM_BOX, halfExtents=half)
+            pid = bc.createMultiBody(0, col, vis, basePosition=[pad.center[0], pad.center[1], pad.height / 2],
+                                     baseOrientation=bc.getQuaternionFromEuler([0, 0, pad.yaw]))
+            bc.changeVisualShape(pid, -1, textureUniqueId=self._texture(pad.material), rgbaColor=[1, 1, 1, 1])
+            bc.changeDynamics(pid, -1, lateralFriction=0.9)
+            self._pad_ids.append(pid)
+            self._scene_bodies.append(pid)
+
+    # ------------------------------------------------------------------ episodes
+    def reset(self, seed: int | None = None, *, scene: SceneSpec | None = None,
+              goal_index: int | None = None, start_position=None, airborne: bool = True) -> VehicleState:
+        """Start a new episode: new scene (from `seed` or the world's sequence), goal pad, start pose."""
+        if seed is None:
+            seed = int(self._seed_seq.spawn(1)[0].generate_state(1)[0] & 0x7FFFFFFF)
+        self._rng = np.random.default_rng(seed)
+        self.scene = scene if scene is not None else generate_scene(self._rng, self.cfg.scene)
+        self._build_scene(self.scene)
+        n = len(self.scene.pads)
+        self.goal_index = int(self._rng.integers(n)) if goal_index is None else int(goal_index)
+        if not 0 <= self.goal_index < n:
+            raise ValueError(f'goal_index {self.goal_index} out of range 0..{n - 1}')
+        start = np.array(self.scene.start_position if start_position is None else start_position, dtype=float)
+        if not airborne:
+            start[2] = self.cfg.vehicle.leg_length_m + 0.002
+        self._bc.resetBasePositionAndOrientation(self._vehicle, start.tolist(), [0, 0, 0, 1])
+        self._bc.resetBaseVelocity(self._vehicle, [0, 0, 0], [0, 0, 0])
+        self.episode += 1
+        self._episode_start = self.time
+        self._noise = np.zeros(3)
+        self._cmd_world = np.zeros(3)
+        self._yaw_target = 0.0
+        self._armed = airborne
+        self._judge_active = airborne and start[2] > self.cfg.judge.arm_height_m + self.cfg.judge.crash_height_m
+        self._settle_timer = 0.0
+        self._was_touching = False
+        self.result = None
+        return self.state
+
+    @property
+    def done(self) -> bool:
+        """True once the current episode has a result."""
+        return self.result is not None
+
+    @property
+    def goal_position(self) -> np.ndarray:
+        """Top-surface centre of the goal pad (odom ENU)."""
+        return self.scene.pads[self.goal_index].top_center
+
+    @property
+    def pad_top_centers(self) -> np.ndarray:
+        """(n_pads, 3) top-surface centres."""
+        return self.scene.pad_top_centers
+
+    # ------------------------------------------------------------------ arming / yaw
+    @property
+    def armed(self) -> bool:
+        """Motors produce thrust."""
+        return self._armed
+
+    def set_armed(self, armed: bool) -> None:
+        """Arm (thrust on) or disarm (no thrust: the vehicle falls or rests)."""
+        self._armed = bool(armed)
+
+    def set_yaw_target(self, yaw: float) -> None:
+        """Heading the attitude controller turns to (rate-limited); 0 by default."""
+        if not math.isfinite(yaw):
+            raise ValueError('yaw target must be finite')
+        self._yaw_target = float(yaw)
+
+    # ------------------------------------------------------------------ state
+    @property
+    def state(self) -> VehicleState:
+        """Current state of base_link."""
+        pos, orn = self._bc.getBasePositionAndOrientation(self._vehicle)
+        lin, ang = self._bc.getBaseVelocity(self._vehicle)
+        rot = np.array(self._bc.getMatrixFromQuaternion(orn)).reshape(3, 3)
+        yaw = math.atan2(rot[1, 0], rot[0, 0])
+        return VehicleState(time=self.time, position=np.array(pos), quaternion=np.array(orn),
+                            velocity=np.array(lin), angular_velocity=rot.T @ np.array(ang), yaw=yaw,
+                            height_above_surface=self._height_above_surface(np.array(pos)))
+
+    def _height_above_surface(self, pos: np.ndarray) -> float:
+        hit = self._bc.rayTest(pos.tolist(), [pos[0], pos[1], pos[2] - 50.0])[0]
+        # the ray starts inside the vehicle body, so skip the vehicle itself
+        if hit[0] == self._vehicle:
+            hits = self._bc.rayTestBatch([pos.tolist()], [[pos[0], pos[1], pos[2] - 50.0]],
+                                         reportHitNumber=2)
+            hit = hits[0] if hits and hits[0][0] != self._vehicle else hit
+        if hit[0] < 0:
+            return float(pos[2])
+        return float(pos[2] - hit[3][2])
+
+    @property
+    def landed(self) -> bool:
+        """Resting on something: a leg touches a surface and the vehicle is nearly still."""
+        st = self.state
+        return self._legs_touching() and float(np.linalg.norm(st.velocity)) < 0.2
+
+    def _contacts(self) -> list:
+        return self._bc.getContactPoints(bodyA=self._vehicle)
+
+    def _legs_touching(self) -> bool:
+        return any(c[3] >= 0 for c in self._contacts())
+
+    # ------------------------------------------------------------------ stepping
+    def step(self, cmd: np.ndarray, dt: float | None = None, frame: str = 'body') -> VehicleState:
+        """Fly velocity target `cmd` (body FLU by default, or 'world' ENU) for dt seconds."""
+        cmd = np.asarray(cmd, dtype=float).reshape(-1)
+        if cmd.shape != (3,) or not np.all(np.isfinite(cmd)):
+            raise ValueError(f'velocity command must be 3 finite numbers, got {cmd!r}')
+        dt = 1.0 / self.cfg.control_hz if dt is None else float(dt)
+        n = max(1, int(round(dt * self.cfg.physics_hz)))
+        yaw = self.state.yaw if frame == 'body' else 0.0
+        self._cmd_world = self._clamp_command(yaw_rotation(yaw) @ cmd if frame == 'body' else cmd)
+        self._update_turbulence(n / self.cfg.physics_hz)
+        for _ in range(n):
+            self._physics_tick()
+        return self.state
+
+    def _clamp_command(self, v: np.ndarray) -> np.ndarray:
+        c = self.cfg.controller
+        out = v.copy()
+        sp = float(np.hypot(out[0], out[1]))
+        if sp > c.max_speed_xy_mps:
+            out[:2] *= c.max_speed_xy_mps / sp
+        out[2] = float(np.clip(out[2], -c.max_descent_mps, c.max_climb_mps))
+        return out
+
+    def _update_turbulence(self, dt: float) -> None:
+        t = self.cfg.turbulence
+        if not t.enabled or not self._armed:
+            self._noise[:] = 0.0
+            return
+        h = max(0.0, self._height_above_surface(np.array(self.state.position)) - self.cfg.vehicle.leg_length_m)
+        sigma = t.sigma_far_mps + t.sigma_ground_mps * math.exp(-h / t.ground_scale_m)
+        a = math.exp(-dt / t.correlation_s)
+        self._noise = a * self._noise + math.sqrt(1 - a * a) * sigma * self._rng.standard_normal(3)
+
+    def _physics_tick(self) -> None:
+        bc, c, g = self._bc, self.cfg.controller, self.cfg.gravity_mps2
+        pos, orn = bc.getBasePositionAndOrientation(self._vehicle)
+        lin, ang = bc.getBaseVelocity(self._vehicle)
+        v = np.array(lin)
+        if self._armed:
+            target = self._cmd_world + self._noise
+            touching = self._was_touching
+            if touching and self._cmd_world[2] <= 0.0:
+                # ArduCopter's land detector: on the ground and not climbing -> spool down.
+                force = np.array([0.0, 0.0, c.min_thrust_fraction * self._mass * g])
+            else:
+                acc = np.empty(3)
+                acc[:2] = c.kp_xy * (target[:2] - v[:2])
+                a_xy = float(np.hypot(acc[0], acc[1]))
+                if a_xy > c.max_accel_xy_mps2:
+                    acc[:2] *= c.max_accel_xy_mps2 / a_xy
+                acc[2] = float(np.clip(c.kp_z * (target[2] - v[2]), -c.max_accel_z_mps2, c.max_accel_z_mps2))
+                force = self._mass * (acc + np.array([0.0, 0.0, g]))
+                force[2] = max(force[2], 0.0)
+            bc.applyExternalForce(self._vehicle, -1, force.tolist(), pos, p.WORLD_FRAME)
+            # attitude hold: level with the commanded heading (rate-limited yaw)
+            rot = np.array(bc.getMatrixFromQuaternion(orn)).reshape(3, 3)
+            yaw = math.atan2(rot[1, 0], rot[0, 0])
+            yaw_err = (self._yaw_target - yaw + math.pi) % (2 * math.pi) - math.pi
+            yaw_rate_cmd = float(np.clip(2.0 * yaw_err, -c.yaw_rate_max_rad_s, c.yaw_rate_max_rad_s))
+            z_axis = rot[:, 2]
+            tilt_err = np.cross(z_axis, np.array([0.0, 0.0, 1.0]))
+            w = np.array(ang)
+            alpha = c.attitude_kp * tilt_err - c.attitude_kd * np.array([w[0], w[1], 0.0])
+            alpha[2] = c.attitude_kd * (yaw_rate_cmd - w[2])
+            torque = rot @ (self._inertia * (rot.T @ alpha))
+            bc.applyExternalTorque(self._vehicle, -1, torque.tolist(), p.WORLD_FRAME)
+        bc.stepSimulation()
+        self.time += 1.0 / self.cfg.physics_hz
+        self._judge(v)
+
+    # ------------------------------------------------------------------ judge
+    def _judge(self, v_before: np.ndarray) -> None:
+        j = self.cfg.judge
+        pos, orn = self._bc.getBasePositionAndOrientation(self._vehicle)
+        contacts = self._contacts()
+        touching = len(contacts) > 0
+        new_contact = touching and not self._was_touching
+        self._was_touching = touching
+        if self.result is not None:
+            return
+        if not self._judge_active:
+            if pos[2] > j.arm_height_m + j.crash_height_m:
+                self._judge_active = True
+            return
+        duration = self.time - self._episode_start
+        if new_contact and float(np.linalg.norm(v_before)) > j.crash_speed_mps:
+            self._finish('crash', None, f'impact at {np.linalg.norm(v_before):.2f} m/s')
+            return
+        rot = np.array(self._bc.getMatrixFromQuaternion(orn)).reshape(3, 3)
+        if math.acos(float(np.clip(rot[2, 2], -1, 1))) > j.crash_tilt_rad:
+            self._finish('crash', None, 'tipped over')
+            return
+        legs_on: dict[int, set[int]] = {}
+        for c in contacts:
+            if c[3] >= 0:
+                legs_on.setdefault(c[2], set()).add(c[3])
+        pad_legs = {self._pad_ids.index(b): legs for b, legs in legs_on.items() if b in self._pad_ids}
+        full_pad = next((k for k, legs in pad_legs.items() if len(legs) == N_LEGS), None)
+        if pos[2] < j.crash_height_m and full_pad is None:
+            self._finish('crash', None, 'fell below the crash height')
+            return
+        lin, _ = self._bc.getBaseVelocity(self._vehicle)
+        if touching and float(np.linalg.norm(lin)) < j.settle_speed_mps:
+            self._settle_timer += 1.0 / self.cfg.physics_hz
+        else:
+            self._settle_timer = 0.0
+        if self._settle_timer >= j.settle_time_s:
+            if full_pad is not None:
+                self._finish('success' if full_pad == self.goal_index else 'wrong_pad', full_pad, 'landed')
+            elif pad_legs:
+                most = max(pad_legs, key=lambda k: len(pad_legs[k]))
+                self._finish('edge', most, f'{len(pad_legs[most])} of {N_LEGS} legs on pad {most}')
+            elif self._floor_id in legs_on:
+                self._finish('crash', None, 'landed on the floor')
+            else:
+                self._finish('edge', None, 'resting on something that is not a pad')
+            return
+        if duration >= j.max_episode_s:
+            self._finish('timeout', None, f'no landing within {j.max_episode_s:.0f} s')
+
+    def _finish(self, outcome: str, landed_index: int | None, reason: str) -> None:
+        pos = np.array(self._bc.getBasePositionAndOrientation(self._vehicle)[0])
+        centres = self.scene.pad_top_centers[:, :2]
+        dists = np.linalg.norm(centres - pos[:2], axis=1)
+        nearest = int(np.argmin(dists))
+        self.result = LandingResult(
+            episode=self.episode, goal_index=self.goal_index, landed_index=landed_index,
+            nearest_index=nearest, error_m=float(dists[self.goal_index]),
+            nearest_error_m=float(dists[nearest]), success=outcome == 'success',
+            crash=outcome == 'crash', duration_s=float(self.time - self._episode_start),
+            outcome=outcome, reason=reason)
+        _LOG.debug('episode %d finished: %s (%s)', self.episode, outcome, reason)
+
+    # ------------------------------------------------------------------ camera
+    def camera_pose(self, position=None, yaw: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Optical centre (odom) and R_world_from_optical, for the vehicle or a given base pose."""
+        if position is None:
+            pos, orn = self._bc.getBasePositionAndOrientation(self._vehicle)
+            r_wb = np.array(self._bc.getMatrixFromQuaternion(orn)).reshape(3, 3)
+            base = np.array(pos)
+        else:
+            base = np.asarray(position, dtype=float)
+            r_wb = yaw_rotation(0.0 if yaw is None else yaw)
+        cam = base + r_wb @ np.array([0.0, 0.0, -self.cfg.camera.offset_below_base_m])
+        return cam, r_wb @ R_BODY_FROM_OPTICAL
+
+    def render(self) -> CameraFrame:
+        """RGB-D frame from the vehicle's downward camera."""
+        cam, r_wo = self.camera_pose()
+        return self._render(cam, r_wo)
+
+    def render_from(self, position, yaw: float = 0.0) -> CameraFrame:
+        """RGB-D frame as if base_link were level at `position` with heading `yaw`."""
+        cam, r_wo = self.camera_pose(position, yaw)
+        saved = self._bc.getBasePositionAndOrientation(self._vehicle)
+        vel = self._bc.getBaseVelocity(self._vehicle)
+        # move the airframe to the camera pose so it is behind the lens, as in flight
+        self._bc.resetBasePositionAndOrientation(
+            self._vehicle, np.asarray(position, dtype=float).tolist(),
+            self._bc.getQuaternionFromEuler([0, 0, yaw]))
+        try:
+            return self._render(cam, r_wo)
+        finally:
+            self._bc.resetBasePositionAndOrientation(self._vehicle, *saved)
+            self._bc.resetBaseVelocity(self._vehicle, *vel)
+
+    def _render(self, cam: np.ndarray, r_wo: np.ndarray) -> CameraFrame:
+        c = self.cfg.camera
+        forward = r_wo[:, 2]
+        up = -r_wo[:, 1]                      # image up = -optical y
+        view = self._bc.computeViewMatrix(cam.tolist(), (cam + forward).tolist(), up.tolist())
+        _, _, rgba, zbuf, _ = self._bc.getCameraImage(
+            c.width, c.height, view, self._proj, renderer=p.ER_TINY_RENDERER,
+            flags=p.ER_NO_SEGMENTATION_MASK, shadow=0)
+        rgb = np.asarray(rgba, dtype=np.uint8).reshape(c.height, c.width, 4)[:, :, :3].copy()
+        depth = linearize_depth(np.asarray(zbuf, dtype=np.float32).reshape(c.height, c.width),
+                                c.near_m, c.far_m)
+        return CameraFrame(rgb=rgb, depth=depth, K=self._K.copy(), time=self.time)
+
+    @property
+    def camera_intrinsics(self) -> np.ndarray:
+        """3x3 K of the configured camera."""
+        return self._K.copy()
+
+    # ------------------------------------------------------------------ misc
+    def pad_under(self, xy) -> int | None:
+        """Index of the pad whose top surface covers world point xy, if any."""
+        for i, pad in enumerate(self.scene.pads):
+            if pad.contains_xy(np.asarray(xy)):
+                return i
+        return None
+
+    def close(self) -> None:
+        """Disconnect the pybullet client."""
+        if self._bc is not None:
+            try:
+                self._bc.disconnect()
+            finally:
+                self._bc = None
+
+
+__all__ = ['LandingWorld', 'VehicleState', 'CameraFrame', 'LandingResult', 'PadSpec', 'SceneSpec',
+           'camera_intrinsics', 'linearize_depth', 'yaw_rotation', 'R_BODY_FROM_OPTICAL']
