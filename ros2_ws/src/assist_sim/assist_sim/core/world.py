@@ -109,6 +109,8 @@ class LandingWorld:
         if self.cfg.physics_hz % self.cfg.control_hz:
             raise ValueError('physics_hz must be a multiple of control_hz')
         self._bc = bullet_client.BulletClient(p.GUI if gui else p.DIRECT)
+        self._cid = self._bc._client
+        self._tick_dt = 1.0 / self.cfg.physics_hz
         self._bc.setGravity(0, 0, -self.cfg.gravity_mps2)
         self._bc.setPhysicsEngineParameter(fixedTimeStep=1.0 / self.cfg.physics_hz, numSubSteps=0,
                                            deterministicOverlappingPairs=1)
@@ -333,9 +335,14 @@ class LandingWorld:
             raise ValueError(f'velocity command must be 3 finite numbers, got {cmd!r}')
         dt = 1.0 / self.cfg.control_hz if dt is None else float(dt)
         n = max(1, int(round(dt * self.cfg.physics_hz)))
-        yaw = self.state.yaw if frame == 'body' else 0.0
-        self._cmd_world = self._clamp_command(yaw_rotation(yaw) @ cmd if frame == 'body' else cmd)
-        self._update_turbulence(n / self.cfg.physics_hz)
+        pos, orn = p.getBasePositionAndOrientation(self._vehicle, physicsClientId=self._cid)
+        if frame == 'body':
+            r = p.getMatrixFromQuaternion(orn)
+            cmd = yaw_rotation(math.atan2(r[3], r[0])) @ cmd
+        elif frame != 'world':
+            raise ValueError(f"frame must be 'body' or 'world', got {frame!r}")
+        self._cmd_world = self._clamp_command(cmd)
+        self._update_turbulence(np.asarray(pos), n / self.cfg.physics_hz)
         for _ in range(n):
             self._physics_tick()
         return self.state
@@ -349,73 +356,71 @@ class LandingWorld:
         out[2] = float(np.clip(out[2], -c.max_descent_mps, c.max_climb_mps))
         return out
 
-    def _update_turbulence(self, dt: float) -> None:
+    def _update_turbulence(self, pos: np.ndarray, dt: float) -> None:
         t = self.cfg.turbulence
         if not t.enabled or not self._armed:
             self._noise[:] = 0.0
             return
-        h = max(0.0, self._height_above_surface(np.array(self.state.position)) - self.cfg.vehicle.leg_length_m)
+        h = max(0.0, self._height_above_surface(pos) - self.cfg.vehicle.leg_length_m)
         sigma = t.sigma_far_mps + t.sigma_ground_mps * math.exp(-h / t.ground_scale_m)
         a = math.exp(-dt / t.correlation_s)
         self._noise = a * self._noise + math.sqrt(1 - a * a) * sigma * self._rng.standard_normal(3)
 
     def _physics_tick(self) -> None:
-        bc, c, g = self._bc, self.cfg.controller, self.cfg.gravity_mps2
-        pos, orn = bc.getBasePositionAndOrientation(self._vehicle)
-        lin, ang = bc.getBaseVelocity(self._vehicle)
-        v = np.array(lin)
+        # Hot path (physics_hz): raw pybullet calls with the client id, plain float maths.
+        cid, vid, c, g = self._cid, self._vehicle, self.cfg.controller, self.cfg.gravity_mps2
+        pos, orn = p.getBasePositionAndOrientation(vid, physicsClientId=cid)
+        lin, ang = p.getBaseVelocity(vid, physicsClientId=cid)
         if self._armed:
-            target = self._cmd_world + self._noise
-            touching = self._was_touching
-            if touching and self._cmd_world[2] <= 0.0:
+            tx, ty, tz = self._cmd_world + self._noise
+            m = self._mass
+            if self._was_touching and self._cmd_world[2] <= 0.0:
                 # ArduCopter's land detector: on the ground and not climbing -> spool down.
-                force = np.array([0.0, 0.0, c.min_thrust_fraction * self._mass * g])
+                fx, fy, fz = 0.0, 0.0, c.min_thrust_fraction * m * g
             else:
-                acc = np.empty(3)
-                acc[:2] = c.kp_xy * (target[:2] - v[:2])
-                a_xy = float(np.hypot(acc[0], acc[1]))
+                ax, ay = c.kp_xy * (tx - lin[0]), c.kp_xy * (ty - lin[1])
+                a_xy = math.hypot(ax, ay)
                 if a_xy > c.max_accel_xy_mps2:
-                    acc[:2] *= c.max_accel_xy_mps2 / a_xy
-                acc[2] = float(np.clip(c.kp_z * (target[2] - v[2]), -c.max_accel_z_mps2, c.max_accel_z_mps2))
-                force = self._mass * (acc + np.array([0.0, 0.0, g]))
-                force[2] = max(force[2], 0.0)
-            bc.applyExternalForce(self._vehicle, -1, force.tolist(), pos, p.WORLD_FRAME)
-            # attitude hold: level with the commanded heading (rate-limited yaw)
-            rot = np.array(bc.getMatrixFromQuaternion(orn)).reshape(3, 3)
-            yaw = math.atan2(rot[1, 0], rot[0, 0])
+                    ax, ay = ax * c.max_accel_xy_mps2 / a_xy, ay * c.max_accel_xy_mps2 / a_xy
+                az = min(max(c.kp_z * (tz - lin[2]), -c.max_accel_z_mps2), c.max_accel_z_mps2)
+                fx, fy, fz = m * ax, m * ay, max(m * (az + g), 0.0)
+            p.applyExternalForce(vid, -1, (fx, fy, fz), pos, p.WORLD_FRAME, physicsClientId=cid)
+            # attitude hold: level, with the commanded heading (rate-limited yaw)
+            r = p.getMatrixFromQuaternion(orn)
+            yaw = math.atan2(r[3], r[0])
             yaw_err = (self._yaw_target - yaw + math.pi) % (2 * math.pi) - math.pi
-            yaw_rate_cmd = float(np.clip(2.0 * yaw_err, -c.yaw_rate_max_rad_s, c.yaw_rate_max_rad_s))
-            z_axis = rot[:, 2]
-            tilt_err = np.cross(z_axis, np.array([0.0, 0.0, 1.0]))
-            w = np.array(ang)
-            alpha = c.attitude_kp * tilt_err - c.attitude_kd * np.array([w[0], w[1], 0.0])
-            alpha[2] = c.attitude_kd * (yaw_rate_cmd - w[2])
-            torque = rot @ (self._inertia * (rot.T @ alpha))
-            bc.applyExternalTorque(self._vehicle, -1, torque.tolist(), p.WORLD_FRAME)
-        bc.stepSimulation()
-        self.time += 1.0 / self.cfg.physics_hz
-        self._judge(v)
+            yaw_rate_cmd = min(max(2.0 * yaw_err, -c.yaw_rate_max_rad_s), c.yaw_rate_max_rad_s)
+            # tilt error = body z axis x world z axis
+            ex, ey = r[5], -r[2]
+            kp, kd = c.attitude_kp, c.attitude_kd
+            alpha_w = np.array([kp * ex - kd * ang[0], kp * ey - kd * ang[1], kd * (yaw_rate_cmd - ang[2])])
+            rot = np.array(r).reshape(3, 3)
+            torque = rot @ (self._inertia * (rot.T @ alpha_w))
+            p.applyExternalTorque(vid, -1, torque.tolist(), p.WORLD_FRAME, physicsClientId=cid)
+        p.stepSimulation(physicsClientId=cid)
+        self.time += self._tick_dt
+        self._judge(lin)
 
     # ------------------------------------------------------------------ judge
     def _judge(self, v_before: np.ndarray) -> None:
         j = self.cfg.judge
-        pos, orn = self._bc.getBasePositionAndOrientation(self._vehicle)
-        contacts = self._contacts()
+        contacts = p.getContactPoints(bodyA=self._vehicle, physicsClientId=self._cid)
         touching = len(contacts) > 0
         new_contact = touching and not self._was_touching
         self._was_touching = touching
         if self.result is not None:
             return
+        pos, orn = p.getBasePositionAndOrientation(self._vehicle, physicsClientId=self._cid)
         if not self._judge_active:
             if pos[2] > j.arm_height_m + j.crash_height_m:
                 self._judge_active = True
             return
-        duration = self.time - self._episode_start
-        if new_contact and float(np.linalg.norm(v_before)) > j.crash_speed_mps:
-            self._finish('crash', None, f'impact at {np.linalg.norm(v_before):.2f} m/s')
+        impact = math.sqrt(v_before[0] ** 2 + v_before[1] ** 2 + v_before[2] ** 2)
+        if new_contact and impact > j.crash_speed_mps:
+            self._finish('crash', None, f'impact at {impact:.2f} m/s')
             return
-        rot = np.array(self._bc.getMatrixFromQuaternion(orn)).reshape(3, 3)
-        if math.acos(float(np.clip(rot[2, 2], -1, 1))) > j.crash_tilt_rad:
+        r22 = p.getMatrixFromQuaternion(orn)[8]
+        if math.acos(min(max(r22, -1.0), 1.0)) > j.crash_tilt_rad:
             self._finish('crash', None, 'tipped over')
             return
         legs_on: dict[int, set[int]] = {}
@@ -427,8 +432,8 @@ class LandingWorld:
         if pos[2] < j.crash_height_m and full_pad is None:
             self._finish('crash', None, 'fell below the crash height')
             return
-        lin, _ = self._bc.getBaseVelocity(self._vehicle)
-        if touching and float(np.linalg.norm(lin)) < j.settle_speed_mps:
+        if touching and math.sqrt(sum(x * x for x in p.getBaseVelocity(
+                self._vehicle, physicsClientId=self._cid)[0])) < j.settle_speed_mps:
             self._settle_timer += 1.0 / self.cfg.physics_hz
         else:
             self._settle_timer = 0.0
@@ -443,7 +448,7 @@ class LandingWorld:
             else:
                 self._finish('edge', None, 'resting on something that is not a pad')
             return
-        if duration >= j.max_episode_s:
+        if self.time - self._episode_start >= j.max_episode_s:
             self._finish('timeout', None, f'no landing within {j.max_episode_s:.0f} s')
 
     def _finish(self, outcome: str, landed_index: int | None, reason: str) -> None:
