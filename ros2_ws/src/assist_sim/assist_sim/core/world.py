@@ -84,6 +84,12 @@ def yaw_rotation(yaw: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def turbulence_sigma(height_m: float, cfg) -> float:
+    """Std of the target-velocity noise at a leg clearance `height_m` above the surface below."""
+    h = max(0.0, float(height_m))
+    return cfg.sigma_far_mps + cfg.sigma_ground_mps * math.exp(-h / cfg.ground_scale_m)
+
+
 def camera_intrinsics(width: int, height: int, vertical_fov_deg: float) -> np.ndarray:
     """Pinhole intrinsics of the OpenGL projection used by the renderer (square pixels)."""
     fy = (height / 2.0) / math.tan(math.radians(vertical_fov_deg) / 2.0)
@@ -276,6 +282,11 @@ class LandingWorld:
         """(n_pads, 3) top-surface centres."""
         return self.scene.pad_top_centers
 
+    @property
+    def turbulence_velocity(self) -> np.ndarray:
+        """Turbulence currently added to the target velocity (odom ENU, m/s)."""
+        return self._noise.copy()
+
     # ------------------------------------------------------------------ arming / yaw
     @property
     def armed(self) -> bool:
@@ -361,8 +372,7 @@ class LandingWorld:
         if not t.enabled or not self._armed:
             self._noise[:] = 0.0
             return
-        h = max(0.0, self._height_above_surface(pos) - self.cfg.vehicle.leg_length_m)
-        sigma = t.sigma_far_mps + t.sigma_ground_mps * math.exp(-h / t.ground_scale_m)
+        sigma = turbulence_sigma(self._height_above_surface(pos) - self.cfg.vehicle.leg_length_m, t)
         a = math.exp(-dt / t.correlation_s)
         self._noise = a * self._noise + math.sqrt(1 - a * a) * sigma * self._rng.standard_normal(3)
 
@@ -533,4 +543,4 @@ class LandingWorld:
 
 
 __all__ = ['LandingWorld', 'VehicleState', 'CameraFrame', 'LandingResult', 'PadSpec', 'SceneSpec',
-           'camera_intrinsics', 'linearize_depth', 'yaw_rotation', 'R_BODY_FROM_OPTICAL']
+           'camera_intrinsics', 'linearize_depth', 'turbulence_sigma', 'yaw_rotation', 'R_BODY_FROM_OPTICAL']

@@ -1,0 +1,264 @@
+"""sim_node: the pybullet landing world as a ROS 2 node (thin shell over assist_sim.core)."""
+from __future__ import annotations
+
+import math
+import sys
+import threading
+import time
+
+import numpy as np
+from geometry_msgs.msg import PointStamped, TwistStamped
+from nav_msgs.msg import Odometry
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+from .core.config import WorldConfig
+from .core.runner import RunnerConfig, SimRunner, StepOutput
+from .core.world import LandingWorld
+from .ros_common import (LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param,
+                         StartupError, declare_parameters, run_node, twist_to_array)
+
+PARAMS = {
+    'seed': Param(0, 'Seed of the scene and episode sequence; same seed, same episodes.'),
+    'real_time_factor': Param(1.0, 'Sim speed: 1.0 = wall clock, 10.0 = ten times faster, 0 = as fast as possible.'),
+    'camera_width': Param(64, 'Camera image width in pixels.'),
+    'camera_height': Param(64, 'Camera image height in pixels.'),
+    'camera_rate_hz': Param(20.0, 'Camera frame rate in sim time (0 disables the camera).'),
+    'auto_reset': Param(True, 'Start the next episode automatically after a landing.'),
+    'reset_delay_s': Param(1.0, 'Sim seconds between a landing and the next episode (auto_reset).'),
+    'mavlink_url': Param('', 'Empty: driven by /cmd_vel. Else act as a MAVLink vehicle on this pymavlink '
+                              'address (e.g. tcpin:127.0.0.1:5760); then the sim runs at wall-clock speed.'),
+    'gui': Param(False, 'Open the pybullet GUI window (needs a display).'),
+    'world_config': Param('', 'Optional YAML file overriding assist_sim.core.config.WorldConfig fields.'),
+    'cmd_timeout_s': Param(0.5, '/cmd_vel older than this (sim time) counts as absent: the vehicle hovers.'),
+    'max_cmd_speed_mps': Param(5.0, 'Commands faster than this are rejected as out of range.'),
+    'turbulence': Param(True, 'Ground-effect turbulence on the target velocity.'),
+    'odom_frame': Param('odom', 'World frame id (ENU).'),
+    'base_frame': Param('base_link', 'Body frame id (FLU).'),
+    'camera_frame': Param('camera_optical_frame', 'Optical frame id of the camera images.'),
+}
+ACCEPTED_CMD_FRAMES = ('', 'base_link')
+
+
+class SimNode(Node):
+    """Publishes camera, odometry, clock, goal and landings; flies /cmd_vel."""
+
+    def __init__(self, **kwargs):
+        super().__init__('sim_node', **kwargs)
+        self.p = declare_parameters(self, PARAMS)
+        self.diag = Diagnostics(self)
+        try:
+            cfg = WorldConfig.from_yaml(self.p['world_config']) if self.p['world_config'] else WorldConfig()
+        except (OSError, ValueError, TypeError) as exc:
+            raise StartupError(f"sim_node: cannot load world_config '{self.p['world_config']}': {exc}") from exc
+        if self.p['camera_width'] <= 0 or self.p['camera_height'] <= 0:
+            raise StartupError('sim_node: camera_width and camera_height must be positive')
+        if self.p['real_time_factor'] < 0 or not math.isfinite(self.p['real_time_factor']):
+            raise StartupError('sim_node: real_time_factor must be >= 0 (0 = as fast as possible)')
+        cfg.camera.width, cfg.camera.height = int(self.p['camera_width']), int(self.p['camera_height'])
+        cfg.turbulence.enabled = bool(self.p['turbulence'])
+        self.mavlink = bool(self.p['mavlink_url'])
+        self.world = LandingWorld(cfg, seed=int(self.p['seed']), gui=bool(self.p['gui']))
+        self.runner = SimRunner(self.world, RunnerConfig(
+            camera_rate_hz=float(self.p['camera_rate_hz']), auto_reset=bool(self.p['auto_reset']),
+            reset_delay_s=float(self.p['reset_delay_s']), cmd_timeout_s=float(self.p['cmd_timeout_s']),
+            max_cmd_speed_mps=float(self.p['max_cmd_speed_mps']), airborne_start=not self.mavlink))
+        self.vehicle = None
+        if self.mavlink:
+            from .mavlink_vehicle import MavlinkVehicle
+            try:
+                self.vehicle = MavlinkVehicle(self.world, self.p['mavlink_url'])
+            except (OSError, ValueError) as exc:
+                raise StartupError(f"sim_node: cannot open MAVLink endpoint '{self.p['mavlink_url']}': {exc}") from exc
+        self.rtf = 1.0 if self.mavlink else float(self.p['real_time_factor'])
+        self.lock = threading.Lock()
+
+        self.pub_rgb = self.create_publisher(Image, '/camera/color/image_raw', SENSOR_QOS)
+        self.pub_depth = self.create_publisher(Image, '/camera/depth/image_raw', SENSOR_QOS)
+        self.pub_info = self.create_publisher(CameraInfo, '/camera/color/camera_info', SENSOR_QOS)
+        self.pub_odom = None if self.mavlink else self.create_publisher(Odometry, '/odom', SENSOR_QOS)
+        self.pub_clock = self.create_publisher(Clock, '/clock', 10)
+        self.pub_goal = self.create_publisher(PointStamped, '/sim/goal', LATCHED_QOS)
+        self.pub_landing = self.create_publisher(String, '/sim/landing', LANDING_QOS)
+        group = MutuallyExclusiveCallbackGroup()
+        if not self.mavlink:
+            self.create_subscription(TwistStamped, '/cmd_vel', self._on_cmd, RELIABLE_QOS, callback_group=group)
+        self.create_subscription(TwistStamped, '/assist/agent_cmd', self._on_agent, RELIABLE_QOS,
+                                 callback_group=group)
+        self.create_service(Trigger, '/sim/reset', self._on_reset, callback_group=group)
+
+        with self.lock:
+            self.runner.reset()
+        self._publish_goal()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name='sim_loop', daemon=True)
+        self._thread.start()
+        self.get_logger().info(
+            f"sim_node up: seed={self.p['seed']} rtf={self.rtf or 'max'} camera="
+            f"{cfg.camera.width}x{cfg.camera.height}@{self.p['camera_rate_hz']}Hz "
+            f"{'MAVLink vehicle on ' + self.p['mavlink_url'] if self.mavlink else 'driven by /cmd_vel'}")
+
+    # ------------------------------------------------------------------ inputs
+    def _on_cmd(self, msg: TwistStamped) -> None:
+        if msg.header.frame_id not in ACCEPTED_CMD_FRAMES:
+            self.diag.count('cmd_rejected_frame')
+            self.get_logger().warning(f"/cmd_vel rejected: frame '{msg.header.frame_id}' is not base_link",
+                                      throttle_duration_sec=2.0)
+            return
+        ang = msg.twist.angular
+        if not all(math.isfinite(x) for x in (ang.x, ang.y, ang.z)):
+            reason = 'non-finite angular component'
+        else:
+            with self.lock:
+                reason = self.runner.set_command(twist_to_array(msg))
+        if reason:
+            self.diag.count('cmd_rejected')
+            self.get_logger().warning(f'/cmd_vel rejected: {reason}', throttle_duration_sec=2.0)
+
+    def _on_agent(self, msg: TwistStamped) -> None:
+        with self.lock:
+            self.runner.note_agent_command()
+
+    def _on_reset(self, request, response):
+        with self.lock:
+            self.runner.reset()
+            episode, goal = self.world.episode, self.world.goal_index
+        self._publish_goal()
+        response.success = True
+        response.message = f'episode {episode}: goal pad {goal}'
+        return response
+
+    # ------------------------------------------------------------------ loop
+    def _loop(self) -> None:
+        """Sim thread: steps the world at real_time_factor (rendering happens here, off the executor)."""
+        dt = 1.0 / self.world.cfg.control_hz
+        wall0, sim0 = time.monotonic(), self.world.time
+        n_steps = 0
+        while not self._stop.is_set():
+            if self.rtf > 0:
+                ahead = (self.world.time - sim0) - (time.monotonic() - wall0) * self.rtf
+                if ahead > 0:
+                    time.sleep(min(ahead / self.rtf, 0.05))
+                    continue
+                if -ahead > 1.0 * max(self.rtf, 1.0):  # more than 1 s behind: re-anchor, don't burst
+                    wall0, sim0 = time.monotonic(), self.world.time
+            try:
+                with self.lock:
+                    out = self.runner.step(self.vehicle.step if self.vehicle else None)
+            except Exception as exc:  # noqa: BLE001 - keep the sim alive, report loudly
+                self.diag.count('step_errors')
+                self.get_logger().error(f'sim step failed: {exc!r}', throttle_duration_sec=1.0)
+                time.sleep(dt)
+                continue
+            self._publish(out)
+            n_steps += 1
+            if n_steps % 100 == 0:
+                wall = time.monotonic() - wall0
+                if wall > 0:
+                    self.diag.set('measured_real_time_factor', f'{(self.world.time - sim0) / wall:.2f}')
+            if self.rtf == 0:
+                time.sleep(0)  # yield the GIL to the executor threads
+
+    def _stamp(self, sim_time: float):
+        msg = Clock()
+        msg.clock.sec = int(math.floor(sim_time))
+        msg.clock.nanosec = int(round((sim_time - math.floor(sim_time)) * 1e9)) % 1_000_000_000
+        return msg
+
+    def _publish(self, out: StepOutput) -> None:
+        clock = self._stamp(out.state.time)
+        self.pub_clock.publish(clock)
+        stamp = clock.clock
+        if self.pub_odom is not None:
+            self.pub_odom.publish(self._odometry(out.state, stamp))
+        if out.frame is not None:
+            self._publish_frame(out.frame, stamp)
+        if out.landing is not None:
+            self.pub_landing.publish(String(data=out.landing.to_json()))
+            self.diag.count('episodes')
+            self.diag.count(f'outcome_{out.landing.outcome}')
+            self.get_logger().info(
+                f'landing: episode {out.landing.episode} {out.landing.outcome} '
+                f'error {out.landing.error_m:.2f} m ({out.landing.reason})')
+        if out.new_episode:
+            self._publish_goal()
+
+    def _odometry(self, st, stamp) -> Odometry:
+        msg = Odometry()
+        msg.header.stamp = stamp
+        msg.header.frame_id = self.p['odom_frame']
+        msg.child_frame_id = self.p['base_frame']
+        pp = msg.pose.pose
+        pp.position.x, pp.position.y, pp.position.z = (float(x) for x in st.position)
+        q = st.quaternion
+        pp.orientation.x, pp.orientation.y, pp.orientation.z, pp.orientation.w = (float(x) for x in q)
+        rot = _quat_to_matrix(q)
+        v_body = rot.T @ st.velocity                    # REP-105: twist in child_frame_id
+        tw = msg.twist.twist
+        tw.linear.x, tw.linear.y, tw.linear.z = (float(x) for x in v_body)
+        tw.angular.x, tw.angular.y, tw.angular.z = (float(x) for x in st.angular_velocity)
+        return msg
+
+    def _publish_frame(self, frame, stamp) -> None:
+        fid = self.p['camera_frame']
+        rgb = Image()
+        rgb.header.stamp, rgb.header.frame_id = stamp, fid
+        rgb.height, rgb.width = frame.rgb.shape[:2]
+        rgb.encoding, rgb.is_bigendian, rgb.step = 'rgb8', 0, frame.width * 3
+        rgb.data = frame.rgb.tobytes()
+        depth = Image()
+        depth.header.stamp, depth.header.frame_id = stamp, fid
+        depth.height, depth.width = frame.depth.shape
+        depth.encoding, depth.is_bigendian, depth.step = '32FC1', int(sys.byteorder == 'big'), frame.width * 4
+        depth.data = frame.depth.astype(np.float32).tobytes()
+        info = CameraInfo()
+        info.header.stamp, info.header.frame_id = stamp, fid
+        info.height, info.width = frame.height, frame.width
+        info.distortion_model = 'plumb_bob'
+        info.d = [0.0] * 5
+        info.k = [float(x) for x in frame.K.reshape(-1)]
+        info.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+        info.p = [float(frame.K[0, 0]), 0.0, float(frame.K[0, 2]), 0.0,
+                  0.0, float(frame.K[1, 1]), float(frame.K[1, 2]), 0.0, 0.0, 0.0, 1.0, 0.0]
+        self.pub_rgb.publish(rgb)
+        self.pub_depth.publish(depth)
+        self.pub_info.publish(info)
+
+    def _publish_goal(self) -> None:
+        with self.lock:
+            g = self.world.goal_position
+            stamp = self._stamp(self.world.time).clock
+        msg = PointStamped()
+        msg.header.stamp, msg.header.frame_id = stamp, self.p['odom_frame']
+        msg.point.x, msg.point.y, msg.point.z = (float(x) for x in g)
+        self.pub_goal.publish(msg)
+
+    def close(self) -> None:
+        """Stop the sim thread and release the world and MAVLink endpoint."""
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=2.0)
+        if self.vehicle is not None:
+            self.vehicle.close()
+        self.world.close()
+
+
+def _quat_to_matrix(q) -> np.ndarray:
+    x, y, z, w = (float(v) for v in q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def main(args=None):
+    """Entry point of `ros2 run assist_sim sim_node`."""
+    sys.exit(run_node(SimNode, args))
+
+
+if __name__ == '__main__':
+    main()
