@@ -1,0 +1,119 @@
+"""Shared fixtures for graph tests: a private ROS_DOMAIN_ID, an rclpy probe node, node subprocesses."""
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Callable
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+
+
+def _ros_arg(value) -> str:
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, str):
+        return value if value else "''"
+    return repr(value)
+
+
+class NodeProcess:
+    """A console-script node running in its own process on the test's domain."""
+
+    def __init__(self, executable: str, params: dict | None, domain_id: int, log_dir: Path,
+                 remaps: dict | None = None):
+        exe = BIN / executable
+        if not exe.exists():
+            raise FileNotFoundError(f'{exe} not installed (run make venv)')
+        cmd = [str(exe), '--ros-args']
+        for k, v in (params or {}).items():
+            cmd += ['-p', f'{k}:={_ros_arg(v)}']
+        for k, v in (remaps or {}).items():
+            cmd += ['-r', f'{k}:={v}']
+        env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED='1')
+        self.log_path = log_dir / f'{executable}-{time.monotonic_ns()}.log'
+        self._log = open(self.log_path, 'w')
+        self.proc = subprocess.Popen(cmd, env=env, stdout=self._log, stderr=subprocess.STDOUT,
+                                     start_new_session=True)
+
+    def log(self) -> str:
+        """Everything the process printed so far."""
+        self._log.flush()
+        return self.log_path.read_text(errors='replace')
+
+    def stop(self, timeout: float = 10.0) -> int:
+        """SIGINT, then SIGKILL if it does not exit; returns the exit code."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait(5)
+        self._log.close()
+        return self.proc.returncode
+
+
+@pytest.fixture(scope='module')
+def domain_id() -> int:
+    """A private DDS domain for this test module."""
+    return random.Random(os.getpid() ^ time.monotonic_ns()).randint(100, 199)
+
+
+@pytest.fixture(scope='module')
+def ros(domain_id):
+    """rclpy context on the private domain with one probe node spinning in the background."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.node import Node
+
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=domain_id)
+    node = Node('test_probe', context=ctx)
+    executor = MultiThreadedExecutor(num_threads=2, context=ctx)
+    executor.add_node(node)
+    thread = threading.Thread(target=executor.spin, daemon=True)
+    thread.start()
+    yield node
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.shutdown(context=ctx)
+
+
+@pytest.fixture
+def start_node(domain_id, tmp_path):
+    """Factory: start_node('sim_node', {'seed': 1}) -> NodeProcess; all stopped at teardown."""
+    procs: list[NodeProcess] = []
+
+    def _start(executable: str, params: dict | None = None, remaps: dict | None = None) -> NodeProcess:
+        proc = NodeProcess(executable, params, domain_id, tmp_path, remaps)
+        procs.append(proc)
+        return proc
+    yield _start
+    for proc in procs:
+        proc.stop()
+
+
+def wait_for(predicate: Callable[[], bool], timeout: float, interval: float = 0.05) -> bool:
+    """Poll `predicate` until true or `timeout` seconds pass."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(interval)
+    return bool(predicate())
+
+
+@pytest.fixture
+def wait():
+    """The wait_for(predicate, timeout) helper as a fixture (conftest is not importable by tests)."""
+    return wait_for
