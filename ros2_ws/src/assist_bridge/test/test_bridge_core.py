@@ -1,0 +1,257 @@
+"""Bridge core: limits, setpoint encoding, and the full protocol against the sim's ArduCopter stand-in."""
+import math
+import os
+import socket
+import threading
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+os.environ['MAVLINK20'] = '1'
+from pymavlink import mavutil  # noqa: E402
+
+from assist_bridge.bridge_core import (TYPE_MASK_VELOCITY_YAW, BridgeConfig, MavlinkBridge,  # noqa: E402
+                                       limit_velocity, velocity_setpoint)
+from assist_sim.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleConfig  # noqa: E402
+
+mavlink = mavutil.mavlink
+
+
+def free_udp_port() -> int:
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(('127.0.0.1', 0))
+    port = s.getsockname()[1]
+    s.close()
+    return port
+
+
+def wait_for(pred, timeout=10.0, what='condition'):
+    """Poll pred() until true; the timeout only bounds a hang, it is not the assertion."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return
+        time.sleep(0.01)
+    raise AssertionError(f'timed out waiting for {what}')
+
+
+# ---------------------------------------------------------------------- pure functions
+def test_limit_velocity_scale_axis_and_total_clamps():
+    cfg = BridgeConfig(velocity_scale=0.5, max_speed_x_mps=1.0, max_speed_y_mps=0.8, max_climb_mps=0.5,
+                       max_descent_mps=0.3, max_speed_mps=10.0)
+    np.testing.assert_allclose(limit_velocity([1.0, -1.0, 0.4], cfg), [0.5, -0.5, 0.2])
+    np.testing.assert_allclose(limit_velocity([4.0, -4.0, -4.0], cfg), [1.0, -0.8, -0.3])
+    cfg = BridgeConfig(max_speed_mps=1.0)
+    v = limit_velocity([2.0, 2.0, 0.0], cfg)
+    assert np.linalg.norm(v) == pytest.approx(1.0) and v[0] == pytest.approx(v[1])
+    for bad in ([math.nan, 0, 0], [0, math.inf, 0], [1.0, 2.0]):
+        with pytest.raises(ValueError):
+            limit_velocity(bad, cfg)
+
+
+def test_bad_config_rejected():
+    with pytest.raises(ValueError):
+        BridgeConfig(velocity_scale=0.0)
+    with pytest.raises(ValueError):
+        BridgeConfig(setpoint_rate_hz=-1.0)
+    with pytest.raises(ValueError):
+        BridgeConfig(connection='')
+
+
+def test_velocity_setpoint_fixed_vectors():
+    assert TYPE_MASK_VELOCITY_YAW == 0x09C7
+    sp = velocity_setpoint([1.0, 0.0, 0.5], 0.0)            # sim vehicle faces East
+    assert sp['coordinate_frame'] == mavlink.MAV_FRAME_LOCAL_NED
+    assert (sp['vx'], sp['vy'], sp['vz']) == pytest.approx((0.0, 1.0, -0.5))
+    assert sp['yaw'] == pytest.approx(math.pi / 2)
+    sp = velocity_setpoint([0.0, 1.0, 0.0], math.pi / 2)     # facing North, left = West
+    assert (sp['vx'], sp['vy'], sp['vz']) == pytest.approx((0.0, -1.0, 0.0), abs=1e-12)
+    assert sp['yaw'] == pytest.approx(0.0)
+
+
+def test_unopenable_connection_is_a_clear_error():
+    with pytest.raises(ConnectionError, match='cannot open MAVLink connection'):
+        MavlinkBridge(BridgeConfig(connection='udpin:256.1.1.1:1'))
+
+
+# ---------------------------------------------------------------------- against the stand-in
+class FakeWorld:
+    """Kinematic world: flies the commanded velocity, floor at z=0, yaw follows its target."""
+
+    def __init__(self):
+        self.episode, self.scene, self.armed = -1, None, False
+        self.pos, self.vel, self.yaw, self.yaw_target = np.zeros(3), np.zeros(3), 0.0, 0.0
+        self.lock = threading.Lock()
+
+    def reset(self, seed=None, *, airborne=True, **kw):
+        self.episode += 1
+        self.scene = 'fake'
+        self.pos, self.vel, self.yaw, self.armed = np.array([0.0, 0.0, 1.5 if airborne else 0.0]), np.zeros(3), 0.0, airborne
+        return self.state
+
+    def set_armed(self, a):
+        self.armed = bool(a)
+
+    def set_yaw_target(self, y):
+        self.yaw_target = float(y)
+
+    @property
+    def landed(self):
+        return self.pos[2] <= 1e-9 and np.linalg.norm(self.vel) < 0.2
+
+    @property
+    def state(self):
+        q = np.array([0.0, 0.0, math.sin(self.yaw / 2), math.cos(self.yaw / 2)])
+        return SimpleNamespace(position=self.pos.copy(), velocity=self.vel.copy(), quaternion=q,
+                               angular_velocity=np.zeros(3), yaw=self.yaw)
+
+    def step(self, cmd, dt=None):
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        v = np.array([c * cmd[0] - s * cmd[1], s * cmd[0] + c * cmd[1], cmd[2]]) if self.armed else np.zeros(3)
+        self.vel = v
+        self.pos = self.pos + v * dt
+        if self.pos[2] < 0:
+            self.pos[2], self.vel[:] = 0.0, 0.0
+        err = (self.yaw_target - self.yaw + math.pi) % (2 * math.pi) - math.pi
+        self.yaw += max(-2 * dt, min(2 * dt, err))
+
+
+class VehicleThread:
+    """The stand-in stepping in real time on its own thread."""
+
+    def __init__(self, port, world=None, **cfg):
+        self.world = world or FakeWorld()
+        self.vehicle = MavlinkVehicle(self.world, f'udpout:127.0.0.1:{port}',
+                                      MavlinkVehicleConfig(**{'ekf_ready_delay_s': 0.5, **cfg}))
+        self._run = True
+        self.thread = threading.Thread(target=self._loop, daemon=True)
+        self.thread.start()
+
+    def _loop(self):
+        while self._run:
+            self.vehicle.step(0.02)
+            time.sleep(0.02)
+
+    def stop(self):
+        self._run = False
+        self.thread.join()
+        self.vehicle.close()
+
+
+@pytest.fixture
+def link():
+    port = free_udp_port()
+    bridge = MavlinkBridge(BridgeConfig(connection=f'udpin:127.0.0.1:{port}', link_timeout_s=1.5,
+                                        takeoff_altitude_m=1.0, max_speed_mps=3.0))
+    bridge.start()
+    vt = VehicleThread(port)
+    yield SimpleNamespace(bridge=bridge, vt=vt, port=port)
+    vt.stop()
+    bridge.close()
+
+
+def test_full_flight_arm_takeoff_fly_timeout_land(link):
+    b, w = link.bridge, link.vt.world
+    assert b.wait_heartbeat(5.0)
+    ok, msg = b.arm()                       # EKF not ready yet (0.5 s): honest refusal
+    if not ok:
+        assert 'PreArm' in msg or 'requires position' in msg, msg
+        time.sleep(0.6)
+        ok, msg = b.arm()
+    assert ok, msg
+    assert w.armed and link.vt.vehicle.mode == 'GUIDED'
+    ok, msg = b.takeoff()
+    assert ok, msg
+    wait_for(lambda: not b.snapshot()['taking_off'], what='takeoff climb')
+    assert w.pos[2] == pytest.approx(1.0, abs=0.2)
+    x0 = w.pos.copy()
+    for _ in range(25):                     # forward (FLU +x) at 1 m/s for 0.5 s of commands
+        b.set_command([1.0, 0.0, 0.0])
+        time.sleep(0.02)
+    wait_for(lambda: w.pos[0] - x0[0] > 0.3, what='forward motion')
+    assert abs(w.pos[1] - x0[1]) < 0.05     # forward = ENU +x for the East-facing sim vehicle
+    assert w.yaw_target == pytest.approx(0.0, abs=1e-6)   # heading held (not turned to travel)
+    # command timeout: the bridge sends zero velocity and the vehicle stops
+    wait_for(lambda: b.last_setpoint is not None and b.last_setpoint['vy'] == 0.0, what='zero setpoint')
+    wait_for(lambda: np.linalg.norm(w.vel) == 0.0, what='vehicle stopped')
+    assert b.counters['setpoints_zero_timeout'] > 0
+    ok, msg = b.land()
+    assert ok, msg
+    wait_for(lambda: not w.armed, what='disarm on touchdown')
+    assert w.pos[2] == 0.0
+
+
+def test_non_finite_command_rejected_and_last_good_kept(link):
+    b = link.bridge
+    b.set_command([0.5, 0.0, 0.0])
+    with pytest.raises(ValueError):
+        b.set_command([math.nan, 0.0, 0.0])
+    np.testing.assert_allclose(b.current_command(), [0.5, 0.0, 0.0])
+
+
+def test_disarmed_or_not_guided_no_setpoints_and_land_never_overridden(link):
+    b, v = link.bridge, link.vt.vehicle
+    assert b.wait_heartbeat(5.0)
+    for _ in range(10):
+        b.set_command([1.0, 0.0, 0.0])
+        time.sleep(0.01)
+    assert b.counters['setpoints_sent'] == 0        # disarmed, STABILIZE
+    time.sleep(0.6)
+    assert b.arm()[0] and b.takeoff(1.0)[0]
+    wait_for(lambda: not b.snapshot()['taking_off'], what='takeoff climb')
+    assert b.set_mode('LOITER')[0]
+    wait_for(lambda: b.snapshot()['mode'] == 'LOITER', what='LOITER heartbeat')
+    for _ in range(30):                              # commands in LOITER: bridge asks for GUIDED
+        b.set_command([0.5, 0.0, 0.0])
+        time.sleep(0.02)
+    wait_for(lambda: v.mode == 'GUIDED', what='auto GUIDED')
+    assert b.land()[0]
+    wait_for(lambda: b.snapshot()['mode'] == 'LAND', what='LAND heartbeat')
+    for _ in range(30):
+        b.set_command([0.5, 0.0, 0.0])
+        time.sleep(0.02)
+    assert v.mode == 'LAND'
+
+
+def test_link_loss_reported_setpoints_stop_and_recovery(link):
+    b = link.bridge
+    assert b.wait_heartbeat(5.0)
+    events = []
+    b._on_link = lambda up, why: events.append(up)
+    link.vt.stop()
+    wait_for(lambda: b.snapshot()['link'] == 'lost', what='link lost')
+    sent = b.counters['setpoints_sent']
+    b.set_command([1.0, 0.0, 0.0])
+    assert b.counters['setpoints_sent'] == sent and b.counters['setpoints_suppressed_link'] >= 1
+    requests = b.counters['stream_requests']
+    link.vt = VehicleThread(link.port)               # the vehicle comes back (rebooted)
+    wait_for(lambda: b.snapshot()['link'] == 'up', what='link recovered')
+    assert events == [False, True]
+    assert b.counters['stream_requests'] > requests   # telemetry re-requested after recovery
+    wait_for(lambda: b.status.position_ned is not None and b.status.last_position is not None,
+             what='telemetry after recovery')
+
+
+def test_garbage_on_the_bridge_port_never_crashes_it(link):
+    b = link.bridge
+    assert b.wait_heartbeat(5.0)
+    rng = np.random.default_rng(1)
+    good = mavlink.MAVLink(None, 1, 1).heartbeat_encode(2, 3, 0, 0, 3)
+    frame = bytearray(good.pack(mavlink.MAVLink(None, 1, 1)))
+    bad_crc = bytes(frame[:-2]) + bytes([frame[-2] ^ 0x55, frame[-1] ^ 0x55])
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    payloads = [rng.bytes(int(n)) for n in rng.integers(1, 1500, 200)]
+    payloads += [bytes(frame[:5]), bytes(frame[:-1]), bad_crc, b'\xfd' * 4000, rng.bytes(65000), b'']
+    for pl in payloads:
+        s.sendto(pl, ('127.0.0.1', link.port))
+    s.close()
+    wait_for(lambda: b.counters['rx_bad_data'] > 0, what='bad data counted')
+    beats = b.status.last_heartbeat
+    wait_for(lambda: b.status.last_heartbeat != beats, what='heartbeats still parsed')
+    time.sleep(0.6)
+    ok, msg = b.arm()
+    assert ok, msg
+    assert b.counters['loop_errors'] == 0
+    assert b.snapshot()['link'] == 'up'
