@@ -1,0 +1,242 @@
+"""train_cmvae: train the denoising CM-VAE on a make_dataset directory.
+
+The depth noise model G is applied on the fly (new noise every epoch) to the clean depth to make
+the network input; the targets are the clean depth and the closest-visible-pad XYZ. Whole scenes
+are held out for validation. The run directory gets config.json, metrics.csv (one row per epoch),
+checkpoint.pt (latest, for --resume), best.pt and model.pt (weights files for load_model).
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import logging
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .dataset import FrameSet, load_frames, split_by_scene
+from .model import CMVAE, CMVAEConfig, LossConfig, cmvae_loss, preprocess, save_model
+from .noise import NoiseConfig, apply_depth_noise
+
+_LOG = logging.getLogger(__name__)
+
+
+@dataclass
+class TrainConfig:
+    """Settings of one training run (every field is a --flag)."""
+
+    data_dir: str = 'data/cmvae50k'       # make_dataset output
+    run_dir: str = 'runs/cmvae'           # config, metrics.csv, checkpoints
+    epochs: int = 10
+    batch_size: int = 128
+    lr: float = 1e-3                      # Adam, cosine decay to lr_min after warm-up
+    lr_min: float = 2e-5
+    warmup_steps: int = 100
+    weight_decay: float = 0.0
+    val_fraction: float = 0.05            # fraction of scenes held out
+    max_frames: int = 0                   # 0 = the whole dataset
+    seed: int = 0
+    latent_dim: int = 10
+    depth_scale_m: float = 5.0
+    noise_prob: float = 0.9               # fraction of training inputs degraded by G (rest clean)
+    kl_warmup_epochs: float = 1.0         # KL weight ramps linearly from 0 over this many epochs
+    w_depth: float = 1.0                  # paper weights 1 / 2 / 4
+    w_xyz: float = 2.0
+    w_kl: float = 4.0
+    depth_sigma_m: float = 0.25           # loss units (see LossConfig)
+    xyz_sigma_m: float = 0.1
+    threads: int = 2                      # torch intra-op threads
+    max_minutes: float = 0.0              # stop after the epoch that passes this wall time (0 = off)
+    resume: bool = False                  # continue from run_dir/checkpoint.pt
+
+
+def _batch_inputs(frames: FrameSet, idx: np.ndarray, rng: np.random.Generator,
+                  noise_cfg: NoiseConfig, noise_prob: float, mcfg: CMVAEConfig) -> torch.Tensor:
+    """Network input for rows `idx`: G(clean depth) for a `noise_prob` fraction, clean otherwise."""
+    depth = frames.depth[idx]
+    rgb = frames.rgb[idx]
+    noisy = apply_depth_noise(depth, rng, noise_cfg, rgb=rgb)
+    keep_clean = rng.uniform(size=len(idx)) >= noise_prob
+    noisy[keep_clean] = depth[keep_clean]
+    return preprocess(rgb, noisy, mcfg)
+
+
+def _targets(frames: FrameSet, idx: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    vis = frames.visible[idx]
+    xyz = np.where(vis[:, None], frames.xyz[idx], 0.0).astype(np.float32)
+    return (torch.from_numpy(frames.depth[idx]), torch.from_numpy(xyz), torch.from_numpy(vis))
+
+
+def evaluate_split(model: CMVAE, frames: FrameSet, idx: np.ndarray, loss_cfg: LossConfig,
+                   noise_cfg: NoiseConfig, seed: int, batch_size: int = 256) -> dict[str, float]:
+    """Losses (z = mu) and metrics on rows `idx` with a fixed noise draw (same every call)."""
+    model.eval()
+    rng = np.random.default_rng(seed)
+    sums = {'loss': 0.0, 'depth_loss': 0.0, 'xyz_loss': 0.0, 'kl': 0.0}
+    se_rec = se_in = se_valid = 0.0
+    n_px = n_valid = 0
+    err = []
+    with torch.no_grad():
+        for s in range(0, len(idx), batch_size):
+            b = idx[s:s + batch_size]
+            x = _batch_inputs(frames, b, rng, noise_cfg, 1.0, model.cfg)
+            d, xyz, vis = _targets(frames, b)
+            out = model(x, sample=False)
+            terms = cmvae_loss(out, d, xyz, vis, loss_cfg)
+            for k, t in zip(sums, terms):
+                sums[k] += float(t) * len(b)
+            se_rec += float(((out.depth - d) ** 2).sum())
+            d_in = x[:, 3] * model.cfg.depth_scale_m
+            se_in += float(((d_in - d) ** 2).sum())
+            valid = d_in > 0
+            se_valid += float(((d_in - d)[valid] ** 2).sum())
+            n_valid += int(valid.sum())
+            n_px += d.numel()
+            v = vis.numpy()
+            err.append((out.xyz.numpy() - xyz.numpy())[v])
+    n = max(len(idx), 1)
+    e = np.concatenate(err) if err else np.zeros((0, 3))
+    res = {k: v / n for k, v in sums.items()}
+    res['depth_rmse_m'] = math.sqrt(se_rec / max(n_px, 1))
+    res['input_rmse_m'] = math.sqrt(se_in / max(n_px, 1))          # holes count as 0 m
+    res['input_rmse_valid_m'] = math.sqrt(se_valid / max(n_valid, 1))   # non-hole pixels only
+    res['input_hole_fraction'] = 1.0 - n_valid / max(n_px, 1)
+    for i, ax in enumerate('xyz'):
+        res[f'{ax}_mae_m'] = float(np.median(np.abs(e[:, i]))) if len(e) else float('nan')
+    return res
+
+
+def _lr_at(step: int, total: int, cfg: TrainConfig) -> float:
+    if step < cfg.warmup_steps:
+        return cfg.lr * (step + 1) / cfg.warmup_steps
+    t = min(1.0, (step - cfg.warmup_steps) / max(1, total - cfg.warmup_steps))
+    return cfg.lr_min + 0.5 * (cfg.lr - cfg.lr_min) * (1 + math.cos(math.pi * t))
+
+
+def train(cfg: TrainConfig, frames: FrameSet | None = None, progress: bool = True) -> dict:
+    """Run (or resume) training; returns the last epoch's metrics plus timing."""
+    from tqdm import tqdm
+
+    torch.set_num_threads(max(1, cfg.threads))
+    run = Path(cfg.run_dir)
+    run.mkdir(parents=True, exist_ok=True)
+    ckpt_path = run / 'checkpoint.pt'
+    if not cfg.resume and ckpt_path.exists():
+        raise FileExistsError(f'{ckpt_path} exists: pass --resume or use a new --run-dir')
+    (run / 'config.json').write_text(json.dumps(dataclasses.asdict(cfg), indent=1))
+
+    if frames is None:
+        frames = load_frames(cfg.data_dir, cfg.max_frames or None)
+    train_idx, val_idx = split_by_scene(frames, cfg.val_fraction, cfg.seed)
+    if len(train_idx) == 0:
+        raise ValueError('no training frames after the held-out split')
+    noise_cfg = NoiseConfig()
+    loss_cfg = LossConfig(cfg.w_depth, cfg.w_xyz, cfg.w_kl, cfg.depth_sigma_m, cfg.xyz_sigma_m)
+
+    torch.manual_seed(cfg.seed)
+    model = CMVAE(CMVAEConfig(latent_dim=cfg.latent_dim, depth_scale_m=cfg.depth_scale_m))
+    vis_train = train_idx[frames.visible[train_idx]]
+    if len(vis_train):
+        model.set_xyz_stats(frames.xyz[vis_train].mean(0), frames.xyz[vis_train].std(0))
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    steps_per_epoch = math.ceil(len(train_idx) / cfg.batch_size)
+    total_steps = steps_per_epoch * cfg.epochs
+    start_epoch, step, best, elapsed = 0, 0, math.inf, 0.0
+    if cfg.resume and ckpt_path.exists():
+        ck = torch.load(ckpt_path, map_location='cpu', weights_only=True)
+        model.load_state_dict(ck['model'])
+        model.set_xyz_stats(model.xyz_mean.numpy(), model.xyz_std.numpy())
+        opt.load_state_dict(ck['optimizer'])
+        start_epoch, step, best, elapsed = ck['epoch'] + 1, ck['step'], ck['best'], ck['elapsed_s']
+        _LOG.info('resumed from %s at epoch %d', ckpt_path, start_epoch)
+
+    metrics_file = run / 'metrics.csv'
+    last: dict = {}
+    t_start = time.perf_counter() - elapsed
+    for epoch in range(start_epoch, cfg.epochs):
+        model.train()
+        rng = np.random.default_rng([cfg.seed, epoch])      # per-epoch streams: resumable
+        torch.manual_seed(cfg.seed * 100_003 + epoch)
+        order = rng.permutation(train_idx)
+        acc = np.zeros(4)
+        bar = tqdm(range(steps_per_epoch), desc=f'epoch {epoch + 1}/{cfg.epochs}', disable=not progress,
+                   leave=False)
+        for i in bar:
+            b = order[i * cfg.batch_size:(i + 1) * cfg.batch_size]
+            x = _batch_inputs(frames, b, rng, noise_cfg, cfg.noise_prob, model.cfg)
+            d, xyz, vis = _targets(frames, b)
+            kl_scale = min(1.0, (step + 1) / max(1.0, cfg.kl_warmup_epochs * steps_per_epoch))
+            for g in opt.param_groups:
+                g['lr'] = _lr_at(step, total_steps, cfg)
+            terms = cmvae_loss(model(x), d, xyz, vis, loss_cfg, kl_scale)
+            opt.zero_grad(set_to_none=True)
+            terms.total.backward()
+            opt.step()
+            step += 1
+            acc += [float(t.detach()) for t in terms]
+            bar.set_postfix(loss=f'{acc[0] / (i + 1):.1f}', kl=f'{acc[3] / (i + 1):.1f}')
+        train_means = acc / steps_per_epoch
+        val = evaluate_split(model, frames, val_idx, loss_cfg, noise_cfg, seed=cfg.seed + 1) \
+            if len(val_idx) else {}
+        elapsed = time.perf_counter() - t_start
+        row = {'epoch': epoch + 1, 'step': step, 'elapsed_s': round(elapsed, 1),
+               'lr': _lr_at(step - 1, total_steps, cfg),
+               'train_loss': train_means[0], 'train_depth_loss': train_means[1],
+               'train_xyz_loss': train_means[2], 'train_kl': train_means[3],
+               **{f'val_{k}': v for k, v in val.items()}}
+        new_file = not metrics_file.exists()
+        with open(metrics_file, 'a', newline='', encoding='utf-8') as fh:
+            w = csv.DictWriter(fh, fieldnames=list(row))
+            if new_file:
+                w.writeheader()
+            w.writerow(row)
+        meta = {'epoch': epoch + 1, 'train_frames': int(len(train_idx)), 'val_frames': int(len(val_idx)),
+                'data_dir': cfg.data_dir, 'train_seconds': round(elapsed, 1),
+                **{k: float(v) for k, v in val.items()}}
+        score = val.get('loss', train_means[0])
+        if score < best:
+            best = score
+            save_model(run / 'best.pt', model, meta)
+        save_model(run / 'model.pt', model, meta)
+        torch.save({'model': model.state_dict(), 'optimizer': opt.state_dict(), 'epoch': epoch,
+                    'step': step, 'best': best, 'elapsed_s': elapsed}, ckpt_path)
+        _LOG.info('epoch %d: %s', epoch + 1,
+                  ', '.join(f'{k}={v:.4g}' for k, v in row.items() if isinstance(v, float)))
+        last = row
+        if cfg.max_minutes > 0 and elapsed > cfg.max_minutes * 60:
+            _LOG.info('time budget of %.1f min reached after epoch %d', cfg.max_minutes, epoch + 1)
+            break
+    return last
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(description='Train the denoising CM-VAE (see TrainConfig).')
+    for f in dataclasses.fields(TrainConfig):
+        flag = '--' + f.name.replace('_', '-')
+        if str(f.type) == 'bool':
+            ap.add_argument(flag, action='store_true', help=f'(default {f.default})')
+        else:
+            typ = {'int': int, 'float': float, 'str': str}[str(f.type)]
+            ap.add_argument(flag, type=typ, default=f.default, help=f'(default {f.default})')
+    ap.add_argument('--no-progress', action='store_true', help='hide progress bars')
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console entry point `train_cmvae`."""
+    logging.basicConfig(level=logging.INFO, format='[%(levelname)s] %(name)s: %(message)s')
+    args = _parser().parse_args(argv)
+    cfg = TrainConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)})
+    last = train(cfg, progress=not args.no_progress)
+    print(json.dumps(last, indent=1))
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
