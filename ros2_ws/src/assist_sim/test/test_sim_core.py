@@ -229,3 +229,20 @@ def test_world_config_yaml_roundtrip(tmp_path):
     path.write_text('no_such_field: 1\n')
     with pytest.raises(ValueError, match='no_such_field'):
         WorldConfig.from_yaml(path)
+
+
+def test_analytic_floor_matches_the_rasterised_floor():
+    cfg = WorldConfig()
+    cfg.camera.analytic_floor = False
+    fast, slow = LandingWorld(seed=1), LandingWorld(cfg, seed=1)
+    fast.reset(3)
+    slow.reset(3)
+    try:
+        for pos in [(-3.0, 0.0, 3.0), (-4.0, 2.0, 2.0), (1.0, -3.0, 4.0), (tuple(fast.goal_position[:2]) + (2.5,))]:
+            a, b = fast.render_from(pos), slow.render_from(pos)
+            assert np.abs(a.depth - b.depth).max() < 1e-3
+            diff = np.abs(a.rgb.astype(int) - b.rgb.astype(int))
+            assert diff.mean() < 8 and (diff.max(-1) > 40).mean() < 0.05
+    finally:
+        fast.close()
+        slow.close()

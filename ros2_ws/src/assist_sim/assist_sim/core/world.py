@@ -13,7 +13,7 @@ from pybullet_utils import bullet_client
 
 from .config import WorldConfig
 from .scene import PadSpec, SceneSpec, generate_scene
-from .textures import texture_path
+from .textures import make_texture, texture_path
 
 _LOG = logging.getLogger(__name__)
 N_LEGS = 4
@@ -114,6 +114,7 @@ class LandingWorld:
             raise ValueError('physics_hz must be >= 240')
         if self.cfg.physics_hz % self.cfg.control_hz:
             raise ValueError('physics_hz must be a multiple of control_hz')
+        self._gui = bool(gui)
         self._bc = bullet_client.BulletClient(p.GUI if gui else p.DIRECT)
         self._cid = self._bc._client
         self._tick_dt = 1.0 / self.cfg.physics_hz
@@ -141,6 +142,11 @@ class LandingWorld:
         self.result: LandingResult | None = None
         self._K = camera_intrinsics(self.cfg.camera.width, self.cfg.camera.height,
                                     self.cfg.camera.vertical_fov_deg)
+        # TinyRenderer clears the z-buffer to 1.0 (float32); anything at the far plane is "empty"
+        self._zbuf_empty = np.float32(1.0) - np.float32(1e-7)
+        uu, vv = np.meshgrid(np.arange(self.cfg.camera.width), np.arange(self.cfg.camera.height))
+        self._rays = np.stack([(uu - self._K[0, 2]) / self._K[0, 0], (vv - self._K[1, 2]) / self._K[1, 1],
+                               np.ones_like(uu, dtype=float)], axis=-1)   # optical, z = 1
         self._proj = self._bc.computeProjectionMatrixFOV(
             self.cfg.camera.vertical_fov_deg, self.cfg.camera.width / self.cfg.camera.height,
             self.cfg.camera.near_m, self.cfg.camera.far_m)
@@ -201,11 +207,19 @@ class LandingWorld:
         bc = self._bc
         self._clear_scene()
         (x0, y0), (x1, y1) = scene.room_min, scene.room_max
-        floor_vis = self._textured_quad(np.array([[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0]]),
-                                        (0, 0, 1), tile_m=1.5)
-        self._floor_id = bc.createMultiBody(0, bc.createCollisionShape(p.GEOM_PLANE), floor_vis)
-        bc.changeVisualShape(self._floor_id, -1, textureUniqueId=self._texture(scene.floor_material),
-                             rgbaColor=[1, 1, 1, 1])
+        cam = self.cfg.camera
+        self._floor_texture = make_texture(scene.floor_material, self.cfg.scene.texture_px)
+        self._floor_bounds = (x0, y0, x1, y1)
+        if cam.analytic_floor and not self._gui:
+            self._floor_id = bc.createMultiBody(0, bc.createCollisionShape(p.GEOM_PLANE), -1)
+            # a body without a visual is drawn from its collision shape: make it invisible instead
+            bc.changeVisualShape(self._floor_id, -1, rgbaColor=[0, 0, 0, 0])
+        else:
+            floor_vis = self._textured_quad(
+                np.array([[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0]]), (0, 0, 1), tile_m=cam.floor_tile_m)
+            self._floor_id = bc.createMultiBody(0, bc.createCollisionShape(p.GEOM_PLANE), floor_vis)
+            bc.changeVisualShape(self._floor_id, -1, textureUniqueId=self._texture(scene.floor_material),
+                                 rgbaColor=[1, 1, 1, 1])
         bc.changeDynamics(self._floor_id, -1, lateralFriction=0.9)
         self._scene_bodies.append(self._floor_id)
         h = scene.wall_height
@@ -516,9 +530,36 @@ class LandingWorld:
             c.width, c.height, view, self._proj, renderer=p.ER_TINY_RENDERER,
             flags=p.ER_NO_SEGMENTATION_MASK, shadow=0)
         rgb = np.asarray(rgba, dtype=np.uint8).reshape(c.height, c.width, 4)[:, :, :3].copy()
-        depth = linearize_depth(np.asarray(zbuf, dtype=np.float32).reshape(c.height, c.width),
-                                c.near_m, c.far_m)
+        zbuf = np.asarray(zbuf, dtype=np.float32).reshape(c.height, c.width)
+        depth = linearize_depth(zbuf, c.near_m, c.far_m)
+        if c.analytic_floor and not self._gui:
+            self._draw_floor(cam, r_wo, zbuf >= self._zbuf_empty, rgb, depth)
         return CameraFrame(rgb=rgb, depth=depth, K=self._K.copy(), time=self.time)
+
+    def _draw_floor(self, cam: np.ndarray, r_wo: np.ndarray, empty: np.ndarray, rgb: np.ndarray,
+                    depth: np.ndarray) -> None:
+        """Fill pixels the rasteriser left empty with the textured floor plane z = 0."""
+        if not empty.any():
+            return
+        c = self.cfg.camera
+        rays = self._rays[empty]                        # (n, 3) optical, z = 1
+        dz = rays @ r_wo[2]                             # world z of each ray direction
+        hit = dz < -1e-9
+        t = np.full(rays.shape[0], np.inf)
+        t[hit] = -cam[2] / dz[hit]                      # optical z-depth of the floor hit
+        ok = hit & (t <= c.far_m)
+        pts = cam[:2] + t[ok, None] * (rays[ok] @ r_wo[:2].T)
+        px = self._floor_texture.shape[0]
+        # same texel mapping as the textured quad: u along +x, v along +y from the room corner
+        x0, y0 = self._floor_bounds[0], self._floor_bounds[1]
+        tu = np.floor((pts[:, 0] - x0) / c.floor_tile_m * px).astype(np.int64) % px
+        tv = np.floor((pts[:, 1] - y0) / c.floor_tile_m * px).astype(np.int64) % px
+        d = np.full(rays.shape[0], c.far_m, dtype=np.float32)
+        d[ok] = t[ok]
+        col = np.zeros((rays.shape[0], 3), dtype=np.uint8)
+        col[ok] = (self._floor_texture[px - 1 - tv, tu] * c.floor_shading).astype(np.uint8)
+        depth[empty] = d
+        rgb[empty] = col
 
     @property
     def camera_intrinsics(self) -> np.ndarray:
