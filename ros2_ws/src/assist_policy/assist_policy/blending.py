@@ -1,0 +1,24 @@
+"""The paper's blending rule, V = (u + a) / 2 if |a| > threshold else u (one definition, used everywhere)."""
+from __future__ import annotations
+
+import numpy as np
+
+DEFAULT_THRESHOLD = 0.25  # m/s; paper, "TD3 implementation": small assistant actions are ignored
+
+
+def blend(u: np.ndarray, a: np.ndarray, threshold: float = DEFAULT_THRESHOLD) -> np.ndarray:
+    """Blend pilot velocity `u` with assistant velocity `a` (both (3,) m/s, base_link FLU).
+
+    Returns (u + a) / 2 when the Euclidean norm of `a` exceeds `threshold`, else `u`
+    unchanged (the assistant relinquishes control). A non-finite `a` counts as absent
+    (returns `u`); a non-finite `u` raises ValueError: the pilot command is never invented.
+    """
+    u = np.asarray(u, dtype=float).reshape(3)
+    a = np.asarray(a, dtype=float).reshape(3)
+    if not np.all(np.isfinite(u)):
+        raise ValueError(f'pilot command is not finite: {u.tolist()}')
+    if not np.all(np.isfinite(a)):
+        return u.copy()
+    if float(np.linalg.norm(a)) > threshold:
+        return 0.5 * (u + a)
+    return u.copy()

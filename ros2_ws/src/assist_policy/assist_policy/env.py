@@ -1,0 +1,184 @@
+"""Gymnasium environment: a simulated pilot lands in the LandingWorld, the agent's action is blended in.
+
+One step = one control period of the world (1/control_hz s):
+  1. the agent sees obs_t (scene feature, dynamics, pilot action u_t, 1 s means) and outputs raw
+     action in [-1, 1]^3, scaled to a velocity a_t (``actions.scale_action``);
+  2. the vehicle flies V_t = blend(u_t, a_t) (``blending.blend``) with the world's turbulence;
+  3. the pilot updates its goal estimate with the applied assistance (a_t if |a_t| > threshold,
+     else 0) and produces u_{t+1}.
+
+Reward (paper, "TD3 implementation"), weights in ``RewardConfig``:
+  (i)   at the end of the episode: -landing_weight * landing error (horizontal distance from the
+        body to the goal pad centre, the judge's error_m), plus optional success/crash terms
+        (0 by default: the paper names only the three terms);
+  (ii)  each step: progress_weight * (d_t - d_{t+1}) when d_{t+1} < progress_radius_m, d = 3-D
+        distance to the true goal's top centre;
+  (iii) each step: -action_weight * |a_t| (m/s).
+An episode cut at max_episode_s gets the landing term for where the vehicle is (so stalling a
+landing never pays); trainers treat it as terminal.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from assist_sim.core.config import WorldConfig
+from assist_sim.core.world import LandingWorld
+from assist_sim.pilot import PilotConfig, SimulatedPilot
+
+from .actions import DEFAULT_MAX_SPEED, scale_action
+from .blending import DEFAULT_THRESHOLD, blend
+from .observation import IMAGE_SHAPE, Condition, ObservationBuilder, image_feature, oracle_feature
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class RewardConfig:
+    """Weights of the paper's three reward terms (and two optional extras, off by default)."""
+
+    landing_weight: float = 10.0       # per metre of final landing error
+    progress_weight: float = 1.0       # per metre of progress toward the goal near it
+    progress_radius_m: float = 3.0     # progress counts only within this 3-D distance of the goal
+    action_weight: float = 0.02        # per m/s of assistant action, every step
+    success_bonus: float = 0.0         # extra terminal reward on success (not in the paper)
+    crash_penalty: float = 0.0         # extra terminal penalty on a crash (not in the paper)
+
+
+@dataclass
+class EnvConfig:
+    """Everything that defines the training / evaluation task."""
+
+    condition: str = 'oracle'                        # latent | oracle | end_to_end | none (unassisted)
+    alpha: float = 0.5                               # pilot conformance
+    beta_range: tuple[float, float] = (0.0, 1.0)     # pilot skill drawn uniformly per episode
+    max_episode_s: float = 60.0                      # truncation (the world's own timeout is longer)
+    blend_threshold: float = DEFAULT_THRESHOLD
+    max_speed: tuple[float, float, float] = DEFAULT_MAX_SPEED
+    window_s: float = 1.0
+    latent_dim: int = 0                              # set from the encoder for the latent condition
+    encoder_path: str = ''                           # CM-VAE weights (latent condition)
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    pilot: PilotConfig = field(default_factory=PilotConfig)
+    world: WorldConfig = field(default_factory=WorldConfig)
+
+
+class LandingAssistEnv(gym.Env):
+    """Shared-autonomy landing task with a simulated pilot (see module docstring)."""
+
+    metadata = {'render_modes': []}
+
+    def __init__(self, cfg: EnvConfig | None = None,
+                 latent_fn: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None):
+        super().__init__()
+        self.cfg = cfg or EnvConfig()
+        cond = self.cfg.condition
+        self.unassisted = cond == 'none'
+        self.condition = Condition.ORACLE if self.unassisted else Condition(cond)
+        if self.condition is Condition.LATENT and latent_fn is None:
+            raise ValueError('latent condition needs latent_fn(rgb, depth) -> mu')
+        self.latent_fn = latent_fn
+        self.world = LandingWorld(self.cfg.world)
+        self.builder = ObservationBuilder(self.condition, self.cfg.latent_dim, self.cfg.window_s)
+        self.dt = 1.0 / self.cfg.world.control_hz
+        self.pilot_cfg = self.cfg.pilot
+        self.pilot_cfg.control_hz = float(self.cfg.world.control_hz)
+        vec = self.builder.dim
+        self.image_size = int(np.prod(IMAGE_SHAPE)) if self.condition is Condition.END_TO_END else 0
+        self.observation_space = spaces.Box(-np.inf, np.inf, (self.image_size + vec,), np.float32)
+        self.action_space = spaces.Box(-1.0, 1.0, (3,), np.float32)
+        self.pilot: SimulatedPilot | None = None
+        self._u = np.zeros(3)
+        self._t0 = 0.0
+        self._dist = 0.0
+        self.episode_return = 0.0
+
+    # -------------------------------------------------------------- helpers
+    def _feature(self, pos: np.ndarray) -> np.ndarray:
+        if self.condition is Condition.ORACLE:
+            return oracle_feature(self.world.goal_position, pos)
+        frame = self.world.render()
+        if self.condition is Condition.LATENT:
+            return np.asarray(self.latent_fn(frame.rgb, frame.depth), dtype=float).reshape(-1)
+        return image_feature(frame.rgb, frame.depth).reshape(-1)
+
+    def _obs(self) -> np.ndarray:
+        st = self.world.state
+        t = st.time - self._t0
+        if self.condition is Condition.END_TO_END:
+            vec = self.builder.build(t, np.zeros(0), st.velocity, st.position[2], self._u)
+            return np.concatenate([self._feature(st.position), vec]).astype(np.float32)
+        return self.builder.build(t, self._feature(st.position), st.velocity, st.position[2], self._u)
+
+    def _goal_dist(self, pos: np.ndarray) -> float:
+        return float(np.linalg.norm(self.world.goal_position - pos))
+
+    # -------------------------------------------------------------- gym API
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        """New scene, goal, pilot (options: alpha, beta, scene_seed, goal_index)."""
+        super().reset(seed=seed)
+        options = options or {}
+        rng = self.np_random
+        scene_seed = int(options.get('scene_seed', rng.integers(0, 2**31 - 1)))
+        st = self.world.reset(seed=scene_seed, goal_index=options.get('goal_index'))
+        beta = float(options.get('beta', rng.uniform(*self.cfg.beta_range)))
+        alpha = float(options.get('alpha', self.cfg.alpha))
+        self.pilot = SimulatedPilot(alpha, beta, self.pilot_cfg, np.random.default_rng(int(rng.integers(2**31))))
+        self.pilot.reset(self.world.goal_position, st.position)
+        self.builder.reset()
+        self._t0 = st.time
+        self._u = self.pilot.act(st.position, None)
+        self._dist = self._goal_dist(st.position)
+        self.episode_return = 0.0
+        return self._obs(), {'alpha': alpha, 'beta': beta, 'scene_seed': scene_seed,
+                             'goal_index': self.world.goal_index}
+
+    def step(self, action):
+        """Blend, fly one control period, update the pilot, score (see module docstring)."""
+        raw = np.asarray(action, dtype=float).reshape(3)
+        if not np.all(np.isfinite(raw)):
+            raise ValueError(f'non-finite action {raw.tolist()}')
+        a = np.zeros(3) if self.unassisted else scale_action(raw, self.cfg.max_speed)
+        active = float(np.linalg.norm(a)) > self.cfg.blend_threshold
+        v = blend(self._u, a, self.cfg.blend_threshold)
+        t = self.world.state.time - self._t0
+        self.builder.record(t, self._u, a)
+        st = self.world.step(v)
+        self._u = self.pilot.act(st.position, a if active else None)
+        r = self.cfg.reward
+        d = self._goal_dist(st.position)
+        reward = -r.action_weight * float(np.linalg.norm(a))
+        if d < r.progress_radius_m:
+            reward += r.progress_weight * (self._dist - d)
+        self._dist = d
+        terminated = self.world.done
+        truncated = (not terminated) and (st.time - self._t0) >= self.cfg.max_episode_s
+        info: dict[str, Any] = {'active': active, 'goal_estimate': self.pilot.goal_estimate.copy()}
+        if terminated:
+            res = self.world.result
+            res.assisted = not self.unassisted
+            reward -= r.landing_weight * res.error_m
+            reward += r.success_bonus * float(res.success) - r.crash_penalty * float(res.crash)
+            info['result'] = res.to_dict()
+        elif truncated:
+            # time limit: scored like a landing where it is, so hovering forever never pays
+            pos = st.position
+            dists = np.linalg.norm(self.world.pad_top_centers[:, :2] - pos[:2], axis=1)
+            info['result'] = {'goal_index': self.world.goal_index, 'landed_index': None,
+                              'nearest_index': int(np.argmin(dists)),
+                              'error_m': float(dists[self.world.goal_index]),
+                              'nearest_error_m': float(dists.min()), 'success': False, 'crash': False,
+                              'duration_s': float(st.time - self._t0), 'outcome': 'timeout',
+                              'assisted': not self.unassisted}
+            reward -= r.landing_weight * info['result']['error_m']
+        self.episode_return += reward
+        return self._obs(), float(reward), bool(terminated), bool(truncated), info
+
+    def close(self) -> None:
+        """Release the pybullet client."""
+        self.world.close()

@@ -1,0 +1,160 @@
+"""Observation building for the assistant (paper, "TD3 implementation").
+
+Each step the agent sees: a condition-specific scene feature, the vehicle dynamics, the pilot's
+current action and the mean pilot and mean agent actions over the previous 1 s:
+
+    obs = [feature..., v_x, v_y, v_z, z / Z_SCALE, u_x, u_y, u_z, mean_u (3), mean_a (3)]
+
+feature per condition (``Condition``):
+  latent      the CM-VAE encoder mean vector mu (its length is the encoder's latent size)
+  oracle      the true goal relative to the vehicle, (G - p) / GOAL_SCALE, clipped (sim only)
+  end_to_end  nothing in the vector; the raw 4x64x64 RGB-D image goes through a conv net
+
+The vector part is the same for every condition, so one builder serves training, evaluation
+and the policy node. Times are in seconds of whatever clock the caller uses (sim or ROS).
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+
+GOAL_SCALE = 4.0      # m; one pad spacing: oracle goal offsets become O(1)
+GOAL_CLIP = 6.0       # after scaling; beyond ~24 m the exact offset no longer matters
+Z_SCALE = 4.0         # m; start altitude is 3-4 m
+DYNAMICS_DIM = 4      # v (3) + scaled altitude (1)
+ACTIONS_DIM = 9       # u, mean u, mean a
+IMAGE_SHAPE = (4, 64, 64)  # end-to-end: RGB (0..1) + depth (m / DEPTH_SCALE)
+DEPTH_SCALE = 5.0
+
+
+class Condition(str, Enum):
+    """Which scene feature the assistant observes."""
+
+    LATENT = 'latent'
+    ORACLE = 'oracle'
+    END_TO_END = 'end_to_end'
+
+
+class ActionHistory:
+    """Time-stamped pilot and agent actions; means over the trailing window (default 1 s)."""
+
+    def __init__(self, window_s: float = 1.0):
+        if window_s <= 0:
+            raise ValueError(f'window_s must be > 0, got {window_s}')
+        self.window_s = float(window_s)
+        self._items: deque[tuple[float, np.ndarray, np.ndarray]] = deque()
+
+    def clear(self) -> None:
+        """Forget every sample (new episode)."""
+        self._items.clear()
+
+    def push(self, t: float, u: np.ndarray, a: np.ndarray) -> None:
+        """Record the pilot action `u` and agent action `a` applied at time `t`."""
+        u = np.asarray(u, dtype=float).reshape(3)
+        a = np.asarray(a, dtype=float).reshape(3)
+        if not (np.all(np.isfinite(u)) and np.all(np.isfinite(a))):
+            raise ValueError('ActionHistory.push: non-finite action')
+        if self._items and t < self._items[-1][0]:
+            self.clear()  # clock jumped backwards (sim reset): old samples are meaningless
+        self._items.append((float(t), u, a))
+        self._prune(t)
+
+    def _prune(self, now: float) -> None:
+        while self._items and self._items[0][0] <= now - self.window_s:
+            self._items.popleft()
+
+    def means(self, now: float) -> tuple[np.ndarray, np.ndarray]:
+        """Mean pilot and mean agent action over (now - window_s, now]; zeros when empty."""
+        self._prune(now)
+        if not self._items:
+            return np.zeros(3), np.zeros(3)
+        us = np.stack([it[1] for it in self._items])
+        as_ = np.stack([it[2] for it in self._items])
+        return us.mean(axis=0), as_.mean(axis=0)
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+
+def feature_dim(condition: Condition | str, latent_dim: int = 0) -> int:
+    """Length of the condition-specific part of the vector observation."""
+    condition = Condition(condition)
+    if condition is Condition.LATENT:
+        if latent_dim <= 0:
+            raise ValueError('latent condition needs latent_dim > 0')
+        return latent_dim
+    if condition is Condition.ORACLE:
+        return 3
+    return 0
+
+
+def vector_dim(condition: Condition | str, latent_dim: int = 0) -> int:
+    """Length of the full vector observation for `condition`."""
+    return feature_dim(condition, latent_dim) + DYNAMICS_DIM + ACTIONS_DIM
+
+
+def oracle_feature(goal: np.ndarray, position: np.ndarray) -> np.ndarray:
+    """True goal relative to the vehicle, scaled and clipped (oracle condition)."""
+    rel = (np.asarray(goal, dtype=float).reshape(3) - np.asarray(position, dtype=float).reshape(3))
+    return np.clip(rel / GOAL_SCALE, -GOAL_CLIP, GOAL_CLIP)
+
+
+def image_feature(rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """RGB uint8 HxWx3 + depth float metres HxW -> float32 (4, H, W) for the end-to-end net."""
+    rgb = np.asarray(rgb)
+    depth = np.asarray(depth, dtype=np.float32)
+    if rgb.ndim != 3 or rgb.shape[2] != 3 or depth.shape != rgb.shape[:2]:
+        raise ValueError(f'image_feature: bad shapes rgb {rgb.shape} depth {depth.shape}')
+    d = np.where(np.isfinite(depth), depth, 0.0) / DEPTH_SCALE
+    img = np.concatenate([rgb.astype(np.float32).transpose(2, 0, 1) / 255.0, d[None]], axis=0)
+    return img.astype(np.float32)
+
+
+def build_vector(feature: np.ndarray, velocity: np.ndarray, altitude: float, u: np.ndarray,
+                 mean_u: np.ndarray, mean_a: np.ndarray) -> np.ndarray:
+    """Concatenate the parts of the vector observation (float32); ValueError if non-finite."""
+    parts = [np.asarray(feature, dtype=float).reshape(-1),
+             np.asarray(velocity, dtype=float).reshape(3),
+             np.array([float(altitude) / Z_SCALE]),
+             np.asarray(u, dtype=float).reshape(3),
+             np.asarray(mean_u, dtype=float).reshape(3),
+             np.asarray(mean_a, dtype=float).reshape(3)]
+    obs = np.concatenate(parts).astype(np.float32)
+    if not np.all(np.isfinite(obs)):
+        raise ValueError('observation contains non-finite values')
+    return obs
+
+
+@dataclass
+class ObservationBuilder:
+    """Stateful builder: keeps the 1 s action history and assembles observations."""
+
+    condition: Condition = Condition.ORACLE
+    latent_dim: int = 0
+    window_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        self.condition = Condition(self.condition)
+        self.history = ActionHistory(self.window_s)
+        self.dim = vector_dim(self.condition, self.latent_dim)
+
+    def reset(self) -> None:
+        """Start a new episode."""
+        self.history.clear()
+
+    def build(self, now: float, feature: np.ndarray, velocity: np.ndarray, altitude: float,
+              u: np.ndarray) -> np.ndarray:
+        """Observation at time `now` from the feature, dynamics and current pilot action."""
+        feature = np.asarray(feature, dtype=float).reshape(-1)
+        expected = feature_dim(self.condition, self.latent_dim)
+        if feature.size != expected:
+            raise ValueError(f'{self.condition.value} feature has {feature.size} values, expected {expected}')
+        mean_u, mean_a = self.history.means(now)
+        return build_vector(feature, velocity, altitude, u, mean_u, mean_a)
+
+    def record(self, now: float, u: np.ndarray, a: np.ndarray) -> None:
+        """Remember the pilot action and agent action applied at time `now`."""
+        self.history.push(now, u, a)

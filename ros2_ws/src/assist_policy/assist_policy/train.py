@@ -1,0 +1,292 @@
+"""train_td3: train the assistant with TD3 against simulated pilots (resumable, background-friendly).
+
+    train_td3 --name oracle_a --condition oracle --total-steps 2000000
+    train_td3 --resume runs/oracle_a            # continue where it stopped (other session, same flags)
+
+Run directory runs/<name>/: config.json, metrics.csv (one row per training landing), eval.csv
+(periodic deterministic evaluation), progress.txt (last status line), ckpt.pt (+ replay.npz):
+full training state, actor_last.pt / actor_best.pt: shippable actors (``td3.load_actor``).
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import logging
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from .cli import add_dataclass_args, dataclass_from_args
+from .env import EnvConfig, LandingAssistEnv, RewardConfig
+from .latent import make_latent_fn
+from .td3 import TD3, OUNoise, ReplayBuffer, TD3Config, save_actor
+
+log = logging.getLogger(__name__)
+
+EVAL_BETAS = (0.0, 0.25, 0.5, 0.75, 1.0)
+
+
+@dataclass
+class TrainArgs:
+    """Command-line arguments of train_td3 (every field is a --flag)."""
+
+    name: str = 'td3_oracle'
+    runs_dir: str = 'runs'
+    resume: str = ''
+    condition: str = 'oracle'
+    seed: int = 0
+    total_steps: int = 1_000_000
+    start_steps: int = 5_000
+    updates_per_step: float = 1.0
+    buffer_size: int = 1_000_000
+    preload: tuple[str, ...] = ()
+    ou_sigma: float = 0.3
+    ou_sigma_min: float = 0.05
+    ou_decay: float = 0.997
+    ou_theta: float = 0.15
+    eval_every_episodes: int = 50
+    eval_episodes_per_beta: int = 4
+    checkpoint_every_steps: int = 25_000
+    save_buffer: bool = True
+    alpha: float = 0.5
+    max_episode_s: float = 60.0
+    encoder_path: str = ''
+    landing_weight: float = 10.0
+    progress_weight: float = 1.0
+    progress_radius_m: float = 3.0
+    action_weight: float = 0.01
+    success_bonus: float = 0.0
+    crash_penalty: float = 0.0
+    torch_threads: int = 1
+    hidden: tuple[int, ...] = (256, 256)
+
+
+HELP = {
+    'name': 'run name: the run directory is <runs-dir>/<name>',
+    'resume': 'run directory to continue (its config.json wins over the other flags except total-steps)',
+    'condition': 'oracle | latent | end_to_end',
+    'total_steps': 'environment steps to train for (in total, across resumes)',
+    'start_steps': 'initial steps with uniformly random actions',
+    'updates_per_step': 'gradient updates per environment step',
+    'preload': 'replay.npz files of earlier runs to preload into the buffer',
+    'ou_sigma': 'initial Ornstein-Uhlenbeck noise scale (raw action units)',
+    'ou_decay': 'noise scale multiplier per landing',
+    'eval_every_episodes': 'deterministic evaluation every this many landings',
+    'checkpoint_every_steps': 'write ckpt.pt (+ replay.npz) every this many steps',
+    'encoder_path': 'CM-VAE weights for the latent condition (default: the shipped model)',
+    'torch_threads': 'torch CPU threads (the machine is shared)',
+}
+
+
+def env_config_from(args: TrainArgs) -> EnvConfig:
+    """The task the run trains on."""
+    return EnvConfig(condition=args.condition, alpha=args.alpha, max_episode_s=args.max_episode_s,
+                     encoder_path=args.encoder_path,
+                     reward=RewardConfig(landing_weight=args.landing_weight,
+                                         progress_weight=args.progress_weight,
+                                         progress_radius_m=args.progress_radius_m,
+                                         action_weight=args.action_weight,
+                                         success_bonus=args.success_bonus,
+                                         crash_penalty=args.crash_penalty))
+
+
+def make_env(env_cfg: EnvConfig) -> LandingAssistEnv:
+    """Env for a config, with the CM-VAE encoder attached for the latent condition."""
+    if env_cfg.condition == 'latent':
+        latent_fn, dim = make_latent_fn(env_cfg.encoder_path or None)
+        env_cfg.latent_dim = dim
+        return LandingAssistEnv(env_cfg, latent_fn=latent_fn)
+    return LandingAssistEnv(env_cfg)
+
+
+def run_episode(env: LandingAssistEnv, policy, seed: int, options: dict | None = None) -> dict:
+    """Roll out one landing with `policy(obs) -> raw action` (None = unassisted); returns a summary."""
+    obs, info = env.reset(seed=seed, options=options)
+    steps, active = 0, 0
+    while True:
+        act = np.zeros(3) if policy is None else policy(obs)
+        obs, _, term, trunc, step_info = env.step(act)
+        steps += 1
+        active += int(step_info['active'])
+        if term or trunc:
+            break
+    res = dict(step_info['result'])
+    res.update(beta=info['beta'], alpha=info['alpha'], scene_seed=info['scene_seed'], steps=steps,
+               active_fraction=active / steps, episode_return=env.episode_return)
+    return res
+
+
+def evaluate_agent(env: LandingAssistEnv, agent: TD3, per_beta: int, seed: int = 12345) -> dict:
+    """Deterministic evaluation on fixed seeds over EVAL_BETAS; mean error, success, crash rates."""
+    rows = []
+    for bi, beta in enumerate(EVAL_BETAS):
+        for k in range(per_beta):
+            rows.append(run_episode(env, agent.act, seed + 1000 * bi + k, {'beta': beta}))
+    err = np.array([r['error_m'] for r in rows])
+    return {'eval_error_mean': float(err.mean()), 'eval_error_std': float(err.std()),
+            'eval_success': float(np.mean([r['success'] for r in rows])),
+            'eval_crash': float(np.mean([r['crash'] for r in rows])),
+            'eval_active': float(np.mean([r['active_fraction'] for r in rows]))}
+
+
+class CsvLog:
+    """Append-only CSV with a fixed header (survives resumes)."""
+
+    def __init__(self, path: Path, fields: list[str]):
+        self.path, self.fields = path, fields
+        new = not path.exists()
+        self.fh = open(path, 'a', newline='', encoding='utf-8')
+        self.w = csv.DictWriter(self.fh, fieldnames=fields, extrasaction='ignore')
+        if new:
+            self.w.writeheader()
+
+    def write(self, row: dict) -> None:
+        """Write one row and flush (so tail -f shows progress)."""
+        self.w.writerow(row)
+        self.fh.flush()
+
+    def close(self) -> None:
+        """Close the file."""
+        self.fh.close()
+
+
+def train(args: TrainArgs) -> Path:
+    """Train (or resume) a run; returns the run directory."""
+    torch.set_num_threads(max(1, args.torch_threads))
+    run_dir = Path(args.resume) if args.resume else Path(args.runs_dir) / args.name
+    if args.resume:
+        saved = json.loads((run_dir / 'config.json').read_text(encoding='utf-8'))['train']
+        total = args.total_steps
+        args = TrainArgs(**{k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()})
+        args.total_steps = max(total, args.total_steps) if total != TrainArgs.total_steps else args.total_steps
+        args.resume = str(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    env_cfg = env_config_from(args)
+    env = make_env(env_cfg)
+    eval_env = make_env(env_config_from(args))
+    (run_dir / 'config.json').write_text(json.dumps(
+        {'train': dataclasses.asdict(args), 'env': dataclasses.asdict(env_cfg),
+         'td3': dataclasses.asdict(TD3Config(hidden=args.hidden))}, indent=2, default=str), encoding='utf-8')
+    obs_dim = env.observation_space.shape[0]
+    agent = TD3(obs_dim - env.image_size, cfg=TD3Config(hidden=args.hidden),
+                image=env.image_size > 0, seed=args.seed)
+    agent.meta.update(condition=args.condition, latent_dim=int(env_cfg.latent_dim),
+                      max_speed=list(env_cfg.max_speed), blend_threshold=env_cfg.blend_threshold,
+                      window_s=env_cfg.window_s)
+    obs_dtype = np.float16 if env.image_size else np.float32
+    buffer = ReplayBuffer(obs_dim, 3, args.buffer_size, obs_dtype=obs_dtype)
+    rng = np.random.default_rng(args.seed)
+    noise = OUNoise(3, args.ou_theta, args.ou_sigma, args.ou_sigma_min, args.ou_decay, rng=rng)
+    step, episode, best = 0, 0, math.inf
+    ckpt = run_dir / 'ckpt.pt'
+    if args.resume and ckpt.exists():
+        state = torch.load(ckpt, map_location='cpu', weights_only=True)
+        agent.load_state_dict(state['agent'])
+        step, episode, best = int(state['step']), int(state['episode']), float(state['best'])
+        noise.landings = episode
+        if (run_dir / 'replay.npz').exists():
+            buffer.load(run_dir / 'replay.npz')
+        rng = np.random.default_rng([args.seed, episode])
+        noise.rng = rng
+        log.info('resumed %s at step %d, episode %d, buffer %d', run_dir, step, episode, buffer.size)
+    for path in args.preload:
+        log.info('preloaded %d transitions from %s', buffer.load(path), path)
+    metrics = CsvLog(run_dir / 'metrics.csv', ['episode', 'step', 'beta', 'return', 'error_m', 'outcome',
+                                               'success', 'crash', 'active_fraction', 'sigma',
+                                               'critic_loss', 'q_mean', 'wall_s'])
+    evals = CsvLog(run_dir / 'eval.csv', ['episode', 'step', 'eval_error_mean', 'eval_error_std',
+                                          'eval_success', 'eval_crash', 'eval_active', 'wall_s'])
+    t0 = time.time()
+    bar = tqdm(total=args.total_steps, initial=step, desc=args.name, mininterval=30, file=sys.stderr,
+               unit='step', dynamic_ncols=False)
+    update_credit = 0.0
+
+    def checkpoint() -> None:
+        tmp = ckpt.with_name('ckpt.pt.tmp')
+        torch.save({'agent': agent.state_dict(), 'step': step, 'episode': episode, 'best': best}, tmp)
+        tmp.replace(ckpt)
+        if args.save_buffer:
+            buffer.save(run_dir / 'replay.npz')
+        save_actor(agent.actor, agent.meta, run_dir / 'actor_last.pt')
+
+    try:
+        while step < args.total_steps:
+            obs, info = env.reset(seed=int(args.seed * 1_000_003 + episode))
+            noise.reset()
+            losses: list[dict] = []
+            n_active = n_steps = 0
+            while True:
+                if step < args.start_steps:
+                    act = rng.uniform(-1.0, 1.0, 3)
+                else:
+                    act = np.clip(agent.act(obs) + noise.sample(), -1.0, 1.0)
+                nxt, rew, term, trunc, sinfo = env.step(act)
+                buffer.add(obs, act, rew, nxt, term or trunc)
+                obs = nxt
+                step += 1
+                n_steps += 1
+                n_active += int(sinfo['active'])
+                bar.update(1)
+                if buffer.size >= agent.cfg.batch_size and step >= min(args.start_steps, 1000):
+                    update_credit += args.updates_per_step
+                    while update_credit >= 1.0:
+                        losses.append(agent.update(buffer))
+                        update_credit -= 1.0
+                if step % args.checkpoint_every_steps == 0:
+                    checkpoint()
+                if term or trunc:
+                    break
+            episode += 1
+            noise.landed()
+            res = sinfo['result']
+            cl = [l['critic_loss'] for l in losses]
+            qm = [l['q_mean'] for l in losses]
+            metrics.write({'episode': episode, 'step': step, 'beta': round(info['beta'], 3),
+                           'return': round(env.episode_return, 3), 'error_m': round(res['error_m'], 3),
+                           'outcome': res['outcome'], 'success': int(res['success']),
+                           'crash': int(res['crash']), 'active_fraction': round(n_active / n_steps, 3), 'sigma': round(noise.sigma, 4),
+                           'critic_loss': round(float(np.mean(cl)), 4) if cl else '',
+                           'q_mean': round(float(np.mean(qm)), 3) if qm else '',
+                           'wall_s': round(time.time() - t0, 1)})
+            if episode % args.eval_every_episodes == 0 and step >= args.start_steps:
+                ev = evaluate_agent(eval_env, agent, args.eval_episodes_per_beta)
+                ev.update(episode=episode, step=step, wall_s=round(time.time() - t0, 1))
+                evals.write(ev)
+                if ev['eval_error_mean'] < best:
+                    best = ev['eval_error_mean']
+                    save_actor(agent.actor, {**agent.meta, 'eval': ev}, run_dir / 'actor_best.pt')
+                msg = (f'step {step} ep {episode} eval err {ev["eval_error_mean"]:.3f} '
+                       f'succ {ev["eval_success"]:.2f} crash {ev["eval_crash"]:.2f} best {best:.3f}')
+                (run_dir / 'progress.txt').write_text(msg + '\n', encoding='utf-8')
+                log.info(msg)
+        checkpoint()
+    finally:
+        bar.close()
+        metrics.close()
+        evals.close()
+        env.close()
+        eval_env.close()
+    return run_dir
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console entry point."""
+    logging.basicConfig(level=logging.INFO, format='%(asctime)s %(levelname)s %(name)s: %(message)s')
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_dataclass_args(parser, TrainArgs, HELP)
+    args = dataclass_from_args(TrainArgs, parser.parse_args(argv))
+    run_dir = train(args)
+    print(f'run directory: {run_dir}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
