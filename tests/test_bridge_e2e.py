@@ -1,0 +1,187 @@
+"""End to end over UDP loopback: sim_node as the MAVLink vehicle + mavlink_bridge_node in a real graph."""
+import math
+import socket
+import threading
+import time
+
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import TwistStamped
+from nav_msgs.msg import Odometry
+from std_srvs.srv import Trigger
+
+from assist_sim.ros_common import RELIABLE_QOS, SENSOR_QOS
+
+pytestmark = pytest.mark.graph
+
+
+def free_udp_port() -> int:
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(('127.0.0.1', 0))
+    port = s.getsockname()[1]
+    s.close()
+    return port
+
+
+class BridgeProbe:
+    """Test-side view of the bridge: /odom, its /diagnostics, /cmd_vel publisher, /uav/* clients."""
+
+    def __init__(self, node):
+        self.node = node
+        self.lock = threading.Lock()
+        self.odom: list[Odometry] = []
+        self.diag: dict[str, str] = {}
+        self.subs = [node.create_subscription(Odometry, '/odom', self._on_odom, SENSOR_QOS),
+                     node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10)]
+        self.cmd = node.create_publisher(TwistStamped, '/cmd_vel', RELIABLE_QOS)
+        self.clients = {n: node.create_client(Trigger, f'/uav/{n}') for n in ('arm', 'takeoff', 'land', 'disarm')}
+
+    def _on_odom(self, msg):
+        with self.lock:
+            self.odom.append(msg)
+
+    def _on_diag(self, msg):
+        for st in msg.status:
+            if st.name.endswith('mavlink_bridge_node'):
+                with self.lock:
+                    self.diag = {kv.key: kv.value for kv in st.values}
+
+    def pos(self) -> np.ndarray | None:
+        with self.lock:
+            if not self.odom:
+                return None
+            p = self.odom[-1].pose.pose.position
+            return np.array([p.x, p.y, p.z])
+
+    def vel(self) -> np.ndarray:
+        with self.lock:
+            v = self.odom[-1].twist.twist.linear
+            return np.array([v.x, v.y, v.z])
+
+    def n_odom(self) -> int:
+        with self.lock:
+            return len(self.odom)
+
+    def diag_value(self, key):
+        with self.lock:
+            return self.diag.get(key)
+
+    def call(self, name: str, timeout: float = 15.0):
+        client = self.clients[name]
+        assert client.wait_for_service(timeout_sec=timeout), f'/uav/{name} not available'
+        fut = client.call_async(Trigger.Request())
+        end = time.monotonic() + timeout
+        while not fut.done() and time.monotonic() < end:
+            time.sleep(0.02)
+        assert fut.done(), f'/uav/{name} did not answer'
+        return fut.result()
+
+    def send(self, v):
+        msg = TwistStamped()
+        msg.header.frame_id = 'base_link'
+        msg.header.stamp = self.node.get_clock().now().to_msg()
+        msg.twist.linear.x, msg.twist.linear.y, msg.twist.linear.z = (float(x) for x in v)
+        self.cmd.publish(msg)
+
+    def close(self):
+        for s in self.subs:
+            self.node.destroy_subscription(s)
+        self.node.destroy_publisher(self.cmd)
+        for c in self.clients.values():
+            self.node.destroy_client(c)
+
+
+@pytest.fixture
+def rig(ros, start_node):
+    port = free_udp_port()
+    sim_params = {'mavlink_url': f'udpout:127.0.0.1:{port}', 'camera_rate_hz': 0.0, 'seed': 5,
+                  'auto_reset': False}
+    sim = start_node('sim_node', sim_params)
+    bridge = start_node('mavlink_bridge_node', {'connection': f'udpin:127.0.0.1:{port}', 'link_timeout_s': 1.5})
+    probe = BridgeProbe(ros)
+    yield probe, sim, bridge, port, sim_params
+    probe.close()
+
+
+def arm_when_ready(probe, wait):
+    """Arm; before the EKF is ready the refusal must say why (PreArm / requires position)."""
+    assert wait(lambda: probe.diag_value('link') == 'up', 30.0), 'bridge never saw the vehicle'
+    for _ in range(20):
+        res = probe.call('arm')
+        if res.success:
+            return res
+        assert 'PreArm' in res.message or 'requires position' in res.message, res.message
+        time.sleep(0.5)
+    raise AssertionError('never armed')
+
+
+def test_arm_takeoff_fly_stop_land_disarm(rig, wait):
+    probe, sim, bridge, _, _ = rig
+    res = probe.call('takeoff')                # disarmed: refused, honestly
+    assert not res.success and ('FAILED' in res.message or 'no link' in res.message), res.message
+    arm_when_ready(probe, wait)
+    assert wait(lambda: probe.pos() is not None, 10.0), 'no /odom from the bridge'
+    ground = probe.pos()
+    assert ground[2] < 0.3                      # starts landed
+    res = probe.call('takeoff')
+    assert res.success, res.message
+    assert wait(lambda: probe.pos()[2] > ground[2] + 1.8, 20.0), f'no climb: {probe.pos()}'
+    time.sleep(0.5)
+    p0 = probe.pos()
+    end = time.monotonic() + 2.0
+    while time.monotonic() < end:              # forward (FLU +x) 1 m/s, left 0.3 m/s at 20 Hz
+        probe.send([1.0, 0.3, 0.0])
+        time.sleep(0.05)
+    p1 = probe.pos()
+    d = p1 - p0
+    assert d[0] > 0.8, f'did not fly forward (+x ENU): {d}'
+    assert 0.05 < d[1] < 0.9, f'left is +y ENU: {d}'
+    assert abs(d[2]) < 0.4
+    assert probe.vel()[0] > 0.4                 # body-frame twist forward
+    # command timeout: the bridge sends zero velocity and the vehicle stops
+    assert wait(lambda: np.linalg.norm(probe.vel()) < 0.15, 8.0), f'did not stop: {probe.vel()}'
+    p2 = probe.pos()
+    time.sleep(1.0)
+    assert np.linalg.norm(probe.pos()[:2] - p2[:2]) < 0.3
+    res = probe.call('land')
+    assert res.success, res.message
+    assert wait(lambda: probe.pos()[2] < ground[2] + 0.05, 20.0), f'did not land: {probe.pos()}'
+    assert wait(lambda: probe.diag_value('armed') == 'False', 10.0), 'not disarmed after landing'
+    assert sim.proc.poll() is None and bridge.proc.poll() is None
+
+
+def test_link_loss_reported_and_recovered(rig, wait, start_node):
+    probe, sim, bridge, port, sim_params = rig
+    arm_when_ready(probe, wait)
+    assert probe.call('takeoff').success
+    assert wait(lambda: probe.pos() is not None and probe.pos()[2] > 1.0, 20.0)
+    sim.stop()                                  # the vehicle endpoint dies mid-flight
+    assert wait(lambda: probe.diag_value('link') == 'lost', 10.0), 'link loss not reported'
+    assert 'link lost' in bridge.log()
+    res = probe.call('arm')
+    assert not res.success and 'no link' in res.message
+    n = probe.n_odom()
+    start_node('sim_node', sim_params)           # it comes back
+    assert wait(lambda: probe.diag_value('link') == 'up', 30.0), 'no recovery'
+    assert wait(lambda: probe.n_odom() > n + 5, 20.0), 'telemetry not resumed after recovery'
+    assert bridge.proc.poll() is None
+
+
+def test_garbage_on_the_bridge_port(rig, wait):
+    probe, sim, bridge, port, _ = rig
+    assert wait(lambda: probe.diag_value('link') == 'up', 30.0)
+    rng = np.random.default_rng(11)
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    payloads = [rng.bytes(int(n)) for n in rng.integers(1, 2000, 300)]
+    payloads += [b'\xfd\x09\x00\x00\x00\x01\x01\x00\x00', b'\xfe' * 10000, rng.bytes(65000),
+                 bytes([0xfd, 0xff]) + rng.bytes(30), b'']
+    for pl in payloads:
+        s.sendto(pl, ('127.0.0.1', port))
+    s.close()
+    time.sleep(1.0)
+    assert bridge.proc.poll() is None, bridge.log()
+    assert wait(lambda: int(probe.diag_value('rx_bad_data') or 0) > 0, 10.0)
+    assert probe.diag_value('link') == 'up'
+    arm_when_ready(probe, wait)                 # and it still commands the vehicle
+    assert int(probe.diag_value('loop_errors') or 0) == 0
