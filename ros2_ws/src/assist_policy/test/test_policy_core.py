@@ -1,0 +1,110 @@
+"""Pure policy core: staleness, relinquishing, NaN rejection, blending, clamping, model checks."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from assist_policy.observation import vector_dim
+from assist_policy.policy_core import PolicyCore, PolicyCoreConfig
+from assist_policy.td3 import Actor, save_actor
+
+LATENT = 10
+
+
+def constant_actor(path, raw, condition='latent', latent_dim=LATENT):
+    """Actor whose output is the constant tanh^-1-encoded `raw` (zero weights, fixed bias)."""
+    vec = vector_dim(condition, latent_dim)
+    actor = Actor(vec, 3, hidden=(8,))
+    with torch.no_grad():
+        for prm in actor.parameters():
+            prm.zero_()
+        actor.head[-1].bias.copy_(torch.atanh(torch.tensor(raw, dtype=torch.float32)))
+    meta = {'vec_dim': vec, 'act_dim': 3, 'hidden': [8], 'image': False, 'condition': condition,
+            'latent_dim': latent_dim, 'max_speed': [1.0, 1.0, 0.6], 'window_s': 1.0}
+    save_actor(actor, meta, path)
+    return path
+
+
+@pytest.fixture
+def core(tmp_path):
+    return PolicyCore(constant_actor(tmp_path / 'a.pt', [0.8, 0.0, 0.0]), PolicyCoreConfig(mode='latent'))
+
+
+def feed(core, t, u=(0.0, 1.0, 0.0), latent=True):
+    core.set_odom(t, [1, 0, 2], [0, 0, 0])
+    core.set_pilot(t, u)
+    if latent:
+        core.set_latent(t, np.zeros(LATENT))
+
+
+def test_assists_with_blend_when_inputs_fresh(core):
+    feed(core, 10.0)
+    out = core.step(10.05)
+    np.testing.assert_allclose(out.agent, [0.8, 0, 0], atol=1e-6)
+    np.testing.assert_allclose(out.velocity, [0.4, 0.5, 0.0], atol=1e-6)
+
+
+def test_relinquishes_when_latent_stale_or_absent(core):
+    feed(core, 10.0, latent=False)
+    out = core.step(10.0)
+    assert out.agent is None and 'stale or absent' in out.reason
+    np.testing.assert_allclose(out.velocity, [0, 1, 0])
+    core.set_latent(10.0, np.zeros(LATENT))
+    core.set_odom(10.6, [1, 0, 2], [0, 0, 0])
+    core.set_pilot(10.6, [0, 1, 0])
+    out = core.step(10.6)      # latent 0.6 s old > 0.5 s
+    assert out.agent is None
+    np.testing.assert_allclose(out.velocity, [0, 1, 0])
+
+
+def test_relinquishes_when_odom_stale_and_pilot_absent_is_zero(core):
+    feed(core, 0.0)
+    out = core.step(1.0)
+    assert out.agent is None
+    np.testing.assert_allclose(out.velocity, np.zeros(3))   # pilot stale too: u = 0
+
+
+def test_nonfinite_inputs_rejected(core):
+    with pytest.raises(ValueError):
+        core.set_pilot(0.0, [math.nan, 0, 0])
+    with pytest.raises(ValueError):
+        core.set_latent(0.0, np.full(LATENT, math.inf))
+    with pytest.raises(ValueError):
+        core.set_latent(0.0, np.zeros(LATENT + 1))
+
+
+def test_nonfinite_actor_output_never_reaches_velocity(tmp_path):
+    path = constant_actor(tmp_path / 'nan.pt', [0.5, 0.5, 0.5])
+    blob = torch.load(path, weights_only=True)
+    blob['actor']['head.2.bias'][:] = float('nan')
+    torch.save(blob, path)
+    core = PolicyCore(path, PolicyCoreConfig(mode='latent'))
+    feed(core, 1.0)
+    out = core.step(1.0)
+    assert out.agent is None and 'not finite' in out.reason
+    np.testing.assert_allclose(out.velocity, [0, 1, 0])
+    assert core.rejected == 1
+
+
+def test_small_actions_relinquish_and_speed_is_clamped(tmp_path):
+    core = PolicyCore(constant_actor(tmp_path / 's.pt', [0.1, 0.1, 0.0]), PolicyCoreConfig(mode='latent'))
+    feed(core, 1.0, u=(0.0, 1.0, 0.0))
+    out = core.step(1.0)
+    assert out.reason == 'relinquished'
+    np.testing.assert_allclose(out.velocity, [0, 1, 0])
+    feed(core, 2.0, u=(3.0, 0.0, -4.0))
+    out = core.step(2.0)
+    assert np.hypot(*out.velocity[:2]) == pytest.approx(1.5)
+    assert out.velocity[2] == pytest.approx(-1.0)
+
+
+def test_oracle_needs_goal_and_mode_mismatch_is_an_error(tmp_path):
+    path = constant_actor(tmp_path / 'o.pt', [0.0, 0.9, 0.0], condition='oracle', latent_dim=0)
+    with pytest.raises(ValueError, match='trained for'):
+        PolicyCore(path, PolicyCoreConfig(mode='latent'))
+    core = PolicyCore(path, PolicyCoreConfig(mode='oracle'))
+    feed(core, 1.0, latent=False)
+    assert core.step(1.0).agent is None
+    core.set_goal([5, 0, 1])
+    np.testing.assert_allclose(core.step(1.0).agent, [0, 0.9, 0], atol=1e-6)

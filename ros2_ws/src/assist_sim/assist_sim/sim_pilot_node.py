@@ -1,0 +1,127 @@
+"""sim_pilot_node: the simulated pilot (assist_sim.pilot) as a ROS 2 node publishing /pilot/cmd_vel.
+
+Reads /odom, the latched /sim/goal (every message starts a new landing: a fresh goal estimate) and
+/assist/agent_cmd (the assistant's action, which pulls the pilot's estimate with conformance alpha
+while it is above the blending threshold and fresh).
+"""
+from __future__ import annotations
+
+import sys
+import threading
+
+import numpy as np
+from geometry_msgs.msg import PointStamped, TwistStamped
+from nav_msgs.msg import Odometry
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.node import Node
+
+from .pilot import PilotConfig, SimulatedPilot
+from .ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError,
+                         declare_parameters, fill_twist, run_node, twist_to_array)
+
+PARAMS = {
+    'alpha': Param(0.5, 'Conformance to the assistant in [0, 1] (paper alpha).'),
+    'beta': Param(0.5, 'Skill in [0, 1]: how fast the pilot fixes its goal estimate (paper beta).'),
+    'seed': Param(0, 'Randomness of the pilot (initial estimates, perception errors).'),
+    'rate_hz': Param(20.0, 'Command rate (the pilot model is calibrated at 20 Hz).'),
+    'blend_threshold': Param(0.25, 'Assistant actions at or below this norm (m/s) are not felt by the pilot.'),
+    'agent_timeout_s': Param(0.5, '/assist/agent_cmd older than this counts as absent.'),
+    'odom_timeout_s': Param(0.5, 'With /odom older than this the pilot sends zero velocity.'),
+    'frame_id': Param('base_link', 'frame_id of /pilot/cmd_vel.'),
+}
+
+
+class SimPilotNode(Node):
+    """Keyboard-like simulated pilot flying toward its (wrong, improving) goal estimate."""
+
+    def __init__(self, **kwargs):
+        super().__init__('sim_pilot_node', **kwargs)
+        self.p = declare_parameters(self, PARAMS)
+        self.diag = Diagnostics(self)
+        if not (0.0 <= self.p['alpha'] <= 1.0 and 0.0 <= self.p['beta'] <= 1.0):
+            raise StartupError(f"sim_pilot_node: alpha and beta must be in [0, 1], got "
+                               f"{self.p['alpha']}, {self.p['beta']}")
+        if not self.p['rate_hz'] > 0:
+            raise StartupError('sim_pilot_node: rate_hz must be > 0')
+        cfg = PilotConfig(control_hz=float(self.p['rate_hz']), k_alpha=float(self.p['rate_hz']))
+        self.pilot = SimulatedPilot(float(self.p['alpha']), float(self.p['beta']), cfg,
+                                    np.random.default_rng(int(self.p['seed'])))
+        self._lock = threading.Lock()
+        self._odom: tuple[float, np.ndarray] | None = None
+        self._agent: tuple[float, np.ndarray] | None = None
+        self._pending_goal: np.ndarray | None = None
+        self._active = False
+        self.episodes = 0
+        group = MutuallyExclusiveCallbackGroup()
+        self.pub = self.create_publisher(TwistStamped, '/pilot/cmd_vel', RELIABLE_QOS)
+        self.create_subscription(Odometry, '/odom', self._on_odom, SENSOR_QOS, callback_group=group)
+        self.create_subscription(PointStamped, '/sim/goal', self._on_goal, LATCHED_QOS, callback_group=group)
+        self.create_subscription(TwistStamped, '/assist/agent_cmd', self._on_agent, RELIABLE_QOS,
+                                 callback_group=group)
+        self.create_timer(1.0 / float(self.p['rate_hz']), self._tick, callback_group=group)
+        self.get_logger().info(f"sim_pilot_node: alpha {self.p['alpha']} beta {self.p['beta']} "
+                               f"seed {self.p['seed']}")
+
+    def _now(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def _on_odom(self, msg: Odometry) -> None:
+        p = msg.pose.pose.position
+        pos = np.array([p.x, p.y, p.z])
+        if not np.all(np.isfinite(pos)):
+            self.diag.count('rejected_odom')
+            self.get_logger().warning('rejected non-finite odometry', throttle_duration_sec=2.0)
+            return
+        with self._lock:
+            self._odom = (self._now(), pos)
+
+    def _on_goal(self, msg: PointStamped) -> None:
+        g = np.array([msg.point.x, msg.point.y, msg.point.z])
+        if not np.all(np.isfinite(g)):
+            self.diag.count('rejected_goal')
+            self.get_logger().warning('rejected non-finite goal')
+            return
+        with self._lock:
+            self._pending_goal = g
+
+    def _on_agent(self, msg: TwistStamped) -> None:
+        a = twist_to_array(msg)
+        if not np.all(np.isfinite(a)):
+            self.diag.count('rejected_agent')
+            self.get_logger().warning('rejected non-finite agent command', throttle_duration_sec=2.0)
+            return
+        with self._lock:
+            self._agent = (self._now(), a)
+
+    def _tick(self) -> None:
+        now = self._now()
+        with self._lock:
+            odom_ok = self._odom is not None and abs(now - self._odom[0]) <= self.p['odom_timeout_s']
+            if self._pending_goal is not None and self._odom is not None:
+                self.pilot.reset(self._pending_goal, self._odom[1])
+                self._pending_goal = None
+                self._active = True
+                self.episodes += 1
+                self.diag.set('episodes', self.episodes)
+                self.diag.set('goal_estimate', np.round(self.pilot.goal_estimate, 2).tolist())
+            if not (odom_ok and self._active):
+                u = np.zeros(3)
+            else:
+                a = None
+                if self._agent is not None and abs(now - self._agent[0]) <= self.p['agent_timeout_s']:
+                    if float(np.linalg.norm(self._agent[1])) > self.p['blend_threshold']:
+                        a = self._agent[1]
+                u = self.pilot.act(self._odom[1], a)
+        msg = TwistStamped()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.header.frame_id = self.p['frame_id']
+        self.pub.publish(fill_twist(msg, u))
+
+
+def main(args=None):
+    """Console entry point."""
+    sys.exit(run_node(lambda: SimPilotNode(), args))
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,116 @@
+"""policy_node in a real graph (subprocess, private domain): blending, stale inputs, NaN handling."""
+import importlib.util
+import math
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from geometry_msgs.msg import TwistStamped
+from nav_msgs.msg import Odometry
+from std_msgs.msg import Float32MultiArray
+
+from assist_sim.ros_common import RELIABLE_QOS, SENSOR_QOS
+
+pytestmark = pytest.mark.graph
+
+_spec = importlib.util.spec_from_file_location(
+    'policy_core_helpers', Path(__file__).resolve().parents[1]
+    / 'ros2_ws/src/assist_policy/test/test_policy_core.py')
+_helpers = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_helpers)
+constant_actor = _helpers.constant_actor
+LATENT = _helpers.LATENT
+
+
+class Probe:
+    """Publishes the policy inputs, records its outputs."""
+
+    def __init__(self, node):
+        self.node = node
+        self.lock = threading.Lock()
+        self.cmd, self.agent = [], []
+        self.subs = [node.create_subscription(TwistStamped, '/cmd_vel', self._rec(self.cmd), RELIABLE_QOS),
+                     node.create_subscription(TwistStamped, '/assist/agent_cmd', self._rec(self.agent),
+                                              RELIABLE_QOS)]
+        self.pub_odom = node.create_publisher(Odometry, '/odom', SENSOR_QOS)
+        self.pub_pilot = node.create_publisher(TwistStamped, '/pilot/cmd_vel', RELIABLE_QOS)
+        self.pub_latent = node.create_publisher(Float32MultiArray, '/assist/latent', SENSOR_QOS)
+
+    def _rec(self, store):
+        def cb(msg):
+            with self.lock:
+                store.append((time.monotonic(), np.array([msg.twist.linear.x, msg.twist.linear.y,
+                                                          msg.twist.linear.z])))
+        return cb
+
+    def since(self, store, t0):
+        with self.lock:
+            return [v for t, v in store if t >= t0]
+
+    def publish(self, u=(0.0, 1.0, 0.0), latent=True, latent_value=0.0):
+        od = Odometry()
+        od.pose.pose.position.z = 2.0
+        self.pub_odom.publish(od)
+        tw = TwistStamped()
+        tw.header.frame_id = 'base_link'
+        tw.twist.linear.x, tw.twist.linear.y, tw.twist.linear.z = (float(x) for x in u)
+        self.pub_pilot.publish(tw)
+        if latent:
+            self.pub_latent.publish(Float32MultiArray(data=[float(latent_value)] * LATENT))
+
+    def run(self, seconds, **kw):
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < seconds:
+            self.publish(**kw)
+            time.sleep(0.05)
+        return t0
+
+    def close(self):
+        for s in self.subs:
+            self.node.destroy_subscription(s)
+        for p in (self.pub_odom, self.pub_pilot, self.pub_latent):
+            self.node.destroy_publisher(p)
+
+
+@pytest.fixture
+def probe(ros):
+    p = Probe(ros)
+    yield p
+    p.close()
+
+
+def test_policy_node_blends_relinquishes_when_stale_and_rejects_nan(probe, start_node, wait, tmp_path):
+    model = constant_actor(tmp_path / 'actor.pt', [0.8, 0.0, 0.0])
+    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0})
+    assert wait(lambda: len(probe.since(probe.cmd, 0)) > 0 or node.proc.poll() is not None, 30), node.log()
+    assert node.proc.poll() is None, node.log()
+    # all inputs fresh: agent a = (0.8, 0, 0), V = (u + a) / 2
+    probe.run(1.0)
+    t0 = probe.run(1.0)
+    cmds, agents = probe.since(probe.cmd, t0 + 0.2), probe.since(probe.agent, t0 + 0.2)
+    assert len(cmds) > 5 and len(agents) > 5, node.log()
+    np.testing.assert_allclose(agents[-1], [0.8, 0, 0], atol=1e-5)
+    np.testing.assert_allclose(cmds[-1], [0.4, 0.5, 0], atol=1e-5)
+    # latent stops: after its 0.5 s timeout the policy relinquishes (V = u) and stops publishing a
+    t1 = probe.run(1.5, latent=False)
+    late = probe.since(probe.cmd, t1 + 0.8)
+    assert late and all(np.allclose(v, [0, 1, 0], atol=1e-6) for v in late)
+    assert not probe.since(probe.agent, t1 + 0.8)
+    # NaN latent is rejected (counts as absent); NaN pilot is rejected (u = 0 once stale)
+    t2 = probe.run(1.5, latent_value=math.nan)
+    late = probe.since(probe.cmd, t2 + 0.8)
+    assert late and all(np.all(np.isfinite(v)) and np.allclose(v, [0, 1, 0], atol=1e-6) for v in late)
+    t3 = probe.run(1.5, u=(math.nan, 0.0, 0.0))
+    late = probe.since(probe.cmd, t3 + 0.8)
+    # pilot absent (u = 0), latent fresh: V = (0 + a) / 2
+    assert late and all(np.allclose(v, [0.4, 0, 0], atol=1e-5) for v in late)
+    assert 'rejected latent' in node.log() and 'rejected pilot' in node.log()
+
+
+def test_policy_node_missing_model_exits_with_one_line(start_node, wait, tmp_path):
+    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(tmp_path / 'nope.pt')})
+    assert wait(lambda: node.proc.poll() is not None, 30)
+    assert node.proc.returncode == 1
+    assert 'actor file not found' in node.log() and 'Traceback' not in node.log()
