@@ -1,0 +1,150 @@
+"""teleop_keyboard: the pilot's keyboard -> /pilot/cmd_vel (TwistStamped, base_link) at a fixed rate.
+
+W/S forward/back, A/D left/right, arrow up/down climb/descend, space stop, q (or Ctrl-C) quit.
+Needs a real terminal: the terminal is put in non-canonical, no-echo mode (restored on every
+exit) and a zero command is published before the node goes away.
+"""
+from __future__ import annotations
+
+import os
+import select
+import signal
+import sys
+import termios
+import threading
+import time
+
+from geometry_msgs.msg import TwistStamped
+from rclpy.node import Node
+
+from assist_sim.ros_common import RELIABLE_QOS, Param, StartupError, declare_parameters, fill_twist, run_node
+
+from .teleop_core import HELP, KeyDecoder, TeleopConfig, TeleopCore
+
+PARAMS = {
+    'speed': Param(1.0, 'Horizontal speed for W/S/A/D (m/s).'),
+    'speed_z': Param(0.5, 'Vertical speed for the up/down arrows (m/s).'),
+    'rate_hz': Param(20.0, 'Publish rate of /pilot/cmd_vel (Hz); published continuously, not only on key events.'),
+    'initial_hold_s': Param(0.6, 'A key counts as held this long after its first event (longer than the '
+                            "terminal's auto-repeat delay)."),
+    'repeat_timeout_s': Param(0.15, 'A repeating key counts as released when its repeats stop this long.'),
+    'frame_id': Param('base_link', 'frame_id of the published commands (body FLU).'),
+    'status_line': Param(True, 'Show a live status line in the terminal.'),
+}
+
+
+class TeleopKeyboard(Node):
+    """Reads keys from the controlling terminal and publishes the pilot command."""
+
+    def __init__(self, **kwargs):
+        if not sys.stdin.isatty():
+            raise StartupError('teleop_keyboard: stdin is not a terminal (TTY); run it in an interactive '
+                               'terminal, e.g. `ros2 run assist_bridge teleop_keyboard` (not piped, not under launch '
+                               'without a terminal prefix)')
+        super().__init__('teleop_keyboard', **kwargs)
+        self.p = declare_parameters(self, PARAMS)
+        keys = set(TeleopConfig.__dataclass_fields__) & set(self.p)
+        try:
+            self.cfg = TeleopConfig(**{k: self.p[k] for k in keys})
+        except (ValueError, TypeError) as exc:
+            raise StartupError(f'teleop_keyboard: bad parameter: {exc}') from exc
+        self.core = TeleopCore(self.cfg)
+        self.decoder = KeyDecoder()
+        self.lock = threading.Lock()
+        self.pub = self.create_publisher(TwistStamped, '/pilot/cmd_vel', RELIABLE_QOS)
+        self._fd = sys.stdin.fileno()
+        self._saved = termios.tcgetattr(self._fd)
+        self._restored = False
+        self._closing = False
+        mode = termios.tcgetattr(self._fd)
+        mode[3] &= ~(termios.ICANON | termios.ECHO | termios.ISIG)   # keys one by one; Ctrl-C as a key
+        mode[6][termios.VMIN], mode[6][termios.VTIME] = 1, 0
+        termios.tcsetattr(self._fd, termios.TCSANOW, mode)
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            signal.signal(sig, self._on_signal)
+        self._stop = threading.Event()
+        self._reader = threading.Thread(target=self._read_keys, name='keyboard', daemon=True)
+        self._reader.start()
+        self.create_timer(1.0 / self.cfg.rate_hz, self._tick)
+        self._out(f'teleop_keyboard: {HELP}\r\n')
+
+    # ------------------------------------------------------------------ terminal
+    def _out(self, text: str) -> None:
+        sys.stdout.write(text)
+        sys.stdout.flush()
+
+    def _restore_terminal(self) -> None:
+        if not self._restored:
+            self._restored = True
+            termios.tcsetattr(self._fd, termios.TCSADRAIN, self._saved)
+            if self.p['status_line']:
+                self._out('\r\n')
+
+    def _read_keys(self) -> None:
+        while not self._stop.is_set():
+            r, _, _ = select.select([self._fd], [], [], 0.1)
+            if not r:
+                continue
+            data = os.read(self._fd, 64)
+            if not data:          # terminal closed
+                self._request_quit('terminal closed')
+                return
+            now = time.monotonic()
+            with self.lock:
+                for tok in self.decoder.feed(data.decode('utf-8', 'replace')):
+                    self.core.press(tok, now)
+                quit_now = self.core.quit
+            if quit_now:
+                self._request_quit(f'key {self.core.last_key!r}')
+                return
+
+    # ------------------------------------------------------------------ publishing
+    def _publish(self, v) -> None:
+        msg = TwistStamped()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.header.frame_id = self.p['frame_id']
+        self.pub.publish(fill_twist(msg, v))
+
+    def _tick(self) -> None:
+        if self._closing:
+            return
+        now = time.monotonic()
+        with self.lock:
+            v = self.core.velocity(now)
+            line = self.core.status_line(now)
+        self._publish(v)
+        if self.p['status_line']:
+            self._out('\r' + line + '\x1b[K')
+
+    def _send_zero(self) -> None:
+        for _ in range(3):    # reliable QoS, but say it more than once on the way out
+            self._publish((0.0, 0.0, 0.0))
+
+    def _request_quit(self, why: str) -> None:
+        self._closing = True
+        self._send_zero()
+        self._restore_terminal()
+        self.get_logger().info(f'quit ({why}): zero command sent')
+        self.context.try_shutdown()
+
+    def _on_signal(self, signum, frame) -> None:
+        self._closing = True
+        self._send_zero()
+        self._restore_terminal()
+        raise KeyboardInterrupt
+
+    def close(self) -> None:
+        """Zero command (if the graph is still up), terminal restored, reader stopped."""
+        self._stop.set()
+        if self.context.ok():
+            self._send_zero()
+        self._restore_terminal()
+
+
+def main(args=None):
+    """Console entry point."""
+    sys.exit(run_node(lambda: TeleopKeyboard(), args))
+
+
+if __name__ == '__main__':
+    main()
