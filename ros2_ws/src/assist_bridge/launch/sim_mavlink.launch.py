@@ -1,0 +1,28 @@
+"""The sim as the Pixhawk: sim_node as a MAVLink vehicle + mavlink_bridge_node over UDP loopback.
+
+ros2 launch assist_bridge sim_mavlink.launch.py [port:=14550] [seed:=0]
+Then arm / take off with `ros2 service call /uav/arm std_srvs/srv/Trigger`, `/uav/takeoff`, and fly
+with teleop_keyboard (remap /pilot/cmd_vel to /cmd_vel) or the policy.
+"""
+import os
+
+from ament_index_python.packages import get_package_share_directory
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument
+from launch.substitutions import LaunchConfiguration, PythonExpression
+from launch_ros.actions import Node
+
+
+def generate_launch_description():
+    """sim_node (mavlink_url=udpout:127.0.0.1:PORT) and the bridge (connection=udpin:127.0.0.1:PORT)."""
+    port = LaunchConfiguration('port')
+    sim_params = os.path.join(get_package_share_directory('assist_sim'), 'config', 'sim.yaml')
+    bridge_params = os.path.join(get_package_share_directory('assist_bridge'), 'config', 'bridge.yaml')
+    args = [DeclareLaunchArgument('port', default_value='14550'), DeclareLaunchArgument('seed', default_value='0')]
+    sim = Node(package='assist_sim', executable='sim_node', name='sim_node', output='screen',
+               parameters=[sim_params, {'seed': LaunchConfiguration('seed'),
+                                        'mavlink_url': PythonExpression(["'udpout:127.0.0.1:' + '", port, "'"])}])
+    bridge = Node(package='assist_bridge', executable='mavlink_bridge_node', name='mavlink_bridge_node',
+                  output='screen',
+                  parameters=[bridge_params, {'connection': PythonExpression(["'udpin:127.0.0.1:' + '", port, "'"])}])
+    return LaunchDescription(args + [sim, bridge])
