@@ -1,0 +1,227 @@
+"""evaluate: the paper's simulated-user experiment (Fig. 5 / Table I) in the LandingWorld.
+
+Simulated pilots at alpha = 0.5 and beta = 0, 0.05, ..., 1 land `--landings` times per beta (40 in the
+paper) unassisted and with each assistant (latent, oracle, end_to_end). Landing k at beta index b uses
+the same scene, goal and pilot randomness in every condition (paired comparison; seeded).
+
+    evaluate --out runs/eval_full                       # full experiment, shipped models
+    evaluate --landings 4 --betas 0 0.5 1 --conditions unassisted oracle   # quick look
+
+Writes <out>/landings.csv (one row per landing), <out>/summary.csv, <out>/error_vs_beta.png and
+prints the table: mean +- std error, median, specified-platform success (all legs on the goal),
+nearest-platform success (all legs on the platform nearest to where it stopped, whichever it is),
+crash rate and how often the landed platform was the goal.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import logging
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .cli import add_dataclass_args, dataclass_from_args
+from .env import EnvConfig, LandingAssistEnv
+from .latent import make_latent_fn
+from .policy_core import default_model_path
+from .td3 import load_actor
+
+log = logging.getLogger(__name__)
+
+CONDITIONS = ('unassisted', 'latent', 'oracle', 'end_to_end')
+PAPER = {'unassisted': '0.67 +- 0.40', 'end_to_end': '0.37 +- 0.33', 'latent': '0.25 +- 0.15',
+         'oracle': '0.10 +- 0.07'}
+
+
+@dataclass
+class EvalArgs:
+    """Command-line arguments of evaluate (every field is a --flag)."""
+
+    out: str = 'runs/eval'
+    conditions: tuple[str, ...] = CONDITIONS
+    alpha: float = 0.5
+    betas: tuple[float, ...] = tuple(np.round(np.arange(0.0, 1.0001, 0.05), 2).tolist())
+    landings: int = 40
+    seed: int = 2024
+    latent_model: str = ''
+    oracle_model: str = ''
+    end_to_end_model: str = ''
+    encoder_path: str = ''
+    max_episode_s: float = 60.0
+    plot: bool = True
+
+
+HELP = {
+    'out': 'output directory (landings.csv, summary.csv, error_vs_beta.png)',
+    'conditions': 'any of unassisted latent oracle end_to_end (assistants without a model are skipped)',
+    'betas': 'pilot skills to test (paper: 0 to 1 in steps of 0.05)',
+    'landings': 'landings per beta and condition (paper: 40)',
+    'latent_model': 'actor file (default: models/td3_latent_actor.pt)',
+    'oracle_model': 'actor file (default: models/td3_oracle_actor.pt)',
+    'end_to_end_model': 'actor file (default: models/td3_end_to_end_actor.pt)',
+    'encoder_path': 'CM-VAE weights for the latent condition (default: the shipped model)',
+}
+
+
+def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: float, alpha: float):
+    """(env, policy) for one condition; policy(obs) -> raw action, None for unassisted."""
+    if condition == 'unassisted':
+        return LandingAssistEnv(EnvConfig(condition='none', alpha=alpha, max_episode_s=max_episode_s)), None
+    path = Path(model) if model else default_model_path(condition)
+    actor, meta = load_actor(path)
+    cfg = EnvConfig(condition=condition, alpha=alpha, max_episode_s=max_episode_s,
+                    max_speed=tuple(meta.get('max_speed', (1.0, 1.0, 0.6))),
+                    latent_dim=int(meta.get('latent_dim', 0)))
+    if condition == 'latent':
+        latent_fn, dim = make_latent_fn(encoder_path or None)
+        if dim != cfg.latent_dim:
+            raise ValueError(f'{path}: trained on a {cfg.latent_dim}-d latent, the encoder gives {dim}')
+        env = LandingAssistEnv(cfg, latent_fn=latent_fn)
+    else:
+        env = LandingAssistEnv(cfg)
+
+    @torch.no_grad()
+    def policy(obs: np.ndarray) -> np.ndarray:
+        return actor(torch.as_tensor(obs).unsqueeze(0))[0].numpy().astype(float)
+    return env, policy
+
+
+def run_landing(env: LandingAssistEnv, policy, seed: int, beta: float) -> dict:
+    """One landing with the given seed and pilot skill; the result row."""
+    obs, info = env.reset(seed=seed, options={'beta': beta})
+    steps = active = 0
+    while True:
+        act = np.zeros(3) if policy is None else policy(obs)
+        obs, _, term, trunc, sinfo = env.step(act)
+        steps += 1
+        active += int(sinfo['active'])
+        if term or trunc:
+            break
+    res = sinfo['result']
+    return {'beta': beta, 'seed': seed, 'scene_seed': info['scene_seed'], 'goal_index': res['goal_index'],
+            'landed_index': res['landed_index'], 'nearest_index': res['nearest_index'],
+            'error_m': round(float(res['error_m']), 4), 'nearest_error_m': round(float(res['nearest_error_m']), 4),
+            'outcome': res['outcome'], 'success': bool(res['success']), 'crash': bool(res['crash']),
+            'duration_s': round(float(res['duration_s']), 2), 'active_fraction': round(active / steps, 3)}
+
+
+def summarize(rows: list[dict]) -> dict:
+    """Table I statistics of a set of landing rows."""
+    err = np.array([r['error_m'] for r in rows], dtype=float)
+    landed_clean = [r['outcome'] in ('success', 'wrong_pad') for r in rows]
+    return {'n': len(rows), 'error_mean': float(err.mean()), 'error_std': float(err.std()),
+            'error_median': float(np.median(err)),
+            'specified_success': float(np.mean([r['success'] for r in rows])),
+            'nearest_success': float(np.mean([c and r['landed_index'] == r['nearest_index']
+                                              for c, r in zip(landed_clean, rows)])),
+            'crash_rate': float(np.mean([r['crash'] for r in rows])),
+            'landed_on_goal': float(np.mean([r['landed_index'] is not None and int(r['landed_index']) ==
+                                             int(r['goal_index']) for r in rows])),
+            'active_fraction': float(np.mean([r['active_fraction'] for r in rows]))}
+
+
+def format_table(summary: dict[str, dict]) -> str:
+    """Fixed-width text table of per-condition summaries."""
+    head = (f'{"condition":<12} {"n":>4} {"error m (mean+-std)":>20} {"median":>7} {"spec.succ":>9} '
+            f'{"near.succ":>9} {"crash":>6} {"on goal":>7} {"assist%":>7}  paper')
+    lines = [head, '-' * len(head)]
+    for cond, s in summary.items():
+        lines.append(f'{cond:<12} {s["n"]:>4} {s["error_mean"]:>11.3f} +- {s["error_std"]:<5.3f} '
+                     f'{s["error_median"]:>7.3f} {100 * s["specified_success"]:>8.1f}% '
+                     f'{100 * s["nearest_success"]:>8.1f}% {100 * s["crash_rate"]:>5.1f}% '
+                     f'{100 * s["landed_on_goal"]:>6.1f}% {100 * s["active_fraction"]:>6.1f}%  '
+                     f'{PAPER.get(cond, "")}')
+    return '\n'.join(lines)
+
+
+def plot(rows_by_cond: dict[str, list[dict]], path: Path) -> None:
+    """Mean landing error (+- std band) against beta per condition, like the paper's Fig. 5."""
+    import matplotlib  # noqa: PLC0415
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    for cond, rows in rows_by_cond.items():
+        betas = sorted({r['beta'] for r in rows})
+        m = np.array([np.mean([r['error_m'] for r in rows if r['beta'] == b]) for b in betas])
+        s = np.array([np.std([r['error_m'] for r in rows if r['beta'] == b]) for b in betas])
+        ax.plot(betas, m, marker='o', ms=3, label=cond)
+        ax.fill_between(betas, m - s, m + s, alpha=0.15)
+    ax.set_xlabel('pilot skill beta (alpha = 0.5)')
+    ax.set_ylabel('landing error (m)')
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def evaluate(args: EvalArgs) -> dict[str, dict]:
+    """Run the experiment; write CSVs and the plot; return per-condition summaries."""
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows_by_cond: dict[str, list[dict]] = {}
+    fields = ['condition', 'beta', 'seed', 'scene_seed', 'goal_index', 'landed_index', 'nearest_index',
+              'error_m', 'nearest_error_m', 'outcome', 'success', 'crash', 'duration_s', 'active_fraction']
+    with open(out / 'landings.csv', 'w', newline='', encoding='utf-8') as fh:
+        w = csv.DictWriter(fh, fieldnames=fields)
+        w.writeheader()
+        for cond in args.conditions:
+            if cond not in CONDITIONS:
+                raise ValueError(f'unknown condition {cond!r}; choose from {CONDITIONS}')
+            model = getattr(args, f'{cond}_model', '') if cond != 'unassisted' else ''
+            try:
+                env, policy = make_policy(cond, model, args.encoder_path, args.max_episode_s, args.alpha)
+            except ValueError as exc:
+                log.warning('skipping %s: %s', cond, exc)
+                continue
+            t0 = time.time()
+            rows = []
+            for bi, beta in enumerate(args.betas):
+                for k in range(args.landings):
+                    row = run_landing(env, policy, args.seed + 1000 * bi + k, float(beta))
+                    row['condition'] = cond
+                    w.writerow(row)
+                    rows.append(row)
+                fh.flush()
+            env.close()
+            rows_by_cond[cond] = rows
+            log.info('%s: %d landings in %.0f s', cond, len(rows), time.time() - t0)
+    summary = {c: summarize(r) for c, r in rows_by_cond.items()}
+    with open(out / 'summary.csv', 'w', newline='', encoding='utf-8') as fh:
+        w = csv.writer(fh)
+        keys = ['n', 'error_mean', 'error_std', 'error_median', 'specified_success', 'nearest_success',
+                'crash_rate', 'landed_on_goal', 'active_fraction']
+        w.writerow(['condition'] + keys)
+        for c, s in summary.items():
+            w.writerow([c] + [round(s[k], 4) for k in keys])
+    if args.plot and rows_by_cond:
+        plot(rows_by_cond, out / 'error_vs_beta.png')
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console entry point: run, print the table."""
+    logging.basicConfig(level=logging.INFO, format='%(levelname)s %(name)s: %(message)s')
+    torch.set_num_threads(1)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_dataclass_args(parser, EvalArgs, HELP)
+    args = dataclass_from_args(EvalArgs, parser.parse_args(argv))
+    summary = evaluate(args)
+    if not summary:
+        print('no condition could be evaluated', file=sys.stderr)
+        return 1
+    print(f'alpha {args.alpha}, betas {args.betas[0]}..{args.betas[-1]} ({len(args.betas)}), '
+          f'{args.landings} landings each, seed {args.seed}')
+    print(format_table(summary))
+    print(f'written: {args.out}/landings.csv, summary.csv, error_vs_beta.png')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
