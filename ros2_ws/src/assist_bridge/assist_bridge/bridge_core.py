@@ -196,6 +196,7 @@ class MavlinkBridge:
         self._takeoff_until_alt: float | None = None
         self._takeoff_deadline = 0.0
         self._last_setpoint_time = -math.inf
+        self._next_setpoint_due = -math.inf
         self._last_heartbeat_sent = -math.inf
         self._last_stream_request = -math.inf
         self._last_mode_request = -math.inf
@@ -219,10 +220,11 @@ class MavlinkBridge:
         self.conn.close()
 
     def _loop(self) -> None:
-        period = 1.0 / max(self.cfg.setpoint_rate_hz, self.cfg.heartbeat_rate_hz) / 4.0
         while self._running:
             try:
-                self.conn.select(min(period, 0.02))
+                now = self._clock()
+                wake = min(self._next_setpoint_due, self._last_heartbeat_sent + 1.0 / self.cfg.heartbeat_rate_hz)
+                self.conn.select(min(max(wake - now, 0.0), 0.02))
                 self.poll()
                 self.tick()
             except Exception as exc:   # keep the link alive whatever one message did; counted
@@ -442,8 +444,12 @@ class MavlinkBridge:
 
     def _maybe_send_setpoint_locked(self, now: float, force: bool) -> None:
         c = self.cfg
-        if not force and now - self._last_setpoint_time < 1.0 / c.setpoint_rate_hz - 1e-4:
+        period = 1.0 / c.setpoint_rate_hz
+        if not force and now < self._next_setpoint_due:
             return
+        # fixed-rate schedule (no drift); a late tick or a command re-anchors it
+        self._next_setpoint_due = now + period if (force or now - self._next_setpoint_due > period) \
+            else self._next_setpoint_due + period
         st = self.status
         if not st.link_up:
             self.counters['setpoints_suppressed_link'] += int(force)

@@ -1,0 +1,174 @@
+"""Bridge bench: /cmd_vel -> SET_POSITION_TARGET_LOCAL_NED latency through mavlink_bridge_node, and
+the setpoint rate it holds with no command coming in.
+
+The bridge runs as its own process (console script) on a private ROS domain; this process is
+both the ROS publisher of /cmd_vel and a minimal ArduCopter endpoint on UDP loopback (HEARTBEAT in
+GUIDED and armed, ATTITUDE) that timestamps every setpoint on arrival. Each command carries a
+unique forward speed, so every setpoint is matched to the command that caused it. Both ends read
+the same monotonic clock.
+"""
+from __future__ import annotations
+
+import math
+import os
+import random
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+os.environ['MAVLINK20'] = '1'
+from pymavlink import mavutil  # noqa: E402
+
+mavlink = mavutil.mavlink
+N_COMMANDS = 400
+COMMAND_RATE_HZ = 50.0
+HOLD_WINDOW_S = 4.0
+SETPOINT_RATE_HZ = 10.0
+
+
+class FakeAutopilot:
+    """ArduCopter-looking endpoint: GUIDED + armed heartbeats, ATTITUDE, setpoint timestamps."""
+
+    def __init__(self, port: int):
+        self.conn = mavutil.mavlink_connection(f'udpout:127.0.0.1:{port}', source_system=1, source_component=1,
+                                               dialect='ardupilotmega')
+        self.lock = threading.Lock()
+        self.setpoints: list[tuple[float, float]] = []     # (arrival time, vy)
+        self._run = True
+        self._threads = [threading.Thread(target=self._rx, daemon=True), threading.Thread(target=self._tx, daemon=True)]
+        for t in self._threads:
+            t.start()
+
+    def _tx(self) -> None:
+        n = 0
+        while self._run:
+            if n % 10 == 0:
+                self.conn.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                             mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+                                             | mavlink.MAV_MODE_FLAG_SAFETY_ARMED, 4, mavlink.MAV_STATE_ACTIVE)
+            self.conn.mav.attitude_send(n * 100, 0.0, 0.0, math.pi / 2, 0.0, 0.0, 0.0)
+            n += 1
+            time.sleep(0.1)
+
+    def _rx(self) -> None:
+        while self._run:
+            if not self.conn.select(0.05):
+                continue
+            while True:
+                m = self.conn.recv_msg()
+                if m is None:
+                    break
+                if m.get_type() == 'SET_POSITION_TARGET_LOCAL_NED':
+                    t = time.monotonic()
+                    with self.lock:
+                        self.setpoints.append((t, float(m.vy)))
+
+    def snapshot(self) -> list[tuple[float, float]]:
+        with self.lock:
+            return list(self.setpoints)
+
+    def close(self) -> None:
+        self._run = False
+        for t in self._threads:
+            t.join(timeout=1.0)
+        self.conn.close()
+
+
+def _free_udp_port() -> int:
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(('127.0.0.1', 0))
+    port = s.getsockname()[1]
+    s.close()
+    return port
+
+
+def run() -> list[dict]:
+    """Measure the bridge; rows of name/value/unit/target."""
+    import rclpy
+    from geometry_msgs.msg import TwistStamped
+    from rclpy.context import Context
+    from rclpy.node import Node
+
+    from assist_sim.ros_common import RELIABLE_QOS
+
+    domain = random.Random(os.getpid() ^ time.monotonic_ns()).randint(200, 230)
+    port = _free_udp_port()
+    exe = Path(sys.executable).parent / 'mavlink_bridge_node'
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
+    proc = subprocess.Popen([str(exe), '--ros-args', '-p', f'connection:=udpin:127.0.0.1:{port}',
+                             '-p', f'setpoint_rate_hz:={SETPOINT_RATE_HZ}'], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    ap = FakeAutopilot(port)
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    node = Node('bench_bridge', context=ctx)
+    pub = node.create_publisher(TwistStamped, '/cmd_vel', RELIABLE_QOS)
+    try:
+        deadline = time.monotonic() + 60.0
+        while (pub.get_subscription_count() == 0 or not ap.snapshot()) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        if pub.get_subscription_count() == 0 or not ap.snapshot():
+            raise RuntimeError('bridge did not come up (no subscriber or no setpoints)')
+        time.sleep(1.0)
+        # 1) latency: unique forward speeds (FLU x = NED vy for a vehicle heading East)
+        sent: dict[int, float] = {}
+        msg = TwistStamped()
+        msg.header.frame_id = 'base_link'
+        period = 1.0 / COMMAND_RATE_HZ
+        t_next = time.monotonic()
+        for i in range(1, N_COMMANDS + 1):
+            msg.twist.linear.x = i * 1e-3
+            msg.header.stamp = node.get_clock().now().to_msg()
+            sent[i] = time.monotonic()
+            pub.publish(msg)
+            t_next += period
+            time.sleep(max(0.0, t_next - time.monotonic()))
+        time.sleep(0.5)
+        first_arrival: dict[int, float] = {}
+        for t, vy in ap.snapshot():
+            i = int(round(vy * 1e3))
+            if i in sent and abs(vy - i * 1e-3) < 1e-6 and t >= sent[i]:
+                first_arrival.setdefault(i, t)
+        lat_ms = np.array([(first_arrival[i] - sent[i]) * 1e3 for i in sorted(first_arrival)])
+        # 2) setpoint rate held with no command (zero velocity after the command timeout)
+        time.sleep(1.0)
+        t0 = time.monotonic()
+        time.sleep(HOLD_WINDOW_S)
+        t1 = time.monotonic()
+        window = [t for t, _ in ap.snapshot() if t0 <= t <= t1]
+        gaps_ms = np.diff(window) * 1e3 if len(window) > 1 else np.array([math.inf])
+        rate = (len(window) - 1) / (window[-1] - window[0]) if len(window) > 1 else 0.0
+    finally:
+        node.destroy_node()
+        rclpy.shutdown(context=ctx)
+        ap.close()
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(10)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait(5)
+    if lat_ms.size == 0:
+        raise RuntimeError('no setpoint matched a command')
+    return [
+        dict(name='cmd_vel->setpoint latency p50', value=float(np.percentile(lat_ms, 50)), unit='ms', target=''),
+        dict(name='cmd_vel->setpoint latency p99', value=float(np.percentile(lat_ms, 99)), unit='ms',
+             target='<= 2'),
+        dict(name='commands delivered as setpoints', value=f'{lat_ms.size}/{N_COMMANDS}', unit='',
+             target=f'{N_COMMANDS}/{N_COMMANDS}'),
+        dict(name='setpoint rate held (no input)', value=float(rate), unit='Hz', target=f'{SETPOINT_RATE_HZ:g}'),
+        dict(name='setpoint max gap (no input)', value=float(np.max(gaps_ms)), unit='ms',
+             target=f'< {3000:d} (GUID_TIMEOUT)'),
+    ]
+
+
+if __name__ == '__main__':
+    for row in run():
+        print(row)
