@@ -106,7 +106,7 @@ def rig(ros, start_node):
 
 def arm_when_ready(probe, wait):
     """Arm; before the EKF is ready the refusal must say why (PreArm / requires position)."""
-    assert wait(lambda: probe.diag_value('link') == 'up', 30.0), 'bridge never saw the vehicle'
+    assert wait(lambda: probe.diag_value('link') == 'up', 90.0), 'bridge never saw the vehicle'
     for _ in range(20):
         res = probe.call('arm')
         if res.success:
@@ -155,22 +155,22 @@ def test_link_loss_reported_and_recovered(rig, wait, start_node):
     probe, sim, bridge, port, sim_params = rig
     arm_when_ready(probe, wait)
     assert probe.call('takeoff').success
-    assert wait(lambda: probe.pos() is not None and probe.pos()[2] > 1.0, 20.0)
+    assert wait(lambda: probe.pos() is not None and probe.pos()[2] > 1.0, 60.0)
     sim.stop()                                  # the vehicle endpoint dies mid-flight
-    assert wait(lambda: probe.diag_value('link') == 'lost', 10.0), 'link loss not reported'
+    assert wait(lambda: probe.diag_value('link') == 'lost', 30.0), 'link loss not reported'
     assert 'link lost' in bridge.log()
     res = probe.call('arm')
     assert not res.success and 'no link' in res.message
     n = probe.n_odom()
     start_node('sim_node', sim_params)           # it comes back
-    assert wait(lambda: probe.diag_value('link') == 'up', 30.0), 'no recovery'
-    assert wait(lambda: probe.n_odom() > n + 5, 20.0), 'telemetry not resumed after recovery'
+    assert wait(lambda: probe.diag_value('link') == 'up', 90.0), 'no recovery'
+    assert wait(lambda: probe.n_odom() > n + 5, 60.0), 'telemetry not resumed after recovery'
     assert bridge.proc.poll() is None
 
 
 def test_garbage_on_the_bridge_port(rig, wait):
     probe, sim, bridge, port, _ = rig
-    assert wait(lambda: probe.diag_value('link') == 'up', 30.0)
+    assert wait(lambda: probe.diag_value('link') == 'up', 90.0)
     rng = np.random.default_rng(11)
     s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     payloads = [rng.bytes(int(n)) for n in rng.integers(1, 2000, 300)]
@@ -181,7 +181,7 @@ def test_garbage_on_the_bridge_port(rig, wait):
     s.close()
     time.sleep(1.0)
     assert bridge.proc.poll() is None, bridge.log()
-    assert wait(lambda: int(probe.diag_value('rx_bad_data') or 0) > 0, 10.0)
+    assert wait(lambda: int(probe.diag_value('rx_bad_data') or 0) > 0, 30.0)
     assert probe.diag_value('link') == 'up'
     arm_when_ready(probe, wait)                 # and it still commands the vehicle
     assert int(probe.diag_value('loop_errors') or 0) == 0
