@@ -145,3 +145,11 @@ def test_sim_node_bad_parameter_exits_with_one_clear_line(start_node, wait):
     assert sim.proc.returncode == 1
     log = sim.log()
     assert 'cannot load world_config' in log and 'Traceback' not in log
+
+
+def test_sim_node_sigint_exits_cleanly(probe, start_node, wait):
+    sim = start_node('sim_node', {'seed': 1, 'real_time_factor': 0.0})   # as fast as possible
+    assert wait(lambda: probe.count('clock') > 20, 30), sim.log()
+    assert sim.stop() == 0
+    log = sim.log()
+    assert 'Traceback' not in log and 'RCLError' not in log, log[-2000:]

@@ -154,7 +154,14 @@ class SimNode(Node):
                 self.get_logger().error(f'sim step failed: {exc!r}', throttle_duration_sec=1.0)
                 time.sleep(dt)
                 continue
-            self._publish(out)
+            if not self.context.ok():
+                break                      # rclpy is shutting down (SIGINT): stop publishing
+            try:
+                self._publish(out)
+            except Exception as exc:       # noqa: BLE001
+                if not self.context.ok():  # the context went away between the check and publish
+                    break
+                raise
             n_steps += 1
             if n_steps % 100 == 0:
                 wall = time.monotonic() - wall0
