@@ -228,7 +228,8 @@ def test_link_loss_reported_setpoints_stop_and_recovery(link):
     requests = b.counters['stream_requests']
     link.vt = VehicleThread(link.port)               # the vehicle comes back (rebooted)
     wait_for(lambda: b.snapshot()['link'] == 'up', what='link recovered')
-    assert events[-2:] == [False, True]
+    # the state flips before the callback runs on the bridge thread: wait for the event itself
+    wait_for(lambda: events[-2:] == [False, True], what='link-up event after the loss')
     assert b.counters['stream_requests'] > requests   # telemetry re-requested after recovery
     wait_for(lambda: b.status.position_ned is not None and b.status.last_position is not None,
              what='telemetry after recovery')
