@@ -76,7 +76,7 @@ class LossConfig:
     w_xyz: float = 2.0
     w_kl: float = 4.0
     depth_sigma_m: float = 0.25
-    xyz_sigma_m: float = 0.1
+    xyz_sigma_m: float = 0.03
 
 
 class CMVAEOutput(NamedTuple):

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 
@@ -72,15 +73,13 @@ def _neighbour_extrema(z: np.ndarray, radius: int) -> tuple[np.ndarray, np.ndarr
     """Min and max of z over a (2r+1)^2 window per pixel (edge-replicated), batched over (N,H,W)."""
     if radius == 0:
         return z.copy(), z.copy()
-    n, h, w = z.shape
-    p = np.pad(z, ((0, 0), (radius, radius), (radius, radius)), mode='edge')
-    lo = np.full_like(z, np.inf)
-    hi = np.full_like(z, -np.inf)
-    for dy in range(2 * radius + 1):
-        for dx in range(2 * radius + 1):
-            win = p[:, dy:dy + h, dx:dx + w]
-            np.minimum(lo, win, out=lo)
-            np.maximum(hi, win, out=hi)
+    kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    zf = np.ascontiguousarray(z, dtype=np.float32)
+    lo = np.empty_like(zf)
+    hi = np.empty_like(zf)
+    for i in range(zf.shape[0]):
+        lo[i] = cv2.erode(zf[i], kernel, borderType=cv2.BORDER_REPLICATE)
+        hi[i] = cv2.dilate(zf[i], kernel, borderType=cv2.BORDER_REPLICATE)
     return lo, hi
 
 
@@ -155,12 +154,12 @@ def apply_depth_noise(depth: np.ndarray, rng: np.random.Generator,
     far = _neighbour_extrema(np.where(invalid, -np.inf, z), win)[1]
 
     # axial noise growing with z^2
-    noisy = z + rng.standard_normal(z.shape).astype(np.float32) * (cfg.sigma_z2 * z * z)
+    noisy = z + rng.standard_normal(z.shape, dtype=np.float32) * (cfg.sigma_z2 * z * z)
 
     # flying pixels: a depth between the two sides of the jump
-    u_band = rng.uniform(size=z.shape)
+    u_band = rng.random(z.shape, dtype=np.float32)
     edge_hole = band & (u_band < cfg.edge_hole_prob)
-    fly = band & ~edge_hole & (rng.uniform(size=z.shape) < cfg.flying_pixel_prob)
+    fly = band & ~edge_hole & (rng.random(z.shape, dtype=np.float32) < cfg.flying_pixel_prob)
     fly &= np.isfinite(near) & np.isfinite(far)
     if fly.any():
         t = rng.uniform(size=int(fly.sum())).astype(np.float32)
@@ -181,9 +180,9 @@ def apply_depth_noise(depth: np.ndarray, rng: np.random.Generator,
         lum = lum[None] if lum.ndim == 2 else lum
         if lum.shape != z.shape:
             raise ValueError(f'rgb shape {np.shape(rgb)} does not match depth {np.shape(depth)}')
-        holes |= (lum < cfg.dark_threshold) & (rng.uniform(size=z.shape) < cfg.dark_hole_prob)
+        holes |= (lum < cfg.dark_threshold) & (rng.random(z.shape, dtype=np.float32) < cfg.dark_hole_prob)
     if cfg.base_hole_prob > 0:
-        holes |= rng.uniform(size=z.shape) < cfg.base_hole_prob
+        holes |= rng.random(z.shape, dtype=np.float32) < cfg.base_hole_prob
     holes |= _blob_mask(rng, n, h, w, cfg.blob_rate, cfg.blob_radius_frac)
     noisy[holes] = 0.0
     noisy = noisy.astype(np.float32)

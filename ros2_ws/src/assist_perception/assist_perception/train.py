@@ -50,9 +50,10 @@ class TrainConfig:
     w_xyz: float = 2.0
     w_kl: float = 4.0
     depth_sigma_m: float = 0.25           # loss units (see LossConfig)
-    xyz_sigma_m: float = 0.1
-    threads: int = 2                      # torch intra-op threads
-    max_minutes: float = 0.0              # stop after the epoch that passes this wall time (0 = off)
+    xyz_sigma_m: float = 0.03
+    threads: int = 1                      # torch intra-op threads (1 is fastest on a shared 2-core box)
+    max_minutes: float = 0.0              # time budget (0 = off): the LR schedule follows whichever of
+    #                                       steps or elapsed/budget is further along; stops when spent
     resume: bool = False                  # continue from run_dir/checkpoint.pt
 
 
@@ -112,10 +113,13 @@ def evaluate_split(model: CMVAE, frames: FrameSet, idx: np.ndarray, loss_cfg: Lo
     return res
 
 
-def _lr_at(step: int, total: int, cfg: TrainConfig) -> float:
+def _lr_at(step: int, total: int, cfg: TrainConfig, elapsed_s: float = 0.0) -> float:
+    """Linear warm-up, then cosine decay to lr_min over the steps (or the time budget)."""
     if step < cfg.warmup_steps:
         return cfg.lr * (step + 1) / cfg.warmup_steps
     t = min(1.0, (step - cfg.warmup_steps) / max(1, total - cfg.warmup_steps))
+    if cfg.max_minutes > 0:
+        t = max(t, min(1.0, elapsed_s / (60.0 * cfg.max_minutes)))
     return cfg.lr_min + 0.5 * (cfg.lr - cfg.lr_min) * (1 + math.cos(math.pi * t))
 
 
@@ -141,6 +145,7 @@ def train(cfg: TrainConfig, frames: FrameSet | None = None, progress: bool = Tru
 
     torch.manual_seed(cfg.seed)
     model = CMVAE(CMVAEConfig(latent_dim=cfg.latent_dim, depth_scale_m=cfg.depth_scale_m))
+    model = model.to(memory_format=torch.channels_last)   # ~1.5x faster convolutions on CPU
     vis_train = train_idx[frames.visible[train_idx]]
     if len(vis_train):
         model.set_xyz_stats(frames.xyz[vis_train].mean(0), frames.xyz[vis_train].std(0))
@@ -165,6 +170,7 @@ def train(cfg: TrainConfig, frames: FrameSet | None = None, progress: bool = Tru
         torch.manual_seed(cfg.seed * 100_003 + epoch)
         order = rng.permutation(train_idx)
         acc = np.zeros(4)
+        done = 0
         bar = tqdm(range(steps_per_epoch), desc=f'epoch {epoch + 1}/{cfg.epochs}', disable=not progress,
                    leave=False)
         for i in bar:
@@ -172,21 +178,27 @@ def train(cfg: TrainConfig, frames: FrameSet | None = None, progress: bool = Tru
             x = _batch_inputs(frames, b, rng, noise_cfg, cfg.noise_prob, model.cfg)
             d, xyz, vis = _targets(frames, b)
             kl_scale = min(1.0, (step + 1) / max(1.0, cfg.kl_warmup_epochs * steps_per_epoch))
+            lr = _lr_at(step, total_steps, cfg, time.perf_counter() - t_start)
             for g in opt.param_groups:
-                g['lr'] = _lr_at(step, total_steps, cfg)
+                g['lr'] = lr
+            x = x.contiguous(memory_format=torch.channels_last)
             terms = cmvae_loss(model(x), d, xyz, vis, loss_cfg, kl_scale)
             opt.zero_grad(set_to_none=True)
             terms.total.backward()
             opt.step()
             step += 1
+            done += 1
             acc += [float(t.detach()) for t in terms]
-            bar.set_postfix(loss=f'{acc[0] / (i + 1):.1f}', kl=f'{acc[3] / (i + 1):.1f}')
-        train_means = acc / steps_per_epoch
+            bar.set_postfix(loss=f'{acc[0] / done:.1f}', kl=f'{acc[3] / done:.1f}')
+            if cfg.max_minutes > 0 and time.perf_counter() - t_start >= 60.0 * cfg.max_minutes:
+                break   # budget spent: validate and save what we have (counts as the last epoch)
+        bar.close()
+        train_means = acc / max(done, 1)
         val = evaluate_split(model, frames, val_idx, loss_cfg, noise_cfg, seed=cfg.seed + 1) \
             if len(val_idx) else {}
         elapsed = time.perf_counter() - t_start
         row = {'epoch': epoch + 1, 'step': step, 'elapsed_s': round(elapsed, 1),
-               'lr': _lr_at(step - 1, total_steps, cfg),
+               'lr': lr,
                'train_loss': train_means[0], 'train_depth_loss': train_means[1],
                'train_xyz_loss': train_means[2], 'train_kl': train_means[3],
                **{f'val_{k}': v for k, v in val.items()}}
@@ -209,7 +221,7 @@ def train(cfg: TrainConfig, frames: FrameSet | None = None, progress: bool = Tru
         _LOG.info('epoch %d: %s', epoch + 1,
                   ', '.join(f'{k}={v:.4g}' for k, v in row.items() if isinstance(v, float)))
         last = row
-        if cfg.max_minutes > 0 and elapsed > cfg.max_minutes * 60:
+        if cfg.max_minutes > 0 and elapsed >= cfg.max_minutes * 60:
             _LOG.info('time budget of %.1f min reached after epoch %d', cfg.max_minutes, epoch + 1)
             break
     return last

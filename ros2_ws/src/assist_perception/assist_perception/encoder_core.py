@@ -1,0 +1,220 @@
+"""Pure encoder core behind encoder_node (no rclpy): image decoding, resizing, CM-VAE inference.
+
+Images: colour rgb8/bgr8 (also rgba8/bgra8), depth 32FC1 metres or 16UC1 millimetres; invalid
+depth is 0 or NaN. Any resolution is accepted: both images are centre-cropped to a square (the
+training camera is square with the D435i's 58 deg vertical FOV, so cropping the sides of a wider
+image keeps that FOV) and resized to 64x64 (colour: area averaging; depth: nearest neighbour so
+holes stay holes and no false depth is interpolated across edges). Depth should be aligned to the
+colour image (RealSense `align_depth`), as in the simulator.
+"""
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Generic, TypeVar
+
+import cv2
+import numpy as np
+import torch
+
+from .model import CMVAE, load_model, preprocess
+
+COLOR_ENCODINGS = {'rgb8': (3, False), 'bgr8': (3, True), 'rgba8': (4, False), 'bgra8': (4, True)}
+DEPTH_ENCODINGS = {'32FC1': np.float32, '16UC1': np.uint16}
+_T = TypeVar('_T')
+
+
+class BadFrame(ValueError):
+    """A frame that cannot be encoded; `reason` is a short diagnostics key."""
+
+    def __init__(self, reason: str, detail: str):
+        super().__init__(f'{reason}: {detail}')
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class EncoderOutput:
+    """One encoded frame."""
+
+    mu: np.ndarray                    # (latent_dim,) float32, encoder mean
+    pad_xyz: np.ndarray               # (3,) float32, camera optical frame metres
+    depth: np.ndarray | None          # (64,64) float32 denoised depth (metres) when requested
+
+
+def default_model_path() -> Path:
+    """The shipped weights: `models/cmvae.pt` of the repository (or installed share/ copy)."""
+    here = Path(__file__).resolve()
+    for parent in here.parents:
+        cand = parent / 'models' / 'cmvae.pt'
+        if cand.is_file():
+            return cand
+    try:
+        from ament_index_python.packages import get_package_share_directory  # noqa: PLC0415
+        cand = Path(get_package_share_directory('assist_perception')) / 'models' / 'cmvae.pt'
+        if cand.is_file():
+            return cand
+    except (ImportError, LookupError, ValueError):
+        pass
+    return here.parents[4] / 'models' / 'cmvae.pt'   # repo layout: report this path if missing
+
+
+def _as_array(data: Any, height: int, width: int, step: int, channels: int, dtype,
+              big_endian: bool) -> np.ndarray:
+    """Raw ROS image buffer -> (H, W[, C]) array honouring row padding and byte order."""
+    itemsize = np.dtype(dtype).itemsize
+    row = width * channels * itemsize
+    if height <= 0 or width <= 0:
+        raise BadFrame('bad_size', f'empty image {width}x{height}')
+    if step < row:
+        raise BadFrame('bad_size', f'step {step} < width*channels*bytes {row}')
+    buf = np.frombuffer(bytes(data) if not isinstance(data, (bytes, bytearray, memoryview, np.ndarray))
+                        else data, dtype=np.uint8)
+    if buf.size < step * height:
+        raise BadFrame('bad_size', f'{buf.size} bytes for {height} rows of {step}')
+    rows = buf[:step * height].reshape(height, step)[:, :row]
+    dt = np.dtype(dtype).newbyteorder('>' if big_endian else '<')
+    arr = np.ascontiguousarray(rows).view(dt).astype(np.dtype(dtype).newbyteorder('='))
+    return arr.reshape(height, width, channels) if channels > 1 else arr.reshape(height, width)
+
+
+def decode_color(data: Any, encoding: str, height: int, width: int, step: int) -> np.ndarray:
+    """sensor_msgs/Image colour payload -> (H,W,3) uint8 RGB."""
+    if encoding not in COLOR_ENCODINGS:
+        raise BadFrame('bad_encoding', f'colour encoding {encoding!r} (want rgb8/bgr8)')
+    ch, bgr = COLOR_ENCODINGS[encoding]
+    img = _as_array(data, height, width, step, ch, np.uint8, False)[..., :3]
+    return img[..., ::-1].copy() if bgr else img.copy()
+
+
+def decode_depth(data: Any, encoding: str, height: int, width: int, step: int,
+                 big_endian: bool = False) -> np.ndarray:
+    """sensor_msgs/Image depth payload (32FC1 m or 16UC1 mm) -> (H,W) float32 metres, holes 0."""
+    if encoding not in DEPTH_ENCODINGS:
+        raise BadFrame('bad_encoding', f'depth encoding {encoding!r} (want 32FC1 or 16UC1)')
+    arr = _as_array(data, height, width, step, 1, DEPTH_ENCODINGS[encoding], big_endian)
+    depth = arr.astype(np.float32) * (0.001 if encoding == '16UC1' else 1.0)
+    depth[~np.isfinite(depth) | (depth < 0)] = 0.0
+    return depth
+
+
+def center_square(img: np.ndarray) -> np.ndarray:
+    """Centre crop to a square (the shorter side)."""
+    h, w = img.shape[:2]
+    s = min(h, w)
+    y0, x0 = (h - s) // 2, (w - s) // 2
+    return img[y0:y0 + s, x0:x0 + s]
+
+
+def resize_pair(rgb: np.ndarray, depth: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Crop both images to centre squares and resize to size x size (area / nearest)."""
+    rgb, depth = center_square(rgb), center_square(depth)
+    if rgb.shape[:2] != (size, size):
+        interp = cv2.INTER_AREA if rgb.shape[0] > size else cv2.INTER_LINEAR
+        rgb = cv2.resize(rgb, (size, size), interpolation=interp)
+    if depth.shape != (size, size):
+        depth = cv2.resize(depth, (size, size), interpolation=cv2.INTER_NEAREST)
+    return np.ascontiguousarray(rgb), np.ascontiguousarray(depth, dtype=np.float32)
+
+
+class LatentEncoder:
+    """Loads the CM-VAE once and encodes RGB-D frames (any resolution) to mu / pad XYZ / depth."""
+
+    def __init__(self, model_path: str | Path | None = None, device: str = 'cpu',
+                 threads: int = 1, min_valid_fraction: float = 0.01):
+        self.model_path = Path(model_path) if model_path else default_model_path()
+        self.device = torch.device(device)
+        if threads > 0:
+            torch.set_num_threads(threads)
+        self.model: CMVAE = load_model(self.model_path, self.device)
+        self.min_valid_fraction = float(min_valid_fraction)
+
+    @property
+    def latent_dim(self) -> int:
+        """Size of mu."""
+        return int(self.model.cfg.latent_dim)
+
+    def prepare(self, rgb: np.ndarray, depth_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Validate and resize a decoded frame; raises BadFrame."""
+        if rgb.ndim != 3 or rgb.shape[2] != 3 or depth_m.ndim != 2:
+            raise BadFrame('bad_size', f'rgb {rgb.shape}, depth {depth_m.shape}')
+        ar_rgb = rgb.shape[1] / rgb.shape[0]
+        ar_d = depth_m.shape[1] / depth_m.shape[0]
+        if abs(ar_rgb - ar_d) > 0.02:
+            raise BadFrame('size_mismatch', f'rgb {rgb.shape[1]}x{rgb.shape[0]} vs depth '
+                           f'{depth_m.shape[1]}x{depth_m.shape[0]} (depth must be aligned to colour)')
+        rgb64, d64 = resize_pair(rgb, depth_m, self.model.cfg.image_size)
+        valid = np.isfinite(d64) & (d64 > 0)
+        if valid.mean() < self.min_valid_fraction:
+            raise BadFrame('no_valid_depth', f'{valid.mean():.1%} valid depth pixels')
+        return rgb64, d64
+
+    @torch.no_grad()
+    def encode(self, rgb: np.ndarray, depth_m: np.ndarray, want_depth: bool = False) -> EncoderOutput:
+        """Encode one frame (uint8 RGB HxWx3, depth metres HxW); raises BadFrame."""
+        rgb64, d64 = self.prepare(rgb, depth_m)
+        x = preprocess(rgb64, d64, self.model.cfg).to(self.device)
+        mu, _ = self.model.encode(x)
+        xyz = self.model.decode_xyz(mu)
+        depth = self.model.decode_depth(mu)[0].cpu().numpy().astype(np.float32) if want_depth else None
+        return EncoderOutput(mu[0].cpu().numpy().astype(np.float32),
+                             xyz[0].cpu().numpy().astype(np.float32), depth)
+
+
+class LatestOnly(Generic[_T]):
+    """One-slot mailbox: put() replaces an unread item (counted), take() waits for a new one."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._item: _T | None = None
+        self._closed = False
+        self.replaced = 0
+
+    def put(self, item: _T) -> None:
+        """Store `item`, dropping any unread older one."""
+        with self._cond:
+            if self._item is not None:
+                self.replaced += 1
+            self._item = item
+            self._cond.notify()
+
+    def take(self, timeout: float | None = None) -> _T | None:
+        """Newest unread item, or None on timeout / close."""
+        with self._cond:
+            if self._item is None and not self._closed:
+                self._cond.wait(timeout)
+            item, self._item = self._item, None
+            return item
+
+    def close(self) -> None:
+        """Wake any waiter; later take() calls return immediately."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+    @property
+    def closed(self) -> bool:
+        """True after close()."""
+        return self._closed
+
+
+class StampPairer:
+    """Approximate time sync of two streams: pairs each new message with the other stream's
+    latest one when their stamps differ by at most `slop_s` (each message is used once)."""
+
+    def __init__(self, slop_s: float):
+        self.slop_s = float(slop_s)
+        self._lock = threading.Lock()
+        self._latest: dict[str, tuple[float, Any] | None] = {'color': None, 'depth': None}
+
+    def add(self, stream: str, stamp: float, msg: Any) -> tuple[Any, Any] | None:
+        """Offer a message of stream 'color' or 'depth'; returns (color, depth) when they pair."""
+        other = 'depth' if stream == 'color' else 'color'
+        with self._lock:
+            o = self._latest[other]
+            if o is not None and abs(o[0] - stamp) <= self.slop_s:
+                self._latest[other] = None
+                self._latest[stream] = None
+                return (msg, o[1]) if stream == 'color' else (o[1], msg)
+            self._latest[stream] = (stamp, msg)
+            return None

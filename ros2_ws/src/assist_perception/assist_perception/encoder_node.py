@@ -1,0 +1,159 @@
+"""encoder_node: RGB-D frames -> CM-VAE latent mean, pad estimate and (on demand) denoised depth.
+
+Thin rclpy shell over assist_perception.encoder_core. Colour and depth are paired by header stamp
+(approximate sync, `sync_slop_s`); each pair goes into a latest-only slot and a worker thread runs
+the inference, so a slow frame never queues up old ones and callbacks never block.
+"""
+from __future__ import annotations
+
+import sys
+import threading
+import time
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticStatus
+from geometry_msgs.msg import PointStamped
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.node import Node
+from sensor_msgs.msg import Image
+from std_msgs.msg import Float32MultiArray, MultiArrayDimension
+
+from assist_sim.ros_common import (SENSOR_QOS, Diagnostics, Param, StartupError, declare_parameters,
+                                   run_node, stamp_to_sec)
+
+from .encoder_core import BadFrame, LatentEncoder, LatestOnly, StampPairer, decode_color, decode_depth
+from .model import ModelLoadError
+from .noise import apply_depth_noise
+
+PARAMS = {
+    'model_path': Param('', 'CM-VAE weights file; empty = the shipped models/cmvae.pt.'),
+    'device': Param('cpu', 'torch device for inference (cpu, cuda, cuda:0, ...).'),
+    'threads': Param(1, 'torch intra-op threads for inference (0 = torch default).'),
+    'color_topic': Param('/camera/color/image_raw', 'Colour image topic (rgb8/bgr8).'),
+    'depth_topic': Param('/camera/depth/image_raw', 'Depth image topic (32FC1 m or 16UC1 mm), aligned to colour.'),
+    'latent_topic': Param('/assist/latent', 'Output: encoder mean mu (Float32MultiArray).'),
+    'pad_topic': Param('/assist/pad_estimate', 'Output: closest pad top-centre (PointStamped, optical frame).'),
+    'denoised_topic': Param('/assist/depth_denoised', 'Output: 64x64 32FC1 denoised depth (only when subscribed).'),
+    'frame_id': Param('camera_optical_frame', 'frame_id of outputs when the input image has none.'),
+    'sync_slop_s': Param(0.02, 'Colour and depth stamps closer than this form one frame.'),
+    'min_valid_depth_fraction': Param(0.01, 'Frames with fewer valid depth pixels are skipped.'),
+    'depth_noise': Param(False, 'Apply the D435i-like noise model to incoming depth (clean sim depth -> '
+                                'training distribution); leave off for a real camera.'),
+    'noise_seed': Param(0, 'Seed of the depth noise (depth_noise only).'),
+    'warn_period_s': Param(5.0, 'Minimum seconds between repeated bad-frame warnings.'),
+}
+
+
+class EncoderNode(Node):
+    """Subscribes colour + depth, publishes latent mu, pad estimate and denoised depth."""
+
+    def __init__(self, **kwargs):
+        super().__init__('encoder_node', **kwargs)
+        self.p = declare_parameters(self, PARAMS)
+        if not self.p['sync_slop_s'] >= 0:
+            raise StartupError('encoder_node: sync_slop_s must be >= 0')
+        try:
+            self.encoder = LatentEncoder(self.p['model_path'] or None, self.p['device'],
+                                         int(self.p['threads']), float(self.p['min_valid_depth_fraction']))
+        except ModelLoadError as exc:
+            raise StartupError(f'encoder_node: {exc}') from exc
+        except (RuntimeError, ValueError) as exc:   # e.g. an unknown or unavailable torch device
+            raise StartupError(f"encoder_node: cannot use device '{self.p['device']}': {exc}") from exc
+        self.diag = Diagnostics(self)
+        self.diag.set('model_path', str(self.encoder.model_path))
+        self.diag.set('latent_dim', self.encoder.latent_dim)
+        self.pairer = StampPairer(float(self.p['sync_slop_s']))
+        self.slot: LatestOnly[tuple[Image, Image]] = LatestOnly()
+        self.rng = np.random.default_rng(int(self.p['noise_seed']))
+        self._last_warn: dict[str, float] = {}
+
+        self.pub_latent = self.create_publisher(Float32MultiArray, self.p['latent_topic'], SENSOR_QOS)
+        self.pub_pad = self.create_publisher(PointStamped, self.p['pad_topic'], SENSOR_QOS)
+        self.pub_depth = self.create_publisher(Image, self.p['denoised_topic'], SENSOR_QOS)
+        group = ReentrantCallbackGroup()
+        self.create_subscription(Image, self.p['color_topic'], lambda m: self._on_image('color', m),
+                                 SENSOR_QOS, callback_group=group)
+        self.create_subscription(Image, self.p['depth_topic'], lambda m: self._on_image('depth', m),
+                                 SENSOR_QOS, callback_group=group)
+        self._worker = threading.Thread(target=self._work, name='cmvae_inference', daemon=True)
+        self._worker.start()
+        self.get_logger().info(f'CM-VAE {self.encoder.model_path} (latent {self.encoder.latent_dim}) '
+                               f"on {self.p['device']}")
+
+    # ------------------------------------------------------------------ callbacks (cheap)
+    def _on_image(self, stream: str, msg: Image) -> None:
+        self.diag.count(f'{stream}_received')
+        pair = self.pairer.add(stream, stamp_to_sec(msg.header.stamp), msg)
+        if pair is not None:
+            self.diag.count('pairs')
+            self.slot.put(pair)
+
+    # ------------------------------------------------------------------ worker thread
+    def _work(self) -> None:
+        while not self.slot.closed:
+            pair = self.slot.take(timeout=0.5)
+            if pair is None:
+                continue
+            try:
+                self._process(*pair)
+            except BadFrame as exc:
+                self._bad(exc.reason, str(exc))
+            except Exception as exc:  # keep the worker alive; log and count anything unexpected
+                self._bad('inference_error', f'{type(exc).__name__}: {exc}')
+        self.diag.set('superseded_pairs', self.slot.replaced)
+
+    def _bad(self, reason: str, text: str) -> None:
+        self.diag.count(f'bad_{reason}')
+        self.diag.count('bad_frames')
+        self.diag.status(DiagnosticStatus.WARN, f'skipping bad frames ({reason})')
+        now = time.monotonic()
+        if now - self._last_warn.get(reason, -1e9) >= float(self.p['warn_period_s']):
+            self._last_warn[reason] = now
+            self.get_logger().warning(f'skipping frame: {text}')
+
+    def _process(self, color: Image, depth: Image) -> None:
+        rgb = decode_color(color.data, color.encoding, color.height, color.width, color.step)
+        dep = decode_depth(depth.data, depth.encoding, depth.height, depth.width, depth.step,
+                           bool(depth.is_bigendian))
+        if self.p['depth_noise']:
+            dep = apply_depth_noise(dep, self.rng, rgb=rgb if rgb.shape[:2] == dep.shape else None)
+        want_depth = self.pub_depth.get_subscription_count() > 0
+        t0 = time.perf_counter()
+        out = self.encoder.encode(rgb, dep, want_depth=want_depth)
+        self.diag.set('inference_ms', f'{1000 * (time.perf_counter() - t0):.2f}')
+        header = depth.header
+        if not header.frame_id:
+            header.frame_id = self.p['frame_id']
+        lat = Float32MultiArray()
+        lat.layout.dim = [MultiArrayDimension(label='latent', size=int(out.mu.size), stride=int(out.mu.size))]
+        lat.data = out.mu.astype(float).tolist()
+        self.pub_latent.publish(lat)
+        pt = PointStamped()
+        pt.header = header
+        pt.point.x, pt.point.y, pt.point.z = (float(v) for v in out.pad_xyz)
+        self.pub_pad.publish(pt)
+        if out.depth is not None:
+            img = Image()
+            img.header = header
+            img.height, img.width = out.depth.shape
+            img.encoding = '32FC1'
+            img.is_bigendian = 0
+            img.step = 4 * img.width
+            img.data = np.ascontiguousarray(out.depth, dtype='<f4').tobytes()
+            self.pub_depth.publish(img)
+        self.diag.count('frames_encoded')
+        self.diag.status(DiagnosticStatus.OK, 'encoding')
+
+    def close(self) -> None:
+        """Stop the worker thread."""
+        self.slot.close()
+        self._worker.join(timeout=2.0)
+
+
+def main(args=None):
+    """Console entry point `encoder_node`."""
+    sys.exit(run_node(lambda: EncoderNode(), args))
+
+
+if __name__ == '__main__':
+    main()
