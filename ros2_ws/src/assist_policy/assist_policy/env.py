@@ -98,6 +98,11 @@ class LandingAssistEnv(gym.Env):
         self._dist = 0.0
         self.episode_return = 0.0
 
+    @property
+    def pilot_action(self) -> np.ndarray:
+        """The pilot's current command u_t (what the agent observes)."""
+        return self._u.copy()
+
     # -------------------------------------------------------------- helpers
     def _feature(self, pos: np.ndarray) -> np.ndarray:
         if self.condition is Condition.ORACLE:

@@ -228,8 +228,11 @@ class TD3:
         x = torch.as_tensor(np.asarray(obs, dtype=np.float32)).unsqueeze(0)
         return self.actor(x)[0].numpy().astype(float)
 
-    def update(self, buffer: ReplayBuffer) -> dict[str, float]:
-        """One critic update (and, every policy_delay, one actor + target update)."""
+    def update(self, buffer: ReplayBuffer, train_actor: bool = True) -> dict[str, float]:
+        """One critic update (and, every policy_delay, one actor + target update).
+
+        train_actor=False: critic warm-up on preloaded data (targets still track both networks).
+        """
         c = self.cfg
         obs, act, rew, nxt, done = buffer.sample(c.batch_size, self.rng)
         with torch.no_grad():
@@ -245,16 +248,31 @@ class TD3:
         self.updates += 1
         out = {'critic_loss': float(critic_loss.detach()), 'q_mean': float(q1.detach().mean())}
         if self.updates % c.policy_delay == 0:
-            actor_loss = -self.critic.q1_only(obs, self.actor(obs)).mean()
-            self.actor_opt.zero_grad()
-            actor_loss.backward()
-            self.actor_opt.step()
+            if train_actor:
+                actor_loss = -self.critic.q1_only(obs, self.actor(obs)).mean()
+                self.actor_opt.zero_grad()
+                actor_loss.backward()
+                self.actor_opt.step()
+                out['actor_loss'] = float(actor_loss.detach())
             with torch.no_grad():
                 for net, tgt in ((self.actor, self.actor_target), (self.critic, self.critic_target)):
                     for p, pt in zip(net.parameters(), tgt.parameters()):
                         pt.mul_(1.0 - c.tau).add_(c.tau * p)
-            out['actor_loss'] = float(actor_loss.detach())
         return out
+
+    def behaviour_clone(self, obs: np.ndarray, act: np.ndarray, steps: int, batch: int = 256) -> float:
+        """Supervised actor pre-training on (obs, raw action) demonstrations; returns the final MSE."""
+        obs_t = torch.as_tensor(np.asarray(obs, dtype=np.float32))
+        act_t = torch.as_tensor(np.asarray(act, dtype=np.float32)).clamp(-0.999, 0.999)
+        loss = torch.zeros(())
+        for _ in range(steps):
+            idx = torch.as_tensor(self.rng.integers(0, len(obs_t), size=batch))
+            loss = F.mse_loss(self.actor(obs_t[idx]), act_t[idx])
+            self.actor_opt.zero_grad()
+            loss.backward()
+            self.actor_opt.step()
+        self.actor_target.load_state_dict(self.actor.state_dict())
+        return float(loss.detach())
 
     def state_dict(self) -> dict[str, Any]:
         """Everything needed to resume training (tensors and plain values only)."""

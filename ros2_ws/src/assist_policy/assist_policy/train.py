@@ -27,6 +27,7 @@ from tqdm import tqdm
 from .cli import add_dataclass_args, dataclass_from_args
 from .env import EnvConfig, LandingAssistEnv, RewardConfig
 from .latent import make_latent_fn
+from .scripted import ScriptedOracle
 from .td3 import TD3, OUNoise, ReplayBuffer, TD3Config, save_actor
 
 log = logging.getLogger(__name__)
@@ -66,6 +67,10 @@ class TrainArgs:
     success_bonus: float = 0.0
     crash_penalty: float = 0.0
     torch_threads: int = 1
+    demo_episodes: int = 0
+    demo_noise: float = 0.2
+    bc_steps: int = 0
+    critic_warmup_updates: int = 0
     hidden: tuple[int, ...] = (256, 256)
 
 
@@ -83,7 +88,34 @@ HELP = {
     'checkpoint_every_steps': 'write ckpt.pt (+ replay.npz) every this many steps',
     'encoder_path': 'CM-VAE weights for the latent condition (default: the shipped model)',
     'torch_threads': 'torch CPU threads (the machine is shared)',
+    'demo_episodes': 'landings flown by the scripted oracle assistant to preload the buffer (paper: preload '
+                     'from earlier models); saved to demos.npz',
+    'demo_noise': 'Gaussian noise (raw action units) on the demonstrations, for action diversity',
+    'bc_steps': 'supervised actor pre-training steps on the (noise-free) demonstration actions',
+    'critic_warmup_updates': 'critic-only updates on the preloaded buffer before training starts',
 }
+
+
+def collect_demos(env: LandingAssistEnv, episodes: int, noise: float, seed: int, buffer: ReplayBuffer
+                  ) -> tuple[np.ndarray, np.ndarray, list[dict]]:
+    """Fly `episodes` landings with the scripted oracle (+ noise) into `buffer`; (obs, clean acts, results)."""
+    script = ScriptedOracle(max_speed=env.cfg.max_speed)
+    rng = np.random.default_rng(seed)
+    obs_l, act_l, results = [], [], []
+    for ep in range(episodes):
+        obs, _ = env.reset(seed=int(seed * 7919 + ep))
+        while True:
+            clean = script.raw_action(env)
+            act = np.clip(clean + rng.normal(0.0, noise, 3), -1.0, 1.0)
+            nxt, rew, term, trunc, info = env.step(act)
+            buffer.add(obs, act, rew, nxt, term or trunc)
+            obs_l.append(obs)
+            act_l.append(clean)
+            obs = nxt
+            if term or trunc:
+                results.append(info['result'])
+                break
+    return np.asarray(obs_l, np.float32), np.asarray(act_l, np.float32), results
 
 
 def env_config_from(args: TrainArgs) -> EnvConfig:
@@ -199,6 +231,20 @@ def train(args: TrainArgs) -> Path:
         log.info('resumed %s at step %d, episode %d, buffer %d', run_dir, step, episode, buffer.size)
     for path in args.preload:
         log.info('preloaded %d transitions from %s', buffer.load(path), path)
+    if not args.resume and args.demo_episodes > 0:
+        d_obs, d_act, d_res = collect_demos(env, args.demo_episodes, args.demo_noise, args.seed + 17, buffer)
+        err = np.mean([r['error_m'] for r in d_res])
+        succ = np.mean([r['success'] for r in d_res])
+        log.info('demonstrations: %d landings, %d transitions, error %.3f m, success %.2f',
+                 len(d_res), len(d_obs), err, succ)
+        buffer.save(run_dir / 'demos.npz')
+        if args.bc_steps > 0:
+            mse = agent.behaviour_clone(d_obs, d_act, args.bc_steps)
+            log.info('behaviour cloning: %d steps, final MSE %.4f', args.bc_steps, mse)
+        for _ in range(args.critic_warmup_updates):
+            agent.update(buffer, train_actor=False)
+        if args.critic_warmup_updates:
+            log.info('critic warm-up: %d updates', args.critic_warmup_updates)
     metrics = CsvLog(run_dir / 'metrics.csv', ['episode', 'step', 'beta', 'return', 'error_m', 'outcome',
                                                'success', 'crash', 'active_fraction', 'sigma',
                                                'critic_loss', 'q_mean', 'wall_s'])
@@ -217,7 +263,22 @@ def train(args: TrainArgs) -> Path:
             buffer.save(run_dir / 'replay.npz')
         save_actor(agent.actor, agent.meta, run_dir / 'actor_last.pt')
 
+    def run_eval() -> None:
+        nonlocal best
+        ev = evaluate_agent(eval_env, agent, args.eval_episodes_per_beta)
+        ev.update(episode=episode, step=step, wall_s=round(time.time() - t0, 1))
+        evals.write(ev)
+        if ev['eval_error_mean'] < best:
+            best = ev['eval_error_mean']
+            save_actor(agent.actor, {**agent.meta, 'eval': ev}, run_dir / 'actor_best.pt')
+        msg = (f'step {step} ep {episode} eval err {ev["eval_error_mean"]:.3f} '
+               f'succ {ev["eval_success"]:.2f} crash {ev["eval_crash"]:.2f} best {best:.3f}')
+        (run_dir / 'progress.txt').write_text(msg + '\n', encoding='utf-8')
+        log.info(msg)
+
     try:
+        if not args.resume and (args.bc_steps > 0 or args.critic_warmup_updates > 0):
+            run_eval()
         while step < args.total_steps:
             obs, info = env.reset(seed=int(args.seed * 1_000_003 + episode))
             noise.reset()
@@ -257,16 +318,7 @@ def train(args: TrainArgs) -> Path:
                            'q_mean': round(float(np.mean(qm)), 3) if qm else '',
                            'wall_s': round(time.time() - t0, 1)})
             if episode % args.eval_every_episodes == 0 and step >= args.start_steps:
-                ev = evaluate_agent(eval_env, agent, args.eval_episodes_per_beta)
-                ev.update(episode=episode, step=step, wall_s=round(time.time() - t0, 1))
-                evals.write(ev)
-                if ev['eval_error_mean'] < best:
-                    best = ev['eval_error_mean']
-                    save_actor(agent.actor, {**agent.meta, 'eval': ev}, run_dir / 'actor_best.pt')
-                msg = (f'step {step} ep {episode} eval err {ev["eval_error_mean"]:.3f} '
-                       f'succ {ev["eval_success"]:.2f} crash {ev["eval_crash"]:.2f} best {best:.3f}')
-                (run_dir / 'progress.txt').write_text(msg + '\n', encoding='utf-8')
-                log.info(msg)
+                run_eval()
         checkpoint()
     finally:
         bar.close()

@@ -1,0 +1,58 @@
+"""Scripted oracle assistant (knows the true goal): demonstrations to preload TD3's replay buffer.
+
+The paper preloads the replay buffer with transitions collected by earlier models; here the
+earliest "model" is this privileged controller. Its transitions are valid off-policy data for any
+condition (the stored observation is whatever the env's condition observes), so it can seed both
+oracle and latent training.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .actions import DEFAULT_MAX_SPEED, unscale_action
+
+
+@dataclass
+class ScriptedConfig:
+    """Gains of the scripted oracle assistant."""
+
+    gain_xy: float = 0.75             # 1/s: velocity toward the goal per metre of offset
+    engage_radius_m: float = 100.0    # helps everywhere by default
+    descend_radius_m: float = 0.25    # pushes down when this close to the goal centre (horizontally)
+    climb_height_m: float = 0.35      # pushes up when lower than this above the goal and not over it
+    climb_radius_m: float = 0.4
+    descend_mps: float = 1.0
+    climb_mps: float = 0.5
+    cancel_pilot: float = 1.0         # fraction of the pilot's horizontal command cancelled
+
+
+class ScriptedOracle:
+    """a = 2 gain (G - p)_xy - u_xy (clipped), descend over the goal, climb when low and off it."""
+
+    def __init__(self, cfg: ScriptedConfig | None = None, max_speed=DEFAULT_MAX_SPEED):
+        self.cfg = cfg or ScriptedConfig()
+        self.max_speed = max_speed
+
+    def velocity(self, goal: np.ndarray, position: np.ndarray, pilot: np.ndarray | None = None) -> np.ndarray:
+        """Assistant velocity (m/s) at `position` for true goal `goal`, cancelling the pilot's `pilot` command."""
+        c = self.cfg
+        d = np.asarray(goal, dtype=float) - np.asarray(position, dtype=float)
+        horiz = float(np.hypot(d[0], d[1]))
+        a = np.zeros(3)
+        if horiz > c.engage_radius_m:
+            return a
+        u = np.zeros(3) if pilot is None else np.asarray(pilot, dtype=float)
+        # V = (u + a) / 2: with a = 2 * gain * d - u the vehicle flies gain * d whatever the pilot does
+        a[:2] = 2.0 * c.gain_xy * d[:2] - c.cancel_pilot * u[:2]
+        if horiz < c.descend_radius_m:
+            a[2] = -c.descend_mps
+        elif -d[2] < c.climb_height_m and horiz > c.climb_radius_m:
+            a[2] = c.climb_mps
+        return np.clip(a, -np.asarray(self.max_speed), np.asarray(self.max_speed))
+
+    def raw_action(self, env) -> np.ndarray:
+        """Raw action in [-1, 1]^3 for the env's current state (uses the true goal)."""
+        return unscale_action(self.velocity(env.world.goal_position, env.world.state.position, env.pilot_action),
+                              self.max_speed)
