@@ -228,10 +228,14 @@ class TD3:
         x = torch.as_tensor(np.asarray(obs, dtype=np.float32)).unsqueeze(0)
         return self.actor(x)[0].numpy().astype(float)
 
-    def update(self, buffer: ReplayBuffer, train_actor: bool = True) -> dict[str, float]:
+    def update(self, buffer: ReplayBuffer, train_actor: bool = True,
+               demos: tuple[np.ndarray, np.ndarray] | None = None, bc_alpha: float = 0.0) -> dict[str, float]:
         """One critic update (and, every policy_delay, one actor + target update).
 
         train_actor=False: critic warm-up on preloaded data (targets still track both networks).
+        demos=(obs, raw actions) with bc_alpha > 0: TD3+BC actor loss (Fujimoto & Gu 2021),
+        -bc_alpha / mean|Q| * Q(s, pi(s)) + mean (pi(s_d) - a_d)^2, which keeps the policy near the
+        demonstrations where the critic has no evidence for something better.
         """
         c = self.cfg
         obs, act, rew, nxt, done = buffer.sample(c.batch_size, self.rng)
@@ -249,7 +253,17 @@ class TD3:
         out = {'critic_loss': float(critic_loss.detach()), 'q_mean': float(q1.detach().mean())}
         if self.updates % c.policy_delay == 0:
             if train_actor:
-                actor_loss = -self.critic.q1_only(obs, self.actor(obs)).mean()
+                q = self.critic.q1_only(obs, self.actor(obs))
+                if demos is not None and bc_alpha > 0:
+                    idx = self.rng.integers(0, len(demos[0]), size=c.batch_size)
+                    d_obs = torch.as_tensor(np.asarray(demos[0][idx], dtype=np.float32))
+                    d_act = torch.as_tensor(np.asarray(demos[1][idx], dtype=np.float32))
+                    lam = bc_alpha / q.abs().mean().detach().clamp(min=1e-3)
+                    bc = F.mse_loss(self.actor(d_obs), d_act)
+                    actor_loss = -lam * q.mean() + bc
+                    out['bc_loss'] = float(bc.detach())
+                else:
+                    actor_loss = -q.mean()
                 self.actor_opt.zero_grad()
                 actor_loss.backward()
                 self.actor_opt.step()

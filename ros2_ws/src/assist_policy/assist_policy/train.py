@@ -71,6 +71,7 @@ class TrainArgs:
     demo_noise: float = 0.2
     bc_steps: int = 0
     critic_warmup_updates: int = 0
+    bc_alpha: float = 0.0
     hidden: tuple[int, ...] = (256, 256)
 
 
@@ -93,6 +94,7 @@ HELP = {
     'demo_noise': 'Gaussian noise (raw action units) on the demonstrations, for action diversity',
     'bc_steps': 'supervised actor pre-training steps on the (noise-free) demonstration actions',
     'critic_warmup_updates': 'critic-only updates on the preloaded buffer before training starts',
+    'bc_alpha': 'TD3+BC regulariser weight (0 = plain TD3); keeps the actor near the demonstrations',
 }
 
 
@@ -229,6 +231,10 @@ def train(args: TrainArgs) -> Path:
         rng = np.random.default_rng([args.seed, episode])
         noise.rng = rng
         log.info('resumed %s at step %d, episode %d, buffer %d', run_dir, step, episode, buffer.size)
+    demos = None
+    if args.bc_alpha > 0 and args.resume and (run_dir / 'demos_bc.npz').exists():
+        with np.load(run_dir / 'demos_bc.npz', allow_pickle=False) as data:
+            demos = (data['obs'], data['act'])
     for path in args.preload:
         log.info('preloaded %d transitions from %s', buffer.load(path), path)
     if not args.resume and args.demo_episodes > 0:
@@ -238,6 +244,8 @@ def train(args: TrainArgs) -> Path:
         log.info('demonstrations: %d landings, %d transitions, error %.3f m, success %.2f',
                  len(d_res), len(d_obs), err, succ)
         buffer.save(run_dir / 'demos.npz')
+        np.savez(run_dir / 'demos_bc.npz', obs=d_obs, act=d_act)
+        demos = (d_obs, d_act) if args.bc_alpha > 0 else None
         if args.bc_steps > 0:
             mse = agent.behaviour_clone(d_obs, d_act, args.bc_steps)
             log.info('behaviour cloning: %d steps, final MSE %.4f', args.bc_steps, mse)
@@ -299,7 +307,7 @@ def train(args: TrainArgs) -> Path:
                 if buffer.size >= agent.cfg.batch_size and step >= min(args.start_steps, 1000):
                     update_credit += args.updates_per_step
                     while update_credit >= 1.0:
-                        losses.append(agent.update(buffer))
+                        losses.append(agent.update(buffer, demos=demos, bc_alpha=args.bc_alpha))
                         update_credit -= 1.0
                 if step % args.checkpoint_every_steps == 0:
                     checkpoint()

@@ -81,3 +81,27 @@ def test_nonfinite_action_rejected(env):
     env.reset(seed=1)
     with pytest.raises(ValueError):
         env.step(np.array([np.nan, 0, 0]))
+
+
+def test_latent_condition_uses_the_perception_encoder(tmp_path):
+    """Latent observations come from assist_perception's CM-VAE (untrained weights: plumbing only)."""
+    import torch
+    from assist_perception.model import CMVAE, CMVAEConfig, save_model
+
+    from assist_policy.latent import make_latent_fn
+
+    torch.manual_seed(0)
+    save_model(tmp_path / 'cmvae_test.pt', CMVAE(CMVAEConfig(latent_dim=6)))
+    fn, dim = make_latent_fn(tmp_path / 'cmvae_test.pt')
+    assert dim == 6
+    e = LandingAssistEnv(EnvConfig(condition='latent', latent_dim=dim, max_episode_s=2.0), latent_fn=fn)
+    obs, _ = e.reset(seed=2)
+    assert obs.shape == (6 + 13,)
+    frame = e.world.render()
+    mu = fn(frame.rgb, frame.depth)
+    assert mu.shape == (6,) and np.all(np.isfinite(mu))
+    obs2, *_ = e.step(np.zeros(3))
+    assert not np.allclose(obs2[:6], 0.0)
+    e.close()
+    with pytest.raises(ValueError, match='not found'):
+        make_latent_fn(tmp_path / 'missing.pt')

@@ -1,0 +1,89 @@
+"""sim_pilot_node in a real (in-process) graph on a private domain: odom + goal in, keyboard commands out."""
+import os
+import random
+import threading
+import time
+
+import numpy as np
+import pytest
+import rclpy
+from geometry_msgs.msg import PointStamped, TwistStamped
+from nav_msgs.msg import Odometry
+from rclpy.context import Context
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from assist_sim.ros_common import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS
+from assist_sim.sim_pilot_node import SimPilotNode
+
+pytestmark = pytest.mark.graph
+
+
+@pytest.fixture
+def graph():
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=random.Random(os.getpid() ^ time.monotonic_ns()).randint(1, 100))
+    pilot = SimPilotNode(context=ctx, parameter_overrides=[Parameter('beta', value=1.0),
+                                                           Parameter('alpha', value=1.0)])
+    probe = Node('probe', context=ctx)
+    ex = MultiThreadedExecutor(num_threads=2, context=ctx)
+    ex.add_node(pilot)
+    ex.add_node(probe)
+    th = threading.Thread(target=ex.spin, daemon=True)
+    th.start()
+    yield pilot, probe
+    ex.shutdown()
+    pilot.destroy_node()
+    probe.destroy_node()
+    rclpy.shutdown(context=ctx)
+
+
+def test_pilot_node_flies_toward_goal_and_descends_over_it(graph):
+    pilot, probe = graph
+    cmds, lock = [], threading.Lock()
+
+    def on_cmd(msg):
+        with lock:
+            cmds.append(np.array([msg.twist.linear.x, msg.twist.linear.y, msg.twist.linear.z]))
+    probe.create_subscription(TwistStamped, '/pilot/cmd_vel', on_cmd, RELIABLE_QOS)
+    pub_odom = probe.create_publisher(Odometry, '/odom', SENSOR_QOS)
+    pub_goal = probe.create_publisher(PointStamped, '/sim/goal', LATCHED_QOS)
+    pub_agent = probe.create_publisher(TwistStamped, '/assist/agent_cmd', RELIABLE_QOS)
+
+    def odom(x, y, z, n=10):
+        for _ in range(n):
+            m = Odometry()
+            m.pose.pose.position.x, m.pose.pose.position.y, m.pose.pose.position.z = x, y, z
+            pub_odom.publish(m)
+            time.sleep(0.05)
+
+    def recent(seconds=0.3):
+        time.sleep(seconds)
+        with lock:
+            return list(cmds[-3:])
+
+    odom(0.0, 0.0, 3.0)
+    assert all(np.allclose(c, 0) for c in recent()), 'no goal yet: zero command'
+    g = PointStamped()
+    g.header.frame_id = 'odom'
+    g.point.x, g.point.y, g.point.z = 4.0, 0.0, 1.0
+    pub_goal.publish(g)
+    odom(0.0, 0.0, 3.0, n=20)
+    last = recent(0.0)
+    assert last and all(c[0] > 0 and c[2] == 0 for c in last), last   # forward, not descending (4 m away)
+    est = pilot.pilot.goal_estimate.copy()
+    # hovering right above its estimate: it descends
+    odom(est[0], est[1], 3.0, n=20)
+    assert all(c[2] < 0 for c in recent(0.0))
+    # a strong assistant action pulls the conformant pilot's estimate (alpha = 1)
+    before = pilot.pilot.goal_estimate.copy()
+    for _ in range(10):
+        a = TwistStamped()
+        a.twist.linear.y = 1.0
+        pub_agent.publish(a)
+        odom(est[0], est[1], 3.0, n=1)
+    assert pilot.pilot.goal_estimate[1] - before[1] > 0.2
+    # odometry goes stale: zero velocity
+    time.sleep(0.8)
+    assert all(np.allclose(c, 0) for c in recent())
