@@ -56,3 +56,32 @@ class ScriptedOracle:
         """Raw action in [-1, 1]^3 for the env's current state (uses the true goal)."""
         return unscale_action(self.velocity(env.world.goal_position, env.world.state.position, env.pilot_action),
                               self.max_speed)
+
+
+class ScriptedNearestPad:
+    """Goal-agnostic demonstrator: once the pilot descends (or is low), centre it on the pad below.
+
+    Uses only what the latent condition can perceive (the closest pad's position, the pilot's
+    command), so a latent actor can imitate it; relinquishes (a = 0) while the pilot is in transit.
+    """
+
+    def __init__(self, cfg: ScriptedConfig | None = None, max_speed=DEFAULT_MAX_SPEED, low_height_m: float = 1.2):
+        self.cfg = cfg or ScriptedConfig()
+        self.max_speed = max_speed
+        self.low_height_m = low_height_m
+        self.oracle = ScriptedOracle(self.cfg, max_speed)
+
+    def velocity(self, pads: np.ndarray, position: np.ndarray, pilot: np.ndarray) -> np.ndarray:
+        """Assistant velocity toward the pad nearest to the vehicle, or zero in transit."""
+        p = np.asarray(position, dtype=float)
+        pads = np.asarray(pads, dtype=float)
+        k = int(np.argmin(np.linalg.norm(pads[:, :2] - p[:2], axis=1)))
+        low = p[2] - pads[k, 2] < self.low_height_m
+        if not (np.asarray(pilot)[2] < 0 or low):
+            return np.zeros(3)
+        return self.oracle.velocity(pads[k], p, pilot)
+
+    def raw_action(self, env) -> np.ndarray:
+        """Raw action in [-1, 1]^3 for the env's current state (pad positions, no goal)."""
+        return unscale_action(self.velocity(env.world.pad_top_centers, env.world.state.position, env.pilot_action),
+                              self.max_speed)

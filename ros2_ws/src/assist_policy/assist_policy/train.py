@@ -27,7 +27,7 @@ from tqdm import tqdm
 from .cli import add_dataclass_args, dataclass_from_args
 from .env import EnvConfig, LandingAssistEnv, RewardConfig
 from .latent import make_latent_fn
-from .scripted import ScriptedOracle
+from .scripted import ScriptedNearestPad, ScriptedOracle
 from .td3 import TD3, OUNoise, ReplayBuffer, TD3Config, save_actor
 
 log = logging.getLogger(__name__)
@@ -72,6 +72,7 @@ class TrainArgs:
     bc_steps: int = 0
     critic_warmup_updates: int = 0
     bc_alpha: float = 0.0
+    demo_policy: str = 'oracle'
     hidden: tuple[int, ...] = (256, 256)
 
 
@@ -94,14 +95,19 @@ HELP = {
     'demo_noise': 'Gaussian noise (raw action units) on the demonstrations, for action diversity',
     'bc_steps': 'supervised actor pre-training steps on the (noise-free) demonstration actions',
     'critic_warmup_updates': 'critic-only updates on the preloaded buffer before training starts',
+    'demo_policy': 'demonstrator: oracle (knows the goal) or nearest_pad (goal-agnostic: centres the '
+                   'descending pilot on the pad below; imitable from the latent)',
     'bc_alpha': 'TD3+BC regulariser weight (0 = plain TD3); keeps the actor near the demonstrations',
 }
 
 
-def collect_demos(env: LandingAssistEnv, episodes: int, noise: float, seed: int, buffer: ReplayBuffer
-                  ) -> tuple[np.ndarray, np.ndarray, list[dict]]:
-    """Fly `episodes` landings with the scripted oracle (+ noise) into `buffer`; (obs, clean acts, results)."""
-    script = ScriptedOracle(max_speed=env.cfg.max_speed)
+def collect_demos(env: LandingAssistEnv, episodes: int, noise: float, seed: int, buffer: ReplayBuffer,
+                  demo_policy: str = 'oracle') -> tuple[np.ndarray, np.ndarray, list[dict]]:
+    """Fly `episodes` landings with a scripted assistant (+ noise) into `buffer`; (obs, clean acts, results)."""
+    if demo_policy not in ('oracle', 'nearest_pad'):
+        raise ValueError(f'demo_policy must be oracle or nearest_pad, got {demo_policy!r}')
+    script = (ScriptedOracle(max_speed=env.cfg.max_speed) if demo_policy == 'oracle'
+              else ScriptedNearestPad(max_speed=env.cfg.max_speed))
     rng = np.random.default_rng(seed)
     obs_l, act_l, results = [], [], []
     for ep in range(episodes):
@@ -238,7 +244,8 @@ def train(args: TrainArgs) -> Path:
     for path in args.preload:
         log.info('preloaded %d transitions from %s', buffer.load(path), path)
     if not args.resume and args.demo_episodes > 0:
-        d_obs, d_act, d_res = collect_demos(env, args.demo_episodes, args.demo_noise, args.seed + 17, buffer)
+        d_obs, d_act, d_res = collect_demos(env, args.demo_episodes, args.demo_noise, args.seed + 17, buffer,
+                                              args.demo_policy)
         err = np.mean([r['error_m'] for r in d_res])
         succ = np.mean([r['success'] for r in d_res])
         log.info('demonstrations: %d landings, %d transitions, error %.3f m, success %.2f',
