@@ -29,11 +29,13 @@ from .cli import add_dataclass_args, dataclass_from_args
 from .env import EnvConfig, LandingAssistEnv
 from .latent import make_latent_fn
 from .policy_core import default_model_path
+from .scripted import ScriptedNearestPad, ScriptedOracle
 from .td3 import load_actor
 
 log = logging.getLogger(__name__)
 
 CONDITIONS = ('unassisted', 'latent', 'oracle', 'end_to_end')
+BASELINES = ('scripted_oracle', 'scripted_nearest_pad')   # hand-written assistants (reference only)
 PAPER = {'unassisted': '0.67 +- 0.40', 'end_to_end': '0.37 +- 0.33', 'latent': '0.25 +- 0.15',
          'oracle': '0.10 +- 0.07'}
 
@@ -58,7 +60,8 @@ class EvalArgs:
 
 HELP = {
     'out': 'output directory (landings.csv, summary.csv, error_vs_beta.png)',
-    'conditions': 'any of unassisted latent oracle end_to_end (assistants without a model are skipped)',
+    'conditions': 'any of unassisted latent oracle end_to_end (assistants without a model are skipped); '
+                  'reference baselines: scripted_oracle scripted_nearest_pad',
     'betas': 'pilot skills to test (paper: 0 to 1 in steps of 0.05)',
     'landings': 'landings per beta and condition (paper: 40)',
     'latent_model': 'actor file (default: models/td3_latent_actor.pt)',
@@ -72,6 +75,10 @@ def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: fl
     """(env, policy) for one condition; policy(obs) -> raw action, None for unassisted."""
     if condition == 'unassisted':
         return LandingAssistEnv(EnvConfig(condition='none', alpha=alpha, max_episode_s=max_episode_s)), None
+    if condition in BASELINES:
+        env = LandingAssistEnv(EnvConfig(condition='oracle', alpha=alpha, max_episode_s=max_episode_s))
+        script = ScriptedOracle() if condition == 'scripted_oracle' else ScriptedNearestPad()
+        return env, lambda obs: script.raw_action(env)
     path = Path(model) if model else default_model_path(condition)
     actor, meta = load_actor(path)
     cfg = EnvConfig(condition=condition, alpha=alpha, max_episode_s=max_episode_s,
@@ -172,9 +179,9 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
         w = csv.DictWriter(fh, fieldnames=fields)
         w.writeheader()
         for cond in args.conditions:
-            if cond not in CONDITIONS:
-                raise ValueError(f'unknown condition {cond!r}; choose from {CONDITIONS}')
-            model = getattr(args, f'{cond}_model', '') if cond != 'unassisted' else ''
+            if cond not in CONDITIONS + BASELINES:
+                raise ValueError(f'unknown condition {cond!r}; choose from {CONDITIONS + BASELINES}')
+            model = getattr(args, f'{cond}_model', '') if cond in CONDITIONS[1:] else ''
             try:
                 env, policy = make_policy(cond, model, args.encoder_path, args.max_episode_s, args.alpha)
             except ValueError as exc:
