@@ -117,13 +117,26 @@ def resize_pair(rgb: np.ndarray, depth: np.ndarray, size: int) -> tuple[np.ndarr
     return np.ascontiguousarray(rgb), np.ascontiguousarray(depth, dtype=np.float32)
 
 
+def check_device(device: str) -> torch.device:
+    """Parse a torch device string and check it exists here; raises ValueError."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError) as exc:
+        raise ValueError(f'unknown torch device {device!r}') from exc
+    if dev.type == 'cuda' and not torch.cuda.is_available():
+        raise ValueError(f'device {device!r} requested but CUDA is not available')
+    if dev.type not in ('cpu', 'cuda'):
+        raise ValueError(f'unsupported device {device!r} (cpu or cuda[:N])')
+    return dev
+
+
 class LatentEncoder:
     """Loads the CM-VAE once and encodes RGB-D frames (any resolution) to mu / pad XYZ / depth."""
 
     def __init__(self, model_path: str | Path | None = None, device: str = 'cpu',
                  threads: int = 1, min_valid_fraction: float = 0.01):
         self.model_path = Path(model_path) if model_path else default_model_path()
-        self.device = torch.device(device)
+        self.device = check_device(device)
         if threads > 0:
             torch.set_num_threads(threads)
         self.model: CMVAE = load_model(self.model_path, self.device)

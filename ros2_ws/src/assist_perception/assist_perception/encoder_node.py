@@ -57,8 +57,8 @@ class EncoderNode(Node):
                                          int(self.p['threads']), float(self.p['min_valid_depth_fraction']))
         except ModelLoadError as exc:
             raise StartupError(f'encoder_node: {exc}') from exc
-        except (RuntimeError, ValueError) as exc:   # e.g. an unknown or unavailable torch device
-            raise StartupError(f"encoder_node: cannot use device '{self.p['device']}': {exc}") from exc
+        except ValueError as exc:   # an unknown or unavailable torch device
+            raise StartupError(f'encoder_node: {exc}') from exc
         self.diag = Diagnostics(self)
         self.diag.set('model_path', str(self.encoder.model_path))
         self.diag.set('latent_dim', self.encoder.latent_dim)

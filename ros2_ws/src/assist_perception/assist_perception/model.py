@@ -273,8 +273,9 @@ def load_model(path: str | Path, device: str | torch.device = 'cpu') -> CMVAE:
     try:
         payload = torch.load(path, map_location='cpu', weights_only=True)
     except Exception as exc:  # torch raises many types (pickle, zip, runtime) for bad files
-        raise ModelLoadError(f'cannot read CM-VAE weights {path}: {type(exc).__name__}: '
-                             f'{str(exc).splitlines()[0] if str(exc) else ""}') from exc
+        raise ModelLoadError(f'cannot read CM-VAE weights {path}: {type(exc).__name__} (not a torch '
+                             'weights file, truncated, or holding objects that weights_only=True '
+                             'refuses)') from exc
     if not isinstance(payload, dict) or payload.get('format') != MODEL_FORMAT:
         raise ModelLoadError(f'{path} is not a CM-VAE weights file (format tag missing)')
     if payload.get('version') != MODEL_VERSION:

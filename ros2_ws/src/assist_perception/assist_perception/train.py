@@ -54,6 +54,7 @@ class TrainConfig:
     threads: int = 1                      # torch intra-op threads (1 is fastest on a shared 2-core box)
     max_minutes: float = 0.0              # time budget (0 = off): the LR schedule follows whichever of
     #                                       steps or elapsed/budget is further along; stops when spent
+    stop_after_epoch: int = 0             # end the run after this epoch (0 = off); --resume continues
     resume: bool = False                  # continue from run_dir/checkpoint.pt
 
 
@@ -221,6 +222,8 @@ def train(cfg: TrainConfig, frames: FrameSet | None = None, progress: bool = Tru
         _LOG.info('epoch %d: %s', epoch + 1,
                   ', '.join(f'{k}={v:.4g}' for k, v in row.items() if isinstance(v, float)))
         last = row
+        if cfg.stop_after_epoch and epoch + 1 >= cfg.stop_after_epoch:
+            break
         if cfg.max_minutes > 0 and elapsed >= cfg.max_minutes * 60:
             _LOG.info('time budget of %.1f min reached after epoch %d', cfg.max_minutes, epoch + 1)
             break
