@@ -134,11 +134,11 @@ def summarize(rows: list[dict]) -> dict:
 
 def format_table(summary: dict[str, dict]) -> str:
     """Fixed-width text table of per-condition summaries."""
-    head = (f'{"condition":<12} {"n":>4} {"error m (mean+-std)":>20} {"median":>7} {"spec.succ":>9} '
+    head = (f'{"condition":<20} {"n":>4} {"error m (mean+-std)":>20} {"median":>7} {"spec.succ":>9} '
             f'{"near.succ":>9} {"crash":>6} {"on goal":>7} {"assist%":>7}  paper')
     lines = [head, '-' * len(head)]
     for cond, s in summary.items():
-        lines.append(f'{cond:<12} {s["n"]:>4} {s["error_mean"]:>11.3f} +- {s["error_std"]:<5.3f} '
+        lines.append(f'{cond:<20} {s["n"]:>4} {s["error_mean"]:>11.3f} +- {s["error_std"]:<5.3f} '
                      f'{s["error_median"]:>7.3f} {100 * s["specified_success"]:>8.1f}% '
                      f'{100 * s["nearest_success"]:>8.1f}% {100 * s["crash_rate"]:>5.1f}% '
                      f'{100 * s["landed_on_goal"]:>6.1f}% {100 * s["active_fraction"]:>6.1f}%  '
