@@ -45,7 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     ns = parser.parse_args(argv)
     assistants = available_assistants()
     if not assistants:
-        print('no shipped assistant found (models/td3_latent_actor.pt + models/cmvae*.pt, or '
+        print('no shipped assistant found (models/td3_latent_actor.pt + models/cmvae.pt, or '
               'models/td3_oracle_actor.pt): showing the unassisted pilots only')
     conds = ('unassisted', *assistants)
     print(f'simulated pilots, alpha 0.5, beta {ns.betas}, {ns.landings} landing(s) each; '
