@@ -142,6 +142,7 @@ class EncoderNode(Node):
             img.data = np.ascontiguousarray(out.depth, dtype='<f4').tobytes()
             self.pub_depth.publish(img)
         self.diag.count('frames_encoded')
+        self.diag.set('superseded_pairs', self.slot.replaced)
         self.diag.status(DiagnosticStatus.OK, 'encoding')
 
     def close(self) -> None:
