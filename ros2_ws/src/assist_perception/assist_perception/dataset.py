@@ -20,7 +20,6 @@ Scene j uses seeds derived from (seed, j) only, so the set is deterministic and 
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import logging
@@ -30,6 +29,8 @@ from pathlib import Path
 from typing import Iterator, NamedTuple, Sequence
 
 import numpy as np
+
+from .cli import parse_settings
 
 DATASET_VERSION = 1
 _LOG = logging.getLogger(__name__)
@@ -298,24 +299,11 @@ def split_by_scene(frames: FrameSet, val_fraction: float, seed: int) -> tuple[np
     return np.nonzero(~is_val)[0], np.nonzero(is_val)[0]
 
 
-def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(description='Generate the CM-VAE RGB-D dataset (compressed shards).')
-    for f in dataclasses.fields(DatasetConfig):
-        flag = '--' + f.name.replace('_', '-')
-        if f.type in ('bool', bool):
-            ap.add_argument(flag, action='store_true', help=f'(default {f.default})')
-        else:
-            typ = {'int': int, 'float': float, 'str': str}[str(f.type)]
-            ap.add_argument(flag, type=typ, default=f.default, help=f'(default {f.default})')
-    ap.add_argument('--no-progress', action='store_true', help='hide the progress bar')
-    return ap
-
-
 def main(argv: list[str] | None = None) -> int:
     """Console entry point `make_dataset`."""
     logging.basicConfig(level=logging.INFO, format='[%(levelname)s] %(name)s: %(message)s')
-    args = _parser().parse_args(argv)
-    cfg = DatasetConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(DatasetConfig)})
+    cfg, args = parse_settings(DatasetConfig, 'Generate the CM-VAE RGB-D dataset (compressed shards).',
+                               argv, {'--no-progress': {'action': 'store_true', 'help': 'hide the progress bar'}})
     summary = make_dataset(cfg, progress=not args.no_progress)
     frames = load_frames(cfg.out_dir)
     print(json.dumps({**summary, 'visible_fraction': float(frames.visible.mean())}, indent=1))

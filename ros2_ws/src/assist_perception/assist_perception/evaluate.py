@@ -10,8 +10,6 @@ mu_i = mu_1 + delta (mu_2 - mu_1) for delta from 0 to 1.
 """
 from __future__ import annotations
 
-import argparse
-import dataclasses
 import json
 import logging
 import math
@@ -21,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .cli import parse_settings
 from .dataset import FrameSet, load_frames, split_by_scene
 from .model import CMVAE, latent_interpolation, load_model, preprocess
 from .noise import NoiseConfig, apply_depth_noise
@@ -153,13 +152,7 @@ def evaluate(cfg: EvalConfig) -> dict:
 def main(argv: list[str] | None = None) -> int:
     """Console entry point `evaluate_cmvae`."""
     logging.basicConfig(level=logging.INFO, format='[%(levelname)s] %(name)s: %(message)s')
-    ap = argparse.ArgumentParser(description='Evaluate a trained CM-VAE on held-out frames.')
-    for f in dataclasses.fields(EvalConfig):
-        typ = {'int': int, 'float': float, 'str': str}[str(f.type)]
-        ap.add_argument('--' + f.name.replace('_', '-'), type=typ, default=f.default,
-                        help=f'(default {f.default})')
-    args = ap.parse_args(argv)
-    cfg = EvalConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(EvalConfig)})
+    cfg, _ = parse_settings(EvalConfig, 'Evaluate a trained CM-VAE on held-out frames.', argv)
     metrics = evaluate(cfg)
     width = max(len(k) for k in metrics)
     for k, v in metrics.items():

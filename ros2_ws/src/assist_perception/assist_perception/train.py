@@ -7,7 +7,6 @@ checkpoint.pt (latest, for --resume), best.pt and model.pt (weights files for lo
 """
 from __future__ import annotations
 
-import argparse
 import csv
 import dataclasses
 import json
@@ -20,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .cli import parse_settings
 from .dataset import FrameSet, load_frames, split_by_scene
 from .model import CMVAE, CMVAEConfig, LossConfig, cmvae_loss, preprocess, save_model
 from .noise import NoiseConfig, apply_depth_noise
@@ -230,24 +230,11 @@ def train(cfg: TrainConfig, frames: FrameSet | None = None, progress: bool = Tru
     return last
 
 
-def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(description='Train the denoising CM-VAE (see TrainConfig).')
-    for f in dataclasses.fields(TrainConfig):
-        flag = '--' + f.name.replace('_', '-')
-        if str(f.type) == 'bool':
-            ap.add_argument(flag, action='store_true', help=f'(default {f.default})')
-        else:
-            typ = {'int': int, 'float': float, 'str': str}[str(f.type)]
-            ap.add_argument(flag, type=typ, default=f.default, help=f'(default {f.default})')
-    ap.add_argument('--no-progress', action='store_true', help='hide progress bars')
-    return ap
-
-
 def main(argv: list[str] | None = None) -> int:
     """Console entry point `train_cmvae`."""
     logging.basicConfig(level=logging.INFO, format='[%(levelname)s] %(name)s: %(message)s')
-    args = _parser().parse_args(argv)
-    cfg = TrainConfig(**{f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)})
+    cfg, args = parse_settings(TrainConfig, 'Train the denoising CM-VAE (see TrainConfig).', argv,
+                               {'--no-progress': {'action': 'store_true', 'help': 'hide progress bars'}})
     last = train(cfg, progress=not args.no_progress)
     print(json.dumps(last, indent=1))
     return 0
