@@ -14,6 +14,8 @@ setup(
         ('share/' + PACKAGE, ['package.xml']),
         ('share/' + PACKAGE + '/config', glob('config/*.yaml')),
         ('share/' + PACKAGE + '/launch', glob('launch/*.launch.py')),
+        # shipped CM-VAE weights + card from the repository's models/ (found by encoder_core)
+        ('share/' + PACKAGE + '/models', glob('../../../models/cmvae*')),
     ],
     package_data={PACKAGE: ['data/*']},
     install_requires=['setuptools'],
