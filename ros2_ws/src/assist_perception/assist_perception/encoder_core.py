@@ -219,6 +219,7 @@ class StampPairer:
         self.slop_s = float(slop_s)
         self._lock = threading.Lock()
         self._latest: dict[str, tuple[float, Any] | None] = {'color': None, 'depth': None}
+        self.unpaired = 0     # messages replaced before a partner within the slop arrived
 
     def add(self, stream: str, stamp: float, msg: Any) -> tuple[Any, Any] | None:
         """Offer a message of stream 'color' or 'depth'; returns (color, depth) when they pair."""
@@ -226,8 +227,12 @@ class StampPairer:
         with self._lock:
             o = self._latest[other]
             if o is not None and abs(o[0] - stamp) <= self.slop_s:
+                if self._latest[stream] is not None:
+                    self.unpaired += 1
                 self._latest[other] = None
                 self._latest[stream] = None
                 return (msg, o[1]) if stream == 'color' else (o[1], msg)
+            if self._latest[stream] is not None:
+                self.unpaired += 1
             self._latest[stream] = (stamp, msg)
             return None

@@ -84,6 +84,7 @@ class EncoderNode(Node):
     def _on_image(self, stream: str, msg: Image) -> None:
         self.diag.count(f'{stream}_received')
         pair = self.pairer.add(stream, stamp_to_sec(msg.header.stamp), msg)
+        self.diag.set('unpaired_images', self.pairer.unpaired)
         if pair is not None:
             self.diag.count('pairs')
             self.slot.put(pair)

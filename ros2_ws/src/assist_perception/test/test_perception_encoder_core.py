@@ -117,3 +117,8 @@ def test_stamp_pairer_pairs_within_slop_once():
     assert p.add('depth', 1.050, 'd2') is None          # no colour left to pair with
     assert p.add('color', 1.100, 'c2') is None          # 50 ms apart: beyond the slop
     assert p.add('depth', 1.095, 'd3') == ('c2', 'd3')
+    assert p.unpaired == 1                              # d2 never found a colour partner
+    p.add('color', 2.0, 'c3')
+    p.add('color', 2.1, 'c4')                           # nor did c3
+    assert p.unpaired == 2
+    assert p.add('depth', 2.1, 'd4') == ('c4', 'd4')
