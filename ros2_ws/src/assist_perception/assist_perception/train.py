@@ -217,8 +217,10 @@ def train(cfg: TrainConfig, frames: FrameSet | None = None, progress: bool = Tru
             best = score
             save_model(run / 'best.pt', model, meta)
         save_model(run / 'model.pt', model, meta)
+        tmp = ckpt_path.with_suffix('.pt.tmp')   # atomic: an interrupted save keeps the old checkpoint
         torch.save({'model': model.state_dict(), 'optimizer': opt.state_dict(), 'epoch': epoch,
-                    'step': step, 'best': best, 'elapsed_s': elapsed}, ckpt_path)
+                    'step': step, 'best': best, 'elapsed_s': elapsed}, tmp)
+        tmp.replace(ckpt_path)
         _LOG.info('epoch %d: %s', epoch + 1,
                   ', '.join(f'{k}={v:.4g}' for k, v in row.items() if isinstance(v, float)))
         last = row
