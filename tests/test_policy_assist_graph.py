@@ -1,6 +1,7 @@
-"""The assisted-landing graph: sim_node + sim_pilot_node + policy_node (oracle mode) complete landings.
+"""The assisted-landing graph: sim_node (+ encoder_node) + sim_pilot_node + policy_node complete landings.
 
-(The latent variant adds encoder_node; it runs when the shipped CM-VAE and latent actor exist.)
+Oracle mode needs no encoder; the latent variant adds encoder_node and runs with the shipped CM-VAE
+and latent actor.
 """
 import importlib.util
 import json
@@ -56,4 +57,26 @@ def test_oracle_assisted_graph_completes_landings(start_node, wait, landings, tm
     assert first['assisted'] is True, first
     assert first['outcome'] in ('success', 'wrong_pad', 'edge', 'crash'), first   # a real landing, not a timeout
     assert 0.0 <= first['error_m'] < 30.0
+    assert all(n.proc.poll() is None for n in nodes), logs
+
+
+LATENT_ACTOR = REPO / 'models' / 'td3_latent_actor.pt'
+CMVAE = REPO / 'models' / 'cmvae.pt'
+
+
+@pytest.mark.skipif(not (LATENT_ACTOR.is_file() and CMVAE.is_file()), reason='latent actor or CM-VAE not shipped')
+def test_latent_assisted_graph_with_encoder_completes_landings(start_node, wait, landings):
+    nodes = [
+        start_node('sim_node', {'seed': 8, 'real_time_factor': 2.0, 'camera_rate_hz': 20.0,
+                                'reset_delay_s': 0.5}),
+        start_node('encoder_node', {'use_sim_time': True, 'depth_noise': True}),
+        start_node('sim_pilot_node', {'alpha': 0.5, 'beta': 1.0, 'seed': 2, 'use_sim_time': True}),
+        start_node('policy_node', {'mode': 'latent', 'use_sim_time': True}),
+    ]
+    ok = wait(lambda: len(landings) >= 1 or any(n.proc.poll() is not None for n in nodes), 200)
+    logs = '\n'.join(n.log()[-2000:] for n in nodes)
+    assert ok and landings, logs
+    first = landings[0]
+    assert first['assisted'] is True, first
+    assert first['outcome'] in ('success', 'wrong_pad', 'edge', 'crash'), first
     assert all(n.proc.poll() is None for n in nodes), logs

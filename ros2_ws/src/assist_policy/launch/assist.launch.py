@@ -29,7 +29,7 @@ def generate_launch_description():
                parameters=[sim_params, {'seed': LaunchConfiguration('seed'), 'gui': LaunchConfiguration('gui'),
                                         'real_time_factor': LaunchConfiguration('real_time_factor')}])
     encoder = Node(package='assist_perception', executable='encoder_node', name='encoder_node',
-                   output='screen', parameters=[sim_time],
+                   output='screen', parameters=[sim_time, {'depth_noise': True}],  # sim depth is clean
                    condition=IfCondition(PythonExpression(["'", mode, "' == 'latent'"])))
     pilot = Node(package='assist_sim', executable='sim_pilot_node', name='sim_pilot_node', output='screen',
                  parameters=[params, sim_time, {'alpha': LaunchConfiguration('alpha'),
