@@ -48,4 +48,16 @@ def run() -> list[dict]:
     env.close()
     rows.append({'name': 'env steps (oracle, sim physics 240 Hz)', 'value': sps, 'unit': 'steps/s',
                  'target': '> 20 (real time)'})
+    try:
+        from assist_policy.latent import make_latent_fn
+        latent_fn, dim = make_latent_fn()
+    except ValueError:
+        return rows   # no shipped CM-VAE: the latent rows need it
+    env = LandingAssistEnv(EnvConfig(condition='latent', latent_dim=dim), latent_fn=latent_fn)
+    env.reset(seed=0)
+    state['done'] = False
+    sps = _rate(step, 300)
+    env.close()
+    rows.append({'name': 'env steps (latent: render + depth noise + CM-VAE)', 'value': sps, 'unit': 'steps/s',
+                 'target': '> 20 (real time)'})
     return rows
