@@ -129,8 +129,8 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
              num_threads: int = 2) -> int:
     """Init rclpy, build the node, spin it on a multi-threaded executor, always clean up.
 
-    A StartupError (or ValueError from a parameter) raised by `factory` is reported as one
-    clear line on stderr and gives exit code 1 instead of a traceback.
+    A StartupError raised by `factory` (nodes wrap bad parameters, missing models and unreachable
+    endpoints in it) is reported as one clear line on stderr and gives exit code 1, no traceback.
     """
     logging.basicConfig(level=logging.INFO, format='[%(levelname)s] [%(name)s]: %(message)s')
     rclpy.init(args=args)
