@@ -73,6 +73,7 @@ class TrainArgs:
     critic_warmup_updates: int = 0
     bc_alpha: float = 0.0
     demo_policy: str = 'oracle'
+    demo_bc_file: str = ''
     hidden: tuple[int, ...] = (256, 256)
 
 
@@ -97,6 +98,8 @@ HELP = {
     'critic_warmup_updates': 'critic-only updates on the preloaded buffer before training starts',
     'demo_policy': 'demonstrator: oracle (knows the goal) or nearest_pad (goal-agnostic: centres the '
                    'descending pilot on the pad below; imitable from the latent)',
+    'demo_bc_file': 'demos_bc.npz of an earlier run: reuse its demonstrations for behaviour cloning / TD3+BC '
+                    'instead of collecting new ones (preload its demos.npz with --preload)',
     'bc_alpha': 'TD3+BC regulariser weight (0 = plain TD3); keeps the actor near the demonstrations',
 }
 
@@ -243,14 +246,21 @@ def train(args: TrainArgs) -> Path:
             demos = (data['obs'], data['act'])
     for path in args.preload:
         log.info('preloaded %d transitions from %s', buffer.load(path), path)
-    if not args.resume and args.demo_episodes > 0:
-        d_obs, d_act, d_res = collect_demos(env, args.demo_episodes, args.demo_noise, args.seed + 17, buffer,
-                                              args.demo_policy)
-        err = np.mean([r['error_m'] for r in d_res])
-        succ = np.mean([r['success'] for r in d_res])
-        log.info('demonstrations: %d landings, %d transitions, error %.3f m, success %.2f',
-                 len(d_res), len(d_obs), err, succ)
-        buffer.save(run_dir / 'demos.npz')
+    if not args.resume and (args.demo_episodes > 0 or args.demo_bc_file):
+        if args.demo_bc_file:
+            with np.load(args.demo_bc_file, allow_pickle=False) as data:
+                d_obs, d_act = data['obs'], data['act']
+            if d_obs.shape[1] != obs_dim:
+                raise ValueError(f'{args.demo_bc_file}: observation size {d_obs.shape[1]} != {obs_dim}')
+            log.info('demonstrations: %d transitions from %s', len(d_obs), args.demo_bc_file)
+        else:
+            d_obs, d_act, d_res = collect_demos(env, args.demo_episodes, args.demo_noise, args.seed + 17, buffer,
+                                                  args.demo_policy)
+            err = np.mean([r['error_m'] for r in d_res])
+            succ = np.mean([r['success'] for r in d_res])
+            log.info('demonstrations: %d landings, %d transitions, error %.3f m, success %.2f',
+                     len(d_res), len(d_obs), err, succ)
+            buffer.save(run_dir / 'demos.npz')
         np.savez(run_dir / 'demos_bc.npz', obs=d_obs, act=d_act)
         demos = (d_obs, d_act) if args.bc_alpha > 0 else None
         if args.bc_steps > 0:
