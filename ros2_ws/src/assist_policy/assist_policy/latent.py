@@ -49,13 +49,17 @@ def make_latent_fn(model_path: str | Path | None = None, depth_noise: bool = Tru
         raise ValueError(str(exc)) from exc
     rng = np.random.default_rng(seed)
     dim = int(encoder.latent_dim)
-    last = {'mu': np.zeros(dim)}
+    last = {'mu': np.zeros(dim), 'rejected': 0}
 
     def encode(rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
         d = apply_depth_noise(depth, rng, rgb=rgb) if depth_noise else depth
         try:
             last['mu'] = np.asarray(encoder.encode(rgb, d).mu, dtype=float)
         except BadFrame as exc:
-            log.warning('encoder rejected a frame (%s); repeating the previous latent', exc)
+            # expected on the pad: the camera is inside the depth sensor's minimum range
+            last['rejected'] += 1
+            level = logging.WARNING if last['rejected'] == 1 else logging.DEBUG
+            log.log(level, 'encoder rejected a frame (%s); repeating the previous latent (%d so far; '
+                    'further rejections are logged at debug level)', exc, last['rejected'])
         return last['mu'].copy()
     return encode, dim
