@@ -58,7 +58,7 @@ def make_latent_fn(model_path: str | Path | None = None, depth_noise: bool = Tru
         except BadFrame as exc:
             # expected on the pad: the camera is inside the depth sensor's minimum range
             last['rejected'] += 1
-            level = logging.WARNING if last['rejected'] == 1 else logging.DEBUG
+            level = logging.INFO if last["rejected"] == 1 else logging.DEBUG
             log.log(level, 'encoder rejected a frame (%s); repeating the previous latent (%d so far; '
                     'further rejections are logged at debug level)', exc, last['rejected'])
         return last['mu'].copy()
