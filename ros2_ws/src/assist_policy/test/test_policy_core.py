@@ -108,3 +108,17 @@ def test_oracle_needs_goal_and_mode_mismatch_is_an_error(tmp_path):
     assert core.step(1.0).agent is None
     core.set_goal([5, 0, 1])
     np.testing.assert_allclose(core.step(1.0).agent, [0, 0.9, 0], atol=1e-6)
+
+
+def test_end_to_end_core_needs_fresh_images(tmp_path):
+    from assist_policy.td3 import TD3, TD3Config
+    agent = TD3(vector_dim('end_to_end'), 3, TD3Config(hidden=(8,), image_channels=(4, 4, 4, 4)), image=True)
+    meta = {**agent.meta, 'condition': 'end_to_end', 'latent_dim': 0, 'max_speed': [1.0, 1.0, 0.6]}
+    save_actor(agent.actor, meta, tmp_path / 'e2e.pt')
+    core = PolicyCore(tmp_path / 'e2e.pt', PolicyCoreConfig(mode='end_to_end'))
+    feed(core, 1.0, latent=False)
+    assert core.step(1.0).agent is None                      # no image yet: relinquish
+    core.set_image(1.0, np.zeros((64, 64, 3), np.uint8), np.full((64, 64), 2.0, np.float32))
+    out = core.step(1.05)
+    assert out.agent is not None and np.all(np.isfinite(out.velocity))
+    assert core.step(2.0).agent is None                      # image stale after 0.5 s
