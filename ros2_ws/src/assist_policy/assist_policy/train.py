@@ -244,7 +244,7 @@ def train(args: TrainArgs) -> Path:
     if args.bc_alpha > 0 and args.resume and (run_dir / 'demos_bc.npz').exists():
         with np.load(run_dir / 'demos_bc.npz', allow_pickle=False) as data:
             demos = (data['obs'], data['act'])
-    for path in args.preload:
+    for path in () if args.resume else args.preload:   # on resume replay.npz already holds them
         log.info('preloaded %d transitions from %s', buffer.load(path), path)
     if not args.resume and (args.demo_episodes > 0 or args.demo_bc_file):
         if args.demo_bc_file:
