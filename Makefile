@@ -30,7 +30,7 @@ $(STAMP): requirements.txt $(PKG_INPUTS)
 	@touch $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m assist_sim.demo
+	$(PY) -m assist_policy.demo
 
 test: $(STAMP)
 	$(PY) -m pytest
