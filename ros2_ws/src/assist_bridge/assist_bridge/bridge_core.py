@@ -32,6 +32,8 @@ import numpy as np
 os.environ['MAVLINK20'] = '1'  # MAVLink 2 framing; must be set before mavutil is imported
 from pymavlink import mavutil  # noqa: E402
 
+from assist_sim.mavlink_io import next_message  # noqa: E402
+
 from . import frames  # noqa: E402
 
 _LOG = logging.getLogger(__name__)
@@ -238,23 +240,11 @@ class MavlinkBridge:
 
     # ------------------------------------------------------------------ receiving
     def _next_message(self):
-        """Next message or None; on UDP a truncated frame left from a datagram is dropped."""
-        if not isinstance(self.conn, mavutil.mavudp):
-            return self.conn.recv_msg()
-        mav = self.conn.mav
-        while True:
-            msg = mav.parse_char(b'')
-            if msg is not None:
-                return msg
-            if mav.buf_len() > 0:
-                mav.buf, mav.buf_index, mav.expected_length = bytearray(), 0, mavlink.HEADER_LEN_V1 + 2
-                self.counters['rx_truncated'] += 1
-            data = self.conn.recv()
-            if not data:
-                return None
-            msg = mav.parse_char(data)
-            if msg is not None:
-                return msg
+        """Next message or None (UDP: a datagram's truncated tail is dropped and counted)."""
+        return next_message(self.conn, self._count_truncated)
+
+    def _count_truncated(self) -> None:
+        self.counters['rx_truncated'] += 1
 
     def poll(self) -> int:
         """Handle every pending incoming message (non-blocking); returns how many were handled."""

@@ -30,6 +30,9 @@ import numpy as np
 os.environ['MAVLINK20'] = '1'  # MAVLink 2 framing; must be set before mavutil is imported
 from pymavlink import mavutil  # noqa: E402
 
+from .core.world import quat_to_matrix, yaw_rotation  # noqa: E402
+from .mavlink_io import next_message  # noqa: E402
+
 _LOG = logging.getLogger(__name__)
 mavlink = mavutil.mavlink
 
@@ -84,22 +87,6 @@ EARTH_RADIUS_M = 6378137.0
 def _wrap_pi(a: float) -> float:
     """Wrap an angle to [-pi, pi)."""
     return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
-def _rot_z(yaw: float) -> np.ndarray:
-    """Rotation about +z."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def _quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Quaternion (x, y, z, w) -> rotation matrix."""
-    x, y, z, w = (float(c) for c in q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
 
 
 @dataclass
@@ -211,7 +198,7 @@ class MavlinkVehicle:
         state = self.world.state
         cmd_enu = self._control(now, dt, state)
         self.world.set_yaw_target(_wrap_pi(math.pi / 2.0 - self._yaw_target_ned))
-        cmd_flu = _rot_z(float(state.yaw)).T @ cmd_enu
+        cmd_flu = yaw_rotation(float(state.yaw)).T @ cmd_enu
         self.world.step(cmd_flu, dt)
         self._after_step(self._clock())
         self._send_telemetry(self._clock())
@@ -257,27 +244,8 @@ class MavlinkVehicle:
 
     # ------------------------------------------------------------------ incoming
     def _next_message(self):
-        """Next parsed message or None; on UDP a datagram's leftover partial frame is dropped.
-
-        MAVLink over UDP carries whole frames per datagram, so bytes left after a datagram are a
-        truncated frame; keeping them (as a serial parser must) would swallow the next good frame.
-        """
-        if not isinstance(self._conn, mavutil.mavudp):
-            return self._conn.recv_msg()
-        mav = self._conn.mav
-        while True:
-            msg = mav.parse_char(b'')
-            if msg is not None:
-                return msg
-            if mav.buf_len() > 0:
-                mav.buf, mav.buf_index, mav.expected_length = bytearray(), 0, mavlink.HEADER_LEN_V1 + 2
-                self._count('rx_truncated')
-            data = self._conn.recv()
-            if not data:
-                return None
-            msg = mav.parse_char(data)
-            if msg is not None:
-                return msg
+        """Next parsed message or None (UDP: a datagram's truncated tail is dropped and counted)."""
+        return next_message(self._conn, lambda: self._count('rx_truncated'))
 
     def _receive(self) -> None:
         for _ in range(self.cfg.max_messages_per_step):
@@ -481,7 +449,7 @@ class MavlinkVehicle:
             return
         heading = self._heading_ned(self.world.state)
         if int(msg.coordinate_frame) in BODY_FRAMES:   # ArduCopter's rotate_body_frame_to_NE
-            vel = _rot_z(heading) @ vel
+            vel = yaw_rotation(heading) @ vel
         if not (mask & YAW_IGNORE) and math.isfinite(msg.yaw):
             relative = int(msg.coordinate_frame) in BODY_FRAMES
             self._yaw_target_ned = _wrap_pi(float(msg.yaw) + (heading if relative else 0.0))
@@ -610,7 +578,7 @@ class MavlinkVehicle:
             mav.sys_status_send(sensors, sensors, health, 200, int(self.cfg.battery_voltage_v * 1000),
                                 -1, -1, 0, 0, 0, 0, 0, 0)
         elif mid == mavlink.MAVLINK_MSG_ID_ATTITUDE:
-            r = _ENU_NED @ _quat_to_matrix(st.quaternion) @ _FLU_FRD
+            r = _ENU_NED @ quat_to_matrix(st.quaternion) @ _FLU_FRD
             roll = math.atan2(r[2, 1], r[2, 2])
             pitch = -math.asin(max(-1.0, min(1.0, r[2, 0])))
             yaw = math.atan2(r[1, 0], r[0, 0])

@@ -18,7 +18,7 @@ from std_srvs.srv import Trigger
 
 from .core.config import WorldConfig
 from .core.runner import RunnerConfig, SimRunner, StepOutput
-from .core.world import LandingWorld
+from .core.world import LandingWorld, quat_to_matrix
 from .ros_common import (LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param,
                          StartupError, declare_parameters, run_node, twist_to_array)
 
@@ -203,7 +203,7 @@ class SimNode(Node):
         pp.position.x, pp.position.y, pp.position.z = (float(x) for x in st.position)
         q = st.quaternion
         pp.orientation.x, pp.orientation.y, pp.orientation.z, pp.orientation.w = (float(x) for x in q)
-        rot = _quat_to_matrix(q)
+        rot = quat_to_matrix(q)
         v_body = rot.T @ st.velocity                    # REP-105: twist in child_frame_id
         tw = msg.twist.twist
         tw.linear.x, tw.linear.y, tw.linear.z = (float(x) for x in v_body)
@@ -252,14 +252,6 @@ class SimNode(Node):
         if self.vehicle is not None:
             self.vehicle.close()
         self.world.close()
-
-
-def _quat_to_matrix(q) -> np.ndarray:
-    x, y, z, w = (float(v) for v in q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
 def main(args=None):

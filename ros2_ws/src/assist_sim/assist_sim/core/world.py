@@ -84,6 +84,15 @@ def yaw_rotation(yaw: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def quat_to_matrix(q) -> np.ndarray:
+    """Quaternion (x, y, z, w) -> 3x3 rotation matrix."""
+    x, y, z, w = (float(v) for v in q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
 def turbulence_sigma(height_m: float, cfg) -> float:
     """Std of the target-velocity noise at a leg clearance `height_m` above the surface below."""
     h = max(0.0, float(height_m))
@@ -584,4 +593,4 @@ class LandingWorld:
 
 
 __all__ = ['LandingWorld', 'VehicleState', 'CameraFrame', 'LandingResult', 'PadSpec', 'SceneSpec',
-           'camera_intrinsics', 'linearize_depth', 'turbulence_sigma', 'yaw_rotation', 'R_BODY_FROM_OPTICAL']
+           'camera_intrinsics', 'linearize_depth', 'turbulence_sigma', 'quat_to_matrix', 'yaw_rotation', 'R_BODY_FROM_OPTICAL']
