@@ -42,6 +42,11 @@ def _model(tmp_path):
     return _helpers.constant_actor(tmp_path / 'zero.pt', [0.0, 0.0, 0.0], condition='oracle', latent_dim=0)
 
 
+def _real(landings):
+    """First landing that ended on something (not a timeout), or None."""
+    return next((r for r in list(landings) if r['outcome'] in ('success', 'wrong_pad', 'edge', 'crash')), None)
+
+
 def test_oracle_assisted_graph_completes_landings(start_node, wait, landings, tmp_path):
     nodes = [
         start_node('sim_node', {'seed': 5, 'real_time_factor': 3.0, 'camera_rate_hz': 0.0,
@@ -50,12 +55,14 @@ def test_oracle_assisted_graph_completes_landings(start_node, wait, landings, tm
         start_node('policy_node', {'mode': 'oracle', 'model_path': str(_model(tmp_path)),
                                    'use_sim_time': True}),
     ]
-    ok = wait(lambda: len(landings) >= 1 or any(n.proc.poll() is not None for n in nodes), 150)
+    # The first episode can time out while the slower nodes are still importing torch on a cold,
+    # loaded machine (the sim is already running at 3x); wait for a real landing after that.
+    ok = wait(lambda: _real(landings) is not None or any(n.proc.poll() is not None for n in nodes), 240)
     logs = '\n'.join(n.log()[-2000:] for n in nodes)
     assert ok and landings, logs
-    first = landings[0]
+    first = _real(landings)
+    assert first is not None, (landings, logs)                                  # a real landing, not a timeout
     assert first['assisted'] is True, first
-    assert first['outcome'] in ('success', 'wrong_pad', 'edge', 'crash'), first   # a real landing, not a timeout
     assert 0.0 <= first['error_m'] < 30.0
     assert all(n.proc.poll() is None for n in nodes), logs
 
@@ -73,10 +80,10 @@ def test_latent_assisted_graph_with_encoder_completes_landings(start_node, wait,
         start_node('sim_pilot_node', {'alpha': 0.5, 'beta': 1.0, 'seed': 2, 'use_sim_time': True}),
         start_node('policy_node', {'mode': 'latent', 'use_sim_time': True}),
     ]
-    ok = wait(lambda: len(landings) >= 1 or any(n.proc.poll() is not None for n in nodes), 200)
+    ok = wait(lambda: _real(landings) is not None or any(n.proc.poll() is not None for n in nodes), 300)
     logs = '\n'.join(n.log()[-2000:] for n in nodes)
     assert ok and landings, logs
-    first = landings[0]
+    first = _real(landings)
+    assert first is not None, (landings, logs)
     assert first['assisted'] is True, first
-    assert first['outcome'] in ('success', 'wrong_pad', 'edge', 'crash'), first
     assert all(n.proc.poll() is None for n in nodes), logs

@@ -8,6 +8,7 @@ import sys
 import threading
 
 import numpy as np
+import torch
 from geometry_msgs.msg import PointStamped, TwistStamped
 from nav_msgs.msg import Odometry
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
@@ -34,6 +35,7 @@ PARAMS = {
     'max_vertical_speed': Param(1.0, 'Vertical speed limit of the published /cmd_vel (m/s).'),
     'max_input_speed': Param(5.0, 'Pilot commands faster than this are rejected as out of range (m/s).'),
     'frame_id': Param('base_link', 'frame_id of the published commands.'),
+    'torch_threads': Param(1, 'Intra-op CPU threads for the actor (1 is fastest for this small network).'),
 }
 
 
@@ -61,6 +63,11 @@ class PolicyNode(Node):
             raise StartupError(f"policy_node: mode must be latent, oracle or end_to_end, got '{mode}'")
         if not self.p['rate_hz'] > 0:
             raise StartupError('policy_node: rate_hz must be > 0')
+        if int(self.p['torch_threads']) < 1:
+            raise StartupError('policy_node: torch_threads must be >= 1')
+        # a 256x256 MLP gains nothing from intra-op threads; spinning OpenMP workers would starve
+        # the sim and the other nodes on a small machine
+        torch.set_num_threads(int(self.p['torch_threads']))
         path = self.p['model_path'] or str(default_model_path(mode))
         cfg = PolicyCoreConfig(mode=mode, blend_threshold=float(self.p['blend_threshold']),
                                pilot_timeout_s=float(self.p['pilot_timeout_s']),

@@ -13,7 +13,8 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import TwistStamped
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy._rclpy_pybind11 import RCLError
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
@@ -126,11 +127,15 @@ class Diagnostics:
 
 
 def run_node(factory: Callable[[], Node], args: list[str] | None = None,
-             num_threads: int = 2) -> int:
-    """Init rclpy, build the node, spin it on a multi-threaded executor, always clean up.
+             num_threads: int = 1) -> int:
+    """Init rclpy, build the node, spin it, always clean up; returns the process exit code.
 
-    A StartupError raised by `factory` (nodes wrap bad parameters, missing models and unreachable
-    endpoints in it) is reported as one clear line on stderr and gives exit code 1, no traceback.
+    num_threads 1 (default) spins a SingleThreadedExecutor: nodes keep heavy work on their own
+    threads, and rclpy 7.1's MultiThreadedExecutor burns a core on its bookkeeping at ~100
+    callbacks/s. Nodes whose callbacks block (the bridge's services wait for COMMAND_ACK) ask
+    for more threads. A StartupError raised by `factory` (nodes wrap bad parameters, missing
+    models and unreachable endpoints in it) is reported as one clear line on stderr and gives
+    exit code 1, no traceback.
     """
     logging.basicConfig(level=logging.INFO, format='[%(levelname)s] [%(name)s]: %(message)s')
     rclpy.init(args=args)
@@ -138,7 +143,8 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
     code = 0
     try:
         node = factory()
-        executor = MultiThreadedExecutor(num_threads=num_threads)
+        executor = (SingleThreadedExecutor() if num_threads <= 1
+                    else MultiThreadedExecutor(num_threads=num_threads))
         executor.add_node(node)
         executor.spin()
     except StartupError as exc:
@@ -146,6 +152,9 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
         code = 1
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RCLError:
+        if rclpy.ok():      # a real failure, not the context going away under SIGINT
+            raise
     finally:
         if node is not None:
             close = getattr(node, 'close', None)
