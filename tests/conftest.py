@@ -74,13 +74,14 @@ def ros(domain_id):
     """rclpy context on the private domain with one probe node spinning in the background."""
     import rclpy
     from rclpy.context import Context
-    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
 
     ctx = Context()
     rclpy.init(context=ctx, domain_id=domain_id)
     node = Node('test_probe', context=ctx)
-    executor = MultiThreadedExecutor(num_threads=2, context=ctx)
+    # single-threaded: rclpy 7.1's MultiThreadedExecutor burns CPU (and the GIL) on bookkeeping
+    executor = SingleThreadedExecutor(context=ctx)
     executor.add_node(node)
     thread = threading.Thread(target=executor.spin, daemon=True)
     thread.start()
