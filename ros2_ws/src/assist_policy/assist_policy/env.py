@@ -187,3 +187,20 @@ class LandingAssistEnv(gym.Env):
     def close(self) -> None:
         """Release the pybullet client."""
         self.world.close()
+
+
+def run_episode(env: LandingAssistEnv, policy, seed: int, options: dict | None = None) -> dict:
+    """Roll out one landing with `policy(obs) -> raw action` (None = unassisted); returns a summary."""
+    obs, info = env.reset(seed=seed, options=options)
+    steps, active = 0, 0
+    while True:
+        act = np.zeros(3) if policy is None else policy(obs)
+        obs, _, term, trunc, step_info = env.step(act)
+        steps += 1
+        active += int(step_info['active'])
+        if term or trunc:
+            break
+    res = dict(step_info['result'])
+    res.update(beta=info['beta'], alpha=info['alpha'], scene_seed=info['scene_seed'], steps=steps,
+               active_fraction=active / steps, episode_return=env.episode_return)
+    return res

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from .cli import add_dataclass_args, dataclass_from_args
-from .env import EnvConfig, LandingAssistEnv
+from .env import EnvConfig, LandingAssistEnv, run_episode
 from .latent import make_latent_fn
 from .policy_core import default_model_path
 from .scripted import ScriptedNearestPad, ScriptedOracle
@@ -100,21 +100,12 @@ def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: fl
 
 def run_landing(env: LandingAssistEnv, policy, seed: int, beta: float) -> dict:
     """One landing with the given seed and pilot skill; the result row."""
-    obs, info = env.reset(seed=seed, options={'beta': beta})
-    steps = active = 0
-    while True:
-        act = np.zeros(3) if policy is None else policy(obs)
-        obs, _, term, trunc, sinfo = env.step(act)
-        steps += 1
-        active += int(sinfo['active'])
-        if term or trunc:
-            break
-    res = sinfo['result']
-    return {'beta': beta, 'seed': seed, 'scene_seed': info['scene_seed'], 'goal_index': res['goal_index'],
+    res = run_episode(env, policy, seed, {'beta': beta})
+    return {'beta': beta, 'seed': seed, 'scene_seed': res['scene_seed'], 'goal_index': res['goal_index'],
             'landed_index': res['landed_index'], 'nearest_index': res['nearest_index'],
             'error_m': round(float(res['error_m']), 4), 'nearest_error_m': round(float(res['nearest_error_m']), 4),
             'outcome': res['outcome'], 'success': bool(res['success']), 'crash': bool(res['crash']),
-            'duration_s': round(float(res['duration_s']), 2), 'active_fraction': round(active / steps, 3)}
+            'duration_s': round(float(res['duration_s']), 2), 'active_fraction': round(res['active_fraction'], 3)}
 
 
 def summarize(rows: list[dict]) -> dict:

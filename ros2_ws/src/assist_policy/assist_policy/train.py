@@ -25,7 +25,7 @@ import torch
 from tqdm import tqdm
 
 from .cli import add_dataclass_args, dataclass_from_args
-from .env import EnvConfig, LandingAssistEnv, RewardConfig
+from .env import EnvConfig, LandingAssistEnv, RewardConfig, run_episode
 from .latent import make_latent_fn
 from .scripted import ScriptedNearestPad, ScriptedOracle
 from .td3 import TD3, OUNoise, ReplayBuffer, TD3Config, save_actor
@@ -148,23 +148,6 @@ def make_env(env_cfg: EnvConfig) -> LandingAssistEnv:
         env_cfg.latent_dim = dim
         return LandingAssistEnv(env_cfg, latent_fn=latent_fn)
     return LandingAssistEnv(env_cfg)
-
-
-def run_episode(env: LandingAssistEnv, policy, seed: int, options: dict | None = None) -> dict:
-    """Roll out one landing with `policy(obs) -> raw action` (None = unassisted); returns a summary."""
-    obs, info = env.reset(seed=seed, options=options)
-    steps, active = 0, 0
-    while True:
-        act = np.zeros(3) if policy is None else policy(obs)
-        obs, _, term, trunc, step_info = env.step(act)
-        steps += 1
-        active += int(step_info['active'])
-        if term or trunc:
-            break
-    res = dict(step_info['result'])
-    res.update(beta=info['beta'], alpha=info['alpha'], scene_seed=info['scene_seed'], steps=steps,
-               active_fraction=active / steps, episode_return=env.episode_return)
-    return res
 
 
 def evaluate_agent(env: LandingAssistEnv, agent: TD3, per_beta: int, seed: int = 12345) -> dict:
