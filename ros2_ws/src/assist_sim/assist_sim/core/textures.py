@@ -1,7 +1,6 @@
 """Deterministic procedural materials (the paper used 52 textures on pads, walls and floor)."""
 from __future__ import annotations
 
-import hashlib
 import os
 from pathlib import Path
 
@@ -101,11 +100,3 @@ def texture_path(index: int, size: int = 64) -> Path:
         cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
         os.replace(tmp, path)
     return path
-
-
-def texture_digest(n: int = 52, size: int = 64) -> str:
-    """SHA-256 over all generated materials (used to check determinism)."""
-    h = hashlib.sha256()
-    for i in range(n):
-        h.update(make_texture(i, size).tobytes())
-    return h.hexdigest()

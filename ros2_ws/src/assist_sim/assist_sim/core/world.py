@@ -576,13 +576,6 @@ class LandingWorld:
         return self._K.copy()
 
     # ------------------------------------------------------------------ misc
-    def pad_under(self, xy) -> int | None:
-        """Index of the pad whose top surface covers world point xy, if any."""
-        for i, pad in enumerate(self.scene.pads):
-            if pad.contains_xy(np.asarray(xy)):
-                return i
-        return None
-
     def close(self) -> None:
         """Disconnect the pybullet client."""
         if self._bc is not None:
