@@ -4,8 +4,12 @@ the setpoint rate it holds with no command coming in.
 The bridge runs as its own process (console script) on a private ROS domain; this process is
 both the ROS publisher of /cmd_vel and a minimal ArduCopter endpoint on UDP loopback (HEARTBEAT in
 GUIDED and armed, ATTITUDE) that timestamps every setpoint on arrival. Each command carries a
-unique forward speed, so every setpoint is matched to the command that caused it. Both ends read
-the same monotonic clock.
+unique forward speed, so every setpoint is matched to the command that caused it.
+
+Arrival times are the kernel's receive timestamps on the autopilot's socket (SO_TIMESTAMPNS), so the
+figure is publish -> datagram at the vehicle, and does not include how long this process's own
+receive thread takes to wake up (a real autopilot is another machine). Send and arrival times are
+both CLOCK_REALTIME.
 """
 from __future__ import annotations
 
@@ -14,6 +18,7 @@ import os
 import random
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import threading
@@ -27,9 +32,11 @@ from pymavlink import mavutil  # noqa: E402
 
 mavlink = mavutil.mavlink
 N_COMMANDS = 400
+N_WARMUP = 50            # commands sent and discarded first: DDS discovery/matching and first-use allocations
 COMMAND_RATE_HZ = 50.0
 HOLD_WINDOW_S = 4.0
 SETPOINT_RATE_HZ = 10.0
+SO_TIMESTAMPNS = getattr(socket, 'SO_TIMESTAMPNS', 35)   # Linux value; Python < 3.12 has no constant
 
 
 class FakeAutopilot:
@@ -40,6 +47,7 @@ class FakeAutopilot:
                                                dialect='ardupilotmega')
         self.lock = threading.Lock()
         self.setpoints: list[tuple[float, float]] = []     # (arrival time, vy)
+        self.error: Exception | None = None                 # what stopped the receive thread
         self._run = True
         self._threads = [threading.Thread(target=self._rx, daemon=True), threading.Thread(target=self._tx, daemon=True)]
         for t in self._threads:
@@ -57,19 +65,33 @@ class FakeAutopilot:
             time.sleep(0.1)
 
     def _rx(self) -> None:
+        try:
+            self._receive()
+        except Exception as exc:  # noqa: BLE001 - handed to the measuring thread by snapshot()
+            self.error = exc
+
+    def _receive(self) -> None:
+        sock = self.conn.port
+        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+        sock.settimeout(0.05)
         while self._run:
-            if not self.conn.select(0.05):
+            try:
+                data, anc, _flags, _addr = sock.recvmsg(4096, socket.CMSG_SPACE(16))
+            except (socket.timeout, BlockingIOError):
                 continue
-            while True:
-                m = self.conn.recv_msg()
-                if m is None:
-                    break
+            t = time.time()
+            for level, kind, raw in anc:
+                if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(raw) >= 16:
+                    sec, nsec = struct.unpack('qq', raw[:16])
+                    t = sec + nsec * 1e-9
+            for m in self.conn.mav.parse_buffer(data) or ():
                 if m.get_type() == 'SET_POSITION_TARGET_LOCAL_NED':
-                    t = time.monotonic()
                     with self.lock:
                         self.setpoints.append((t, float(m.vy)))
 
     def snapshot(self) -> list[tuple[float, float]]:
+        if self.error is not None:
+            raise RuntimeError(f'fake autopilot receive thread failed: {self.error!r}') from self.error
         with self.lock:
             return list(self.setpoints)
 
@@ -116,16 +138,17 @@ def run() -> list[dict]:
         if pub.get_subscription_count() == 0 or not ap.snapshot():
             raise RuntimeError('bridge did not come up (no subscriber or no setpoints)')
         time.sleep(1.0)
-        # 1) latency: unique forward speeds (FLU x = NED vy for a vehicle heading East)
+        # 1) latency: unique forward speeds (FLU x = NED vy for a vehicle heading East); the first
+        #    N_WARMUP commands warm the path up and are not timed
         sent: dict[int, float] = {}
         msg = TwistStamped()
         msg.header.frame_id = 'base_link'
         period = 1.0 / COMMAND_RATE_HZ
         t_next = time.monotonic()
-        for i in range(1, N_COMMANDS + 1):
+        for i in range(1, N_WARMUP + N_COMMANDS + 1):
             msg.twist.linear.x = i * 1e-3
             msg.header.stamp = node.get_clock().now().to_msg()
-            sent[i] = time.monotonic()
+            sent[i] = time.time()
             pub.publish(msg)
             t_next += period
             time.sleep(max(0.0, t_next - time.monotonic()))
@@ -133,14 +156,14 @@ def run() -> list[dict]:
         first_arrival: dict[int, float] = {}
         for t, vy in ap.snapshot():
             i = int(round(vy * 1e3))
-            if i in sent and abs(vy - i * 1e-3) < 1e-6 and t >= sent[i]:
+            if i > N_WARMUP and i in sent and abs(vy - i * 1e-3) < 1e-6 and t >= sent[i]:
                 first_arrival.setdefault(i, t)
         lat_ms = np.array([(first_arrival[i] - sent[i]) * 1e3 for i in sorted(first_arrival)])
         # 2) setpoint rate held with no command (zero velocity after the command timeout)
         time.sleep(1.0)
-        t0 = time.monotonic()
+        t0 = time.time()
         time.sleep(HOLD_WINDOW_S)
-        t1 = time.monotonic()
+        t1 = time.time()
         window = [t for t, _ in ap.snapshot() if t0 <= t <= t1]
         gaps_ms = np.diff(window) * 1e3 if len(window) > 1 else np.array([math.inf])
         rate = (len(window) - 1) / (window[-1] - window[0]) if len(window) > 1 else 0.0

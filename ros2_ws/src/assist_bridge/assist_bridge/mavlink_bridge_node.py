@@ -3,9 +3,15 @@
 A thin rclpy shell over assist_bridge.bridge_core.MavlinkBridge (see that module for the rules).
 Timeouts (command, link, ACK) run on the wall clock: the vehicle (real, SITL or the sim's
 stand-in) always flies in real time.
+
+Threads: the node spins a SingleThreadedExecutor (rclpy's MultiThreadedExecutor adds milliseconds of
+scheduling tail to every /cmd_vel), the core's receive thread owns the MAVLink link, and the
+services, which wait up to ack_timeout_s for the vehicle's COMMAND_ACK, are coroutines that await
+that wait on a one-thread worker pool, so /cmd_vel is never held up behind a service call.
 """
 from __future__ import annotations
 
+import concurrent.futures
 import logging
 import math
 import sys
@@ -13,8 +19,8 @@ import sys
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.node import Node
+from rclpy.task import Future
 from std_srvs.srv import Trigger
 
 from assist_sim.ros_common import (RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError,
@@ -73,13 +79,13 @@ class MavlinkBridgeNode(Node):
         except ConnectionError as exc:
             raise StartupError(f'mavlink_bridge_node: {exc}') from exc
         self.pub_odom = self.create_publisher(Odometry, '/odom', SENSOR_QOS)
-        self.create_subscription(TwistStamped, '/cmd_vel', self._on_cmd, RELIABLE_QOS,
-                                 callback_group=MutuallyExclusiveCallbackGroup())
-        services = ReentrantCallbackGroup()
-        self.create_service(Trigger, '/uav/arm', self._srv(self.bridge.arm), callback_group=services)
-        self.create_service(Trigger, '/uav/disarm', self._srv(self.bridge.disarm), callback_group=services)
-        self.create_service(Trigger, '/uav/takeoff', self._srv(self.bridge.takeoff), callback_group=services)
-        self.create_service(Trigger, '/uav/land', self._srv(self.bridge.land), callback_group=services)
+        self.create_subscription(TwistStamped, '/cmd_vel', self._on_cmd, RELIABLE_QOS)
+        # one worker: vehicle commands run one at a time, in the order they were asked for
+        self._workers = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix='uav-service')
+        self.create_service(Trigger, '/uav/arm', self._srv('arm', self.bridge.arm))
+        self.create_service(Trigger, '/uav/disarm', self._srv('disarm', self.bridge.disarm))
+        self.create_service(Trigger, '/uav/takeoff', self._srv('takeoff', self.bridge.takeoff))
+        self.create_service(Trigger, '/uav/land', self._srv('land', self.bridge.land))
         self.create_timer(1.0, self._update_diagnostics)
         self.bridge.start()
         self.get_logger().info(f"waiting for the vehicle heartbeat on '{self.cfg.connection}' "
@@ -138,9 +144,23 @@ class MavlinkBridgeNode(Node):
         self.diag.count('cmd_rejected')
         self.get_logger().warning(f'/cmd_vel rejected: {reason}', throttle_duration_sec=2.0)
 
-    def _srv(self, action):
-        def handler(request, response):
-            ok, message = action()
+    def _srv(self, name: str, action):
+        async def handler(request, response):
+            done = Future(executor=self.executor)
+            # a done callback makes set_result (from the worker) wake the executor to resume us
+            done.add_done_callback(lambda _f: None)
+
+            def work() -> None:
+                try:
+                    done.set_result(action())
+                except Exception as exc:  # noqa: BLE001 - handed to the awaiting service, logged there
+                    done.set_exception(exc)
+            self._workers.submit(work)
+            try:
+                ok, message = await done
+            except Exception as exc:  # noqa: BLE001 - the caller gets the error; the node keeps serving
+                self.get_logger().error(f'service {name} failed: {type(exc).__name__}: {exc}')
+                ok, message = False, f'{name} failed: {type(exc).__name__}: {exc}'
             response.success, response.message = bool(ok), message
             if ok:
                 self.get_logger().info(f'service: {message}')
@@ -165,13 +185,14 @@ class MavlinkBridgeNode(Node):
                                    throttle_duration_sec=10.0)
 
     def close(self) -> None:
-        """Stop the receive thread and close the link."""
+        """Stop the service worker and the receive thread, and close the link."""
+        self._workers.shutdown(wait=False, cancel_futures=True)
         self.bridge.close()
 
 
 def main(args=None):
     """Console entry point."""
-    sys.exit(run_node(lambda: MavlinkBridgeNode(), args, num_threads=4))
+    sys.exit(run_node(lambda: MavlinkBridgeNode(), args))
 
 
 if __name__ == '__main__':

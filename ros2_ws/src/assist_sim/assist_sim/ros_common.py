@@ -132,8 +132,9 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
 
     num_threads 1 (default) spins a SingleThreadedExecutor: nodes keep heavy work on their own
     threads, and rclpy 7.1's MultiThreadedExecutor burns a core on its bookkeeping at ~100
-    callbacks/s. Nodes whose callbacks block (the bridge's services wait for COMMAND_ACK) ask
-    for more threads. A StartupError raised by `factory` (nodes wrap bad parameters, missing
+    callbacks/s. A node whose callbacks would otherwise queue behind each other (sim_node's
+    /cmd_vel behind its GIL-heavy sim thread) asks for more threads; blocking waits belong in
+    coroutine callbacks (see mavlink_bridge_node's services). A StartupError raised by `factory` (nodes wrap bad parameters, missing
     models and unreachable endpoints in it) is reported as one clear line on stderr and gives
     exit code 1, no traceback.
     """
