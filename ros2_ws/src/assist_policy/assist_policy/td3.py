@@ -196,10 +196,16 @@ class ReplayBuffer:
             obs = data['obs']
             if obs.shape[1] != self.obs_dim:
                 raise ValueError(f'{path}: observation size {obs.shape[1]} != {self.obs_dim}')
-            n = obs.shape[0]
-            for k in range(n):
-                self.add(obs[k], data['act'][k], float(data['rew'][k, 0]), data['next_obs'][k],
-                         bool(data['done'][k, 0]))
+            arrays = (obs, data['act'], data['rew'], data['next_obs'], data['done'])  # each read once
+        n = obs.shape[0]
+        if n > self.capacity:             # only the newest `capacity` transitions fit
+            arrays = tuple(a[n - self.capacity:] for a in arrays)
+        k = arrays[0].shape[0]
+        idx = (self.ptr + np.arange(k)) % self.capacity
+        for dst, src in zip((self.obs, self.act, self.rew, self.next_obs, self.done), arrays):
+            dst[idx] = src
+        self.ptr = int((self.ptr + k) % self.capacity)
+        self.size = min(self.size + k, self.capacity)
         return n
 
 

@@ -46,6 +46,27 @@ def test_replay_buffer_save_load_preserves_order_after_wrap(tmp_path):
         ReplayBuffer(3, 3).load(tmp_path / 'r.npz')
 
 
+def test_replay_buffer_load_appends_and_wraps(tmp_path):
+    src = ReplayBuffer(2, 3, capacity=10)
+    for k in range(6):
+        src.add([k, -k], [k, 1, 2], float(k), [k + 1, 0], k == 5)
+    src.save(tmp_path / 'six.npz')
+    dst = ReplayBuffer(2, 3, capacity=8)
+    for k in range(4):
+        dst.add([100 + k, 0], [0, 0, 0], 100.0 + k, [0, 0], False)
+    assert dst.load(tmp_path / 'six.npz') == 6          # 4 + 6 > 8: the ring wraps
+    assert dst.size == 8 and dst.ptr == 2
+    # the ring now holds, in slot order: loaded 4, 5, then old 102, 103, then loaded 0..3
+    np.testing.assert_array_equal(dst.rew[:, 0], [4, 5, 102, 103, 0, 1, 2, 3])
+    np.testing.assert_array_equal(dst.obs[1], [5, -5])
+    np.testing.assert_array_equal(dst.act[0], [4, 1, 2])
+    assert dst.done[1, 0] == 1.0 and dst.done[0, 0] == 0.0
+    small = ReplayBuffer(2, 3, capacity=3)
+    assert small.load(tmp_path / 'six.npz') == 6          # only the newest 3 fit
+    np.testing.assert_array_equal(small.rew[:, 0], [3, 4, 5])
+    assert small.size == 3 and small.ptr == 0
+
+
 def test_actor_file_roundtrip_and_corrupt_file(tmp_path):
     agent = TD3(7, 3, TD3Config(hidden=(16,)), seed=1)
     save_actor(agent.actor, agent.meta, tmp_path / 'a.pt')
