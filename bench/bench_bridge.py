@@ -16,7 +16,6 @@ from __future__ import annotations
 import math
 import os
 import random
-import signal
 import socket
 import struct
 import subprocess
@@ -29,6 +28,8 @@ import numpy as np
 
 os.environ['MAVLINK20'] = '1'
 from pymavlink import mavutil  # noqa: E402
+
+from assist_sim.testing import free_udp_port, stop_process  # noqa: E402
 
 mavlink = mavutil.mavlink
 N_COMMANDS = 400
@@ -102,14 +103,6 @@ class FakeAutopilot:
         self.conn.close()
 
 
-def _free_udp_port() -> int:
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(('127.0.0.1', 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
-
-
 def run() -> list[dict]:
     """Measure the bridge; rows of name/value/unit/target."""
     import rclpy
@@ -120,7 +113,7 @@ def run() -> list[dict]:
     from assist_sim.ros_common import RELIABLE_QOS
 
     domain = random.Random(os.getpid() ^ time.monotonic_ns()).randint(200, 230)
-    port = _free_udp_port()
+    port = free_udp_port()
     exe = Path(sys.executable).parent / 'mavlink_bridge_node'
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
     proc = subprocess.Popen([str(exe), '--ros-args', '-p', f'connection:=udpin:127.0.0.1:{port}',
@@ -171,13 +164,7 @@ def run() -> list[dict]:
         node.destroy_node()
         rclpy.shutdown(context=ctx)
         ap.close()
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait(5)
+        stop_process(proc)
     if lat_ms.size == 0:
         raise RuntimeError('no setpoint matched a command')
     return [

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import os
 import random
-import signal
 import subprocess
 import sys
 import tempfile
@@ -12,6 +11,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from assist_sim.testing import stop_process
 
 BIN = Path(sys.executable).parent
 
@@ -109,12 +110,7 @@ def _graph_latency(samples: int = 200, period_s: float = 0.05) -> tuple[float, f
         ex.shutdown()
         node.destroy_node()
         rclpy.shutdown(context=ctx)
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait(5)
+        stop_process(proc)
         log.close()
     if not lat:
         raise RuntimeError('encoder_node produced no latents')

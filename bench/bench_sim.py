@@ -24,7 +24,7 @@ def run() -> list[dict]:
         t0, c0 = time.perf_counter(), time.process_time()
         t_sim0 = world.time
         while not world.done:
-            st = world.step(expert_command(world.state.position, world.goal_position))
+            world.step(expert_command(world.state.position, world.goal_position))
             physics_steps += cfg.physics_hz // cfg.control_hz
             r0, rc0 = time.perf_counter(), time.process_time()
             world.render()

@@ -1,5 +1,4 @@
 """End to end over UDP loopback: sim_node as the MAVLink vehicle + mavlink_bridge_node in a real graph."""
-import math
 import socket
 import threading
 import time
@@ -11,17 +10,10 @@ from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry
 from std_srvs.srv import Trigger
 
-from assist_sim.ros_common import RELIABLE_QOS, SENSOR_QOS
+from assist_sim.ros_common import RELIABLE_QOS, SENSOR_QOS, fill_twist
+from assist_sim.testing import free_udp_port
 
 pytestmark = pytest.mark.graph
-
-
-def free_udp_port() -> int:
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(('127.0.0.1', 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
 
 
 class BridgeProbe:
@@ -81,8 +73,7 @@ class BridgeProbe:
         msg = TwistStamped()
         msg.header.frame_id = 'base_link'
         msg.header.stamp = self.node.get_clock().now().to_msg()
-        msg.twist.linear.x, msg.twist.linear.y, msg.twist.linear.z = (float(x) for x in v)
-        self.cmd.publish(msg)
+        self.cmd.publish(fill_twist(msg, v))
 
     def close(self):
         for s in self.subs:

@@ -12,7 +12,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from assist_sim.ros_common import LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS
+from assist_sim.ros_common import LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, fill_twist
 
 pytestmark = pytest.mark.graph
 
@@ -50,8 +50,7 @@ class Probe:
         msg = TwistStamped()
         msg.header.frame_id = frame
         msg.header.stamp = self.node.get_clock().now().to_msg()
-        msg.twist.linear.x, msg.twist.linear.y, msg.twist.linear.z = (float(x) for x in v)
-        self.cmd.publish(msg)
+        self.cmd.publish(fill_twist(msg, v))
 
     def close(self):
         for s in self.subs:

@@ -15,16 +15,9 @@ from pymavlink import mavutil  # noqa: E402
 from assist_bridge.bridge_core import (TYPE_MASK_VELOCITY_YAW, BridgeConfig, MavlinkBridge,  # noqa: E402
                                        limit_velocity, velocity_setpoint)
 from assist_sim.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleConfig  # noqa: E402
+from assist_sim.testing import KinematicWorld, free_udp_port  # noqa: E402
 
 mavlink = mavutil.mavlink
-
-
-def free_udp_port() -> int:
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(('127.0.0.1', 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
 
 
 def wait_for(pred, timeout=10.0, what='condition'):
@@ -77,52 +70,11 @@ def test_unopenable_connection_is_a_clear_error():
 
 
 # ---------------------------------------------------------------------- against the stand-in
-class FakeWorld:
-    """Kinematic world: flies the commanded velocity, floor at z=0, yaw follows its target."""
-
-    def __init__(self):
-        self.episode, self.scene, self.armed = -1, None, False
-        self.pos, self.vel, self.yaw, self.yaw_target = np.zeros(3), np.zeros(3), 0.0, 0.0
-        self.lock = threading.Lock()
-
-    def reset(self, seed=None, *, airborne=True, **kw):
-        self.episode += 1
-        self.scene = 'fake'
-        self.pos, self.vel, self.yaw, self.armed = np.array([0.0, 0.0, 1.5 if airborne else 0.0]), np.zeros(3), 0.0, airborne
-        return self.state
-
-    def set_armed(self, a):
-        self.armed = bool(a)
-
-    def set_yaw_target(self, y):
-        self.yaw_target = float(y)
-
-    @property
-    def landed(self):
-        return self.pos[2] <= 1e-9 and np.linalg.norm(self.vel) < 0.2
-
-    @property
-    def state(self):
-        q = np.array([0.0, 0.0, math.sin(self.yaw / 2), math.cos(self.yaw / 2)])
-        return SimpleNamespace(position=self.pos.copy(), velocity=self.vel.copy(), quaternion=q,
-                               angular_velocity=np.zeros(3), yaw=self.yaw)
-
-    def step(self, cmd, dt=None):
-        c, s = math.cos(self.yaw), math.sin(self.yaw)
-        v = np.array([c * cmd[0] - s * cmd[1], s * cmd[0] + c * cmd[1], cmd[2]]) if self.armed else np.zeros(3)
-        self.vel = v
-        self.pos = self.pos + v * dt
-        if self.pos[2] < 0:
-            self.pos[2], self.vel[:] = 0.0, 0.0
-        err = (self.yaw_target - self.yaw + math.pi) % (2 * math.pi) - math.pi
-        self.yaw += max(-2 * dt, min(2 * dt, err))
-
-
 class VehicleThread:
     """The stand-in stepping in real time on its own thread."""
 
     def __init__(self, port, world=None, **cfg):
-        self.world = world or FakeWorld()
+        self.world = world or KinematicWorld()
         self.vehicle = MavlinkVehicle(self.world, f'udpout:127.0.0.1:{port}',
                                       MavlinkVehicleConfig(**{'ekf_ready_delay_s': 0.5, **cfg}))
         self._run = True

@@ -2,7 +2,6 @@
 import csv
 import json
 
-import numpy as np
 import torch
 
 from assist_policy.env import EnvConfig, LandingAssistEnv

@@ -2,7 +2,6 @@
 import math
 import os
 import socket
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -11,18 +10,10 @@ os.environ['MAVLINK20'] = '1'
 from pymavlink import mavutil  # noqa: E402
 
 from assist_sim.mavlink_vehicle import COPTER_MODES, MavlinkVehicle, MavlinkVehicleConfig  # noqa: E402
+from assist_sim.testing import KinematicWorld, free_udp_port  # noqa: E402
 
 mavlink = mavutil.mavlink
 DT = 0.05
-
-
-def free_udp_port() -> int:
-    """A UDP port nobody is bound to right now."""
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(('127.0.0.1', 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
 
 
 class Clock:
@@ -35,62 +26,6 @@ class Clock:
         return self.t
 
 
-class FakeWorld:
-    """Kinematic stand-in for LandingWorld: flies the commanded velocity exactly, floor at z=0."""
-
-    def __init__(self):
-        self.episode = -1
-        self.scene = None
-        self.armed = False
-        self.pos = np.zeros(3)
-        self.vel = np.zeros(3)
-        self.yaw = 0.0
-        self.yaw_target = 0.0
-        self.last_cmd_flu = np.zeros(3)
-
-    def reset(self, seed=None, *, airborne=True, **kwargs):
-        self.episode += 1
-        self.scene = 'fake'
-        self.pos = np.array([1.0, 2.0, 1.5 if airborne else 0.0])
-        self.vel = np.zeros(3)
-        self.yaw = 0.0
-        self.armed = airborne
-        return self.state
-
-    def set_armed(self, armed):
-        self.armed = bool(armed)
-
-    def set_yaw_target(self, yaw):
-        self.yaw_target = float(yaw)
-
-    @property
-    def landed(self):
-        return self.pos[2] <= 1e-9 and np.linalg.norm(self.vel) < 0.2
-
-    @property
-    def state(self):
-        q = np.array([0.0, 0.0, math.sin(self.yaw / 2), math.cos(self.yaw / 2)])
-        return SimpleNamespace(position=self.pos.copy(), velocity=self.vel.copy(), quaternion=q,
-                               angular_velocity=np.zeros(3), yaw=self.yaw, time=0.0)
-
-    def step(self, cmd_flu, dt=None):
-        cmd_flu = np.asarray(cmd_flu, dtype=float)
-        assert cmd_flu.shape == (3,) and np.all(np.isfinite(cmd_flu))
-        self.last_cmd_flu = cmd_flu
-        c, s = math.cos(self.yaw), math.sin(self.yaw)
-        v = np.array([c * cmd_flu[0] - s * cmd_flu[1], s * cmd_flu[0] + c * cmd_flu[1], cmd_flu[2]])
-        if not self.armed:
-            v = np.array([0.0, 0.0, -1.0 if self.pos[2] > 0 else 0.0])
-        self.vel = v
-        self.pos = self.pos + v * dt
-        if self.pos[2] < 0.0:
-            self.pos[2] = 0.0
-            self.vel[:] = 0.0
-        err = (self.yaw_target - self.yaw + math.pi) % (2 * math.pi) - math.pi
-        self.yaw += max(-2.0 * dt, min(2.0 * dt, err))
-        return self.state
-
-
 class Rig:
     """Vehicle + GCS endpoint + clock, with helpers to step and collect what the GCS hears."""
 
@@ -99,7 +34,7 @@ class Rig:
         self.gcs = mavutil.mavlink_connection(f'udpin:127.0.0.1:{self.port}', source_system=255,
                                               source_component=190, dialect='ardupilotmega')
         self.clock = Clock()
-        self.world = world or FakeWorld()
+        self.world = world or KinematicWorld(start_xy=(1.0, 2.0), fall_when_disarmed=True)
         config = MavlinkVehicleConfig(**{'ekf_ready_delay_s': 2.0, **cfg})
         self.vehicle = MavlinkVehicle(self.world, f'udpout:127.0.0.1:{self.port}', config, self.clock)
         self.heard: list = []
