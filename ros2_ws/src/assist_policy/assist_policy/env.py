@@ -141,7 +141,12 @@ class LandingAssistEnv(gym.Env):
         self._dist = self._goal_dist(st.position)
         self.episode_return = 0.0
         return self._obs(), {'alpha': alpha, 'beta': beta, 'scene_seed': scene_seed,
-                             'goal_index': self.world.goal_index}
+                             'goal_index': self.world.goal_index, 'aimed_index': self.aimed_index()}
+
+    def aimed_index(self) -> int:
+        """Pad nearest (horizontally) to the pilot's current goal estimate: the pad it is heading for."""
+        pads = self.world.pad_top_centers
+        return int(np.argmin(np.linalg.norm(pads[:, :2] - self.pilot.goal_estimate[:2], axis=1)))
 
     def step(self, action):
         """Blend, fly one control period, update the pilot, score (see module docstring)."""
@@ -202,5 +207,6 @@ def run_episode(env: LandingAssistEnv, policy, seed: int, options: dict | None =
             break
     res = dict(step_info['result'])
     res.update(beta=info['beta'], alpha=info['alpha'], scene_seed=info['scene_seed'], steps=steps,
+               aimed_index=info['aimed_index'],
                active_fraction=active / steps, episode_return=env.episode_return)
     return res

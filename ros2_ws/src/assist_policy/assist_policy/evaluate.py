@@ -10,7 +10,10 @@ the same scene, goal and pilot randomness in every condition (paired comparison;
 Writes <out>/landings.csv (one row per landing), <out>/summary.csv, <out>/error_vs_beta.png and
 prints the table: mean +- std error, median, specified-platform success (all legs on the goal),
 nearest-platform success (all legs on the platform nearest to where it stopped, whichever it is),
-crash rate and how often the landed platform was the goal.
+crash rate and how often the landed platform was the goal. `misaimed` is the share of landings whose
+pilot set off for another pad (its first goal estimate was nearest a pad other than the goal; the
+column aimed_index), and `misaimed_success` how many of those still ended on the goal: a
+goal-agnostic assistant can only get these right by reading the pilot's corrections.
 """
 from __future__ import annotations
 
@@ -103,6 +106,7 @@ def run_landing(env: LandingAssistEnv, policy, seed: int, beta: float) -> dict:
     res = run_episode(env, policy, seed, {'beta': beta})
     return {'beta': beta, 'seed': seed, 'scene_seed': res['scene_seed'], 'goal_index': res['goal_index'],
             'landed_index': res['landed_index'], 'nearest_index': res['nearest_index'],
+            'aimed_index': res['aimed_index'],
             'error_m': round(float(res['error_m']), 4), 'nearest_error_m': round(float(res['nearest_error_m']), 4),
             'outcome': res['outcome'], 'success': bool(res['success']), 'crash': bool(res['crash']),
             'duration_s': round(float(res['duration_s']), 2), 'active_fraction': round(res['active_fraction'], 3)}
@@ -112,6 +116,9 @@ def summarize(rows: list[dict]) -> dict:
     """Table I statistics of a set of landing rows."""
     err = np.array([r['error_m'] for r in rows], dtype=float)
     landed_clean = [r['outcome'] in ('success', 'wrong_pad') for r in rows]
+    # the pilot's first goal estimate was nearest another pad than its goal (it set off for the wrong one)
+    misaimed = [r.get('aimed_index') not in (None, '') and int(r['aimed_index']) != int(r['goal_index'])
+                for r in rows]
     return {'n': len(rows), 'error_mean': float(err.mean()), 'error_std': float(err.std()),
             'error_median': float(np.median(err)),
             'specified_success': float(np.mean([r['success'] for r in rows])),
@@ -120,19 +127,23 @@ def summarize(rows: list[dict]) -> dict:
             'crash_rate': float(np.mean([r['crash'] for r in rows])),
             'landed_on_goal': float(np.mean([r['landed_index'] is not None and int(r['landed_index']) ==
                                              int(r['goal_index']) for r in rows])),
-            'active_fraction': float(np.mean([r['active_fraction'] for r in rows]))}
+            'active_fraction': float(np.mean([r['active_fraction'] for r in rows])),
+            'misaimed': float(np.mean(misaimed)),
+            'misaimed_success': (float(np.mean([r['success'] for r, m in zip(rows, misaimed) if m]))
+                                 if any(misaimed) else float('nan'))}
 
 
 def format_table(summary: dict[str, dict]) -> str:
     """Fixed-width text table of per-condition summaries."""
     head = (f'{"condition":<20} {"n":>4} {"error m (mean+-std)":>20} {"median":>7} {"spec.succ":>9} '
-            f'{"near.succ":>9} {"crash":>6} {"on goal":>7} {"assist%":>7}  paper')
+            f'{"near.succ":>9} {"crash":>6} {"on goal":>7} {"assist%":>7} {"misaim":>6} {"->goal":>6}  paper')
     lines = [head, '-' * len(head)]
     for cond, s in summary.items():
         lines.append(f'{cond:<20} {s["n"]:>4} {s["error_mean"]:>11.3f} +- {s["error_std"]:<5.3f} '
                      f'{s["error_median"]:>7.3f} {100 * s["specified_success"]:>8.1f}% '
                      f'{100 * s["nearest_success"]:>8.1f}% {100 * s["crash_rate"]:>5.1f}% '
-                     f'{100 * s["landed_on_goal"]:>6.1f}% {100 * s["active_fraction"]:>6.1f}%  '
+                     f'{100 * s["landed_on_goal"]:>6.1f}% {100 * s["active_fraction"]:>6.1f}% '
+                     f'{100 * s["misaimed"]:>5.1f}% {100 * s["misaimed_success"]:>5.1f}%  '
                      f'{PAPER.get(cond, "")}')
     return '\n'.join(lines)
 
@@ -165,7 +176,7 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
     out.mkdir(parents=True, exist_ok=True)
     rows_by_cond: dict[str, list[dict]] = {}
     fields = ['condition', 'beta', 'seed', 'scene_seed', 'goal_index', 'landed_index', 'nearest_index',
-              'error_m', 'nearest_error_m', 'outcome', 'success', 'crash', 'duration_s', 'active_fraction']
+              'aimed_index', 'error_m', 'nearest_error_m', 'outcome', 'success', 'crash', 'duration_s', 'active_fraction']
     with open(out / 'landings.csv', 'w', newline='', encoding='utf-8') as fh:
         w = csv.DictWriter(fh, fieldnames=fields)
         w.writeheader()
@@ -194,7 +205,7 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
     with open(out / 'summary.csv', 'w', newline='', encoding='utf-8') as fh:
         w = csv.writer(fh)
         keys = ['n', 'error_mean', 'error_std', 'error_median', 'specified_success', 'nearest_success',
-                'crash_rate', 'landed_on_goal', 'active_fraction']
+                'crash_rate', 'landed_on_goal', 'active_fraction', 'misaimed', 'misaimed_success']
         w.writerow(['condition'] + keys)
         for c, s in summary.items():
             w.writerow([c] + [round(s[k], 4) for k in keys])

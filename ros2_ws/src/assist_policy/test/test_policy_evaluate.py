@@ -21,15 +21,17 @@ def test_tiny_evaluation_writes_everything(tmp_path):
     assert (tmp_path / 'error_vs_beta.png').stat().st_size > 1000
     assert summary['scripted_oracle']['error_mean'] < summary['unassisted']['error_mean']
     assert 'unassisted' in format_table(summary)
+    # aimed_index: the pad nearest the pilot's first estimate, a real pad index
+    assert all(0 <= int(r['aimed_index']) <= 4 for r in rows)
 
 
 def test_summary_statistics():
     rows = [{'error_m': 0.1, 'success': True, 'crash': False, 'outcome': 'success', 'landed_index': 2,
-             'nearest_index': 2, 'goal_index': 2, 'active_fraction': 0.5},
+             'nearest_index': 2, 'goal_index': 2, 'active_fraction': 0.5, 'aimed_index': 1},
             {'error_m': 4.0, 'success': False, 'crash': False, 'outcome': 'wrong_pad', 'landed_index': 3,
-             'nearest_index': 3, 'goal_index': 2, 'active_fraction': 0.5},
+             'nearest_index': 3, 'goal_index': 2, 'active_fraction': 0.5, 'aimed_index': 3},
             {'error_m': 1.0, 'success': False, 'crash': True, 'outcome': 'crash', 'landed_index': None,
-             'nearest_index': 2, 'goal_index': 2, 'active_fraction': 0.0}]
+             'nearest_index': 2, 'goal_index': 2, 'active_fraction': 0.0, 'aimed_index': 2}]
     s = summarize(rows)
     assert s['error_mean'] == pytest.approx(5.1 / 3)
     assert s['error_median'] == pytest.approx(1.0)
@@ -37,3 +39,5 @@ def test_summary_statistics():
     assert s['nearest_success'] == pytest.approx(2 / 3)
     assert s['crash_rate'] == pytest.approx(1 / 3)
     assert s['landed_on_goal'] == pytest.approx(1 / 3)
+    assert s['misaimed'] == pytest.approx(2 / 3)           # rows 0 and 1 set off for pads 1 and 3
+    assert s['misaimed_success'] == pytest.approx(1 / 2)   # row 0 still landed on its goal
