@@ -28,7 +28,7 @@ from .cli import add_dataclass_args, dataclass_from_args
 from .env import EnvConfig, LandingAssistEnv, RewardConfig, run_episode
 from .latent import make_latent_fn
 from .scripted import ScriptedNearestPad, ScriptedOracle
-from .td3 import TD3, OUNoise, ReplayBuffer, TD3Config, save_actor
+from .td3 import TD3, OUNoise, ReplayBuffer, TD3Config, load_actor, save_actor
 
 log = logging.getLogger(__name__)
 
@@ -74,6 +74,7 @@ class TrainArgs:
     bc_alpha: float = 0.0
     demo_policy: str = 'oracle'
     demo_bc_file: str = ''
+    init_actor: str = ''
     hidden: tuple[int, ...] = (256, 256)
 
 
@@ -101,6 +102,8 @@ HELP = {
     'demo_bc_file': 'demos_bc.npz of an earlier run: reuse its demonstrations for behaviour cloning / TD3+BC '
                     'instead of collecting new ones (preload its demos.npz with --preload)',
     'bc_alpha': 'TD3+BC regulariser weight (0 = plain TD3); keeps the actor near the demonstrations',
+    'init_actor': 'actor file (e.g. a shipped models/td3_*_actor.pt) to start from: fine-tunes it; applied '
+                  'after --bc-steps, so use it with --bc-steps 0',
 }
 
 
@@ -161,6 +164,19 @@ def evaluate_agent(env: LandingAssistEnv, agent: TD3, per_beta: int, seed: int =
             'eval_success': float(np.mean([r['success'] for r in rows])),
             'eval_crash': float(np.mean([r['crash'] for r in rows])),
             'eval_active': float(np.mean([r['active_fraction'] for r in rows]))}
+
+
+def init_actor(agent: TD3, path: str, condition: str) -> None:
+    """Start from a saved actor (actor and its target); ValueError if it does not fit this run."""
+    actor, meta = load_actor(path)
+    if meta.get('condition', condition) != condition:
+        raise ValueError(f'{path}: actor was trained for {meta.get("condition")!r}, this run is {condition!r}')
+    try:
+        agent.actor.load_state_dict(actor.state_dict())
+    except RuntimeError as exc:
+        raise ValueError(f'{path}: actor does not fit this run (observation size / hidden layers): {exc}') from exc
+    agent.actor_target.load_state_dict(actor.state_dict())
+    log.info('actor initialised from %s', path)
 
 
 class CsvLog:
@@ -249,6 +265,9 @@ def train(args: TrainArgs) -> Path:
         if args.bc_steps > 0:
             mse = agent.behaviour_clone(d_obs, d_act, args.bc_steps)
             log.info('behaviour cloning: %d steps, final MSE %.4f', args.bc_steps, mse)
+    if not args.resume and args.init_actor:
+        init_actor(agent, args.init_actor, args.condition)
+    if not args.resume and (args.demo_episodes > 0 or args.demo_bc_file):
         for _ in range(args.critic_warmup_updates):
             agent.update(buffer, train_actor=False)
         if args.critic_warmup_updates:
@@ -285,7 +304,7 @@ def train(args: TrainArgs) -> Path:
         log.info(msg)
 
     try:
-        if not args.resume and (args.bc_steps > 0 or args.critic_warmup_updates > 0):
+        if not args.resume and (args.bc_steps > 0 or args.critic_warmup_updates > 0 or args.init_actor):
             run_eval()
         while step < args.total_steps:
             obs, info = env.reset(seed=int(args.seed * 1_000_003 + episode))

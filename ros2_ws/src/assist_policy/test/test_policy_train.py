@@ -43,3 +43,26 @@ def test_scripted_oracle_lands_a_novice_on_its_goal():
     env.close()
     assert info['result']['success'], info['result']
     assert info['result']['error_m'] < 0.35
+
+
+def test_init_actor_starts_from_a_saved_actor_and_rejects_a_foreign_one(tmp_path):
+    torch.set_num_threads(1)
+    base = dict(runs_dir=str(tmp_path), total_steps=150, start_steps=0, checkpoint_every_steps=100,
+                eval_every_episodes=1000, hidden=(32, 32), max_episode_s=4.0, buffer_size=2000)
+    first = train(TrainArgs(name='first', **base))
+    src, _ = load_actor(first / 'actor_last.pt')
+    # the step-0 evaluation writes actor_best.pt: it must be the initial actor, weight for weight
+    second = train(TrainArgs(name='second', init_actor=str(first / 'actor_last.pt'), eval_episodes_per_beta=1,
+                             **base))
+    step0, meta = load_actor(second / 'actor_best.pt')
+    rows = list(csv.DictReader(open(second / 'eval.csv')))
+    assert rows[0]['step'] == '0'
+    for a, b in zip(src.state_dict().values(), step0.state_dict().values()):
+        assert torch.equal(a, b)
+    bad = TrainArgs(name='third', init_actor=str(first / 'actor_last.pt'), **{**base, 'hidden': (16,)})
+    try:
+        train(bad)
+    except ValueError as exc:
+        assert 'does not fit' in str(exc)
+    else:
+        raise AssertionError('a mismatched actor was accepted')
