@@ -6,6 +6,7 @@ the same scene, goal and pilot randomness in every condition (paired comparison;
 
     evaluate --out runs/eval_full                       # full experiment, shipped models
     evaluate --landings 4 --betas 0 0.5 1 --conditions unassisted oracle   # quick look
+    evaluate --from-csv runs/eval_a/landings.csv runs/eval_b/landings.csv --out runs/eval_ab   # combine
 
 Writes <out>/landings.csv (one row per landing), <out>/summary.csv, <out>/error_vs_beta.png and
 prints the table: mean +- std error, median, specified-platform success (all legs on the goal),
@@ -59,6 +60,7 @@ class EvalArgs:
     encoder_path: str = ''
     max_episode_s: float = 60.0
     plot: bool = True
+    from_csv: tuple[str, ...] = ()
 
 
 HELP = {
@@ -71,7 +73,37 @@ HELP = {
     'oracle_model': 'actor file (default: models/td3_oracle_actor.pt)',
     'end_to_end_model': 'actor file (default: models/td3_end_to_end_actor.pt)',
     'encoder_path': 'CM-VAE weights for the latent condition (default: the shipped model)',
+    'from_csv': 'fly nothing: combine the landings.csv files of earlier runs (a later file replaces a '
+                'condition an earlier one had) into one table, summary.csv and plot',
 }
+
+LANDING_FIELDS = ['condition', 'beta', 'seed', 'scene_seed', 'goal_index', 'landed_index', 'nearest_index',
+                  'aimed_index', 'error_m', 'nearest_error_m', 'outcome', 'success', 'crash', 'duration_s',
+                  'active_fraction']
+_BOOL = {'True': True, 'False': False}
+
+
+def read_landings(path: str | Path) -> dict[str, list[dict]]:
+    """Rows of a landings.csv grouped by condition, typed as evaluate writes them; ValueError if malformed."""
+    out: dict[str, list[dict]] = {}
+    with open(path, newline='', encoding='utf-8') as fh:
+        reader = csv.DictReader(fh)
+        missing = {'condition', 'beta', 'goal_index', 'error_m', 'success', 'crash', 'outcome'} - set(
+            reader.fieldnames or ())
+        if missing:
+            raise ValueError(f'{path}: not a landings.csv (missing columns {sorted(missing)})')
+        for n, r in enumerate(reader, start=2):
+            try:
+                row = dict(r, beta=float(r['beta']), error_m=float(r['error_m']),
+                           nearest_error_m=float(r.get('nearest_error_m') or 'nan'),
+                           success=_BOOL[r['success']], crash=_BOOL[r['crash']],
+                           active_fraction=float(r.get('active_fraction') or 0.0),
+                           landed_index=None if r.get('landed_index') in (None, '') else int(r['landed_index']))
+            except (KeyError, ValueError) as exc:
+                raise ValueError(f'{path}:{n}: bad row: {exc!r}') from exc
+            out.setdefault(r['condition'], []).append(row)
+    return out
+
 
 
 def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: float, alpha: float):
@@ -175,12 +207,14 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rows_by_cond: dict[str, list[dict]] = {}
-    fields = ['condition', 'beta', 'seed', 'scene_seed', 'goal_index', 'landed_index', 'nearest_index',
-              'aimed_index', 'error_m', 'nearest_error_m', 'outcome', 'success', 'crash', 'duration_s', 'active_fraction']
+    for path in args.from_csv:
+        rows_by_cond.update(read_landings(path))
     with open(out / 'landings.csv', 'w', newline='', encoding='utf-8') as fh:
-        w = csv.DictWriter(fh, fieldnames=fields)
+        w = csv.DictWriter(fh, fieldnames=LANDING_FIELDS, extrasaction='ignore')
         w.writeheader()
-        for cond in args.conditions:
+        for rows in rows_by_cond.values():
+            w.writerows(rows)
+        for cond in () if args.from_csv else args.conditions:
             if cond not in CONDITIONS + BASELINES:
                 raise ValueError(f'unknown condition {cond!r}; choose from {CONDITIONS + BASELINES}')
             model = getattr(args, f'{cond}_model', '') if cond in CONDITIONS[1:] else ''
@@ -221,12 +255,19 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_dataclass_args(parser, EvalArgs, HELP)
     args = dataclass_from_args(EvalArgs, parser.parse_args(argv))
-    summary = evaluate(args)
+    try:
+        summary = evaluate(args)
+    except (OSError, ValueError) as exc:
+        print(f'error: {exc}', file=sys.stderr)
+        return 1
     if not summary:
         print('no condition could be evaluated', file=sys.stderr)
         return 1
-    print(f'alpha {args.alpha}, betas {args.betas[0]}..{args.betas[-1]} ({len(args.betas)}), '
-          f'{args.landings} landings each, seed {args.seed}')
+    if args.from_csv:
+        print(f'combined from {", ".join(args.from_csv)}')
+    else:
+        print(f'alpha {args.alpha}, betas {args.betas[0]}..{args.betas[-1]} ({len(args.betas)}), '
+              f'{args.landings} landings each, seed {args.seed}')
     print(format_table(summary))
     print(f'written: {args.out}/landings.csv, summary.csv, error_vs_beta.png')
     return 0

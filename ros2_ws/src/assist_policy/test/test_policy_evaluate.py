@@ -3,7 +3,7 @@ import csv
 
 import pytest
 
-from assist_policy.evaluate import EvalArgs, evaluate, format_table, summarize
+from assist_policy.evaluate import EvalArgs, evaluate, format_table, main, summarize
 
 
 def test_tiny_evaluation_writes_everything(tmp_path):
@@ -23,6 +23,21 @@ def test_tiny_evaluation_writes_everything(tmp_path):
     assert 'unassisted' in format_table(summary)
     # aimed_index: the pad nearest the pilot's first estimate, a real pad index
     assert all(0 <= int(r['aimed_index']) <= 4 for r in rows)
+    # combining earlier runs' CSVs flies nothing and reproduces their statistics
+    again = evaluate(EvalArgs(out=str(tmp_path / 'combined'), from_csv=(str(tmp_path / 'landings.csv'),)))
+    assert set(again) == set(summary)
+    for cond in summary:
+        for key in ('n', 'error_mean', 'error_median', 'specified_success', 'crash_rate', 'misaimed'):
+            assert again[cond][key] == pytest.approx(summary[cond][key], abs=1e-3), (cond, key)
+    assert (tmp_path / 'combined' / 'error_vs_beta.png').stat().st_size > 1000
+
+
+def test_from_csv_rejects_a_file_that_is_not_a_landings_csv(tmp_path):
+    bad = tmp_path / 'bad.csv'
+    bad.write_text('a,b\n1,2\n')
+    with pytest.raises(ValueError, match='not a landings.csv'):
+        evaluate(EvalArgs(out=str(tmp_path / 'o'), from_csv=(str(bad),)))
+    assert main(['--from-csv', str(bad), '--out', str(tmp_path / 'o')]) == 1
 
 
 def test_summary_statistics():
