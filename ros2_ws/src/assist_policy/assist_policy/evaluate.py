@@ -149,6 +149,7 @@ def summarize(rows: list[dict]) -> dict:
     err = np.array([r['error_m'] for r in rows], dtype=float)
     landed_clean = [r['outcome'] in ('success', 'wrong_pad') for r in rows]
     # the pilot's first goal estimate was nearest another pad than its goal (it set off for the wrong one)
+    known_aim = any(r.get('aimed_index') not in (None, '') for r in rows)   # older CSVs lack the column
     misaimed = [r.get('aimed_index') not in (None, '') and int(r['aimed_index']) != int(r['goal_index'])
                 for r in rows]
     return {'n': len(rows), 'error_mean': float(err.mean()), 'error_std': float(err.std()),
@@ -160,7 +161,7 @@ def summarize(rows: list[dict]) -> dict:
             'landed_on_goal': float(np.mean([r['landed_index'] is not None and int(r['landed_index']) ==
                                              int(r['goal_index']) for r in rows])),
             'active_fraction': float(np.mean([r['active_fraction'] for r in rows])),
-            'misaimed': float(np.mean(misaimed)),
+            'misaimed': float(np.mean(misaimed)) if known_aim else float('nan'),
             'misaimed_success': (float(np.mean([r['success'] for r, m in zip(rows, misaimed) if m]))
                                  if any(misaimed) else float('nan'))}
 
