@@ -17,7 +17,7 @@ import logging
 import math
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -75,6 +75,8 @@ class TrainArgs:
     demo_policy: str = 'oracle'
     demo_bc_file: str = ''
     init_actor: str = ''
+    dagger_rounds: int = 0
+    dagger_episodes: int = 100
     hidden: tuple[int, ...] = (256, 256)
 
 
@@ -102,14 +104,21 @@ HELP = {
     'demo_bc_file': 'demos_bc.npz of an earlier run: reuse its demonstrations for behaviour cloning / TD3+BC '
                     'instead of collecting new ones (preload its demos.npz with --preload)',
     'bc_alpha': 'TD3+BC regulariser weight (0 = plain TD3); keeps the actor near the demonstrations',
-    'init_actor': 'actor file (e.g. a shipped models/td3_*_actor.pt) to start from: fine-tunes it; applied '
-                  'after --bc-steps, so use it with --bc-steps 0',
+    'init_actor': 'actor file (e.g. a shipped models/td3_*_actor.pt) to start from instead of behaviour '
+                  'cloning (--bc-steps then only applies to DAgger rounds)',
+    'dagger_rounds': 'DAgger rounds before TD3: fly the current actor, label every visited state with the '
+                     'scripted demonstrator, clone again (--bc-steps) on all demonstrations so far',
+    'dagger_episodes': 'landings flown per DAgger round',
 }
 
 
 def collect_demos(env: LandingAssistEnv, episodes: int, noise: float, seed: int, buffer: ReplayBuffer,
-                  demo_policy: str = 'oracle') -> tuple[np.ndarray, np.ndarray, list[dict]]:
-    """Fly `episodes` landings with a scripted assistant (+ noise) into `buffer`; (obs, clean acts, results)."""
+                  demo_policy: str = 'oracle', act_fn=None) -> tuple[np.ndarray, np.ndarray, list[dict]]:
+    """Fly `episodes` landings into `buffer`; (obs, scripted actions, results).
+
+    The scripted assistant `demo_policy` labels every state. It also flies (+ Gaussian `noise`) unless
+    `act_fn(obs)` is given: then that policy flies and the script only labels (DAgger).
+    """
     if demo_policy not in ('oracle', 'nearest_pad'):
         raise ValueError(f'demo_policy must be oracle or nearest_pad, got {demo_policy!r}')
     script = (ScriptedOracle(max_speed=env.cfg.max_speed) if demo_policy == 'oracle'
@@ -120,7 +129,8 @@ def collect_demos(env: LandingAssistEnv, episodes: int, noise: float, seed: int,
         obs, _ = env.reset(seed=int(seed * 7919 + ep))
         while True:
             clean = script.raw_action(env)
-            act = np.clip(clean + rng.normal(0.0, noise, 3), -1.0, 1.0)
+            flown = clean if act_fn is None else np.asarray(act_fn(obs), dtype=float)
+            act = np.clip(flown + rng.normal(0.0, noise, 3), -1.0, 1.0)
             nxt, rew, term, trunc, info = env.step(act)
             buffer.add(obs, act, rew, nxt, term or trunc)
             obs_l.append(obs)
@@ -262,11 +272,25 @@ def train(args: TrainArgs) -> Path:
             buffer.save(run_dir / 'demos.npz')
         np.savez(run_dir / 'demos_bc.npz', obs=d_obs, act=d_act)
         demos = (d_obs, d_act) if args.bc_alpha > 0 else None
-        if args.bc_steps > 0:
+        if args.bc_steps > 0 and not args.init_actor:
             mse = agent.behaviour_clone(d_obs, d_act, args.bc_steps)
             log.info('behaviour cloning: %d steps, final MSE %.4f', args.bc_steps, mse)
     if not args.resume and args.init_actor:
         init_actor(agent, args.init_actor, args.condition)
+    if not args.resume and args.dagger_rounds > 0:
+        if not (args.demo_episodes > 0 or args.demo_bc_file):
+            raise ValueError('--dagger-rounds needs demonstrations (--demo-episodes or --demo-bc-file)')
+        for rnd in range(args.dagger_rounds):
+            o, a, res = collect_demos(env, args.dagger_episodes, 0.0, args.seed * 1009 + 31 * (rnd + 1), buffer,
+                                      args.demo_policy, act_fn=agent.act)
+            d_obs, d_act = np.concatenate([d_obs, o]), np.concatenate([d_act, a])
+            mse = agent.behaviour_clone(d_obs, d_act, args.bc_steps)
+            log.info('DAgger round %d: actor flew %d landings (error %.3f m, success %.2f, crash %.2f); '
+                     '%d labelled states in all, cloning MSE %.4f', rnd + 1, len(res),
+                     np.mean([r['error_m'] for r in res]), np.mean([r['success'] for r in res]),
+                     np.mean([r['crash'] for r in res]), len(d_obs), mse)
+        np.savez(run_dir / 'demos_bc.npz', obs=d_obs, act=d_act)
+        demos = (d_obs, d_act) if args.bc_alpha > 0 else None
     if not args.resume and (args.demo_episodes > 0 or args.demo_bc_file):
         for _ in range(args.critic_warmup_updates):
             agent.update(buffer, train_actor=False)
@@ -304,7 +328,8 @@ def train(args: TrainArgs) -> Path:
         log.info(msg)
 
     try:
-        if not args.resume and (args.bc_steps > 0 or args.critic_warmup_updates > 0 or args.init_actor):
+        if not args.resume and (args.bc_steps > 0 or args.critic_warmup_updates > 0 or args.init_actor
+                                or args.dagger_rounds):
             run_eval()
         while step < args.total_steps:
             obs, info = env.reset(seed=int(args.seed * 1_000_003 + episode))

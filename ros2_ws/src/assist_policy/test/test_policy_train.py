@@ -66,3 +66,25 @@ def test_init_actor_starts_from_a_saved_actor_and_rejects_a_foreign_one(tmp_path
         assert 'does not fit' in str(exc)
     else:
         raise AssertionError('a mismatched actor was accepted')
+
+
+def test_dagger_round_labels_the_actors_own_states(tmp_path):
+    torch.set_num_threads(1)
+    import numpy as np
+    base = dict(runs_dir=str(tmp_path), total_steps=50, start_steps=0, checkpoint_every_steps=1000,
+                eval_every_episodes=1000, eval_episodes_per_beta=1, hidden=(32, 32), max_episode_s=4.0,
+                buffer_size=20000, demo_episodes=2, bc_steps=50)
+    plain = train(TrainArgs(name='plain', **base))
+    dag = train(TrainArgs(name='dag', dagger_rounds=1, dagger_episodes=2, **base))
+    with np.load(plain / 'demos_bc.npz') as a, np.load(dag / 'demos_bc.npz') as b:
+        n_demo, n_all = len(a['obs']), len(b['obs'])
+        # the first n_demo rows are the same scripted demonstrations; the rest are the actor's states
+        np.testing.assert_array_equal(a['obs'], b['obs'][:n_demo])
+        assert n_all >= n_demo + 2 * 10           # two more landings, >= 0.5 s each at 20 Hz
+        assert np.all(np.abs(b['act'][n_demo:]) <= 1.0)
+    try:
+        train(TrainArgs(name='nodemo', dagger_rounds=1, **{**base, 'demo_episodes': 0}))
+    except ValueError as exc:
+        assert 'needs demonstrations' in str(exc)
+    else:
+        raise AssertionError('DAgger without demonstrations was accepted')
