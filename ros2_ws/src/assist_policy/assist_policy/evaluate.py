@@ -73,8 +73,9 @@ HELP = {
     'oracle_model': 'actor file (default: models/td3_oracle_actor.pt)',
     'end_to_end_model': 'actor file (default: models/td3_end_to_end_actor.pt)',
     'encoder_path': 'CM-VAE weights for the latent condition (default: the shipped model)',
-    'from_csv': 'fly nothing: combine the landings.csv files of earlier runs (a later file replaces a '
-                'condition an earlier one had) into one table, summary.csv and plot',
+    'from_csv': 'fly nothing: combine the landings.csv files of earlier runs (e.g. one condition split '
+                'over processes by --betas; a landing in a later file replaces the same condition, beta '
+                'and seed in an earlier one) into one table, summary.csv and plot',
 }
 
 LANDING_FIELDS = ['condition', 'beta', 'seed', 'scene_seed', 'goal_index', 'landed_index', 'nearest_index',
@@ -98,7 +99,9 @@ def read_landings(path: str | Path) -> dict[str, list[dict]]:
                            nearest_error_m=float(r.get('nearest_error_m') or 'nan'),
                            success=_BOOL[r['success']], crash=_BOOL[r['crash']],
                            active_fraction=float(r.get('active_fraction') or 0.0),
-                           landed_index=None if r.get('landed_index') in (None, '') else int(r['landed_index']))
+                           goal_index=int(r['goal_index']),
+                           **{k: None if r.get(k) in (None, '') else int(r[k])
+                              for k in ('seed', 'landed_index', 'nearest_index', 'aimed_index')})
             except (KeyError, ValueError) as exc:
                 raise ValueError(f'{path}:{n}: bad row: {exc!r}') from exc
             out.setdefault(r['condition'], []).append(row)
@@ -208,8 +211,11 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rows_by_cond: dict[str, list[dict]] = {}
-    for path in args.from_csv:
-        rows_by_cond.update(read_landings(path))
+    for path in args.from_csv:      # a landing (condition, beta, seed) seen again replaces the earlier one
+        for cond, rows in read_landings(path).items():
+            merged = {(r['beta'], r['seed']): r for r in rows_by_cond.get(cond, [])}
+            merged.update({(r['beta'], r['seed']): r for r in rows})
+            rows_by_cond[cond] = sorted(merged.values(), key=lambda r: (r['beta'], r['seed'] or 0))
     with open(out / 'landings.csv', 'w', newline='', encoding='utf-8') as fh:
         w = csv.DictWriter(fh, fieldnames=LANDING_FIELDS, extrasaction='ignore')
         w.writeheader()

@@ -30,6 +30,15 @@ def test_tiny_evaluation_writes_everything(tmp_path):
         for key in ('n', 'error_mean', 'error_median', 'specified_success', 'crash_rate', 'misaimed'):
             assert again[cond][key] == pytest.approx(summary[cond][key], abs=1e-3), (cond, key)
     assert (tmp_path / 'combined' / 'error_vs_beta.png').stat().st_size > 1000
+    # a condition split over two processes by beta (the second offsets --seed to keep the pairing)
+    lo = evaluate(EvalArgs(out=str(tmp_path / 'lo'), conditions=('scripted_oracle',), betas=(0.0,), landings=2))
+    hi = evaluate(EvalArgs(out=str(tmp_path / 'hi'), conditions=('scripted_oracle',), betas=(1.0,), landings=2,
+                           seed=EvalArgs.seed + 1000))
+    both = evaluate(EvalArgs(out=str(tmp_path / 'both'), from_csv=(str(tmp_path / 'lo' / 'landings.csv'),
+                                                                   str(tmp_path / 'hi' / 'landings.csv'))))
+    assert lo['scripted_oracle']['n'] == hi['scripted_oracle']['n'] == 2
+    for key in ('n', 'error_mean', 'specified_success', 'nearest_success', 'landed_on_goal'):
+        assert both['scripted_oracle'][key] == pytest.approx(summary['scripted_oracle'][key], abs=1e-3), key
 
 
 def test_from_csv_rejects_a_file_that_is_not_a_landings_csv(tmp_path):

@@ -1,0 +1,43 @@
+"""The shipped TD3 actors still do what their model cards say, on landings they were not selected on."""
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from assist_policy.env import EnvConfig, LandingAssistEnv, run_episode
+from assist_policy.latent import make_latent_fn
+from assist_policy.td3 import load_actor
+
+REPO = Path(__file__).resolve().parents[1]
+SEED = 777_000           # unseen: the cards use seed 2024 (evaluate) and 12345 (train_td3's evaluations)
+
+
+def _fly(condition: str, betas, per_beta: int) -> list[dict]:
+    torch.set_num_threads(1)
+    actor, meta = load_actor(REPO / 'models' / f'td3_{condition}_actor.pt')
+    cfg = EnvConfig(condition=condition, alpha=0.5, max_episode_s=60.0, max_speed=tuple(meta['max_speed']),
+                    latent_dim=int(meta.get('latent_dim', 0)))
+    latent_fn = None
+    if condition == 'latent':
+        latent_fn, dim = make_latent_fn(None)
+        assert dim == cfg.latent_dim
+    env = LandingAssistEnv(cfg, latent_fn=latent_fn)
+
+    @torch.no_grad()
+    def policy(obs):
+        return actor(torch.as_tensor(obs).unsqueeze(0))[0].numpy().astype(float)
+    try:
+        return [run_episode(env, policy, SEED + 100 * i + k, {'beta': float(b)})
+                for i, b in enumerate(betas) for k in range(per_beta)]
+    finally:
+        env.close()
+
+
+def test_shipped_oracle_actor_lands_on_the_goal_centre():
+    rows = _fly('oracle', np.linspace(0.0, 1.0, 6), 2)
+    err = np.array([r['error_m'] for r in rows])
+    # card: 0.093 +- 0.062 m, 99.5 % success over 840 landings
+    assert err.mean() < 0.16, err.round(3)
+    assert sum(r['success'] for r in rows) >= 11, [r['outcome'] for r in rows]
+    assert not any(r['crash'] for r in rows)
