@@ -41,3 +41,12 @@ def test_shipped_oracle_actor_lands_on_the_goal_centre():
     assert err.mean() < 0.16, err.round(3)
     assert sum(r['success'] for r in rows) >= 11, [r['outcome'] for r in rows]
     assert not any(r['crash'] for r in rows)
+
+
+def test_shipped_latent_actor_centres_skilled_pilots_on_their_goal():
+    """Through the shipped CM-VAE; pilots beta >= 0.5, where its card gives 0.10-0.19 m per beta."""
+    rows = _fly('latent', (0.5, 0.75, 1.0), 3)
+    err = np.array([r['error_m'] for r in rows])
+    assert np.median(err) < 0.2, err.round(3)
+    assert sum(r['success'] for r in rows) >= 7, [r['outcome'] for r in rows]
+    assert not any(r['crash'] for r in rows)
