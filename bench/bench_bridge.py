@@ -32,7 +32,7 @@ from pymavlink import mavutil  # noqa: E402
 from assist_sim.testing import free_udp_port, stop_process  # noqa: E402
 
 mavlink = mavutil.mavlink
-N_COMMANDS = 400
+N_COMMANDS = 1000          # p99 = the 10th-worst: a steadier tail estimate than 400 samples
 N_WARMUP = 50            # commands sent and discarded first: DDS discovery/matching and first-use allocations
 COMMAND_RATE_HZ = 50.0
 HOLD_WINDOW_S = 4.0
