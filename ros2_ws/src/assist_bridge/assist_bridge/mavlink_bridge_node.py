@@ -19,6 +19,7 @@ import sys
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry
+from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 from rclpy.task import Future
 from std_srvs.srv import Trigger
@@ -82,10 +83,12 @@ class MavlinkBridgeNode(Node):
         self.create_subscription(TwistStamped, '/cmd_vel', self._on_cmd, RELIABLE_QOS)
         # one worker: vehicle commands run one at a time, in the order they were asked for
         self._workers = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix='uav-service')
-        self.create_service(Trigger, '/uav/arm', self._srv('arm', self.bridge.arm))
-        self.create_service(Trigger, '/uav/disarm', self._srv('disarm', self.bridge.disarm))
-        self.create_service(Trigger, '/uav/takeoff', self._srv('takeoff', self.bridge.takeoff))
-        self.create_service(Trigger, '/uav/land', self._srv('land', self.bridge.land))
+        # a pending service coroutine holds its callback group until it returns: the services get a
+        # reentrant group of their own so /cmd_vel and the timer (default group) run meanwhile
+        services = ReentrantCallbackGroup()
+        for name, action in (('arm', self.bridge.arm), ('disarm', self.bridge.disarm),
+                             ('takeoff', self.bridge.takeoff), ('land', self.bridge.land)):
+            self.create_service(Trigger, f'/uav/{name}', self._srv(name, action), callback_group=services)
         self.create_timer(1.0, self._update_diagnostics)
         self.bridge.start()
         self.get_logger().info(f"waiting for the vehicle heartbeat on '{self.cfg.connection}' "
