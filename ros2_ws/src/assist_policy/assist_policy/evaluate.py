@@ -169,6 +169,11 @@ def summarize(rows: list[dict]) -> dict:
                                  if any(misaimed) else float('nan'))}
 
 
+def _pct(x: float) -> str:
+    """A share as a 6-wide percentage, or n/a when undefined (e.g. no misaimed landings)."""
+    return f'{"n/a":>6}' if not np.isfinite(x) else f'{100 * x:>5.1f}%'
+
+
 def format_table(summary: dict[str, dict]) -> str:
     """Fixed-width text table of per-condition summaries."""
     head = (f'{"condition":<20} {"n":>4} {"error m (mean+-std)":>20} {"median":>7} {"spec.succ":>9} '
@@ -179,7 +184,7 @@ def format_table(summary: dict[str, dict]) -> str:
                      f'{s["error_median"]:>7.3f} {100 * s["specified_success"]:>8.1f}% '
                      f'{100 * s["nearest_success"]:>8.1f}% {100 * s["crash_rate"]:>5.1f}% '
                      f'{100 * s["landed_on_goal"]:>6.1f}% {100 * s["active_fraction"]:>6.1f}% '
-                     f'{100 * s["misaimed"]:>5.1f}% {100 * s["misaimed_success"]:>5.1f}%  '
+                     f'{_pct(s["misaimed"])} {_pct(s["misaimed_success"])}  '
                      f'{PAPER.get(cond, "")}')
     return '\n'.join(lines)
 
