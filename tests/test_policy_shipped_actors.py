@@ -2,31 +2,19 @@
 from pathlib import Path
 
 import numpy as np
-import pytest
 import torch
 
-from assist_policy.env import EnvConfig, LandingAssistEnv, run_episode
-from assist_policy.latent import make_latent_fn
-from assist_policy.td3 import load_actor
+from assist_policy.env import run_episode
+from assist_policy.evaluate import make_policy
 
 REPO = Path(__file__).resolve().parents[1]
 SEED = 777_000           # unseen: the cards use seed 2024 (evaluate) and 12345 (train_td3's evaluations)
 
 
 def _fly(condition: str, betas, per_beta: int) -> list[dict]:
+    """Fly the shipped actor (through the shipped CM-VAE for latent) as `evaluate` does."""
     torch.set_num_threads(1)
-    actor, meta = load_actor(REPO / 'models' / f'td3_{condition}_actor.pt')
-    cfg = EnvConfig(condition=condition, alpha=0.5, max_episode_s=60.0, max_speed=tuple(meta['max_speed']),
-                    latent_dim=int(meta.get('latent_dim', 0)))
-    latent_fn = None
-    if condition == 'latent':
-        latent_fn, dim = make_latent_fn(None)
-        assert dim == cfg.latent_dim
-    env = LandingAssistEnv(cfg, latent_fn=latent_fn)
-
-    @torch.no_grad()
-    def policy(obs):
-        return actor(torch.as_tensor(obs).unsqueeze(0))[0].numpy().astype(float)
+    env, policy = make_policy(condition, str(REPO / 'models' / f'td3_{condition}_actor.pt'), '', 60.0, 0.5)
     try:
         return [run_episode(env, policy, SEED + 100 * i + k, {'beta': float(b)})
                 for i, b in enumerate(betas) for k in range(per_beta)]

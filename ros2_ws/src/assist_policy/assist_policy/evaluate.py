@@ -108,7 +108,6 @@ def read_landings(path: str | Path) -> dict[str, list[dict]]:
     return out
 
 
-
 def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: float, alpha: float):
     """(env, policy) for one condition; policy(obs) -> raw action, None for unassisted."""
     if condition == 'unassisted':
