@@ -2,8 +2,9 @@
 the setpoint rate it holds with no command coming in.
 
 The bridge runs as its own process (console script) on a private ROS domain; this process is
-both the ROS publisher of /cmd_vel and a minimal ArduCopter endpoint on UDP loopback (HEARTBEAT in
-GUIDED and armed, ATTITUDE) that timestamps every setpoint on arrival. Each command carries a
+both the ROS publisher of /cmd_vel and a minimal ArduCopter endpoint on UDP loopback
+(assist_sim.testing.SilentAutopilot: HEARTBEAT in GUIDED and armed, ATTITUDE heading East) that
+timestamps every setpoint on arrival. Each command carries a
 unique forward speed, so every setpoint is matched to the command that caused it.
 
 Arrival times are the kernel's receive timestamps on the autopilot's socket (SO_TIMESTAMPNS), so the
@@ -16,91 +17,20 @@ from __future__ import annotations
 import math
 import os
 import random
-import socket
-import struct
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
-os.environ['MAVLINK20'] = '1'
-from pymavlink import mavutil  # noqa: E402
+from assist_sim.testing import SilentAutopilot, free_udp_port, stop_process
 
-from assist_sim.testing import free_udp_port, stop_process  # noqa: E402
-
-mavlink = mavutil.mavlink
 N_COMMANDS = 1000          # p99 = the 10th-worst: a steadier tail estimate than 400 samples
 N_WARMUP = 50            # commands sent and discarded first: DDS discovery/matching and first-use allocations
 COMMAND_RATE_HZ = 50.0
 HOLD_WINDOW_S = 4.0
 SETPOINT_RATE_HZ = 10.0
-SO_TIMESTAMPNS = getattr(socket, 'SO_TIMESTAMPNS', 35)   # Linux value; Python < 3.12 has no constant
-
-
-class FakeAutopilot:
-    """ArduCopter-looking endpoint: GUIDED + armed heartbeats, ATTITUDE, setpoint timestamps."""
-
-    def __init__(self, port: int):
-        self.conn = mavutil.mavlink_connection(f'udpout:127.0.0.1:{port}', source_system=1, source_component=1,
-                                               dialect='ardupilotmega')
-        self.lock = threading.Lock()
-        self.setpoints: list[tuple[float, float]] = []     # (arrival time, vy)
-        self.error: Exception | None = None                 # what stopped the receive thread
-        self._run = True
-        self._threads = [threading.Thread(target=self._rx, daemon=True), threading.Thread(target=self._tx, daemon=True)]
-        for t in self._threads:
-            t.start()
-
-    def _tx(self) -> None:
-        n = 0
-        while self._run:
-            if n % 10 == 0:
-                self.conn.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
-                                             mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
-                                             | mavlink.MAV_MODE_FLAG_SAFETY_ARMED, 4, mavlink.MAV_STATE_ACTIVE)
-            self.conn.mav.attitude_send(n * 100, 0.0, 0.0, math.pi / 2, 0.0, 0.0, 0.0)
-            n += 1
-            time.sleep(0.1)
-
-    def _rx(self) -> None:
-        try:
-            self._receive()
-        except Exception as exc:  # noqa: BLE001 - handed to the measuring thread by snapshot()
-            self.error = exc
-
-    def _receive(self) -> None:
-        sock = self.conn.port
-        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
-        sock.settimeout(0.05)
-        while self._run:
-            try:
-                data, anc, _flags, _addr = sock.recvmsg(4096, socket.CMSG_SPACE(16))
-            except (socket.timeout, BlockingIOError):
-                continue
-            t = time.time()
-            for level, kind, raw in anc:
-                if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(raw) >= 16:
-                    sec, nsec = struct.unpack('qq', raw[:16])
-                    t = sec + nsec * 1e-9
-            for m in self.conn.mav.parse_buffer(data) or ():
-                if m.get_type() == 'SET_POSITION_TARGET_LOCAL_NED':
-                    with self.lock:
-                        self.setpoints.append((t, float(m.vy)))
-
-    def snapshot(self) -> list[tuple[float, float]]:
-        if self.error is not None:
-            raise RuntimeError(f'fake autopilot receive thread failed: {self.error!r}') from self.error
-        with self.lock:
-            return list(self.setpoints)
-
-    def close(self) -> None:
-        self._run = False
-        for t in self._threads:
-            t.join(timeout=1.0)
-        self.conn.close()
 
 
 def run() -> list[dict]:
@@ -119,16 +49,16 @@ def run() -> list[dict]:
     proc = subprocess.Popen([str(exe), '--ros-args', '-p', f'connection:=udpin:127.0.0.1:{port}',
                              '-p', f'setpoint_rate_hz:={SETPOINT_RATE_HZ}'], env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-    ap = FakeAutopilot(port)
+    ap = SilentAutopilot(port, yaw_ned_rad=math.pi / 2)
     ctx = Context()
     rclpy.init(context=ctx, domain_id=domain)
     node = Node('bench_bridge', context=ctx)
     pub = node.create_publisher(TwistStamped, '/cmd_vel', RELIABLE_QOS)
     try:
         deadline = time.monotonic() + 60.0
-        while (pub.get_subscription_count() == 0 or not ap.snapshot()) and time.monotonic() < deadline:
+        while (pub.get_subscription_count() == 0 or not ap.setpoints()) and time.monotonic() < deadline:
             time.sleep(0.05)
-        if pub.get_subscription_count() == 0 or not ap.snapshot():
+        if pub.get_subscription_count() == 0 or not ap.setpoints():
             raise RuntimeError('bridge did not come up (no subscriber or no setpoints)')
         time.sleep(1.0)
         # 1) latency: unique forward speeds (FLU x = NED vy for a vehicle heading East); the first
@@ -147,7 +77,7 @@ def run() -> list[dict]:
             time.sleep(max(0.0, t_next - time.monotonic()))
         time.sleep(0.5)
         first_arrival: dict[int, float] = {}
-        for t, vy in ap.snapshot():
+        for t, _vx, vy in ap.setpoints():
             i = int(round(vy * 1e3))
             if i > N_WARMUP and i in sent and abs(vy - i * 1e-3) < 1e-6 and t >= sent[i]:
                 first_arrival.setdefault(i, t)
@@ -157,7 +87,7 @@ def run() -> list[dict]:
         t0 = time.time()
         time.sleep(HOLD_WINDOW_S)
         t1 = time.time()
-        window = [t for t, _ in ap.snapshot() if t0 <= t <= t1]
+        window = [t for t, _vx, _vy in ap.setpoints() if t0 <= t <= t1]
         gaps_ms = np.diff(window) * 1e3 if len(window) > 1 else np.array([math.inf])
         rate = (len(window) - 1) / (window[-1] - window[0]) if len(window) > 1 else 0.0
     finally:

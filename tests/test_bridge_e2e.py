@@ -11,7 +11,7 @@ from nav_msgs.msg import Odometry
 from std_srvs.srv import Trigger
 
 from assist_sim.ros_common import RELIABLE_QOS, SENSOR_QOS, fill_twist
-from assist_sim.testing import free_udp_port
+from assist_sim.testing import SilentAutopilot, free_udp_port
 
 pytestmark = pytest.mark.graph
 
@@ -178,56 +178,11 @@ def test_garbage_on_the_bridge_port(rig, wait):
     assert int(probe.diag_value('loop_errors') or 0) == 0
 
 
-class SilentVehicle:
-    """An autopilot that is in GUIDED, armed and heading north, but never answers a command."""
-
-    def __init__(self, port: int):
-        from pymavlink import mavutil
-        self.mavlink = mavutil.mavlink
-        self.conn = mavutil.mavlink_connection(f'udpout:127.0.0.1:{port}', source_system=1, source_component=1,
-                                               dialect='ardupilotmega')
-        self.lock = threading.Lock()
-        self.setpoints: list[tuple[float, float]] = []    # (time.monotonic(), vx NED)
-        self.commands: list[int] = []
-        self._run = True
-        self._thread = threading.Thread(target=self._loop, daemon=True)
-        self._thread.start()
-
-    def _loop(self):
-        ml, n = self.mavlink, 0
-        while self._run:
-            if n % 10 == 0:
-                self.conn.mav.heartbeat_send(ml.MAV_TYPE_QUADROTOR, ml.MAV_AUTOPILOT_ARDUPILOTMEGA,
-                                             ml.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | ml.MAV_MODE_FLAG_SAFETY_ARMED,
-                                             4, ml.MAV_STATE_ACTIVE)
-            self.conn.mav.attitude_send(n * 50, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-            n += 1
-            end = time.monotonic() + 0.05
-            while time.monotonic() < end:
-                m = self.conn.recv_match(blocking=True, timeout=0.01)
-                if m is None:
-                    continue
-                with self.lock:
-                    if m.get_type() == 'SET_POSITION_TARGET_LOCAL_NED':
-                        self.setpoints.append((time.monotonic(), float(m.vx)))
-                    elif m.get_type() == 'COMMAND_LONG':
-                        self.commands.append(int(m.command))
-
-    def setpoints_with(self, vx: float) -> list[float]:
-        with self.lock:
-            return [t for t, v in self.setpoints if abs(v - vx) < 1e-4]
-
-    def close(self):
-        self._run = False
-        self._thread.join(timeout=2.0)
-        self.conn.close()
-
-
 def test_cmd_vel_flows_while_a_service_waits_for_its_ack(ros, start_node, wait):
     """The services wait for COMMAND_ACK off the executor: /cmd_vel keeps reaching the vehicle meanwhile."""
     port = free_udp_port()
     bridge = start_node('mavlink_bridge_node', {'connection': f'udpin:127.0.0.1:{port}', 'ack_timeout_s': 6.0})
-    vehicle = SilentVehicle(port)
+    vehicle = SilentAutopilot(port)               # heading north: FLU x = NED vx
     probe = BridgeProbe(ros)
     try:
         assert wait(lambda: probe.diag_value('link') == 'up', 60.0), bridge.log()
@@ -235,22 +190,24 @@ def test_cmd_vel_flows_while_a_service_waits_for_its_ack(ros, start_node, wait):
         assert wait(lambda: probe.cmd.get_subscription_count() > 0, 30.0), 'bridge never subscribed /cmd_vel'
         client = probe.clients['disarm']
         assert client.wait_for_service(timeout_sec=15.0)
-        t_call = time.monotonic()
+        def arrivals_of(vx: float) -> list[float]:
+            return [t for t, v, _ in vehicle.setpoints() if abs(v - vx) < 1e-4]
+        t_call = time.time()                       # the autopilot stamps arrivals with CLOCK_REALTIME
         fut = client.call_async(Trigger.Request())
-        assert wait(lambda: vehicle.commands, 5.0), 'the disarm command never went out'
+        assert wait(lambda: vehicle.commands(), 5.0), 'the disarm command never went out'
         # the service is now waiting for an ACK that never comes; commands must still flow
         sent_at = time.monotonic()
         deadline = sent_at + 4.0
-        while time.monotonic() < deadline and not vehicle.setpoints_with(0.37):
+        while time.monotonic() < deadline and not arrivals_of(0.37):
             probe.send([0.37, 0.0, 0.0])
             time.sleep(0.05)
-        arrivals = vehicle.setpoints_with(0.37)
-        assert arrivals, f'no setpoint for /cmd_vel while the service waited: {vehicle.setpoints[-5:]} {bridge.log()[-1500:]}'
+        arrivals = arrivals_of(0.37)
+        assert arrivals, f'no setpoint for /cmd_vel while the service waited: {vehicle.setpoints()[-5:]} {bridge.log()[-1500:]}'
         assert not fut.done(), 'the service answered before its ACK timeout'
         assert wait(fut.done, 10.0), 'service never answered'
         res = fut.result()
         assert not res.success and 'no COMMAND_ACK within 6.0 s' in res.message, res.message
-        assert arrivals[0] < t_call + 6.0 and time.monotonic() - t_call >= 6.0
+        assert arrivals[0] < t_call + 6.0 and time.time() - t_call >= 6.0
         assert bridge.proc.poll() is None
     finally:
         probe.close()

@@ -1,8 +1,9 @@
 """Helpers shared by the packages' tests, the cross-package tests and the benches (no rclpy, no pytest).
 
 Package tests cannot see tests/conftest.py, so what more than one of them needs lives here:
-a free UDP port for MAVLink loopback links, a clean stop for a node subprocess, and a kinematic
-stand-in for LandingWorld that the MAVLink vehicle can fly without pybullet.
+a free UDP port for MAVLink loopback links, a clean stop for a node subprocess, a kinematic
+stand-in for LandingWorld that the MAVLink vehicle can fly without pybullet, and an autopilot that
+is always in GUIDED and armed but answers nothing (the bridge's bench and graph tests).
 """
 from __future__ import annotations
 
@@ -10,11 +11,18 @@ import math
 import os
 import signal
 import socket
+import struct
 import subprocess
+import threading
+import time
 from types import SimpleNamespace
 from typing import Sequence
 
 import numpy as np
+
+from .mavlink_io import mavlink, mavutil
+
+SO_TIMESTAMPNS = getattr(socket, 'SO_TIMESTAMPNS', 35)   # Linux value; Python < 3.12 has no constant
 
 
 def free_udp_port() -> int:
@@ -105,3 +113,87 @@ class KinematicWorld:
         err = (self.yaw_target - self.yaw + math.pi) % (2 * math.pi) - math.pi
         self.yaw += max(-2.0 * dt, min(2.0 * dt, err))
         return self.state
+
+
+class SilentAutopilot:
+    """ArduCopter-looking endpoint on UDP loopback that never answers a command.
+
+    Sends HEARTBEAT (GUIDED, armed) at 1 Hz and ATTITUDE (level, heading `yaw_ned_rad`) at 10 Hz to
+    a bridge listening on `port`; records every SET_POSITION_TARGET_LOCAL_NED with the kernel's
+    receive stamp (SO_TIMESTAMPNS, CLOCK_REALTIME: compare with time.time()), so the time is when
+    the datagram arrived, not when this receive thread woke up; and records COMMAND_LONG ids.
+    """
+
+    def __init__(self, port: int, yaw_ned_rad: float = 0.0):
+        self.conn = mavutil.mavlink_connection(f'udpout:127.0.0.1:{port}', source_system=1, source_component=1,
+                                               dialect='ardupilotmega')
+        self.yaw_ned_rad = float(yaw_ned_rad)
+        self._lock = threading.Lock()
+        self._setpoints: list[tuple[float, float, float]] = []   # (arrival time, vx, vy) NED
+        self._commands: list[int] = []
+        self._error: Exception | None = None                     # what stopped the receive thread
+        self._run = True
+        self._threads = [threading.Thread(target=self._rx, daemon=True), threading.Thread(target=self._tx, daemon=True)]
+        for t in self._threads:
+            t.start()
+
+    def _tx(self) -> None:
+        n = 0
+        while self._run:
+            if n % 10 == 0:
+                self.conn.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                             mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+                                             | mavlink.MAV_MODE_FLAG_SAFETY_ARMED, 4, mavlink.MAV_STATE_ACTIVE)
+            self.conn.mav.attitude_send(n * 100, 0.0, 0.0, self.yaw_ned_rad, 0.0, 0.0, 0.0)
+            n += 1
+            time.sleep(0.1)
+
+    def _rx(self) -> None:
+        try:
+            self._receive()
+        except Exception as exc:  # noqa: BLE001 - handed to the caller by setpoints() / commands()
+            self._error = exc
+
+    def _receive(self) -> None:
+        sock = self.conn.port
+        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+        sock.settimeout(0.05)
+        while self._run:
+            try:
+                data, anc, _flags, _addr = sock.recvmsg(4096, socket.CMSG_SPACE(16))
+            except (socket.timeout, BlockingIOError):
+                continue
+            t = time.time()
+            for level, kind, raw in anc:
+                if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(raw) >= 16:
+                    sec, nsec = struct.unpack('qq', raw[:16])
+                    t = sec + nsec * 1e-9
+            for m in self.conn.mav.parse_buffer(data) or ():
+                with self._lock:
+                    if m.get_type() == 'SET_POSITION_TARGET_LOCAL_NED':
+                        self._setpoints.append((t, float(m.vx), float(m.vy)))
+                    elif m.get_type() == 'COMMAND_LONG':
+                        self._commands.append(int(m.command))
+
+    def _check(self) -> None:
+        if self._error is not None:
+            raise RuntimeError(f'silent autopilot receive thread failed: {self._error!r}') from self._error
+
+    def setpoints(self) -> list[tuple[float, float, float]]:
+        """Velocity setpoints received so far: (kernel arrival time, vx, vy) in NED."""
+        self._check()
+        with self._lock:
+            return list(self._setpoints)
+
+    def commands(self) -> list[int]:
+        """MAV_CMD ids of the COMMAND_LONGs received so far."""
+        self._check()
+        with self._lock:
+            return list(self._commands)
+
+    def close(self) -> None:
+        """Stop both threads and close the link."""
+        self._run = False
+        for t in self._threads:
+            t.join(timeout=1.0)
+        self.conn.close()
