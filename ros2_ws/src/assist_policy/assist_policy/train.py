@@ -255,7 +255,10 @@ def train(args: TrainArgs) -> Path:
             demos = (data['obs'], data['act'])
     for path in () if args.resume else args.preload:   # on resume replay.npz already holds them
         log.info('preloaded %d transitions from %s', buffer.load(path), path)
-    if not args.resume and (args.demo_episodes > 0 or args.demo_bc_file):
+    has_demos = not args.resume and bool(args.demo_episodes > 0 or args.demo_bc_file)
+    if not args.resume and args.dagger_rounds > 0 and not has_demos:
+        raise ValueError('--dagger-rounds needs demonstrations (--demo-episodes or --demo-bc-file)')
+    if has_demos:
         if args.demo_bc_file:
             with np.load(args.demo_bc_file, allow_pickle=False) as data:
                 d_obs, d_act = data['obs'], data['act']
@@ -270,16 +273,12 @@ def train(args: TrainArgs) -> Path:
             log.info('demonstrations: %d landings, %d transitions, error %.3f m, success %.2f',
                      len(d_res), len(d_obs), err, succ)
             buffer.save(run_dir / 'demos.npz')
-        np.savez(run_dir / 'demos_bc.npz', obs=d_obs, act=d_act)
-        demos = (d_obs, d_act) if args.bc_alpha > 0 else None
         if args.bc_steps > 0 and not args.init_actor:
             mse = agent.behaviour_clone(d_obs, d_act, args.bc_steps)
             log.info('behaviour cloning: %d steps, final MSE %.4f', args.bc_steps, mse)
     if not args.resume and args.init_actor:
         init_actor(agent, args.init_actor, args.condition)
-    if not args.resume and args.dagger_rounds > 0:
-        if not (args.demo_episodes > 0 or args.demo_bc_file):
-            raise ValueError('--dagger-rounds needs demonstrations (--demo-episodes or --demo-bc-file)')
+    if has_demos:
         for rnd in range(args.dagger_rounds):
             o, a, res = collect_demos(env, args.dagger_episodes, 0.0, args.seed * 1009 + 31 * (rnd + 1), buffer,
                                       args.demo_policy, act_fn=agent.act)
@@ -289,9 +288,8 @@ def train(args: TrainArgs) -> Path:
                      '%d labelled states in all, cloning MSE %.4f', rnd + 1, len(res),
                      np.mean([r['error_m'] for r in res]), np.mean([r['success'] for r in res]),
                      np.mean([r['crash'] for r in res]), len(d_obs), mse)
-        np.savez(run_dir / 'demos_bc.npz', obs=d_obs, act=d_act)
+        np.savez(run_dir / 'demos_bc.npz', obs=d_obs, act=d_act)   # what --resume's TD3+BC term reads
         demos = (d_obs, d_act) if args.bc_alpha > 0 else None
-    if not args.resume and (args.demo_episodes > 0 or args.demo_bc_file):
         for _ in range(args.critic_warmup_updates):
             agent.update(buffer, train_actor=False)
         if args.critic_warmup_updates:
