@@ -33,20 +33,122 @@ class StartupError(RuntimeError):
     """A node cannot start (bad parameter, missing model, unreachable endpoint): one clear line."""
 
 
+_NUMERIC = (int, float)
+
+
 @dataclass(frozen=True)
 class Param:
-    """One declared node parameter: default value and a human description."""
+    """One declared node parameter: default, description, and the rule every value must pass.
+
+    `min`/`max` bound numeric values (inclusive unless `min_exclusive`), `choices` lists the
+    accepted strings, `dynamic` marks a parameter the node applies at run time (validated by the
+    parameter callback); every other parameter is declared read-only, so `ros2 param set` is
+    refused instead of accepted and ignored. A float parameter accepts an integer (`-p x:=2`).
+    """
 
     default: Any
     description: str
+    min: float | None = None
+    max: float | None = None
+    min_exclusive: bool = False
+    choices: tuple[str, ...] | None = None
+    dynamic: bool = False
+
+    def coerce(self, name: str, value: Any) -> Any:
+        """Value converted to the parameter's type and checked; ValueError with a one-line reason."""
+        kind = type(self.default)
+        if kind is bool:
+            if not isinstance(value, bool):
+                raise ValueError(f"parameter '{name}' must be true or false, got {value!r}")
+            return value
+        if kind in _NUMERIC:
+            if isinstance(value, bool) or not isinstance(value, _NUMERIC):
+                raise ValueError(f"parameter '{name}' must be a number, got {value!r}")
+            if kind is int:
+                if isinstance(value, float):
+                    if not (math.isfinite(value) and value.is_integer()):
+                        raise ValueError(f"parameter '{name}' must be an integer, got {value!r}")
+                    value = int(value)
+            else:
+                value = float(value)
+                if not math.isfinite(value):
+                    raise ValueError(f"parameter '{name}' must be finite, got {value!r}")
+            self._check_range(name, value)
+            return value
+        if kind is str:
+            if not isinstance(value, str):
+                raise ValueError(f"parameter '{name}' must be a string, got {value!r}")
+            if self.choices is not None and value not in self.choices:
+                raise ValueError(f"parameter '{name}' must be one of {', '.join(self.choices)}; got {value!r}")
+            return value
+        if isinstance(self.default, (list, tuple)):
+            if not isinstance(value, (list, tuple)):
+                raise ValueError(f"parameter '{name}' must be a list, got {value!r}")
+            return list(value)
+        return value
+
+    def _check_range(self, name: str, value: float) -> None:
+        lo, hi = self.min, self.max
+        below = lo is not None and (value <= lo if self.min_exclusive else value < lo)
+        above = hi is not None and value > hi
+        if below or above:
+            lo_s = '' if lo is None else (f'> {lo}' if self.min_exclusive else f'>= {lo}')
+            hi_s = '' if hi is None else f'<= {hi}'
+            rule = ' and '.join(x for x in (lo_s, hi_s) if x)
+            raise ValueError(f"parameter '{name}' must be {rule}, got {value!r}")
 
 
-def declare_parameters(node: Node, spec: Mapping[str, Param]) -> dict[str, Any]:
-    """Declare every parameter in `spec` with a descriptor and return the current values."""
-    values = {}
+class ParamValues(dict):
+    """The node's current (validated, coerced) parameter values; dynamic ones follow run-time sets."""
+
+
+def declare_parameters(node: Node, spec: Mapping[str, Param],
+                       on_change: Callable[[dict[str, Any]], None] | None = None) -> ParamValues:
+    """Declare every parameter in `spec`, validate the start-up values and return them (live).
+
+    A bad start-up value raises StartupError (one line naming the node and parameter). Parameters
+    with `dynamic=True` may be set at run time: each set is validated with the same rule and then
+    passed to `on_change(changed)` (which may raise ValueError to refuse it); the others are
+    read-only. The returned dict is updated in place when a set is accepted.
+    """
+    from rcl_interfaces.msg import SetParametersResult
+
+    values = ParamValues()
     for name, p in spec.items():
-        node.declare_parameter(name, p.default, ParameterDescriptor(description=p.description))
-        values[name] = node.get_parameter(name).value
+        desc = ParameterDescriptor(description=p.description, read_only=not p.dynamic,
+                                   dynamic_typing=isinstance(p.default, (int, float)) and not isinstance(p.default, bool))
+        try:
+            raw = node.declare_parameter(name, p.default, desc).value
+        except Exception as exc:  # rclpy raises its own type errors for e.g. a string for a bool
+            raise StartupError(f'{node.get_name()}: parameter {name!r}: {exc}') from exc
+        try:
+            values[name] = p.coerce(name, raw)
+        except ValueError as exc:
+            raise StartupError(f'{node.get_name()}: {exc}') from exc
+
+    def _on_set(params) -> SetParametersResult:
+        changed = {}
+        for prm in params:
+            p = spec.get(prm.name)
+            if p is None:
+                continue  # use_sim_time and other rclpy-owned parameters
+            try:
+                changed[prm.name] = p.coerce(prm.name, prm.value)
+            except ValueError as exc:
+                return SetParametersResult(successful=False, reason=str(exc))
+        if changed:
+            old = {k: values[k] for k in changed}
+            values.update(changed)
+            if on_change is not None:
+                try:
+                    on_change(changed)
+                except ValueError as exc:
+                    values.update(old)
+                    return SetParametersResult(successful=False, reason=str(exc))
+            node.get_logger().info('parameters set: ' + ', '.join(f'{k}={v!r}' for k, v in changed.items()))
+        return SetParametersResult(successful=True)
+
+    node.add_on_set_parameters_callback(_on_set)
     return values
 
 
