@@ -30,10 +30,12 @@ from gymnasium import spaces
 from assist_sim.core.config import WorldConfig
 from assist_sim.core.world import LandingWorld
 from assist_sim.pilot import PilotConfig, SimulatedPilot
+from assist_sim.pilots import make_pilot
 
 from .actions import DEFAULT_MAX_SPEED, scale_action
 from .blending import DEFAULT_THRESHOLD, blend
 from .observation import IMAGE_SHAPE, Condition, ObservationBuilder, image_feature, oracle_feature
+from .safety import FloorGuard, SafetyConfig
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +65,8 @@ class EnvConfig:
     window_s: float = 1.0
     latent_dim: int = 0                              # set from the encoder for the latent condition
     encoder_path: str = ''                           # CM-VAE weights (latent condition)
+    pilot_family: str = 'paper'                      # assist_sim.pilots name: a family, 'mix' or 'train_mix'
+    safety: SafetyConfig | None = None               # floor guard on the blended command (None: off)
     reward: RewardConfig = field(default_factory=RewardConfig)
     pilot: PilotConfig = field(default_factory=PilotConfig)
     world: WorldConfig = field(default_factory=WorldConfig)
@@ -93,6 +97,8 @@ class LandingAssistEnv(gym.Env):
         self.observation_space = spaces.Box(-np.inf, np.inf, (self.image_size + vec,), np.float32)
         self.action_space = spaces.Box(-1.0, 1.0, (3,), np.float32)
         self.pilot: SimulatedPilot | None = None
+        self.guard = FloorGuard(self.cfg.safety) if self.cfg.safety is not None else None
+        self._frame = None
         self._u = np.zeros(3)
         self._t0 = 0.0
         self._dist = 0.0
@@ -107,13 +113,14 @@ class LandingAssistEnv(gym.Env):
     def _feature(self, pos: np.ndarray) -> np.ndarray:
         if self.condition is Condition.ORACLE:
             return oracle_feature(self.world.goal_position, pos)
-        frame = self.world.render()
+        frame = self._frame = self.world.render()
         if self.condition is Condition.LATENT:
             return np.asarray(self.latent_fn(frame.rgb, frame.depth), dtype=float).reshape(-1)
         return image_feature(frame.rgb, frame.depth).reshape(-1)
 
     def _obs(self) -> np.ndarray:
         st = self.world.state
+        self._frame = None
         t = st.time - self._t0
         if self.condition is Condition.END_TO_END:
             vec = self.builder.build(t, np.zeros(0), st.velocity, st.position[2], self._u)
@@ -125,7 +132,7 @@ class LandingAssistEnv(gym.Env):
 
     # -------------------------------------------------------------- gym API
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
-        """New scene, goal, pilot (options: alpha, beta, scene_seed, goal_index)."""
+        """New scene, goal, pilot (options: alpha, beta, scene_seed, goal_index, pilot = a pilots name)."""
         super().reset(seed=seed)
         options = options or {}
         rng = self.np_random
@@ -133,15 +140,17 @@ class LandingAssistEnv(gym.Env):
         st = self.world.reset(seed=scene_seed, goal_index=options.get('goal_index'))
         beta = float(options.get('beta', rng.uniform(*self.cfg.beta_range)))
         alpha = float(options.get('alpha', self.cfg.alpha))
-        self.pilot = SimulatedPilot(alpha, beta, self.pilot_cfg, np.random.default_rng(int(rng.integers(2**31))))
+        self.pilot = make_pilot(str(options.get('pilot', self.cfg.pilot_family)), alpha, beta, self.pilot_cfg,
+                                np.random.default_rng(int(rng.integers(2**31))), pads=self.world.pad_top_centers)
         self.pilot.reset(self.world.goal_position, st.position)
         self.builder.reset()
         self._t0 = st.time
         self._u = self.pilot.act(st.position, None)
         self._dist = self._goal_dist(st.position)
         self.episode_return = 0.0
-        return self._obs(), {'alpha': alpha, 'beta': beta, 'scene_seed': scene_seed,
-                             'goal_index': self.world.goal_index, 'aimed_index': self.aimed_index()}
+        return self._obs(), {'alpha': self.pilot.alpha, 'beta': beta, 'scene_seed': scene_seed,
+                             'goal_index': self.world.goal_index, 'aimed_index': self.aimed_index(),
+                             'pilot': self.pilot.name, 'pilot_params': dict(self.pilot.params)}
 
     def aimed_index(self) -> int:
         """Pad nearest (horizontally) to the pilot's current goal estimate: the pad it is heading for."""
@@ -158,6 +167,10 @@ class LandingAssistEnv(gym.Env):
         v = blend(self._u, a, self.cfg.blend_threshold)
         t = self.world.state.time - self._t0
         self.builder.record(t, self._u, a)
+        guarded = False
+        if self.guard is not None and not self.unassisted:
+            a, v, guarded = self._guard(a, active, v)
+            active = float(np.linalg.norm(a)) > self.cfg.blend_threshold
         st = self.world.step(v)
         self._u = self.pilot.act(st.position, a if active else None)
         r = self.cfg.reward
@@ -168,7 +181,7 @@ class LandingAssistEnv(gym.Env):
         self._dist = d
         terminated = self.world.done
         truncated = (not terminated) and (st.time - self._t0) >= self.cfg.max_episode_s
-        info: dict[str, Any] = {'active': active, 'goal_estimate': self.pilot.goal_estimate.copy()}
+        info: dict[str, Any] = {'active': active, 'guard': guarded, 'goal_estimate': self.pilot.goal_estimate.copy()}
         if terminated:
             res = self.world.result
             res.assisted = not self.unassisted
@@ -189,6 +202,15 @@ class LandingAssistEnv(gym.Env):
         self.episode_return += reward
         return self._obs(), float(reward), bool(terminated), bool(truncated), info
 
+    def _guard(self, a: np.ndarray, active: bool, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+        """The floor guard (assist_policy.safety) on this step's command, with the camera's depth."""
+        z = float(self.world.state.position[2])
+        if v[2] >= 0.0 or z >= self.guard.cfg.guard_height_m:
+            return a, v, False                     # cannot engage: skip the render
+        frame = self._frame if self._frame is not None else self.world.render()
+        g = self.guard.apply(self._u, a if active else None, v, frame.depth, z, self.cfg.blend_threshold)
+        return (g.agent, g.velocity, True) if g.engaged else (a, v, False)
+
     def close(self) -> None:
         """Release the pybullet client."""
         self.world.close()
@@ -197,16 +219,17 @@ class LandingAssistEnv(gym.Env):
 def run_episode(env: LandingAssistEnv, policy, seed: int, options: dict | None = None) -> dict:
     """Roll out one landing with `policy(obs) -> raw action` (None = unassisted); returns a summary."""
     obs, info = env.reset(seed=seed, options=options)
-    steps, active = 0, 0
+    steps, active, guarded = 0, 0, 0
     while True:
         act = np.zeros(3) if policy is None else policy(obs)
         obs, _, term, trunc, step_info = env.step(act)
         steps += 1
         active += int(step_info['active'])
+        guarded += int(step_info.get('guard', False))
         if term or trunc:
             break
     res = dict(step_info['result'])
     res.update(beta=info['beta'], alpha=info['alpha'], scene_seed=info['scene_seed'], steps=steps,
-               aimed_index=info['aimed_index'],
+               aimed_index=info['aimed_index'], pilot=info['pilot'], guard_fraction=guarded / steps,
                active_fraction=active / steps, episode_return=env.episode_return)
     return res

@@ -15,6 +15,13 @@ crash rate and how often the landed platform was the goal. `misaimed` is the sha
 pilot set off for another pad (its first goal estimate was nearest a pad other than the goal; the
 column aimed_index), and `misaimed_success` how many of those still ended on the goal: a
 goal-agnostic assistant can only get these right by reading the pilot's corrections.
+
+Pilots other than the paper's (issue 12): `--pilot <family|mix|train_mix>` flies every landing with a
+pilot of that assist_sim.pilots family (`mix`: a held-out family drawn per landing); the column `pilot`
+names the family flown. `--safety` turns on the floor guard (assist_policy.safety, on by default in
+policy_node) for every assisted condition; `guard_fraction` is the share of steps it acted.
+
+    evaluate --pilot bang_bang --betas 0 0.25 0.5 0.75 1 --landings 8 --out runs/eval_bang_bang
 """
 from __future__ import annotations
 
@@ -29,10 +36,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from assist_sim.pilots import PILOT_NAMES
+
 from .cli import add_dataclass_args, dataclass_from_args
 from .env import EnvConfig, LandingAssistEnv, run_episode
 from .latent import make_latent_fn
 from .policy_core import default_model_path
+from .safety import SafetyConfig
 from .scripted import ScriptedNearestPad, ScriptedOracle
 from .td3 import load_actor
 
@@ -60,6 +70,8 @@ class EvalArgs:
     encoder_path: str = ''
     max_episode_s: float = 60.0
     plot: bool = True
+    pilot: str = 'paper'
+    safety: bool = False
     from_csv: tuple[str, ...] = ()
 
 
@@ -73,6 +85,9 @@ HELP = {
     'oracle_model': 'actor file (default: models/td3_oracle_actor.pt)',
     'end_to_end_model': 'actor file (default: models/td3_end_to_end_actor.pt)',
     'encoder_path': 'CM-VAE weights for the latent condition (default: the shipped model)',
+    'pilot': 'simulated pilot: paper (the reference), a family of assist_sim.pilots, mix (a held-out family '
+             'per landing) or train_mix (a training family per landing)',
+    'safety': 'apply the floor guard (assist_policy.safety) to every assisted condition',
     'from_csv': 'fly nothing: combine the landings.csv files of earlier runs (e.g. one condition split '
                 'over processes by --betas; a landing in a later file replaces the same condition, beta '
                 'and seed in an earlier one) into one table, summary.csv and plot',
@@ -80,7 +95,7 @@ HELP = {
 
 LANDING_FIELDS = ['condition', 'beta', 'seed', 'scene_seed', 'goal_index', 'landed_index', 'nearest_index',
                   'aimed_index', 'error_m', 'nearest_error_m', 'outcome', 'success', 'crash', 'duration_s',
-                  'active_fraction']
+                  'active_fraction', 'pilot', 'guard_fraction']
 _BOOL = {'True': True, 'False': False}
 
 
@@ -108,19 +123,22 @@ def read_landings(path: str | Path) -> dict[str, list[dict]]:
     return out
 
 
-def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: float, alpha: float):
+def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: float, alpha: float,
+                pilot: str = 'paper', safety: SafetyConfig | None = None):
     """(env, policy) for one condition; policy(obs) -> raw action, None for unassisted."""
     if condition == 'unassisted':
-        return LandingAssistEnv(EnvConfig(condition='none', alpha=alpha, max_episode_s=max_episode_s)), None
+        return LandingAssistEnv(EnvConfig(condition='none', alpha=alpha, max_episode_s=max_episode_s,
+                                          pilot_family=pilot)), None
     if condition in BASELINES:
-        env = LandingAssistEnv(EnvConfig(condition='oracle', alpha=alpha, max_episode_s=max_episode_s))
+        env = LandingAssistEnv(EnvConfig(condition='oracle', alpha=alpha, max_episode_s=max_episode_s,
+                                         pilot_family=pilot, safety=safety))
         script = ScriptedOracle() if condition == 'scripted_oracle' else ScriptedNearestPad()
         return env, lambda obs: script.raw_action(env)
     path = Path(model) if model else default_model_path(condition)
     actor, meta = load_actor(path)
     cfg = EnvConfig(condition=condition, alpha=alpha, max_episode_s=max_episode_s,
                     max_speed=tuple(meta.get('max_speed', (1.0, 1.0, 0.6))),
-                    latent_dim=int(meta.get('latent_dim', 0)))
+                    latent_dim=int(meta.get('latent_dim', 0)), pilot_family=pilot, safety=safety)
     if condition == 'latent':
         latent_fn, dim = make_latent_fn(encoder_path or None)
         if dim != cfg.latent_dim:
@@ -143,7 +161,8 @@ def run_landing(env: LandingAssistEnv, policy, seed: int, beta: float) -> dict:
             'aimed_index': res['aimed_index'],
             'error_m': round(float(res['error_m']), 4), 'nearest_error_m': round(float(res['nearest_error_m']), 4),
             'outcome': res['outcome'], 'success': bool(res['success']), 'crash': bool(res['crash']),
-            'duration_s': round(float(res['duration_s']), 2), 'active_fraction': round(res['active_fraction'], 3)}
+            'duration_s': round(float(res['duration_s']), 2), 'active_fraction': round(res['active_fraction'], 3),
+            'pilot': res['pilot'], 'guard_fraction': round(res['guard_fraction'], 3)}
 
 
 def summarize(rows: list[dict]) -> dict:
@@ -212,6 +231,8 @@ def plot(rows_by_cond: dict[str, list[dict]], path: Path) -> None:
 
 def evaluate(args: EvalArgs) -> dict[str, dict]:
     """Run the experiment; write CSVs and the plot; return per-condition summaries."""
+    if args.pilot not in PILOT_NAMES:
+        raise ValueError(f'unknown pilot {args.pilot!r}; choose from {", ".join(PILOT_NAMES)}')
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rows_by_cond: dict[str, list[dict]] = {}
@@ -230,7 +251,8 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
                 raise ValueError(f'unknown condition {cond!r}; choose from {CONDITIONS + BASELINES}')
             model = getattr(args, f'{cond}_model', '') if cond in CONDITIONS[1:] else ''
             try:
-                env, policy = make_policy(cond, model, args.encoder_path, args.max_episode_s, args.alpha)
+                env, policy = make_policy(cond, model, args.encoder_path, args.max_episode_s, args.alpha,
+                                          args.pilot, SafetyConfig() if args.safety else None)
             except ValueError as exc:
                 log.warning('skipping %s: %s', cond, exc)
                 continue
@@ -277,7 +299,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.from_csv:
         print(f'combined from {", ".join(args.from_csv)}')
     else:
-        print(f'alpha {args.alpha}, betas {args.betas[0]}..{args.betas[-1]} ({len(args.betas)}), '
+        print(f'pilot {args.pilot}, floor guard {"on" if args.safety else "off"}, alpha {args.alpha}, betas {args.betas[0]}..{args.betas[-1]} ({len(args.betas)}), '
               f'{args.landings} landings each, seed {args.seed}')
     print(format_table(summary))
     print(f'written: {args.out}/landings.csv, summary.csv, error_vs_beta.png')
