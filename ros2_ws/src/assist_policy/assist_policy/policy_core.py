@@ -4,7 +4,10 @@ Safety rules (ARCHITECTURE.md, "Timing and safety rules"):
 * pilot command older than pilot_timeout_s (or never received) -> u = 0;
 * scene feature (latent / goal / image) or odometry stale or absent -> relinquish: no a, V = u;
 * non-finite actor output is rejected (counted, V = u), never reaches V;
-* V is clamped to max_speed_mps (horizontal norm) and max_vertical_mps.
+* V is clamped to max_speed_mps (horizontal norm) and max_vertical_mps;
+* floor guard (``safety.FloorGuard``, not learned): low over the floor with no pad under the legs in
+  the depth image, a descending V is replaced by a small climb (agent action a' = 2 V' - u); needs
+  fresh odometry and a depth image (``set_depth``) no older than feature_timeout_s.
 """
 from __future__ import annotations
 
@@ -19,6 +22,7 @@ import torch
 from .actions import scale_action
 from .blending import DEFAULT_THRESHOLD, blend
 from .observation import Condition, ObservationBuilder, image_feature, oracle_feature
+from .safety import FloorGuard, SafetyConfig
 from .td3 import load_actor
 
 log = logging.getLogger(__name__)
@@ -48,6 +52,7 @@ class PolicyCoreConfig:
     odom_timeout_s: float = 0.5
     max_speed_mps: float = 1.5
     max_vertical_mps: float = 1.0
+    safety: SafetyConfig | None = None     # floor guard settings (None: SafetyConfig() defaults)
 
 
 @dataclass
@@ -80,6 +85,9 @@ class PolicyCore:
         self._feature: tuple[float, np.ndarray] | None = None
         self._goal: np.ndarray | None = None
         self.rejected = 0
+        self.guard = FloorGuard(self.cfg.safety or SafetyConfig())
+        self._depth: tuple[float, np.ndarray] | None = None
+        self.guard_engaged = 0
 
     # ------------------------------------------------------------- inputs
     def set_pilot(self, t: float, u: np.ndarray) -> None:
@@ -117,6 +125,13 @@ class PolicyCore:
         """Latest RGB-D frame (end-to-end mode)."""
         self._feature = (t, image_feature(rgb, depth).reshape(-1))
 
+    def set_depth(self, t: float, depth: np.ndarray) -> None:
+        """Latest depth image (HxW metres, invalid 0 or NaN) for the floor guard; ValueError if not 2-D."""
+        depth = np.asarray(depth, dtype=np.float32)
+        if depth.ndim != 2 or depth.size == 0:
+            raise ValueError(f'depth image must be HxW, got shape {depth.shape}')
+        self._depth = (t, depth)
+
     def reset(self) -> None:
         """Forget the action history (new episode)."""
         self.builder.reset()
@@ -134,7 +149,23 @@ class PolicyCore:
         return v
 
     def step(self, now: float) -> PolicyOutput:
-        """One control step at time `now` (seconds, same clock as the input stamps)."""
+        """One control step at time `now` (seconds, same clock as the input stamps), floor guard last."""
+        return self._guarded(now, self._step(now))
+
+    def _guarded(self, now: float, out: PolicyOutput) -> PolicyOutput:
+        c = self.cfg
+        if not (self.guard.cfg.enabled and self._odom is not None and self._fresh(self._odom[0], now, c.odom_timeout_s)
+                and self._depth is not None and self._fresh(self._depth[0], now, c.feature_timeout_s)):
+            return out
+        u = self._pilot[1] if self._pilot is not None and self._fresh(self._pilot[0], now, c.pilot_timeout_s) \
+            else np.zeros(3)
+        g = self.guard.apply(u, out.agent, out.velocity, self._depth[1], float(self._odom[1][2]), c.blend_threshold)
+        if not g.engaged:
+            return out
+        self.guard_engaged += 1
+        return PolicyOutput(g.agent, self._clamp(g.velocity), 'floor guard: descent blocked')
+
+    def _step(self, now: float) -> PolicyOutput:
         c = self.cfg
         u = np.zeros(3)
         if self._pilot is not None and self._fresh(self._pilot[0], now, c.pilot_timeout_s):

@@ -21,6 +21,7 @@ from assist_sim.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagno
 
 from .blending import DEFAULT_THRESHOLD
 from .policy_core import PolicyCore, PolicyCoreConfig, default_model_path
+from .safety import SafetyConfig
 
 PARAMS = {
     'model_path': Param('', 'TD3 actor file; empty: the shipped models/td3_<mode>_actor.pt.'),
@@ -35,6 +36,13 @@ PARAMS = {
     'max_vertical_speed': Param(1.0, 'Vertical speed limit of the published /cmd_vel (m/s).'),
     'max_input_speed': Param(5.0, 'Pilot commands faster than this are rejected as out of range (m/s).'),
     'frame_id': Param('base_link', 'frame_id of the published commands.'),
+    'floor_guard': Param(True, 'Floor guard (assist_policy.safety, not learned): low over the floor with no pad under '
+                               'the legs in /camera/depth/image_raw, a descent is replaced by a small climb.',
+                         dynamic=True),
+    'floor_guard_height_m': Param(1.0, 'Altitude (odom z over the floor, m) below which the floor guard acts.',
+                                  min=0.0, max=10.0, dynamic=True),
+    'floor_guard_climb_mps': Param(0.15, 'Vertical velocity the floor guard imposes instead of a descent (m/s; at '
+                                         'least blend_threshold / 2 + 0.01 is used).', min=0.0, max=1.0, dynamic=True),
     'torch_threads': Param(1, 'Intra-op CPU threads for the actor (1 is fastest for this small network).'),
 }
 
@@ -56,7 +64,7 @@ class PolicyNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__('policy_node', **kwargs)
-        self.p = declare_parameters(self, PARAMS)
+        self.p = declare_parameters(self, PARAMS, on_change=self._on_params)
         self.diag = Diagnostics(self)
         mode = self.p['mode']
         if mode not in ('latent', 'oracle', 'end_to_end'):
@@ -74,7 +82,10 @@ class PolicyNode(Node):
                                feature_timeout_s=float(self.p['latent_timeout_s']),
                                odom_timeout_s=float(self.p['odom_timeout_s']),
                                max_speed_mps=float(self.p['max_speed']),
-                               max_vertical_mps=float(self.p['max_vertical_speed']))
+                               max_vertical_mps=float(self.p['max_vertical_speed']),
+                               safety=SafetyConfig(enabled=bool(self.p['floor_guard']),
+                                                   guard_height_m=float(self.p['floor_guard_height_m']),
+                                                   min_climb_mps=float(self.p['floor_guard_climb_mps'])))
         try:
             self.core = PolicyCore(path, cfg)
         except ValueError as exc:
@@ -93,15 +104,17 @@ class PolicyNode(Node):
             self.create_subscription(PointStamped, '/sim/goal', self._on_goal, LATCHED_QOS,
                                      callback_group=inputs)
         else:
-            self._rgb = None
             self.create_subscription(Image, '/camera/color/image_raw', self._on_rgb, SENSOR_QOS,
                                      callback_group=inputs)
-            self.create_subscription(Image, '/camera/depth/image_raw', self._on_depth, SENSOR_QOS,
-                                     callback_group=inputs)
+        self._rgb = None
+        # every mode: the floor guard reads the depth image (end_to_end also feeds it to the actor)
+        self.create_subscription(Image, '/camera/depth/image_raw', self._on_depth, SENSOR_QOS,
+                                 callback_group=inputs)
         self.create_timer(1.0 / float(self.p['rate_hz']), self._tick,
                           callback_group=MutuallyExclusiveCallbackGroup())
         self.diag.set('model_path', path)
         self.diag.set('mode', mode)
+        self.diag.set('floor_guard', 'on' if self.p['floor_guard'] else 'off')
         self.get_logger().info(f'policy_node: {mode} actor {path} at {self.p["rate_hz"]} Hz')
 
     def _now(self) -> float:
@@ -152,19 +165,31 @@ class PolicyNode(Node):
 
     def _on_depth(self, msg: Image) -> None:
         try:
-            if self._rgb is None:
-                return
             depth = _image_to_array(msg)
+            if depth.ndim != 2:
+                raise ValueError(f'depth image must be 32FC1 or 16UC1, got {msg.encoding!r}')
             with self._lock:
-                self.core.set_image(self._now(), self._rgb, depth)
+                self.core.set_depth(self._now(), depth)
+                if self.core.mode.value == 'end_to_end' and self._rgb is not None:
+                    self.core.set_image(self._now(), self._rgb, depth)
         except ValueError as exc:
             self._reject('image', exc)
+
+    def _on_params(self, changed: dict) -> None:
+        """Apply run-time changes of the floor guard parameters."""
+        with self._lock:
+            g = self.core.guard.cfg
+            g.enabled = bool(changed.get('floor_guard', g.enabled))
+            g.guard_height_m = float(changed.get('floor_guard_height_m', g.guard_height_m))
+            g.min_climb_mps = float(changed.get('floor_guard_climb_mps', g.min_climb_mps))
+            self.diag.set('floor_guard', 'on' if g.enabled else 'off')
 
     def _tick(self) -> None:
         now = self._now()
         with self._lock:
             out = self.core.step(now)
             rejected = self.core.rejected
+            guarded = self.core.guard_engaged
         stamp = self.get_clock().now().to_msg()
         frame = self.p['frame_id']
         if out.agent is not None:
@@ -180,6 +205,7 @@ class PolicyNode(Node):
         self.pub_cmd.publish(fill_twist(cmd, out.velocity))
         self.diag.set('state', out.reason)
         self.diag.set('rejected_actor_outputs', rejected)
+        self.diag.set('floor_guard_engaged', guarded)
 
 
 def main(args=None):

@@ -1,0 +1,251 @@
+"""Pilot population (assist_sim.pilots): one behavioural test per family, split, determinism."""
+import numpy as np
+import pytest
+
+from assist_sim.pilot import PilotConfig, SimulatedPilot
+from assist_sim.pilots import (FAMILIES, HELDOUT_FAMILIES, PILOT_NAMES, POPULATIONS, TRAIN_FAMILIES, confuse,
+                               make_pilot)
+
+GOAL = np.array([12.0, 0.5, 0.8])
+START = np.array([0.0, 0.0, 3.5])
+PADS = np.array([[4.0, 0.3, 0.6], [8.0, -0.4, 1.0], GOAL, [16.0, 0.2, 0.5], [20.0, -0.1, 0.9]])
+DT = 0.05
+
+
+def commands(pilot, positions):
+    """Commands of `pilot` along a fixed sequence of positions (open loop)."""
+    return np.array([pilot.act(p) for p in positions])
+
+
+def fly(pilot, steps=1600):
+    """Integrate the commands as velocities (perfect tracking) until down at the goal height."""
+    p, cmds = START.copy(), []
+    for _ in range(steps):
+        u = pilot.act(p)
+        cmds.append(u)
+        p = p + u * DT
+        if p[2] <= GOAL[2]:
+            break
+    return p, np.array(cmds)
+
+
+def path(n=400):
+    """A straight fly-over toward and past the goal, descending slowly."""
+    s = np.linspace(0.0, 1.0, n)[:, None]
+    return START + s * (np.array([16.0, 1.0, 1.2]) - START)
+
+
+def test_registry_split_and_populations():
+    assert set(TRAIN_FAMILIES).isdisjoint(HELDOUT_FAMILIES)
+    assert set(TRAIN_FAMILIES) | set(HELDOUT_FAMILIES) == set(FAMILIES)
+    assert 'paper' in TRAIN_FAMILIES
+    assert POPULATIONS['mix'] == HELDOUT_FAMILIES and POPULATIONS['train_mix'] == TRAIN_FAMILIES
+    with pytest.raises(ValueError, match='unknown pilot'):
+        make_pilot('nobody')
+    seen = {make_pilot('mix', rng=s).name for s in range(60)}
+    assert seen == set(HELDOUT_FAMILIES)
+
+
+def test_paper_family_is_the_reference_pilot_bit_for_bit():
+    ref = SimulatedPilot(0.5, 0.3, rng=5)
+    fam = make_pilot('paper', 0.5, 0.3, rng=5)
+    ref.reset(GOAL, START)
+    fam.reset(GOAL, START)
+    np.testing.assert_array_equal(ref.goal_estimate, fam.goal_estimate)
+    a = np.array([0.4, -0.2, 0.0])
+    for p in path():
+        np.testing.assert_array_equal(ref.act(p, a), fam.act(p, a))
+
+
+@pytest.mark.parametrize('name', PILOT_NAMES)
+def test_deterministic_per_seed_and_params_drawn_per_episode(name):
+    runs = []
+    for _ in range(2):
+        pl = make_pilot(name, 0.5, 0.5, rng=11, pads=PADS)
+        pl.reset(GOAL, START)
+        runs.append((commands(pl, path()), dict(pl.params)))
+    np.testing.assert_array_equal(runs[0][0], runs[1][0])
+    assert runs[0][1] == runs[1][1]
+    pl = make_pilot(name, 0.5, 0.5, rng=11, pads=PADS)
+    draws = []
+    for _ in range(3):
+        pl.reset(GOAL, START)
+        draws.append(dict(pl.params))
+    if pl.name != 'paper':
+        assert draws[0] != draws[1] != draws[2]       # a new episode draws new parameters
+
+
+@pytest.mark.parametrize('name', [n for n in FAMILIES if n != 'key_confusion'])
+def test_keyboard_commands_are_discrete(name):
+    pl = make_pilot(name, 0.5, 0.5, rng=3, pads=PADS)
+    pl.reset(GOAL, START)
+    _, cmds = fly(pl)
+    speeds = {0.0, pl.cfg.speed_xy_mps, round(float(pl.params.get('speed_xy_mps', pl.cfg.speed_xy_mps)), 9)}
+    assert set(np.abs(cmds[:, :2]).ravel().round(9)) <= speeds
+    assert set(cmds[:, 2].round(9)) <= {0.0, -pl.cfg.speed_down_mps, pl.cfg.speed_up_mps}
+
+
+def test_delay_family_lags_the_reference_by_its_delay():
+    ref = make_pilot('paper', 0.5, 0.5, rng=7)
+    late = make_pilot('delay', 0.5, 0.5, rng=7)
+    ref.reset(GOAL, START)
+    late.reset(GOAL, START)
+    n = late.delay_steps
+    assert 0.25 <= late.params['delay_s'] <= 0.8 and n == round(late.params['delay_s'] * 20)
+    pos = path()
+    r, d = commands(ref, pos), commands(late, pos)
+    np.testing.assert_array_equal(d[:n], 0.0)              # nothing pressed before the first reaction
+    np.testing.assert_array_equal(d[n:], r[:-n])           # then exactly the reference, n steps late
+
+
+def test_bang_bang_overshoots_and_reverses():
+    cfg = PilotConfig(perception_sigma_m=(0.0, 0.0))
+    pl = make_pilot('bang_bang', 0.5, 1.0, cfg, rng=4)
+    pl.reset(GOAL, START, goal_estimate=GOAL.copy())
+    p = np.array([GOAL[0] - 6.0, GOAL[1], GOAL[2] + 2.5])
+    xs, ux = [], []
+    for _ in range(300):
+        u = pl.act(p)
+        p = p + u * DT
+        xs.append(p[0])
+        ux.append(u[0])
+    xs, ux = np.array(xs), np.array(ux)
+    overshoot = xs.max() - GOAL[0]
+    speed, delay = pl.params['speed_xy_mps'], pl.params['release_delay_s']
+    assert overshoot == pytest.approx(speed * delay, abs=speed * DT + 0.07)   # released delay_s after passing
+    assert overshoot > 0.25                                       # the paper pilot stops within its deadband
+    assert (np.diff(np.sign(ux[ux != 0])) != 0).sum() >= 1        # reversed at least once
+    assert set(np.abs(ux).round(9)) <= {0.0, round(speed, 9)}
+
+
+def test_bang_bang_commits_to_a_descent_started_while_passing():
+    cfg = PilotConfig(perception_sigma_m=(0.0, 0.0))
+    pl = make_pilot('bang_bang', 0.5, 1.0, cfg, rng=4)
+    ref = make_pilot('paper', 0.5, 1.0, cfg, rng=4)
+    descents = []
+    for pilot in (pl, ref):
+        pilot.reset(GOAL, START, goal_estimate=GOAL.copy())
+        p = np.array([GOAL[0] - 3.0, GOAL[1], GOAL[2] + 2.5])
+        down_far = 0
+        for _ in range(200):
+            u = pilot.act(p)
+            p = p + u * DT
+            down_far += int(u[2] < 0 and abs(p[0] - GOAL[0]) > pilot.cfg.hold_radius_m)
+        descents.append(down_far)
+    assert descents[0] > 0 and descents[1] == 0
+
+
+def test_tapper_taps_near_the_aim_and_freezes():
+    pl = make_pilot('tapper', 0.5, 1.0, rng=2)
+    pl.reset(GOAL, START)
+    p, cmds = fly(pl)
+    assert p[2] <= GOAL[2]                                          # it still lands
+    near = np.array([np.hypot(*(q[:2] - GOAL[:2])) for q in np.cumsum(np.vstack([START, cmds * DT]), 0)[:-1]])
+    horiz = np.abs(cmds[:, :2]).max(axis=1) > 0
+    zone = near < pl.params['tap_radius_m'] - 0.6                   # well inside the tapping zone
+    # intermittent: within the zone no key is held longer than one tap (tap_s), then released
+    runs, run = [], 0
+    for h, z in zip(horiz, zone):
+        if h and z:
+            run += 1
+        elif run:
+            runs.append(run)
+            run = 0
+    assert runs and max(runs) <= round(pl.params['tap_s'] / DT) + 1
+    assert horiz[zone].mean() < 0.7
+    assert set(np.abs(cmds[:, :2]).ravel()) <= {0.0, 1.0}
+    # freezes: stretches with no key at all in the air
+    idle = ~np.any(cmds != 0, axis=1)
+    assert idle.sum() >= 10
+
+
+def test_late_correction_flies_to_a_neighbour_pad_then_switches():
+    cfg = PilotConfig(perception_sigma_m=(0.0, 0.0))
+    pl = make_pilot('late_correction', 0.5, 1.0, cfg, rng=8, pads=PADS)
+    pl.reset(GOAL, START)
+    neighbours = [PADS[1], PADS[3]]
+    first = pl.goal_estimate.copy()
+    assert min(np.linalg.norm(first[:2] - q[:2]) for q in neighbours) < 0.4    # a real neighbour pad
+    p = START.copy()
+    est = []
+    for _ in range(1600):
+        u = pl.act(p)
+        p = p + u * DT
+        est.append(pl.goal_estimate.copy())
+        if p[2] <= GOAL[2]:
+            break
+    est = np.array(est)
+    k = int(np.argmax(np.linalg.norm(est[:, :2] - first[:2], axis=1) > 1.0))
+    assert k > 20 and pl.corrected
+    # beta = 1, yet no gradual correction before the switch; a jump of a pad spacing at it
+    assert np.linalg.norm(est[k - 1, :2] - first[:2]) < 0.05
+    assert np.linalg.norm(est[k, :2] - GOAL[:2]) < 0.4
+    assert np.linalg.norm(p[:2] - GOAL[:2]) < 0.5                                  # then lands on the goal
+
+
+def test_late_correction_without_pads_uses_one_spacing():
+    pl = make_pilot('late_correction', 0.5, 0.5, rng=1)
+    pl.reset(GOAL, START)
+    assert abs(abs(pl.goal_estimate[0] - GOAL[0]) - pl.fcfg.late.fallback_gap_m) < 1e-9
+
+
+def test_depth_bias_lands_offset_by_its_bias_whatever_the_skill():
+    cfg = PilotConfig(perception_sigma_m=(0.0, 0.0))
+    for seed in (1, 2):
+        pl = make_pilot('depth_bias', 0.5, 1.0, cfg, rng=seed)
+        pl.reset(GOAL, START, goal_estimate=GOAL.copy())
+        p, _ = fly(pl)
+        b = pl.params['bias_m']
+        assert 0.25 <= abs(b) <= 0.6
+        assert p[0] - GOAL[0] == pytest.approx(-b, abs=0.1)     # it lands where it believes the goal is
+
+
+def test_key_confusion_spells_transform_the_reference_command():
+    ref = make_pilot('paper', 0.5, 0.5, rng=21)
+    kc = make_pilot('key_confusion', 0.5, 0.5, rng=21)
+    kc.fcfg.key_confusion.rate_hz = (0.5, 0.5)          # frequent spells for the test
+    ref.reset(GOAL, START)
+    kc.reset(GOAL, START)
+    confused, differ = 0, 0
+    for p in path(600):
+        kind = kc.confusion
+        r, c = ref.act(p), kc.act(p)
+        if kind is None and kc.confusion is None:
+            np.testing.assert_array_equal(c, r)
+        elif kind is not None:
+            np.testing.assert_array_equal(c, confuse(r, kind))
+            confused += 1
+            differ += int(not np.array_equal(c, r))
+    assert confused > 40 and differ > 10 and kc.params['spells'] >= 3
+
+
+def test_confuse_mappings():
+    u = np.array([1.0, -1.0, -0.5])
+    np.testing.assert_array_equal(confuse(u, 'swap_xy'), [-1.0, 1.0, -0.5])
+    np.testing.assert_array_equal(confuse(u, 'flip_x'), [-1.0, -1.0, -0.5])
+    np.testing.assert_array_equal(confuse(u, 'flip_z'), [1.0, -1.0, 0.5])
+    with pytest.raises(ValueError):
+        confuse(u, 'flip_w')
+
+
+def test_alpha_extremes_follow_or_ignore_the_assistant():
+    ign = make_pilot('ignorer', 0.5, 0.0, rng=3)
+    fol = make_pilot('follower', 0.5, 0.0, rng=3)
+    a = np.array([0.0, 1.0, 0.0])
+    moved = []
+    for pl in (ign, fol):
+        pl.reset(GOAL, START, goal_estimate=GOAL.copy())
+        for _ in range(40):                              # 2 s of a 1 m/s push
+            pl.update_estimate(a)
+        moved.append(pl.goal_estimate[1] - GOAL[1])
+    assert 0.0 <= ign.alpha <= 0.1 and 0.9 <= fol.alpha <= 1.0
+    assert moved[0] < 0.2 and moved[1] > 1.8
+
+
+def test_keyboard_composite_has_every_component():
+    pl = make_pilot('keyboard', 0.5, 0.5, rng=5, pads=PADS)
+    pl.reset(GOAL, START)
+    for key in ('delay_s', 'speed_xy_mps', 'tap_s', 'notice_height_m', 'bias_m'):
+        assert key in pl.params
+    p, _ = fly(pl)
+    assert p[2] <= GOAL[2] + 0.05
