@@ -2,7 +2,9 @@
 
 Reads /odom, the latched /sim/goal (every message starts a new landing: a fresh goal estimate) and
 /assist/agent_cmd (the assistant's action, which pulls the pilot's estimate with conformance alpha
-while it is above the blending threshold and fresh).
+while it is above the blending threshold and fresh). `pilot` picks the model: `paper` (the reference)
+or a family / population of assist_sim.pilots (a fresh pilot, with freshly drawn family parameters,
+for every landing; the pad positions for the wrong-pad family come from the latched /sim/scene).
 """
 from __future__ import annotations
 
@@ -15,7 +17,10 @@ from nav_msgs.msg import Odometry
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 
-from .pilot import PilotConfig, SimulatedPilot
+from visualization_msgs.msg import MarkerArray
+
+from .pilot import PilotConfig
+from .pilots import PILOT_NAMES, make_pilot
 from .ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError,
                          declare_parameters, fill_twist, run_node, twist_to_array)
 
@@ -27,6 +32,9 @@ PARAMS = {
     'blend_threshold': Param(0.25, 'Assistant actions at or below this norm (m/s) are not felt by the pilot.'),
     'agent_timeout_s': Param(0.5, '/assist/agent_cmd older than this counts as absent.'),
     'odom_timeout_s': Param(0.5, 'With /odom older than this the pilot sends zero velocity.'),
+    'pilot': Param('paper', 'Pilot model: paper (the reference) or an assist_sim.pilots family or population '
+                            '(mix = held-out families, train_mix = training families), drawn anew per landing.',
+                   choices=PILOT_NAMES),
     'frame_id': Param('base_link', 'frame_id of /pilot/cmd_vel.'),
 }
 
@@ -44,8 +52,10 @@ class SimPilotNode(Node):
         if not self.p['rate_hz'] > 0:
             raise StartupError('sim_pilot_node: rate_hz must be > 0')
         cfg = PilotConfig(control_hz=float(self.p['rate_hz']), k_alpha=float(self.p['rate_hz']))
-        self.pilot = SimulatedPilot(float(self.p['alpha']), float(self.p['beta']), cfg,
-                                    np.random.default_rng(int(self.p['seed'])))
+        self._cfg = cfg
+        self._rng = np.random.default_rng(int(self.p['seed']))
+        self._pads: np.ndarray | None = None
+        self.pilot = self._new_pilot()
         self._lock = threading.Lock()
         self._odom: tuple[float, np.ndarray] | None = None
         self._agent: tuple[float, np.ndarray] | None = None
@@ -58,9 +68,25 @@ class SimPilotNode(Node):
         self.create_subscription(PointStamped, '/sim/goal', self._on_goal, LATCHED_QOS, callback_group=group)
         self.create_subscription(TwistStamped, '/assist/agent_cmd', self._on_agent, RELIABLE_QOS,
                                  callback_group=group)
+        self.create_subscription(MarkerArray, '/sim/scene', self._on_scene, LATCHED_QOS, callback_group=group)
         self.create_timer(1.0 / float(self.p['rate_hz']), self._tick, callback_group=group)
-        self.get_logger().info(f"sim_pilot_node: alpha {self.p['alpha']} beta {self.p['beta']} "
-                               f"seed {self.p['seed']}")
+        self.get_logger().info(f"sim_pilot_node: pilot {self.p['pilot']} alpha {self.p['alpha']} "
+                               f"beta {self.p['beta']} seed {self.p['seed']}")
+
+    def _new_pilot(self):
+        return make_pilot(self.p['pilot'], float(self.p['alpha']), float(self.p['beta']), self._cfg, self._rng,
+                          pads=self._pads)
+
+    def _on_scene(self, msg: MarkerArray) -> None:
+        tops = {m.id: (m.pose.position.x, m.pose.position.y, m.pose.position.z + 0.5 * m.scale.z)
+                for m in msg.markers if m.ns == 'platforms'}
+        pads = np.array([tops[k] for k in sorted(tops)], dtype=float).reshape(-1, 3)
+        if pads.size == 0 or not np.all(np.isfinite(pads)):
+            self.diag.count('rejected_scene')
+            self.get_logger().warning('rejected /sim/scene without finite platforms')
+            return
+        with self._lock:
+            self._pads = pads
 
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
@@ -98,7 +124,10 @@ class SimPilotNode(Node):
         with self._lock:
             odom_ok = self._odom is not None and abs(now - self._odom[0]) <= self.p['odom_timeout_s']
             if self._pending_goal is not None and self._odom is not None:
+                if self.p['pilot'] != 'paper':
+                    self.pilot = self._new_pilot()      # new family draw (and pads) per landing
                 self.pilot.reset(self._pending_goal, self._odom[1])
+                self.diag.set('pilot', self.pilot.name)
                 self._pending_goal = None
                 self._active = True
                 self.episodes += 1

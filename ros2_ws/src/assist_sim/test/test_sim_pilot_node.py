@@ -87,3 +87,53 @@ def test_pilot_node_flies_toward_goal_and_descends_over_it(graph):
     # odometry goes stale: zero velocity
     time.sleep(0.8)
     assert all(np.allclose(c, 0) for c in recent())
+
+
+def test_pilot_family_parameter_uses_the_scene_and_rejects_unknown_names():
+    """pilot:=late_correction aims first at a real neighbour pad from /sim/scene; a bad name cannot start."""
+    from visualization_msgs.msg import Marker, MarkerArray
+
+    from assist_sim.ros_common import StartupError
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=random.Random(os.getpid() ^ time.monotonic_ns()).randint(1, 100))
+    try:
+        with pytest.raises(StartupError, match='pilot'):
+            SimPilotNode(context=ctx, parameter_overrides=[Parameter('pilot', value='nobody')])
+        pilot = SimPilotNode(context=ctx, parameter_overrides=[Parameter('pilot', value='late_correction')])
+        probe = Node('probe', context=ctx)
+        ex = MultiThreadedExecutor(num_threads=2, context=ctx)
+        ex.add_node(pilot)
+        ex.add_node(probe)
+        th = threading.Thread(target=ex.spin, daemon=True)
+        th.start()
+        pub_scene = probe.create_publisher(MarkerArray, '/sim/scene', LATCHED_QOS)
+        pub_odom = probe.create_publisher(Odometry, '/odom', SENSOR_QOS)
+        pub_goal = probe.create_publisher(PointStamped, '/sim/goal', LATCHED_QOS)
+        tops = [(4.0, 0.5, 0.8), (8.5, -0.6, 1.0), (12.0, 0.2, 0.6)]
+        scene = MarkerArray()
+        for i, (x, y, top) in enumerate(tops):
+            m = Marker()
+            m.ns, m.id, m.type = 'platforms', i, Marker.CUBE
+            m.pose.position.x, m.pose.position.y, m.pose.position.z = x, y, top / 2
+            m.scale.x, m.scale.y, m.scale.z = 1.0, 1.0, top
+            scene.markers.append(m)
+        pub_scene.publish(scene)
+        time.sleep(0.5)
+        g = PointStamped()
+        g.point.x, g.point.y, g.point.z = tops[1]
+        pub_goal.publish(g)
+        for _ in range(40):
+            m = Odometry()
+            m.pose.pose.position.z = 3.0
+            pub_odom.publish(m)
+            time.sleep(0.05)
+            if pilot.episodes:
+                break
+        assert pilot.episodes == 1 and pilot.pilot.name == 'late_correction'
+        est = pilot.pilot.goal_estimate
+        assert min(np.hypot(est[0] - x, est[1] - y) for x, y, _ in (tops[0], tops[2])) < 0.4
+        ex.shutdown()
+        pilot.destroy_node()
+        probe.destroy_node()
+    finally:
+        rclpy.shutdown(context=ctx)
