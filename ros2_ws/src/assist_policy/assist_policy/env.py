@@ -144,6 +144,8 @@ class LandingAssistEnv(gym.Env):
                                 np.random.default_rng(int(rng.integers(2**31))), pads=self.world.pad_top_centers)
         self.pilot.reset(self.world.goal_position, st.position)
         self.builder.reset()
+        if self.guard is not None:
+            self.guard.reset()
         self._t0 = st.time
         self._u = self.pilot.act(st.position, None)
         self._dist = self._goal_dist(st.position)
@@ -204,11 +206,11 @@ class LandingAssistEnv(gym.Env):
 
     def _guard(self, a: np.ndarray, active: bool, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
         """The floor guard (assist_policy.safety) on this step's command, with the camera's depth."""
-        z = float(self.world.state.position[2])
-        if v[2] >= 0.0 or z >= self.guard.cfg.guard_height_m:
-            return a, v, False                     # cannot engage: skip the render
+        if float(self.world.state.position[2]) >= self.guard.watch_height_m:
+            return a, v, False                     # too high to watch: skip the render
         frame = self._frame if self._frame is not None else self.world.render()
-        g = self.guard.apply(self._u, a if active else None, v, frame.depth, z, self.cfg.blend_threshold)
+        g = self.guard.apply(self._u, a if active else None, v, frame.depth, self.world.state.position,
+                             self.cfg.blend_threshold)
         return (g.agent, g.velocity, True) if g.engaged else (a, v, False)
 
     def close(self) -> None:

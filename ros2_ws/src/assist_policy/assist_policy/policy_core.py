@@ -133,8 +133,9 @@ class PolicyCore:
         self._depth = (t, depth)
 
     def reset(self) -> None:
-        """Forget the action history (new episode)."""
+        """Forget the action history and the floor guard's last pad (new episode)."""
         self.builder.reset()
+        self.guard.reset()
 
     # ------------------------------------------------------------- step
     def _fresh(self, stamp: float | None, now: float, timeout: float) -> bool:
@@ -159,7 +160,7 @@ class PolicyCore:
             return out
         u = self._pilot[1] if self._pilot is not None and self._fresh(self._pilot[0], now, c.pilot_timeout_s) \
             else np.zeros(3)
-        g = self.guard.apply(u, out.agent, out.velocity, self._depth[1], float(self._odom[1][2]), c.blend_threshold)
+        g = self.guard.apply(u, out.agent, out.velocity, self._depth[1], self._odom[1], c.blend_threshold)
         if not g.engaged:
             return out
         self.guard_engaged += 1

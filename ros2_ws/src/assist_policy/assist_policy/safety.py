@@ -18,6 +18,13 @@ it is compared with the floor depth. A leg is over the floor when that median is
 without valid pixels is unknown; the guard then does not act (it never blocks on missing data).
 Pads in this world stand 0.4-1.2 m tall, so a tolerance of 0.2 m separates them from the floor.
 
+Blind range: a camera closer to a surface than its minimum range cannot see it (the D435i returns
+holes, which the guard treats as unknown; the simulator's renderer clips the surface at its near
+plane and shows the floor behind it). So the guard remembers the last pad it saw beneath the legs
+(its top height and the vehicle's x, y then) and does not block while the vehicle is still within
+``pad_memory_radius_m`` of that spot and low enough for the camera to be inside ``blind_range_m`` of
+that pad top: a vehicle touching down on a pad is never pushed back up. ``reset`` forgets it.
+
 ``guard_height_m`` = 1.0 m: from a 1 m/s descent the velocity controller (kp_z 4 /s, 2.5 m/s^2)
 stops within ~0.3 m, well above the judge's crash height (0.2 m), while pilots landing on a pad
 are over the pad (not the floor) when they come this low. Pure numpy; no rclpy.
@@ -44,6 +51,8 @@ class SafetyConfig:
     window_m: float = 0.06            # half-size, on the floor, of the patch checked under each leg
     camera_offset_m: float = 0.05     # optical centre below base_link (CameraConfig.offset_below_base_m)
     vertical_fov_deg: float = 58.0    # depth camera vertical field of view (square pixels)
+    blind_range_m: float = 0.3        # camera minimum range (D435i ~0.2-0.3 m; sim near plane 0.1 m) + margin
+    pad_memory_radius_m: float = 0.6  # a pad seen beneath the legs is assumed still there within this (x, y)
 
 
 @dataclass
@@ -61,42 +70,78 @@ class FloorGuard:
 
     def __init__(self, cfg: SafetyConfig | None = None):
         self.cfg = cfg or SafetyConfig()
+        self._pad: tuple[float, float, float] | None = None   # x, y of the vehicle and top z of the pad seen
 
-    def floor_below(self, depth: np.ndarray, altitude_m: float) -> bool | None:
-        """True when every leg's floor point shows the floor, False when any shows something nearer."""
+    @property
+    def watch_height_m(self) -> float:
+        """Below this altitude the guard reads the depth image (guard height + blind range)."""
+        return self.cfg.guard_height_m + self.cfg.blind_range_m
+
+    def reset(self) -> None:
+        """Forget the last pad seen (new episode)."""
+        self._pad = None
+
+    def _near_remembered_pad(self, position: np.ndarray) -> bool:
+        if self._pad is None:
+            return False
+        x, y, top = self._pad
+        c = self.cfg
+        return (math.hypot(position[0] - x, position[1] - y) < c.pad_memory_radius_m
+                and position[2] - c.camera_offset_m - top < c.blind_range_m)
+
+    def _remember_pad(self, depth: np.ndarray, position: np.ndarray) -> None:
+        """Store the top height of the surface under the legs (nearest leg median) and where it was seen."""
+        tops = self._leg_depths(depth, float(position[2]))
+        tops = [d for d in tops if d is not None]
+        if tops:
+            self._pad = (float(position[0]), float(position[1]),
+                         float(position[2]) - self.cfg.camera_offset_m - min(tops))
+
+    def _leg_depths(self, depth: np.ndarray, altitude_m: float) -> list[float | None]:
+        """Median valid depth around each leg's floor point (None: no valid pixel), [] if not checkable."""
         c = self.cfg
         depth = np.asarray(depth, dtype=np.float32)
         if depth.ndim != 2 or depth.size == 0:
             raise ValueError(f'depth image must be HxW, got shape {depth.shape}')
         d_floor = float(altitude_m) - c.camera_offset_m
         if not math.isfinite(d_floor) or d_floor <= 0:
-            return None
+            return []
         h, w = depth.shape
         f = (h / 2.0) / math.tan(math.radians(c.vertical_fov_deg) / 2.0)
         cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
         half = max(1, int(round(f * c.window_m / d_floor)))
-        verdicts = []
+        out: list[float | None] = []
         for bx in (c.leg_offset_m, -c.leg_offset_m):
             for by in (c.leg_offset_m, -c.leg_offset_m):
                 col = int(round(min(max(cx + f * (-by) / d_floor, 0), w - 1)))
                 row = int(round(min(max(cy + f * (-bx) / d_floor, 0), h - 1)))
                 patch = depth[max(0, row - half):row + half + 1, max(0, col - half):col + half + 1]
                 valid = patch[np.isfinite(patch) & (patch > 0)]
-                if valid.size == 0:
-                    return None
-                verdicts.append(float(np.median(valid)) >= d_floor - c.floor_tolerance_m)
-        return all(verdicts)
+                out.append(float(np.median(valid)) if valid.size else None)
+        return out
+
+    def floor_below(self, depth: np.ndarray, altitude_m: float) -> bool | None:
+        """True when every leg's floor point shows the floor, False when any shows something nearer."""
+        legs = self._leg_depths(depth, altitude_m)
+        if not legs or any(d is None for d in legs):
+            return None
+        d_floor = float(altitude_m) - self.cfg.camera_offset_m
+        return all(d >= d_floor - self.cfg.floor_tolerance_m for d in legs)
 
     def apply(self, u: np.ndarray, agent: np.ndarray | None, velocity: np.ndarray,
-              depth: np.ndarray | None, altitude_m: float | None, blend_threshold: float) -> GuardResult:
-        """Guard one blended command V (= blend(u, agent)); returns it unchanged unless a floor descent."""
+              depth: np.ndarray | None, position: np.ndarray | None, blend_threshold: float) -> GuardResult:
+        """Guard one blended command V (= blend(u, agent)) at odom `position`; unchanged unless a floor descent."""
         v = np.asarray(velocity, dtype=float).reshape(3)
         c = self.cfg
-        if (not c.enabled or depth is None or altitude_m is None or v[2] >= 0.0
-                or altitude_m >= c.guard_height_m):
+        if (not c.enabled or depth is None or position is None
+                or float(position[2]) >= self.watch_height_m):
             return GuardResult(agent, v, False, None)
-        floor = self.floor_below(depth, altitude_m)
-        if not floor:
+        position = np.asarray(position, dtype=float).reshape(3)
+        floor = self.floor_below(depth, float(position[2]))
+        if floor is False:
+            self._remember_pad(depth, position)     # watched from above the guard height on, too
+        if (v[2] >= 0.0 or float(position[2]) >= c.guard_height_m or not floor
+                or self._near_remembered_pad(position)):
             return GuardResult(agent, v, False, floor)
         u = np.asarray(u, dtype=float).reshape(3)
         # only the vertical part of the assistance changes: a' = (a_xy, 2 climb - u_z), V' = blend(u, a').

@@ -50,7 +50,7 @@ def test_invalid_depth_is_unknown_and_never_blocks(depth_at):
     holes = np.full((64, 64), np.nan, dtype=np.float32)
     assert g.floor_below(holes, 0.8) is None
     assert g.floor_below(np.zeros((64, 64), np.float32), 0.8) is None
-    r = g.apply(np.array([0, 0, -0.5]), None, np.array([0, 0, -0.5]), holes, 0.8, THR)
+    r = g.apply(np.array([0, 0, -0.5]), None, np.array([0, 0, -0.5]), holes, [0.0, 0.0, 0.8], THR)
     assert not r.engaged and r.velocity[2] == -0.5
     with pytest.raises(ValueError):
         g.floor_below(np.zeros((4, 4, 3)), 0.8)
@@ -59,13 +59,13 @@ def test_invalid_depth_is_unknown_and_never_blocks(depth_at):
 def test_descent_over_floor_becomes_a_climb_visible_in_the_agent_action(depth_at):
     g = FloorGuard()
     u = np.array([0.6, 0.0, -0.5])
-    r = g.apply(u, None, u.copy(), depth_at(0.0, 0.0, 0.8), 0.8, THR)     # actor relinquished: V = u
+    r = g.apply(u, None, u.copy(), depth_at(0.0, 0.0, 0.8), [0.0, 0.0, 0.8], THR)     # actor relinquished: V = u
     assert r.engaged and r.floor is True
     assert r.velocity[2] == pytest.approx(0.15)
     np.testing.assert_allclose(r.agent, [0.0, 0.0, 0.8])                  # only the vertical part
     np.testing.assert_allclose(blend(u, r.agent, THR), r.velocity)        # a' blends to V'
     a = np.array([-0.8, 0.3, -0.6])                                       # an actor pushing down too
-    r = g.apply(u, a, blend(u, a, THR), depth_at(0.0, 0.0, 0.8), 0.8, THR)
+    r = g.apply(u, a, blend(u, a, THR), depth_at(0.0, 0.0, 0.8), [0.0, 0.0, 0.8], THR)
     np.testing.assert_allclose(r.agent[:2], a[:2])
     np.testing.assert_allclose(r.velocity, [(0.6 - 0.8) / 2, 0.15, 0.15])
 
@@ -73,13 +73,13 @@ def test_descent_over_floor_becomes_a_climb_visible_in_the_agent_action(depth_at
 def test_passes_through_over_a_pad_above_the_guard_height_climbing_or_disabled(depth_at):
     u = np.array([0.0, 0.0, -0.5])
     g = FloorGuard()
-    assert not g.apply(u, None, u, depth_at(5.0, 0.0, 1.1), 1.1, THR).engaged          # pad below
-    assert not g.apply(u, None, u, depth_at(5.55, 0.0, 1.0), 1.0, THR).engaged         # edge: pad under 2 legs
-    assert not g.apply(u, None, u, depth_at(0.0, 0.0, 1.3), 1.3, THR).engaged          # above 1 m
+    assert not g.apply(u, None, u, depth_at(5.0, 0.0, 1.1), [5.0, 0.0, 1.1], THR).engaged          # pad below
+    assert not g.apply(u, None, u, depth_at(5.55, 0.0, 1.0), [5.55, 0.0, 1.0], THR).engaged         # edge: pad under 2 legs
+    assert not g.apply(u, None, u, depth_at(0.0, 0.0, 1.3), [0.0, 0.0, 1.3], THR).engaged          # above 1 m
     up = np.array([0.0, 0.0, 0.5])
-    assert not g.apply(up, None, up, depth_at(0.0, 0.0, 0.8), 0.8, THR).engaged        # not descending
+    assert not g.apply(up, None, up, depth_at(0.0, 0.0, 0.8), [0.0, 0.0, 0.8], THR).engaged        # not descending
     off = FloorGuard(SafetyConfig(enabled=False))
-    r = off.apply(u, None, u, depth_at(0.0, 0.0, 0.8), 0.8, THR)
+    r = off.apply(u, None, u, depth_at(0.0, 0.0, 0.8), [0.0, 0.0, 0.8], THR)
     assert not r.engaged and r.velocity[2] == -0.5
 
 
@@ -92,7 +92,7 @@ def test_never_descends_while_engaged_whatever_u_and_a(depth_at):
             u = rng.uniform(-1, 1, 3)
             a = rng.uniform(-1, 1, 3) if rng.random() < 0.7 else None
             v = blend(u, np.zeros(3) if a is None else a, thr)
-            r = g.apply(u, a, v, d, 0.8, thr)
+            r = g.apply(u, a, v, d, [0.0, 0.0, 0.8], thr)
             if v[2] < 0:
                 assert r.engaged and r.velocity[2] > 0
                 np.testing.assert_allclose(blend(u, r.agent, thr), r.velocity)
@@ -111,8 +111,8 @@ def test_policy_core_applies_the_guard_with_fresh_depth_only(tmp_path, depth_at)
     core = PolicyCore(path, PolicyCoreConfig(mode='latent'))
     floor = depth_at(0.0, 0.0, 0.8)
 
-    def feed(t, z, depth=floor):
-        core.set_odom(t, [0, 0, z], [0, 0, 0])
+    def feed(t, z, depth=floor, x=0.0):
+        core.set_odom(t, [x, 0, z], [0, 0, 0])
         core.set_pilot(t, [0.0, 0.0, -0.5])
         core.set_latent(t, np.zeros(LATENT))
         if depth is not None:
@@ -125,7 +125,7 @@ def test_policy_core_applies_the_guard_with_fresh_depth_only(tmp_path, depth_at)
     feed(2.0, 0.8, depth=None)                       # depth now 1 s old: the guard cannot see
     out = core.step(2.0)
     assert out.reason == 'assisting' and out.velocity[2] < 0
-    feed(3.0, 1.1, depth=depth_at(5.0, 0.0, 1.1))    # over the pad: descent passes
+    feed(3.0, 1.1, depth=depth_at(5.0, 0.0, 1.1), x=5.0)    # over the pad: descent passes
     assert core.step(3.0).velocity[2] < 0
     core.guard.cfg.enabled = False                   # the parameter turns it off
     feed(4.0, 0.8)
@@ -136,5 +136,22 @@ def test_policy_core_applies_the_guard_with_fresh_depth_only(tmp_path, depth_at)
     core.set_depth(5.0, floor)
     out = core.step(5.0)
     assert out.reason.startswith('floor guard') and out.velocity[2] > 0
+    core.reset()
     with pytest.raises(ValueError):
         core.set_depth(6.0, np.zeros((2, 2, 2)))
+
+
+def test_touchdown_on_a_pad_inside_the_blind_range_is_not_pushed_back_up(depth_at):
+    """Sim renderer clips a pad nearer than its near plane and shows the floor: the remembered pad wins."""
+    g = FloorGuard()
+    u = np.array([0.0, 0.0, -0.5])
+    touching = [5.0, 0.0, PAD.height + 0.12]                  # legs on the pad, camera 7 cm above it
+    blind = depth_at(*touching)
+    assert g.floor_below(blind, touching[2]) is True          # the frame alone looks like floor
+    assert not g.apply(u, None, u, depth_at(5.0, 0.0, 1.2), [5.0, 0.0, 1.2], THR).engaged   # sees the pad
+    assert not g.apply(u, None, u, blind, touching, THR).engaged
+    g.reset()                                                 # new episode: nothing remembered
+    assert g.apply(u, None, u, blind, touching, THR).engaged
+    g.reset()
+    g.apply(u, None, u, depth_at(5.0, 0.0, 1.2), [5.0, 0.0, 1.2], THR)
+    assert g.apply(u, None, u, depth_at(0.0, 0.0, 0.8), [0.0, 0.0, 0.8], THR).engaged       # far from it: floor
