@@ -1,0 +1,125 @@
+"""policy_node's floor guard in a real graph: depth image in (32FC1 and 16UC1), climb out on /cmd_vel and
+/assist/agent_cmd, counted on /diagnostics, turned off at run time with the floor_guard parameter."""
+import importlib.util
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import TwistStamped
+from nav_msgs.msg import Odometry
+from rcl_interfaces.msg import Parameter as ParameterMsg
+from rcl_interfaces.msg import ParameterType, ParameterValue
+from rcl_interfaces.srv import SetParameters
+from sensor_msgs.msg import Image
+from std_msgs.msg import Float32MultiArray
+
+from assist_sim.ros_common import RELIABLE_QOS, SENSOR_QOS
+
+pytestmark = pytest.mark.graph
+
+_spec = importlib.util.spec_from_file_location(
+    'policy_core_helpers', Path(__file__).resolve().parents[1]
+    / 'ros2_ws/src/assist_policy/test/test_policy_core.py')
+_helpers = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_helpers)
+ALT = 0.8                      # odom z: low over the floor
+FLOOR_DEPTH = ALT - 0.05       # camera 5 cm below base_link
+
+
+def depth_msg(encoding: str) -> Image:
+    """A 64x64 depth image of bare floor FLOOR_DEPTH away, as the sim (32FC1 m) or a RealSense (16UC1 mm)."""
+    m = Image()
+    m.height = m.width = 64
+    m.encoding = encoding
+    if encoding == '32FC1':
+        m.step, m.data = 64 * 4, np.full((64, 64), FLOOR_DEPTH, np.float32).tobytes()
+    else:
+        m.step, m.data = 64 * 2, np.full((64, 64), round(FLOOR_DEPTH * 1000), np.uint16).tobytes()
+    return m
+
+
+class Probe:
+    """Publishes odom, a descending pilot, the latent and depth; records cmd_vel, agent_cmd, diagnostics."""
+
+    def __init__(self, node):
+        self.node, self.lock = node, threading.Lock()
+        self.cmd, self.agent, self.diag = [], [], []
+        node.create_subscription(TwistStamped, '/cmd_vel', self._rec(self.cmd), RELIABLE_QOS)
+        node.create_subscription(TwistStamped, '/assist/agent_cmd', self._rec(self.agent), RELIABLE_QOS)
+        node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10)
+        self.pub_odom = node.create_publisher(Odometry, '/odom', SENSOR_QOS)
+        self.pub_pilot = node.create_publisher(TwistStamped, '/pilot/cmd_vel', RELIABLE_QOS)
+        self.pub_latent = node.create_publisher(Float32MultiArray, '/assist/latent', SENSOR_QOS)
+        self.pub_depth = node.create_publisher(Image, '/camera/depth/image_raw', SENSOR_QOS)
+
+    def _rec(self, store):
+        def cb(msg):
+            with self.lock:
+                store.append((time.monotonic(), np.array([msg.twist.linear.x, msg.twist.linear.y,
+                                                          msg.twist.linear.z])))
+        return cb
+
+    def _on_diag(self, msg):
+        for st in msg.status:
+            if 'policy_node' in st.name:
+                with self.lock:
+                    self.diag.append({kv.key: kv.value for kv in st.values})
+
+    def since(self, store, t0):
+        with self.lock:
+            return [v for t, v in store if t >= t0]
+
+    def run(self, seconds, encoding='32FC1'):
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < seconds:
+            od = Odometry()
+            od.pose.pose.position.z = ALT
+            self.pub_odom.publish(od)
+            tw = TwistStamped()
+            tw.twist.linear.z = -0.5
+            self.pub_pilot.publish(tw)
+            self.pub_latent.publish(Float32MultiArray(data=[0.0] * _helpers.LATENT))
+            self.pub_depth.publish(depth_msg(encoding))
+            time.sleep(0.05)
+        return t0
+
+
+def set_param(node, name, value: bool, wait):
+    cli = node.create_client(SetParameters, '/policy_node/set_parameters')
+    assert cli.wait_for_service(timeout_sec=20)
+    req = SetParameters.Request()
+    req.parameters = [ParameterMsg(name=name, value=ParameterValue(type=ParameterType.PARAMETER_BOOL,
+                                                                   bool_value=value))]
+    fut = cli.call_async(req)
+    assert wait(lambda: fut.done(), 20)
+    assert fut.result().results[0].successful
+    node.destroy_client(cli)
+
+
+def test_floor_guard_blocks_descent_over_floor_and_can_be_turned_off(ros, start_node, wait, tmp_path):
+    model = _helpers.constant_actor(tmp_path / 'relinquish.pt', [0.0, 0.0, 0.0])     # a = 0: V = u
+    probe = Probe(ros)
+    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0})
+    t0 = time.monotonic()
+    while not probe.since(probe.agent, t0) and time.monotonic() - t0 < 40 and node.proc.poll() is None:
+        probe.run(0.2)
+    assert node.proc.poll() is None, node.log()
+    for enc in ('32FC1', '16UC1'):
+        t1 = probe.run(1.5, enc)
+        cmds, agents = probe.since(probe.cmd, t1 + 0.7), probe.since(probe.agent, t1 + 0.7)
+        assert cmds and agents, node.log()
+        # V = (u + a') / 2 with a' = (0, 0, 2 * 0.15 + 0.5): a 0.15 m/s climb instead of the 0.5 m/s descent
+        assert all(np.allclose(v, [0, 0, 0.15], atol=1e-5) for v in cmds), (enc, cmds[-3:])
+        assert all(np.allclose(a, [0, 0, 0.8], atol=1e-5) for a in agents), (enc, agents[-3:])
+    assert wait(lambda: any(int(d.get('floor_guard_engaged', 0)) > 20 for d in probe.diag), 5), probe.diag[-1:]
+    assert probe.diag[-1].get('floor_guard') == 'on'
+    set_param(ros, 'floor_guard', False, wait)
+    t2 = probe.run(1.5)
+    cmds = probe.since(probe.cmd, t2 + 0.5)
+    assert cmds and all(np.allclose(v, [0, 0, -0.5], atol=1e-5) for v in cmds)       # descent passes
+    agents = probe.since(probe.agent, t2 + 0.5)
+    assert agents and all(np.allclose(a, 0, atol=1e-6) for a in agents)               # the actor's a = 0 again
+    assert wait(lambda: probe.diag and probe.diag[-1].get('floor_guard') == 'off', 5)
