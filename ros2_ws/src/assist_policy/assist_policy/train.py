@@ -24,9 +24,12 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from assist_sim.pilots import HELDOUT_FAMILIES, TRAIN_FAMILIES
+
 from .cli import add_dataclass_args, dataclass_from_args
 from .env import EnvConfig, LandingAssistEnv, RewardConfig, run_episode
 from .latent import make_latent_fn
+from .safety import SafetyConfig
 from .scripted import ScriptedNearestPad, ScriptedOracle
 from .td3 import TD3, OUNoise, ReplayBuffer, TD3Config, load_actor, save_actor
 
@@ -78,6 +81,8 @@ class TrainArgs:
     dagger_rounds: int = 0
     dagger_episodes: int = 100
     hidden: tuple[int, ...] = (256, 256)
+    pilot: str = 'paper'
+    safety: bool = False
 
 
 HELP = {
@@ -109,6 +114,10 @@ HELP = {
     'dagger_rounds': 'DAgger rounds before TD3: fly the current actor, label every visited state with the '
                      'scripted demonstrator, clone again (--bc-steps) on all demonstrations so far',
     'dagger_episodes': 'landings flown per DAgger round',
+    'pilot': 'simulated pilots to train with (domain randomisation): paper, a training family of '
+             'assist_sim.pilots (TRAIN_FAMILIES) or train_mix (one training family per landing); the held-out '
+             'families and mix are refused',
+    'safety': 'fly with the floor guard (assist_policy.safety) on, as policy_node does by default',
 }
 
 
@@ -142,10 +151,19 @@ def collect_demos(env: LandingAssistEnv, episodes: int, noise: float, seed: int,
     return np.asarray(obs_l, np.float32), np.asarray(act_l, np.float32), results
 
 
+def check_training_pilot(name: str) -> None:
+    """ValueError unless `name` is a pilot training may use (never a held-out family or the held-out mix)."""
+    if name not in TRAIN_FAMILIES + ('train_mix',):
+        raise ValueError(f'pilot {name!r} is not for training: use one of {", ".join(TRAIN_FAMILIES)} or '
+                         f'train_mix (held out for evaluation only: {", ".join(HELDOUT_FAMILIES)}, mix)')
+
+
 def env_config_from(args: TrainArgs) -> EnvConfig:
     """The task the run trains on."""
+    check_training_pilot(args.pilot)
     return EnvConfig(condition=args.condition, alpha=args.alpha, max_episode_s=args.max_episode_s,
-                     encoder_path=args.encoder_path,
+                     encoder_path=args.encoder_path, pilot_family=args.pilot,
+                     safety=SafetyConfig() if args.safety else None,
                      reward=RewardConfig(landing_weight=args.landing_weight,
                                          progress_weight=args.progress_weight,
                                          progress_radius_m=args.progress_radius_m,

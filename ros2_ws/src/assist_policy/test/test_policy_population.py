@@ -1,0 +1,74 @@
+"""Pilot population in the env, evaluate --pilot / --safety, and train_td3's training-only pilots."""
+import csv
+
+import numpy as np
+import pytest
+
+from assist_policy.env import EnvConfig, LandingAssistEnv, run_episode
+from assist_policy.evaluate import EvalArgs, evaluate, main
+from assist_policy.safety import SafetyConfig
+from assist_policy.train import TrainArgs, check_training_pilot, env_config_from
+from assist_sim.pilots import HELDOUT_FAMILIES, TRAIN_FAMILIES
+
+
+def test_env_flies_the_named_family_and_mix_draws_held_out_families():
+    env = LandingAssistEnv(EnvConfig(condition='none', pilot_family='late_correction'))
+    _, info = env.reset(seed=3)
+    assert info['pilot'] == 'late_correction' and 'notice_height_m' in info['pilot_params']
+    pads = env.world.pad_top_centers
+    est = env.pilot.goal_estimate
+    # the wrong pad it flies to is a real pad of this scene, not the goal
+    k = int(np.argmin(np.linalg.norm(pads[:, :2] - est[:2], axis=1)))
+    assert k != env.world.goal_index and np.linalg.norm(pads[k, :2] - est[:2]) < 0.4
+    seen = set()
+    for s in range(12):
+        _, info = env.reset(seed=s, options={'pilot': 'mix'})
+        seen.add(info['pilot'])
+    assert seen <= set(HELDOUT_FAMILIES) and len(seen) >= 3
+    env.close()
+
+
+def test_paper_pilot_episode_is_unchanged_by_the_population_code():
+    """The default pilot through make_pilot gives the same landing as before (seeded, bit-identical pilot)."""
+    a = LandingAssistEnv(EnvConfig(condition='none'))
+    b = LandingAssistEnv(EnvConfig(condition='none', pilot_family='paper'))
+    ra, rb = run_episode(a, None, 5, {'beta': 0.3}), run_episode(b, None, 5, {'beta': 0.3})
+    assert ra['error_m'] == rb['error_m'] and ra['outcome'] == rb['outcome'] and ra['pilot'] == 'paper'
+    a.close()
+    b.close()
+
+
+def test_evaluate_pilot_and_safety_columns(tmp_path):
+    args = EvalArgs(out=str(tmp_path), conditions=('unassisted', 'scripted_nearest_pad'), betas=(0.0,),
+                    landings=2, pilot='bang_bang', safety=True, plot=False)
+    summary = evaluate(args)
+    assert set(summary) == {'unassisted', 'scripted_nearest_pad'}
+    rows = list(csv.DictReader(open(tmp_path / 'landings.csv')))
+    assert len(rows) == 4 and {r['pilot'] for r in rows} == {'bang_bang'}
+    assert all(0.0 <= float(r['guard_fraction']) <= 1.0 for r in rows)
+    assert all(float(r['guard_fraction']) == 0.0 for r in rows if r['condition'] == 'unassisted')
+    assert main(['--pilot', 'nobody', '--out', str(tmp_path / 'x'), '--landings', '1']) == 1
+
+
+def test_env_floor_guard_turns_a_floor_descent_into_a_climb():
+    """Over the floor, below the guard height, a descending pilot is held up by the guard (oracle env)."""
+    env = LandingAssistEnv(EnvConfig(condition='oracle', safety=SafetyConfig()))
+    env.reset(seed=1)
+    pads = env.world.pad_top_centers
+    x = pads[:, 0].min() - 2.0                                   # well before the first pad: floor only
+    env.world.reset(seed=env.world.scene.seed, scene=env.world.scene, start_position=[x, 0.0, 0.7])
+    env._u = np.array([0.0, 0.0, -0.5])
+    _, _, _, _, info = env.step(np.zeros(3))
+    assert info['guard'] and info['active']
+    assert env.world.state.velocity[2] > -0.2                     # not following the -0.5 m/s descent
+    env.close()
+
+
+def test_training_refuses_held_out_pilots():
+    for name in TRAIN_FAMILIES + ('train_mix',):
+        check_training_pilot(name)
+    for name in HELDOUT_FAMILIES + ('mix',):
+        with pytest.raises(ValueError, match='not for training'):
+            env_config_from(TrainArgs(pilot=name))
+    cfg = env_config_from(TrainArgs(pilot='train_mix', safety=True))
+    assert cfg.pilot_family == 'train_mix' and cfg.safety is not None
