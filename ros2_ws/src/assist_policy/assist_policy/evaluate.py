@@ -19,7 +19,8 @@ goal-agnostic assistant can only get these right by reading the pilot's correcti
 Pilots other than the paper's (issue 12): `--pilot <family|mix|train_mix>` flies every landing with a
 pilot of that assist_sim.pilots family (`mix`: a held-out family drawn per landing); the column `pilot`
 names the family flown. `--safety` turns on the floor guard (assist_policy.safety, on by default in
-policy_node) for every assisted condition; `guard_fraction` is the share of steps it acted.
+policy_node) for every assisted condition, whose rows are then named `<condition>+guard` (so runs with
+and without it combine with --from-csv); `guard_fraction` is the share of steps it acted.
 
     evaluate --pilot bang_bang --betas 0 0.25 0.5 0.75 1 --landings 8 --out runs/eval_bang_bang
 """
@@ -261,12 +262,12 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
             for bi, beta in enumerate(args.betas):
                 for k in range(args.landings):
                     row = run_landing(env, policy, args.seed + 1000 * bi + k, float(beta))
-                    row['condition'] = cond
+                    row['condition'] = cond + ('+guard' if args.safety and cond != 'unassisted' else '')
                     w.writerow(row)
                     rows.append(row)
                 fh.flush()
             env.close()
-            rows_by_cond[cond] = rows
+            rows_by_cond[rows[0]['condition'] if rows else cond] = rows
             log.info('%s: %d landings in %.0f s', cond, len(rows), time.time() - t0)
     summary = {c: summarize(r) for c, r in rows_by_cond.items()}
     with open(out / 'summary.csv', 'w', newline='', encoding='utf-8') as fh:

@@ -42,7 +42,7 @@ def test_evaluate_pilot_and_safety_columns(tmp_path):
     args = EvalArgs(out=str(tmp_path), conditions=('unassisted', 'scripted_nearest_pad'), betas=(0.0,),
                     landings=2, pilot='bang_bang', safety=True, plot=False)
     summary = evaluate(args)
-    assert set(summary) == {'unassisted', 'scripted_nearest_pad'}
+    assert set(summary) == {'unassisted', 'scripted_nearest_pad+guard'}
     rows = list(csv.DictReader(open(tmp_path / 'landings.csv')))
     assert len(rows) == 4 and {r['pilot'] for r in rows} == {'bang_bang'}
     assert all(0.0 <= float(r['guard_fraction']) <= 1.0 for r in rows)
