@@ -1,6 +1,6 @@
 """Assisted landing in simulation: sim_node + encoder_node + sim_pilot_node + policy_node.
 
-ros2 launch assist_policy assist.launch.py mode:=latent beta:=0.3 real_time_factor:=1.0
+ros2 launch assist_policy assist.launch.py mode:=latent beta:=0.3 real_time_factor:=1.0 [pilot:=keyboard]
 """
 import os
 
@@ -20,6 +20,8 @@ def generate_launch_description():
     args = [DeclareLaunchArgument('mode', default_value='latent', description='latent | oracle | end_to_end'),
             DeclareLaunchArgument('alpha', default_value='0.5'),
             DeclareLaunchArgument('beta', default_value='0.5'),
+            DeclareLaunchArgument('pilot', default_value='paper',
+                                  description='simulated pilot: paper or an assist_sim.pilots family / mix'),
             DeclareLaunchArgument('seed', default_value='0'),
             DeclareLaunchArgument('real_time_factor', default_value='1.0'),
             DeclareLaunchArgument('gui', default_value='false'),
@@ -34,6 +36,7 @@ def generate_launch_description():
     pilot = Node(package='assist_sim', executable='sim_pilot_node', name='sim_pilot_node', output='screen',
                  parameters=[params, sim_time, {'alpha': LaunchConfiguration('alpha'),
                                                 'beta': LaunchConfiguration('beta'),
+                                                'pilot': LaunchConfiguration('pilot'),
                                                 'seed': LaunchConfiguration('seed')}])
     policy = Node(package='assist_policy', executable='policy_node', name='policy_node', output='screen',
                   parameters=[params, sim_time, {'mode': mode, 'model_path': LaunchConfiguration('model_path')}])
