@@ -188,6 +188,38 @@ def summarize(rows: list[dict]) -> dict:
                                  if any(misaimed) else float('nan'))}
 
 
+def paired_vs_unassisted(rows_by_cond: dict[str, list[dict]], worse_m: float = 0.25) -> dict[str, dict]:
+    """Per condition, against unassisted on the same landings (beta, seed): error and crash differences.
+
+    `delta_error` is the mean of (error - unassisted error) with its standard error `delta_se`;
+    `worse` the share of landings more than `worse_m` worse than unassisted (a new crash counts as worse),
+    `new_crash` the share that crash where the unassisted pilot did not.
+    """
+    base = {(r['beta'], r.get('seed')): r for r in rows_by_cond.get('unassisted', [])}
+    out = {}
+    for cond, rows in rows_by_cond.items():
+        pairs = [(r, base[(r['beta'], r.get('seed'))]) for r in rows
+                 if cond != 'unassisted' and (r['beta'], r.get('seed')) in base]
+        if not pairs:
+            continue
+        d = np.array([r['error_m'] - b['error_m'] for r, b in pairs])
+        new_crash = np.array([r['crash'] and not b['crash'] for r, b in pairs])
+        out[cond] = {'n': len(pairs), 'delta_error': float(d.mean()),
+                     'delta_se': float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float('nan'),
+                     'worse': float(np.mean((d > worse_m) | new_crash)), 'new_crash': float(new_crash.mean())}
+    return out
+
+
+def format_paired(paired: dict[str, dict]) -> str:
+    """Text table of paired_vs_unassisted."""
+    lines = [f'{"vs unassisted, same landings":<28} {"n":>4} {"d error m (+- se)":>18} {"worse >0.25m":>12} '
+             f'{"new crash":>9}']
+    for cond, p in paired.items():
+        lines.append(f'{cond:<28} {p["n"]:>4} {p["delta_error"]:>+9.3f} +- {p["delta_se"]:<5.3f} '
+                     f'{100 * p["worse"]:>11.1f}% {100 * p["new_crash"]:>8.1f}%')
+    return '\n'.join(lines)
+
+
 def _pct(x: float) -> str:
     """A share as a 6-wide percentage, or n/a when undefined (e.g. no misaimed landings)."""
     return f'{"n/a":>6}' if not np.isfinite(x) else f'{100 * x:>5.1f}%'
@@ -279,6 +311,9 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
             w.writerow([c] + [round(s[k], 4) for k in keys])
     if args.plot and rows_by_cond:
         plot(rows_by_cond, out / 'error_vs_beta.png')
+    paired = paired_vs_unassisted(rows_by_cond)
+    if paired:
+        (out / 'paired.txt').write_text(format_paired(paired) + '\n', encoding='utf-8')
     return summary
 
 
@@ -303,6 +338,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f'pilot {args.pilot}, floor guard {"on" if args.safety else "off"}, alpha {args.alpha}, betas {args.betas[0]}..{args.betas[-1]} ({len(args.betas)}), '
               f'{args.landings} landings each, seed {args.seed}')
     print(format_table(summary))
+    paired = Path(args.out) / 'paired.txt'
+    if paired.exists():
+        print(paired.read_text(encoding='utf-8'), end='')
     print(f'written: {args.out}/landings.csv, summary.csv, error_vs_beta.png')
     return 0
 

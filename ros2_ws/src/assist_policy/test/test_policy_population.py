@@ -72,3 +72,17 @@ def test_training_refuses_held_out_pilots():
             env_config_from(TrainArgs(pilot=name))
     cfg = env_config_from(TrainArgs(pilot='train_mix', safety=True))
     assert cfg.pilot_family == 'train_mix' and cfg.safety is not None
+
+
+def test_paired_comparison_with_unassisted_on_the_same_landings():
+    from assist_policy.evaluate import format_paired, paired_vs_unassisted
+
+    def row(beta, seed, err, crash=False):
+        return {'beta': beta, 'seed': seed, 'error_m': err, 'crash': crash}
+    rows = {'unassisted': [row(0.0, 1, 0.5), row(0.0, 2, 1.0, True), row(1.0, 3, 0.2)],
+            'latent': [row(0.0, 1, 0.1), row(0.0, 2, 0.1), row(1.0, 3, 0.6, True), row(1.0, 9, 0.0)]}
+    p = paired_vs_unassisted(rows)
+    assert set(p) == {'latent'} and p['latent']['n'] == 3                  # seed 9 has no unassisted twin
+    assert p['latent']['delta_error'] == pytest.approx((-0.4 - 0.9 + 0.4) / 3)
+    assert p['latent']['worse'] == pytest.approx(1 / 3) and p['latent']['new_crash'] == pytest.approx(1 / 3)
+    assert 'latent' in format_paired(p)
