@@ -44,13 +44,14 @@ from .env import EnvConfig, LandingAssistEnv, run_episode
 from .latent import make_latent_fn
 from .policy_core import default_model_path
 from .safety import SafetyConfig
-from .scripted import ScriptedNearestPad, ScriptedOracle
+from .scripted import YIELD_SPEED_MPS, ScriptedConfig, ScriptedNearestPad, ScriptedOracle
 from .td3 import load_actor
 
 log = logging.getLogger(__name__)
 
 CONDITIONS = ('unassisted', 'latent', 'oracle', 'end_to_end')
-BASELINES = ('scripted_oracle', 'scripted_nearest_pad')   # hand-written assistants (reference only)
+# hand-written assistants (reference only); scripted_nearest_pad_yield: yields to a held key (scripted.py)
+BASELINES = ('scripted_oracle', 'scripted_nearest_pad', 'scripted_nearest_pad_yield')
 PAPER = {'unassisted': '0.67 +- 0.40', 'end_to_end': '0.37 +- 0.33', 'latent': '0.25 +- 0.15',
          'oracle': '0.10 +- 0.07'}
 
@@ -133,7 +134,9 @@ def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: fl
     if condition in BASELINES:
         env = LandingAssistEnv(EnvConfig(condition='oracle', alpha=alpha, max_episode_s=max_episode_s,
                                          pilot_family=pilot, safety=safety))
-        script = ScriptedOracle() if condition == 'scripted_oracle' else ScriptedNearestPad()
+        script = (ScriptedOracle() if condition == 'scripted_oracle' else
+                  ScriptedNearestPad(ScriptedConfig(yield_speed_mps=YIELD_SPEED_MPS)) if condition.endswith('_yield')
+                  else ScriptedNearestPad())
         return env, lambda obs: script.raw_action(env)
     path = Path(model) if model else default_model_path(condition)
     actor, meta = load_actor(path)

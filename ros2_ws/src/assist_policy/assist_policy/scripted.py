@@ -14,6 +14,12 @@ import numpy as np
 from .actions import DEFAULT_MAX_SPEED, unscale_action
 
 
+# The teacher's yield threshold (m/s of mean horizontal pilot command over 1 s): above what the paper
+# pilot's fine taps reach (duty <= 0.5 per axis near its aim: <= 0.71 m/s on a diagonal), below a held key
+# (1 m/s).
+YIELD_SPEED_MPS = 0.75
+
+
 @dataclass
 class ScriptedConfig:
     """Gains of the scripted oracle assistant."""
@@ -31,6 +37,12 @@ class ScriptedConfig:
     descend_mps: float = 1.0
     climb_mps: float = 0.5
     cancel_pilot: float = 1.0         # fraction of the pilot's horizontal command cancelled
+    # Yield to a deliberate correction (issue 12; 0 = never, the reference script): when the pilot's mean
+    # horizontal command over the last second exceeds this (a held key, not fine taps: the paper pilot
+    # taps at duty <= 0.5 near its aim) while it is not descending, the nearest-pad assistant relinquishes
+    # instead of cancelling the pilot on the pad below: a pilot who set off for a neighbour pad and
+    # noticed late can leave it. Uses only what the actor observes (u and its 1 s mean).
+    yield_speed_mps: float = 0.0
 
 
 class ScriptedOracle:
@@ -76,8 +88,19 @@ class ScriptedNearestPad:
         self.low_height_m = low_height_m
         self.oracle = ScriptedOracle(self.cfg, max_speed)
 
-    def velocity(self, pads: np.ndarray, position: np.ndarray, pilot: np.ndarray) -> np.ndarray:
-        """Assistant velocity toward the pad nearest to the vehicle, or zero in transit."""
+    def yields(self, pilot: np.ndarray, mean_pilot: np.ndarray | None) -> bool:
+        """Whether the pilot is making a deliberate correction the assistant should let through."""
+        c = self.cfg
+        if c.yield_speed_mps <= 0 or mean_pilot is None:
+            return False
+        m = np.asarray(mean_pilot, dtype=float)
+        return float(np.asarray(pilot, dtype=float)[2]) >= 0.0 and float(np.hypot(m[0], m[1])) > c.yield_speed_mps
+
+    def velocity(self, pads: np.ndarray, position: np.ndarray, pilot: np.ndarray,
+                 mean_pilot: np.ndarray | None = None) -> np.ndarray:
+        """Assistant velocity toward the pad nearest to the vehicle, or zero in transit (or when yielding)."""
+        if self.yields(pilot, mean_pilot):
+            return np.zeros(3)
         p = np.asarray(position, dtype=float)
         pads = np.asarray(pads, dtype=float)
         k = int(np.argmin(np.linalg.norm(pads[:, :2] - p[:2], axis=1)))
@@ -88,5 +111,8 @@ class ScriptedNearestPad:
 
     def raw_action(self, env) -> np.ndarray:
         """Raw action in [-1, 1]^3 for the env's current state (pad positions, no goal)."""
-        return unscale_action(self.velocity(env.world.pad_top_centers, env.world.state.position, env.pilot_action),
-                              self.max_speed)
+        mean_u = None
+        if self.cfg.yield_speed_mps > 0:
+            mean_u, _ = env.builder.history.means(env.world.state.time - env._t0)
+        return unscale_action(self.velocity(env.world.pad_top_centers, env.world.state.position, env.pilot_action,
+                                            mean_u), self.max_speed)

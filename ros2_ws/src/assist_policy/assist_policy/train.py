@@ -30,7 +30,7 @@ from .cli import add_dataclass_args, dataclass_from_args
 from .env import EnvConfig, LandingAssistEnv, RewardConfig, run_episode
 from .latent import make_latent_fn
 from .safety import SafetyConfig
-from .scripted import ScriptedNearestPad, ScriptedOracle
+from .scripted import YIELD_SPEED_MPS, ScriptedConfig, ScriptedNearestPad, ScriptedOracle
 from .td3 import TD3, OUNoise, ReplayBuffer, TD3Config, load_actor, save_actor
 
 log = logging.getLogger(__name__)
@@ -104,7 +104,8 @@ HELP = {
     'demo_noise': 'Gaussian noise (raw action units) on the demonstrations, for action diversity',
     'bc_steps': 'supervised actor pre-training steps on the (noise-free) demonstration actions',
     'critic_warmup_updates': 'critic-only updates on the preloaded buffer before training starts',
-    'demo_policy': 'demonstrator: oracle (knows the goal) or nearest_pad (goal-agnostic: centres the '
+    'demo_policy': 'demonstrator: oracle (knows the goal), nearest_pad_yield (nearest_pad that lets a held-key '
+                   'correction through) or nearest_pad (goal-agnostic: centres the '
                    'descending pilot on the pad below; imitable from the latent)',
     'demo_bc_file': 'demos_bc.npz of an earlier run: reuse its demonstrations for behaviour cloning / TD3+BC '
                     'instead of collecting new ones (preload its demos.npz with --preload)',
@@ -128,10 +129,11 @@ def collect_demos(env: LandingAssistEnv, episodes: int, noise: float, seed: int,
     The scripted assistant `demo_policy` labels every state. It also flies (+ Gaussian `noise`) unless
     `act_fn(obs)` is given: then that policy flies and the script only labels (DAgger).
     """
-    if demo_policy not in ('oracle', 'nearest_pad'):
-        raise ValueError(f'demo_policy must be oracle or nearest_pad, got {demo_policy!r}')
-    script = (ScriptedOracle(max_speed=env.cfg.max_speed) if demo_policy == 'oracle'
-              else ScriptedNearestPad(max_speed=env.cfg.max_speed))
+    if demo_policy not in ('oracle', 'nearest_pad', 'nearest_pad_yield'):
+        raise ValueError(f'demo_policy must be oracle, nearest_pad or nearest_pad_yield, got {demo_policy!r}')
+    script = (ScriptedOracle(max_speed=env.cfg.max_speed) if demo_policy == 'oracle' else
+              ScriptedNearestPad(ScriptedConfig(yield_speed_mps=YIELD_SPEED_MPS), max_speed=env.cfg.max_speed)
+              if demo_policy == 'nearest_pad_yield' else ScriptedNearestPad(max_speed=env.cfg.max_speed))
     rng = np.random.default_rng(seed)
     obs_l, act_l, results = [], [], []
     for ep in range(episodes):

@@ -86,3 +86,20 @@ def test_paired_comparison_with_unassisted_on_the_same_landings():
     assert p['latent']['delta_error'] == pytest.approx((-0.4 - 0.9 + 0.4) / 3)
     assert p['latent']['worse'] == pytest.approx(1 / 3) and p['latent']['new_crash'] == pytest.approx(1 / 3)
     assert 'latent' in format_paired(p)
+
+
+def test_yielding_nearest_pad_script_lets_a_held_key_through_but_not_taps_or_descents():
+    from assist_policy.scripted import YIELD_SPEED_MPS, ScriptedConfig, ScriptedNearestPad
+    pads = np.array([[4.0, 0.0, 0.6], [8.0, 0.0, 0.8]])
+    pos = np.array([4.2, 0.1, 1.2])                               # low over pad 0, off its centre
+    ref = ScriptedNearestPad()
+    yld = ScriptedNearestPad(ScriptedConfig(yield_speed_mps=YIELD_SPEED_MPS))
+    leaving = np.array([1.0, 0.0, 0.0])                           # holds 'forward' toward pad 1
+    held = ref.velocity(pads, pos, leaving, mean_pilot=leaving)
+    assert held[0] < -0.5                                          # the reference cancels it and centres
+    np.testing.assert_array_equal(yld.velocity(pads, pos, leaving, mean_pilot=leaving), 0.0)
+    taps = np.array([0.5, 0.5, 0.0])                               # fine taps: mean 0.71 m/s < 0.75
+    np.testing.assert_allclose(yld.velocity(pads, pos, leaving, mean_pilot=taps), held)
+    down = np.array([1.0, 0.0, -0.5])                              # overshooting while descending: no yield
+    np.testing.assert_allclose(yld.velocity(pads, pos, down, mean_pilot=leaving),
+                               ref.velocity(pads, pos, down, mean_pilot=leaving))
