@@ -1,0 +1,298 @@
+"""The pilot station in a real browser (headless Chromium + Selenium) against sim_node in a real graph.
+
+sim_node and pilot_station run as subprocesses on a private domain; the test's probe relays
+/pilot/cmd_vel to /cmd_vel (the unassisted condition, V = u) and records commands and odometry.
+Chromium is a Debian package (chromium, chromium-driver): `make test` installs it when missing, and
+this test fails (never skips) without it.
+"""
+from __future__ import annotations
+
+import base64
+import os
+import re
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from geometry_msgs.msg import TwistStamped
+from nav_msgs.msg import Odometry
+
+from assist_sim.ros_common import RELIABLE_QOS, SENSOR_QOS
+from assist_sim.testing import stop_process
+
+pytestmark = pytest.mark.graph
+BIN = Path(sys.executable).parent
+CHROMIUM_FLAGS = ('--headless=new', '--no-sandbox', '--disable-gpu', '--disable-dev-shm-usage', '--disable-quic',
+                  '--no-first-run', '--disable-background-networking', '--disable-component-update',
+                  '--disable-sync', '--window-size=1000,700')
+
+
+def wait_for(predicate, timeout, interval=0.02):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(interval)
+    return bool(predicate())
+
+
+class Proc:
+    """A console-script node on the test's domain, output in a log file."""
+
+    def __init__(self, exe: str, args: list[str], domain_id: int, log: Path):
+        self.log_path = log
+        self._f = open(log, 'w')
+        env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED='1')
+        self.proc = subprocess.Popen([str(BIN / exe), '--ros-args', *args], env=env, stdout=self._f,
+                                     stderr=subprocess.STDOUT, start_new_session=True)
+
+    def log(self) -> str:
+        self._f.flush()
+        return self.log_path.read_text(errors='replace')
+
+    def stop(self) -> int:
+        code = stop_process(self.proc, 10.0)
+        self._f.close()
+        return code
+
+
+class Probe:
+    """Records /pilot/cmd_vel and /odom (monotonic receive times); relays the pilot onto /cmd_vel."""
+
+    def __init__(self, node):
+        self.node, self.lock = node, threading.Lock()
+        self.cmds: list[tuple[float, np.ndarray]] = []
+        self.odom: list[tuple[float, np.ndarray, np.ndarray]] = []
+        self.relay = node.create_publisher(TwistStamped, '/cmd_vel', RELIABLE_QOS)
+        self.agent = node.create_publisher(TwistStamped, '/assist/agent_cmd', RELIABLE_QOS)
+        self.subs = [node.create_subscription(TwistStamped, '/pilot/cmd_vel', self._on_cmd, RELIABLE_QOS),
+                     node.create_subscription(Odometry, '/odom', self._on_odom, SENSOR_QOS)]
+
+    def _on_cmd(self, msg):
+        self.relay.publish(msg)
+        v = np.array([msg.twist.linear.x, msg.twist.linear.y, msg.twist.linear.z])
+        with self.lock:
+            self.cmds.append((time.monotonic(), v))
+
+    def _on_odom(self, msg):
+        p, v = msg.pose.pose.position, msg.twist.twist.linear
+        with self.lock:
+            self.odom.append((time.monotonic(), np.array([p.x, p.y, p.z]), np.array([v.x, v.y, v.z])))
+
+    def last_cmd(self):
+        with self.lock:
+            return self.cmds[-1][1] if self.cmds else None
+
+    def cmds_since(self, t):
+        with self.lock:
+            return [(tt, v) for tt, v in self.cmds if tt >= t]
+
+    def odom_since(self, t):
+        with self.lock:
+            return [o for o in self.odom if o[0] >= t]
+
+    def last_odom(self):
+        with self.lock:
+            return self.odom[-1] if self.odom else None
+
+    def close(self):
+        for s in self.subs:
+            self.node.destroy_subscription(s)
+        self.node.destroy_publisher(self.relay)
+        self.node.destroy_publisher(self.agent)
+
+
+def start_browser(user_dir: Path):
+    """Headless Chromium driven by Selenium through Debian's chromedriver (no downloads)."""
+    chromium, driver = shutil.which('chromium'), shutil.which('chromedriver')
+    if not chromium or not driver:
+        pytest.fail('chromium/chromedriver missing: run `make test` (installs the Debian packages chromium and '
+                    'chromium-driver) or apt-get install -y chromium chromium-driver')
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+    os.environ['SE_OFFLINE'] = 'true'                     # never let Selenium Manager go online
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = chromium
+    for flag in CHROMIUM_FLAGS + (f'--user-data-dir={user_dir}',):
+        opts.add_argument(flag)
+    return webdriver.Chrome(service=Service(driver), options=opts)
+
+
+@pytest.fixture(scope='module')
+def station(ros, domain_id, tmp_path_factory):
+    """sim_node + pilot_station + probe + one browser page on the station's URL."""
+    tmp = tmp_path_factory.mktemp('station')
+    sim = Proc('sim_node', ['-p', 'seed:=3', '-p', 'real_time_factor:=1.0'], domain_id, tmp / 'sim.log')
+    st = Proc('pilot_station', ['-p', 'port:=0', '-p', 'mode:=practice'], domain_id, tmp / 'station.log')
+    probe = Probe(ros)
+    driver = None
+    try:
+        assert wait_for(lambda: 'open http://' in st.log(), 60), st.log()
+        url = re.search(r'open (http://127\.0\.0\.1:\d+/)', st.log()).group(1)
+        assert wait_for(lambda: probe.last_odom() is not None, 60), sim.log()
+        driver = start_browser(tmp / 'chromium')
+        driver.get(url)
+        yield {'driver': driver, 'probe': probe, 'url': url, 'tmp': tmp, 'sim': sim, 'station': st}
+    finally:
+        if driver is not None:
+            driver.quit()
+        probe.close()
+        st.stop()
+        sim.stop()
+
+
+def stats(driver) -> dict:
+    return driver.execute_script('return window.stationStats')
+
+
+def canvas_image(driver) -> np.ndarray:
+    """The chase view's own pixels (no HUD overlays) as an RGB array."""
+    url = driver.execute_script("return document.getElementById('view').toDataURL('image/png')")
+    png = base64.b64decode(url.split(',', 1)[1])
+    return cv2.cvtColor(cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+
+
+def changed_fraction(a: np.ndarray, b: np.ndarray) -> float:
+    """Share of pixels whose colour differs by more than 24 in some channel."""
+    return float((np.abs(a.astype(int) - b.astype(int)).max(axis=2) > 24).mean())
+
+
+def key(driver, name: str, down: bool):
+    from selenium.webdriver.common.action_chains import ActionChains
+    chain = ActionChains(driver)
+    (chain.key_down if down else chain.key_up)(name).perform()
+
+
+def test_page_shows_the_chase_view_scene_and_camera(station):
+    d = station['driver']
+    assert wait_for(lambda: (s := stats(d))['ws'] == 'open' and s['role'] == 'pilot' and s['pose'] is not None
+                    and s['scenePlatforms'] == 5 and s['cameraFrames'] > 5, 30), stats(d)
+    time.sleep(1.5)                                            # let the fps counter settle
+    s = stats(d)
+    assert s['fps'] >= 20, s['fps']
+    assert s['canvas'][0] >= 480 and s['canvas'][1] >= 360
+    assert s['goal'] is not None and s['mode'] == 'practice'
+    img = canvas_image(d)
+    assert img.shape[0] >= 360 and img.shape[1] >= 480
+    assert img.std() > 10 and len(np.unique(img.reshape(-1, 3), axis=0)) > 100      # not blank
+    red = (img[..., 0] > 200) & (img[..., 1] < 90) & (img[..., 2] < 80)
+    assert red.sum() > 30, 'goal platform not marked'
+    orange = (img[..., 0] > 200) & (img[..., 1] > 100) & (img[..., 1] < 170) & (img[..., 2] < 60)
+    assert orange.sum() > 50, 'drone not drawn'
+    inset = d.execute_script("const c = document.getElementById('inset'); return c.toDataURL('image/png')")
+    inset_img = cv2.imdecode(np.frombuffer(base64.b64decode(inset.split(',', 1)[1]), np.uint8), cv2.IMREAD_COLOR)
+    assert inset_img.std() > 5                                 # the downward camera, not an empty box
+    assert 'connected' in d.find_element('id', 'conn').text
+    d.save_screenshot(str(station['tmp'] / 'station_hover.png'))
+    png = cv2.imread(str(station['tmp'] / 'station_hover.png'))
+    assert png is not None and png.std() > 10
+
+
+def test_holding_w_flies_forward_and_releasing_stops(station):
+    d, probe = station['driver'], station['probe']
+    before = canvas_image(d)
+    time.sleep(0.5)
+    hover = canvas_image(d)
+    x0 = probe.last_odom()[1][0]
+    t_key = time.monotonic()
+    key(d, 'w', True)
+    assert wait_for(lambda: any(v[0] > 0 for _, v in probe.cmds_since(t_key)), 2.0)
+    t_cmd = next(t for t, v in probe.cmds_since(t_key) if v[0] > 0)
+    time.sleep(1.0)
+    held = [v for t, v in probe.cmds_since(t_cmd)]
+    assert len(held) >= 15                                     # fixed rate (20 Hz) while held
+    for v in held:
+        np.testing.assert_allclose(v, [1.0, 0.0, 0.0])
+    moving = canvas_image(d)
+    t_release = time.monotonic()
+    key(d, 'w', False)
+    moved = [o for o in probe.odom_since(t_key) if o[2][0] > 0.15]
+    assert moved, 'vehicle never moved forward'
+    assert probe.last_odom()[1][0] - x0 > 0.3
+    assert wait_for(lambda: any(np.allclose(v, 0) for _, v in probe.cmds_since(t_release)), 1.0)
+    t_zero = next(t for t, v in probe.cmds_since(t_release) if np.allclose(v, 0))
+    time.sleep(0.3)
+    assert all(np.allclose(v, 0) for t, v in probe.cmds_since(t_zero))     # stays zero
+    assert wait_for(lambda: np.linalg.norm(probe.last_odom()[2][:2]) < 0.2, 5.0)
+    # the view follows the drone: flying changed it far more than hovering did
+    still, flown = changed_fraction(before, hover), changed_fraction(before, moving)
+    assert flown > 0.02 and flown > 2.5 * still, (still, flown)
+    cv2.imwrite(str(station['tmp'] / 'station_moving.png'), cv2.cvtColor(moving, cv2.COLOR_RGB2BGR))
+    page = stats(d)['keyToMotionMs']
+    print(f'key -> /pilot/cmd_vel {1000 * (t_cmd - t_key):.0f} ms, key -> odom moving '
+          f'{1000 * (moved[0][0] - t_key):.0f} ms (test clock, includes WebDriver); page key event -> '
+          f'motion seen {page} ms; view change hover {still:.3f} flown {flown:.3f}')
+
+
+def test_blur_with_a_key_held_stops_the_vehicle(station):
+    d, probe = station['driver'], station['probe']
+    t0 = time.monotonic()
+    key(d, 'd', True)
+    assert wait_for(lambda: any(v[1] < 0 for _, v in probe.cmds_since(t0)), 2.0)
+    time.sleep(0.5)
+    np.testing.assert_allclose(probe.last_cmd(), [0.0, -1.0, 0.0])
+    releases = stats(d)['releases']
+    t_blur = time.monotonic()
+    d.execute_script("window.dispatchEvent(new Event('blur'))")
+    assert wait_for(lambda: any(np.allclose(v, 0) for _, v in probe.cmds_since(t_blur)), 1.0)
+    time.sleep(0.5)
+    assert all(np.allclose(v, 0) for _, v in probe.cmds_since(t_blur + 0.2))
+    s = stats(d)
+    assert s['releases'] == releases + 1 and s['held'] == []
+    key(d, 'd', False)
+    assert wait_for(lambda: np.linalg.norm(probe.last_odom()[2][:2]) < 0.2, 5.0)
+
+
+def test_assistant_state_is_shown(station):
+    d, probe = station['driver'], station['probe']
+
+    def publish(a, seconds):
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            msg = TwistStamped()
+            msg.header.frame_id = 'base_link'
+            msg.twist.linear.x, msg.twist.linear.y, msg.twist.linear.z = a
+            probe.agent.publish(msg)
+            time.sleep(0.05)
+    assist = lambda: d.find_element('id', 'assist').text      # noqa: E731
+    assert assist() == 'unassisted'
+    publish((0.5, 0.0, 0.0), 1.0)
+    assert assist() == 'assistant acting'
+    publish((0.1, 0.0, 0.0), 1.0)
+    assert assist() == 'assisted'
+    assert wait_for(lambda: assist() == 'unassisted', 3.0)
+
+
+def test_descending_to_a_landing_shows_the_result(station):
+    d, probe = station['driver'], station['probe']
+    key(d, 'ARROW_DOWN' if False else '\ue015', True)          # Selenium's Keys.ARROW_DOWN
+    try:
+        assert wait_for(lambda: any(v[2] < 0 for _, v in probe.cmds_since(time.monotonic() - 1)), 2.0)
+        assert wait_for(lambda: stats(d)['landing'] is not None, 40.0), probe.last_odom()
+    finally:
+        key(d, '\ue015', False)
+    landing = stats(d)['landing']
+    assert landing['show'] is True and landing['text']
+    assert d.find_element('id', 'landing').text == landing['text']
+
+
+def test_a_second_browser_tab_is_view_only(station):
+    d = station['driver']
+    first = d.current_window_handle
+    d.switch_to.new_window('tab')
+    try:
+        d.get(station['url'])
+        assert wait_for(lambda: stats(d)['role'] == 'spectator', 15.0), stats(d)
+        banner = d.find_element('id', 'banner')
+        assert banner.is_displayed() and 'another pilot' in banner.text
+        assert d.find_element('id', 'role').text == 'view only'
+    finally:
+        d.close()
+        d.switch_to.window(first)
+    assert stats(d)['role'] == 'pilot'
