@@ -57,6 +57,7 @@
     if (!KEYS.includes(e.code)) return;
     e.preventDefault();
     if (held.includes(e.code)) return;                 // auto-repeat: nothing new
+    stats.lastKey = { code: e.code, epochMs: performance.timeOrigin + e.timeStamp };   // for latency benches
     if (e.code === 'Space') { setHeld(['Space']); motionProbe = null; return; }
     const ax = AXES[e.code];
     const v = state && state.pose ? state.pose.v[ax[0]] * ax[1] : 0;
