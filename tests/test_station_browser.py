@@ -20,6 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry
 
@@ -69,10 +70,18 @@ class Probe:
         self.node, self.lock = node, threading.Lock()
         self.cmds: list[tuple[float, np.ndarray]] = []
         self.odom: list[tuple[float, np.ndarray, np.ndarray]] = []
+        self.diag: dict[str, str] = {}
         self.relay = node.create_publisher(TwistStamped, '/cmd_vel', RELIABLE_QOS)
         self.agent = node.create_publisher(TwistStamped, '/assist/agent_cmd', RELIABLE_QOS)
         self.subs = [node.create_subscription(TwistStamped, '/pilot/cmd_vel', self._on_cmd, RELIABLE_QOS),
-                     node.create_subscription(Odometry, '/odom', self._on_odom, SENSOR_QOS)]
+                     node.create_subscription(Odometry, '/odom', self._on_odom, SENSOR_QOS),
+                     node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10)]
+
+    def _on_diag(self, msg):
+        for st in msg.status:
+            if st.name.endswith('pilot_station'):
+                with self.lock:
+                    self.diag = {kv.key: kv.value for kv in st.values}
 
     def _on_cmd(self, msg):
         self.relay.publish(msg)
@@ -296,3 +305,24 @@ def test_a_second_browser_tab_is_view_only(station):
         d.close()
         d.switch_to.window(first)
     assert stats(d)['role'] == 'pilot'
+
+
+def test_station_diagnostics_count_what_happened(station):
+    probe = station['probe']
+    assert wait_for(lambda: probe.diag.get('second_browser_refused') == '1', 5.0), probe.diag
+    assert int(probe.diag['pilot_connects']) >= 1 and probe.diag['pilot_connected'] == 'True'
+    assert probe.diag['url'] == station['url']
+
+
+@pytest.mark.parametrize('args, expected', [
+    (['-p', 'port:={port}'], 'cannot serve on 127.0.0.1:{port}'),
+    (['-p', 'mode:=exam'], "parameter 'mode' must be one of practice, study, free"),
+    (['-p', 'port:=70000'], "parameter 'port' must be >= 0 and <= 65535"),
+])
+def test_station_that_cannot_start_exits_with_one_clear_line(station, domain_id, args, expected):
+    port = re.search(r':(\d+)/', station['url']).group(1)
+    args = [a.format(port=port) for a in args]
+    proc = subprocess.run([str(BIN / 'pilot_station'), '--ros-args', *args], capture_output=True, text=True,
+                          timeout=60, env=dict(os.environ, ROS_DOMAIN_ID=str(domain_id)))
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert expected.format(port=port) in proc.stderr and 'Traceback' not in proc.stderr, proc.stderr

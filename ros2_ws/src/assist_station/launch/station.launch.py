@@ -31,7 +31,7 @@ def generate_launch_description():
             DeclareLaunchArgument('seed', default_value='0'),
             DeclareLaunchArgument('port', default_value='8080'),
             DeclareLaunchArgument('sim', default_value='true', description='start sim_node')]
-    sim_time = {'use_sim_time': True}
+    sim_time = {'use_sim_time': LaunchConfiguration('sim')}   # sim time only with sim_node's /clock
     sim = Node(package='assist_sim', executable='sim_node', name='sim_node', output='screen',
                parameters=[sim_params, {'seed': LaunchConfiguration('seed'), 'real_time_factor': 1.0}],
                condition=IfCondition(LaunchConfiguration('sim')))
