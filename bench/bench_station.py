@@ -25,13 +25,11 @@ from pathlib import Path
 import numpy as np
 
 from assist_sim.testing import stop_process
+from assist_station.testing import start_browser
 
 N_TRIALS = 12
 MOVING_MPS = 0.15
 FPS_WINDOW_S = 5.0
-FLAGS = ('--headless=new', '--no-sandbox', '--disable-gpu', '--disable-dev-shm-usage', '--disable-quic',
-         '--no-first-run', '--disable-background-networking', '--disable-component-update', '--disable-sync',
-         '--window-size=1000,700')
 
 
 def _wait(pred, timeout):
@@ -51,14 +49,10 @@ def run() -> list[dict]:
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
-    from selenium import webdriver
-    from selenium.webdriver.chrome.service import Service
     from selenium.webdriver.common.action_chains import ActionChains
 
     from assist_sim.ros_common import RELIABLE_QOS, SENSOR_QOS
 
-    if not (shutil.which('chromium') and shutil.which('chromedriver')):
-        raise RuntimeError('chromium/chromedriver missing: make browser')
     domain = random.Random(os.getpid() ^ time.monotonic_ns()).randint(200, 232)
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED='1')
     bindir = Path(sys.executable).parent
@@ -96,12 +90,7 @@ def run() -> list[dict]:
         if not _wait(lambda: 'open http://' in (tmp / 'station.log').read_text(), 60):
             raise RuntimeError('pilot_station did not start')
         url = re.search(r'open (http://\S+/)', (tmp / 'station.log').read_text()).group(1)
-        os.environ['SE_OFFLINE'] = 'true'
-        opts = webdriver.ChromeOptions()
-        opts.binary_location = shutil.which('chromium')
-        for f in FLAGS + (f'--user-data-dir={tmp / "chromium"}',):
-            opts.add_argument(f)
-        driver = webdriver.Chrome(service=Service(shutil.which('chromedriver')), options=opts)
+        driver = start_browser(tmp / 'chromium')
         driver.get(url)
         stats = lambda: driver.execute_script('return window.stationStats')  # noqa: E731
         if not _wait(lambda: (s := stats())['pose'] is not None and s['scenePlatforms'] == 5, 60):

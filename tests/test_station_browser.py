@@ -7,10 +7,8 @@ this test fails (never skips) without it.
 """
 from __future__ import annotations
 
-import base64
 import os
 import re
-import shutil
 import subprocess
 import sys
 import threading
@@ -26,12 +24,10 @@ from nav_msgs.msg import Odometry
 
 from assist_sim.ros_common import RELIABLE_QOS, SENSOR_QOS
 from assist_sim.testing import stop_process
+from assist_station import testing
 
 pytestmark = pytest.mark.graph
 BIN = Path(sys.executable).parent
-CHROMIUM_FLAGS = ('--headless=new', '--no-sandbox', '--disable-gpu', '--disable-dev-shm-usage', '--disable-quic',
-                  '--no-first-run', '--disable-background-networking', '--disable-component-update',
-                  '--disable-sync', '--window-size=1000,700')
 
 
 def wait_for(predicate, timeout, interval=0.02):
@@ -118,19 +114,11 @@ class Probe:
 
 
 def start_browser(user_dir: Path):
-    """Headless Chromium driven by Selenium through Debian's chromedriver (no downloads)."""
-    chromium, driver = shutil.which('chromium'), shutil.which('chromedriver')
-    if not chromium or not driver:
-        pytest.fail('chromium/chromedriver missing: run `make test` (installs the Debian packages chromium and '
-                    'chromium-driver) or apt-get install -y chromium chromium-driver')
-    from selenium import webdriver
-    from selenium.webdriver.chrome.service import Service
-    os.environ['SE_OFFLINE'] = 'true'                     # never let Selenium Manager go online
-    opts = webdriver.ChromeOptions()
-    opts.binary_location = chromium
-    for flag in CHROMIUM_FLAGS + (f'--user-data-dir={user_dir}',):
-        opts.add_argument(flag)
-    return webdriver.Chrome(service=Service(driver), options=opts)
+    """Headless Chromium; fails (never skips) when the Debian packages are missing."""
+    try:
+        return testing.start_browser(user_dir)
+    except FileNotFoundError as exc:
+        pytest.fail(str(exc))
 
 
 @pytest.fixture(scope='module')
@@ -157,14 +145,12 @@ def station(ros, domain_id, tmp_path_factory):
 
 
 def stats(driver) -> dict:
-    return driver.execute_script('return window.stationStats')
+    return testing.page_stats(driver)
 
 
 def canvas_image(driver) -> np.ndarray:
     """The chase view's own pixels (no HUD overlays) as an RGB array."""
-    url = driver.execute_script("return document.getElementById('view').toDataURL('image/png')")
-    png = base64.b64decode(url.split(',', 1)[1])
-    return cv2.cvtColor(cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    return testing.png_to_rgb(testing.canvas_png(driver))
 
 
 def changed_fraction(a: np.ndarray, b: np.ndarray) -> float:
@@ -194,8 +180,7 @@ def test_page_shows_the_chase_view_scene_and_camera(station):
     assert red.sum() > 30, 'goal platform not marked'
     orange = (img[..., 0] > 200) & (img[..., 1] > 100) & (img[..., 1] < 170) & (img[..., 2] < 60)
     assert orange.sum() > 50, 'drone not drawn'
-    inset = d.execute_script("const c = document.getElementById('inset'); return c.toDataURL('image/png')")
-    inset_img = cv2.imdecode(np.frombuffer(base64.b64decode(inset.split(',', 1)[1]), np.uint8), cv2.IMREAD_COLOR)
+    inset_img = testing.png_to_rgb(testing.canvas_png(d, 'inset'))
     assert inset_img.std() > 5                                 # the downward camera, not an empty box
     assert 'connected' in d.find_element('id', 'conn').text
     d.save_screenshot(str(station['tmp'] / 'station_hover.png'))
@@ -280,12 +265,13 @@ def test_assistant_state_is_shown(station):
 
 def test_descending_to_a_landing_shows_the_result(station):
     d, probe = station['driver'], station['probe']
-    key(d, 'ARROW_DOWN' if False else '\ue015', True)          # Selenium's Keys.ARROW_DOWN
+    from selenium.webdriver.common.keys import Keys
+    key(d, Keys.ARROW_DOWN, True)
     try:
         assert wait_for(lambda: any(v[2] < 0 for _, v in probe.cmds_since(time.monotonic() - 1)), 2.0)
         assert wait_for(lambda: stats(d)['landing'] is not None, 40.0), probe.last_odom()
     finally:
-        key(d, '\ue015', False)
+        key(d, Keys.ARROW_DOWN, False)
     landing = stats(d)['landing']
     assert landing['show'] is True and landing['text']
     assert d.find_element('id', 'landing').text == landing['text']
