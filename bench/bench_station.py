@@ -130,7 +130,7 @@ def run() -> list[dict]:
     rows = [{'name': 'chase view frame rate (headless Chromium, canvas 2D)', 'value': fps, 'unit': 'frames/s',
              'target': '>= 20'},
             {'name': 'chase view size', 'value': f'{canvas[0]}x{canvas[1]}', 'unit': 'px', 'target': '>= 480x360'}]
-    for name, xs in (('key event -> /cmd_vel (station publishes)', to_cmd),
+    for name, xs in (('key event -> /pilot/cmd_vel (remapped to /cmd_vel)', to_cmd),
                      ('key event -> /odom moving (|vx| > 0.15 m/s)', to_move),
                      ('key event -> page shows motion', seen)):
         if not xs:

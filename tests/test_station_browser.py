@@ -154,8 +154,10 @@ def canvas_image(driver) -> np.ndarray:
 
 
 def changed_fraction(a: np.ndarray, b: np.ndarray) -> float:
-    """Share of pixels whose colour differs by more than 24 in some channel."""
-    return float((np.abs(a.astype(int) - b.astype(int)).max(axis=2) > 24).mean())
+    """Share of pixels whose colour differs by more than 24 in some channel, after a 2 px Gaussian blur
+    (so a few centimetres of hover drift, which shifts thin grid lines by a pixel, does not count)."""
+    a, b = (cv2.GaussianBlur(x, (0, 0), 2.0).astype(int) for x in (a, b))
+    return float((np.abs(a - b).max(axis=2) > 24).mean())
 
 
 def key(driver, name: str, down: bool):
@@ -216,7 +218,7 @@ def test_holding_w_flies_forward_and_releasing_stops(station):
     assert wait_for(lambda: np.linalg.norm(probe.last_odom()[2][:2]) < 0.2, 5.0)
     # the view follows the drone: flying changed it far more than hovering did
     still, flown = changed_fraction(before, hover), changed_fraction(before, moving)
-    assert flown > 0.02 and flown > 2.5 * still, (still, flown)
+    assert flown > 0.01 and flown > 3 * still, (still, flown)
     cv2.imwrite(str(station['tmp'] / 'station_moving.png'), cv2.cvtColor(moving, cv2.COLOR_RGB2BGR))
     page = stats(d)['keyToMotionMs']
     print(f'key -> /pilot/cmd_vel {1000 * (t_cmd - t_key):.0f} ms, key -> odom moving '

@@ -156,3 +156,13 @@ def test_camera_payload_converts_and_subsamples():
 def test_camera_payload_rejects_unusable_images(args):
     with pytest.raises(ValueError):
         camera_payload(*args, max_width=160)
+
+
+def test_the_station_never_imports_pybullet_or_torch():
+    import subprocess
+    import sys
+    code = ('import sys, assist_station.pilot_station, assist_station.server, assist_station.testing; '
+            'print(sorted(m for m in ("pybullet", "torch") if m in sys.modules))')
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == '[]'
