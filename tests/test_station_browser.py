@@ -280,10 +280,15 @@ def test_descending_to_a_landing_shows_the_result(station):
 
 
 def test_a_second_browser_tab_is_view_only(station):
-    d = station['driver']
+    d, probe = station['driver'], station['probe']
     first = d.current_window_handle
+    t0 = time.monotonic()
+    key(d, 'a', True)                                          # held while the pilot's tab gets hidden
+    assert wait_for(lambda: any(v[1] > 0 for _, v in probe.cmds_since(t0)), 2.0)
     d.switch_to.new_window('tab')
+    t_hidden = time.monotonic()
     try:
+        assert wait_for(lambda: any(np.allclose(v, 0) for _, v in probe.cmds_since(t_hidden)), 2.0)
         d.get(station['url'])
         assert wait_for(lambda: stats(d)['role'] == 'spectator', 15.0), stats(d)
         banner = d.find_element('id', 'banner')
@@ -292,7 +297,8 @@ def test_a_second_browser_tab_is_view_only(station):
     finally:
         d.close()
         d.switch_to.window(first)
-    assert stats(d)['role'] == 'pilot'
+        key(d, 'a', False)
+    assert stats(d)['role'] == 'pilot' and stats(d)['lastRelease'] == 'hidden'
 
 
 def test_station_diagnostics_count_what_happened(station):
