@@ -19,7 +19,7 @@ def test_scene_markers_are_one_box_per_pad_plus_the_goal():
     boxes = scene_markers(scene, goal_index=3)
     pads = [b for b in boxes if b.ns == PLATFORMS_NS]
     assert [b.id for b in pads] == [0, 1, 2, 3, 4]
-    for b, pad in zip(pads, scene.pads):
+    for b, pad in zip(pads, scene.pads, strict=True):
         assert b.center == pytest.approx((pad.center[0], pad.center[1], pad.height / 2))
         assert b.size == pytest.approx((pad.length, pad.width, pad.height))
         qx, qy, qz, qw = b.quaternion

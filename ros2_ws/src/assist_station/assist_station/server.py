@@ -294,6 +294,11 @@ class StationServer:
                     _LOG.info('send to %s failed: %s', client.peer, exc)
                     self._disconnect(client, 'send failed')
                     return
+                except Exception as exc:  # noqa: BLE001 - a writer must not die silently
+                    self._count('send_errors')
+                    _LOG.error('send to %s failed unexpectedly: %r', client.peer, exc)
+                    await self._abort(client)
+                    return
 
     async def _abort(self, client: _Client) -> None:
         transport = client.request.transport

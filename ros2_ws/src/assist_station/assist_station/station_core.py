@@ -229,7 +229,7 @@ def scene_from_boxes(boxes: Iterable[dict[str, Any]]) -> dict[str, Any]:
 
 def camera_payload(width: int, height: int, encoding: str, step: int, data: bytes,
                    max_width: int) -> tuple[int, int, bytes]:
-    """An rgb8/bgr8/mono8 image -> (w, h, RGB bytes) at most `max_width` wide (integer stride); ValueError if unusable."""
+    """An rgb8/bgr8/mono8 image -> (w, h, RGB bytes), at most `max_width` wide (integer stride); ValueError if bad."""
     channels = {'rgb8': 3, 'bgr8': 3, 'mono8': 1}.get(encoding)
     if channels is None:
         raise ValueError(f'unsupported camera encoding {encoding!r} (rgb8, bgr8, mono8)')

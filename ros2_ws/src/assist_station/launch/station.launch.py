@@ -40,7 +40,8 @@ def generate_launch_description():
                    parameters=[sim_time, {'depth_noise': True}], condition=IfCondition(latent))
     policy = Node(package='assist_policy', executable='policy_node', name='policy_node', output='screen',
                   parameters=[policy_params, sim_time, {'mode': assist_mode}], condition=IfCondition(assisted))
-    station_args = [station_params, sim_time, {'mode': LaunchConfiguration('mode'), 'port': LaunchConfiguration('port')}]
+    station_args = [station_params, sim_time,
+                    {'mode': LaunchConfiguration('mode'), 'port': LaunchConfiguration('port')}]
     station = Node(package='assist_station', executable='pilot_station', name='pilot_station', output='screen',
                    parameters=station_args, condition=IfCondition(assisted))
     station_direct = Node(package='assist_station', executable='pilot_station', name='pilot_station',
