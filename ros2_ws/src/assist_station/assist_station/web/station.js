@@ -380,7 +380,9 @@
   let fpsT0 = performance.now(), fpsN = 0;
   function frame(now) {
     resize();
+    const t0 = performance.now();
     try { render(); } catch (err) { stats.errors += 1; console.error(err); }
+    stats.renderMsTotal = (stats.renderMsTotal || 0) + (performance.now() - t0);   // draw time, for benches
     stats.frames += 1; fpsN += 1;
     if (now - fpsT0 >= 1000) {
       stats.fps = fpsN * 1000 / (now - fpsT0); fpsN = 0; fpsT0 = now;
