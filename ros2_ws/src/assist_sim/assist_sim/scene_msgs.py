@@ -9,12 +9,12 @@ from .core.scene_markers import BoxMarker
 
 
 def scene_marker_array(boxes: Iterable[BoxMarker], frame_id: str, stamp) -> MarkerArray:
-    """A DELETEALL (so viewers drop the previous episode's goal) followed by one CUBE per box."""
+    """One CUBE per box, exactly as ARCHITECTURE.md's /sim/scene row (no other markers).
+
+    The goal copy keeps id = pad index in ns 'goal', so after a reset a viewer that keeps markers
+    (RViz) may still show the previous goal box; the pilot station replaces the whole array.
+    """
     out = MarkerArray()
-    clear = Marker()
-    clear.header.frame_id, clear.header.stamp = frame_id, stamp
-    clear.action = Marker.DELETEALL
-    out.markers.append(clear)
     for b in boxes:
         m = Marker()
         m.header.frame_id, m.header.stamp = frame_id, stamp
