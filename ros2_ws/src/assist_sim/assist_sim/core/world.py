@@ -8,12 +8,15 @@ import math
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
-import pybullet as p
-from pybullet_utils import bullet_client
 
 from .config import WorldConfig
+from .quiet import quiet_output
 from .scene import PadSpec, SceneSpec, generate_scene
 from .textures import make_texture, texture_path
+
+with quiet_output():                 # pybullet prints its build time on import
+    import pybullet as p
+    from pybullet_utils import bullet_client
 
 _LOG = logging.getLogger(__name__)
 N_LEGS = 4
@@ -124,7 +127,8 @@ class LandingWorld:
         if self.cfg.physics_hz % self.cfg.control_hz:
             raise ValueError('physics_hz must be a multiple of control_hz')
         self._gui = bool(gui)
-        self._bc = bullet_client.BulletClient(p.GUI if gui else p.DIRECT)
+        with quiet_output(stderr=not gui):  # ... and `argv[0]=` on every connect (GUI: keep X errors)
+            self._bc = bullet_client.BulletClient(p.GUI if gui else p.DIRECT)
         self._cid = self._bc._client
         self._tick_dt = 1.0 / self.cfg.physics_hz
         self._bc.setGravity(0, 0, -self.cfg.gravity_mps2)
