@@ -51,7 +51,8 @@ class Launch:
 
     def output(self) -> str:
         """Everything printed so far."""
-        self._log.flush()
+        if not self._log.closed:
+            self._log.flush()
         return self.log_path.read_text(errors='replace')
 
     def ctrl_c(self) -> int:
@@ -68,8 +69,6 @@ class Launch:
             os.killpg(self.proc.pid, signal.SIGKILL)
             self.proc.wait(10)
             pytest.fail(f'launch did not exit within {timeout} s:\n{self.output()[-4000:]}')
-        finally:
-            self._log.close() if self.proc.poll() is not None else None
 
     def kill(self) -> None:
         """Teardown: nothing may outlive the test."""

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import logging
 import math
+import signal
 import sys
 import threading
 from collections import Counter
@@ -238,9 +239,6 @@ class RosLogHandler(logging.Handler):
     console only.
     """
 
-    _SEVERITY = ((logging.CRITICAL, 'fatal'), (logging.ERROR, 'error'), (logging.WARNING, 'warning'),
-                 (logging.INFO, 'info'))
-
     def __init__(self) -> None:
         super().__init__(level=logging.DEBUG)
         self.setFormatter(logging.Formatter('%(message)s'))
@@ -269,8 +267,18 @@ class RosLogHandler(logging.Handler):
         """Send one record at the matching rclpy severity (debug for anything below INFO)."""
         try:
             text = self.format(record)
-            method = next((m for lvl, m in self._SEVERITY if record.levelno >= lvl), 'debug')
-            getattr(self._logger(record.name), method)(text)
+            logger = self._logger(record.name)
+            # one call site per severity: rclpy ties a call site to one severity
+            if record.levelno >= logging.CRITICAL:
+                logger.fatal(text)
+            elif record.levelno >= logging.ERROR:
+                logger.error(text)
+            elif record.levelno >= logging.WARNING:
+                logger.warning(text)
+            elif record.levelno >= logging.INFO:
+                logger.info(text)
+            else:
+                logger.debug(text)
         except Exception:  # noqa: BLE001 - logging must never raise into the caller
             self.handleError(record)
 
@@ -331,6 +339,9 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
         if rclpy.ok():      # a real failure, not the context going away under SIGINT
             raise
     finally:
+        # Going down: another Ctrl-C (a second key press, or launch's SIGINT to a node that is
+        # already exiting) must not interrupt the clean-up with a KeyboardInterrupt traceback.
+        _ignore_sigint()
         if node is not None:
             close = getattr(node, 'close', None)
             if callable(close):
@@ -339,4 +350,10 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
             node.destroy_node()
         if rclpy.ok():
             rclpy.try_shutdown()
+        _ignore_sigint()      # rclpy's shutdown restored the interrupting handler
     return code
+
+
+def _ignore_sigint() -> None:
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
