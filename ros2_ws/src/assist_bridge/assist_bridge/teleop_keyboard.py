@@ -19,7 +19,7 @@ from geometry_msgs.msg import TwistStamped
 from rclpy.node import Node
 
 from assist_sim.ros_common import (RELIABLE_QOS, Param, StartupError, declare_parameters, fill_twist,
-                                   forward_logging, run_node)
+                                   exit_process, forward_logging, run_node)
 
 from .teleop_core import HELP, KeyDecoder, TeleopConfig, TeleopCore
 
@@ -163,7 +163,7 @@ class TeleopKeyboard(Node):
 
 def main(args=None):
     """Console entry point."""
-    sys.exit(run_node(lambda: TeleopKeyboard(), args))
+    exit_process(run_node(lambda: TeleopKeyboard(), args))
 
 
 if __name__ == '__main__':

@@ -6,7 +6,6 @@ the inference, so a slow frame never queues up old ones and callbacks never bloc
 """
 from __future__ import annotations
 
-import sys
 import threading
 import time
 
@@ -19,7 +18,7 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import Float32MultiArray, MultiArrayDimension
 
 from assist_sim.ros_common import (SENSOR_QOS, Diagnostics, Param, StartupError, declare_parameters,
-                                   forward_logging, run_node, stamp_to_sec)
+                                   exit_process, forward_logging, run_node, stamp_to_sec)
 
 from .encoder_core import BadFrame, LatentEncoder, LatestOnly, StampPairer, decode_color, decode_depth
 from .model import ModelLoadError
@@ -182,7 +181,7 @@ class EncoderNode(Node):
 
 def main(args=None):
     """Console entry point `encoder_node`."""
-    sys.exit(run_node(lambda: EncoderNode(), args))
+    exit_process(run_node(lambda: EncoderNode(), args))
 
 
 if __name__ == '__main__':

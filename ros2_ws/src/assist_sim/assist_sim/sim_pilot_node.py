@@ -6,7 +6,6 @@ while it is above the blending threshold and fresh).
 """
 from __future__ import annotations
 
-import sys
 import threading
 
 import numpy as np
@@ -17,7 +16,7 @@ from rclpy.node import Node
 
 from .pilot import PilotConfig, SimulatedPilot
 from .ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, declare_parameters,
-                         fill_twist, forward_logging, run_node, twist_to_array)
+                         exit_process, fill_twist, forward_logging, run_node, twist_to_array)
 
 PARAMS = {
     'alpha': Param(0.5, 'Conformance to the assistant in [0, 1] (paper alpha; settable at run time).',
@@ -129,7 +128,7 @@ class SimPilotNode(Node):
 
 def main(args=None):
     """Console entry point."""
-    sys.exit(run_node(lambda: SimPilotNode(), args))
+    exit_process(run_node(lambda: SimPilotNode(), args))
 
 
 if __name__ == '__main__':
