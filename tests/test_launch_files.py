@@ -36,6 +36,13 @@ def free_udp_port() -> int:
         return s.getsockname()[1]
 
 
+def free_tcp_port() -> int:
+    """A TCP port on 127.0.0.1 that nobody listens on right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(('127.0.0.1', 0))
+        return s.getsockname()[1]
+
+
 class Launch:
     """`ros2 launch PKG FILE args...` in its own process group (a terminal's Ctrl-C reaches all of it)."""
 
@@ -174,6 +181,15 @@ def test_sim_mavlink_launch(ros, launch):
     assert_clean_exit(lau.ctrl_c(), lau.output(), nodes=2)
 
 
+def test_station_launch_unassisted(ros, launch):
+    Diag, Twist, Odom, Clock, Image, Floats = _types()
+    lau = launch('assist_station', 'station.launch.py', 'assisted:=false', f'port:={free_tcp_port()}')
+    # the pilot's commands go straight to /cmd_vel without the assistant
+    wait_for_topics(ros, {'/clock': (Clock, None), '/cmd_vel': (Twist, None),
+                          '/diagnostics': (Diag, from_node('pilot_station'))}, lau)
+    assert_clean_exit(lau.ctrl_c(), lau.output(), nodes=2)
+
+
 @pytest.mark.parametrize('symlink', [False, True], ids=['plain', 'symlink'])
 def test_assist_launch_latent(ros, launch, symlink):
     Diag, Twist, Odom, Clock, Image, Floats = _types()
@@ -203,7 +219,7 @@ def test_a_dead_required_node_ends_the_launch_with_the_reason(launch):
 def test_every_launch_argument_is_described(colcon_workspace):
     ws = colcon_workspace(False)
     files = sorted(ws.install.glob('*/share/*/launch/*.launch.py'))
-    assert len(files) >= 5
+    assert len(files) >= 6
     for path in files:
         pkg = path.parents[1].name
         out = subprocess.run([sys.executable, str(RUNNER), pkg, path.name, '--show-args'], env=ws.env,

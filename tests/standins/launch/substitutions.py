@@ -90,3 +90,42 @@ class EnvironmentVariable(Substitution):
     def perform(self, context) -> str:
         name = perform_substitutions(context, self.name)
         return os.environ.get(name, perform_substitutions(context, self.default_value))
+
+
+def _as_bool(context, subs) -> bool:
+    """perform_typed_substitution(..., bool): true/1 or false/0 (any case), else a SubstitutionFailure."""
+    text = perform_substitutions(context, subs).strip().lower()
+    if text in ('true', '1'):
+        return True
+    if text in ('false', '0'):
+        return False
+    raise SubstitutionFailure(f"'{text}' is not a boolean (true/false/1/0)")
+
+
+class NotSubstitution(Substitution):
+    """'true' when the value is false."""
+
+    def __init__(self, value) -> None:
+        self.value = normalize_to_list_of_substitutions(value)
+
+    def perform(self, context) -> str:
+        return str(not _as_bool(context, self.value)).lower()
+
+
+class AndSubstitution(Substitution):
+    """'true' when both sides are true (each must be a boolean)."""
+
+    def __init__(self, left, right) -> None:
+        self.left, self.right = normalize_to_list_of_substitutions(left), normalize_to_list_of_substitutions(right)
+
+    def perform(self, context) -> str:
+        left, right = _as_bool(context, self.left), _as_bool(context, self.right)
+        return str(left and right).lower()
+
+
+class OrSubstitution(AndSubstitution):
+    """'true' when either side is true (each must be a boolean)."""
+
+    def perform(self, context) -> str:
+        left, right = _as_bool(context, self.left), _as_bool(context, self.right)
+        return str(left or right).lower()
