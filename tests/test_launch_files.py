@@ -216,7 +216,7 @@ def test_a_dead_required_node_ends_the_launch_with_the_reason(ros, launch):
     assert code == 0, out[-4000:]           # ros2 launch itself did not fail; the node did
     assert 'sim_node-1 exited with code -9; the bridge has no vehicle without the sim: shutting the launch down' \
         in out, out[-4000:]
-    assert '[INFO] [mavlink_bridge_node-1]: process has finished cleanly' in out, out[-4000:]
+    assert '[INFO] [mavlink_bridge_node-2]: process has finished cleanly' in out, out[-4000:]
     assert 'Traceback' not in out
 
 

@@ -364,13 +364,15 @@ class LaunchService:
 
 
 def _process_counter() -> Callable[[str], str]:
-    counts: dict[str, int] = {}
+    """launch numbers processes with one counter for all of them: sim_node-1, mavlink_bridge_node-2."""
+    count = 0
     lock = threading.Lock()
 
     def name(base: str) -> str:
+        nonlocal count
         with lock:
-            counts[base] = counts.get(base, 0) + 1
-            return f'{base}-{counts[base]}'
+            count += 1
+            return f'{base}-{count}'
     return name
 
 
@@ -469,6 +471,7 @@ class ExecuteProcess(Action):
             return
         self._shutdown_at = time.monotonic()
         if send_sigint:
+            log('INFO', self.process_name, f"sending signal 'SIGINT' to process[{self.process_name}]")
             self._signal(signal.SIGINT)
 
     def _signal(self, sig) -> None:
