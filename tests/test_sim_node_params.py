@@ -120,6 +120,13 @@ def test_sim_node_parameters_apply_at_run_time_or_are_refused(ros, start_node, w
         ok, reason = param_set(ros, 'sim_node', 'seed', 9)                       # read-only: refused
         assert not ok and 'read-only' in reason
         assert param_set(ros, 'sim_node', 'real_time_factor', 0.5) == (True, '')
+        time.sleep(1.0)
+        with frames.lock:
+            s0, w0 = frames.sim_t, time.monotonic()
+        time.sleep(4.0)
+        with frames.lock:
+            ratio = (frames.sim_t - s0) / (time.monotonic() - w0)
+        assert 0.3 < ratio < 0.65, ratio                                       # the new pace is applied
         # /diagnostics is stamped with the node clock, which is the sim clock
         assert wait(lambda: len(frames.diag_stamps) >= 2, 60.0)
         stamp, sim_t = frames.diag_stamps[-1]
