@@ -14,7 +14,7 @@ import pytest
 from assist_sim.core.config import TurbulenceConfig, WorldConfig
 from assist_sim.core.quad_json import QuadJsonModel, rotation_ned_frd
 from assist_sim.core.world import LandingWorld
-from assist_sim.json_backend import JsonBackendConfig, JsonPhysicsServer
+from assist_sim.json_backend import JsonBackendConfig, JsonPhysicsServer, JsonRunnerConfig
 from assist_sim.testing_sitl import SitlStandIn, sitl_parse
 
 G = 9.81
@@ -232,3 +232,29 @@ def test_32_channel_packets_are_served(rig):
     rig.sitl.send_raw(struct.pack('<HHI32H', 29569, 400, 0, *[1000] * 32))
     assert rig.server.poll(1.0) == 'step'
     assert rig.sitl.receive(1.0) is not None
+
+
+def test_shipped_parm_file_matches_the_motor_model():
+    from pathlib import Path
+
+    from assist_sim.core.config import VehicleConfig
+    from assist_sim.core.quad_json import QuadJsonConfig
+    parm = Path(__file__).resolve().parents[1] / 'ros2_ws/src/assist_sim/config/ardupilot_json_quad.parm'
+    params = {}
+    for line in parm.read_text().splitlines():
+        assert len(line) < 100, line                     # AP_Param's defaults-file line buffer
+        if line and not line.startswith('#'):
+            name, value = line.split()
+            params[name] = float(value)
+    c, veh = QuadJsonConfig(), VehicleConfig()
+    assert (params['FRAME_CLASS'], params['FRAME_TYPE']) == (1, 1)           # quad, X
+    assert params['MOT_THST_HOVER'] == pytest.approx(c.hover_throttle(veh.mass_kg), abs=0.005)
+    assert params['MOT_THST_EXPO'] == c.thrust_expo
+    assert (params['MOT_SPIN_MIN'], params['MOT_SPIN_MAX']) == (c.spin_min, c.spin_max)
+    assert (params['MOT_PWM_MIN'], params['MOT_PWM_MAX']) == (c.pwm_min, c.pwm_max)
+    # spinning-when-armed PWM is above the runner's disarmed threshold, MOT_PWM_MIN below it
+    armed_idle = params['MOT_PWM_MIN'] + params['MOT_SPIN_ARM'] * (params['MOT_PWM_MAX'] - params['MOT_PWM_MIN'])
+    assert params['MOT_PWM_MIN'] <= JsonRunnerConfig().disarmed_pwm_max < armed_idle
+    assert params['SIM_RATE_HZ'] == 400 and params['RNGFND1_TYPE'] == 100 and params['RNGFND1_ORIENT'] == 25
+    assert params['RNGFND1_GNDCLR'] == pytest.approx(veh.leg_length_m, abs=0.01)
+    assert params['GUID_TIMEOUT'] > 0

@@ -123,6 +123,7 @@ def test_pid_hovers_and_lands_on_the_goal_pad_through_pwm_only(loop):
     res = landings[0]
     assert res.outcome == 'success', res
     assert res.error_m < 0.2 and res.goal_index == world.goal_index
+    assert res.duration_s < sitl.time_s - 0.5            # the episode clock starts at takeoff, not on the ground
 
     # disarmed (motors at minimum) for reset_delay_s -> next episode: teleported to the start spot
     for _ in range(3 * RATE):

@@ -246,7 +246,8 @@ class JsonSimRunner:
     lock-stepped to SITL and does not advance). Episodes start landed and disarmed at
     `start_xy_m`; after a landing (same judge as velocity mode) the next episode starts once SITL
     has disarmed (all motors at minimum PWM) for `reset_delay_s`, by teleporting the airframe and
-    rebuilding the scene. A /sim/reset while the motors spin is deferred until they stop.
+    rebuilding the scene. A /sim/reset while the motors spin is deferred until they stop. The
+    episode clock (duration_s, the judge's max_episode_s) starts at takeoff, when the judge arms.
     """
 
     def __init__(self, world: LandingWorld, cfg: RunnerConfig | None = None,
@@ -266,6 +267,7 @@ class JsonSimRunner:
         self._stopped_since: float | None = None
         self._reset_pending = False
         self._restarted = False
+        self._airborne = False
         self.episodes_finished = 0
         self.commands_rejected = 0
 
@@ -310,6 +312,7 @@ class JsonSimRunner:
         self._landed_at = None
         self._stopped_since = None
         self._reset_pending = False
+        self._airborne = False
         self._next_frame_time = self.world.time
         return state
 
@@ -336,6 +339,11 @@ class JsonSimRunner:
                     break
                 continue
             wall_end = time.monotonic() + self.json_cfg.poll_timeout_s
+            if w._judge_active and not self._airborne:
+                # the judge starts at takeoff; so does the episode clock here: arming SITL takes tens
+                # of seconds on the ground, which must not count against max_episode_s
+                self._airborne = True
+                w._episode_start = w.time
             if w.done and not was_done:
                 w.result.assisted = self._agent_seen
                 out_landing = w.result
