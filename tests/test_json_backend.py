@@ -258,3 +258,17 @@ def test_shipped_parm_file_matches_the_motor_model():
     assert params['SIM_RATE_HZ'] == 400 and params['RNGFND1_TYPE'] == 100 and params['RNGFND1_ORIENT'] == 25
     assert params['RNGFND1_GNDCLR'] == pytest.approx(veh.leg_length_m, abs=0.01)
     assert params['GUID_TIMEOUT'] > 0
+
+
+def test_camera_is_rigidly_mounted_and_tilts_with_the_airframe(rig):
+    """Rendered depth on the optical axis over the flat floor: H / cos(tilt) once the airframe rolls."""
+    w = rig.world
+    off = w.cfg.camera.offset_below_base_m
+    for roll_deg in (0.0, 20.0):
+        roll = math.radians(roll_deg)
+        w._bc.resetBasePositionAndOrientation(w._vehicle, [0.0, 0.0, 3.0], w._bc.getQuaternionFromEuler([roll, 0, 0]))
+        frame = w.render()
+        h, wd = frame.depth.shape
+        centre = float(frame.depth[h // 2 - 1:h // 2 + 1, wd // 2 - 1:wd // 2 + 1].mean())
+        cam_z = 3.0 - off * math.cos(roll)
+        assert centre == pytest.approx(cam_z / math.cos(roll), abs=0.02), roll_deg
