@@ -272,3 +272,31 @@ def test_camera_is_rigidly_mounted_and_tilts_with_the_airframe(rig):
         centre = float(frame.depth[h // 2 - 1:h // 2 + 1, wd // 2 - 1:wd // 2 + 1].mean())
         cam_z = 3.0 - off * math.cos(roll)
         assert centre == pytest.approx(cam_z / math.cos(roll), abs=0.02), roll_deg
+
+
+def test_reset_while_motors_spin_is_deferred_until_disarmed():
+    from assist_sim.core.runner import RunnerConfig
+    from assist_sim.json_backend import JsonSimRunner
+    world = LandingWorld(WorldConfig(turbulence=TurbulenceConfig(enabled=False)), seed=0)
+    runner = JsonSimRunner(world, RunnerConfig(airborne_start=False, camera_rate_hz=0.0), JsonBackendConfig(port=0),
+                           JsonRunnerConfig(poll_timeout_s=0.02))
+    sitl = SitlStandIn(port=runner.server.address[1])
+    try:
+        runner.reset(7)
+        episode = world.episode
+        outs = []
+        for _ in range(5):                                  # armed, idling on the ground (below hover)
+            sitl.send([1200] * 4)
+            outs.append(runner.step())
+            assert sitl.receive(1.0) is not None
+        runner.reset()
+        assert runner.reset_pending and world.episode == episode          # not while the motors spin
+        sitl.send([1000] * 4)                                             # disarmed: MOT_PWM_MIN
+        out = runner.step()
+        assert sitl.receive(1.0) is not None
+        assert out.new_episode and not runner.reset_pending and world.episode == episode + 1
+        assert not any(o.new_episode for o in outs)
+    finally:
+        sitl.close()
+        runner.close()
+        world.close()

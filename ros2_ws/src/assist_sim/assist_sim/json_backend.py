@@ -266,7 +266,6 @@ class JsonSimRunner:
         self._landed_at: float | None = None
         self._stopped_since: float | None = None
         self._reset_pending = False
-        self._restarted = False
         self._airborne = False
         self.episodes_finished = 0
         self.commands_rejected = 0
@@ -318,7 +317,6 @@ class JsonSimRunner:
 
     def _on_sitl_restart(self) -> None:
         self._reset_now()
-        self._restarted = True
 
     def step(self, fly=None) -> StepOutput:
         """Serve SITL for one control period (or until it is silent for poll_timeout_s)."""
@@ -331,8 +329,7 @@ class JsonSimRunner:
             ev = srv.poll(max(0.0, wall_end - time.monotonic()))
             if ev is None:
                 break
-            if ev == 'restart' or self._restarted:
-                self._restarted = False
+            if ev == 'restart':          # on_restart already reset the vehicle before this frame
                 new_episode = True
             if ev not in ('step', 'restart'):
                 if time.monotonic() >= wall_end:
