@@ -21,7 +21,10 @@ examples/JSON/pybullet/robot.py):
   1/frame_rate per new frame (lock-step: SITL waits for our reply, SITL sets the pace).
 * frame_count increments only after SITL parsed a reply; with no reply for ~1 s SITL re-sends the
   same frame (same count). We answer a repeated count with the previous reply, physics not
-  stepped. A count lower than the last one means SITL restarted: the vehicle is reset.
+  stepped (upstream's pybullet example drops duplicates without a reply, which leaves SITL
+  re-sending forever once a reply is lost). A count lower than the last one means SITL restarted:
+  the vehicle is reset. SITL's source port changes on restart, so every datagram is answered to
+  its own source address (the socket binds to loopback by default).
 """
 from __future__ import annotations
 

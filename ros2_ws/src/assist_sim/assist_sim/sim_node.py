@@ -85,6 +85,9 @@ class SimNode(Node):
                 raise StartupError(f"sim_node: cannot listen for SITL on udp {self.p['json_host']}:"
                                    f"{self.p['json_port']}: {exc}") from exc
             self.get_logger().info(f'physics ardupilot_json: serving ArduPilot SITL on udp {self.runner.server.address}')
+            if self.p['real_time_factor'] != 1.0:
+                self.get_logger().warning('real_time_factor is not used with ardupilot_json: SITL sets the pace '
+                                          '(its --speedup)')
         else:
             self.runner = SimRunner(self.world, runner_cfg)
         self.vehicle = None
