@@ -123,7 +123,7 @@ class SimNode(Node):
         self.get_logger().info(
             f"sim_node up: seed={self.p['seed']} rtf={self.rtf or 'max'} camera="
             f"{cfg.camera.width}x{cfg.camera.height}@{self.p['camera_rate_hz']}Hz "
-            f"{'MAVLink vehicle on ' + self.p['mavlink_url'] if self.mavlink else 'driven by /cmd_vel'}")
+            f"{'MAVLink vehicle on ' + self.p['mavlink_url'] if self.mavlink else 'flown by ArduPilot SITL (JSON physics)' if self.json_mode else 'driven by /cmd_vel'}")
 
     # ------------------------------------------------------------------ inputs
     def _on_cmd(self, msg: TwistStamped) -> None:
