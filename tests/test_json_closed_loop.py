@@ -163,3 +163,78 @@ def test_sitl_restart_resets_the_vehicle_and_silence_holds_it(loop):
         if any(o.new_episode for o in outs):
             break
     assert any(o.new_episode for o in outs)
+
+
+class ArduCopterLikeAttitude:
+    """ArduCopter's default roll/pitch/yaw loops, re-implemented from its source defaults (commit
+    90700977c553: AC_AttitudeControl angle P 4.5; AC_AttitudeControl_Multi rate P/I/D 0.135/0.135/
+    0.0036 roll-pitch, 0.18/0.018/0 yaw, IMAX 0.5, D filter 20 Hz) with AP_MotorsMatrix quad-X
+    mixing (factors normalised to 0.5) and its thrust linearisation (MOT_THST_EXPO, SPIN_MIN/MAX).
+    No input shaping or feed-forward: a harsher test of the plant than the real controller."""
+
+    def __init__(self, mcfg: QuadJsonConfig, dt: float):
+        self.c, self.dt = mcfg, dt
+        self.rf = [0.5 * math.copysign(1, math.cos(math.radians(a + 90))) for a, _ in MOTORS]
+        self.pf = [0.5 * math.copysign(1, math.cos(math.radians(a))) for a, _ in MOTORS]
+        self.yf = [0.5 * yf for _, yf in MOTORS]
+        self.i = np.zeros(3)
+        self.d_f = np.zeros(3)
+        self.prev_e = np.zeros(3)
+        self.p = np.array([0.135, 0.135, 0.18])
+        self.ki = np.array([0.135, 0.135, 0.018])
+        self.kd = np.array([0.0036, 0.0036, 0.0])
+
+    def pwm(self, s: dict, att_target, throttle: float) -> list[float]:
+        att = np.array(s['attitude'])
+        err = np.array(att_target) - att
+        err[2] = (err[2] + math.pi) % (2 * math.pi) - math.pi
+        rate_target = 4.5 * err
+        e = rate_target - np.array(s['gyro'])
+        self.i = np.clip(self.i + self.ki * e * self.dt, -0.5, 0.5)
+        a = self.dt / (self.dt + 1.0 / (2 * math.pi * 20.0))
+        self.d_f += a * ((e - self.prev_e) / self.dt - self.d_f)
+        self.prev_e = e
+        u = self.p * e + self.i + self.kd * self.d_f
+        out = []
+        for k in range(4):
+            t = min(max(throttle + self.rf[k] * u[0] + self.pf[k] * u[1] + self.yf[k] * u[2], 0.0), 1.0)
+            out.append(self.c.pwm_for_command(self.c.command_for_thrust(t * self.c.max_thrust_n)))
+        return out
+
+
+def test_arducopter_default_attitude_gains_fly_this_plant(loop):
+    runner, world, goal, sitl, outs = loop
+    mcfg, mass = runner.model.cfg, world.cfg.vehicle.mass_kg
+    hover_thr = mcfg.hover_throttle(mass)
+    att = ArduCopterLikeAttitude(mcfg, 1.0 / RATE)
+    s = sitl.exchange([1000] * 4)
+    yaw0 = s['attitude'][2]
+    alt_i = 0.0
+
+    def throttle(s, z_target=-2.5):                      # altitude: a simple velocity cascade
+        nonlocal alt_i
+        vz_target = min(max(1.0 * (z_target - s['position'][2]), -1.5), 1.0)   # NED: negative = up
+        ev = s['velocity'][2] - vz_target
+        alt_i = min(max(alt_i + 0.05 * ev / RATE, -0.2), 0.2)
+        return min(max(hover_thr + 0.1 * ev + alt_i, 0.05), 0.9)
+    for _ in range(4 * RATE):                             # take off and settle level
+        s = sitl.exchange(att.pwm(s, [0.0, 0.0, yaw0], throttle(s)))
+    assert abs(s['position'][2] + 2.5) < 0.3 and np.abs(s['gyro']).max() < 0.05
+    step = math.radians(10)
+    roll = []
+    for _ in range(RATE):                                 # 10 deg roll step, held 1 s
+        s = sitl.exchange(att.pwm(s, [step, 0.0, yaw0], throttle(s)))
+        roll.append(s['attitude'][0])
+    roll = np.array(roll)
+    overshoot = (roll.max() - step) / step
+    rise = int(np.argmax(roll > 0.9 * step)) / RATE
+    settled = roll[3 * RATE // 4:]
+    # angle P 4.5 alone (no feed-forward here) gives a 90 % rise in ln(10)/4.5 = 0.51 s: the rate
+    # loop and motors must keep up with that, without ringing
+    print(f'ArduCopter-default roll step: rise {rise * 1000:.0f} ms, overshoot {overshoot:.1%}')
+    assert rise < 0.6, f'90 % rise time {rise:.3f} s'
+    assert overshoot < 0.15, f'overshoot {overshoot:.0%}'
+    assert np.abs(settled - step).max() < math.radians(1.0), 'not settled / oscillating'
+    for _ in range(RATE):                                 # back to level
+        s = sitl.exchange(att.pwm(s, [0.0, 0.0, yaw0], throttle(s)))
+    assert abs(s['attitude'][0]) < math.radians(1.5) and abs(s['attitude'][1]) < math.radians(1.5)
