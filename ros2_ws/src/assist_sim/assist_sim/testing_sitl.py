@@ -98,7 +98,7 @@ class SitlStandIn:
         """Send arbitrary bytes to the backend."""
         self.sock.sendto(data, (self.host, self.port))
 
-    def receive(self, timeout: float = 1.0) -> dict | None:
+    def receive(self, timeout: float = 5.0) -> dict | None:
         """Wait for one reply and parse it as SITL would; None on timeout or rejection."""
         self.sock.settimeout(timeout)
         try:
@@ -125,7 +125,7 @@ class SitlStandIn:
         self.frame_count += 1
         return parsed
 
-    def exchange(self, pwm, timeout: float = 1.0, pump=None) -> dict | None:
+    def exchange(self, pwm, timeout: float = 5.0, pump=None) -> dict | None:
         """Send the current frame and wait for its reply; `pump()` runs between (single-thread tests)."""
         self.send(pwm)
         if pump is not None:
