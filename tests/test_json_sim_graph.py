@@ -12,6 +12,7 @@ from geometry_msgs.msg import PointStamped
 from nav_msgs.msg import Odometry
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image
+from visualization_msgs.msg import MarkerArray
 
 from assist_sim.ros_common import LATCHED_QOS, SENSOR_QOS
 from assist_sim.testing_sitl import SitlStandIn
@@ -28,10 +29,10 @@ def free_udp_port() -> int:
 class Probe:
     def __init__(self, node):
         self.node, self.lock = node, threading.Lock()
-        self.msgs = {k: [] for k in ('rgb', 'goal', 'odom', 'clock', 'diag')}
+        self.msgs = {k: [] for k in ('rgb', 'goal', 'odom', 'clock', 'diag', 'scene')}
         subs = [(Image, '/camera/color/image_raw', 'rgb', SENSOR_QOS), (PointStamped, '/sim/goal', 'goal', LATCHED_QOS),
                 (Odometry, '/odom', 'odom', SENSOR_QOS), (Clock, '/clock', 'clock', 10),
-                (DiagnosticArray, '/diagnostics', 'diag', 10)]
+                (DiagnosticArray, '/diagnostics', 'diag', 10), (MarkerArray, '/sim/scene', 'scene', LATCHED_QOS)]
         self.subs = [node.create_subscription(t, n, self._cb(k), q) for t, n, k, q in subs]
 
     def _cb(self, key):
@@ -78,6 +79,11 @@ def test_sim_node_serves_sitl_json_publishes_camera_goal_no_odom(probe, start_no
     g = probe.last('goal')
     # /sim/goal in the autopilot's odom frame: pad top minus base_link's resting height at the start spot
     assert g.header.frame_id == 'odom' and 0.4 - 0.13 < g.point.z < 1.2 - 0.11
+    assert wait(lambda: probe.count('scene') > 0, 30), node.log()
+    goal_box = next(m for m in probe.last('scene').markers if m.ns == 'goal')
+    # the goal box's top centre is /sim/goal: the scene is in the same (autopilot odom) frame
+    assert goal_box.pose.position.x == pytest.approx(g.point.x, abs=1e-6)
+    assert goal_box.pose.position.z + goal_box.scale.z / 2 == pytest.approx(g.point.z, abs=1e-6)
     assert wait(lambda: (probe.sim_status() or (0, ''))[1].startswith('waiting for ArduPilot SITL'), 30), node.log()
 
     sitl = SitlStandIn(port=port)

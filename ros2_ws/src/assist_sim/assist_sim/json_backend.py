@@ -28,6 +28,7 @@ examples/JSON/pybullet/robot.py):
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -283,6 +284,11 @@ class JsonSimRunner:
         that frame in this mode."""
         x0, y0 = self.json_cfg.start_xy_m
         return np.array([x0, y0, self.world.cfg.vehicle.leg_length_m + 0.002])
+
+    def markers_in_odom(self, boxes: list) -> list:
+        """/sim/scene boxes (core.scene_markers.BoxMarker, world frame) moved into the odom frame."""
+        off = self.odom_offset
+        return [dataclasses.replace(b, center=tuple(float(c - o) for c, o in zip(b.center, off))) for b in boxes]
 
     def set_command(self, v) -> str | None:
         """Velocity commands go to ArduPilot through the bridge, not to the sim."""

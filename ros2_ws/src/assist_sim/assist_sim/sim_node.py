@@ -267,6 +267,8 @@ class SimNode(Node):
             g = self.world.goal_position - getattr(self.runner, 'odom_offset', 0.0)   # odom frame
             stamp = self._stamp(self.world.time).clock
             boxes = scene_markers(self.world.scene, self.world.goal_index)
+            if self.json_mode:   # the autopilot's odom frame, like /sim/goal
+                boxes = self.runner.markers_in_odom(boxes)
         self.pub_scene.publish(scene_marker_array(boxes, self.p['odom_frame'], stamp))  # /sim/scene, every reset
         msg = PointStamped()
         msg.header.stamp, msg.header.frame_id = stamp, self.p['odom_frame']
