@@ -157,6 +157,8 @@ class SimNode(Node):
         self._publish_goal()
         response.success = True
         response.message = f'episode {episode}: goal pad {goal}'
+        if getattr(self.runner, 'reset_pending', False):   # ardupilot_json: not while the motors spin
+            response.message = f'reset deferred until SITL disarms (episode {episode} goes on)'
         return response
 
     # ------------------------------------------------------------------ loop
