@@ -12,6 +12,7 @@ from geometry_msgs.msg import PointStamped
 from nav_msgs.msg import Odometry
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image
+from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from assist_sim.ros_common import LATCHED_QOS, SENSOR_QOS
@@ -89,10 +90,11 @@ def test_sim_node_serves_sitl_json_publishes_camera_goal_no_odom(probe, start_no
     sitl = SitlStandIn(port=port)
     stop = threading.Event()
     replies = []
+    pwm = [1000] * 4                     # disarmed: MOT_PWM_MIN
 
     def fly():   # SITL's loop: one frame, wait for its reply, next frame
         while not stop.is_set():
-            r = sitl.exchange([1000] * 4, timeout=0.5)
+            r = sitl.exchange(list(pwm), timeout=0.5)
             if r is not None:
                 replies.append(r)
     t = threading.Thread(target=fly, daemon=True)
@@ -112,6 +114,23 @@ def test_sim_node_serves_sitl_json_publishes_camera_goal_no_odom(probe, start_no
             c = probe.last('clock').clock
             return c.sec + 1e-9 * c.nanosec
         assert wait(lambda: sim_time() > 0.5, 30), node.log()          # /clock follows SITL's frames
+        # /sim/reset while the motors spin (armed idle, 1100 us) waits until SITL disarms
+        pwm[:] = [1100] * 4
+        n_rep = len(replies)
+        assert wait(lambda: len(replies) > n_rep + 10, 30)
+        n_goal = probe.count('goal')
+        client = probe.node.create_client(Trigger, '/sim/reset')
+        try:
+            assert client.wait_for_service(timeout_sec=30)
+            fut = client.call_async(Trigger.Request())
+            assert wait(lambda: fut.done(), 30)
+            assert fut.result().success and 'deferred' in fut.result().message
+            time.sleep(0.5)
+            assert probe.count("goal") == n_goal
+            pwm[:] = [1000] * 4
+            assert wait(lambda: probe.count('goal') > n_goal, 30), node.log()    # new episode once disarmed
+        finally:
+            probe.node.destroy_client(client)
     finally:
         stop.set()
         t.join(timeout=5)

@@ -154,11 +154,12 @@ class SimNode(Node):
         with self.lock:
             self.runner.reset()
             episode, goal = self.world.episode, self.world.goal_index
-        self._publish_goal()
         response.success = True
         response.message = f'episode {episode}: goal pad {goal}'
         if getattr(self.runner, 'reset_pending', False):   # ardupilot_json: not while the motors spin
             response.message = f'reset deferred until SITL disarms (episode {episode} goes on)'
+        else:
+            self._publish_goal()
         return response
 
     # ------------------------------------------------------------------ loop
