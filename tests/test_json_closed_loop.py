@@ -24,7 +24,7 @@ MOTORS = ((45.0, 1.0), (-135.0, 1.0), (-45.0, -1.0), (135.0, -1.0))
 
 
 class MiniPid:
-    """Position -> velocity -> attitude -> rate cascade and a quad-X mixer; in: SITL JSON sensors (NED/FRD), out: PWM."""
+    """Position -> velocity -> attitude -> rate cascade with a quad-X mixer: SITL JSON sensors in, PWM out."""
 
     def __init__(self, mcfg: QuadJsonConfig, mass: float, arm: float):
         self.m, self.c = mass, mcfg

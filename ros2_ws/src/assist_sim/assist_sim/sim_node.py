@@ -39,7 +39,8 @@ PARAMS = {
                                  'rigid-body quad flown by ArduPilot SITL motor outputs over its JSON interface.',
                      choices=('velocity', 'ardupilot_json')),
     'json_host': Param('127.0.0.1', 'ardupilot_json: UDP address the physics backend listens on for SITL.'),
-    'json_port': Param(9002, 'ardupilot_json: UDP port for SITL (--model JSON:<host> sends to 9002).', min=1, max=65535),
+    'json_port': Param(9002, 'ardupilot_json: UDP port for SITL (--model JSON:<host> sends to 9002).',
+                       min=1, max=65535),
     'json_silence_timeout_s': Param(1.0, 'ardupilot_json: SITL silent this long -> diagnostics error.',
                                     min=0.0, min_exclusive=True),
     'gui': Param(False, 'Open the pybullet GUI window (needs a display).'),
@@ -87,7 +88,7 @@ class SimNode(Node):
             except OSError as exc:
                 raise StartupError(f"sim_node: cannot listen for SITL on udp {self.p['json_host']}:"
                                    f"{self.p['json_port']}: {exc}") from exc
-            self.get_logger().info(f'physics ardupilot_json: serving ArduPilot SITL on udp {self.runner.server.address}')
+            self.get_logger().info(f'physics ardupilot_json: serving SITL on udp {self.runner.server.address}')
             if self.p['real_time_factor'] != 1.0:
                 self.get_logger().warning('real_time_factor is not used with ardupilot_json: SITL sets the pace '
                                           '(its --speedup)')
@@ -124,10 +125,11 @@ class SimNode(Node):
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name='sim_loop', daemon=True)
         self._thread.start()
+        how = ('MAVLink vehicle on ' + self.p['mavlink_url'] if self.mavlink
+               else 'flown by ArduPilot SITL (JSON physics)' if self.json_mode else 'driven by /cmd_vel')
         self.get_logger().info(
             f"sim_node up: seed={self.p['seed']} rtf={self.rtf or 'max'} camera="
-            f"{cfg.camera.width}x{cfg.camera.height}@{self.p['camera_rate_hz']}Hz "
-            f"{'MAVLink vehicle on ' + self.p['mavlink_url'] if self.mavlink else 'flown by ArduPilot SITL (JSON physics)' if self.json_mode else 'driven by /cmd_vel'}")
+            f"{cfg.camera.width}x{cfg.camera.height}@{self.p['camera_rate_hz']}Hz {how}")
 
     # ------------------------------------------------------------------ inputs
     def _on_cmd(self, msg: TwistStamped) -> None:
