@@ -300,3 +300,15 @@ def test_reset_while_motors_spin_is_deferred_until_disarmed():
         sitl.close()
         runner.close()
         world.close()
+
+
+def test_non_finite_state_is_never_sent(rig, monkeypatch):
+    good = rig.model.sensors
+    monkeypatch.setattr(rig.model, 'sensors', lambda *a, **k: {**good(*a, **k), 'position': [float('nan'), 0.0, 0.0]})
+    rig.sitl.send([1000] * 4)
+    assert rig.server.poll(1.0) == 'step'
+    assert rig.sitl.receive(0.1) is None and rig.server.counters['reply_errors'] == 1
+    monkeypatch.setattr(rig.model, 'sensors', good)
+    rig.sitl.send([1000] * 4)                      # SITL re-sends the frame it got no reply for
+    assert rig.server.poll(1.0) == 'step'          # no reply was stored, so it is served afresh
+    assert rig.sitl.receive(1.0) is not None

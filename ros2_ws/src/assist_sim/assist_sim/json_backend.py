@@ -210,6 +210,7 @@ class JsonPhysicsServer:
                                                     rangefinder=self.cfg.send_rangefinder))
         except ValueError as exc:       # non-finite state: never send it; SITL re-sends and waits
             self.counters['reply_errors'] += 1
+            self._last_reply = None     # the re-sent frame is served afresh, not with an older reply
             _LOG.error('physics state not finite, no reply sent: %s', exc)
             return event
         self._last_reply = reply
