@@ -101,6 +101,9 @@ def test_sim_node_serves_sitl_json_publishes_camera_goal_no_odom(probe, start_no
     try:
         sitl.send_raw(struct.pack('<HHI16H', 4242, 400, 0, *[1000] * 16))     # wrong magic: dropped
         sitl.send_raw(b'\x00' * 7)                                               # wrong length: dropped
+        assert wait(lambda: 'no valid SITL packet' in (probe.sim_status() or (0, ''))[1], 30), node.log()
+        level, msg, _ = probe.sim_status()
+        assert level == 2 and 'dropped 1 with a wrong magic, 1 with a wrong length, 0 with a frame rate' in msg
         t.start()
         assert wait(lambda: probe.count('rgb') >= 5, 60), node.log()
         assert wait(lambda: (probe.sim_status() or (0, ''))[1].startswith('SITL connected'), 30), node.log()

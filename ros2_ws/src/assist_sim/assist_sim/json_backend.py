@@ -390,7 +390,13 @@ class JsonSimRunner:
         self.diag.set('json_session_time_s', f'{srv.session_time:.2f}')
         self.diag.set('json_motor_pwm', list(srv.last_pwm[:4]))
         host, port = srv.address[0], srv.address[1]
-        if not srv.connected:
+        c = srv.counters
+        dropped = c['bad_magic'] + c['bad_length'] + c['bad_frame_rate']
+        if not srv.connected and dropped:
+            self.diag.status(2, f'no valid SITL packet on udp {host}:{port}: dropped {c["bad_magic"]} with a wrong '
+                                f'magic, {c["bad_length"]} with a wrong length, {c["bad_frame_rate"]} with a frame rate '
+                                f'outside {srv.cfg.min_frame_rate_hz}-{srv.cfg.max_frame_rate_hz} Hz')
+        elif not srv.connected:
             self.diag.status(1, f'waiting for ArduPilot SITL (JSON) on udp {host}:{port}')
         elif srv.silent:
             self.diag.status(2, f'SITL silent for {srv.silent_for():.1f} s: physics paused, vehicle holds')
