@@ -367,11 +367,11 @@ class BagWriter:
         if self._chunk_dir.exists():
             shutil.rmtree(self._chunk_dir)
         try:
-            self._writer = Writer(self._chunk_dir, version=WRITE_VERSION, storage_plugin=STORAGES[self.storage])
-            self._writer.open()
+            writer = Writer(self._chunk_dir, version=WRITE_VERSION, storage_plugin=STORAGES[self.storage])
+            writer.open()
         except (WriterError, OSError) as exc:
             raise BagError(f'{self.path}: cannot write ({_one_line(exc)})') from None
-        self._conns = {}
+        self._writer, self._conns = writer, {}
         for topic in self._topics:
             self._add_conn(topic)
         self._chunk_bytes, self._chunk_start, self._chunk_count = 0, None, 0
@@ -379,6 +379,9 @@ class BagWriter:
     def _finish_chunk(self) -> None:
         writer, self._writer = self._writer, None
         chunk = self._chunk_dir
+        if writer is None or writer.storage is None:     # interrupted while opening: nothing to keep
+            shutil.rmtree(chunk, ignore_errors=True)
+            return
         if self._chunk_count == 0 and self._files:
             writer.abort()
             shutil.rmtree(chunk, ignore_errors=True)
