@@ -313,6 +313,7 @@ class BagWriter:
         self._chunk_start: int | None = None
         self._chunk_count = 0
         self.closed = False
+        self.custom_data: dict[str, str] = {}
         self._write_metadata()                # a valid (empty) bag from the start
 
     # ------------------------------------------------------------------ topics
@@ -424,7 +425,7 @@ class BagWriter:
             'compression_format': '',
             'compression_mode': '',
             'files': self._files,
-            'custom_data': None,
+            'custom_data': dict(self.custom_data) or None,
             'ros_distro': 'jazzy',
         }
         tmp = self.path / (METADATA + '.tmp')
