@@ -82,10 +82,6 @@ def _groups(it: Iterator[tuple[str, int, bytes]]) -> Iterator[list[tuple[str, in
 
 def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> ReplayResult:
     """Re-run encoder + policy on the bag's inputs; BagError/ValueError with one line on bad input."""
-    import torch  # noqa: PLC0415 - heavy; only when replaying
-
-    from ..policy_core import PolicyCore, PolicyCoreConfig, default_model_path  # noqa: PLC0415
-    torch.set_num_threads(1)
     res = ReplayResult()
     with BagReader(bag) as r:
         custom = (r.metadata.get('custom_data') or {}) if r.metadata else {}
@@ -107,6 +103,10 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
             raise BagError(f'{bag}: lacks {", ".join(missing)}: cannot re-run the {mode} assistant')
         used = need + [t for t in (AGENT, CMD, LATENT) if t in r.topics and t not in need]
         r.check_definitions(used)
+        import torch  # noqa: PLC0415 - heavy: only once the bag is known to be good
+
+        from ..policy_core import PolicyCore, PolicyCoreConfig, default_model_path  # noqa: PLC0415
+        torch.set_num_threads(1)
         frame = cfg.velocity_frame if cfg.velocity_frame != 'auto' else custom.get(VELOCITY_FRAME_KEY, 'twist')
         actor = Path(cfg.actor) if cfg.actor else default_model_path(mode)
         core = PolicyCore(actor, PolicyCoreConfig(mode=mode, blend_threshold=cfg.blend_threshold,
