@@ -170,3 +170,30 @@ def test_play_refuses_bad_input_with_one_line(tmp_path):
         assert 'Traceback' not in proc.stderr
         errors = [ln for ln in proc.stderr.splitlines() if ln.startswith('error:')]
         assert len(errors) == 1, proc.stderr
+
+
+def test_recorder_closes_cleanly_on_sigterm(start_node, tmp_path):
+    a = other_tool_bag(tmp_path / 'a', 'sqlite3')
+    b = tmp_path / 'b'
+    rec = start_node('bag_record', {'output': str(b), 'topics': ['/pilot/cmd_vel'], 'storage': 'sqlite3',
+                                    'discovery_period_s': 0.1})
+    play = start_node('bag_play', {'bag': str(a), 'wait_for_subscribers': 1, 'delay_s': 0.0})
+    assert play.proc.wait(timeout=120) == 0
+    time.sleep(0.5)
+    rec.proc.send_signal(signal.SIGTERM)
+    assert rec.proc.wait(timeout=30) == 0, rec.log()
+    assert [raw for _, raw in read(b)['/pilot/cmd_vel']] == [raw for _, raw in read(a)['/pilot/cmd_vel']]
+    assert not [p for p in b.iterdir() if p.name.startswith('.writing')]
+
+
+def test_recorder_refuses_bad_input_with_one_line(tmp_path):
+    (tmp_path / 'file').write_text('x')
+    cases = [[str(tmp_path / 'file' / 'bag')], [str(tmp_path / 'ok'), '--storage', 'rosbag1'],
+             ['--ros-args', '-p', f'output:={tmp_path / "ok2"}', '-p', "topics:=['']"]]
+    for args in cases:
+        proc = subprocess.run([str(BIN / 'bag_record'), *args], capture_output=True, text=True, timeout=60,
+                              env=dict(os.environ, ROS_DOMAIN_ID='199'))
+        assert proc.returncode == 1, (args, proc.stderr)
+        errors = [ln for ln in proc.stderr.splitlines() if ln.startswith('error:')]
+        assert len(errors) == 1 and 'Traceback' not in proc.stderr, proc.stderr
+    assert not (tmp_path / 'ok').exists() and not (tmp_path / 'ok2').exists()
