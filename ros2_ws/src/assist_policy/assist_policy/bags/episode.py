@@ -16,6 +16,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from assist_sim.core.scene_markers import scene_markers
+
 from ..actions import scale_action
 from ..blending import blend
 from ..observation import Condition
@@ -30,12 +32,6 @@ VELOCITY_FRAME_KEY = 'assist.velocity_frame'   # custom_data: 'odom' when the as
 def ns(t: float) -> int:
     """Episode seconds -> bag nanoseconds."""
     return int(round(float(t) * 1e9))
-
-
-def scene_pads(world: Any) -> list[dict]:
-    """The world's pads as box centre / size / yaw dicts (the /sim/scene markers' content)."""
-    return [{'centre': (p.center[0], p.center[1], p.height / 2), 'size': (p.length, p.width, p.height),
-             'yaw': p.yaw} for p in world.scene.pads]
 
 
 class EpisodeRecorder:
@@ -72,7 +68,7 @@ class EpisodeRecorder:
         if self._t0 is None:     # first step of the episode: the start pose, goal and scene
             self._t0 = st.time
             w.write_msg('/sim/goal', 0, msgs.point_stamped(0, env.world.goal_position))
-            w.write_msg('/sim/scene', 0, msgs.scene_markers(0, scene_pads(env.world), env.world.goal_index))
+            w.write_msg('/sim/scene', 0, msgs.scene_markers(0, scene_markers(env.world.scene, env.world.goal_index)))
         t = ns(st.time - self._t0)
         raw = np.zeros(3) if self._policy is None else np.asarray(self._policy(obs), dtype=float)
         frame = getattr(self._latent_fn, 'last_input', None) if self._latent_fn is not None else None

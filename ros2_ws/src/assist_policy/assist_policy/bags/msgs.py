@@ -140,32 +140,24 @@ def landing_json(msg: Any) -> dict:
     return obj
 
 
-def scene_markers(t_ns: int, pads: list[dict], goal_index: int, frame: str = 'odom') -> Any:
-    """/sim/scene MarkerArray: one CUBE per pad in ns 'platforms' (id = index), the goal also in ns 'goal'.
-
-    Each pad dict: centre (x, y, z of the box centre), size (x, y, z), yaw (rad).
-    """
+def scene_markers(t_ns: int, boxes, frame: str = 'odom') -> Any:
+    """/sim/scene MarkerArray (rosbags object) from assist_sim's BoxMarker list, as sim_node publishes it."""
     Marker = T('visualization_msgs/msg/Marker')
-    Duration = T('builtin_interfaces/msg/Duration')
+    empty_image = T('sensor_msgs/msg/CompressedImage')(header=header(0, ''), format='', data=np.zeros(0, np.uint8))
     out = []
-
-    def cube(ns: str, i: int, pad: dict, rgba) -> Any:
-        c, s, yaw = pad['centre'], pad['size'], float(pad['yaw'])
+    for b in boxes:
+        qx, qy, qz, qw = b.quaternion
         pose = T('geometry_msgs/msg/Pose')(
-            position=T('geometry_msgs/msg/Point')(x=float(c[0]), y=float(c[1]), z=float(c[2])),
-            orientation=T('geometry_msgs/msg/Quaternion')(x=0.0, y=0.0, z=float(np.sin(yaw / 2)),
-                                                          w=float(np.cos(yaw / 2))))
-        return Marker(header=header(t_ns, frame), ns=ns, id=i, type=Marker.CUBE, action=Marker.ADD, pose=pose,
-                      scale=_vec3(s), color=T('std_msgs/msg/ColorRGBA')(r=rgba[0], g=rgba[1], b=rgba[2], a=rgba[3]),
-                      lifetime=Duration(sec=0, nanosec=0), frame_locked=False, points=[], colors=[],
-                      texture_resource='', texture=T('sensor_msgs/msg/CompressedImage')(
-                          header=header(0, ''), format='', data=np.zeros(0, np.uint8)),
-                      uv_coordinates=[], text='', mesh_resource='',
-                      mesh_file=T('visualization_msgs/msg/MeshFile')(filename='', data=np.zeros(0, np.uint8)),
-                      mesh_use_embedded_materials=False)
-    for i, pad in enumerate(pads):
-        out.append(cube('platforms', i, pad, (0.6, 0.6, 0.6, 1.0)))
-    out.append(cube('goal', int(goal_index), pads[goal_index], (0.1, 0.8, 0.1, 0.6)))
+            position=T('geometry_msgs/msg/Point')(x=float(b.center[0]), y=float(b.center[1]), z=float(b.center[2])),
+            orientation=T('geometry_msgs/msg/Quaternion')(x=qx, y=qy, z=qz, w=qw))
+        r, g, bl, a = (float(c) for c in b.rgba)
+        out.append(Marker(header=header(t_ns, frame), ns=b.ns, id=int(b.id), type=Marker.CUBE, action=Marker.ADD,
+                          pose=pose, scale=_vec3(b.size), color=T('std_msgs/msg/ColorRGBA')(r=r, g=g, b=bl, a=a),
+                          lifetime=T('builtin_interfaces/msg/Duration')(sec=0, nanosec=0), frame_locked=False,
+                          points=[], colors=[], texture_resource='', texture=empty_image, uv_coordinates=[],
+                          text='', mesh_resource='',
+                          mesh_file=T('visualization_msgs/msg/MeshFile')(filename='', data=np.zeros(0, np.uint8)),
+                          mesh_use_embedded_materials=False))
     return T('visualization_msgs/msg/MarkerArray')(markers=out)
 
 
