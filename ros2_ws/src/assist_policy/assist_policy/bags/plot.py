@@ -7,8 +7,8 @@ Each figure: top view (x-y) and side view (x-z) of the flown path with the five 
 (pads from /sim/scene; without it only the goal from /sim/goal is marked and the landing JSON names the
 pads), the stretches where the assistant was active (|a| > blend threshold) highlighted, and pilot (u)
 vs assistant (a) vs blended (V) velocity commands over time per axis, with the active stretches shaded.
-A bag holds one landing per /sim/landing message (the stretch since the previous one); a bag without
-any gives one figure of the whole recording.
+A bag holds one landing per /sim/landing message (the stretch since the previous one); what follows the
+last landing (or a bag without any) gives one more figure, marked unfinished.
 """
 from __future__ import annotations
 
@@ -108,9 +108,11 @@ def read_flights(bag: str | Path, progress: bool = False) -> list[Flight]:
     bounds = [(-1.0, t) for t, _ in landings[:1]] + [(a[0], b[0]) for a, b in zip(landings, landings[1:])]
     if not landings:
         bounds = [(-1.0, end)]
+    elif len(series['/odom'].window(landings[-1][0], end)[0]) > 20:    # an unfinished flight after the last landing
+        bounds.append((landings[-1][0], end))
     flights = []
     for i, (t0, t1) in enumerate(bounds):
-        landing = landings[i][1] if landings else None
+        landing = landings[i][1] if i < len(landings) else None
 
         def last(items, t1=t1):
             before = [x for x in items if x[0] <= t1]
@@ -222,7 +224,7 @@ def plot_flight(f: Flight, path: Path, title: str, threshold: float = DEFAULT_TH
 def describe(f: Flight, name: str, k: int) -> str:
     """Figure title: bag, landing number and outcome."""
     if f.landing is None:
-        return f'{name}: no /sim/landing recorded'
+        return f'{name} flight {k}: no /sim/landing recorded (unfinished)'
     L = f.landing
     pads = '' if f.pads else '  [pads not recorded (/sim/scene): goal from /sim/goal only]'
     return (f"{name} landing {k}: goal pad {L.get('goal_index')}, landed on {L.get('landed_index')}, "

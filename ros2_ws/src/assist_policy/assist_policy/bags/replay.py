@@ -160,6 +160,7 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
                         core.set_pilot(now, msgs.twist_linear(msg))
                     elif topic == GOAL and mode == 'oracle':
                         core.set_goal(msgs.point(msg))
+                        core.reset()          # as policy_node does: a new goal is a new episode
                     elif topic == RGB:
                         rgb_by_stamp = {msgs.stamp_ns(msg.header.stamp): msgs.image_array(msg)}
                     elif topic == DEPTH:
