@@ -79,7 +79,8 @@ def test_writer_round_trip_with_splits_and_v9_metadata(tmp_path, storage):
     cmd = topics['/cmd_vel']['topic_metadata']
     assert cmd['type'] == 'geometry_msgs/msg/TwistStamped' and cmd['type_description_hash'].startswith('RIHS01_')
     assert cmd['offered_qos_profiles'][0]['reliability'] == 'reliable'
-    assert topics['/camera/depth/image_raw']['topic_metadata']['offered_qos_profiles'][0]['reliability'] == 'best_effort'
+    depth_qos = topics['/camera/depth/image_raw']['topic_metadata']['offered_qos_profiles'][0]
+    assert depth_qos['reliability'] == 'best_effort'
     assert topics['/sim/goal']['topic_metadata']['offered_qos_profiles'][0]['durability'] == 'transient_local'
     with BagReader(bag) as r:
         got = [(topic, t, r.deserialize(raw, topic)) for topic, t, raw in r.messages()]
