@@ -188,3 +188,14 @@ def test_cli_one_line_error_on_damaged_bag(damaged, tmp_path, tool, case):
     errors = [ln for ln in proc.stderr.splitlines() if ln.startswith('error:')]
     assert len(errors) == 1 and str(damaged[case]) in errors[0]
     assert not out.exists()
+
+
+def test_play_clock_and_remaps():
+    from assist_policy.bags.play_core import PlayClock, parse_remaps
+    c = PlayClock(first_ns=5_000_000_000, start_wall=100.0, rate=2.0)
+    assert c.due(5_000_000_000) == 100.0 and c.due(7_000_000_000) == pytest.approx(101.0)
+    assert c.bag_time(101.0) == 7_000_000_000
+    assert parse_remaps(['/a:=/b', '/c/d:=/e']) == {'/a': '/b', '/c/d': '/e'}
+    for bad in (['/a'], ['a:=/b'], ['/a:=']):
+        with pytest.raises(ValueError):
+            parse_remaps(bad)
