@@ -199,3 +199,48 @@ def test_play_clock_and_remaps():
     for bad in (['/a'], ['a:=/b'], ['/a:=']):
         with pytest.raises(ValueError):
             parse_remaps(bad)
+
+
+def test_size_split(tmp_path):
+    bag = tmp_path / 'b'
+    _write(bag, 'sqlite3', split_size_bytes=4000).close()     # ~140 B per message pair -> several files
+    with BagReader(bag) as r:
+        assert len(r.files) >= 3 and r.message_count == 121
+        assert sum(1 for _ in r.messages()) == 121
+
+
+def other_distro_bag(path: Path) -> Path:
+    """A bag whose /odom carries a nav_msgs/Odometry definition unlike Jazzy's (as another distro might)."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+    ts = get_typestore(Stores.EMPTY)
+    ts.register(get_types_from_msg('float64 x\nfloat64 y', 'nav_msgs/msg/Odometry'))
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        c = w.add_connection('/odom', 'nav_msgs/msg/Odometry', typestore=ts)
+        jazzy = get_typestore(Stores.ROS2_JAZZY)
+        pilot = w.add_connection('/pilot/cmd_vel', 'geometry_msgs/msg/TwistStamped', typestore=jazzy)
+        goal = w.add_connection('/sim/goal', 'geometry_msgs/msg/PointStamped', typestore=jazzy)
+        w.write(goal, 10**9, jazzy.serialize_cdr(msgs.point_stamped(10**9, (1, 2, 3)),
+                                                 'geometry_msgs/msg/PointStamped'))
+        for k in range(3):
+            w.write(c, 10**9 + k, ts.serialize_cdr(ts.types['nav_msgs/msg/Odometry'](x=1.0, y=2.0),
+                                                  'nav_msgs/msg/Odometry'))
+            w.write(pilot, 10**9 + k, jazzy.serialize_cdr(msgs.twist_stamped(10**9 + k, (1, 0, 0)),
+                                                          'geometry_msgs/msg/TwistStamped'))
+    return path
+
+
+@pytest.mark.parametrize('tool', ['plot_flight', 'replay_assist'])
+def test_cli_refuses_other_distros_definitions_and_unwritable_output(tmp_path, tool):
+    bag = other_distro_bag(tmp_path / 'other')
+    proc = subprocess.run([str(BIN / tool), str(bag), '--out', str(tmp_path / 'o'), '--mode' if tool == 'replay_assist'
+                           else '--threshold', 'oracle' if tool == 'replay_assist' else '0.25'],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 1 and 'Traceback' not in proc.stderr
+    errors = [ln for ln in proc.stderr.splitlines() if ln.startswith('error:')]
+    assert len(errors) == 1, proc.stderr
+    assert '/odom' in errors[0] and 'Odometry differs from this install' in errors[0]
+    (tmp_path / 'file').write_text('x')
+    proc = subprocess.run([str(BIN / tool), str(bag), '--out', str(tmp_path / 'file' / 'o')], capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 1 and 'not a writable directory' in proc.stderr and 'Traceback' not in proc.stderr

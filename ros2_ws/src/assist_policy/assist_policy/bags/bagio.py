@@ -274,6 +274,18 @@ def _one_line(exc: BaseException) -> str:
 
 
 # ---------------------------------------------------------------------------------------------- writing
+def check_output(path: str | Path) -> None:
+    """BagError unless `path` does not exist yet and could be created (checked before any long work)."""
+    path = Path(path)
+    if path.exists():
+        raise BagError(f'{path}: exists already; not overwriting')
+    parent = path.parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir() or not os.access(parent, os.W_OK):
+        raise BagError(f'{path}: cannot be created ({parent} is not a writable directory)')
+
+
 class BagWriter:
     """rosbag2 writer (metadata v9) with size/duration splitting and a crash-tolerant metadata.yaml."""
 

@@ -23,7 +23,7 @@ import numpy as np
 
 from ..blending import DEFAULT_THRESHOLD
 from . import msgs
-from .bagio import BagError, BagReader
+from .bagio import BagError, BagReader, check_output
 
 log = logging.getLogger(__name__)
 
@@ -247,10 +247,10 @@ def main(argv: list[str] | None = None) -> int:
     name = bag.stem if bag.suffix in ('.mcap', '.db3') else bag.name
     out = Path(a.out) if a.out else bag.with_name(name + '_plots')
     try:
+        if not out.is_dir():
+            check_output(out)
         flights = read_flights(bag, progress=True)
         out.mkdir(parents=True, exist_ok=True)
-        if not os.access(out, os.W_OK):
-            raise BagError(f'{out}: not writable')
         written = []
         for k, f in enumerate(flights):
             path = out / f'{name}_landing{k}.png'

@@ -31,7 +31,7 @@ from typing import Iterator
 import numpy as np
 
 from . import msgs
-from .bagio import CONTRACT_TOPICS, BagError, BagReader, BagWriter
+from .bagio import CONTRACT_TOPICS, BagError, BagReader, BagWriter, check_output
 from .episode import VELOCITY_FRAME_KEY
 
 log = logging.getLogger(__name__)
@@ -301,8 +301,7 @@ def main(argv: list[str] | None = None) -> int:
                        velocity_frame=a.velocity_frame, rate_hz=a.rate_hz, blend_threshold=a.blend_threshold,
                        timeout_s=a.timeout_s)
     try:
-        if out.exists():
-            raise BagError(f'{out}: exists already; not overwriting')
+        check_output(out)
         res = replay(bag, cfg, progress=True)
         write_outputs(res, out, a.storage)
         summary = summarize(res)
