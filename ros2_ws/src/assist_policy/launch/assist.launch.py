@@ -1,6 +1,7 @@
 """Assisted landing in simulation: sim_node + encoder_node + sim_pilot_node + policy_node.
 
 ros2 launch assist_policy assist.launch.py mode:=latent beta:=0.3 real_time_factor:=1.0
+ros2 launch assist_policy assist.launch.py record:=flights/run1    # also record the flight (bag_record)
 """
 import os
 
@@ -8,7 +9,7 @@ from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument
 from launch.conditions import IfCondition
-from launch.substitutions import EqualsSubstitution, LaunchConfiguration
+from launch.substitutions import EqualsSubstitution, LaunchConfiguration, NotEqualsSubstitution
 from launch_ros.actions import Node
 from launch_ros.parameter_descriptions import ParameterValue
 
@@ -36,7 +37,9 @@ def generate_launch_description():
             DeclareLaunchArgument('gui', default_value='false', choices=BOOL_CHOICES,
                                   description='Open the pybullet GUI window (needs a display)'),
             DeclareLaunchArgument('model_path', default_value='',
-                                  description='TD3 actor file; empty = the shipped td3_<mode>_actor.pt')]
+                                  description='TD3 actor file; empty = the shipped td3_<mode>_actor.pt'),
+            DeclareLaunchArgument('record', default_value='',
+                                  description='Bag directory to record the flight into (empty: no recording)')]
     sim_time = {'use_sim_time': True}
     sim = Node(package='assist_sim', executable='sim_node', name='sim_node', output='screen',
                parameters=[sim_params, {'seed': LaunchConfiguration('seed'), 'gui': LaunchConfiguration('gui'),
@@ -52,10 +55,14 @@ def generate_launch_description():
                   parameters=[params, sim_time, {'mode': mode,
                                                  'model_path': ParameterValue(LaunchConfiguration('model_path'),
                                                                               value_type=str)}])
+    record = Node(package='assist_policy', executable='bag_record', name='bag_record', output='screen',
+                  parameters=[sim_time, {'output': ParameterValue(LaunchConfiguration('record'), value_type=str)}],
+                  condition=IfCondition(NotEqualsSubstitution(LaunchConfiguration('record'), '')))
     return LaunchDescription(args + [
-        sim, encoder, pilot, policy,
+        sim, encoder, pilot, policy, record,
         shutdown_when_exits(sim, 'nothing flies without the simulation'),
         shutdown_when_exits(encoder, 'the latent assistant needs the encoder'),
         shutdown_when_exits(pilot, 'no pilot commands without the simulated pilot'),
         shutdown_when_exits(policy, 'the pilot would fly unassisted without policy_node'),
+        shutdown_when_exits(record, 'the flight would go unrecorded'),
     ])
