@@ -17,6 +17,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import TwistStamped
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy._rclpy_pybind11 import RCLError
+from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
@@ -191,7 +192,8 @@ class Diagnostics:
         self._level = 0  # DiagnosticStatus.OK
         self._message = 'ok'
         self._pub = node.create_publisher(DiagnosticArray, topic, 10)
-        self._timer = node.create_timer(period_s, self.publish)
+        # a steady timer: the status keeps coming when sim time stalls or races (stamps: node clock)
+        self._timer = node.create_timer(period_s, self.publish, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def count(self, key: str, n: int = 1) -> None:
         """Increment counter `key`."""
