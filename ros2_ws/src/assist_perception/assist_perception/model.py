@@ -22,6 +22,7 @@ from assist_sim.atomic import atomic_path
 
 MODEL_FORMAT = 'assist_perception.cmvae'
 MODEL_VERSION = 1
+MAX_RANGE_M = 1000.0      # no depth scale, depth limit or pad coordinate of a downward camera exceeds this
 
 
 class ModelLoadError(RuntimeError):
@@ -73,14 +74,18 @@ class CMVAEConfig:
         self.xyz_hidden = _int_field('xyz_hidden', self.xyz_hidden, 1, 8192)
         for name in ('depth_scale_m', 'max_input_depth_m'):
             v = _float_field(name, getattr(self, name))
-            if v <= 0:
-                raise ValueError(f'CMVAEConfig.{name} must be > 0, got {v!r}')
+            if not 0 < v <= MAX_RANGE_M:
+                raise ValueError(f'CMVAEConfig.{name} must be in (0, {MAX_RANGE_M:g}] m, got {v!r}')
             setattr(self, name, v)
         self.init_depth_m = _float_field('init_depth_m', self.init_depth_m)
+        if not 0 <= self.init_depth_m <= MAX_RANGE_M:
+            raise ValueError(f'CMVAEConfig.init_depth_m must be in [0, {MAX_RANGE_M:g}] m, got {self.init_depth_m!r}')
         self.xyz_mean = _seq_field('xyz_mean', self.xyz_mean, 3, float)
         self.xyz_std = _seq_field('xyz_std', self.xyz_std, 3, float)
-        if any(v <= 0 for v in self.xyz_std):
-            raise ValueError(f'CMVAEConfig.xyz_std must be > 0, got {self.xyz_std}')
+        if any(abs(v) > MAX_RANGE_M for v in self.xyz_mean):
+            raise ValueError(f'CMVAEConfig.xyz_mean must be within +-{MAX_RANGE_M:g} m, got {self.xyz_mean}')
+        if any(not 0 < v <= MAX_RANGE_M for v in self.xyz_std):
+            raise ValueError(f'CMVAEConfig.xyz_std must be in (0, {MAX_RANGE_M:g}] m, got {self.xyz_std}')
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> 'CMVAEConfig':
@@ -330,8 +335,10 @@ def load_model(path: str | Path, device: str | torch.device = 'cpu') -> CMVAE:
     for name, t in model.state_dict().items():
         if t.is_floating_point() and not torch.isfinite(t).all():
             raise ModelLoadError(f'{path}: non-finite values in {name}')
-    if not bool((model.xyz_std > 0).all()):
-        raise ModelLoadError(f'{path}: xyz_std must be > 0, got {model.xyz_std.tolist()}')
+    if not bool(((model.xyz_std > 0) & (model.xyz_std <= MAX_RANGE_M)).all()
+                and (model.xyz_mean.abs() <= MAX_RANGE_M).all()):
+        raise ModelLoadError(f'{path}: xyz_std must be in (0, {MAX_RANGE_M:g}] and xyz_mean within '
+                             f'+-{MAX_RANGE_M:g}, got {model.xyz_std.tolist()}, {model.xyz_mean.tolist()}')
     metadata = payload.get('metadata', {})
     if not isinstance(metadata, dict):
         raise ModelLoadError(f'{path}: metadata must be a dict, got {type(metadata).__name__}')

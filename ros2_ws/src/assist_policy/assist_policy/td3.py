@@ -373,7 +373,7 @@ def validate_actor_meta(meta: Any) -> dict[str, Any]:
     if 'blend_threshold' in meta:
         meta['blend_threshold'] = _float(meta['blend_threshold'], "'blend_threshold'", 0.0, MAX_ACTION_SPEED)
     cond = meta.get('condition')
-    if cond is not None and cond not in {c.value for c in Condition}:
+    if cond is not None and (not isinstance(cond, str) or cond not in {c.value for c in Condition}):
         raise ValueError(f"metadata 'condition' must be one of latent, oracle, end_to_end; got {cond!r}")
     if cond == 'latent' and meta['latent_dim'] < 1:
         raise ValueError("metadata 'latent_dim' must be >= 1 for a latent actor")
