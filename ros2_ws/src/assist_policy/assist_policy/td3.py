@@ -185,13 +185,11 @@ class ReplayBuffer:
 
     def save(self, path: str | Path) -> None:
         """Write the filled part to an .npz file (written atomically)."""
-        path = Path(path)
-        tmp = path.with_name(path.name + '.tmp.npz')
         n = self.size
         order = np.arange(n) if n < self.capacity else (np.arange(n) + self.ptr) % self.capacity
-        np.savez(tmp, obs=self.obs[order], act=self.act[order], rew=self.rew[order],
-                 next_obs=self.next_obs[order], done=self.done[order])
-        tmp.replace(path)
+        with atomic_path(path) as tmp:
+            np.savez(tmp, obs=self.obs[order], act=self.act[order], rew=self.rew[order],
+                     next_obs=self.next_obs[order], done=self.done[order])
 
     def load(self, path: str | Path) -> int:
         """Append the transitions of a saved buffer (preload); returns how many were added."""
