@@ -300,3 +300,15 @@ def test_scale_action_is_bounded_and_never_reverses(raw, ms):
         assert abs(x) <= m + 1e-12 and (x == 0 or math.copysign(1, x) == math.copysign(1, r))
     back = unscale_action(np.nan_to_num(a), ms)
     assert np.all(np.abs(back) <= 1.0)
+
+
+def test_nan_max_speed_reaching_the_core_relinquishes_instead_of_crashing(actor_file):
+    """Refused at load (test_policy_model_files); should one get in anyway, the tick must not crash."""
+    core = PolicyCore(actor_file, PolicyCoreConfig(mode='latent'))
+    core.max_speed = (math.nan, 1.0, 0.6)
+    core.set_pilot(1.0, [0.0, 1.0, 0.0])
+    core.set_latent(1.0, np.zeros(LATENT))
+    core.set_odom(1.0, [0, 0, 2], [0, 0, 0])
+    out = core.step(1.0)
+    assert out.key == 'step_error' and out.agent is None
+    np.testing.assert_allclose(out.velocity, [0.0, 1.0, 0.0])
