@@ -69,7 +69,7 @@ def test_sigkill_at_a_random_moment_then_resume(tmp_path):
              '--buffer-size', '5000', '--torch-threads', '1']
     run = tmp_path / 'k'
     env = dict(os.environ, PYTHONUNBUFFERED='1')
-    proc = subprocess.Popen(_train_cmd('--name', 'k', '--runs-dir', str(tmp_path), '--total-steps', '700', *flags),
+    proc = subprocess.Popen(_train_cmd('--name', 'k', '--runs-dir', str(tmp_path), '--total-steps', '500', *flags),
                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
     try:
         end = time.monotonic() + 300
@@ -82,10 +82,10 @@ def test_sigkill_at_a_random_moment_then_resume(tmp_path):
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
-    done = subprocess.run(_train_cmd('--resume', str(run), '--total-steps', '700'), env=env,
+    done = subprocess.run(_train_cmd('--resume', str(run), '--total-steps', '500'), env=env,
                           capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
-    assert_consistent(run, 700)
+    assert_consistent(run, 500)
     evals = [(int(r['episode']), int(r['step'])) for r in csv.DictReader(open(run / 'eval.csv'))]
     assert len(set(evals)) == len(evals) and evals == sorted(evals), evals
 
