@@ -39,6 +39,8 @@ import torch
 
 from assist_sim.atomic import atomic_path, truncate_csv, write_text_atomic
 
+from .bags.bagio import BagError
+from .bags.episode import record_landing
 from .cli import add_dataclass_args, dataclass_from_args
 from .env import EnvConfig, LandingAssistEnv, run_episode
 from .latent import make_latent_fn
@@ -71,6 +73,7 @@ class EvalArgs:
     max_episode_s: float = 60.0
     plot: bool = True
     from_csv: tuple[str, ...] = ()
+    record_dir: str = ''
 
 
 HELP = {
@@ -86,6 +89,8 @@ HELP = {
     'from_csv': 'fly nothing: combine the landings.csv files of earlier runs (e.g. one condition split '
                 'over processes by --betas; a landing in a later file replaces the same condition, beta '
                 'and seed in an earlier one) into one table, summary.csv and plot',
+    'record_dir': 'save every landing as a rosbag2 bag (the graph\'s topics and types) in this directory, '
+                  'named <condition>_beta<beta>_seed<seed>: replay_assist / plot_flight take any of them',
 }
 
 LANDING_FIELDS = ['condition', 'beta', 'seed', 'scene_seed', 'goal_index', 'landed_index', 'nearest_index',
@@ -311,7 +316,8 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
                     seed = args.seed + 1000 * bi + k
                     row = results.flown(cond, float(beta), seed)
                     if row is None:
-                        row = run_landing(env, policy, seed, float(beta))
+                        row = (record_landing(run_landing, env, policy, seed, float(beta), cond, args.record_dir)
+                               if args.record_dir else run_landing(env, policy, seed, float(beta)))
                         row['condition'] = cond
                         results.write(row)
                     rows.append(row)
@@ -348,7 +354,7 @@ def main(argv: list[str] | None = None) -> int:
     args = dataclass_from_args(EvalArgs, parser.parse_args(argv))
     try:
         summary = evaluate(args)
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, BagError) as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 1
     if not summary:
