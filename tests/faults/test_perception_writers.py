@@ -64,7 +64,7 @@ def test_crash_between_metrics_row_and_checkpoint_is_not_counted_twice(frames, t
 
 @pytest.mark.slow
 def test_make_dataset_killed_mid_shard_resumes_to_the_same_dataset(tmp_path):
-    flags = ['--frames', '160', '--frames-per-scene', '40', '--scenes-per-shard', '1', '--seed', '11',
+    flags = ['--frames', '240', '--frames-per-scene', '40', '--scenes-per-shard', '1', '--seed', '11',
              '--no-progress']
     ref = tmp_path / 'ref'
     clean = subprocess.Popen([str(BIN / 'make_dataset'), '--out-dir', str(ref), *flags],
@@ -76,7 +76,7 @@ def test_make_dataset_killed_mid_shard_resumes_to_the_same_dataset(tmp_path):
         end = time.monotonic() + 300
         while not list(out.glob('shard_*.npz')) and proc.poll() is None and time.monotonic() < end:
             time.sleep(0.05)
-        time.sleep(0.3)                    # into the next shard
+        time.sleep(0.1)                    # into the next shard
         assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
@@ -84,7 +84,7 @@ def test_make_dataset_killed_mid_shard_resumes_to_the_same_dataset(tmp_path):
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
     shards = sorted(p.name for p in out.glob('shard_*.npz'))
-    assert 1 <= len(shards) < 4 and (out / 'meta.json').is_file()
+    assert 1 <= len(shards) < 6 and (out / 'meta.json').is_file()
     for p in out.glob('shard_*.npz'):      # every shard on disk is complete
         with np.load(p) as z:
             assert len(z['visible']) == 40
@@ -94,7 +94,7 @@ def test_make_dataset_killed_mid_shard_resumes_to_the_same_dataset(tmp_path):
     assert clean.wait(timeout=600) == 0
     assert not [p for p in out.iterdir() if p.name.startswith('.')]      # no temporaries left behind
     a, b = load_frames(out), load_frames(ref)
-    assert len(a) == len(b) == 160
+    assert len(a) == len(b) == 240
     np.testing.assert_array_equal(a.depth, b.depth)
     np.testing.assert_array_equal(a.rgb, b.rgb)
     np.testing.assert_array_equal(a.visible, b.visible)

@@ -315,3 +315,38 @@ def test_nan_max_speed_reaching_the_core_relinquishes_instead_of_crashing(actor_
     out = core.step(1.0)
     assert out.key == 'step_error' and out.agent is None
     np.testing.assert_allclose(out.velocity, [0.0, 1.0, 0.0])
+
+
+@pytest.fixture(scope='module')
+def e2e_file(tmp_path_factory):
+    from assist_policy.td3 import TD3, TD3Config
+    agent = TD3(vector_dim('end_to_end'), 3, TD3Config(hidden=(8,), image_channels=(4, 4, 4, 4)), image=True)
+    path = tmp_path_factory.mktemp('e2e') / 'e2e.pt'
+    save_actor(agent.actor, {**agent.meta, 'condition': 'end_to_end', 'latent_dim': 0,
+                             'max_speed': [1.0, 1.0, 0.6]}, path)
+    return path
+
+
+IMAGE_DTYPES = st.sampled_from([np.uint8, np.uint16, np.float32, np.float64, np.int8, np.bool_])
+
+
+@SETTINGS
+@given(rgb_shape=st.sampled_from([(64, 64, 3), (32, 32, 3), (64, 64), (64, 64, 4), (0, 64, 3), (1, 1, 3)]),
+       depth_shape=st.sampled_from([(64, 64), (32, 32), (64, 64, 1), (0, 64)]), rgb_dtype=IMAGE_DTYPES,
+       depth_dtype=IMAGE_DTYPES, fill=ANY_FLOAT, t=STAMPS)
+def test_end_to_end_images_are_used_or_rejected(e2e_file, rgb_shape, depth_shape, rgb_dtype, depth_dtype, fill, t):
+    core = PolicyCore(e2e_file, PolicyCoreConfig(mode='end_to_end'))
+    core.set_pilot(1.0, [0.0, 1.0, 0.0])
+    core.set_odom(1.0, [0, 0, 2], [0, 0, 0])
+    with np.errstate(all='ignore'):
+        rgb = np.full(rgb_shape, fill).astype(rgb_dtype) if math.isfinite(fill) or rgb_dtype in (
+            np.float32, np.float64) else np.zeros(rgb_shape, rgb_dtype)
+        depth = np.full(depth_shape, fill).astype(depth_dtype) if math.isfinite(fill) or depth_dtype in (
+            np.float32, np.float64) else np.zeros(depth_shape, depth_dtype)
+    try:
+        core.set_image(t, rgb, depth)
+    except InputRejected as exc:
+        assert exc.reason.startswith('image_') and sum(core.rejections.values()) == 1
+    out = core.step(1.0)
+    check_output(core, out)
+    assert not core.faults, core.faults

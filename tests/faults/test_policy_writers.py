@@ -75,7 +75,7 @@ def test_sigkill_at_a_random_moment_then_resume(tmp_path):
         end = time.monotonic() + 300
         while not (run / 'checkpoint').is_dir() and proc.poll() is None and time.monotonic() < end:
             time.sleep(0.1)
-        time.sleep(random.uniform(0.0, 2.0))
+        time.sleep(random.uniform(0.0, 1.0))
         assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
         os.killpg(proc.pid, signal.SIGKILL)
     finally:
