@@ -32,6 +32,8 @@ PARAMS = {
     'reset_delay_s': Param(1.0, 'Sim seconds between a landing and the next episode (auto_reset).'),
     'mavlink_url': Param('', 'Empty: driven by /cmd_vel. Else act as a MAVLink vehicle on this pymavlink '
                               'address (e.g. tcpin:127.0.0.1:5760); then the sim runs at wall-clock speed.'),
+    'mavlink_signing_key_file': Param('', 'MAVLink 2 signing key file for mavlink_url (32 raw bytes or 64 hex '
+                                          'characters, mode 600; the bridge uses the same file); empty = unsigned.'),
     'gui': Param(False, 'Open the pybullet GUI window (needs a display).'),
     'world_config': Param('', 'Optional YAML file overriding assist_sim.core.config.WorldConfig fields.'),
     'cmd_timeout_s': Param(0.5, '/cmd_vel older than this (sim time) counts as absent: the vehicle hovers.'),
@@ -69,9 +71,10 @@ class SimNode(Node):
             max_cmd_speed_mps=float(self.p['max_cmd_speed_mps']), airborne_start=not self.mavlink))
         self.vehicle = None
         if self.mavlink:
-            from .mavlink_vehicle import MavlinkVehicle
+            from .mavlink_vehicle import MavlinkVehicle, MavlinkVehicleConfig
             try:
-                self.vehicle = MavlinkVehicle(self.world, self.p['mavlink_url'])
+                self.vehicle = MavlinkVehicle(self.world, self.p['mavlink_url'], MavlinkVehicleConfig(
+                    signing_key_file=self.p['mavlink_signing_key_file']))
             except (OSError, ValueError) as exc:
                 raise StartupError(f"sim_node: cannot open MAVLink endpoint '{self.p['mavlink_url']}': {exc}") from exc
         self.rtf = 1.0 if self.mavlink else float(self.p['real_time_factor'])
