@@ -282,6 +282,7 @@ class MavlinkBridge:
         self._last_heartbeat_sent = -math.inf
         self._last_stream_request = -math.inf
         self._mode_warned: str | None = None
+        self._hb_mode, self._hb_armed = 'UNKNOWN', False    # as last reported by HEARTBEAT (for the log)
         self.last_setpoint: dict | None = None
         self._running = False
         self._thread: threading.Thread | None = None
@@ -438,6 +439,7 @@ class MavlinkBridge:
                 st = self.status
                 st.last_heartbeat = now
                 old_mode, was_armed = st.mode, st.armed
+                reported_mode, reported_armed = self._hb_mode, self._hb_armed
                 st.mode = MODE_NAMES.get(int(msg.custom_mode), f'MODE_{msg.custom_mode}')
                 if old_mode == 'GUIDED' and st.mode != 'GUIDED':
                     self._takeoff_until_alt = None
@@ -448,11 +450,13 @@ class MavlinkBridge:
                     self._takeoff_until_alt = None
                 came_up = not st.link_up
                 st.link_up = True
+                self._hb_mode, self._hb_armed = st.mode, st.armed
             if came_up:
-                self._link_changed(True, f'vehicle heartbeat from {self.peer.describe()}, mode {st.mode}')
-            if st.mode != old_mode and not came_up:
-                _LOG.info('vehicle mode %s (was %s)', st.mode, old_mode)
-            if st.armed != was_armed:
+                self._link_changed(True, f"vehicle heartbeat from {self.peer.describe()}, mode {st.mode}, "
+                                         f"{'armed' if st.armed else 'disarmed'}")
+            elif st.mode != reported_mode:     # as the vehicle reports it (set_mode's guess aside)
+                _LOG.info('vehicle mode %s (was %s)', st.mode, reported_mode)
+            if st.armed != reported_armed and not came_up:
                 _LOG.info('vehicle %s in %s', 'armed' if st.armed else 'disarmed', st.mode)
         elif mtype == 'LOCAL_POSITION_NED':
             vals = (msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz)
