@@ -439,3 +439,35 @@ def test_set_limits_validated_and_applied():
         assert bridge.cfg.velocity_scale == 0.5 and bridge.cfg.setpoint_rate_hz == 10.0
     finally:
         bridge.close()
+
+
+# ---------------------------------------------------------------------- /odom rate against the stand-in
+def test_stand_in_caps_telemetry_at_its_step_rate_and_says_so(caplog):
+    """30 Hz requested from a vehicle stepped at 20 Hz: 20 Hz arrive, and its log says why (issue 10 item 8)."""
+    clock = FakeClock()
+    port = free_udp_port()
+    gcs = mavutil.mavlink_connection(f'udpin:127.0.0.1:{port}', source_system=255, source_component=191,
+                                     dialect='ardupilotmega')
+    vehicle = MavlinkVehicle(KinematicWorld(), f'udpout:127.0.0.1:{port}',
+                             MavlinkVehicleConfig(ekf_ready_delay_s=0.0), clock=clock)
+    caplog.set_level(logging.INFO, logger='assist_sim.mavlink_vehicle')
+    try:
+        vehicle.step(0.05)                                  # the GCS learns the vehicle's address
+        time.sleep(0.05)
+        while gcs.recv_msg() is not None:
+            pass
+        gcs.mav.command_long_send(1, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                  float(mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED), 1e6 / 30.0, 0, 0, 0, 0, 0)
+        time.sleep(0.05)
+        n = 0
+        for _ in range(40):                                 # 2 s of vehicle time at 20 Hz
+            clock.t += 0.05
+            vehicle.step(0.05)
+            time.sleep(0.002)
+            while (m := gcs.recv_msg()) is not None:
+                n += m.get_type() == 'LOCAL_POSITION_NED'
+        assert 38 <= n <= 41, n                             # 20 Hz, not 30
+        assert any('requested faster than this vehicle steps (20 Hz)' in r.getMessage() for r in caplog.records)
+    finally:
+        vehicle.close()
+        gcs.close()
