@@ -305,8 +305,7 @@ class MavlinkBridge:
         while self._running:
             try:
                 now = self._clock()
-                wake = min(self._next_setpoint_due, self._next_lost_setpoint,
-                           self._last_heartbeat_sent + 1.0 / self.cfg.heartbeat_rate_hz)
+                wake = min(self._next_send_due(), self._last_heartbeat_sent + 1.0 / self.cfg.heartbeat_rate_hz)
                 self.conn.select(min(max(wake - now, 0.0), 0.02))
                 self.poll()
                 self.tick()
@@ -315,6 +314,15 @@ class MavlinkBridge:
                 self._throttled.log(logging.ERROR, f'loop:{type(exc).__name__}',
                                     'MAVLink loop error (continuing): %s: %s', type(exc).__name__, exc)
                 time.sleep(0.05)
+
+    def _next_send_due(self) -> float:
+        """When the loop next has a setpoint to send (inf: none while waiting or lost with a disarmed vehicle)."""
+        st = self.status
+        if st.link_up:
+            return self._next_setpoint_due
+        if self.peer is not None and st.armed:
+            return self._next_lost_setpoint
+        return math.inf
 
     def time_boot_ms(self) -> int:
         """Milliseconds since the bridge started (MAVLink time_boot_ms)."""

@@ -471,3 +471,27 @@ def test_stand_in_caps_telemetry_at_its_step_rate_and_says_so(caplog):
     finally:
         vehicle.close()
         gcs.close()
+
+
+def test_receive_loop_sleeps_between_events(make_link):
+    """The loop waits in select() (<= 20 ms) whatever the link state: it never spins and starves /cmd_vel."""
+    def loop_rate(bridge) -> float:
+        calls = []
+        real_poll = bridge.poll
+        bridge.poll = lambda: calls.append(1) or real_poll()
+        time.sleep(1.0)
+        bridge.poll = real_poll
+        return len(calls)
+    port = free_udp_port()
+    waiting = MavlinkBridge(BridgeConfig(connection=f'udpin:127.0.0.1:{port}'))
+    waiting.start()
+    try:
+        assert loop_rate(waiting) < 150                 # no vehicle yet
+    finally:
+        waiting.close()
+    bridge, vt, _ = make_link()
+    assert bridge.wait_heartbeat(5.0)
+    assert loop_rate(bridge) < 150                      # link up, no command
+    vt.stop()
+    wait_for(lambda: bridge.snapshot()['link'] == 'lost', 5.0, 'link declared lost')
+    assert loop_rate(bridge) < 150                      # lost, vehicle disarmed
