@@ -104,7 +104,7 @@ def run() -> list[dict]:
                                      FLOOD_RATE_HZ)
         t1 = time.time()
         flood_out = [t for t, _vx, _vy in ap.setpoints() if t0 <= t <= t1]
-        flood_out_hz = len(flood_out) / (t1 - t0)
+        flood_out_hz = (len(flood_out) - 1) / (flood_out[-1] - flood_out[0]) if len(flood_out) > 1 else 0.0
         # 3) setpoint rate held with no command (zero velocity after the command timeout)
         time.sleep(1.0)
         t0 = time.time()
