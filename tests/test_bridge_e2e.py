@@ -44,7 +44,7 @@ class BridgeProbe:
             self.odom.append(msg)
 
     def _on_rosout(self, msg):
-        if msg.name == 'mavlink_bridge_node':
+        if msg.name.startswith('mavlink_bridge_node'):   # the node's logger or a child of it
             with self.lock:
                 self.rosout.append(msg)
 
