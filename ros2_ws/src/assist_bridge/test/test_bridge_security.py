@@ -70,7 +70,7 @@ def make_link():
 
     def _make(bridge_cfg=None, vehicle_cfg=None):
         port = free_udp_port()
-        bridge = MavlinkBridge(BridgeConfig(connection=f'udpin:127.0.0.1:{port}', link_timeout_s=1.0,
+        bridge = MavlinkBridge(BridgeConfig(connection=f'udpin:127.0.0.1:{port}', link_timeout_s=1.5,
                                             takeoff_altitude_m=1.0, **(bridge_cfg or {})))
         bridge.start()
         vt = VehicleThread(port, **(vehicle_cfg or {}))
@@ -326,8 +326,8 @@ def test_link_loss_sends_zero_velocity_while_the_pilot_keeps_commanding(make_lin
         vt.vehicle._intervals.clear()              # one-way loss: the vehicle still hears the bridge
         wait_for(lambda: bridge.snapshot()['link'] == 'lost', 5.0, 'link declared lost')
         t_lost = time.monotonic()
-        wait_for(lambda: np.linalg.norm(vt.world.vel) == 0.0, 2.0, 'vehicle braked')
-        assert time.monotonic() - t_lost < 0.5
+        wait_for(lambda: np.linalg.norm(vt.world.vel) == 0.0, 5.0, 'vehicle braked')
+        assert time.monotonic() - t_lost < 2.0      # at the declaration (not after a 30 s GUID_TIMEOUT)
         n = bridge.counters['setpoints_link_lost']
         time.sleep(1.6)                            # still commanded, still zero, resent at 2 Hz
         assert np.linalg.norm(vt.world.vel) == 0.0
