@@ -5,7 +5,8 @@ The bridge sends the latest command at setpoint_rate_hz plus at most one immedia
 command per period (issue 9 item 6), so: (1) commands at 8 Hz (slower than the 10 Hz schedule) each
 go out at once, and their publish -> datagram latency is timed; (2) a flood of ~900 changing commands
 per second must leave at no more than twice setpoint_rate_hz; (3) with no command, zero velocity at
-setpoint_rate_hz.
+setpoint_rate_hz; (4) a one-way link loss while the pilot keeps commanding: how soon the sim's
+ArduCopter stand-in is at zero velocity (the bridge core against it in-process, issue 9 item 4).
 
 The bridge runs as its own process (console script) on a private ROS domain; this process is
 both the ROS publisher of /cmd_vel and a minimal ArduCopter endpoint on UDP loopback
@@ -54,6 +55,73 @@ def _publish_at(pub, msg, node, values, rate_hz: float) -> tuple[dict[int, float
         t_next += period
         time.sleep(max(0.0, t_next - time.monotonic()))
     return sent, len(sent) / (time.monotonic() - t0)
+
+
+def _brake_after_link_loss(runs: int = 3) -> tuple[float, float]:
+    """One-way link loss with the pilot still commanding 1 m/s: (worst ms from the bridge declaring the
+    loss to the stand-in at zero velocity, worst s from the cut to it), over `runs` runs of the core
+    against the sim's ArduCopter stand-in (GUID_TIMEOUT 30 s, so only the bridge's brake can stop it)."""
+    import threading
+
+    from assist_bridge.bridge_core import BridgeConfig, MavlinkBridge
+    from assist_sim.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleConfig
+    from assist_sim.testing import KinematicWorld
+
+    after_decl, after_cut = [], []
+    for _ in range(runs):
+        port = free_udp_port()
+        declared: list[float] = []
+        bridge = MavlinkBridge(BridgeConfig(connection=f'udpin:127.0.0.1:{port}', takeoff_altitude_m=1.0),
+                               on_link=lambda up, _why: None if up else declared.append(time.monotonic()))
+        world = KinematicWorld()
+        vehicle = MavlinkVehicle(world, f'udpout:127.0.0.1:{port}',
+                                 MavlinkVehicleConfig(ekf_ready_delay_s=0.3, guid_timeout_s=30.0))
+        stop = threading.Event()
+
+        def step_vehicle():
+            while not stop.is_set():
+                vehicle.step(0.02)
+                time.sleep(0.02)
+
+        def pilot():
+            while not stop.is_set():
+                bridge.set_command([1.0, 0.0, 0.0])
+                time.sleep(0.05)
+        threads = [threading.Thread(target=step_vehicle, daemon=True), threading.Thread(target=pilot, daemon=True)]
+        bridge.start()
+        threads[0].start()
+        try:
+            if not bridge.wait_heartbeat(10.0):
+                raise RuntimeError('stand-in never connected')
+            deadline = time.monotonic() + 20.0
+            while not bridge.arm()[0]:
+                if time.monotonic() > deadline:
+                    raise RuntimeError('stand-in never armed')
+                time.sleep(0.2)
+            if not bridge.takeoff(1.0)[0]:
+                raise RuntimeError('takeoff refused')
+            while bridge.snapshot()['taking_off'] and time.monotonic() < deadline:
+                time.sleep(0.02)
+            threads[1].start()
+            while world.vel[0] < 0.9 and time.monotonic() < deadline:
+                time.sleep(0.01)
+            t_cut = time.monotonic()
+            vehicle._intervals.clear()        # one-way loss: the vehicle still hears the bridge
+            while (not declared or np.linalg.norm(world.vel) != 0.0) and time.monotonic() < t_cut + 10.0:
+                time.sleep(0.001)
+            if not declared or np.linalg.norm(world.vel) != 0.0:
+                raise RuntimeError('the vehicle was not stopped after the link loss')
+            t_stop = time.monotonic()
+            after_decl.append((t_stop - declared[0]) * 1e3)
+            after_cut.append(t_stop - t_cut)
+        finally:
+            stop.set()
+            for t in threads:
+                if t.is_alive():
+                    t.join()
+            bridge.close()
+            vehicle.close()
+    return max(after_decl), max(after_cut)
 
 
 def run() -> list[dict]:
@@ -123,6 +191,7 @@ def run() -> list[dict]:
         stop_process(proc)
     if lat_ms.size == 0:
         raise RuntimeError('no setpoint matched a command')
+    brake_ms, brake_s = _brake_after_link_loss()
     return [
         dict(name='change->setpoint latency p50 (8 Hz commands)', value=float(np.percentile(lat_ms, 50)), unit='ms',
              target=''),
@@ -138,6 +207,9 @@ def run() -> list[dict]:
         dict(name='setpoint rate held (no input)', value=float(rate), unit='Hz', target=f'{SETPOINT_RATE_HZ:g}'),
         dict(name='setpoint max gap (no input)', value=float(np.max(gaps_ms)), unit='ms',
              target=f'< {3000:d} (GUID_TIMEOUT)'),
+        dict(name='link loss: declared -> vehicle stopped (worst of 3)', value=float(brake_ms), unit='ms', target=''),
+        dict(name='link loss: cut -> vehicle stopped (worst of 3)', value=float(brake_s), unit='s',
+             target='<= link_timeout_s (2) + 0.02'),
     ]
 
 
