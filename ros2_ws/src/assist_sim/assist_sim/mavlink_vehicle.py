@@ -162,6 +162,7 @@ class MavlinkVehicle:
         if key is not None:
             enable_signing(self._conn, key)
         self._rate_capped_warned = False
+        self._muted = False
         self.counters: dict[str, int] = {}
         self._intervals: dict[int, float] = {mavlink.MAVLINK_MSG_ID_HEARTBEAT: self.cfg.heartbeat_interval_s}
         name_to_id = {v: k for k, v in TELEMETRY.items()}
@@ -222,6 +223,11 @@ class MavlinkVehicle:
             self._rate_capped_warned = True
             _LOG.info('%s requested faster than this vehicle steps (%.0f Hz): sent once per step',
                       ', '.join(capped), 1.0 / dt)
+
+    def set_telemetry_muted(self, muted: bool) -> None:
+        """Fault injection: stop (or resume) the telemetry streams, HEARTBEAT included, while still
+        receiving and flying: a link lost in the vehicle -> companion direction only."""
+        self._muted = bool(muted)
 
     def close(self) -> None:
         """Close the MAVLink endpoint."""
@@ -560,6 +566,8 @@ class MavlinkVehicle:
 
     # ------------------------------------------------------------------ telemetry
     def _send_telemetry(self, now: float) -> None:
+        if self._muted:
+            return
         for mid, interval in list(self._intervals.items()):
             due = self._next_due.get(mid)
             if due is None or now >= due:
