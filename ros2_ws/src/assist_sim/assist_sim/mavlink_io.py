@@ -18,7 +18,6 @@ import ipaddress
 import logging
 import os
 import re
-import socket
 import stat
 import time
 from dataclasses import dataclass
