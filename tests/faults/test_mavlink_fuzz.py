@@ -147,7 +147,8 @@ class Rig:
                 data = self.socks['vehicle'].recv(65535)
             except BlockingIOError:
                 return
-            self.sent_to_vehicle += [m for m in (self.vehicle_rx.parse_buffer(data) or []) if m.get_type() != 'BAD_DATA']
+            msgs = self.vehicle_rx.parse_buffer(data) or []
+            self.sent_to_vehicle += [m for m in msgs if m.get_type() != 'BAD_DATA']
 
     def spoofers_received(self) -> int:
         n = 0

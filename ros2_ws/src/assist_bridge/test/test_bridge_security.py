@@ -47,7 +47,8 @@ class VehicleThread:
     def __init__(self, port, **cfg):
         self.world = KinematicWorld()
         self.vehicle = MavlinkVehicle(self.world, f'udpout:127.0.0.1:{port}',
-                                      MavlinkVehicleConfig(**{'ekf_ready_delay_s': 0.3, 'heartbeat_interval_s': 0.25, **cfg}))
+                                      MavlinkVehicleConfig(**{'ekf_ready_delay_s': 0.3, 'heartbeat_interval_s': 0.25,
+                                                              **cfg}))
         self._run = True
         self.thread = threading.Thread(target=self._loop, daemon=True)
         self.thread.start()

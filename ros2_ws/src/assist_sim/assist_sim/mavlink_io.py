@@ -30,7 +30,8 @@ mavlink = mavutil.mavlink
 
 NETWORK_SCHEMES = ('udpin', 'udpout', 'tcp', 'tcpin')
 ENDPOINT_FORMS = "udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, tcpin:HOST:PORT or a serial device under /dev"
-_HOST_RE = re.compile(r'^(?=.{1,253}$)[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?(?:\.[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*$')
+_LABEL = r'[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?'
+_HOST_RE = re.compile(rf'^(?=.{{1,253}}$){_LABEL}(?:\.{_LABEL})*$')
 _DEV_RE = re.compile(r'^/dev/[A-Za-z0-9._/+-]+$')
 SIGNING_KEY_BYTES = 32
 # MAVLink signing timestamps count 10 us units since 2015-01-01 00:00:00 UTC.
@@ -121,8 +122,9 @@ def load_signing_key(path: str) -> bytes:
     if not stat.S_ISREG(st.st_mode):
         raise ValueError(f'signing key file {path!r} is not a regular file')
     if st.st_mode & 0o077:
-        raise ValueError(f'signing key file {path!r} is accessible by other users (mode {stat.S_IMODE(st.st_mode):03o});'
-                         f' run: chmod 600 {path}')
+        mode = stat.S_IMODE(st.st_mode)
+        raise ValueError(f'signing key file {path!r} is accessible by other users (mode {mode:03o}); '
+                         f'run: chmod 600 {path}')
     if len(data) == SIGNING_KEY_BYTES:
         key = data
     else:
