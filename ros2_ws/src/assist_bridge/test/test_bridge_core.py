@@ -155,8 +155,6 @@ def test_disarmed_or_not_guided_no_setpoints_and_mode_changed_only_on_request(li
     wait_for(lambda: not b.snapshot()['taking_off'], what='takeoff climb')
     assert b.set_mode('LOITER')[0]
     wait_for(lambda: b.snapshot()['mode'] == 'LOITER', what='LOITER heartbeat')
-    # arm's GUIDED and this LOITER: the stand-in counts an ACK just after sending it
-    wait_for(lambda: v.counters.get(f'ack_{mavlink.MAV_CMD_DO_SET_MODE}_0', 0) >= 2, what='mode ACKs counted')
     sent, mode_acks = b.counters['setpoints_sent'], v.counters.get(f'ack_{mavlink.MAV_CMD_DO_SET_MODE}_0', 0)
     for _ in range(60):                              # commands in LOITER: nothing sent, no mode change
         b.set_command([0.5, 0.0, 0.0])

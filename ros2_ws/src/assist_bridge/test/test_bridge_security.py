@@ -244,8 +244,7 @@ def test_never_switches_mode_without_a_request(make_link):
     def mode_commands():
         prefix = f'ack_{mavlink.MAV_CMD_DO_SET_MODE}_'
         return sum(n for k, n in vt.vehicle.counters.items() if k.startswith(prefix))
-    wait_for(lambda: mode_commands() >= 2, what='mode ACKs counted')   # arm's GUIDED and LOITER
-    before = mode_commands()
+    before = mode_commands()      # the stand-in counts an ACK before sending it
     for _ in range(50):                            # commands arrive in LOITER
         bridge.set_command([0.5, 0.0, 0.0])
         time.sleep(0.02)

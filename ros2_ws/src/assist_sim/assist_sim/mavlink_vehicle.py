@@ -313,8 +313,8 @@ class MavlinkVehicle:
             self._handle_request_data_stream(msg)
 
     def _ack(self, msg, command: int, result: int) -> None:
+        self._count(f'ack_{command}_{result}')    # counted first: a peer that sees the ACK sees the count
         self._conn.mav.command_ack_send(command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
-        self._count(f'ack_{command}_{result}')
 
     def _statustext(self, severity: int, text: str) -> None:
         self._conn.mav.statustext_send(severity, text.encode('ascii', 'replace')[:50])
