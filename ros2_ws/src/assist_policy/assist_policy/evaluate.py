@@ -29,6 +29,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .bags.bagio import BagError
+from .bags.episode import record_landing
 from .cli import add_dataclass_args, dataclass_from_args
 from .env import EnvConfig, LandingAssistEnv, run_episode
 from .latent import make_latent_fn
@@ -61,6 +63,7 @@ class EvalArgs:
     max_episode_s: float = 60.0
     plot: bool = True
     from_csv: tuple[str, ...] = ()
+    record_dir: str = ''
 
 
 HELP = {
@@ -76,6 +79,8 @@ HELP = {
     'from_csv': 'fly nothing: combine the landings.csv files of earlier runs (e.g. one condition split '
                 'over processes by --betas; a landing in a later file replaces the same condition, beta '
                 'and seed in an earlier one) into one table, summary.csv and plot',
+    'record_dir': 'save every landing as a rosbag2 bag (the graph\'s topics and types) in this directory, '
+                  'named <condition>_beta<beta>_seed<seed>: replay_assist / plot_flight take any of them',
 }
 
 LANDING_FIELDS = ['condition', 'beta', 'seed', 'scene_seed', 'goal_index', 'landed_index', 'nearest_index',
@@ -238,7 +243,9 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
             rows = []
             for bi, beta in enumerate(args.betas):
                 for k in range(args.landings):
-                    row = run_landing(env, policy, args.seed + 1000 * bi + k, float(beta))
+                    seed = args.seed + 1000 * bi + k
+                    row = (record_landing(run_landing, env, policy, seed, float(beta), cond, args.record_dir)
+                           if args.record_dir else run_landing(env, policy, seed, float(beta)))
                     row['condition'] = cond
                     w.writerow(row)
                     rows.append(row)
@@ -268,7 +275,7 @@ def main(argv: list[str] | None = None) -> int:
     args = dataclass_from_args(EvalArgs, parser.parse_args(argv))
     try:
         summary = evaluate(args)
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, BagError) as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 1
     if not summary:

@@ -28,6 +28,7 @@ DYNAMICS_DIM = 4      # v (3) + scaled altitude (1)
 ACTIONS_DIM = 9       # u, mean u, mean a
 IMAGE_SHAPE = (4, 64, 64)  # end-to-end: RGB (0..1) + depth (m / DEPTH_SCALE)
 DEPTH_SCALE = 5.0
+TIME_EPS = 1e-6   # s; sample times closer than this count as equal
 
 
 class Condition(str, Enum):
@@ -63,7 +64,9 @@ class ActionHistory:
         self._prune(t)
 
     def _prune(self, now: float) -> None:
-        while self._items and self._items[0][0] <= now - self.window_s:
+        # TIME_EPS: a sample exactly window_s old leaves the window whichever clock gave the times (float
+        # seconds in the env, integer ns in ROS and bags differ in the last bits)
+        while self._items and self._items[0][0] <= now - self.window_s + TIME_EPS:
             self._items.popleft()
 
     def means(self, now: float) -> tuple[np.ndarray, np.ndarray]:
