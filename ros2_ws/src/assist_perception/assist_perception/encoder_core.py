@@ -149,8 +149,13 @@ class LatentEncoder:
 
     def prepare(self, rgb: np.ndarray, depth_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Validate and resize a decoded frame; raises BadFrame."""
-        if rgb.ndim != 3 or rgb.shape[2] != 3 or depth_m.ndim != 2:
+        rgb, depth_m = np.asarray(rgb), np.asarray(depth_m)
+        if rgb.ndim != 3 or rgb.shape[2] != 3 or depth_m.ndim != 2 or 0 in rgb.shape or 0 in depth_m.shape:
             raise BadFrame('bad_size', f'rgb {rgb.shape}, depth {depth_m.shape}')
+        if rgb.dtype != np.uint8:    # decode_color gives uint8; floats could carry NaN/inf into the network
+            raise BadFrame('bad_encoding', f'colour array must be uint8, got {rgb.dtype}')
+        if not np.issubdtype(depth_m.dtype, np.number):
+            raise BadFrame('bad_encoding', f'depth array must be numeric, got {depth_m.dtype}')
         ar_rgb = rgb.shape[1] / rgb.shape[0]
         ar_d = depth_m.shape[1] / depth_m.shape[0]
         if abs(ar_rgb - ar_d) > 0.02:
@@ -170,6 +175,9 @@ class LatentEncoder:
         mu, _ = self.model.encode(x)
         xyz = self.model.decode_xyz(mu)
         depth = self.model.decode_depth(mu)[0].cpu().numpy().astype(np.float32) if want_depth else None
+        if not (torch.isfinite(mu).all() and torch.isfinite(xyz).all()
+                and (depth is None or np.all(np.isfinite(depth)))):
+            raise BadFrame('nonfinite_output', 'the model produced non-finite values for this frame')
         return EncoderOutput(mu[0].cpu().numpy().astype(np.float32),
                              xyz[0].cpu().numpy().astype(np.float32), depth)
 

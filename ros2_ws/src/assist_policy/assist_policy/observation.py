@@ -58,6 +58,8 @@ class ActionHistory:
         a = np.asarray(a, dtype=float).reshape(3)
         if not (np.all(np.isfinite(u)) and np.all(np.isfinite(a))):
             raise ValueError('ActionHistory.push: non-finite action')
+        if not np.isfinite(t):   # a NaN stamp would never be pruned: the history would grow for ever
+            raise ValueError(f'ActionHistory.push: non-finite time {t!r}')
         if self._items and t < self._items[-1][0]:
             self.clear()  # clock jumped backwards (sim reset): old samples are meaningless
         self._items.append((float(t), u, a))
@@ -71,6 +73,8 @@ class ActionHistory:
 
     def means(self, now: float) -> tuple[np.ndarray, np.ndarray]:
         """Mean pilot and mean agent action over (now - window_s, now]; zeros when empty."""
+        if not np.isfinite(now):
+            raise ValueError(f'ActionHistory.means: non-finite time {now!r}')
         self._prune(now)
         if not self._items:
             return np.zeros(3), np.zeros(3)

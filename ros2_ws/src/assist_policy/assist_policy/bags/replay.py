@@ -157,7 +157,7 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
                         vel = msgs.quat_matrix(quat) @ twist if frame == 'odom' else twist
                         core.set_odom(now, pos, vel)
                     elif topic == PILOT:
-                        core.set_pilot(now, msgs.twist_linear(msg))
+                        core.set_pilot(now, msgs.twist_linear(msg), msg.header.frame_id)
                     elif topic == GOAL and mode == 'oracle':
                         core.set_goal(msgs.point(msg))
                         core.reset()          # as policy_node does: a new goal is a new episode
