@@ -43,6 +43,8 @@ PARAMS = {
                                 'run time).', min=0.0, max=60.0, dynamic=True),
     'mavlink_url': Param('', 'Empty: driven by /cmd_vel. Else act as a MAVLink vehicle on this pymavlink '
                               'address (e.g. tcpin:127.0.0.1:5760); then the sim runs at wall-clock speed.'),
+    'mavlink_signing_key_file': Param('', 'MAVLink 2 signing key file for mavlink_url (32 raw bytes or 64 hex '
+                                          'characters, mode 600; the bridge uses the same file); empty = unsigned.'),
     'physics': Param('velocity', 'velocity: the velocity-tracking controller (training/evaluation); ardupilot_json: '
                                  'rigid-body quad flown by ArduPilot SITL motor outputs over its JSON interface.',
                      choices=('velocity', 'ardupilot_json')),
@@ -122,9 +124,10 @@ class SimNode(Node):
             self.runner = SimRunner(self.world, runner_cfg)
         self.vehicle = None
         if self.mavlink:
-            from .mavlink_vehicle import MavlinkVehicle
+            from .mavlink_vehicle import MavlinkVehicle, MavlinkVehicleConfig
             try:
-                self.vehicle = MavlinkVehicle(self.world, self.p['mavlink_url'])
+                self.vehicle = MavlinkVehicle(self.world, self.p['mavlink_url'], MavlinkVehicleConfig(
+                    signing_key_file=self.p['mavlink_signing_key_file']))
             except (OSError, ValueError) as exc:
                 raise StartupError(f"sim_node: cannot open MAVLink endpoint '{self.p['mavlink_url']}': {exc}") from exc
         self.rtf = 1.0 if self.mavlink else 0.0 if self.json_mode else float(self.p['real_time_factor'])
