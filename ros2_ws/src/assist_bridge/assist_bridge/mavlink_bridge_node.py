@@ -19,7 +19,6 @@ from __future__ import annotations
 import concurrent.futures
 import logging
 import math
-import sys
 import threading
 
 from diagnostic_msgs.msg import DiagnosticStatus
@@ -32,7 +31,7 @@ from rclpy.task import Future
 from std_srvs.srv import Trigger
 
 from assist_sim.ros_common import (RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError,
-                                   declare_parameters, run_node, twist_to_array)
+                                   declare_parameters, exit_process, forward_logging, run_node, twist_to_array)
 
 from .bridge_core import LIMIT_FIELDS, BridgeConfig, MavlinkBridge, Odometry as CoreOdometry
 
@@ -97,30 +96,6 @@ PARAMS = {
 ACCEPTED_CMD_FRAMES = ('', 'base_link')
 _SEVERITY_LEVEL = {0: logging.ERROR, 1: logging.ERROR, 2: logging.ERROR, 3: logging.ERROR,
                    4: logging.WARNING, 5: logging.INFO, 6: logging.INFO, 7: logging.DEBUG}
-CORE_LOGGERS = ('assist_bridge', 'assist_sim.mavlink_io')
-
-
-class RosLogHandler(logging.Handler):
-    """Forwards Python logging records (the core's) to the node logger, so they reach /rosout stamped."""
-
-    def __init__(self, ros_logger):
-        super().__init__(logging.DEBUG)
-        self._ros = ros_logger
-
-    def emit(self, record: logging.LogRecord) -> None:
-        """Log one record at the matching rclpy severity."""
-        try:
-            text = record.getMessage()
-            if record.levelno >= logging.ERROR:
-                self._ros.error(text)
-            elif record.levelno >= logging.WARNING:
-                self._ros.warning(text)
-            elif record.levelno >= logging.INFO:
-                self._ros.info(text)
-            else:
-                self._ros.debug(text)
-        except Exception:  # noqa: BLE001 - logging.Handler contract: report, never raise into the caller
-            self.handleError(record)
 
 
 class MavlinkBridgeNode(Node):
@@ -128,12 +103,7 @@ class MavlinkBridgeNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__('mavlink_bridge_node', **kwargs)
-        self._log_handler = RosLogHandler(self.get_logger())
-        for name in CORE_LOGGERS:
-            lg = logging.getLogger(name)
-            lg.addHandler(self._log_handler)
-            lg.setLevel(logging.INFO)
-            lg.propagate = False        # one line, on /rosout, not a second unstamped copy on stderr
+        forward_logging(self)           # the core's vehicle events reach /rosout, stamped
         self.bridge = None
         self.p = declare_parameters(self, PARAMS, on_change=self._on_params)
         if self.p['auto_guided']:
@@ -279,21 +249,17 @@ class MavlinkBridgeNode(Node):
                                    throttle_duration_sec=10.0)
 
     def close(self) -> None:
-        """Stop the service worker and the receive thread, close the link, detach the log handler."""
+        """Stop the service worker and the receive thread, close the link."""
         workers = getattr(self, '_workers', None)
         if workers is not None:
             workers.shutdown(wait=False, cancel_futures=True)
         if self.bridge is not None:
             self.bridge.close()
-        for name in CORE_LOGGERS:
-            lg = logging.getLogger(name)
-            lg.removeHandler(self._log_handler)
-            lg.propagate = True
 
 
 def main(args=None):
     """Console entry point."""
-    sys.exit(run_node(lambda: MavlinkBridgeNode(), args))
+    exit_process(run_node(lambda: MavlinkBridgeNode(), args))
 
 
 if __name__ == '__main__':
