@@ -34,6 +34,9 @@ def generate_launch_description():
     assist, pilot = LaunchConfiguration('assist'), LaunchConfiguration('pilot')
     args = [DeclareLaunchArgument('connection', default_value='tcp:127.0.0.1:5760',
                                   description="SITL's MAVLink port (SERIAL0)"),
+            DeclareLaunchArgument('signing_key_file', default_value='',
+                                  description='MAVLink 2 signing key file (mode 600) for the bridge; the same key '
+                                              'must be set up on the autopilot; empty: unsigned link'),
             DeclareLaunchArgument('json_port', default_value='9002', description='UDP port SITL sends servo frames to'),
             DeclareLaunchArgument('seed', default_value='0',
                                   description='Seed of the scene, episodes and pilot (integer >= 0)'),
@@ -56,7 +59,9 @@ def generate_launch_description():
     bridge = Node(package='assist_bridge', executable='mavlink_bridge_node', name='mavlink_bridge_node',
                   output='screen', parameters=[bridge_params, sim_time,
                                                {'connection': ParameterValue(LaunchConfiguration('connection'),
-                                                                             value_type=str)}])
+                                                                             value_type=str),
+                                                'signing_key_file': ParameterValue(
+                                                    LaunchConfiguration('signing_key_file'), value_type=str)}])
     # conditions from substitutions that compare text, never evaluate it
     simulated_pilot = EqualsSubstitution(pilot, 'sim')
     encoder = Node(package='assist_perception', executable='encoder_node', name='encoder_node', output='screen',
