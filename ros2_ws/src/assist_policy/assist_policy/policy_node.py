@@ -36,6 +36,9 @@ PARAMS = {
     'max_input_speed': Param(5.0, 'Pilot commands faster than this are rejected as out of range (m/s).'),
     'frame_id': Param('base_link', 'frame_id of the published commands.'),
     'torch_threads': Param(1, 'Intra-op CPU threads for the actor (1 is fastest for this small network).'),
+    'step_on_latent': Param(True, 'latent mode: run the actor as soon as a new latent arrives (camera-to-command '
+                                  'latency = one inference, /cmd_vel stamped with the frame\'s sim time); the '
+                                  'rate_hz timer then runs only while latents are missing.'),
 }
 
 
@@ -98,7 +101,9 @@ class PolicyNode(Node):
                                      callback_group=inputs)
             self.create_subscription(Image, '/camera/depth/image_raw', self._on_depth, SENSOR_QOS,
                                      callback_group=inputs)
-        self.create_timer(1.0 / float(self.p['rate_hz']), self._tick,
+        self._on_latent_steps = mode == 'latent' and bool(self.p['step_on_latent'])
+        self._last_latent_step = -1e9           # node-clock time of the last latent-driven step
+        self.create_timer(1.0 / float(self.p['rate_hz']), self._on_timer,
                           callback_group=MutuallyExclusiveCallbackGroup())
         self.diag.set('model_path', path)
         self.diag.set('mode', mode)
@@ -135,6 +140,15 @@ class PolicyNode(Node):
                 self.core.set_latent(self._now(), np.asarray(msg.data, dtype=float))
         except ValueError as exc:
             self._reject('latent', exc)
+            return
+        if self._on_latent_steps:
+            self._last_latent_step = self._now()
+            self._tick()
+
+    def _on_timer(self) -> None:
+        # with latent-driven steps the timer only covers gaps in the latent stream
+        if not 0.0 <= self._now() - self._last_latent_step <= 1.5 / float(self.p['rate_hz']):
+            self._tick()
 
     def _on_goal(self, msg: PointStamped) -> None:
         try:

@@ -100,3 +100,21 @@ def test_scene_renderer_without_world_depth_of_a_pad_top(world):
     rgb, depth = r.render(cam, R_BODY_FROM_OPTICAL)      # level, heading +x
     assert depth[30:34, 30:34] == pytest.approx(1.0, abs=1e-6)
     assert rgb.shape == (c.height, c.width, 3) and rgb.dtype == np.uint8
+
+
+def test_pads_hiding_each_other_and_walls_from_a_grazing_view(world):
+    """Looking along the row of pads from low and far back: pads overlap in the image (nearest
+    wins) and the far walls show; still the same picture as TinyRenderer."""
+    world.reset(6)
+    first = world.scene.pads[0]
+    for pitch in (0.9, 1.2):                          # camera pitched up from straight down (rad)
+        r_wb = Rotation.from_euler('xyz', [0.0, -pitch, 0.0]).as_matrix()
+        cam = np.array([first.center[0] - 3.0, first.center[1], 1.6])
+        r_wo = r_wb @ R_BODY_FROM_OPTICAL
+        fast, slow = world.render_pose(cam, r_wo), world._render_pybullet(cam, r_wo)
+        near_pads = (slow.depth < 12.0) & (slow.depth > 0.5)
+        assert near_pads.mean() > 0.1
+        dd = np.abs(fast.depth - slow.depth)
+        assert (dd > 1e-3).mean() < 0.01, (pitch, (dd > 1e-3).sum())
+        diff = np.abs(fast.rgb.astype(int) - slow.rgb.astype(int)).max(axis=-1)
+        assert (diff > 0).mean() < 0.01, (pitch, (diff > 0).sum())

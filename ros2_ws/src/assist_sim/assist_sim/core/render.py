@@ -64,6 +64,13 @@ def _shade(texels: np.ndarray, direct: np.ndarray | float) -> np.ndarray:
     return np.minimum(out, 255.0).astype(np.uint8)
 
 
+def _packed(rgb: np.ndarray) -> np.ndarray:
+    """uint8 RGB (..., 3) -> one uint32 per texel (bytes R, G, B, 0 in memory): 1-D gathers are fast."""
+    rgba = np.zeros(rgb.shape[:-1] + (4,), np.uint8)
+    rgba[..., :3] = rgb
+    return rgba.view(np.uint32)[..., 0]
+
+
 def _lookup(tex: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Model::diffuse: wrap uv into [0,1), truncate to texel indices, flipped rows."""
     h, w = tex.shape[:2]
@@ -127,6 +134,13 @@ FACE_UV = _face_uv_maps()
 FACE_KEYS = tuple(FACE_UV)
 
 
+def _windows_overlap(windows: dict[int, list[int]]) -> bool:
+    """Whether any two [c0, c1, r0, r1) pixel windows intersect."""
+    ws = list(windows.values())
+    return any(a[0] < b[1] and b[0] < a[1] and a[2] < b[3] and b[2] < a[3]
+               for k, a in enumerate(ws) for b in ws[k + 1:])
+
+
 class _Box:
     """One pad as the renderer sees it: pose, half extents and one pre-lit texture per face."""
 
@@ -140,6 +154,7 @@ class _Box:
             n = np.zeros(3)
             n[axis] = sign
             self.lit[(axis, sign)] = _shade(texture, tiny_shading((self.rot @ n)[None])[1][0])
+        self.inv_half = 1.0 / self.half
         self.other_axes = {k: [a for a in range(3) if a != k] for k in range(3)}
         faces = []                                        # (6, 4, 3) world corners, FACE_KEYS order
         for axis, sign in FACE_KEYS:
@@ -176,7 +191,7 @@ class SceneRenderer:
         floor_tex = _texture(scene.floor_material, texture_px)
         # the world's analytic floor: texel * floor_shading, truncated (float64), black where no floor
         self._floor_px = floor_tex.shape[0]
-        self._floor_lit = (floor_tex * float(floor_shading)).astype(np.uint8)[::-1].reshape(-1, 3)
+        self._floor_lit = _packed((floor_tex * float(floor_shading)).astype(np.uint8)[::-1]).reshape(-1)
         wall_tex = _texture(scene.wall_material, texture_px)
         self.boxes = [_Box(p, _texture(p.material, texture_px)) for p in scene.pads]
         self._box_rot = np.array([b.rot for b in self.boxes]).reshape(-1, 3, 3)
@@ -184,6 +199,12 @@ class SceneRenderer:
         self._box_half = np.array([b.half for b in self.boxes]).reshape(-1, 3)
         self._face_axis = np.array([k[0] for k in FACE_KEYS])
         self._face_sign = np.array([k[1] for k in FACE_KEYS], float)
+        self._pixel_index = np.arange(self.width * self.height).reshape(self.height, self.width)
+        self._tex_px = int(texture_px)
+        # every face's lit texture in one array (box-major, FACE_KEYS order) and its uv map
+        self._lit_faces = (_packed(np.stack([b.lit[key] for b in self.boxes for key in FACE_KEYS])).reshape(-1)
+                           if self.boxes else np.zeros(0, np.uint32))
+        self._face_uv = np.array([FACE_UV[key] for _ in self.boxes for key in FACE_KEYS]).reshape(-1, 3, 2)
         self._face_corners = (np.concatenate([b.face_corners for b in self.boxes]).reshape(-1, 3)
                               if self.boxes else np.zeros((0, 3)))
         # walls as the world builds them: corner 0 is the uv origin, u along c1-c0, v along c3-c0
@@ -197,7 +218,7 @@ class SceneRenderer:
             c = np.array(corners, float)
             e1, e2 = c[1] - c[0], c[3] - c[0]
             n = np.array(normal, float)
-            lit = _shade(wall_tex, tiny_shading(n[None])[1][0])
+            lit = _packed(_shade(wall_tex, tiny_shading(n[None])[1][0]))
             self.walls.append((c[0], e1 / np.dot(e1, e1), e2 / np.dot(e2, e2), np.linalg.norm(e1),
                                np.linalg.norm(e2), n, lit))
 
@@ -214,8 +235,8 @@ class SceneRenderer:
         obj_depth = np.full(depth.shape, np.inf)
         self._draw_walls(cam, r_wo, obj_depth, depth, rgb)
         self._draw_boxes(cam, r_wo, obj_depth, depth, rgb)
-        return rgb.reshape(self.height, self.width, 3), depth.astype(np.float32).reshape(self.height,
-                                                                                          self.width)
+        rgb = np.ascontiguousarray(rgb.view(np.uint8).reshape(self.height, self.width, 4)[..., :3])
+        return rgb, depth.astype(np.float32).reshape(self.height, self.width)
 
     # ------------------------------------------------------------------ floor
     def _floor(self, cam: np.ndarray, r_wo: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -232,7 +253,7 @@ class SceneRenderer:
         scale = px / self.floor_tile
         tu = np.floor((cam[0] - self.room[0] + t * dirs[:, 0]) * scale).astype(np.int64) % px
         tv = np.floor((cam[1] - self.room[1] + t * dirs[:, 1]) * scale).astype(np.int64) % px
-        rgb = self._floor_lit[tv * px + tu]
+        rgb = self._floor_lit[tv * px + tu]              # packed uint32 colours
         if not all_ok:
             rgb[~ok] = 0
             t = np.where(ok, t, self.far)
@@ -258,7 +279,7 @@ class SceneRenderer:
             dz = dirs[:, 2]
             with np.errstate(divide='ignore', invalid='ignore'):
                 tf = np.where(dz < 0, -cam[2] / dz, np.inf)
-            fx, fy = cam[0] + tf * dirs[:, 0], cam[1] + tf * dirs[:, 1]
+                fx, fy = cam[0] + tf * dirs[:, 0], cam[1] + tf * dirs[:, 1]
             cand = np.nonzero(~((fx >= x0) & (fx <= x1) & (fy >= y0) & (fy <= y1)))[0]
         else:
             cand = np.arange(dirs.shape[0])
@@ -275,7 +296,7 @@ class SceneRenderer:
             with np.errstate(invalid='ignore'):
                 rel = cam - origin + t[:, None] * d
                 s, q = rel @ g1, rel @ g2                     # in [0,1] on the wall
-                ok = front & (t > self.near) & (s >= 0) & (s <= 1) & (q >= 0) & (q <= 1)
+                ok = front & (t > self.near) & (t <= self.far) & (s >= 0) & (s <= 1) & (q >= 0) & (q <= 1)
             ok &= t < obj_depth[cand]
             if not ok.any():
                 continue
@@ -299,8 +320,9 @@ class SceneRenderer:
 
     def _draw_boxes(self, cam: np.ndarray, r_wo: np.ndarray, obj_depth: np.ndarray, depth: np.ndarray,
                     rgb: np.ndarray) -> None:
-        """Each box face the camera is in front of, ray-plane intersection over the face's window
-        (the front faces of a convex box never overlap, so no depth test among them is needed)."""
+        """Every box face the camera is in front of: ray-plane intersection over the face's image
+        window, all faces in one vectorised pass; where faces of different boxes cover the same
+        pixel the nearest wins (the front faces of one convex box never overlap)."""
         if not self.boxes:
             return
         w, h = self.width, self.height
@@ -308,30 +330,55 @@ class SceneRenderer:
         # camera in every box frame; face (axis, sign) faces the camera when sign * o[axis] > half
         o_all = np.einsum('bji,bj->bi', self._box_rot, cam - self._box_center)
         front = (o_all[:, self._face_axis] * self._face_sign) > self._box_half[:, self._face_axis]
-        vis = front & (windows[:, 1] >= 0).reshape(front.shape) & (windows[:, 0] < w).reshape(front.shape) \
-            & (windows[:, 3] >= 0).reshape(front.shape) & (windows[:, 2] < h).reshape(front.shape)
+        win = windows.reshape(front.shape + (4,))
+        vis = front & (win[..., 1] >= 0) & (win[..., 0] < w) & (win[..., 3] >= 0) & (win[..., 2] < h)
+        if not vis.any():
+            return
+        rays_grid = self._rays_tr.reshape(h, w, 3)
+        idx_parts, d_parts, sizes, consts, faces = [], [], [], [], []
+        boxes_in_view: dict[int, list[int]] = {}          # box -> its window (union of its faces')
         for i, j in zip(*np.nonzero(vis)):
             box = self.boxes[i]
             axis, sign = FACE_KEYS[j]
-            o = o_all[i]
-            rot_ob = r_wo.T @ box.rot                        # optical <- box
-            c0, c1, r0, r1 = windows[6 * i + j]
-            c0, c1 = max(int(c0), 0), min(int(c1), w - 1)
-            r0, r1 = max(int(r0), 0), min(int(r1), h - 1)
-            idx = (np.arange(r0, r1 + 1)[:, None] * w + np.arange(c0, c1 + 1)).reshape(-1)
-            rays = self._rays_tr[idx]
             a1, a2 = box.other_axes[axis]
-            da = rays @ rot_ob[:, axis]
-            with np.errstate(divide='ignore', invalid='ignore'):
-                t = (sign * box.half[axis] - o[axis]) / da
-                p1 = (o[a1] + t * (rays @ rot_ob[:, a1])) / box.half[a1]
-                p2 = (o[a2] + t * (rays @ rot_ob[:, a2])) / box.half[a2]
-                ok = (np.abs(p1) <= 1.0) & (np.abs(p2) <= 1.0) & (t > self.near)
-            ok &= t < obj_depth[idx]
-            if not ok.any():
-                continue
-            flat, t, p1, p2 = idx[ok], t[ok], p1[ok], p2[ok]
-            m_uv = FACE_UV[(axis, sign)]
-            uv = (m_uv[0] + p1[:, None] * m_uv[1] + p2[:, None] * m_uv[2]).astype(np.float32)
-            rgb[flat] = _lookup(box.lit[(axis, sign)], uv[:, 0], uv[:, 1])
-            depth[flat] = obj_depth[flat] = t
+            o = o_all[i]
+            c0, c1, r0, r1 = win[i, j]
+            c0, c1 = max(int(c0), 0), min(int(c1), w - 1) + 1
+            r0, r1 = max(int(r0), 0), min(int(r1), h - 1) + 1
+            bw = boxes_in_view.setdefault(int(i), [c0, c1, r0, r1])
+            bw[:] = [min(bw[0], c0), max(bw[1], c1), min(bw[2], r0), max(bw[3], r1)]
+            idx_parts.append(self._pixel_index[r0:r1, c0:c1].reshape(-1))
+            # ray directions in the box frame along (face normal, face axis 1, face axis 2)
+            d_parts.append((rays_grid[r0:r1, c0:c1] @ (r_wo.T @ box.rot)[:, (axis, a1, a2)]).reshape(-1, 3))
+            sizes.append(idx_parts[-1].size)
+            consts.append((sign * box.half[axis] - o[axis], o[a1], o[a2], box.inv_half[a1], box.inv_half[a2]))
+            faces.append(6 * i + j)
+        idx = np.concatenate(idx_parts)
+        d = np.concatenate(d_parts)
+        sizes = np.array(sizes)
+        k, o1, o2, ih1, ih2 = np.repeat(np.array(consts), sizes, axis=0).T
+        with np.errstate(divide='ignore', invalid='ignore'):
+            t = k / d[:, 0]
+            p1 = (o1 + t * d[:, 1]) * ih1                  # face coordinates in [-1, 1]
+            p2 = (o2 + t * d[:, 2]) * ih2
+            ok = (np.abs(p1) <= 1.0) & (np.abs(p2) <= 1.0) & (t > self.near) & (t <= self.far) & (t < obj_depth[idx])
+        if not ok.any():
+            return
+        face = np.repeat(np.array(faces), sizes)[ok]
+        idx, t, p1, p2 = idx[ok], t[ok], p1[ok], p2[ok]
+        if len(boxes_in_view) > 1 and _windows_overlap(boxes_in_view):
+            order = np.lexsort((t, idx))                    # per pixel, nearest first
+            first = np.ones(order.size, bool)
+            first[1:] = idx[order[1:]] != idx[order[:-1]]
+            keep = order[first]
+            face, idx, t, p1, p2 = face[keep], idx[keep], t[keep], p1[keep], p2[keep]
+        m = self._face_uv[face]                             # (n, 3, 2)
+        uv = (m[:, 0] + p1[:, None] * m[:, 1] + p2[:, None] * m[:, 2]).astype(np.float32)
+        px = self._tex_px
+        u = uv[:, 0] - np.floor(uv[:, 0])
+        v = uv[:, 1] - np.floor(uv[:, 1])
+        iu = np.minimum((u * px).astype(np.int64), px - 1)
+        iv = np.minimum((v * px).astype(np.int64), px - 1)
+        rgb[idx] = self._lit_faces[(face * px + (px - 1 - iv)) * px + iu]
+        depth[idx] = t
+        obj_depth[idx] = t
