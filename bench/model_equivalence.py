@@ -2,6 +2,8 @@
 
     nice .venv/bin/python -m bench.model_equivalence cmvae            # CM-VAE held-out metrics
     nice .venv/bin/python -m bench.model_equivalence actors           # paired landings, latent + oracle
+    (or per renderer in parallel: actors --renderers pybullet --out a.json; ... analytic --out b.json;
+     then: compare a.json b.json)
 
 `cmvae` re-renders the card's 2,500 held-out frames (models/cmvae.metrics.json: the 50 scenes that
 split_by_scene(val_fraction=0.05, seed=0) holds out of make_dataset.yaml's 1,000 scenes; scenes are
@@ -113,17 +115,16 @@ def cmvae(args: argparse.Namespace) -> dict:
 
 
 def actors(args: argparse.Namespace) -> dict:
-    """Paired landings of the shipped latent and oracle actors with each renderer."""
+    """Landings of the shipped actors with the selected renderers (rows kept for `compare`)."""
     from assist_policy.env import LandingAssistEnv
-    from assist_policy.evaluate import EvalArgs, make_policy, run_landing, summarize
+    from assist_policy.evaluate import EvalArgs, make_policy, run_landing
     from assist_policy.latent import make_latent_fn
 
     torch.set_num_threads(1)
     defaults = EvalArgs()
-    out = {'betas': args.betas, 'landings_per_beta': args.landings, 'seed': defaults.seed}
+    out = {'betas': args.betas, 'landings_per_beta': args.landings, 'seed': defaults.seed, 'rows': {}}
     for cond in args.conditions:
-        rows = {}
-        for r in RENDERERS:
+        for r in args.renderers:
             env, policy = make_policy(cond, '', '', defaults.max_episode_s, defaults.alpha)
             cfg = dataclasses.replace(env.cfg)
             env.close()
@@ -132,22 +133,46 @@ def actors(args: argparse.Namespace) -> dict:
             latent_fn = make_latent_fn()[0] if cond == 'latent' else None
             env = LandingAssistEnv(cfg, latent_fn=latent_fn)
             t0 = time.process_time()
-            rows[r] = [run_landing(env, policy, defaults.seed + 1000 * bi + k, float(beta))
-                       for bi, beta in enumerate(args.betas) for k in range(args.landings)]
+            rows = [run_landing(env, policy, defaults.seed + 1000 * bi + k, float(beta))
+                    for bi, beta in enumerate(args.betas) for k in range(args.landings)]
             env.close()
-            print(f'{cond} / {r}: {len(rows[r])} landings in {time.process_time() - t0:.0f} CPU-s', file=sys.stderr)
-        pairs = list(zip(rows['pybullet'], rows['analytic']))
-        err = np.array([[a['error_m'], b['error_m']] for a, b in pairs])
-        out[cond] = {
-            'summary': {r: summarize(rows[r]) for r in RENDERERS},
-            'identical_landings': int(sum(a == b for a, b in pairs)),
-            'same_outcome': int(sum(a['outcome'] == b['outcome'] for a, b in pairs)),
+            out['rows'].setdefault(cond, {})[r] = rows
+            print(f'{cond} / {r}: {len(rows)} landings in {time.process_time() - t0:.0f} CPU-s', file=sys.stderr)
+    if all(len(v) == 2 for v in out['rows'].values()):
+        out['paired'] = paired_summary(out['rows'])
+    return out
+
+
+def paired_summary(rows: dict) -> dict:
+    """Per condition: evaluate.summarize for each renderer and the paired differences."""
+    from assist_policy.evaluate import summarize
+
+    res = {}
+    for cond, by_r in rows.items():
+        a, b = by_r[RENDERERS[0]], by_r[RENDERERS[1]]
+        pairs = list(zip(a, b))
+        if any((x['beta'], x['seed']) != (y['beta'], y['seed']) for x, y in pairs):
+            raise ValueError(f'{cond}: the two row sets are not the same landings')
+        err = np.array([[x['error_m'], y['error_m']] for x, y in pairs])
+        res[cond] = {
             'landings': len(pairs),
+            'summary': {r: summarize(by_r[r]) for r in RENDERERS},
+            'identical_landings': int(sum(x == y for x, y in pairs)),
+            'same_outcome': int(sum(x['outcome'] == y['outcome'] for x, y in pairs)),
             'mean_error_m': {r: float(err[:, i].mean()) for i, r in enumerate(RENDERERS)},
             'max_abs_error_diff_m': float(np.abs(err[:, 0] - err[:, 1]).max()),
         }
-        print(json.dumps(out[cond], indent=1, default=str))
-    return out
+    print(json.dumps(res, indent=1, default=str))
+    return res
+
+
+def compare(args: argparse.Namespace) -> dict:
+    """Merge `actors` outputs run separately per renderer and compare them."""
+    rows: dict = {}
+    for path in args.files:
+        for cond, by_r in json.loads(Path(path).read_text())['rows'].items():
+            rows.setdefault(cond, {}).update(by_r)
+    return {'rows': rows, 'paired': paired_summary(rows)}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -160,10 +185,13 @@ def main(argv: list[str] | None = None) -> int:
     a.add_argument('--betas', type=float, nargs='+', default=[0.0, 0.25, 0.5, 0.75, 1.0])
     a.add_argument('--landings', type=int, default=12, help='landings per beta and renderer')
     a.add_argument('--conditions', nargs='+', default=['latent', 'oracle'])
-    for p in (c, a):
+    a.add_argument('--renderers', nargs='+', default=list(RENDERERS), choices=RENDERERS)
+    m = sub.add_parser('compare', help='merge and compare actors outputs run per renderer')
+    m.add_argument('files', nargs='+')
+    for p in (c, a, m):
         p.add_argument('--out', default='', help='also write the result as JSON here')
     args = ap.parse_args(argv)
-    res = cmvae(args) if args.what == 'cmvae' else actors(args)
+    res = {'cmvae': cmvae, 'actors': actors, 'compare': compare}[args.what](args)
     if args.out:
         Path(args.out).write_text(json.dumps(res, indent=1, default=str))
     return 0
