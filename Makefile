@@ -6,19 +6,20 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
-PKGS := assist_sim assist_perception assist_policy assist_bridge
+PKGS := assist_sim assist_perception assist_policy assist_bridge assist_station
 PKG_INPUTS := $(foreach p,$(PKGS),ros2_ws/src/$(p)/setup.py ros2_ws/src/$(p)/setup.cfg ros2_ws/src/$(p)/package.xml)
 # Nodes in tests run on a private DDS domain so they never meet anyone else's graph.
 export ROS_DOMAIN_ID ?= 42
 export RMW_IMPLEMENTATION ?= rmw_fastrtps_cpp
 
-.PHONY: venv demo test bench colcon clean help
+.PHONY: venv demo test bench colcon clean help browser
 
 help:
 	@echo "make demo   - run the simulated landing demo (creates .venv)"
 	@echo "make test   - run the test suite (creates .venv)"
 	@echo "make bench  - print the benchmark table"
 	@echo "make colcon - build ros2_ws with colcon into ros2_ws/install"
+	@echo "make browser - install Chromium + ChromeDriver (Debian packages) for the pilot station browser test"
 
 venv: $(STAMP)
 
@@ -32,7 +33,13 @@ $(STAMP): requirements.txt $(PKG_INPUTS)
 demo: $(STAMP)
 	$(PY) -m assist_policy.demo
 
-test: $(STAMP)
+# The pilot station's browser test needs Chromium + ChromeDriver (Debian packages; apt-get as root, else sudo).
+browser:
+	@command -v chromium >/dev/null && command -v chromedriver >/dev/null || { \
+	  SUDO=$$( [ "$$(id -u)" -eq 0 ] || echo sudo ); \
+	  $$SUDO apt-get update && $$SUDO apt-get install -y chromium chromium-driver; }
+
+test: $(STAMP) browser
 	$(PY) -m pytest
 
 bench: $(STAMP)

@@ -11,7 +11,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 SRC = REPO / 'ros2_ws' / 'src'
-PACKAGES = ['assist_sim', 'assist_perception', 'assist_policy', 'assist_bridge']
+PACKAGES = ['assist_sim', 'assist_perception', 'assist_policy', 'assist_bridge', 'assist_station']
 ENTRY = re.compile(r"'(\w+) = ([\w.]+):(\w+)'")
 
 
@@ -26,6 +26,7 @@ CONTRACT_SCRIPTS = {
     'assist_perception': {'encoder_node', 'make_dataset', 'train_cmvae'},
     'assist_policy': {'policy_node', 'train_td3', 'evaluate'},
     'assist_bridge': {'mavlink_bridge_node', 'teleop_keyboard'},
+    'assist_station': {'pilot_station'},
 }
 
 

@@ -15,10 +15,13 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
+from visualization_msgs.msg import MarkerArray
 
 from .core.config import WorldConfig
 from .core.runner import RunnerConfig, SimRunner, StepOutput
+from .core.scene_markers import scene_markers
 from .core.world import LandingWorld, quat_to_matrix
+from .scene_msgs import scene_marker_array
 from .ros_common import (LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param,
                          StartupError, declare_parameters, run_node, twist_to_array)
 
@@ -84,6 +87,7 @@ class SimNode(Node):
         self.pub_clock = self.create_publisher(Clock, '/clock', 10)
         self.pub_goal = self.create_publisher(PointStamped, '/sim/goal', LATCHED_QOS)
         self.pub_landing = self.create_publisher(String, '/sim/landing', LANDING_QOS)
+        self.pub_scene = self.create_publisher(MarkerArray, '/sim/scene', LATCHED_QOS)
         group = MutuallyExclusiveCallbackGroup()
         if not self.mavlink:
             self.create_subscription(TwistStamped, '/cmd_vel', self._on_cmd, RELIABLE_QOS, callback_group=group)
@@ -239,6 +243,8 @@ class SimNode(Node):
         with self.lock:
             g = self.world.goal_position
             stamp = self._stamp(self.world.time).clock
+            boxes = scene_markers(self.world.scene, self.world.goal_index)
+        self.pub_scene.publish(scene_marker_array(boxes, self.p['odom_frame'], stamp))  # /sim/scene, every reset
         msg = PointStamped()
         msg.header.stamp, msg.header.frame_id = stamp, self.p['odom_frame']
         msg.point.x, msg.point.y, msg.point.z = (float(x) for x in g)

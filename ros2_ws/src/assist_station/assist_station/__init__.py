@@ -1,0 +1,1 @@
+"""Base-station side: the browser pilot station (human interface); never imports pybullet."""

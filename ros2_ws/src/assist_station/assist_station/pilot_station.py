@@ -1,0 +1,205 @@
+"""pilot_station: the browser pilot station as a ROS 2 node (thin shell over station_core + server).
+
+Serves the page (chase view from /sim/scene + /odom, camera inset, assisted state, landing results)
+and publishes the pilot's held keys as /pilot/cmd_vel (TwistStamped, base_link) at a fixed rate,
+and at once on every key change.
+"""
+from __future__ import annotations
+
+import math
+import sys
+import threading
+import time
+
+import numpy as np
+from geometry_msgs.msg import TwistStamped
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+from sensor_msgs.msg import Image
+from std_msgs.msg import String
+from visualization_msgs.msg import Marker, MarkerArray
+
+from assist_policy.blending import DEFAULT_THRESHOLD
+from assist_sim.ros_common import (LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param,
+                                   StartupError, declare_parameters, fill_twist, run_node, twist_to_array)
+
+from .server import ServerConfig, StationServer
+from .station_core import (MODES, AssistMonitor, KeyState, StationConfig, camera_payload, landing_feedback,
+                           parse_landing, scene_from_boxes)
+
+PARAMS = {
+    'host': Param('127.0.0.1', 'Address the HTTP/WebSocket server binds to (loopback by default).'),
+    'port': Param(8080, 'TCP port of the page (0: any free port; the printed URL says which).', min=0, max=65535),
+    'mode': Param('practice', 'practice: goal marked, result after each landing; study: goal marked, no '
+                              'feedback (the paper\'s study landings); free: no goal marker, result shown.',
+                  choices=MODES),
+    'rate_hz': Param(20.0, 'Fixed publish rate of /pilot/cmd_vel (Hz); key changes also publish at once.',
+                     min=1.0, max=200.0),
+    'speed': Param(StationConfig.speed, 'Horizontal speed of W/S/A/D (m/s).', min=0.0, max=5.0, min_exclusive=True),
+    'speed_z': Param(StationConfig.speed_z, 'Vertical speed of ArrowUp/ArrowDown (m/s).', min=0.0, max=5.0,
+                     min_exclusive=True),
+    'key_timeout_s': Param(StationConfig.key_timeout_s, 'Held keys the page has not refreshed for this long '
+                           'count as released (the page refreshes every 0.25 s).', min=0.3, max=10.0),
+    'view_rate_hz': Param(30.0, 'Rate of pose/state updates sent to the page (Hz).', min=1.0, max=120.0),
+    'camera_rate_hz': Param(15.0, 'Most camera inset frames per second sent to the page (0: no inset).',
+                            min=0.0, max=60.0),
+    'camera_max_width': Param(160, 'Camera inset frames wider than this are subsampled (pixels).', min=8, max=1280),
+    'agent_timeout_s': Param(0.5, '/assist/agent_cmd older than this: the page shows "unassisted".',
+                             min=0.0, max=10.0, min_exclusive=True),
+    'assist_threshold': Param(DEFAULT_THRESHOLD, 'Agent actions above this norm (m/s) show as "assistant '
+                              'acting" (the blending threshold).', min=0.0, max=5.0),
+    'max_message_bytes': Param(1024, 'Page messages larger than this are rejected (bytes).', min=64, max=65536),
+    'stall_timeout_s': Param(5.0, 'A page that stops reading for this long is disconnected (s).',
+                             min=0.1, max=120.0),
+    'chase_back_m': Param(3.5, 'Chase camera distance behind the drone (m).', min=0.0, max=50.0),
+    'chase_up_m': Param(2.0, 'Chase camera height above the drone (m).', min=0.0, max=50.0),
+    'fov_deg': Param(60.0, 'Vertical field of view of the chase view (deg).', min=10.0, max=120.0),
+    'frame_id': Param('base_link', 'frame_id of the published /pilot/cmd_vel.'),
+}
+
+
+def _finite(values) -> bool:
+    return all(math.isfinite(float(x)) for x in values)
+
+
+class PilotStation(Node):
+    """Web pilot station: page + WebSocket in, /pilot/cmd_vel out."""
+
+    def __init__(self, **kwargs):
+        super().__init__('pilot_station', **kwargs)
+        self.p = declare_parameters(self, PARAMS)
+        self.diag = Diagnostics(self)
+        p = self.p
+        self.keys = KeyState(StationConfig(speed=p['speed'], speed_z=p['speed_z'], key_timeout_s=p['key_timeout_s']))
+        self.assist = AssistMonitor(p['agent_timeout_s'], p['assist_threshold'])
+        self._lock = threading.Lock()
+        self._odom: dict | None = None
+        self._odom_time = -math.inf
+        self._last_camera = -math.inf
+        self.pub_cmd = self.create_publisher(TwistStamped, '/pilot/cmd_vel', RELIABLE_QOS)
+        self.create_subscription(Odometry, '/odom', self._on_odom, SENSOR_QOS)
+        self.create_subscription(MarkerArray, '/sim/scene', self._on_scene, LATCHED_QOS)
+        self.create_subscription(TwistStamped, '/assist/agent_cmd', self._on_agent, RELIABLE_QOS)
+        self.create_subscription(String, '/sim/landing', self._on_landing, LANDING_QOS)
+        if p['camera_rate_hz'] > 0:
+            self.create_subscription(Image, '/camera/color/image_raw', self._on_camera, SENSOR_QOS)
+        hello = {'mode': p['mode'], 'show_goal': p['mode'] in ('practice', 'study'),
+                 'chase': {'back_m': p['chase_back_m'], 'up_m': p['chase_up_m'], 'fov_deg': p['fov_deg']},
+                 'speed': p['speed'], 'speed_z': p['speed_z'], 'camera': p['camera_rate_hz'] > 0}
+        self.server = StationServer(
+            ServerConfig(host=p['host'], port=int(p['port']), max_message_bytes=int(p['max_message_bytes']),
+                         view_rate_hz=p['view_rate_hz'], stall_timeout_s=p['stall_timeout_s']),
+            self.keys, self._state, hello, on_command=self._publish, count=self.diag.count)
+        try:
+            url = self.server.start()
+        except OSError as exc:
+            raise StartupError(f"pilot_station: cannot serve on {p['host']}:{p['port']}: {exc}") from exc
+        self.create_timer(1.0 / p['rate_hz'], self._tick)
+        self.create_timer(1.0, self._diag_values)
+        print(f'pilot_station: open {url} in a browser', flush=True)
+        self.get_logger().info(f"pilot station at {url} (mode {p['mode']}, /pilot/cmd_vel at {p['rate_hz']} Hz)")
+
+    # ------------------------------------------------------------------ commands
+    def _publish(self, v: np.ndarray) -> None:
+        msg = TwistStamped()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.header.frame_id = self.p['frame_id']
+        self.pub_cmd.publish(fill_twist(msg, v))
+
+    def _tick(self) -> None:
+        self._publish(self.keys.command(time.monotonic()))
+
+    # ------------------------------------------------------------------ inputs
+    def _on_odom(self, msg: Odometry) -> None:
+        pp, tw = msg.pose.pose, msg.twist.twist
+        p = (pp.position.x, pp.position.y, pp.position.z)
+        q = (pp.orientation.x, pp.orientation.y, pp.orientation.z, pp.orientation.w)
+        v = (tw.linear.x, tw.linear.y, tw.linear.z)
+        if not (_finite(p) and _finite(q) and _finite(v)) or sum(x * x for x in q) < 1e-6:
+            self.diag.count('odom_rejected')
+            self.get_logger().warning('/odom rejected: non-finite pose/twist or zero quaternion',
+                                      throttle_duration_sec=2.0)
+            return
+        with self._lock:
+            self._odom = {'p': [float(x) for x in p], 'q': [float(x) for x in q], 'v': [float(x) for x in v]}
+            self._odom_time = time.monotonic()
+
+    def _on_scene(self, msg: MarkerArray) -> None:
+        boxes = []
+        for m in msg.markers:
+            if m.action == Marker.DELETEALL:
+                boxes = []
+                continue
+            if m.type != Marker.CUBE or m.action != Marker.ADD or m.ns not in ('platforms', 'goal'):
+                continue
+            boxes.append({'ns': m.ns, 'id': m.id,
+                          'p': (m.pose.position.x, m.pose.position.y, m.pose.position.z),
+                          'q': (m.pose.orientation.x, m.pose.orientation.y, m.pose.orientation.z,
+                                m.pose.orientation.w),
+                          's': (m.scale.x, m.scale.y, m.scale.z), 'c': (m.color.r, m.color.g, m.color.b)})
+        try:
+            scene = scene_from_boxes(boxes)
+        except ValueError as exc:
+            self.diag.count('scene_rejected')
+            self.get_logger().warning(f'/sim/scene rejected: {exc}')
+            return
+        self.server.set_scene(scene)
+        self.get_logger().info(f"scene: {len(scene['platforms'])} platforms, goal {scene['goal']}")
+
+    def _on_agent(self, msg: TwistStamped) -> None:
+        if not self.assist.note(twist_to_array(msg), time.monotonic()):
+            self.diag.count('agent_cmd_rejected')
+
+    def _on_landing(self, msg: String) -> None:
+        try:
+            landing = parse_landing(msg.data)
+        except ValueError as exc:
+            self.diag.count('landing_rejected')
+            self.get_logger().warning(str(exc))
+            return
+        self.server.push_event(landing_feedback(landing, self.p['mode']))
+
+    def _on_camera(self, msg: Image) -> None:
+        now = time.monotonic()
+        if now - self._last_camera < 1.0 / self.p['camera_rate_hz'] or not self.server.n_clients:
+            return
+        try:
+            w, h, rgb = camera_payload(msg.width, msg.height, msg.encoding, msg.step, msg.data,
+                                       int(self.p['camera_max_width']))
+        except ValueError as exc:
+            self.diag.count('camera_rejected')
+            self.get_logger().warning(f'/camera/color/image_raw rejected: {exc}', throttle_duration_sec=5.0)
+            return
+        self._last_camera = now
+        self.server.set_camera(w, h, rgb)
+
+    # ------------------------------------------------------------------ view state
+    def _state(self) -> dict:
+        now = time.monotonic()
+        with self._lock:
+            odom, age = self._odom, now - self._odom_time
+        return {'pose': odom, 'odom_age_s': round(age, 3) if math.isfinite(age) else None,
+                'assist': self.assist.state(now), 'keys': list(self.keys.held(now)),
+                'cmd': [round(float(x), 3) for x in self.keys.command(now)]}
+
+    def _diag_values(self) -> None:
+        self.diag.set('url', self.server.url)
+        self.diag.set('pilot_connected', self.server.pilot_connected)
+        self.diag.set('clients', self.server.n_clients)
+
+    def close(self) -> None:
+        """Stop the web server (every socket closed) and send one zero command."""
+        self.server.stop()
+        try:
+            self._publish(np.zeros(3))
+        except Exception as exc:  # noqa: BLE001 - the context may already be gone at shutdown
+            self.get_logger().debug(f'final zero command not sent: {exc!r}')
+
+
+def main(args=None):
+    """Entry point of `ros2 run assist_station pilot_station`."""
+    sys.exit(run_node(PilotStation, args))
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,50 @@
+"""The pilot station with the simulated graph.
+
+ros2 launch assist_station station.launch.py [assisted:=true] [mode:=practice|study|free] [assist_mode:=latent]
+    [seed:=0] [port:=8080] [sim:=true]
+assisted:=true : sim_node + encoder_node (latent mode) + policy_node + pilot_station (the pilot's
+                 /pilot/cmd_vel is blended by the policy into /cmd_vel).
+assisted:=false: sim_node + pilot_station, /pilot/cmd_vel remapped straight onto /cmd_vel.
+sim:=false     : no sim_node (e.g. with assist_bridge's sim_mavlink.launch.py or a real vehicle, where
+                 /odom comes from mavlink_bridge_node).
+Then open the URL pilot_station prints (http://127.0.0.1:8080/ by default).
+"""
+import os
+
+from ament_index_python.packages import get_package_share_directory
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument
+from launch.conditions import IfCondition, UnlessCondition
+from launch.substitutions import LaunchConfiguration, PythonExpression
+from launch_ros.actions import Node
+
+
+def generate_launch_description():
+    """sim_node (+ encoder + policy when assisted) and pilot_station."""
+    station_params = os.path.join(get_package_share_directory('assist_station'), 'config', 'station.yaml')
+    sim_params = os.path.join(get_package_share_directory('assist_sim'), 'config', 'sim.yaml')
+    policy_params = os.path.join(get_package_share_directory('assist_policy'), 'config', 'assist.yaml')
+    assisted, assist_mode = LaunchConfiguration('assisted'), LaunchConfiguration('assist_mode')
+    args = [DeclareLaunchArgument('assisted', default_value='true', description='run the assistant'),
+            DeclareLaunchArgument('assist_mode', default_value='latent', description='latent | oracle | end_to_end'),
+            DeclareLaunchArgument('mode', default_value='practice', description='practice | study | free'),
+            DeclareLaunchArgument('seed', default_value='0'),
+            DeclareLaunchArgument('port', default_value='8080'),
+            DeclareLaunchArgument('sim', default_value='true', description='start sim_node')]
+    sim_time = {'use_sim_time': LaunchConfiguration('sim')}   # sim time only with sim_node's /clock
+    sim = Node(package='assist_sim', executable='sim_node', name='sim_node', output='screen',
+               parameters=[sim_params, {'seed': LaunchConfiguration('seed'), 'real_time_factor': 1.0}],
+               condition=IfCondition(LaunchConfiguration('sim')))
+    latent = PythonExpression(["'", assisted, "'.lower() == 'true' and '", assist_mode, "' == 'latent'"])
+    encoder = Node(package='assist_perception', executable='encoder_node', name='encoder_node', output='screen',
+                   parameters=[sim_time, {'depth_noise': True}], condition=IfCondition(latent))
+    policy = Node(package='assist_policy', executable='policy_node', name='policy_node', output='screen',
+                  parameters=[policy_params, sim_time, {'mode': assist_mode}], condition=IfCondition(assisted))
+    station_args = [station_params, sim_time,
+                    {'mode': LaunchConfiguration('mode'), 'port': LaunchConfiguration('port')}]
+    station = Node(package='assist_station', executable='pilot_station', name='pilot_station', output='screen',
+                   parameters=station_args, condition=IfCondition(assisted))
+    station_direct = Node(package='assist_station', executable='pilot_station', name='pilot_station',
+                          output='screen', parameters=station_args, remappings=[('/pilot/cmd_vel', '/cmd_vel')],
+                          condition=UnlessCondition(assisted))
+    return LaunchDescription(args + [sim, encoder, policy, station, station_direct])
