@@ -10,7 +10,7 @@ split_by_scene(val_fraction=0.05, seed=0) holds out of make_dataset.yaml's 1,000
 deterministic in (seed, scene index), so only those scenes need rendering) with each renderer,
 labels them as make_dataset does, and runs evaluate.compute_metrics (noise seed 1, the card's single
 noise stream) on both; it prints both metric sets beside the card's, the pixel differences between
-the two renders, and a paired comparison with the noise seeded per scene (the noise model's draws
+the two renders, and a paired comparison with the noise seeded per frame (the noise model's draws
 depend on the depth edges, so in one stream a single differing edge pixel reshuffles the noise of
 every later frame).
 
@@ -91,20 +91,20 @@ def cmvae(args: argparse.Namespace) -> dict:
     }
     # the noise model draws a data-dependent number of samples (flying pixels at depth edges), so
     # one edge pixel that differs shifts the noise of every later frame in a single stream; paired
-    # per scene, each scene with its own noise seed, the renderers' effect alone shows
-    per_scene = {r: [] for r in RENDERERS}
-    for s in scenes:
-        for r in RENDERERS:
-            idx = np.nonzero(sets[r].scene == s)[0]
-            per_scene[r].append(compute_metrics(model, sets[r], idx, noise_seed=1000 + int(s)))
-    paired = {'scenes': len(scenes), 'scenes_with_identical_metrics': int(sum(
-        all(np.isclose(a[k], b[k], equal_nan=True) for k in a) for a, b in zip(*per_scene.values())))}
-    for k in ('depth_rmse_m', 'x_abs_err_median_m', 'y_abs_err_median_m', 'z_abs_err_median_m'):
-        d = np.array([a[k] - b[k] for a, b in zip(*per_scene.values())], float)
-        paired[f'{k}_max_abs_diff'] = float(np.nanmax(np.abs(d)))
-        paired[f'{k}_mean_{RENDERERS[0]}'] = float(np.nanmean([a[k] for a in per_scene[RENDERERS[0]]]))
-        paired[f'{k}_mean_{RENDERERS[1]}'] = float(np.nanmean([b[k] for b in per_scene[RENDERERS[1]]]))
-    out['paired_per_scene_noise'] = paired
+    # frame by frame, each frame with its own noise seed, only the renderers' effect shows
+    per_frame = {r: [compute_metrics(model, sets[r], np.array([i]), noise_seed=10_000 + i)
+                     for i in range(len(sets[r]))] for r in RENDERERS}
+    paired = {'frames': len(a), 'frames_with_identical_metrics': int(sum(
+        all(np.isclose(x[k], y[k], equal_nan=True) for k in x) for x, y in zip(*per_frame.values())))}
+    for r in RENDERERS:
+        m = per_frame[r]
+        vis = [f for f in m if f['frames_with_pad']]
+        paired[r] = {'depth_rmse_m': float(np.sqrt(np.mean([f['depth_rmse_m'] ** 2 for f in m])))}
+        for ax in 'xyz':
+            e = np.array([f[f'{ax}_abs_err_median_m'] for f in vis])
+            paired[r][f'{ax}_abs_err_median_m'] = float(np.median(e))
+            paired[r][f'{ax}_abs_err_p90_m'] = float(np.percentile(e, 90))
+    out['paired_per_frame_noise'] = paired
     keys = [k for k in card if k in out['pybullet']]
     print(f'{"metric":32s} {"card":>9s} {"pybullet":>9s} {"analytic":>9s}')
     for k in keys:
