@@ -1,8 +1,8 @@
 """Analytic RGB-D renderer of the landing scene: per-pixel ray casting in numpy (no rclpy, no pybullet).
 
 The scene is a floor, four inward-facing walls and five textured boxes, so every pixel's depth
-and colour can be computed in closed form: intersect the pixel's ray with the boxes (slab test),
-the walls and the floor, take the nearest hit and shade it. The result reproduces pybullet's
+and colour can be computed in closed form: intersect the pixel's ray with the boxes' faces that
+face the camera, the walls and the floor, keep the nearest hit and shade it. The result reproduces pybullet's
 TinyRenderer (the renderer the shipped models were trained with) pixel for pixel, quirks included:
 
 - TinyRenderer samples pixel (col, row) at the ray through (col - W/2, row - (H/2 - 1)) in units
@@ -33,7 +33,6 @@ from .textures import make_texture
 # TinyRenderer's default lighting (bullet3 TinyRendererVisualShapeConverter / TinyRenderer.cpp).
 LIGHT_DIR = np.array([-50.0, 30.0, 100.0]) / np.linalg.norm([-50.0, 30.0, 100.0])
 AMBIENT, DIFFUSE, SPECULAR = 0.6, 0.35, 0.05
-
 
 
 @functools.lru_cache(maxsize=128)
@@ -125,7 +124,7 @@ def _face_uv_maps() -> dict[tuple[int, int], np.ndarray]:
         y = np.array([uv for _, uv in rows])
         m = (x.T @ y) / 4.0                               # the corners are +-1: x.T @ x = 4 I
         if not np.array_equal(x @ m, y):
-            raise AssertionError(f'face {(axis, sign)} is not affinely textured')
+            raise RuntimeError(f'face {(axis, sign)} is not affinely textured')
         maps[(axis, sign)] = m
     return maps
 
