@@ -130,7 +130,7 @@ def actors(args: argparse.Namespace) -> dict:
             env.close()
             cfg.world = WorldConfig()
             cfg.world.camera.renderer = r
-            latent_fn = make_latent_fn()[0] if cond == 'latent' else None
+            latent_fn = make_latent_fn(seed=args.noise_seed)[0] if cond == 'latent' else None
             env = LandingAssistEnv(cfg, latent_fn=latent_fn)
             t0 = time.process_time()
             rows = [run_landing(env, policy, defaults.seed + 1000 * bi + k, float(beta))
@@ -186,6 +186,9 @@ def main(argv: list[str] | None = None) -> int:
     a.add_argument('--landings', type=int, default=12, help='landings per beta and renderer')
     a.add_argument('--conditions', nargs='+', default=['latent', 'oracle'])
     a.add_argument('--renderers', nargs='+', default=list(RENDERERS), choices=RENDERERS)
+    a.add_argument('--noise-seed', type=int, default=0,
+                   help="seed of the latent env's depth noise (make_latent_fn's default: 0); another seed "
+                        'with the same renderer shows how far landings move from noise alone')
     m = sub.add_parser('compare', help='merge and compare actors outputs run per renderer')
     m.add_argument('files', nargs='+')
     for p in (c, a, m):
