@@ -311,8 +311,10 @@ class SceneRenderer:
         with np.errstate(divide='ignore', invalid='ignore'):
             u = (p[:, 0] / p[:, 2] * self.f + self._cx_tr).reshape(-1, 4)
             v = (p[:, 1] / p[:, 2] * self.f + self._cy_tr).reshape(-1, 4)
-        win = np.stack([np.floor(u.min(axis=1)) - 1, np.ceil(u.max(axis=1)) + 1,
-                        np.floor(v.min(axis=1)) - 1, np.ceil(v.max(axis=1)) + 1], axis=1)
+        # pixel samples sit at integer (u, v): those inside the convex quad lie within its corners'
+        # extremes (a 1e-3 px margin covers rounding between this projection and the ray test)
+        win = np.stack([np.ceil(u.min(axis=1) - 1e-3), np.floor(u.max(axis=1) + 1e-3),
+                        np.ceil(v.min(axis=1) - 1e-3), np.floor(v.max(axis=1) + 1e-3)], axis=1)
         win = np.clip(win, -1e6, 1e6)
         win[(z <= 1e-6).any(axis=1)] = (0, self.width - 1, 0, self.height - 1)   # corner behind the lens
         return win
