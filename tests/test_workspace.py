@@ -68,6 +68,6 @@ def test_colcon_build_installs_executables_where_ros2_run_looks(tmp_path):
         assert (share / 'ament_index' / 'resource_index' / 'packages' / pkg).exists()
         assert (share / pkg / 'package.xml').exists()
         for sub in ('config', 'launch'):
-            src_files = sorted(p.name for p in (SRC / pkg / sub).glob('*') if p.suffix in ('.yaml', '.py'))
+            src_files = sorted(p.name for p in (SRC / pkg / sub).glob('*') if p.suffix in ('.yaml', '.py', '.parm'))
             inst_files = sorted(p.name for p in (share / pkg / sub).glob('*'))
             assert src_files == inst_files, (pkg, sub)

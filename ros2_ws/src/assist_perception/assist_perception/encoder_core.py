@@ -163,8 +163,13 @@ class LatentEncoder:
 
     def prepare(self, rgb: np.ndarray, depth_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Validate and resize a decoded frame; raises BadFrame."""
-        if rgb.ndim != 3 or rgb.shape[2] != 3 or depth_m.ndim != 2:
+        rgb, depth_m = np.asarray(rgb), np.asarray(depth_m)
+        if rgb.ndim != 3 or rgb.shape[2] != 3 or depth_m.ndim != 2 or 0 in rgb.shape or 0 in depth_m.shape:
             raise BadFrame('bad_size', f'rgb {rgb.shape}, depth {depth_m.shape}')
+        if rgb.dtype != np.uint8:    # decode_color gives uint8; floats could carry NaN/inf into the network
+            raise BadFrame('bad_encoding', f'colour array must be uint8, got {rgb.dtype}')
+        if not np.issubdtype(depth_m.dtype, np.number):
+            raise BadFrame('bad_encoding', f'depth array must be numeric, got {depth_m.dtype}')
         ar_rgb = rgb.shape[1] / rgb.shape[0]
         ar_d = depth_m.shape[1] / depth_m.shape[0]
         if abs(ar_rgb - ar_d) > 0.02:
@@ -191,13 +196,19 @@ class LatentEncoder:
         else:
             xyz = np.full(3, np.nan, np.float32)
         depth = self.model.decode_depth(mu)[0].cpu().numpy().astype(np.float32) if want_depth else None
+        if not (torch.isfinite(mu).all() and np.all(np.isfinite(xyz) | (not want_xyz))
+                and (depth is None or np.all(np.isfinite(depth)))):
+            raise BadFrame('nonfinite_output', 'the model produced non-finite values for this frame')
         return EncoderOutput(mu[0].cpu().numpy().astype(np.float32), xyz, depth)
 
     @torch.inference_mode()
     def decode_depth(self, mu: np.ndarray) -> np.ndarray:
-        """Denoised depth (64x64 float32 metres) of one latent mean (after publishing mu)."""
+        """Denoised depth (64x64 float32 metres) of one latent mean (after publishing mu); raises BadFrame."""
         z = torch.as_tensor(np.asarray(mu, np.float32)[None], device=self.device)
-        return self.model.decode_depth(z)[0].cpu().numpy().astype(np.float32)
+        depth = self.model.decode_depth(z)[0].cpu().numpy().astype(np.float32)
+        if not np.all(np.isfinite(depth)):
+            raise BadFrame('nonfinite_output', 'the depth decoder produced non-finite values')
+        return depth
 
     @torch.inference_mode()
     def encode_mu_batch(self, rgbs: list[np.ndarray], depths: list[np.ndarray]) -> np.ndarray:
@@ -217,6 +228,10 @@ class LatentEncoder:
         x = preprocess(np.stack([p[0] for p in prepared]), np.stack([p[1] for p in prepared]),
                        self.model.cfg).to(self.device)
         mu, _ = self.model.encode(x)
+        bad = ~torch.isfinite(mu).all(dim=1)
+        if bad.any():
+            raise BadFrame('nonfinite_output', f'frame {int(torch.nonzero(bad)[0])}: the model produced '
+                                               'non-finite values')
         return mu.cpu().numpy().astype(np.float32)
 
 

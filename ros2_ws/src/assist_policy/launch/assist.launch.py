@@ -1,6 +1,7 @@
 """Assisted landing in simulation: sim_node + encoder_node + sim_pilot_node + policy_node.
 
 ros2 launch assist_policy assist.launch.py mode:=latent beta:=0.3 real_time_factor:=1.0
+ros2 launch assist_policy assist.launch.py record:=flights/run1    # also record the flight (bag_record)
 """
 import os
 
@@ -8,7 +9,7 @@ from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument
 from launch.conditions import IfCondition
-from launch.substitutions import LaunchConfiguration, PythonExpression
+from launch.substitutions import LaunchConfiguration, NotEqualsSubstitution, PythonExpression
 from launch_ros.actions import Node
 
 
@@ -23,7 +24,9 @@ def generate_launch_description():
             DeclareLaunchArgument('seed', default_value='0'),
             DeclareLaunchArgument('real_time_factor', default_value='1.0'),
             DeclareLaunchArgument('gui', default_value='false'),
-            DeclareLaunchArgument('model_path', default_value='')]
+            DeclareLaunchArgument('model_path', default_value=''),
+            DeclareLaunchArgument('record', default_value='',
+                                  description='bag directory to record the flight into (empty: no recording)')]
     sim_time = {'use_sim_time': True}
     sim = Node(package='assist_sim', executable='sim_node', name='sim_node', output='screen',
                parameters=[sim_params, {'seed': LaunchConfiguration('seed'), 'gui': LaunchConfiguration('gui'),
@@ -37,4 +40,7 @@ def generate_launch_description():
                                                 'seed': LaunchConfiguration('seed')}])
     policy = Node(package='assist_policy', executable='policy_node', name='policy_node', output='screen',
                   parameters=[params, sim_time, {'mode': mode, 'model_path': LaunchConfiguration('model_path')}])
-    return LaunchDescription(args + [sim, encoder, pilot, policy])
+    record = Node(package='assist_policy', executable='bag_record', name='bag_record', output='screen',
+                  parameters=[sim_time, {'output': LaunchConfiguration('record')}],
+                  condition=IfCondition(NotEqualsSubstitution(LaunchConfiguration('record'), '')))
+    return LaunchDescription(args + [sim, encoder, pilot, policy, record])

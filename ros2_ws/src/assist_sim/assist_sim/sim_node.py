@@ -35,6 +35,14 @@ PARAMS = {
     'reset_delay_s': Param(1.0, 'Sim seconds between a landing and the next episode (auto_reset).'),
     'mavlink_url': Param('', 'Empty: driven by /cmd_vel. Else act as a MAVLink vehicle on this pymavlink '
                               'address (e.g. tcpin:127.0.0.1:5760); then the sim runs at wall-clock speed.'),
+    'physics': Param('velocity', 'velocity: the velocity-tracking controller (training/evaluation); ardupilot_json: '
+                                 'rigid-body quad flown by ArduPilot SITL motor outputs over its JSON interface.',
+                     choices=('velocity', 'ardupilot_json')),
+    'json_host': Param('127.0.0.1', 'ardupilot_json: UDP address the physics backend listens on for SITL.'),
+    'json_port': Param(9002, 'ardupilot_json: UDP port for SITL (--model JSON:<host> sends to 9002).',
+                       min=1, max=65535),
+    'json_silence_timeout_s': Param(1.0, 'ardupilot_json: SITL silent this long -> diagnostics error.',
+                                    min=0.0, min_exclusive=True),
     'gui': Param(False, 'Open the pybullet GUI window (needs a display).'),
     'world_config': Param('', 'Optional YAML file overriding assist_sim.core.config.WorldConfig fields.'),
     'cmd_timeout_s': Param(0.5, '/cmd_vel older than this (sim time) counts as absent: the vehicle hovers.'),
@@ -65,11 +73,27 @@ class SimNode(Node):
         cfg.camera.width, cfg.camera.height = int(self.p['camera_width']), int(self.p['camera_height'])
         cfg.turbulence.enabled = bool(self.p['turbulence'])
         self.mavlink = bool(self.p['mavlink_url'])
+        self.json_mode = self.p['physics'] == 'ardupilot_json'
+        if self.json_mode and self.mavlink:
+            raise StartupError('sim_node: physics ardupilot_json and mavlink_url are exclusive (SITL is the vehicle)')
         self.world = LandingWorld(cfg, seed=int(self.p['seed']), gui=bool(self.p['gui']))
-        self.runner = SimRunner(self.world, RunnerConfig(
+        runner_cfg = RunnerConfig(
             camera_rate_hz=float(self.p['camera_rate_hz']), auto_reset=bool(self.p['auto_reset']),
             reset_delay_s=float(self.p['reset_delay_s']), cmd_timeout_s=float(self.p['cmd_timeout_s']),
-            max_cmd_speed_mps=float(self.p['max_cmd_speed_mps']), airborne_start=not self.mavlink))
+            max_cmd_speed_mps=float(self.p['max_cmd_speed_mps']), airborne_start=not (self.mavlink or self.json_mode))
+        if self.json_mode:   # ArduPilot SITL flies the airframe; the runner serves its JSON physics link
+            from .json_backend import make_json_runner
+            try:
+                self.runner = make_json_runner(self.world, runner_cfg, self.p, self.diag)
+            except OSError as exc:
+                raise StartupError(f"sim_node: cannot listen for SITL on udp {self.p['json_host']}:"
+                                   f"{self.p['json_port']}: {exc}") from exc
+            self.get_logger().info(f'physics ardupilot_json: serving SITL on udp {self.runner.server.address}')
+            if self.p['real_time_factor'] != 1.0:
+                self.get_logger().warning('real_time_factor is not used with ardupilot_json: SITL sets the pace '
+                                          '(its --speedup)')
+        else:
+            self.runner = SimRunner(self.world, runner_cfg)
         self.vehicle = None
         if self.mavlink:
             from .mavlink_vehicle import MavlinkVehicle
@@ -77,19 +101,19 @@ class SimNode(Node):
                 self.vehicle = MavlinkVehicle(self.world, self.p['mavlink_url'])
             except (OSError, ValueError) as exc:
                 raise StartupError(f"sim_node: cannot open MAVLink endpoint '{self.p['mavlink_url']}': {exc}") from exc
-        self.rtf = 1.0 if self.mavlink else float(self.p['real_time_factor'])
+        self.rtf = 1.0 if self.mavlink else 0.0 if self.json_mode else float(self.p['real_time_factor'])
         self.lock = threading.Lock()
 
         self.pub_rgb = self.create_publisher(Image, '/camera/color/image_raw', SENSOR_QOS)
         self.pub_depth = self.create_publisher(Image, '/camera/depth/image_raw', SENSOR_QOS)
         self.pub_info = self.create_publisher(CameraInfo, '/camera/color/camera_info', SENSOR_QOS)
-        self.pub_odom = None if self.mavlink else self.create_publisher(Odometry, '/odom', SENSOR_QOS)
+        self.pub_odom = None if self.mavlink or self.json_mode else self.create_publisher(Odometry, '/odom', SENSOR_QOS)
         self.pub_clock = self.create_publisher(Clock, '/clock', 10)
         self.pub_goal = self.create_publisher(PointStamped, '/sim/goal', LATCHED_QOS)
         self.pub_landing = self.create_publisher(String, '/sim/landing', LANDING_QOS)
         self.pub_scene = self.create_publisher(MarkerArray, '/sim/scene', LATCHED_QOS)
         group = MutuallyExclusiveCallbackGroup()
-        if not self.mavlink:
+        if not (self.mavlink or self.json_mode):
             self.create_subscription(TwistStamped, '/cmd_vel', self._on_cmd, RELIABLE_QOS, callback_group=group)
         self.create_subscription(TwistStamped, '/assist/agent_cmd', self._on_agent, RELIABLE_QOS,
                                  callback_group=group)
@@ -101,10 +125,11 @@ class SimNode(Node):
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name='sim_loop', daemon=True)
         self._thread.start()
+        how = ('MAVLink vehicle on ' + self.p['mavlink_url'] if self.mavlink
+               else 'flown by ArduPilot SITL (JSON physics)' if self.json_mode else 'driven by /cmd_vel')
         self.get_logger().info(
             f"sim_node up: seed={self.p['seed']} rtf={self.rtf or 'max'} camera="
-            f"{cfg.camera.width}x{cfg.camera.height}@{self.p['camera_rate_hz']}Hz "
-            f"{'MAVLink vehicle on ' + self.p['mavlink_url'] if self.mavlink else 'driven by /cmd_vel'}")
+            f"{cfg.camera.width}x{cfg.camera.height}@{self.p['camera_rate_hz']}Hz {how}")
 
     # ------------------------------------------------------------------ inputs
     def _on_cmd(self, msg: TwistStamped) -> None:
@@ -131,9 +156,12 @@ class SimNode(Node):
         with self.lock:
             self.runner.reset()
             episode, goal = self.world.episode, self.world.goal_index
-        self._publish_goal()
         response.success = True
         response.message = f'episode {episode}: goal pad {goal}'
+        if getattr(self.runner, 'reset_pending', False):   # ardupilot_json: not while the motors spin
+            response.message = f'reset deferred until SITL disarms (episode {episode} goes on)'
+        else:
+            self._publish_goal()
         return response
 
     # ------------------------------------------------------------------ loop
@@ -241,9 +269,11 @@ class SimNode(Node):
 
     def _publish_goal(self) -> None:
         with self.lock:
-            g = self.world.goal_position
+            g = self.world.goal_position - getattr(self.runner, 'odom_offset', 0.0)   # odom frame
             stamp = self._stamp(self.world.time).clock
             boxes = scene_markers(self.world.scene, self.world.goal_index)
+            if self.json_mode:   # the autopilot's odom frame, like /sim/goal
+                boxes = self.runner.markers_in_odom(boxes)
         self.pub_scene.publish(scene_marker_array(boxes, self.p['odom_frame'], stamp))  # /sim/scene, every reset
         msg = PointStamped()
         msg.header.stamp, msg.header.frame_id = stamp, self.p['odom_frame']
@@ -257,6 +287,8 @@ class SimNode(Node):
             self._thread.join(timeout=2.0)
         if self.vehicle is not None:
             self.vehicle.close()
+        if hasattr(self.runner, 'close'):
+            self.runner.close()
         self.world.close()
 
 
