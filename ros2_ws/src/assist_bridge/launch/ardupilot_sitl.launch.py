@@ -20,8 +20,11 @@ from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument
 from launch.conditions import IfCondition
-from launch.substitutions import LaunchConfiguration, PythonExpression
+from launch.substitutions import AndSubstitution, EqualsSubstitution, LaunchConfiguration, NotSubstitution
 from launch_ros.actions import Node
+from launch_ros.parameter_descriptions import ParameterValue
+
+from assist_sim.launch_tools import BOOL_CHOICES, shutdown_when_exits
 
 
 def generate_launch_description():
@@ -32,13 +35,19 @@ def generate_launch_description():
     args = [DeclareLaunchArgument('connection', default_value='tcp:127.0.0.1:5760',
                                   description="SITL's MAVLink port (SERIAL0)"),
             DeclareLaunchArgument('json_port', default_value='9002', description='UDP port SITL sends servo frames to'),
-            DeclareLaunchArgument('seed', default_value='0'),
-            DeclareLaunchArgument('gui', default_value='false'),
-            DeclareLaunchArgument('assist', default_value='true', description='encoder_node + policy_node'),
-            DeclareLaunchArgument('mode', default_value='latent', description='policy mode: latent | oracle | end_to_end'),
-            DeclareLaunchArgument('pilot', default_value='sim', description='sim: sim_pilot_node; none: keyboard'),
-            DeclareLaunchArgument('alpha', default_value='0.5'),
-            DeclareLaunchArgument('beta', default_value='0.5')]
+            DeclareLaunchArgument('seed', default_value='0',
+                                  description='Seed of the scene, episodes and pilot (integer >= 0)'),
+            DeclareLaunchArgument('gui', default_value='false', choices=BOOL_CHOICES,
+                                  description='Open the pybullet GUI window (needs a display)'),
+            DeclareLaunchArgument('assist', default_value='true', choices=BOOL_CHOICES,
+                                  description='Run encoder_node + policy_node between the pilot and the vehicle'),
+            DeclareLaunchArgument('mode', default_value='latent', choices=['latent', 'oracle', 'end_to_end'],
+                                  description='policy_node mode (latent also starts encoder_node)'),
+            DeclareLaunchArgument('pilot', default_value='sim', choices=['sim', 'none'],
+                                  description='sim: sim_pilot_node flies; none: run teleop_keyboard yourself'),
+            DeclareLaunchArgument('alpha', default_value='0.5',
+                                  description="Simulated pilot's conformance to the assistant, in [0, 1]"),
+            DeclareLaunchArgument('beta', default_value='0.5', description="Simulated pilot's skill, in [0, 1]")]
     sim_time = {'use_sim_time': True}
     sim = Node(package='assist_sim', executable='sim_node', name='sim_node', output='screen',
                parameters=[sim_params, {'physics': 'ardupilot_json', 'seed': LaunchConfiguration('seed'),
@@ -46,22 +55,33 @@ def generate_launch_description():
                                         'json_port': LaunchConfiguration('json_port')}])
     bridge = Node(package='assist_bridge', executable='mavlink_bridge_node', name='mavlink_bridge_node',
                   output='screen', parameters=[bridge_params, sim_time,
-                                               {'connection': LaunchConfiguration('connection')}])
+                                               {'connection': ParameterValue(LaunchConfiguration('connection'),
+                                                                             value_type=str)}])
+    # conditions from substitutions that compare text, never evaluate it
+    simulated_pilot = EqualsSubstitution(pilot, 'sim')
     encoder = Node(package='assist_perception', executable='encoder_node', name='encoder_node', output='screen',
                    parameters=[sim_time, {'depth_noise': True}],
-                   condition=IfCondition(PythonExpression(["'", assist, "' == 'true' and '",
-                                                           LaunchConfiguration('mode'), "' == 'latent'"])))
+                   condition=IfCondition(AndSubstitution(assist, EqualsSubstitution(LaunchConfiguration('mode'),
+                                                                                    'latent'))))
     policy = Node(package='assist_policy', executable='policy_node', name='policy_node', output='screen',
                   parameters=[sim_time, {'mode': LaunchConfiguration('mode')}], condition=IfCondition(assist))
     pilot_assisted = Node(package='assist_sim', executable='sim_pilot_node', name='sim_pilot_node', output='screen',
                           parameters=[sim_time, {'alpha': LaunchConfiguration('alpha'),
                                                  'beta': LaunchConfiguration('beta'),
                                                  'seed': LaunchConfiguration('seed')}],
-                          condition=IfCondition(PythonExpression(["'", pilot, "' == 'sim' and '", assist, "' == 'true'"])))
+                          condition=IfCondition(AndSubstitution(simulated_pilot, assist)))
     pilot_direct = Node(package='assist_sim', executable='sim_pilot_node', name='sim_pilot_node', output='screen',
                         parameters=[sim_time, {'alpha': LaunchConfiguration('alpha'),
                                                'beta': LaunchConfiguration('beta'),
                                                'seed': LaunchConfiguration('seed')}],
                         remappings=[('/pilot/cmd_vel', '/cmd_vel')],
-                        condition=IfCondition(PythonExpression(["'", pilot, "' == 'sim' and '", assist, "' != 'true'"])))
-    return LaunchDescription(args + [sim, bridge, encoder, policy, pilot_assisted, pilot_direct])
+                        condition=IfCondition(AndSubstitution(simulated_pilot, NotSubstitution(assist))))
+    return LaunchDescription(args + [
+        sim, bridge, encoder, policy, pilot_assisted, pilot_direct,
+        shutdown_when_exits(sim, 'SITL has no physics without sim_node'),
+        shutdown_when_exits(bridge, 'no link to SITL without the bridge'),
+        shutdown_when_exits(encoder, 'the latent assistant needs the encoder'),
+        shutdown_when_exits(policy, 'the pilot would fly unassisted without policy_node'),
+        shutdown_when_exits(pilot_assisted, 'no pilot commands without the simulated pilot'),
+        shutdown_when_exits(pilot_direct, 'no pilot commands without the simulated pilot'),
+    ])

@@ -18,6 +18,8 @@ import cv2
 import numpy as np
 import torch
 
+from assist_sim.shipped import shipped_model_path
+
 from .model import CMVAE, load_model, preprocess
 
 COLOR_ENCODINGS = {'rgb8': (3, False), 'bgr8': (3, True), 'rgba8': (4, False), 'bgra8': (4, True)}
@@ -43,20 +45,8 @@ class EncoderOutput:
 
 
 def default_model_path() -> Path:
-    """The shipped weights: `models/cmvae.pt` of the repository (or installed share/ copy)."""
-    here = Path(__file__).resolve()
-    for parent in here.parents:
-        cand = parent / 'models' / 'cmvae.pt'
-        if cand.is_file():
-            return cand
-    try:
-        from ament_index_python.packages import get_package_share_directory  # noqa: PLC0415
-        cand = Path(get_package_share_directory('assist_perception')) / 'models' / 'cmvae.pt'
-        if cand.is_file():
-            return cand
-    except (ImportError, LookupError, ValueError):
-        pass
-    return here.parents[4] / 'models' / 'cmvae.pt'   # repo layout: report this path if missing
+    """The shipped weights cmvae.pt: $ASSIST_MODELS_DIR, share/assist_perception/models, or the repo's models/."""
+    return shipped_model_path('assist_perception', 'cmvae.pt')
 
 
 def _as_array(data: Any, height: int, width: int, step: int, channels: int, dtype,

@@ -15,13 +15,14 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-import os
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
+
+from assist_sim.shipped import shipped_model_path
 
 from .actions import scale_action
 from .blending import DEFAULT_THRESHOLD, blend
@@ -33,17 +34,9 @@ log = logging.getLogger(__name__)
 MAX_DEPTH_M = 100.0   # depth beyond this (or negative / non-finite) is a hole (0), as the sim and drivers mark them
 
 
-def models_dir() -> Path:
-    """Directory of shipped models: $ASSIST_MODELS_DIR or <repo>/models."""
-    env = os.environ.get('ASSIST_MODELS_DIR')
-    if env:
-        return Path(env)
-    return Path(__file__).resolve().parents[4] / 'models'
-
-
 def default_model_path(mode: str) -> Path:
-    """Shipped actor for a mode: models/td3_<mode>_actor.pt."""
-    return models_dir() / f'td3_{Condition(mode).value}_actor.pt'
+    """Shipped actor for a mode, td3_<mode>_actor.pt: $ASSIST_MODELS_DIR, share/assist_policy/models or the repo's models/."""
+    return shipped_model_path('assist_policy', f'td3_{Condition(mode).value}_actor.pt')
 
 
 class InputRejected(ValueError):

@@ -6,7 +6,6 @@ max_vertical_speed, max_input_speed; every other parameter is read-only.
 """
 from __future__ import annotations
 
-import sys
 import threading
 import time
 
@@ -21,7 +20,7 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import Float32MultiArray
 
 from assist_sim.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError,
-                                   declare_parameters, fill_twist, run_node, twist_to_array)
+                                   declare_parameters, exit_process, fill_twist, run_node, twist_to_array)
 
 from .blending import DEFAULT_THRESHOLD
 from .policy_core import PolicyCore, PolicyCoreConfig, PolicyOutput, default_model_path
@@ -279,7 +278,7 @@ class PolicyNode(Node):
 
 def main(args=None):
     """Console entry point."""
-    sys.exit(run_node(lambda: PolicyNode(), args))
+    exit_process(run_node(lambda: PolicyNode(), args))
 
 
 if __name__ == '__main__':

@@ -6,7 +6,6 @@ while it is above the blending threshold and fresh).
 """
 from __future__ import annotations
 
-import sys
 import threading
 
 import numpy as np
@@ -16,17 +15,22 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 
 from .pilot import PilotConfig, SimulatedPilot
-from .ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError,
-                         declare_parameters, fill_twist, run_node, twist_to_array)
+from .ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, declare_parameters,
+                         exit_process, fill_twist, forward_logging, run_node, twist_to_array)
 
 PARAMS = {
-    'alpha': Param(0.5, 'Conformance to the assistant in [0, 1] (paper alpha).'),
-    'beta': Param(0.5, 'Skill in [0, 1]: how fast the pilot fixes its goal estimate (paper beta).'),
-    'seed': Param(0, 'Randomness of the pilot (initial estimates, perception errors).'),
-    'rate_hz': Param(20.0, 'Command rate (the pilot model is calibrated at 20 Hz).'),
-    'blend_threshold': Param(0.25, 'Assistant actions at or below this norm (m/s) are not felt by the pilot.'),
-    'agent_timeout_s': Param(0.5, '/assist/agent_cmd older than this counts as absent.'),
-    'odom_timeout_s': Param(0.5, 'With /odom older than this the pilot sends zero velocity.'),
+    'alpha': Param(0.5, 'Conformance to the assistant in [0, 1] (paper alpha; settable at run time).',
+                   min=0.0, max=1.0, dynamic=True),
+    'beta': Param(0.5, 'Skill in [0, 1]: how fast the pilot fixes its goal estimate (paper beta; settable at '
+                       'run time).', min=0.0, max=1.0, dynamic=True),
+    'seed': Param(0, 'Randomness of the pilot (initial estimates, perception errors).', min=0, max=2**31 - 1),
+    'rate_hz': Param(20.0, 'Command rate (the pilot model is calibrated at 20 Hz).', min=1.0, max=200.0),
+    'blend_threshold': Param(0.25, 'Assistant actions at or below this norm (m/s) are not felt by the pilot '
+                                   '(settable at run time).', min=0.0, max=10.0, dynamic=True),
+    'agent_timeout_s': Param(0.5, '/assist/agent_cmd older than this counts as absent (settable at run time).',
+                             min=0.0, max=10.0, min_exclusive=True, dynamic=True),
+    'odom_timeout_s': Param(0.5, 'With /odom older than this the pilot sends zero velocity (settable at run '
+                                 'time).', min=0.0, max=10.0, min_exclusive=True, dynamic=True),
     'frame_id': Param('base_link', 'frame_id of /pilot/cmd_vel.'),
 }
 
@@ -36,17 +40,13 @@ class SimPilotNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__('sim_pilot_node', **kwargs)
-        self.p = declare_parameters(self, PARAMS)
+        forward_logging(self)
+        self._lock = threading.Lock()
+        self.p = declare_parameters(self, PARAMS, on_change=self._on_params)
         self.diag = Diagnostics(self)
-        if not (0.0 <= self.p['alpha'] <= 1.0 and 0.0 <= self.p['beta'] <= 1.0):
-            raise StartupError(f"sim_pilot_node: alpha and beta must be in [0, 1], got "
-                               f"{self.p['alpha']}, {self.p['beta']}")
-        if not self.p['rate_hz'] > 0:
-            raise StartupError('sim_pilot_node: rate_hz must be > 0')
         cfg = PilotConfig(control_hz=float(self.p['rate_hz']), k_alpha=float(self.p['rate_hz']))
         self.pilot = SimulatedPilot(float(self.p['alpha']), float(self.p['beta']), cfg,
                                     np.random.default_rng(int(self.p['seed'])))
-        self._lock = threading.Lock()
         self._odom: tuple[float, np.ndarray] | None = None
         self._agent: tuple[float, np.ndarray] | None = None
         self._pending_goal: np.ndarray | None = None
@@ -61,6 +61,14 @@ class SimPilotNode(Node):
         self.create_timer(1.0 / float(self.p['rate_hz']), self._tick, callback_group=group)
         self.get_logger().info(f"sim_pilot_node: alpha {self.p['alpha']} beta {self.p['beta']} "
                                f"seed {self.p['seed']}")
+
+    def _on_params(self, changed: dict) -> None:
+        """alpha / beta go to the pilot model; the thresholds and timeouts are read every tick."""
+        with self._lock:
+            if 'alpha' in changed:
+                self.pilot.alpha = float(changed['alpha'])
+            if 'beta' in changed:
+                self.pilot.beta = float(changed['beta'])
 
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
@@ -120,7 +128,7 @@ class SimPilotNode(Node):
 
 def main(args=None):
     """Console entry point."""
-    sys.exit(run_node(lambda: SimPilotNode(), args))
+    exit_process(run_node(lambda: SimPilotNode(), args))
 
 
 if __name__ == '__main__':

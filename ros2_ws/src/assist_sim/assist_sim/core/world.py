@@ -8,13 +8,16 @@ import math
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
-import pybullet as p
-from pybullet_utils import bullet_client
 
 from .config import WorldConfig
+from .quiet import quiet_output
 from .render import SceneRenderer
 from .scene import PadSpec, SceneSpec, generate_scene
 from .textures import make_texture, texture_path
+
+with quiet_output():                 # pybullet prints its build time on import
+    import pybullet as p
+    from pybullet_utils import bullet_client
 
 _LOG = logging.getLogger(__name__)
 N_LEGS = 4
@@ -129,7 +132,8 @@ class LandingWorld:
         if self.cfg.camera.renderer not in RENDERERS:
             raise ValueError(f'camera.renderer must be one of {RENDERERS}, got {self.cfg.camera.renderer!r}')
         self._gui = bool(gui)
-        self._bc = bullet_client.BulletClient(p.GUI if gui else p.DIRECT)
+        with quiet_output(stderr=not gui):  # ... and `argv[0]=` on every connect (GUI: keep X errors)
+            self._bc = bullet_client.BulletClient(p.GUI if gui else p.DIRECT)
         self._cid = self._bc._client
         self._tick_dt = 1.0 / self.cfg.physics_hz
         self._bc.setGravity(0, 0, -self.cfg.gravity_mps2)
