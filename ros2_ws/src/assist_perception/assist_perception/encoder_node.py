@@ -142,9 +142,8 @@ class EncoderNode(Node):
                            bool(depth.is_bigendian))
         if self.p['depth_noise']:
             dep = apply_depth_noise(dep, self.rng, rgb=rgb if rgb.shape[:2] == dep.shape else None)
-        want_depth = self.pub_depth.get_subscription_count() > 0
         t0 = time.perf_counter()
-        out = self.encoder.encode(rgb, dep, want_depth=want_depth)
+        out = self.encoder.encode(rgb, dep, want_depth=False)   # mu first: the policy waits for it
         self.diag.set('inference_ms', f'{1000 * (time.perf_counter() - t0):.2f}')
         header = depth.header
         if not header.frame_id:
@@ -158,14 +157,15 @@ class EncoderNode(Node):
         pt.header = header
         pt.point.x, pt.point.y, pt.point.z = (float(v) for v in out.pad_xyz)
         self._publish(self.pub_pad, pt)
-        if out.depth is not None:
+        if self.pub_depth.get_subscription_count() > 0:      # the depth decoder only on demand
+            denoised = self.encoder.decode_depth(out.mu)
             img = Image()
             img.header = header
-            img.height, img.width = out.depth.shape
+            img.height, img.width = denoised.shape
             img.encoding = '32FC1'
             img.is_bigendian = 0
             img.step = 4 * img.width
-            img.data = np.ascontiguousarray(out.depth, dtype='<f4').tobytes()
+            img.data = np.ascontiguousarray(denoised, dtype='<f4').tobytes()
             self._publish(self.pub_depth, img)
         self.diag.count('frames_encoded')
         self.diag.set('superseded_pairs', self.slot.replaced)

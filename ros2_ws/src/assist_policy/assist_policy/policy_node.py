@@ -53,6 +53,9 @@ PARAMS = {
                                     'diagnostics report ERROR (20 = 1 s at 20 Hz).', min=1, max=100_000),
     'warn_period_s': Param(2.0, 'Minimum seconds between repeated warnings of the same reason.', min=0.0,
                            max=3600.0),
+    'step_on_latent': Param(True, 'latent mode: run the actor as soon as a new latent arrives (camera-to-command '
+                                  'latency = one inference, /cmd_vel stamped with the frame\'s sim time); the '
+                                  'rate_hz timer then runs only while latents are missing.'),
 }
 
 # node parameter -> PolicyCoreConfig field, for the parameters applied to the core at run time
@@ -139,7 +142,9 @@ class PolicyNode(Node):
                                      SENSOR_QOS, callback_group=inputs)
             self.create_subscription(Image, '/camera/depth/image_raw', self._guard('image', self._on_depth),
                                      SENSOR_QOS, callback_group=inputs)
-        self.create_timer(1.0 / float(self.p['rate_hz']), self._tick,
+        self._on_latent_steps = mode == 'latent' and bool(self.p['step_on_latent'])
+        self._last_latent_step = -1e9           # node-clock time of the last latent-driven step
+        self.create_timer(1.0 / float(self.p['rate_hz']), self._on_timer,
                           callback_group=MutuallyExclusiveCallbackGroup())
         self.diag.set('model_path', path)
         self.diag.set('mode', mode)
@@ -189,6 +194,14 @@ class PolicyNode(Node):
     def _on_latent(self, msg: Float32MultiArray) -> None:
         with self._lock:
             self.core.set_latent(self._now(), np.asarray(msg.data, dtype=float))
+        if self._on_latent_steps:               # a rejected latent raised above: no step for it
+            self._last_latent_step = self._now()
+            self._tick()
+
+    def _on_timer(self) -> None:
+        # with latent-driven steps the timer only covers gaps in the latent stream
+        if not 0.0 <= self._now() - self._last_latent_step <= 1.5 / float(self.p['rate_hz']):
+            self._tick()
 
     def _on_goal(self, msg: PointStamped) -> None:
         with self._lock:
