@@ -91,15 +91,21 @@ class Param:
             return list(value)
         return value
 
+    def rule(self) -> str:
+        """The accepted values in words ('> 0.0 and <= 10.0', 'one of a, b'); empty when unrestricted."""
+        if self.choices is not None:
+            return 'one of ' + ', '.join(self.choices)
+        lo, hi = self.min, self.max
+        lo_s = '' if lo is None else (f'> {lo}' if self.min_exclusive else f'>= {lo}')
+        hi_s = '' if hi is None else f'<= {hi}'
+        return ' and '.join(x for x in (lo_s, hi_s) if x)
+
     def _check_range(self, name: str, value: float) -> None:
         lo, hi = self.min, self.max
         below = lo is not None and (value <= lo if self.min_exclusive else value < lo)
         above = hi is not None and value > hi
         if below or above:
-            lo_s = '' if lo is None else (f'> {lo}' if self.min_exclusive else f'>= {lo}')
-            hi_s = '' if hi is None else f'<= {hi}'
-            rule = ' and '.join(x for x in (lo_s, hi_s) if x)
-            raise ValueError(f"parameter '{name}' must be {rule}, got {value!r}")
+            raise ValueError(f"parameter '{name}' must be {self.rule()}, got {value!r}")
 
 
 class ParamValues(dict):
@@ -119,7 +125,9 @@ def declare_parameters(node: Node, spec: Mapping[str, Param],
 
     values = ParamValues()
     for name, p in spec.items():
-        desc = ParameterDescriptor(description=p.description, read_only=not p.dynamic,
+        rule = p.rule()
+        text = p.description + (f' Accepted: {rule}.' if rule else '') + ('' if p.dynamic else ' Read-only.')
+        desc = ParameterDescriptor(description=text, read_only=not p.dynamic,
                                    dynamic_typing=isinstance(p.default, (int, float)) and not isinstance(p.default, bool))
         try:
             raw = node.declare_parameter(name, p.default, desc).value
