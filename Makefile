@@ -12,12 +12,13 @@ PKG_INPUTS := $(foreach p,$(PKGS),ros2_ws/src/$(p)/setup.py ros2_ws/src/$(p)/set
 export ROS_DOMAIN_ID ?= 42
 export RMW_IMPLEMENTATION ?= rmw_fastrtps_cpp
 
-.PHONY: venv demo test bench colcon clean help browser
+.PHONY: venv demo test bench soak colcon clean help browser
 
 help:
 	@echo "make demo   - run the simulated landing demo (creates .venv)"
 	@echo "make test   - run the test suite (creates .venv)"
 	@echo "make bench  - print the benchmark table"
+	@echo "make soak   - soak test: full assisted graph, 30 min sim time (ASSIST_SOAK_SIM_S=seconds to change)"
 	@echo "make colcon - build ros2_ws with colcon into ros2_ws/install"
 	@echo "make browser - install Chromium + ChromeDriver (Debian packages) for the pilot station browser test"
 
@@ -44,6 +45,10 @@ test: $(STAMP) browser
 
 bench: $(STAMP)
 	$(PY) -m bench
+
+# Not part of `make test`: the full assisted graph for ASSIST_SOAK_SIM_S seconds of sim time (default 30 min).
+soak: $(STAMP)
+	ASSIST_SOAK_SIM_S=$${ASSIST_SOAK_SIM_S:-1800} $(PY) -m pytest -s -p no:cacheprovider tests/faults/test_soak_assisted_graph.py
 
 colcon: $(STAMP)
 	cd ros2_ws && ../$(VENV)/bin/colcon build --symlink-install --event-handlers console_direct-

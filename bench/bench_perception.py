@@ -131,8 +131,9 @@ def run() -> list[dict]:
     ]
     p50, p99, lost = _graph_latency()
     rows += [
-        {'name': 'image -> /assist/latent latency p50 (graph)', 'value': p50, 'unit': 'ms', 'target': '< 50'},
-        {'name': 'image -> /assist/latent latency p99 (graph)', 'value': p99, 'unit': 'ms', 'target': '< 100'},
+        {'name': 'image -> /assist/latent p50 (encoder_node alone, frames from this process)', 'value': p50,
+         'unit': 'ms', 'target': ''},
+        {'name': 'image -> /assist/latent p99 (encoder_node alone)', 'value': p99, 'unit': 'ms', 'target': '<= 3 ms'},
         {'name': 'frames without a latent within 1 s (of 200)', 'value': lost, 'unit': 'frames', 'target': '0'},
     ]
     rows.append({'name': 'make_dataset rate (render+label+compress)', 'value': _dataset_rate(),

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import os
 import random
+import shutil
 import subprocess
 import sys
 import threading
@@ -114,3 +115,34 @@ def wait_for(predicate: Callable[[], bool], timeout: float, interval: float = 0.
 def wait():
     """The wait_for(predicate, timeout) helper as a fixture (conftest is not importable by tests)."""
     return wait_for
+
+
+class ColconWorkspace:
+    """A colcon build of a copy of this checkout (ros2_ws/src + models/, laid out as in the repo)."""
+
+    def __init__(self, root: Path, symlink: bool):
+        self.root, self.symlink = root, symlink
+        self.ws = root / 'ros2_ws'
+        self.install = self.ws / 'install'
+        shutil.copytree(REPO / 'ros2_ws' / 'src', self.ws / 'src',
+                        ignore=shutil.ignore_patterns('__pycache__', '*.egg-info'))
+        shutil.copytree(REPO / 'models', root / 'models')
+        cmd = [str(BIN / 'colcon'), 'build'] + (['--symlink-install'] if symlink else [])
+        proc = subprocess.run(cmd, cwd=self.ws, capture_output=True, text=True, timeout=600)
+        assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+        # what `source install/setup.bash` gives a ROS user
+        out = subprocess.run(['bash', '-c', f'source {self.install}/setup.bash && env -0'],
+                             capture_output=True, text=True, timeout=60, check=True).stdout
+        self.env = dict(item.split('=', 1) for item in out.split('\0') if '=' in item)
+
+
+@pytest.fixture(scope='session')
+def colcon_workspace(tmp_path_factory):
+    """Factory: colcon_workspace(symlink=False) -> ColconWorkspace, each kind built once per session."""
+    built: dict[bool, ColconWorkspace] = {}
+
+    def _get(symlink: bool = False) -> ColconWorkspace:
+        if symlink not in built:
+            built[symlink] = ColconWorkspace(tmp_path_factory.mktemp('symlink' if symlink else 'plain'), symlink)
+        return built[symlink]
+    return _get

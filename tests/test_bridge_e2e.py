@@ -8,12 +8,19 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry
+from rcl_interfaces.msg import Log, Parameter, ParameterType, ParameterValue
+from rcl_interfaces.srv import SetParameters
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_srvs.srv import Trigger
 
 from assist_sim.ros_common import RELIABLE_QOS, SENSOR_QOS, fill_twist
+from assist_sim.mavlink_io import mavlink
 from assist_sim.testing import SilentAutopilot, free_udp_port
 
 pytestmark = pytest.mark.graph
+# /rosout keeps the last 1000 lines for late joiners (transient local, 10 s lifespan): events logged
+# before this probe matched still arrive
+ROSOUT_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 class BridgeProbe:
@@ -24,14 +31,26 @@ class BridgeProbe:
         self.lock = threading.Lock()
         self.odom: list[Odometry] = []
         self.diag: dict[str, str] = {}
+        self.rosout: list[Log] = []
         self.subs = [node.create_subscription(Odometry, '/odom', self._on_odom, SENSOR_QOS),
-                     node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10)]
+                     node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 10),
+                     node.create_subscription(Log, '/rosout', self._on_rosout, ROSOUT_QOS)]
         self.cmd = node.create_publisher(TwistStamped, '/cmd_vel', RELIABLE_QOS)
-        self.clients = {n: node.create_client(Trigger, f'/uav/{n}') for n in ('arm', 'takeoff', 'land', 'disarm')}
+        self.clients = {n: node.create_client(Trigger, f'/uav/{n}', qos_profile=QoSProfile(depth=100))
+                        for n in ('arm', 'takeoff', 'land', 'disarm', 'guided')}
 
     def _on_odom(self, msg):
         with self.lock:
             self.odom.append(msg)
+
+    def _on_rosout(self, msg):
+        if msg.name.startswith('mavlink_bridge_node'):   # the node's logger or a child of it
+            with self.lock:
+                self.rosout.append(msg)
+
+    def rosout_lines(self, text: str) -> list[Log]:
+        with self.lock:
+            return [m for m in self.rosout if text in m.msg]
 
     def _on_diag(self, msg):
         for st in msg.status:
@@ -140,6 +159,12 @@ def test_arm_takeoff_fly_stop_land_disarm(rig, wait):
     assert wait(lambda: probe.pos()[2] < ground[2] + 0.05, 40.0), f'did not land: {probe.pos()}'
     assert wait(lambda: probe.diag_value('armed') == 'False', 10.0), 'not disarmed after landing'
     assert sim.proc.poll() is None and bridge.proc.poll() is None
+    # vehicle events reach /rosout through the node logger, stamped (issue 10 item 5)
+    for text in ('MAVLink link up', 'vehicle mode GUIDED', 'takeoff complete', 'vehicle mode LAND',
+                 'vehicle disarmed'):
+        lines = probe.rosout_lines(text)
+        assert lines, f'{text!r} not on /rosout: {[m.msg for m in probe.rosout]}'
+        assert lines[0].stamp.sec > 0 and lines[0].level >= Log.INFO
 
 
 def test_link_loss_reported_and_recovered(rig, wait, start_node):
@@ -167,12 +192,15 @@ def test_garbage_on_the_bridge_port(rig, wait):
     payloads = [rng.bytes(int(n)) for n in rng.integers(1, 2000, 300)]
     payloads += [b'\xfd\x09\x00\x00\x00\x01\x01\x00\x00', b'\xfe' * 10000, rng.bytes(65000),
                  bytes([0xfd, 0xff]) + rng.bytes(30), b'']
-    for pl in payloads:
+    for i, pl in enumerate(payloads):
         s.sendto(pl, ('127.0.0.1', port))
+        if i % 20 == 19:
+            time.sleep(0.005)     # all at once would overflow the bridge socket's receive buffer
     s.close()
     time.sleep(1.0)
     assert bridge.proc.poll() is None, bridge.log()
-    assert wait(lambda: int(probe.diag_value('rx_bad_data') or 0) > 0, 30.0)
+    # the bridge is locked onto the vehicle's address: datagrams from anywhere else are dropped unparsed
+    assert wait(lambda: int(probe.diag_value('rx_foreign_address') or 0) >= 100, 30.0)
     assert probe.diag_value('link') == 'up'
     arm_when_ready(probe, wait)                 # and it still commands the vehicle
     assert int(probe.diag_value('loop_errors') or 0) == 0
@@ -212,3 +240,118 @@ def test_cmd_vel_flows_while_a_service_waits_for_its_ack(ros, start_node, wait):
     finally:
         probe.close()
         vehicle.close()
+
+
+def _set_param(node, name: str, value) -> tuple[bool, str]:
+    """`ros2 param set` from the probe: (successful, reason)."""
+    client = node.create_client(SetParameters, '/mavlink_bridge_node/set_parameters')
+    try:
+        assert client.wait_for_service(timeout_sec=20.0)
+        pv = ParameterValue()
+        if isinstance(value, float):
+            pv.type, pv.double_value = ParameterType.PARAMETER_DOUBLE, value
+        else:
+            pv.type, pv.integer_value = ParameterType.PARAMETER_INTEGER, value
+        fut = client.call_async(SetParameters.Request(parameters=[Parameter(name=name, value=pv)]))
+        end = time.monotonic() + 10.0
+        while not fut.done() and time.monotonic() < end:
+            time.sleep(0.02)
+        res = fut.result().results[0]
+        return res.successful, res.reason
+    finally:
+        node.destroy_client(client)
+
+
+def test_parameters_ranges_runtime_sets_and_startup_refusals(ros, start_node, wait):
+    """Speed limits change at run time (validated); other parameters are read-only; bad values stop the start."""
+    port = free_udp_port()
+    bridge = start_node('mavlink_bridge_node', {'connection': f'udpin:127.0.0.1:{port}'})
+    vehicle = SilentAutopilot(port)               # heading north: FLU x = NED vx
+    probe = BridgeProbe(ros)
+    try:
+        assert wait(lambda: probe.diag_value('link') == 'up', 60.0), bridge.log()
+        assert wait(lambda: probe.cmd.get_subscription_count() > 0, 30.0)
+        assert _set_param(ros, 'velocity_scale', 0.5) == (True, '')
+        assert wait(lambda: (probe.send([1.0, 0.0, 0.0]) or True) and any(
+            abs(vx - 0.5) < 1e-6 for _, vx, _ in vehicle.setpoints()), 10.0), 'velocity_scale 0.5 not applied'
+        ok, reason = _set_param(ros, 'velocity_scale', -1.0)
+        assert not ok and 'velocity_scale' in reason
+        ok, reason = _set_param(ros, 'max_speed_mps', 2)   # an integer for a float is accepted
+        assert ok, reason
+        ok, reason = _set_param(ros, 'setpoint_rate_hz', 20.0)
+        assert not ok, 'a read-only parameter was accepted'
+        assert bridge.proc.poll() is None
+    finally:
+        probe.close()
+        vehicle.close()
+    for params, words in (({'velocity_scale': 2.0}, "'velocity_scale' must be"),
+                          ({'connection': '/usr/bin/python3'}, 'serial device'),
+                          ({'connection': 'udp:0.0.0.0:14550'}, 'unsupported MAVLink endpoint'),
+                          ({'setpoint_rate_hz': -1.0}, "'setpoint_rate_hz' must be"),
+                          ({'auto_guided': True}, 'auto_guided was removed')):
+        node = start_node('mavlink_bridge_node', params)
+        assert node.proc.wait(30) == 1, node.log()
+        errors = [line for line in node.log().splitlines() if line.startswith('error:')]
+        assert len(errors) == 1 and words in errors[0], node.log()
+        assert 'Traceback' not in node.log()
+
+
+def test_every_service_request_is_answered(ros, start_node, wait):
+    """50 calls at once: up to max_pending_commands wait for the vehicle, the rest are told 'busy' at once."""
+    port = free_udp_port()
+    bridge = start_node('mavlink_bridge_node', {'connection': f'udpin:127.0.0.1:{port}', 'ack_timeout_s': 1.0,
+                                                'max_pending_commands': 4})
+    vehicle = SilentAutopilot(port)               # never ACKs: each command waits ack_timeout_s
+    probe = BridgeProbe(ros)
+    try:
+        assert wait(lambda: probe.diag_value('link') == 'up', 60.0), bridge.log()
+        client = probe.clients['guided']
+        assert client.wait_for_service(timeout_sec=15.0)
+        t0 = time.monotonic()
+        futs = [client.call_async(Trigger.Request()) for _ in range(50)]
+        assert wait(lambda: all(f.done() for f in futs), 30.0), \
+            f'{sum(f.done() for f in futs)}/50 answered; {bridge.log()[-1500:]}'
+        elapsed = time.monotonic() - t0
+        msgs = [f.result().message for f in futs]
+        busy = [m for m in msgs if 'busy' in m]
+        waited = [m for m in msgs if 'no COMMAND_ACK within 1.0 s' in m]
+        assert len(busy) + len(waited) == 50 and 1 <= len(waited) <= 5 + 4, msgs
+        assert not any(f.result().success for f in futs)
+        assert elapsed < 20.0
+        assert bridge.proc.poll() is None
+    finally:
+        probe.close()
+        vehicle.close()
+
+
+def test_signed_link_end_to_end(ros, start_node, wait, tmp_path):
+    """sim_node and the bridge share a signing key file: the flight works; the key is refused if world-readable."""
+    key = tmp_path / 'mavlink.key'
+    key.write_text(bytes(range(40, 72)).hex() + '\n')
+    key.chmod(0o644)
+    port = free_udp_port()
+    refused = start_node('mavlink_bridge_node', {'connection': f'udpin:127.0.0.1:{port}',
+                                                 'signing_key_file': str(key)})
+    assert refused.proc.wait(30) == 1 and 'chmod 600' in refused.log(), refused.log()
+    key.chmod(0o600)
+    sim = start_node('sim_node', {'mavlink_url': f'udpout:127.0.0.1:{port}', 'camera_rate_hz': 0.0, 'seed': 5,
+                                  'auto_reset': False, 'mavlink_signing_key_file': str(key)})
+    bridge = start_node('mavlink_bridge_node', {'connection': f'udpin:127.0.0.1:{port}',
+                                                'signing_key_file': str(key)})
+    probe = BridgeProbe(ros)
+    try:
+        arm_when_ready(probe, wait)
+        assert probe.diag_value('signing') == 'True'
+        assert probe.call('takeoff').success
+        assert wait(lambda: probe.pos() is not None and probe.pos()[2] > 1.0, 60.0), 'no climb on the signed link'
+        # an unsigned sender on the vehicle's host gets nowhere
+        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        m = mavlink.MAVLink(None, 1, 1)
+        for _ in range(5):
+            s.sendto(m.heartbeat_encode(2, 3, 0, 9, 3).pack(m), ('127.0.0.1', port))
+        s.close()
+        time.sleep(1.5)
+        assert probe.diag_value('mode') == 'GUIDED'
+        assert sim.proc.poll() is None and bridge.proc.poll() is None
+    finally:
+        probe.close()

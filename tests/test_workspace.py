@@ -1,7 +1,6 @@
 """The workspace builds with colcon and installs every executable where `ros2 run` looks."""
 import importlib
 import re
-import shutil
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
@@ -53,13 +52,10 @@ def test_console_scripts_resolve_and_are_installed_in_the_venv(pkg):
         assert (Path(sys.executable).parent / name).exists(), name
 
 
-def test_colcon_build_installs_executables_where_ros2_run_looks(tmp_path):
-    colcon = Path(sys.executable).parent / 'colcon'
-    shutil.copytree(SRC, tmp_path / 'src', ignore=shutil.ignore_patterns('__pycache__', '*.egg-info'))
-    proc = subprocess.run([str(colcon), 'build', '--build-base', 'build', '--install-base', 'install'],
-                          cwd=tmp_path, capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    install = tmp_path / 'install'
+@pytest.mark.parametrize('symlink', [False, True], ids=['plain', 'symlink'])
+def test_colcon_build_installs_executables_where_ros2_run_looks(colcon_workspace, symlink):
+    ws = colcon_workspace(symlink)
+    install = ws.install
     for pkg in PACKAGES:
         for name in console_scripts(pkg):
             exe = install / pkg / 'lib' / pkg / name
@@ -68,6 +64,34 @@ def test_colcon_build_installs_executables_where_ros2_run_looks(tmp_path):
         assert (share / 'ament_index' / 'resource_index' / 'packages' / pkg).exists()
         assert (share / pkg / 'package.xml').exists()
         for sub in ('config', 'launch'):
-            src_files = sorted(p.name for p in (SRC / pkg / sub).glob('*') if p.suffix in ('.yaml', '.py'))
+            src_files = sorted(p.name for p in (SRC / pkg / sub).glob('*') if p.suffix in ('.yaml', '.py', '.parm'))
             inst_files = sorted(p.name for p in (share / pkg / sub).glob('*'))
             assert src_files == inst_files, (pkg, sub)
+
+
+SHIPPED = {'assist_policy': ['td3_end_to_end_actor.md', 'td3_end_to_end_actor.pt', 'td3_latent_actor.md',
+                             'td3_latent_actor.pt', 'td3_oracle_actor.md', 'td3_oracle_actor.pt'],
+           'assist_perception': ['cmvae.md', 'cmvae.metrics.json', 'cmvae.pt', 'cmvae_interpolation.png']}
+
+
+@pytest.mark.parametrize('symlink', [False, True], ids=['plain', 'symlink'])
+def test_installed_nodes_find_the_shipped_models_in_share(colcon_workspace, symlink):
+    """policy_node's and encoder_node's default models resolve to share/<pkg>/models of the install."""
+    ws = colcon_workspace(symlink)
+    for pkg, names in SHIPPED.items():
+        models = ws.install / pkg / 'share' / pkg / 'models'
+        assert sorted(p.name for p in models.iterdir()) == names
+        for name in names:
+            assert (models / name).read_bytes() == (REPO / 'models' / name).read_bytes(), name
+    env = dict(ws.env)
+    env.pop('ASSIST_MODELS_DIR', None)
+    code = ('import assist_policy.policy_core as p, assist_perception.encoder_core as e\n'
+            'print(p.__file__); print(p.default_model_path("latent")); print(e.default_model_path())')
+    out = subprocess.run([sys.executable, '-c', code], env=env, cwd=ws.root, capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    module, actor, cmvae = out.stdout.split()
+    # the installed code (not the editable venv's checkout) found the installed models
+    assert Path(module).is_relative_to(ws.ws), module
+    assert actor == str(ws.install / 'assist_policy' / 'share' / 'assist_policy' / 'models' / 'td3_latent_actor.pt')
+    assert cmvae == str(ws.install / 'assist_perception' / 'share' / 'assist_perception' / 'models' / 'cmvae.pt')

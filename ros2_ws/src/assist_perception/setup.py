@@ -1,9 +1,13 @@
 """Build script for the assist_perception ament_python package (colcon and pip)."""
+import os
 from glob import glob
 
 from setuptools import find_packages, setup
 
 PACKAGE = 'assist_perception'
+# The repository's models/ (ros2_ws/src/<package>/../../../models), relative to the working
+# directory: colcon runs setup.py in the source dir, or in build/<package> for --symlink-install.
+MODELS = os.path.relpath(os.path.join(os.path.dirname(os.path.realpath(__file__)), '..', '..', '..', 'models'))
 
 setup(
     name=PACKAGE,
@@ -14,8 +18,8 @@ setup(
         ('share/' + PACKAGE, ['package.xml']),
         ('share/' + PACKAGE + '/config', glob('config/*.yaml')),
         ('share/' + PACKAGE + '/launch', glob('launch/*.launch.py')),
-        # shipped CM-VAE weights + card from the repository's models/ (found by encoder_core)
-        ('share/' + PACKAGE + '/models', glob('../../../models/cmvae*')),
+        # shipped CM-VAE weights + card (found by assist_sim.shipped)
+        ('share/' + PACKAGE + '/models', sorted(glob(os.path.join(MODELS, 'cmvae*')))),
     ],
     package_data={PACKAGE: ['data/*']},
     install_requires=['setuptools'],

@@ -1,9 +1,13 @@
 """Build script for the assist_policy ament_python package (colcon and pip)."""
+import os
 from glob import glob
 
 from setuptools import find_packages, setup
 
 PACKAGE = 'assist_policy'
+# The repository's models/ (ros2_ws/src/<package>/../../../models), relative to the working
+# directory: colcon runs setup.py in the source dir, or in build/<package> for --symlink-install.
+MODELS = os.path.relpath(os.path.join(os.path.dirname(os.path.realpath(__file__)), '..', '..', '..', 'models'))
 
 setup(
     name=PACKAGE,
@@ -14,6 +18,8 @@ setup(
         ('share/' + PACKAGE, ['package.xml']),
         ('share/' + PACKAGE + '/config', glob('config/*.yaml')),
         ('share/' + PACKAGE + '/launch', glob('launch/*.launch.py')),
+        # shipped TD3 actors + cards (found by assist_sim.shipped)
+        ('share/' + PACKAGE + '/models', sorted(glob(os.path.join(MODELS, 'td3_*_actor.*')))),
     ],
     package_data={PACKAGE: ['data/*']},
     install_requires=['setuptools'],
@@ -28,6 +34,10 @@ setup(
             'policy_node = assist_policy.policy_node:main',
             'train_td3 = assist_policy.train:main',
             'evaluate = assist_policy.evaluate:main',
+            'bag_record = assist_policy.bags.record_node:main',
+            'bag_play = assist_policy.bags.play_node:main',
+            'replay_assist = assist_policy.bags.replay:main',
+            'plot_flight = assist_policy.bags.plot:main',
         ],
     },
 )

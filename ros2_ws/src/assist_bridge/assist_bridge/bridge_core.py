@@ -2,22 +2,32 @@
 
 Pure Python (numpy + pymavlink), no rclpy: mavlink_bridge_node is a thin shell over MavlinkBridge.
 What it does, as ArduCopter needs it:
-- opens a pymavlink connection (udpin:/udpout:/tcp:/tcpin:/serial device:baud), MAVLink 2;
+- opens a vetted pymavlink connection (udpin:/udpout:/tcp:/tcpin:HOST:PORT or a serial device
+  under /dev; anything else is refused), MAVLink 2, optionally signed (key file);
+- locks onto the first autopilot HEARTBEAT with the configured system/component id (0 = any) and
+  its source address; frames from other addresses or ids are dropped and counted (after a
+  declared link loss the same ids may come back from the same host on a new port, `address_relock`);
 - sends its own HEARTBEAT (onboard controller) at 1 Hz and tracks the autopilot's HEARTBEAT
   (mode, armed, link up/down after `link_timeout_s`, automatic recovery);
 - asks for telemetry (ArduPilot sends nothing until asked): MAV_CMD_SET_MESSAGE_INTERVAL per
   message plus REQUEST_DATA_STREAM for older firmware, again whenever the link comes back;
-- turns each command into SET_POSITION_TARGET_LOCAL_NED (velocity + absolute yaw, so the copter
-  holds its heading instead of turning to face its travel), sends it at once and re-sends the
-  current one at `setpoint_rate_hz` so GUID_TIMEOUT never fires while a command is live; after
-  `command_timeout_s` without a command it sends zero velocity; no setpoints while the link is
-  down, while disarmed, during a takeoff climb (a velocity target would cancel it) or outside GUIDED;
-- safety: non-finite commands rejected, velocity_scale, per-axis and total speed clamps;
+- sends the latest command as SET_POSITION_TARGET_LOCAL_NED (velocity + absolute yaw, so the
+  copter holds its heading) at `setpoint_rate_hz`, plus at most one immediate send of a changed
+  command between two scheduled sends (so at most twice that rate whatever comes in); after
+  `command_timeout_s` without a command it sends zero velocity; no setpoints while disarmed,
+  during a takeoff climb (a velocity target would cancel it) or outside GUIDED;
+- link loss: zero velocity when the loss is declared and at `link_lost_setpoint_rate_hz` while
+  it lasts (the link may be one-way), never the pilot's command;
+- never changes the flight mode on its own: only set_mode / guided / land / arm (which selects
+  GUIDED before arming a disarmed vehicle) do, each asked for through a service;
+- safety: non-finite commands and telemetry rejected and counted, velocity_scale, per-axis and
+  total speed clamps (changeable at run time through set_limits);
 - arm / disarm / takeoff / land / set_mode as COMMAND_LONG, waiting for the honest COMMAND_ACK.
 """
 from __future__ import annotations
 
 import collections
+import dataclasses
 import logging
 import math
 import os
@@ -32,7 +42,8 @@ import numpy as np
 os.environ['MAVLINK20'] = '1'  # MAVLink 2 framing; must be set before mavutil is imported
 from pymavlink import mavutil  # noqa: E402
 
-from assist_sim.mavlink_io import next_message  # noqa: E402
+from assist_sim.mavlink_io import (ThrottledLog, enable_signing, load_signing_key, next_message,  # noqa: E402
+                                   open_connection, parse_endpoint, refresh_signing_timestamp)
 
 from . import frames  # noqa: E402
 
@@ -45,9 +56,6 @@ COPTER_MODES: dict[str, int] = {
     'BRAKE': 17, 'THROW': 18, 'AVOID_ADSB': 19, 'GUIDED_NOGPS': 20, 'SMART_RTL': 21,
 }
 MODE_NAMES = {v: k for k, v in COPTER_MODES.items()}
-# The bridge switches to GUIDED by itself only from these pilot-flown modes, never out of
-# LAND / RTL / BRAKE / AUTO, which a pilot or failsafe chose on purpose.
-AUTO_GUIDED_FROM = frozenset({'STABILIZE', 'ALT_HOLD', 'LOITER', 'POSHOLD'})
 
 # SET_POSITION_TARGET_LOCAL_NED.type_mask: use vx, vy, vz and yaw; ignore position,
 # acceleration and yaw rate (0x09C7).
@@ -56,8 +64,17 @@ TYPE_MASK_VELOCITY_YAW = (
     | mavlink.POSITION_TARGET_TYPEMASK_Z_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_AX_IGNORE
     | mavlink.POSITION_TARGET_TYPEMASK_AY_IGNORE | mavlink.POSITION_TARGET_TYPEMASK_AZ_IGNORE
     | mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE)
+# The same with yaw ignored and yaw rate 0 used: a brake when no heading is known yet (0x05C7).
+TYPE_MASK_VELOCITY_YAW_RATE = (TYPE_MASK_VELOCITY_YAW & ~mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE) \
+    | mavlink.POSITION_TARGET_TYPEMASK_YAW_IGNORE
 
 RESULT_NAMES = {k: v.name.replace('MAV_RESULT_', '') for k, v in mavlink.enums['MAV_RESULT'].items()}
+LIMIT_FIELDS = ('velocity_scale', 'max_speed_x_mps', 'max_speed_y_mps', 'max_climb_mps', 'max_descent_mps',
+                'max_speed_mps')
+
+
+class NonFiniteTelemetry(ValueError):
+    """A telemetry message with NaN or infinite fields."""
 
 
 def result_name(result: int | None) -> str:
@@ -71,12 +88,14 @@ def result_name(result: int | None) -> str:
 class BridgeConfig:
     """Everything the bridge needs; node parameters map 1:1 onto these fields."""
 
-    connection: str = 'udpin:0.0.0.0:14550'
+    connection: str = 'udpin:127.0.0.1:14550'   # loopback: a remote sender cannot reach it
     baud: int = 57600                      # serial links only
     source_system: int = 255
     source_component: int = 191            # MAV_COMP_ID_ONBOARD_COMPUTER
-    target_system: int = 1
-    target_component: int = 1
+    target_system: int = 1                 # 0: lock onto the first autopilot's system id
+    target_component: int = 1              # 0: lock onto the first autopilot's component id
+    signing_key_file: str = ''             # MAVLink 2 signing key (32 raw bytes or 64 hex); '' = unsigned
+    address_relock: bool = True            # after a declared loss, same ids from the same host on a new port
     velocity_scale: float = 1.0            # the paper halves the output on the real vehicle: 0.5
     max_speed_x_mps: float = 2.0           # per-axis clamps (body FLU, after scaling)
     max_speed_y_mps: float = 2.0
@@ -84,8 +103,9 @@ class BridgeConfig:
     max_descent_mps: float = 1.0
     max_speed_mps: float = 2.5             # total speed clamp
     command_timeout_s: float = 0.5         # no command for this long -> zero velocity
-    setpoint_rate_hz: float = 10.0         # re-send rate of the current setpoint
+    setpoint_rate_hz: float = 10.0         # rate of the current setpoint (+ <= 1 immediate send per period)
     link_timeout_s: float = 2.0            # no autopilot HEARTBEAT for this long -> link lost
+    link_lost_setpoint_rate_hz: float = 2.0   # zero-velocity setpoints while the link is lost
     heartbeat_rate_hz: float = 1.0         # our own HEARTBEAT
     odom_rate_hz: float = 30.0             # LOCAL_POSITION_NED + ATTITUDE requested at this rate
     status_rate_hz: float = 2.0            # EXTENDED_SYS_STATE, SYS_STATUS
@@ -93,23 +113,27 @@ class BridgeConfig:
     ack_timeout_s: float = 3.0
     takeoff_altitude_m: float = 2.0
     takeoff_done_margin_m: float = 0.15    # climb done within this of the target altitude
-    auto_guided: bool = True               # switch to GUIDED when commands arrive in a pilot mode
-    mode_request_period_s: float = 1.0
     max_messages_per_poll: int = 1000
+    error_log_period_s: float = 5.0        # receive-loop errors: one line per kind per period
 
     def __post_init__(self) -> None:
         positive = ('max_speed_x_mps', 'max_speed_y_mps', 'max_climb_mps', 'max_descent_mps',
                     'max_speed_mps', 'command_timeout_s', 'setpoint_rate_hz', 'link_timeout_s',
-                    'heartbeat_rate_hz', 'odom_rate_hz', 'status_rate_hz', 'ack_timeout_s',
-                    'takeoff_altitude_m')
+                    'link_lost_setpoint_rate_hz', 'heartbeat_rate_hz', 'odom_rate_hz', 'status_rate_hz',
+                    'ack_timeout_s', 'takeoff_altitude_m', 'error_log_period_s')
         for name in positive:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f'{name} must be a positive finite number, got {v!r}')
-        if not (math.isfinite(self.velocity_scale) and 0.0 < self.velocity_scale <= 1.0):
+        if not (isinstance(self.velocity_scale, (int, float)) and math.isfinite(self.velocity_scale)
+                and 0.0 < self.velocity_scale <= 1.0):
             raise ValueError(f'velocity_scale must be in (0, 1], got {self.velocity_scale!r}')
-        if not self.connection:
-            raise ValueError('connection must not be empty')
+        for name, lo in (('target_system', 0), ('target_component', 0), ('source_system', 1),
+                         ('source_component', 1)):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and lo <= v <= 255):
+                raise ValueError(f'{name} must be an integer {lo}-255, got {v!r}')
+        parse_endpoint(self.connection)    # ValueError naming the accepted forms
 
 
 def limit_velocity(v_flu: Sequence[float], cfg: BridgeConfig) -> np.ndarray:
@@ -165,6 +189,51 @@ class VehicleStatus:
     rates_frd: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
+
+
+@dataclass
+class Odometry:
+    """Vehicle odometry in ROS frames: pose in odom (ENU), twist in base_link (FLU)."""
+
+    position: np.ndarray
+    quaternion: np.ndarray          # x, y, z, w (odom -> base_link)
+    linear_velocity: np.ndarray     # base_link FLU
+    angular_velocity: np.ndarray    # base_link FLU
+    yaw: float                      # ROS yaw (ENU)
+
+
+@dataclass
+class VehiclePeer:
+    """The vehicle the bridge is locked onto: MAVLink ids and source address (None on streams)."""
+
+    system: int
+    component: int
+    address: tuple | None
+
+    def describe(self) -> str:
+        """'1/1 at 127.0.0.1:5760' for logs and diagnostics."""
+        where = f'{self.address[0]}:{self.address[1]}' if self.address else 'the link'
+        return f'{self.system}/{self.component} at {where}'
+
+
+@dataclass
+class VehicleStatus:
+    """What the bridge knows about the autopilot (guarded by the bridge lock)."""
+
+    link_up: bool = False
+    ever_connected: bool = False
+    last_heartbeat: float | None = None
+    mode: str = 'UNKNOWN'
+    armed: bool = False
+    system_status: int = 0
+    landed_state: int = 0
+    position_ned: np.ndarray | None = None
+    velocity_ned: np.ndarray | None = None
+    last_position: float | None = None
+    attitude: tuple[float, float, float] | None = None     # roll, pitch, yaw (NED/FRD)
+    rates_frd: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+
 class MavlinkBridge:
     """The bridge: one MAVLink connection, a receive thread, and setpoint/command logic."""
 
@@ -178,31 +247,42 @@ class MavlinkBridge:
         self._on_statustext = on_statustext
         self._on_link = on_link
         self._boot = clock()
+        key = None
+        if cfg.signing_key_file:
+            key = load_signing_key(cfg.signing_key_file)    # ValueError: one line
         try:
-            self.conn = mavutil.mavlink_connection(
-                cfg.connection, baud=cfg.baud, source_system=cfg.source_system,
-                source_component=cfg.source_component, dialect='ardupilotmega', autoreconnect=True)
-        except Exception as exc:   # pymavlink raises OSError, ValueError or bare Exception
+            self.conn = open_connection(cfg.connection, baud=cfg.baud, source_system=cfg.source_system,
+                                        source_component=cfg.source_component)
+        except (OSError, ValueError) as exc:
             raise ConnectionError(f'cannot open MAVLink connection {cfg.connection!r}: {exc}') from exc
-        self.conn.mav.robust_parsing = True
+        except Exception as exc:   # pymavlink's serial/TCP classes raise bare Exception too
+            raise ConnectionError(f'cannot open MAVLink connection {cfg.connection!r}: {exc}') from exc
+        self.signing = key is not None
+        if key is not None:
+            enable_signing(self.conn, key)
+        self._udp = isinstance(self.conn, mavutil.mavudp)
         self._lock = threading.RLock()
         self._send_lock = threading.Lock()
         self._ack_cond = threading.Condition(self._lock)
         self._acks: dict[int, tuple[int, float]] = {}
         self.status = VehicleStatus()
+        self.peer: VehiclePeer | None = None
         self.counters: collections.Counter[str] = collections.Counter()
         self.statustexts: collections.deque[tuple[float, int, str]] = collections.deque(maxlen=50)
+        self._throttled = ThrottledLog(_LOG, cfg.error_log_period_s, clock)
         self._cmd = np.zeros(3)
         self._cmd_time: float | None = None
         self._hold_yaw_enu: float | None = None
         self._takeoff_until_alt: float | None = None
         self._takeoff_deadline = 0.0
-        self._last_setpoint_time = -math.inf
         self._next_setpoint_due = -math.inf
+        self._immediate_ok = True        # one immediate send of a changed command per setpoint period
+        self._sent_velocity: np.ndarray | None = None
+        self._next_lost_setpoint = -math.inf
         self._last_heartbeat_sent = -math.inf
         self._last_stream_request = -math.inf
-        self._last_mode_request = -math.inf
         self._mode_warned: str | None = None
+        self._hb_mode, self._hb_armed = 'UNKNOWN', False    # as last reported by HEARTBEAT (for the log)
         self.last_setpoint: dict | None = None
         self._running = False
         self._thread: threading.Thread | None = None
@@ -225,26 +305,63 @@ class MavlinkBridge:
         while self._running:
             try:
                 now = self._clock()
-                wake = min(self._next_setpoint_due, self._last_heartbeat_sent + 1.0 / self.cfg.heartbeat_rate_hz)
+                wake = min(self._next_send_due(), self._last_heartbeat_sent + 1.0 / self.cfg.heartbeat_rate_hz)
                 self.conn.select(min(max(wake - now, 0.0), 0.02))
                 self.poll()
                 self.tick()
-            except Exception as exc:   # keep the link alive whatever one message did; counted
+            except Exception as exc:   # keep the link alive whatever one message did; counted, throttled
                 self.counters['loop_errors'] += 1
-                _LOG.error('MAVLink loop error (continuing): %s: %s', type(exc).__name__, exc)
-                time.sleep(0.01)
+                self._throttled.log(logging.ERROR, f'loop:{type(exc).__name__}',
+                                    'MAVLink loop error (continuing): %s: %s', type(exc).__name__, exc)
+                time.sleep(0.05)
+
+    def _next_send_due(self) -> float:
+        """When the loop next has a setpoint to send (inf: none while waiting or lost with a disarmed vehicle)."""
+        st = self.status
+        if st.link_up:
+            return self._next_setpoint_due
+        if self.peer is not None and st.armed:
+            return self._next_lost_setpoint
+        return math.inf
 
     def time_boot_ms(self) -> int:
         """Milliseconds since the bridge started (MAVLink time_boot_ms)."""
         return int((self._clock() - self._boot) * 1000.0) & 0xFFFFFFFF
 
+    def set_limits(self, **changes: float) -> BridgeConfig:
+        """Change velocity_scale and the speed clamps at run time (validated; ValueError refuses all)."""
+        unknown = set(changes) - set(LIMIT_FIELDS)
+        if unknown:
+            raise ValueError(f'not changeable at run time: {", ".join(sorted(unknown))}')
+        cfg = dataclasses.replace(self.cfg, **changes)
+        with self._lock:
+            self.cfg = cfg
+        return cfg
+
     # ------------------------------------------------------------------ receiving
     def _next_message(self):
         """Next message or None (UDP: a datagram's truncated tail is dropped and counted)."""
-        return next_message(self.conn, self._count_truncated)
+        return next_message(self.conn, self._count_truncated, self._accept_datagram if self._udp else None)
 
     def _count_truncated(self) -> None:
         self.counters['rx_truncated'] += 1
+
+    def _relock_allowed(self, address: tuple | None = None) -> bool:
+        """After a declared loss (address_relock): the same vehicle ids from the same host, any port."""
+        if not self.cfg.address_relock or self.status.link_up:
+            return False
+        peer = self.peer
+        return address is None or peer is None or peer.address is None or address[0] == peer.address[0]
+
+    def _accept_datagram(self, address: tuple) -> bool:
+        """UDP source vetting before parsing: only the locked vehicle's address once locked."""
+        peer = self.peer
+        if peer is None or address == peer.address or self._relock_allowed(address):
+            return True
+        self.counters['rx_foreign_address'] += 1
+        self._throttled.log(logging.WARNING, 'foreign_address', 'ignoring MAVLink from %s:%s: locked onto vehicle %s',
+                            address[0], address[1], peer.describe())
+        return False
 
     def poll(self) -> int:
         """Handle every pending incoming message (non-blocking); returns how many were handled."""
@@ -254,7 +371,7 @@ class MavlinkBridge:
                 msg = self._next_message()
             except (mavlink.MAVError, OSError, ValueError, IndexError, struct_error) as exc:
                 self.counters['rx_errors'] += 1
-                _LOG.warning('MAVLink receive error: %s', exc)
+                self._throttled.log(logging.WARNING, 'rx_error', 'MAVLink receive error: %s', exc)
                 continue
             if msg is None:
                 break
@@ -262,30 +379,78 @@ class MavlinkBridge:
             mtype = msg.get_type()
             if mtype == 'BAD_DATA':
                 self.counters['rx_bad_data'] += 1
+                if 'signature' in str(getattr(msg, 'reason', '')):
+                    self.counters['rx_bad_signature'] += 1
+                    self._throttled.log(logging.WARNING, 'bad_signature',
+                                        'dropped a MAVLink frame without a valid signature (from %s)',
+                                        getattr(msg, 'src_address', None) or 'the link')
                 continue
             try:
                 self._handle(msg, mtype)
             except (ValueError, TypeError, OverflowError, AttributeError) as exc:
                 self.counters['rx_rejected'] += 1
-                _LOG.warning('rejected %s: %s', mtype, exc)
+                if isinstance(exc, NonFiniteTelemetry):
+                    self.counters['rx_non_finite'] += 1
+                self._throttled.log(logging.WARNING, f'rejected:{mtype}', 'rejected %s: %s', mtype, exc)
         return n
 
+    def _wanted(self, system: int, component: int) -> bool:
+        c = self.cfg
+        return c.target_system in (0, system) and c.target_component in (0, component)
+
+    def _check_source(self, msg, mtype: str) -> bool:
+        """Lock onto the first vehicle, then let only its frames through (the rest counted)."""
+        src = (msg.get_srcSystem(), msg.get_srcComponent())
+        address = getattr(msg, 'src_address', None)
+        is_autopilot_hb = mtype == 'HEARTBEAT' and msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID
+        peer = self.peer
+        if peer is None:
+            if is_autopilot_hb and self._wanted(*src):
+                self._lock_onto(VehiclePeer(src[0], src[1], address))
+                return True
+            self.counters['rx_before_lock'] += 1
+            return False
+        if src != (peer.system, peer.component):
+            self.counters['rx_foreign_id'] += 1
+            self._throttled.log(logging.WARNING, 'foreign_id', 'ignoring MAVLink from system %d component %d: '
+                                'locked onto vehicle %s', src[0], src[1], peer.describe())
+            return False
+        if address != peer.address:    # only reaches here while a relock is allowed
+            if is_autopilot_hb and self._relock_allowed(address):
+                _LOG.warning('vehicle %d/%d came back from a new address %s:%s (was %s)', src[0], src[1],
+                             address[0], address[1], peer.describe())
+                self._lock_onto(VehiclePeer(src[0], src[1], address))
+                self.counters['vehicle_relocks'] += 1
+                return True
+            self.counters['rx_foreign_address'] += 1
+            return False
+        return True
+
+    def _lock_onto(self, peer: VehiclePeer) -> None:
+        with self._lock:
+            self.peer = peer
+        if self._udp and self.conn.udp_server and peer.address is not None:
+            # udpin sends to every known client: from now on only to the vehicle
+            self.conn.clients = {peer.address}
+            self.conn.clients_last_alive = {peer.address: time.time()}
+        self.counters['vehicle_locks'] += 1
+        _LOG.info('locked onto vehicle %s%s', peer.describe(), ' (signed link)' if self.signing else '')
+
     def _handle(self, msg, mtype: str) -> None:
-        if msg.get_srcSystem() != self.cfg.target_system:
-            self.counters['rx_other_system'] += 1
+        if not self._check_source(msg, mtype):
             return
         now = self._clock()
         if mtype == 'HEARTBEAT':
-            if msg.autopilot == mavlink.MAV_AUTOPILOT_INVALID or msg.get_srcComponent() != self.cfg.target_component:
+            if msg.autopilot == mavlink.MAV_AUTOPILOT_INVALID:
                 return
             with self._lock:
                 st = self.status
                 st.last_heartbeat = now
-                old_mode = st.mode
+                old_mode, was_armed = st.mode, st.armed
+                reported_mode, reported_armed = self._hb_mode, self._hb_armed
                 st.mode = MODE_NAMES.get(int(msg.custom_mode), f'MODE_{msg.custom_mode}')
                 if old_mode == 'GUIDED' and st.mode != 'GUIDED':
                     self._takeoff_until_alt = None
-                was_armed = st.armed
                 st.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
                 st.system_status = int(msg.system_status)
                 if was_armed and not st.armed:
@@ -293,15 +458,23 @@ class MavlinkBridge:
                     self._takeoff_until_alt = None
                 came_up = not st.link_up
                 st.link_up = True
+                self._hb_mode, self._hb_armed = st.mode, st.armed
             if came_up:
-                self._link_changed(True, f'vehicle heartbeat (system {msg.get_srcSystem()}, '
-                                         f'mode {self.status.mode})')
+                self._link_changed(True, f"vehicle heartbeat from {self.peer.describe()}, mode {st.mode}, "
+                                         f"{'armed' if st.armed else 'disarmed'}")
+            elif st.mode != reported_mode:     # as the vehicle reports it (set_mode's guess aside)
+                _LOG.info('vehicle mode %s (was %s)', st.mode, reported_mode)
+            if st.armed != reported_armed and not came_up:
+                _LOG.info('vehicle %s in %s', 'armed' if st.armed else 'disarmed', st.mode)
         elif mtype == 'LOCAL_POSITION_NED':
+            vals = (msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz)
+            if not all(math.isfinite(v) for v in vals):
+                raise NonFiniteTelemetry(f'non-finite LOCAL_POSITION_NED {vals}')
             odom = None
             with self._lock:
                 st = self.status
-                st.position_ned = np.array([msg.x, msg.y, msg.z], dtype=float)
-                st.velocity_ned = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
+                st.position_ned = np.array(vals[:3], dtype=float)
+                st.velocity_ned = np.array(vals[3:], dtype=float)
                 st.last_position = now
                 if st.attitude is not None:
                     odom = self._odometry_locked()
@@ -311,7 +484,7 @@ class MavlinkBridge:
         elif mtype == 'ATTITUDE':
             vals = (msg.roll, msg.pitch, msg.yaw, msg.rollspeed, msg.pitchspeed, msg.yawspeed)
             if not all(math.isfinite(v) for v in vals):
-                raise ValueError('non-finite ATTITUDE')
+                raise NonFiniteTelemetry(f'non-finite ATTITUDE {vals}')
             with self._lock:
                 self.status.attitude = (float(msg.roll), float(msg.pitch), float(msg.yaw))
                 self.status.rates_frd = np.array(vals[3:], dtype=float)
@@ -341,13 +514,14 @@ class MavlinkBridge:
 
     def _link_changed(self, up: bool, why: str) -> None:
         if up:
-            _LOG.info('MAVLink link up: %s', why)
+            _LOG.info("MAVLink link up on '%s': %s", self.cfg.connection, why)
             self.counters['link_up_events'] += 1
             with self._lock:
                 self.status.ever_connected = True
             self.request_streams()
         else:
-            _LOG.error('MAVLink link lost: %s; setpoints stopped', why)
+            _LOG.error("MAVLink link lost on '%s': %s; sending zero velocity at %.1f Hz until it returns",
+                       self.cfg.connection, why, self.cfg.link_lost_setpoint_rate_hz)
             self.counters['link_lost_events'] += 1
         if self._on_link is not None:
             self._on_link(up, why)
@@ -357,32 +531,50 @@ class MavlinkBridge:
         with self._send_lock:
             getattr(self.conn.mav, fn_name)(*args)
 
+    def _target(self) -> tuple[int, int]:
+        peer = self.peer
+        if peer is not None:
+            return peer.system, peer.component
+        return self.cfg.target_system, self.cfg.target_component
+
     def request_streams(self) -> None:
         """Ask the autopilot for the telemetry the bridge uses (both ways ArduPilot understands)."""
         self._last_stream_request = self._clock()
         c = self.cfg
+        ts, tc = self._target()
         odom_hz = int(max(1, round(c.odom_rate_hz)))
         stat_hz = int(max(1, round(c.status_rate_hz)))
         for stream, hz in ((mavlink.MAV_DATA_STREAM_POSITION, odom_hz), (mavlink.MAV_DATA_STREAM_EXTRA1, odom_hz),
                            (mavlink.MAV_DATA_STREAM_EXTENDED_STATUS, stat_hz),
                            (mavlink.MAV_DATA_STREAM_EXTRA3, stat_hz)):
-            self._send('request_data_stream_send', c.target_system, c.target_component, stream, hz, 1)
+            self._send('request_data_stream_send', ts, tc, stream, hz, 1)
         for mid, hz in ((mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, c.odom_rate_hz),
                         (mavlink.MAVLINK_MSG_ID_ATTITUDE, c.odom_rate_hz),
                         (mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, c.status_rate_hz),
                         (mavlink.MAVLINK_MSG_ID_SYS_STATUS, c.status_rate_hz)):
-            self._send('command_long_send', c.target_system, c.target_component,
-                       mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, float(mid), 1e6 / hz, 0, 0, 0, 0, 0)
+            self._send('command_long_send', ts, tc, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, float(mid), 1e6 / hz,
+                       0, 0, 0, 0, 0)
         self.counters['stream_requests'] += 1
 
     def set_command(self, v_flu: Sequence[float], now: float | None = None) -> np.ndarray:
-        """Accept a body-FLU velocity command (ValueError if non-finite); sends a setpoint at once."""
+        """Accept a body-FLU velocity command (ValueError if non-finite).
+
+        The scheduled sends carry the latest command; a changed command also goes out at once if no
+        immediate send has been made since the last scheduled one (at most 2x setpoint_rate_hz out).
+        """
         now = self._clock() if now is None else now
         v = limit_velocity(v_flu, self.cfg)
         with self._lock:
             self._cmd = v
             self._cmd_time = now
-            self._maybe_send_setpoint_locked(now, force=True)
+            self.counters['commands_accepted'] += 1
+            changed = self._sent_velocity is None or not np.array_equal(v, self._sent_velocity)
+            if changed and self._immediate_ok:
+                if self._send_setpoint_locked(now):
+                    self._immediate_ok = False
+                    self.counters['setpoints_immediate'] += 1
+            elif changed:
+                self.counters['commands_deferred'] += 1
         return v
 
     def command_live(self, now: float | None = None) -> bool:
@@ -396,11 +588,13 @@ class MavlinkBridge:
         return self._cmd.copy() if self.command_live(now) else np.zeros(3)
 
     def tick(self, now: float | None = None) -> None:
-        """Periodic work: own heartbeat, link watchdog, stream re-requests, setpoint re-send."""
+        """Periodic work: own heartbeat, link watchdog, stream re-requests, setpoint sends."""
         now = self._clock() if now is None else now
         c = self.cfg
         if now - self._last_heartbeat_sent >= 1.0 / c.heartbeat_rate_hz:
             self._last_heartbeat_sent = now
+            with self._send_lock:
+                refresh_signing_timestamp(self.conn)
             self._send('heartbeat_send', mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0,
                        mavlink.MAV_STATE_ACTIVE)
         lost = False
@@ -410,78 +604,90 @@ class MavlinkBridge:
                 st.link_up = False
                 lost = True
         if lost:
+            self._next_lost_setpoint = -math.inf     # the first brake goes out with the declaration
             self._link_changed(False, f'no heartbeat for {c.link_timeout_s:.1f} s')
-            return
         with self._lock:
-            if (st.link_up and (st.last_position is None or now - st.last_position > c.stream_request_period_s)
-                    and now - self._last_stream_request > c.stream_request_period_s):
-                need = True
-            else:
-                need = False
+            if not st.link_up:
+                self._lost_link_brake_locked(now)
+                return
+            need = ((st.last_position is None or now - st.last_position > c.stream_request_period_s)
+                    and now - self._last_stream_request > c.stream_request_period_s)
             self._check_takeoff_locked(now)
-            self._maybe_send_setpoint_locked(now, force=False)
+            if now >= self._next_setpoint_due:
+                period = 1.0 / c.setpoint_rate_hz
+                # fixed-rate schedule (no drift); a late tick re-anchors it instead of bursting
+                late = now - self._next_setpoint_due > period
+                self._next_setpoint_due = now + period if late else self._next_setpoint_due + period
+                self._immediate_ok = True
+                self._send_setpoint_locked(now)
         if need:
             self.request_streams()
+
+    def _lost_link_brake_locked(self, now: float) -> None:
+        """While the link is lost: zero velocity at a low rate to a vehicle last seen armed."""
+        st = self.status
+        if self.peer is None or not st.armed or now < self._next_lost_setpoint:
+            return
+        self._next_lost_setpoint = now + 1.0 / self.cfg.link_lost_setpoint_rate_hz
+        ts, tc = self._target()
+        if self._hold_yaw_enu is not None or st.attitude is not None:
+            yaw_enu = self._hold_yaw_enu if self._hold_yaw_enu is not None else frames.yaw_ned_to_enu(st.attitude[2])
+            sp = velocity_setpoint(np.zeros(3), yaw_enu)
+        else:
+            sp = dict(coordinate_frame=mavlink.MAV_FRAME_LOCAL_NED, type_mask=TYPE_MASK_VELOCITY_YAW_RATE,
+                      vx=0.0, vy=0.0, vz=0.0, yaw=0.0)
+        self._send('set_position_target_local_ned_send', self.time_boot_ms(), ts, tc, sp['coordinate_frame'],
+                   sp['type_mask'], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, sp['yaw'], 0.0)
+        self.last_setpoint = sp
+        self._sent_velocity = np.zeros(3)
+        self.counters['setpoints_link_lost'] += 1
 
     def _check_takeoff_locked(self, now: float) -> None:
         if self._takeoff_until_alt is None:
             return
         st = self.status
         alt = -float(st.position_ned[2]) if st.position_ned is not None else -math.inf
-        if alt >= self._takeoff_until_alt or now > self._takeoff_deadline:
-            _LOG.info('takeoff climb over (altitude %.2f m); velocity setpoints resume', alt)
+        if alt >= self._takeoff_until_alt:
+            _LOG.info('takeoff complete at %.2f m; velocity setpoints resume', alt)
+            self._takeoff_until_alt = None
+        elif now > self._takeoff_deadline:
+            _LOG.warning('takeoff climb not finished in time (altitude %.2f m); velocity setpoints resume', alt)
             self._takeoff_until_alt = None
 
-    def _maybe_send_setpoint_locked(self, now: float, force: bool) -> None:
+    def _send_setpoint_locked(self, now: float) -> bool:
+        """Send the current command (zero after the command timeout) if the vehicle flies it now."""
         c = self.cfg
-        period = 1.0 / c.setpoint_rate_hz
-        if not force and now < self._next_setpoint_due:
-            return
-        # fixed-rate schedule (no drift); a late tick or a command re-anchors it
-        self._next_setpoint_due = now + period if (force or now - self._next_setpoint_due > period) \
-            else self._next_setpoint_due + period
         st = self.status
         if not st.link_up:
-            self.counters['setpoints_suppressed_link'] += int(force)
-            return
+            self.counters['setpoints_suppressed_link'] += 1
+            return False
         live = self._cmd_time is not None and now - self._cmd_time <= c.command_timeout_s
         v = self._cmd if live else np.zeros(3)
         if st.mode != 'GUIDED':
-            if live and st.armed and np.any(v != 0.0):
-                self._handle_not_guided_locked(now)
-            return
+            if live and st.armed and np.any(v != 0.0) and self._mode_warned != st.mode:
+                self._mode_warned = st.mode
+                _LOG.warning('vehicle in %s: velocity setpoints not sent (ArduCopter flies them only in GUIDED; '
+                             'the bridge never switches on its own: call /uav/guided)', st.mode)
+            return False
         self._mode_warned = None
         if not st.armed or self._takeoff_until_alt is not None:
-            return
+            return False
         if self._hold_yaw_enu is None:
             if st.attitude is None:
-                return
+                return False
             self._hold_yaw_enu = frames.yaw_ned_to_enu(st.attitude[2])
             _LOG.info('holding heading %.1f deg (NED) while flying velocity setpoints',
                       math.degrees(frames.yaw_enu_to_ned(self._hold_yaw_enu)))
         sp = velocity_setpoint(v, self._hold_yaw_enu)
-        self._send('set_position_target_local_ned_send', self.time_boot_ms(), c.target_system,
-                   c.target_component, sp['coordinate_frame'], sp['type_mask'], 0.0, 0.0, 0.0,
-                   sp['vx'], sp['vy'], sp['vz'], 0.0, 0.0, 0.0, sp['yaw'], 0.0)
-        self._last_setpoint_time = now
+        ts, tc = self._target()
+        self._send('set_position_target_local_ned_send', self.time_boot_ms(), ts, tc, sp['coordinate_frame'],
+                   sp['type_mask'], 0.0, 0.0, 0.0, sp['vx'], sp['vy'], sp['vz'], 0.0, 0.0, 0.0, sp['yaw'], 0.0)
         self.last_setpoint = sp
+        self._sent_velocity = v.copy()
         self.counters['setpoints_sent'] += 1
         if not live:
             self.counters['setpoints_zero_timeout'] += 1
-
-    def _handle_not_guided_locked(self, now: float) -> None:
-        mode = self.status.mode
-        if self.cfg.auto_guided and mode in AUTO_GUIDED_FROM:
-            if now - self._last_mode_request >= self.cfg.mode_request_period_s:
-                self._last_mode_request = now
-                _LOG.warning('vehicle in %s: requesting GUIDED before sending velocity setpoints', mode)
-                self._send('command_long_send', self.cfg.target_system, self.cfg.target_component,
-                           mavlink.MAV_CMD_DO_SET_MODE, 0, float(mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED),
-                           float(COPTER_MODES['GUIDED']), 0, 0, 0, 0, 0)
-        elif self._mode_warned != mode:
-            self._mode_warned = mode
-            _LOG.warning('vehicle in %s: velocity setpoints not sent (ArduCopter ignores them outside '
-                         'GUIDED; switch to GUIDED to fly commands)', mode)
+        return True
 
     # ------------------------------------------------------------------ commands with ACK
     def command_long(self, command: int, params: Sequence[float], timeout: float | None = None) -> int | None:
@@ -494,7 +700,8 @@ class MavlinkBridge:
         t0 = self._clock()
         with self._ack_cond:
             self._acks.pop(int(command), None)
-        self._send('command_long_send', self.cfg.target_system, self.cfg.target_component, int(command), 0, *p)
+        ts, tc = self._target()
+        self._send('command_long_send', ts, tc, int(command), 0, *p)
         deadline = time.monotonic() + timeout
         with self._ack_cond:
             while True:
@@ -528,7 +735,7 @@ class MavlinkBridge:
         return None
 
     def set_mode(self, name: str) -> tuple[bool, str]:
-        """Change flight mode (MAV_CMD_DO_SET_MODE); (accepted, honest message)."""
+        """Change flight mode (MAV_CMD_DO_SET_MODE) as asked; (accepted, honest message)."""
         if name not in COPTER_MODES:
             return False, f'set_mode: unknown ArduCopter mode {name!r}'
         refused = self._require_link(f'set_mode {name}')
@@ -543,11 +750,19 @@ class MavlinkBridge:
                 self.status.mode = name     # the next HEARTBEAT confirms it
         return ok, msg
 
+    def guided(self) -> tuple[bool, str]:
+        """Switch to GUIDED because the pilot asked for it (the /uav/guided service)."""
+        return self.set_mode('GUIDED')
+
     def arm(self) -> tuple[bool, str]:
-        """Switch to GUIDED, then arm; reports the vehicle's COMMAND_ACK (and any PreArm text)."""
+        """Disarmed: switch to GUIDED, then arm. Already armed: nothing is sent (no mode change)."""
         refused = self._require_link('arm')
         if refused:
             return refused
+        with self._lock:
+            armed, mode = self.status.armed, self.status.mode
+        if armed:
+            return True, f'arm: already armed (mode {mode}; mode not changed)'
         ok, msg = self.set_mode('GUIDED')
         if not ok:
             return False, f'arm: {msg}'
@@ -599,11 +814,13 @@ class MavlinkBridge:
         """Plain copy of the vehicle status for diagnostics."""
         with self._lock:
             st = self.status
+            peer = self.peer
             return dict(link='up' if st.link_up else ('lost' if st.ever_connected else 'waiting'),
                         mode=st.mode, armed=st.armed, landed_state=int(st.landed_state),
                         taking_off=self._takeoff_until_alt is not None,
                         command_live=self._cmd_time is not None
-                        and self._clock() - self._cmd_time <= self.cfg.command_timeout_s)
+                        and self._clock() - self._cmd_time <= self.cfg.command_timeout_s,
+                        vehicle=peer.describe() if peer else 'none', signing=self.signing)
 
     def wait_heartbeat(self, timeout: float) -> bool:
         """Block until the autopilot's heartbeat is seen (receive thread must run) or timeout."""

@@ -2,58 +2,94 @@
 
 A thin rclpy shell over assist_bridge.bridge_core.MavlinkBridge (see that module for the rules).
 Timeouts (command, link, ACK) run on the wall clock: the vehicle (real, SITL or the sim's
-stand-in) always flies in real time.
+stand-in) always flies in real time. The core logs through Python logging; a handler forwards
+those records to this node's logger, so vehicle events (link up/lost, mode and arming changes,
+takeoff complete) reach /rosout with timestamps.
 
 Threads: the node spins a SingleThreadedExecutor (rclpy's MultiThreadedExecutor adds milliseconds of
 scheduling tail to every /cmd_vel), the core's receive thread owns the MAVLink link, and the
 services, which wait up to ack_timeout_s for the vehicle's COMMAND_ACK, are coroutines that await
 that wait on a one-thread worker pool, so /cmd_vel is never held up behind a service call.
+Service queues: each /uav/* service takes up to SERVICE_QUEUE_DEPTH requests at once; at most
+max_pending_commands vehicle commands wait for the worker, and any call beyond that is answered
+at once with success=false ('busy'), so every request gets an answer.
 """
 from __future__ import annotations
 
 import concurrent.futures
 import logging
 import math
-import sys
+import threading
 
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 from std_srvs.srv import Trigger
 
 from assist_sim.ros_common import (RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError,
-                                   declare_parameters, run_node, twist_to_array)
+                                   declare_parameters, exit_process, forward_logging, run_node, twist_to_array)
 
-from .bridge_core import BridgeConfig, MavlinkBridge, Odometry as CoreOdometry
+from .bridge_core import LIMIT_FIELDS, BridgeConfig, MavlinkBridge, Odometry as CoreOdometry
 
+SERVICE_QUEUE_DEPTH = 100   # requests each /uav/* service holds before DDS drops the oldest
+SERVICE_QOS = QoSProfile(depth=SERVICE_QUEUE_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
+                         history=HistoryPolicy.KEEP_LAST)
+
+# Parameters marked dynamic can be changed with `ros2 param set` (validated, applied at once);
+# the others are read-only (the set is refused).
+_SPEED = dict(min=0.0, min_exclusive=True, dynamic=True)
 PARAMS = {
-    'connection': Param('udpin:0.0.0.0:14550', "pymavlink address of the autopilot: 'udpin:HOST:PORT', "
-                        "'udpout:HOST:PORT', 'tcp:HOST:PORT' (SITL serves tcp:127.0.0.1:5760), or a serial "
-                        "device '/dev/ttyACM0' (baud from 'baud')."),
-    'baud': Param(57600, 'Serial baud rate (serial connections only; 115200 for USB, 57600/921600 for TELEM).'),
-    'target_system': Param(1, 'MAVLink system id of the autopilot (SYSID_THISMAV).'),
-    'target_component': Param(1, 'MAVLink component id of the autopilot.'),
-    'source_system': Param(255, 'Our MAVLink system id (ArduPilot accepts commands from SYSID_MYGCS = 255 by default).'),
-    'source_component': Param(191, 'Our MAVLink component id (191 = onboard computer).'),
+    'connection': Param('udpin:127.0.0.1:14550', "Autopilot endpoint: 'udpin:HOST:PORT' (listen; loopback by "
+                        "default), 'udpout:HOST:PORT', 'tcp:HOST:PORT' (SITL serves tcp:127.0.0.1:5760), "
+                        "'tcpin:HOST:PORT', or a serial device under /dev such as '/dev/ttyACM0' (baud from "
+                        "'baud'). Anything else is refused."),
+    'baud': Param(57600, 'Serial baud rate (serial connections only; 115200 for USB, 57600/921600 for TELEM).',
+                  min=1200, max=12000000),
+    'target_system': Param(1, 'MAVLink system id of the autopilot (SYSID_THISMAV); 0 = lock onto the first '
+                           "autopilot heard. Other systems are ignored and counted.", min=0, max=255),
+    'target_component': Param(1, 'MAVLink component id of the autopilot; 0 = the first autopilot heard.',
+                              min=0, max=255),
+    'source_system': Param(255, 'Our MAVLink system id (ArduPilot accepts commands from SYSID_MYGCS = 255 by '
+                           'default).', min=1, max=255),
+    'source_component': Param(191, 'Our MAVLink component id (191 = onboard computer).', min=1, max=255),
+    'signing_key_file': Param('', 'MAVLink 2 signing key file (32 raw bytes or 64 hex characters, mode 600); '
+                              'empty = unsigned. With a key, unsigned or badly signed frames are dropped and counted.'),
+    'address_relock': Param(True, 'After a declared link loss, accept the same vehicle ids from the same host on '
+                            'a new UDP port (a restarted SITL or stand-in gets a new port); false = the first '
+                            'address for the life of the node.'),
     'velocity_scale': Param(1.0, 'Commanded velocity is multiplied by this (0, 1]; use 0.5 on the real vehicle, '
-                            'as in the paper.'),
-    'max_speed_x_mps': Param(2.0, 'Clamp of the forward/back speed after scaling (m/s).'),
-    'max_speed_y_mps': Param(2.0, 'Clamp of the left/right speed after scaling (m/s).'),
-    'max_climb_mps': Param(1.0, 'Clamp of the climb speed (m/s).'),
-    'max_descent_mps': Param(1.0, 'Clamp of the descent speed (m/s).'),
-    'max_speed_mps': Param(2.5, 'Clamp of the total speed (m/s).'),
-    'setpoint_rate_hz': Param(10.0, 'Re-send rate of the current velocity setpoint (ArduCopter GUID_TIMEOUT is 3 s).'),
-    'command_timeout_s': Param(0.5, '/cmd_vel older than this counts as absent: zero velocity is sent.'),
-    'link_timeout_s': Param(2.0, 'No autopilot HEARTBEAT for this long: link lost, setpoints stop.'),
-    'odom_rate_hz': Param(30.0, 'Rate requested for LOCAL_POSITION_NED and ATTITUDE (drives /odom).'),
-    'status_rate_hz': Param(2.0, 'Rate requested for EXTENDED_SYS_STATE and SYS_STATUS.'),
-    'takeoff_altitude_m': Param(2.0, 'Altitude above the ground for /uav/takeoff (m).'),
-    'ack_timeout_s': Param(3.0, 'How long a service waits for the COMMAND_ACK.'),
-    'auto_guided': Param(True, 'Request GUIDED when commands arrive while the vehicle is in STABILIZE/ALT_HOLD/'
-                         'LOITER/POSHOLD (never out of LAND, RTL, BRAKE or AUTO).'),
+                            'as in the paper. Changeable at run time.', min=0.0, max=1.0, min_exclusive=True,
+                            dynamic=True),
+    'max_speed_x_mps': Param(2.0, 'Clamp of the forward/back speed after scaling (m/s). Changeable at run time.',
+                             max=20.0, **_SPEED),
+    'max_speed_y_mps': Param(2.0, 'Clamp of the left/right speed after scaling (m/s). Changeable at run time.',
+                             max=20.0, **_SPEED),
+    'max_climb_mps': Param(1.0, 'Clamp of the climb speed (m/s). Changeable at run time.', max=10.0, **_SPEED),
+    'max_descent_mps': Param(1.0, 'Clamp of the descent speed (m/s). Changeable at run time.', max=10.0, **_SPEED),
+    'max_speed_mps': Param(2.5, 'Clamp of the total speed (m/s). Changeable at run time.', max=25.0, **_SPEED),
+    'setpoint_rate_hz': Param(10.0, 'Rate of the velocity setpoint (the latest command), plus at most one '
+                              'immediate send of a changed command per period (ArduCopter GUID_TIMEOUT is 3 s).',
+                              min=1.0, max=50.0),
+    'command_timeout_s': Param(0.5, '/cmd_vel older than this counts as absent: zero velocity is sent.',
+                               min=0.05, max=5.0),
+    'link_timeout_s': Param(2.0, 'No autopilot HEARTBEAT for this long: link lost, zero velocity sent.',
+                            min=0.5, max=30.0),
+    'link_lost_setpoint_rate_hz': Param(2.0, 'Rate of the zero-velocity setpoints sent while the link is lost '
+                                        '(it may be lost one way only).', min=0.5, max=10.0),
+    'odom_rate_hz': Param(30.0, 'Rate requested for LOCAL_POSITION_NED and ATTITUDE (drives /odom; the sim '
+                          'stand-in sends at most one per 20 Hz physics step).', min=1.0, max=200.0),
+    'status_rate_hz': Param(2.0, 'Rate requested for EXTENDED_SYS_STATE and SYS_STATUS.', min=0.1, max=50.0),
+    'takeoff_altitude_m': Param(2.0, 'Altitude above the ground for /uav/takeoff (m).', min=0.0, max=100.0,
+                                min_exclusive=True),
+    'ack_timeout_s': Param(3.0, 'How long a service waits for the COMMAND_ACK.', min=0.1, max=60.0),
+    'max_pending_commands': Param(4, 'Vehicle commands (/uav/* calls) queued at most; further calls are '
+                                  "answered at once with success=false, 'busy'.", min=1, max=SERVICE_QUEUE_DEPTH),
+    'auto_guided': Param(False, 'Removed: the bridge never changes the flight mode on its own. Call /uav/guided '
+                         '(or select GUIDED on the transmitter). true is refused at start-up.'),
     'odom_frame': Param('odom', 'World frame id of /odom (ENU).'),
     'base_frame': Param('base_link', 'Body frame id of /odom and the accepted /cmd_vel frame (FLU).'),
 }
@@ -67,7 +103,12 @@ class MavlinkBridgeNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__('mavlink_bridge_node', **kwargs)
-        self.p = declare_parameters(self, PARAMS)
+        forward_logging(self)           # the core's vehicle events reach /rosout, stamped
+        self.bridge = None
+        self.p = declare_parameters(self, PARAMS, on_change=self._on_params)
+        if self.p['auto_guided']:
+            raise StartupError('mavlink_bridge_node: auto_guided was removed: the bridge never changes the flight '
+                               'mode on its own; call /uav/guided instead')
         self.diag = Diagnostics(self)
         keys = set(BridgeConfig.__dataclass_fields__) & set(self.p)
         try:
@@ -75,24 +116,37 @@ class MavlinkBridgeNode(Node):
         except (ValueError, TypeError) as exc:
             raise StartupError(f'mavlink_bridge_node: bad parameter: {exc}') from exc
         try:
-            self.bridge = MavlinkBridge(self.cfg, on_odometry=self._on_odometry,
-                                        on_statustext=self._on_statustext, on_link=self._on_link)
+            self.bridge = MavlinkBridge(self.cfg, on_odometry=self._on_odometry, on_statustext=self._on_statustext)
+        except ValueError as exc:          # signing key file
+            raise StartupError(f'mavlink_bridge_node: {exc}') from exc
         except ConnectionError as exc:
             raise StartupError(f'mavlink_bridge_node: {exc}') from exc
         self.pub_odom = self.create_publisher(Odometry, '/odom', SENSOR_QOS)
         self.create_subscription(TwistStamped, '/cmd_vel', self._on_cmd, RELIABLE_QOS)
         # one worker: vehicle commands run one at a time, in the order they were asked for
         self._workers = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix='uav-service')
+        self._pending = 0
+        self._pending_lock = threading.Lock()
         # a pending service coroutine holds its callback group until it returns: the services get a
         # reentrant group of their own so /cmd_vel and the timer (default group) run meanwhile
         services = ReentrantCallbackGroup()
         for name, action in (('arm', self.bridge.arm), ('disarm', self.bridge.disarm),
-                             ('takeoff', self.bridge.takeoff), ('land', self.bridge.land)):
-            self.create_service(Trigger, f'/uav/{name}', self._srv(name, action), callback_group=services)
+                             ('takeoff', self.bridge.takeoff), ('land', self.bridge.land),
+                             ('guided', self.bridge.guided)):
+            self.create_service(Trigger, f'/uav/{name}', self._srv(name, action), qos_profile=SERVICE_QOS,
+                                callback_group=services)
         self.create_timer(1.0, self._update_diagnostics)
         self.bridge.start()
         self.get_logger().info(f"waiting for the vehicle heartbeat on '{self.cfg.connection}' "
-                               f'(system {self.cfg.target_system}) ...')
+                               f"(system {self.cfg.target_system or 'any'}, "
+                               f"{'signed' if self.bridge.signing else 'unsigned'})")
+
+    def _on_params(self, changed: dict) -> None:
+        """Run-time `ros2 param set` of velocity_scale / speed clamps: validated together, then applied."""
+        limits = {k: v for k, v in changed.items() if k in LIMIT_FIELDS}
+        if self.bridge is None or not limits:
+            return
+        self.cfg = self.bridge.set_limits(**limits)   # ValueError refuses the set
 
     # ------------------------------------------------------------------ callbacks from the core
     def _on_odometry(self, o: CoreOdometry) -> None:
@@ -120,13 +174,6 @@ class MavlinkBridgeNode(Node):
         else:
             log.info(line)
 
-    def _on_link(self, up: bool, why: str) -> None:
-        if up:
-            self.get_logger().info(f"vehicle connected on '{self.cfg.connection}': {why}")
-        else:
-            self.get_logger().error(f"vehicle link lost on '{self.cfg.connection}': {why}; setpoints stopped, "
-                                    'waiting for it to return')
-
     # ------------------------------------------------------------------ ROS inputs
     def _on_cmd(self, msg: TwistStamped) -> None:
         if msg.header.frame_id not in ACCEPTED_CMD_FRAMES:
@@ -149,6 +196,17 @@ class MavlinkBridgeNode(Node):
 
     def _srv(self, name: str, action):
         async def handler(request, response):
+            with self._pending_lock:
+                busy = self._pending >= self.p['max_pending_commands']
+                if not busy:
+                    self._pending += 1
+            if busy:
+                self.diag.count('service_busy')
+                response.success = False
+                response.message = (f"{name}: busy, {self.p['max_pending_commands']} vehicle commands already "
+                                    'waiting; try again')
+                self.get_logger().warning(f'service: {response.message}', throttle_duration_sec=2.0)
+                return response
             done = Future(executor=self.executor)
             # a done callback makes set_result (from the worker) wake the executor to resume us
             done.add_done_callback(lambda _f: None)
@@ -158,6 +216,9 @@ class MavlinkBridgeNode(Node):
                     done.set_result(action())
                 except Exception as exc:  # noqa: BLE001 - handed to the awaiting service, logged there
                     done.set_exception(exc)
+                finally:
+                    with self._pending_lock:
+                        self._pending -= 1
             self._workers.submit(work)
             try:
                 ok, message = await done
@@ -188,14 +249,17 @@ class MavlinkBridgeNode(Node):
                                    throttle_duration_sec=10.0)
 
     def close(self) -> None:
-        """Stop the service worker and the receive thread, and close the link."""
-        self._workers.shutdown(wait=False, cancel_futures=True)
-        self.bridge.close()
+        """Stop the service worker and the receive thread, close the link."""
+        workers = getattr(self, '_workers', None)
+        if workers is not None:
+            workers.shutdown(wait=False, cancel_futures=True)
+        if self.bridge is not None:
+            self.bridge.close()
 
 
 def main(args=None):
     """Console entry point."""
-    sys.exit(run_node(lambda: MavlinkBridgeNode(), args))
+    exit_process(run_node(lambda: MavlinkBridgeNode(), args))
 
 
 if __name__ == '__main__':

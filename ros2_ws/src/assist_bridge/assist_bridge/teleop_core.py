@@ -131,8 +131,16 @@ class TeleopCore:
         """Keys currently counted as held (as of the last velocity() call)."""
         return sorted(self._held)
 
-    def status_line(self, now: float) -> str:
-        """One-line live status for the terminal."""
+    def status_line(self, now: float, width: int | None = None) -> str:
+        """One-line live status for the terminal, at most `width - 1` characters (no wrap) when given.
+
+        The key help is dropped first when the terminal is narrow, then the line is cut.
+        """
         v = self.velocity(now)
         keys = ','.join(self.held_keys()) or '-'
-        return (f'vx {v[0]:+.2f}  vy {v[1]:+.2f}  vz {v[2]:+.2f} m/s  keys [{keys}]   ({HELP})')
+        line = f'vx {v[0]:+.2f}  vy {v[1]:+.2f}  vz {v[2]:+.2f} m/s  keys [{keys}]'
+        full = f'{line}   ({HELP})'
+        if width is None:
+            return full
+        room = max(int(width) - 1, 0)   # the last column would wrap on some terminals
+        return full if len(full) <= room else line[:room]

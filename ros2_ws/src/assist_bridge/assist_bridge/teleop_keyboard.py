@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import select
+import shutil
 import signal
 import sys
 import termios
@@ -17,20 +18,29 @@ import time
 from geometry_msgs.msg import TwistStamped
 from rclpy.node import Node
 
-from assist_sim.ros_common import RELIABLE_QOS, Param, StartupError, declare_parameters, fill_twist, run_node
+from assist_sim.ros_common import (RELIABLE_QOS, Param, StartupError, declare_parameters, fill_twist,
+                                   exit_process, forward_logging, run_node)
 
 from .teleop_core import HELP, KeyDecoder, TeleopConfig, TeleopCore
 
 PARAMS = {
-    'speed': Param(1.0, 'Horizontal speed for W/S/A/D (m/s).'),
-    'speed_z': Param(0.5, 'Vertical speed for the up/down arrows (m/s).'),
-    'rate_hz': Param(20.0, 'Publish rate of /pilot/cmd_vel (Hz); published continuously, not only on key events.'),
+    'speed': Param(1.0, 'Horizontal speed for W/S/A/D (m/s; settable at run time).', min=0.0, max=5.0,
+                   min_exclusive=True, dynamic=True),
+    'speed_z': Param(0.5, 'Vertical speed for the up/down arrows (m/s; settable at run time).', min=0.0, max=3.0,
+                     min_exclusive=True, dynamic=True),
+    'rate_hz': Param(20.0, 'Publish rate of /pilot/cmd_vel (Hz); published continuously, not only on key events.',
+                     min=1.0, max=200.0),
     'initial_hold_s': Param(0.6, 'A key counts as held this long after its first event (longer than the '
-                            "terminal's auto-repeat delay)."),
-    'repeat_timeout_s': Param(0.15, 'A repeating key counts as released when its repeats stop this long.'),
+                            "terminal's auto-repeat delay; settable at run time).", min=0.0, max=60.0,
+                            min_exclusive=True, dynamic=True),
+    'repeat_timeout_s': Param(0.15, 'A repeating key counts as released when its repeats stop this long '
+                                    '(settable at run time).', min=0.0, max=2.0, min_exclusive=True, dynamic=True),
     'frame_id': Param('base_link', 'frame_id of the published commands (body FLU).'),
-    'status_line': Param(True, 'Show a live status line in the terminal.'),
+    'status_line': Param(True, 'Show a live status line in the terminal, cut to its width (settable at run '
+                               'time).', dynamic=True),
 }
+# TeleopConfig fields that a run-time parameter set changes in place
+LIVE_CONFIG = ('speed', 'speed_z', 'initial_hold_s', 'repeat_timeout_s')
 
 
 class TeleopKeyboard(Node):
@@ -42,7 +52,9 @@ class TeleopKeyboard(Node):
                                'terminal, e.g. `ros2 run assist_bridge teleop_keyboard` (not piped, not under launch '
                                'without a terminal prefix)')
         super().__init__('teleop_keyboard', **kwargs)
-        self.p = declare_parameters(self, PARAMS)
+        forward_logging(self)
+        self.lock = threading.Lock()
+        self.p = declare_parameters(self, PARAMS, on_change=self._on_params)
         keys = set(TeleopConfig.__dataclass_fields__) & set(self.p)
         try:
             self.cfg = TeleopConfig(**{k: self.p[k] for k in keys})
@@ -50,7 +62,6 @@ class TeleopKeyboard(Node):
             raise StartupError(f'teleop_keyboard: bad parameter: {exc}') from exc
         self.core = TeleopCore(self.cfg)
         self.decoder = KeyDecoder()
-        self.lock = threading.Lock()
         self.pub = self.create_publisher(TwistStamped, '/pilot/cmd_vel', RELIABLE_QOS)
         self._fd = sys.stdin.fileno()
         self._saved = termios.tcgetattr(self._fd)
@@ -67,6 +78,15 @@ class TeleopKeyboard(Node):
         self._reader.start()
         self.create_timer(1.0 / self.cfg.rate_hz, self._tick)
         self._out(f'teleop_keyboard: {HELP}\r\n')
+
+    def _on_params(self, changed: dict) -> None:
+        """Speeds and key timing apply from the next tick; status_line is read every tick."""
+        with self.lock:
+            for key in LIVE_CONFIG:
+                if key in changed:
+                    setattr(self.cfg, key, float(changed[key]))
+        if changed.get('status_line') is False:
+            self._out('\r\x1b[K')
 
     # ------------------------------------------------------------------ terminal
     def _out(self, text: str) -> None:
@@ -111,7 +131,7 @@ class TeleopKeyboard(Node):
         now = time.monotonic()
         with self.lock:
             v = self.core.velocity(now)
-            line = self.core.status_line(now)
+            line = self.core.status_line(now, shutil.get_terminal_size((80, 24)).columns)
         self._publish(v)
         if self.p['status_line']:
             self._out('\r' + line + '\x1b[K')
@@ -143,7 +163,7 @@ class TeleopKeyboard(Node):
 
 def main(args=None):
     """Console entry point."""
-    sys.exit(run_node(lambda: TeleopKeyboard(), args))
+    exit_process(run_node(lambda: TeleopKeyboard(), args))
 
 
 if __name__ == '__main__':

@@ -143,7 +143,7 @@ def test_non_finite_command_rejected_and_last_good_kept(link):
     np.testing.assert_allclose(b.current_command(), [0.5, 0.0, 0.0])
 
 
-def test_disarmed_or_not_guided_no_setpoints_and_land_never_overridden(link):
+def test_disarmed_or_not_guided_no_setpoints_and_mode_changed_only_on_request(link):
     b, v = link.bridge, link.vt.vehicle
     assert b.wait_heartbeat(5.0)
     for _ in range(10):
@@ -155,10 +155,17 @@ def test_disarmed_or_not_guided_no_setpoints_and_land_never_overridden(link):
     wait_for(lambda: not b.snapshot()['taking_off'], what='takeoff climb')
     assert b.set_mode('LOITER')[0]
     wait_for(lambda: b.snapshot()['mode'] == 'LOITER', what='LOITER heartbeat')
-    for _ in range(30):                              # commands in LOITER: bridge asks for GUIDED
+    sent, mode_acks = b.counters['setpoints_sent'], v.counters.get(f'ack_{mavlink.MAV_CMD_DO_SET_MODE}_0', 0)
+    for _ in range(60):                              # commands in LOITER: nothing sent, no mode change
         b.set_command([0.5, 0.0, 0.0])
         time.sleep(0.02)
-    wait_for(lambda: v.mode == 'GUIDED', what='auto GUIDED')
+    assert v.mode == 'LOITER' and b.counters['setpoints_sent'] == sent
+    assert v.counters.get(f'ack_{mavlink.MAV_CMD_DO_SET_MODE}_0', 0) == mode_acks
+    assert b.arm() == (True, 'arm: already armed (mode LOITER; mode not changed)')
+    assert v.mode == 'LOITER'
+    ok, msg = b.guided()                             # the pilot asks (/uav/guided): now GUIDED
+    assert ok, msg
+    assert v.mode == 'GUIDED'
     assert b.land()[0]
     wait_for(lambda: b.snapshot()['mode'] == 'LAND', what='LAND heartbeat')
     for _ in range(30):
@@ -194,13 +201,20 @@ def test_garbage_on_the_bridge_port_never_crashes_it(link):
     good = mavlink.MAVLink(None, 1, 1).heartbeat_encode(2, 3, 0, 0, 3)
     frame = bytearray(good.pack(mavlink.MAVLink(None, 1, 1)))
     bad_crc = bytes(frame[:-2]) + bytes([frame[-2] ^ 0x55, frame[-1] ^ 0x55])
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     payloads = [rng.bytes(int(n)) for n in rng.integers(1, 1500, 200)]
     payloads += [bytes(frame[:5]), bytes(frame[:-1]), bad_crc, b'\xfd' * 4000, rng.bytes(65000), b'']
-    for pl in payloads:
+    # from anywhere else (dropped unparsed: the bridge is locked onto the vehicle's address) ...
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    for pl in payloads[:50]:
         s.sendto(pl, ('127.0.0.1', link.port))
     s.close()
+    time.sleep(0.2)               # (all of it at once would overflow the socket's receive buffer)
+    # ... and from the vehicle's own address (parsed: bad data counted)
+    vehicle_sock = link.vt.vehicle._conn.port
+    for pl in payloads:
+        vehicle_sock.sendto(pl, ('127.0.0.1', link.port))
     wait_for(lambda: b.counters['rx_bad_data'] > 0, what='bad data counted')
+    wait_for(lambda: b.counters['rx_foreign_address'] > 0, what='foreign datagrams counted')
     beats = b.status.last_heartbeat
     wait_for(lambda: b.status.last_heartbeat != beats, what='heartbeats still parsed')
     time.sleep(0.6)

@@ -65,6 +65,17 @@ def test_space_stops_and_q_quits():
     assert core.quit
 
 
+def test_status_line_fits_the_terminal_width():
+    core = TeleopCore()
+    core.press('w', 0.0)
+    wide = core.status_line(0.1)
+    assert wide.startswith('vx +1.00  vy +0.00  vz +0.00 m/s  keys [w]') and 'q quit' in wide
+    assert core.status_line(0.1, width=200) == wide
+    line = core.status_line(0.1, width=80)
+    assert line == 'vx +1.00  vy +0.00  vz +0.00 m/s  keys [w]'      # help dropped first
+    assert core.status_line(0.1, width=20) == line[:19]               # then cut, never wrapped
+
+
 def test_bad_teleop_config():
     with pytest.raises(ValueError):
         TeleopConfig(rate_hz=0.0)
@@ -115,7 +126,7 @@ def teleop_tmux(tmp_path):
     cmd = (f'{BIN / "teleop_keyboard"} --ros-args -p initial_hold_s:=30.0 -p repeat_timeout_s:=0.3 '
            f'-p speed:=1.0 -p speed_z:=0.5; echo $? > {exit_file}; stty -a > {stty_file}; sleep 60')
     env_cmd = f'env ROS_DOMAIN_ID={domain} bash -c "{cmd}"'
-    subprocess.run(['tmux', '-L', sock, 'new-session', '-d', '-s', session, '-x', '200', '-y', '20', env_cmd],
+    subprocess.run(['tmux', '-L', sock, 'new-session', '-d', '-s', session, '-x', '80', '-y', '20', env_cmd],
                    check=True)
 
     class T:
@@ -153,6 +164,9 @@ def test_teleop_in_tmux_keys_to_twist_stream(teleop_tmux):
     assert t.wait(lambda m: len(m) >= 10, 30.0), f'no /pilot/cmd_vel stream; screen:\n{t.screen()}'
     assert all(m == ('base_link', 0.0, 0.0, 0.0) for m in t.msgs())
     assert 'vx +0.00' in t.screen()                                 # live status line
+    # ... redrawn in place on one row of the 80-column terminal (cut to fit: no wrapping, no scrolling)
+    rows = [ln for ln in t.screen().splitlines() if 'vx ' in ln]
+    assert len(rows) == 1 and len(rows[0].rstrip()) < 80, t.screen()
 
     # hold W: the key auto-repeats (sent every 50 ms), forward at `speed`
     n0 = len(t.msgs())

@@ -30,6 +30,8 @@ from typing import Iterator, NamedTuple, Sequence
 
 import numpy as np
 
+from assist_sim.atomic import atomic_path, remove_stale_temporaries, write_text_atomic
+
 from .cli import parse_settings
 
 DATASET_VERSION = 1
@@ -194,6 +196,8 @@ def make_dataset(cfg: DatasetConfig, progress: bool = True) -> dict:
         raise ValueError('frames, frames_per_scene and scenes_per_shard must be positive')
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    for stale in remove_stale_temporaries(out):
+        _LOG.info('removed %s (left by an interrupted run)', stale)
     world = LandingWorld(WorldConfig(), seed=cfg.seed)
     try:
         meta = json.loads(json.dumps(_meta(cfg, world)))   # tuples -> lists, as stored
@@ -206,7 +210,7 @@ def make_dataset(cfg: DatasetConfig, progress: bool = True) -> dict:
                                      'use another --out-dir or --overwrite')
                 for f in out.glob('shard_*.npz'):
                     f.unlink()
-        meta_file.write_text(json.dumps(meta, indent=1))
+        write_text_atomic(meta_file, json.dumps(meta, indent=1))
         n_scenes = -(-cfg.frames // cfg.frames_per_scene)
         n_shards = -(-n_scenes // cfg.scenes_per_shard)
         done_frames, new_frames, t0 = 0, 0, time.perf_counter()
@@ -228,9 +232,8 @@ def make_dataset(cfg: DatasetConfig, progress: bool = True) -> dict:
                 scene += 1
                 bar.update(k)
             arrays = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
-            tmp = path.with_name(path.stem + '.tmp.npz')
-            np.savez_compressed(tmp, **arrays)
-            tmp.replace(path)
+            with atomic_path(path) as tmp:
+                np.savez_compressed(tmp, **arrays)
             new_frames += n_in_shard
         bar.close()
         dt = time.perf_counter() - t0

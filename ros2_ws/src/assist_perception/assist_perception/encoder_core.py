@@ -18,6 +18,8 @@ import cv2
 import numpy as np
 import torch
 
+from assist_sim.shipped import shipped_model_path
+
 from .model import CMVAE, load_model, preprocess
 
 COLOR_ENCODINGS = {'rgb8': (3, False), 'bgr8': (3, True), 'rgba8': (4, False), 'bgra8': (4, True)}
@@ -43,58 +45,60 @@ class EncoderOutput:
 
 
 def default_model_path() -> Path:
-    """The shipped weights: `models/cmvae.pt` of the repository (or installed share/ copy)."""
-    here = Path(__file__).resolve()
-    for parent in here.parents:
-        cand = parent / 'models' / 'cmvae.pt'
-        if cand.is_file():
-            return cand
-    try:
-        from ament_index_python.packages import get_package_share_directory  # noqa: PLC0415
-        cand = Path(get_package_share_directory('assist_perception')) / 'models' / 'cmvae.pt'
-        if cand.is_file():
-            return cand
-    except (ImportError, LookupError, ValueError):
-        pass
-    return here.parents[4] / 'models' / 'cmvae.pt'   # repo layout: report this path if missing
+    """The shipped weights cmvae.pt: $ASSIST_MODELS_DIR, share/assist_perception/models, or the repo's models/."""
+    return shipped_model_path('assist_perception', 'cmvae.pt')
 
 
 def _as_array(data: Any, height: int, width: int, step: int, channels: int, dtype,
               big_endian: bool) -> np.ndarray:
-    """Raw ROS image buffer -> (H, W[, C]) array honouring row padding and byte order."""
+    """Raw ROS image buffer -> (H, W[, C]) array honouring row padding and byte order.
+
+    A view on the message's own buffer whenever possible (rclpy hands uint8[] fields over as
+    array.array, which numpy reads in place): no copy for unpadded native-order images; a
+    padded or foreign-endian image costs one copy. Callers must not write into the result."""
     itemsize = np.dtype(dtype).itemsize
     row = width * channels * itemsize
     if height <= 0 or width <= 0:
         raise BadFrame('bad_size', f'empty image {width}x{height}')
     if step < row:
         raise BadFrame('bad_size', f'step {step} < width*channels*bytes {row}')
-    buf = np.frombuffer(bytes(data) if not isinstance(data, (bytes, bytearray, memoryview, np.ndarray))
-                        else data, dtype=np.uint8)
+    try:
+        buf = np.frombuffer(data, dtype=np.uint8)
+    except (TypeError, ValueError):      # not a buffer (e.g. a list of ints)
+        buf = np.frombuffer(bytes(data), dtype=np.uint8)
     if buf.size < step * height:
         raise BadFrame('bad_size', f'{buf.size} bytes for {height} rows of {step}')
     rows = buf[:step * height].reshape(height, step)[:, :row]
     dt = np.dtype(dtype).newbyteorder('>' if big_endian else '<')
-    arr = np.ascontiguousarray(rows).view(dt).astype(np.dtype(dtype).newbyteorder('='))
+    arr = np.ascontiguousarray(rows).view(dt)
+    if not arr.dtype.isnative:
+        arr = arr.astype(arr.dtype.newbyteorder('='))
     return arr.reshape(height, width, channels) if channels > 1 else arr.reshape(height, width)
 
 
 def decode_color(data: Any, encoding: str, height: int, width: int, step: int) -> np.ndarray:
-    """sensor_msgs/Image colour payload -> (H,W,3) uint8 RGB."""
+    """sensor_msgs/Image colour payload -> (H,W,3) uint8 RGB (read-only; a view for rgb8)."""
     if encoding not in COLOR_ENCODINGS:
         raise BadFrame('bad_encoding', f'colour encoding {encoding!r} (want rgb8/bgr8)')
     ch, bgr = COLOR_ENCODINGS[encoding]
     img = _as_array(data, height, width, step, ch, np.uint8, False)[..., :3]
-    return img[..., ::-1].copy() if bgr else img.copy()
+    img = img[..., ::-1] if bgr else img
+    img.flags.writeable = False
+    return img
 
 
 def decode_depth(data: Any, encoding: str, height: int, width: int, step: int,
                  big_endian: bool = False) -> np.ndarray:
-    """sensor_msgs/Image depth payload (32FC1 m or 16UC1 mm) -> (H,W) float32 metres, holes 0."""
+    """sensor_msgs/Image depth payload (32FC1 m or 16UC1 mm) -> (H,W) float32 metres, holes 0 (a new array)."""
     if encoding not in DEPTH_ENCODINGS:
         raise BadFrame('bad_encoding', f'depth encoding {encoding!r} (want 32FC1 or 16UC1)')
     arr = _as_array(data, height, width, step, 1, DEPTH_ENCODINGS[encoding], big_endian)
-    depth = arr.astype(np.float32) * (0.001 if encoding == '16UC1' else 1.0)
-    depth[~np.isfinite(depth) | (depth < 0)] = 0.0
+    if encoding == '16UC1':
+        depth = arr * np.float32(0.001)                    # the one copy (uint16 -> float32 metres)
+    else:
+        depth = np.array(arr, dtype=np.float32)            # the one copy (holes are zeroed in place)
+    with np.errstate(invalid='ignore'):
+        depth[~(depth >= 0) | ~np.isfinite(depth)] = 0.0
     return depth
 
 
@@ -149,8 +153,13 @@ class LatentEncoder:
 
     def prepare(self, rgb: np.ndarray, depth_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Validate and resize a decoded frame; raises BadFrame."""
-        if rgb.ndim != 3 or rgb.shape[2] != 3 or depth_m.ndim != 2:
+        rgb, depth_m = np.asarray(rgb), np.asarray(depth_m)
+        if rgb.ndim != 3 or rgb.shape[2] != 3 or depth_m.ndim != 2 or 0 in rgb.shape or 0 in depth_m.shape:
             raise BadFrame('bad_size', f'rgb {rgb.shape}, depth {depth_m.shape}')
+        if rgb.dtype != np.uint8:    # decode_color gives uint8; floats could carry NaN/inf into the network
+            raise BadFrame('bad_encoding', f'colour array must be uint8, got {rgb.dtype}')
+        if not np.issubdtype(depth_m.dtype, np.number):
+            raise BadFrame('bad_encoding', f'depth array must be numeric, got {depth_m.dtype}')
         ar_rgb = rgb.shape[1] / rgb.shape[0]
         ar_d = depth_m.shape[1] / depth_m.shape[0]
         if abs(ar_rgb - ar_d) > 0.02:
@@ -162,16 +171,58 @@ class LatentEncoder:
             raise BadFrame('no_valid_depth', f'{valid.mean():.1%} valid depth pixels')
         return rgb64, d64
 
-    @torch.no_grad()
-    def encode(self, rgb: np.ndarray, depth_m: np.ndarray, want_depth: bool = False) -> EncoderOutput:
-        """Encode one frame (uint8 RGB HxWx3, depth metres HxW); raises BadFrame."""
+    @torch.inference_mode()
+    def encode(self, rgb: np.ndarray, depth_m: np.ndarray, want_depth: bool = False,
+               want_xyz: bool = True) -> EncoderOutput:
+        """Encode one frame (uint8 RGB HxWx3, depth metres HxW); raises BadFrame.
+
+        The decoders run only when asked: `want_xyz` for the pad estimate, `want_depth` for the
+        denoised depth image (the policy needs only mu); pad_xyz is NaN when not computed."""
         rgb64, d64 = self.prepare(rgb, depth_m)
         x = preprocess(rgb64, d64, self.model.cfg).to(self.device)
         mu, _ = self.model.encode(x)
-        xyz = self.model.decode_xyz(mu)
+        if want_xyz:
+            xyz = self.model.decode_xyz(mu)[0].cpu().numpy().astype(np.float32)
+        else:
+            xyz = np.full(3, np.nan, np.float32)
         depth = self.model.decode_depth(mu)[0].cpu().numpy().astype(np.float32) if want_depth else None
-        return EncoderOutput(mu[0].cpu().numpy().astype(np.float32),
-                             xyz[0].cpu().numpy().astype(np.float32), depth)
+        if not (torch.isfinite(mu).all() and np.all(np.isfinite(xyz) | (not want_xyz))
+                and (depth is None or np.all(np.isfinite(depth)))):
+            raise BadFrame('nonfinite_output', 'the model produced non-finite values for this frame')
+        return EncoderOutput(mu[0].cpu().numpy().astype(np.float32), xyz, depth)
+
+    @torch.inference_mode()
+    def decode_depth(self, mu: np.ndarray) -> np.ndarray:
+        """Denoised depth (64x64 float32 metres) of one latent mean (after publishing mu); raises BadFrame."""
+        z = torch.as_tensor(np.asarray(mu, np.float32)[None], device=self.device)
+        depth = self.model.decode_depth(z)[0].cpu().numpy().astype(np.float32)
+        if not np.all(np.isfinite(depth)):
+            raise BadFrame('nonfinite_output', 'the depth decoder produced non-finite values')
+        return depth
+
+    @torch.inference_mode()
+    def encode_mu_batch(self, rgbs: list[np.ndarray], depths: list[np.ndarray]) -> np.ndarray:
+        """mu of N frames in one forward pass (vectorised environments): (N, latent_dim) float32.
+
+        Every frame must pass `prepare`; raises BadFrame naming the first bad frame's index."""
+        if len(rgbs) != len(depths):
+            raise ValueError(f'{len(rgbs)} colour frames but {len(depths)} depth frames')
+        if not rgbs:
+            return np.zeros((0, self.latent_dim), np.float32)
+        prepared = []
+        for i, (rgb, depth) in enumerate(zip(rgbs, depths)):
+            try:
+                prepared.append(self.prepare(rgb, depth))
+            except BadFrame as exc:
+                raise BadFrame(exc.reason, f'frame {i}: {exc}') from exc
+        x = preprocess(np.stack([p[0] for p in prepared]), np.stack([p[1] for p in prepared]),
+                       self.model.cfg).to(self.device)
+        mu, _ = self.model.encode(x)
+        bad = ~torch.isfinite(mu).all(dim=1)
+        if bad.any():
+            raise BadFrame('nonfinite_output', f'frame {int(torch.nonzero(bad)[0])}: the model produced '
+                                               'non-finite values')
+        return mu.cpu().numpy().astype(np.float32)
 
 
 class LatestOnly(Generic[_T]):

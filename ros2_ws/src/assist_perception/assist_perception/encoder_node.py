@@ -6,7 +6,6 @@ the inference, so a slow frame never queues up old ones and callbacks never bloc
 """
 from __future__ import annotations
 
-import sys
 import threading
 import time
 
@@ -19,7 +18,7 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import Float32MultiArray, MultiArrayDimension
 
 from assist_sim.ros_common import (SENSOR_QOS, Diagnostics, Param, StartupError, declare_parameters,
-                                   run_node, stamp_to_sec)
+                                   exit_process, forward_logging, run_node, stamp_to_sec)
 
 from .encoder_core import BadFrame, LatentEncoder, LatestOnly, StampPairer, decode_color, decode_depth
 from .model import ModelLoadError
@@ -28,20 +27,25 @@ from .noise import apply_depth_noise
 PARAMS = {
     'model_path': Param('', 'CM-VAE weights file; empty = the shipped models/cmvae.pt.'),
     'device': Param('cpu', 'torch device for inference (cpu, cuda, cuda:0, ...).'),
-    'threads': Param(1, 'torch intra-op threads for inference (0 = torch default).'),
+    'threads': Param(1, 'torch intra-op threads for inference (0 = torch default).', min=0, max=256),
     'color_topic': Param('/camera/color/image_raw', 'Colour image topic (rgb8/bgr8).'),
     'depth_topic': Param('/camera/depth/image_raw', 'Depth image topic (32FC1 m or 16UC1 mm), aligned to colour.'),
     'latent_topic': Param('/assist/latent', 'Output: encoder mean mu (Float32MultiArray).'),
     'pad_topic': Param('/assist/pad_estimate', 'Output: closest pad top-centre (PointStamped, optical frame).'),
     'denoised_topic': Param('/assist/depth_denoised', 'Output: 64x64 32FC1 denoised depth (only when subscribed).'),
     'frame_id': Param('camera_optical_frame', 'frame_id of outputs when the input image has none.'),
-    'sync_slop_s': Param(0.02, 'Colour and depth stamps closer than this form one frame.'),
-    'min_valid_depth_fraction': Param(0.01, 'Frames with fewer valid depth pixels are skipped.'),
+    'sync_slop_s': Param(0.02, 'Colour and depth stamps closer than this form one frame.', min=0.0, max=1.0),
+    'min_valid_depth_fraction': Param(0.01, 'Frames with fewer valid depth pixels are skipped (settable at run '
+                                            'time).', min=0.0, max=1.0, dynamic=True),
     'depth_noise': Param(False, 'Apply the D435i-like noise model to incoming depth (clean sim depth -> '
                                 'training distribution); leave off for a real camera.'),
-    'noise_seed': Param(0, 'Seed of the depth noise (depth_noise only).'),
-    'warn_period_s': Param(5.0, 'Minimum seconds between repeated bad-frame warnings.'),
+    'noise_seed': Param(0, 'Seed of the depth noise (depth_noise only).', min=0, max=2**31 - 1),
+    'warn_period_s': Param(5.0, 'Minimum seconds between repeated bad-frame warnings (settable at run time).',
+                           min=0.0, max=3600.0, dynamic=True),
 }
+# Bad-frame reasons that are part of normal flight: counted in diagnostics, logged once (INFO).
+EXPECTED_SKIPS = {'no_valid_depth': 'frames without enough valid depth are skipped and counted '
+                                    '(bad_no_valid_depth): normal at touchdown, the camera is too close'}
 
 
 class EncoderNode(Node):
@@ -49,9 +53,8 @@ class EncoderNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__('encoder_node', **kwargs)
-        self.p = declare_parameters(self, PARAMS)
-        if not self.p['sync_slop_s'] >= 0:
-            raise StartupError('encoder_node: sync_slop_s must be >= 0')
+        forward_logging(self)
+        self.p = declare_parameters(self, PARAMS, on_change=self._on_params)
         try:
             self.encoder = LatentEncoder(self.p['model_path'] or None, self.p['device'],
                                          int(self.p['threads']), float(self.p['min_valid_depth_fraction']))
@@ -66,6 +69,7 @@ class EncoderNode(Node):
         self.slot: LatestOnly[tuple[Image, Image]] = LatestOnly()
         self.rng = np.random.default_rng(int(self.p['noise_seed']))
         self._last_warn: dict[str, float] = {}
+        self._stopping = threading.Event()
 
         self.pub_latent = self.create_publisher(Float32MultiArray, self.p['latent_topic'], SENSOR_QOS)
         self.pub_pad = self.create_publisher(PointStamped, self.p['pad_topic'], SENSOR_QOS)
@@ -80,8 +84,15 @@ class EncoderNode(Node):
         self.get_logger().info(f'CM-VAE {self.encoder.model_path} (latent {self.encoder.latent_dim}) '
                                f"on {self.p['device']}")
 
+    def _on_params(self, changed: dict) -> None:
+        """Run-time sets of min_valid_depth_fraction and warn_period_s."""
+        if 'min_valid_depth_fraction' in changed:
+            self.encoder.min_valid_fraction = float(changed['min_valid_depth_fraction'])
+
     # ------------------------------------------------------------------ callbacks (cheap)
     def _on_image(self, stream: str, msg: Image) -> None:
+        if self._stopping.is_set():
+            return
         self.diag.count(f'{stream}_received')
         pair = self.pairer.add(stream, stamp_to_sec(msg.header.stamp), msg)
         self.diag.set('unpaired_images', self.pairer.unpaired)
@@ -100,17 +111,30 @@ class EncoderNode(Node):
             except BadFrame as exc:
                 self._bad(exc.reason, str(exc))
             except Exception as exc:  # keep the worker alive; log and count anything unexpected
+                if self._stopping.is_set() or not self.context.ok():
+                    break             # shutting down: the publishers' context is going away
                 self._bad('inference_error', f'{type(exc).__name__}: {exc}')
-        self.diag.set('superseded_pairs', self.slot.replaced)
 
     def _bad(self, reason: str, text: str) -> None:
         self.diag.count(f'bad_{reason}')
         self.diag.count('bad_frames')
         self.diag.status(DiagnosticStatus.WARN, f'skipping bad frames ({reason})')
+        if reason in EXPECTED_SKIPS:
+            if reason not in self._last_warn:
+                self._last_warn[reason] = time.monotonic()
+                self.get_logger().info(EXPECTED_SKIPS[reason])
+            return
         now = time.monotonic()
         if now - self._last_warn.get(reason, -1e9) >= float(self.p['warn_period_s']):
             self._last_warn[reason] = now
             self.get_logger().warning(f'skipping frame: {text}')
+
+    def _publish(self, pub, msg) -> bool:
+        """Publish unless the node is stopping (then False: the context may already be gone)."""
+        if self._stopping.is_set() or not self.context.ok():
+            return False
+        pub.publish(msg)
+        return True
 
     def _process(self, color: Image, depth: Image) -> None:
         rgb = decode_color(color.data, color.encoding, color.height, color.width, color.step)
@@ -118,9 +142,8 @@ class EncoderNode(Node):
                            bool(depth.is_bigendian))
         if self.p['depth_noise']:
             dep = apply_depth_noise(dep, self.rng, rgb=rgb if rgb.shape[:2] == dep.shape else None)
-        want_depth = self.pub_depth.get_subscription_count() > 0
         t0 = time.perf_counter()
-        out = self.encoder.encode(rgb, dep, want_depth=want_depth)
+        out = self.encoder.encode(rgb, dep, want_depth=False)   # mu first: the policy waits for it
         self.diag.set('inference_ms', f'{1000 * (time.perf_counter() - t0):.2f}')
         header = depth.header
         if not header.frame_id:
@@ -128,33 +151,37 @@ class EncoderNode(Node):
         lat = Float32MultiArray()
         lat.layout.dim = [MultiArrayDimension(label='latent', size=int(out.mu.size), stride=int(out.mu.size))]
         lat.data = out.mu.astype(float).tolist()
-        self.pub_latent.publish(lat)
+        if not self._publish(self.pub_latent, lat):
+            return
         pt = PointStamped()
         pt.header = header
         pt.point.x, pt.point.y, pt.point.z = (float(v) for v in out.pad_xyz)
-        self.pub_pad.publish(pt)
-        if out.depth is not None:
+        self._publish(self.pub_pad, pt)
+        if self.pub_depth.get_subscription_count() > 0:      # the depth decoder only on demand
+            denoised = self.encoder.decode_depth(out.mu)
             img = Image()
             img.header = header
-            img.height, img.width = out.depth.shape
+            img.height, img.width = denoised.shape
             img.encoding = '32FC1'
             img.is_bigendian = 0
             img.step = 4 * img.width
-            img.data = np.ascontiguousarray(out.depth, dtype='<f4').tobytes()
-            self.pub_depth.publish(img)
+            img.data = np.ascontiguousarray(denoised, dtype='<f4').tobytes()
+            self._publish(self.pub_depth, img)
         self.diag.count('frames_encoded')
         self.diag.set('superseded_pairs', self.slot.replaced)
         self.diag.status(DiagnosticStatus.OK, 'encoding')
 
     def close(self) -> None:
-        """Stop the worker thread."""
+        """Stop taking frames and the worker thread (before the node and its publishers go)."""
+        self._stopping.set()
         self.slot.close()
         self._worker.join(timeout=2.0)
+        self.diag.set('superseded_pairs', self.slot.replaced)
 
 
 def main(args=None):
     """Console entry point `encoder_node`."""
-    sys.exit(run_node(lambda: EncoderNode(), args))
+    exit_process(run_node(lambda: EncoderNode(), args))
 
 
 if __name__ == '__main__':

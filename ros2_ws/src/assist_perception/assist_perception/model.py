@@ -18,12 +18,35 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from assist_sim.atomic import atomic_path
+
 MODEL_FORMAT = 'assist_perception.cmvae'
 MODEL_VERSION = 1
+MAX_RANGE_M = 1000.0      # no depth scale, depth limit or pad coordinate of a downward camera exceeds this
 
 
 class ModelLoadError(RuntimeError):
     """A CM-VAE weights file is missing, corrupt or of the wrong kind (one clear message)."""
+
+
+def _int_field(name: str, v: Any, lo: int, hi: int) -> int:
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not lo <= int(v) <= hi:
+        raise ValueError(f'CMVAEConfig.{name} must be an integer in [{lo}, {hi}], got {v!r}')
+    return int(v)
+
+
+def _float_field(name: str, v: Any) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not np.isfinite(v):
+        raise ValueError(f'CMVAEConfig.{name} must be a finite number, got {v!r}')
+    return float(v)
+
+
+def _seq_field(name: str, v: Any, n: int, kind: type) -> tuple:
+    if isinstance(v, (str, bytes)) or not hasattr(v, '__len__') or len(v) != n:
+        raise ValueError(f'CMVAEConfig.{name} must be {n} numbers, got {v!r}')
+    if kind is int:
+        return tuple(_int_field(f'{name}[{i}]', x, -2**31, 2**31) for i, x in enumerate(v))
+    return tuple(_float_field(f'{name}[{i}]', x) for i, x in enumerate(v))
 
 
 @dataclass
@@ -41,14 +64,28 @@ class CMVAEConfig:
     xyz_std: tuple[float, float, float] = (1.0, 1.0, 1.0)
 
     def __post_init__(self) -> None:
-        """Validate: three scalar decoders need at least three latent dims."""
-        if self.latent_dim < 3:
-            raise ValueError('CMVAEConfig.latent_dim must be >= 3 (z[0:3] feed p_X, p_Y, p_Z)')
-        if self.image_size != 64:
+        """Validate types, lengths and ranges (a weights file's config passes through here); ValueError."""
+        self.latent_dim = _int_field('latent_dim', self.latent_dim, 3, 4096)   # z[0:3] feed p_X, p_Y, p_Z
+        if _int_field('image_size', self.image_size, 1, 4096) != 64:
             raise ValueError('CMVAEConfig.image_size: the decoder is built for 64x64 images')
-        self.channels = tuple(int(c) for c in self.channels)
-        self.xyz_mean = tuple(float(v) for v in self.xyz_mean)
-        self.xyz_std = tuple(float(v) for v in self.xyz_std)
+        self.channels = _seq_field('channels', self.channels, 3, int)
+        if any(not 1 <= c <= 1024 for c in self.channels):
+            raise ValueError(f'CMVAEConfig.channels must be 3 integers in [1, 1024], got {self.channels}')
+        self.xyz_hidden = _int_field('xyz_hidden', self.xyz_hidden, 1, 8192)
+        for name in ('depth_scale_m', 'max_input_depth_m'):
+            v = _float_field(name, getattr(self, name))
+            if not 0 < v <= MAX_RANGE_M:
+                raise ValueError(f'CMVAEConfig.{name} must be in (0, {MAX_RANGE_M:g}] m, got {v!r}')
+            setattr(self, name, v)
+        self.init_depth_m = _float_field('init_depth_m', self.init_depth_m)
+        if not 0 <= self.init_depth_m <= MAX_RANGE_M:
+            raise ValueError(f'CMVAEConfig.init_depth_m must be in [0, {MAX_RANGE_M:g}] m, got {self.init_depth_m!r}')
+        self.xyz_mean = _seq_field('xyz_mean', self.xyz_mean, 3, float)
+        self.xyz_std = _seq_field('xyz_std', self.xyz_std, 3, float)
+        if any(abs(v) > MAX_RANGE_M for v in self.xyz_mean):
+            raise ValueError(f'CMVAEConfig.xyz_mean must be within +-{MAX_RANGE_M:g} m, got {self.xyz_mean}')
+        if any(not 0 < v <= MAX_RANGE_M for v in self.xyz_std):
+            raise ValueError(f'CMVAEConfig.xyz_std must be in (0, {MAX_RANGE_M:g}] m, got {self.xyz_std}')
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> 'CMVAEConfig':
@@ -260,9 +297,13 @@ def save_model(path: str | Path, model: CMVAE, metadata: dict[str, Any] | None =
         'state_dict': {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
         'metadata': dict(metadata or {}),
     }
-    tmp = path.with_suffix(path.suffix + '.tmp')
-    torch.save(payload, tmp)
-    tmp.replace(path)
+    with atomic_path(path) as tmp:
+        torch.save(payload, tmp)
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return (text.splitlines()[0] if text else type(exc).__name__)[:200]
 
 
 def load_model(path: str | Path, device: str | torch.device = 'cpu') -> CMVAE:
@@ -275,21 +316,33 @@ def load_model(path: str | Path, device: str | torch.device = 'cpu') -> CMVAE:
     except Exception as exc:  # torch raises many types (pickle, zip, runtime) for bad files
         raise ModelLoadError(f'cannot read CM-VAE weights {path}: {type(exc).__name__} (not a torch '
                              'weights file, truncated, or holding objects that weights_only=True '
-                             'refuses)') from exc
+                             'refuses)') from None
     if not isinstance(payload, dict) or payload.get('format') != MODEL_FORMAT:
         raise ModelLoadError(f'{path} is not a CM-VAE weights file (format tag missing)')
     if payload.get('version') != MODEL_VERSION:
         raise ModelLoadError(f'{path}: unsupported CM-VAE file version {payload.get("version")}')
     try:
-        model = CMVAE(CMVAEConfig.from_dict(dict(payload['config'])))
+        if not isinstance(payload.get('config'), dict):
+            raise ValueError("no 'config' dict")
+        cfg = CMVAEConfig.from_dict(dict(payload['config']))
+    except (TypeError, ValueError) as exc:
+        raise ModelLoadError(f'{path}: bad CM-VAE config: {_first_line(exc)}') from None
+    try:
+        model = CMVAE(cfg)
         model.load_state_dict(payload['state_dict'])
-    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
-        raise ModelLoadError(f'{path}: weights do not match the CM-VAE definition: '
-                             f'{str(exc).splitlines()[0]}') from exc
+    except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as exc:
+        raise ModelLoadError(f'{path}: weights do not match the CM-VAE definition: {_first_line(exc)}') from None
     for name, t in model.state_dict().items():
         if t.is_floating_point() and not torch.isfinite(t).all():
             raise ModelLoadError(f'{path}: non-finite values in {name}')
-    model.metadata = dict(payload.get('metadata', {}))
+    if not bool(((model.xyz_std > 0) & (model.xyz_std <= MAX_RANGE_M)).all()
+                and (model.xyz_mean.abs() <= MAX_RANGE_M).all()):
+        raise ModelLoadError(f'{path}: xyz_std must be in (0, {MAX_RANGE_M:g}] and xyz_mean within '
+                             f'+-{MAX_RANGE_M:g}, got {model.xyz_std.tolist()}, {model.xyz_mean.tolist()}')
+    metadata = payload.get('metadata', {})
+    if not isinstance(metadata, dict):
+        raise ModelLoadError(f'{path}: metadata must be a dict, got {type(metadata).__name__}')
+    model.metadata = dict(metadata)
     return model.to(device).eval()
 
 

@@ -4,6 +4,8 @@ The depth noise model G is applied on the fly (new noise every epoch) to the cle
 the network input; the targets are the clean depth and the closest-visible-pad XYZ. Whole scenes
 are held out for validation. The run directory gets config.json, metrics.csv (one row per epoch),
 checkpoint.pt (latest, for --resume), best.pt and model.pt (weights files for load_model).
+Every file is replaced atomically (temporary file, fsync, rename); on --resume the metrics rows of
+epochs after the checkpoint are dropped (they are trained again).
 """
 from __future__ import annotations
 
@@ -12,12 +14,15 @@ import dataclasses
 import json
 import logging
 import math
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
+
+from assist_sim.atomic import atomic_path, remove_stale_temporaries, truncate_csv, write_text_atomic
 
 from .cli import parse_settings
 from .dataset import FrameSet, load_frames, split_by_scene
@@ -134,7 +139,8 @@ def train(cfg: TrainConfig, frames: FrameSet | None = None, progress: bool = Tru
     ckpt_path = run / 'checkpoint.pt'
     if not cfg.resume and ckpt_path.exists():
         raise FileExistsError(f'{ckpt_path} exists: pass --resume or use a new --run-dir')
-    (run / 'config.json').write_text(json.dumps(dataclasses.asdict(cfg), indent=1))
+    remove_stale_temporaries(run)
+    write_text_atomic(run / 'config.json', json.dumps(dataclasses.asdict(cfg), indent=1))
 
     if frames is None:
         frames = load_frames(cfg.data_dir, cfg.max_frames or None)
@@ -163,6 +169,10 @@ def train(cfg: TrainConfig, frames: FrameSet | None = None, progress: bool = Tru
         _LOG.info('resumed from %s at epoch %d', ckpt_path, start_epoch)
 
     metrics_file = run / 'metrics.csv'
+    # rows of epochs after the checkpoint (killed before it was written) are trained again: drop them
+    dropped = truncate_csv(metrics_file, lambda row: int(row['epoch']) <= start_epoch)
+    if dropped:
+        _LOG.info('metrics.csv: dropped %d rows logged after the checkpoint', dropped)
     last: dict = {}
     t_start = time.perf_counter() - elapsed
     for epoch in range(start_epoch, cfg.epochs):
@@ -209,6 +219,8 @@ def train(cfg: TrainConfig, frames: FrameSet | None = None, progress: bool = Tru
             if new_file:
                 w.writeheader()
             w.writerow(row)
+            fh.flush()
+            os.fsync(fh.fileno())       # durable before the checkpoint that counts it
         meta = {'epoch': epoch + 1, 'train_frames': int(len(train_idx)), 'val_frames': int(len(val_idx)),
                 'data_dir': cfg.data_dir, 'train_seconds': round(elapsed, 1),
                 **{k: float(v) for k, v in val.items()}}
@@ -217,10 +229,9 @@ def train(cfg: TrainConfig, frames: FrameSet | None = None, progress: bool = Tru
             best = score
             save_model(run / 'best.pt', model, meta)
         save_model(run / 'model.pt', model, meta)
-        tmp = ckpt_path.with_suffix('.pt.tmp')   # atomic: an interrupted save keeps the old checkpoint
-        torch.save({'model': model.state_dict(), 'optimizer': opt.state_dict(), 'epoch': epoch,
-                    'step': step, 'best': best, 'elapsed_s': elapsed}, tmp)
-        tmp.replace(ckpt_path)
+        with atomic_path(ckpt_path) as tmp:   # an interrupted save keeps the old checkpoint
+            torch.save({'model': model.state_dict(), 'optimizer': opt.state_dict(), 'epoch': epoch,
+                        'step': step, 'best': best, 'elapsed_s': elapsed}, tmp)
         _LOG.info('epoch %d: %s', epoch + 1,
                   ', '.join(f'{k}={v:.4g}' for k, v in row.items() if isinstance(v, float)))
         last = row

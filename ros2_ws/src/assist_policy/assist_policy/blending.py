@@ -11,14 +11,17 @@ def blend(u: np.ndarray, a: np.ndarray, threshold: float = DEFAULT_THRESHOLD) ->
 
     Returns (u + a) / 2 when the Euclidean norm of `a` exceeds `threshold`, else `u`
     unchanged (the assistant relinquishes control). A non-finite `a` counts as absent
-    (returns `u`); a non-finite `u` raises ValueError: the pilot command is never invented.
+    (returns `u`); a non-finite `u` or a negative / non-finite threshold raises ValueError:
+    the pilot command is never invented.
     """
     u = np.asarray(u, dtype=float).reshape(3)
     a = np.asarray(a, dtype=float).reshape(3)
     if not np.all(np.isfinite(u)):
         raise ValueError(f'pilot command is not finite: {u.tolist()}')
+    if not (np.isfinite(threshold) and threshold >= 0):
+        raise ValueError(f'blend threshold must be finite and >= 0, got {threshold!r}')
     if not np.all(np.isfinite(a)):
         return u.copy()
     if float(np.linalg.norm(a)) > threshold:
-        return 0.5 * (u + a)
+        return 0.5 * u + 0.5 * a      # = (u + a) / 2 exactly, without overflow for huge finite inputs
     return u.copy()

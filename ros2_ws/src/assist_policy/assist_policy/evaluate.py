@@ -23,12 +23,20 @@ policy_node) for every assisted condition, whose rows are then named `<condition
 and without it combine with --from-csv); `guard_fraction` is the share of steps it acted.
 
     evaluate --pilot bang_bang --betas 0 0.25 0.5 0.75 1 --landings 8 --out runs/eval_bang_bang
+
+Results are crash-safe: landings go to <out>/landings.partial.csv as they are flown (the run's
+settings beside it in landings.partial.json); an earlier landings.csv stays untouched until the run
+ends, when the complete table replaces it in one rename. Re-running an interrupted evaluation with
+the same settings reuses the landings already flown.
 """
 from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
+import json
 import logging
+import os
 import sys
 import time
 from dataclasses import dataclass
@@ -37,8 +45,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from assist_sim.atomic import atomic_path, truncate_csv, write_text_atomic
 from assist_sim.pilots import PILOT_NAMES
 
+from .bags.bagio import BagError
+from .bags.episode import record_landing
 from .cli import add_dataclass_args, dataclass_from_args
 from .env import EnvConfig, LandingAssistEnv, run_episode
 from .latent import make_latent_fn
@@ -75,6 +86,7 @@ class EvalArgs:
     pilot: str = 'paper'
     safety: bool = False
     from_csv: tuple[str, ...] = ()
+    record_dir: str = ''
 
 
 HELP = {
@@ -93,6 +105,8 @@ HELP = {
     'from_csv': 'fly nothing: combine the landings.csv files of earlier runs (e.g. one condition split '
                 'over processes by --betas; a landing in a later file replaces the same condition, beta '
                 'and seed in an earlier one) into one table, summary.csv and plot',
+    'record_dir': 'save every landing as a rosbag2 bag (the graph\'s topics and types) in this directory, '
+                  'named <condition>_beta<beta>_seed<seed>: replay_assist / plot_flight take any of them',
 }
 
 LANDING_FIELDS = ['condition', 'beta', 'seed', 'scene_seed', 'goal_index', 'landed_index', 'nearest_index',
@@ -123,6 +137,66 @@ def read_landings(path: str | Path) -> dict[str, list[dict]]:
                 raise ValueError(f'{path}:{n}: bad row: {exc!r}') from exc
             out.setdefault(r['condition'], []).append(row)
     return out
+
+
+class LandingLog:
+    """landings.csv written crash-safely and resumably (see the module docstring)."""
+
+    def __init__(self, out: Path, settings: dict):
+        self.path, self.partial = out / 'landings.csv', out / 'landings.partial.csv'
+        self.settings_file = out / 'landings.partial.json'
+        self.done: dict[tuple, dict] = {}
+        settings = json.loads(json.dumps(settings, sort_keys=True))     # tuples -> lists, as stored
+        same = (self.partial.exists() and self.settings_file.exists()
+                and json.loads(self.settings_file.read_text(encoding='utf-8')) == settings)
+        if same:
+            truncate_csv(self.partial, lambda row: True)      # drops a row torn by a kill
+            self.done = {(c, r['beta'], r['seed']): r for c, rows in read_landings(self.partial).items()
+                         for r in rows}
+            log.info('resuming: %d landings already flown in %s', len(self.done), self.partial)
+        else:
+            self.partial.unlink(missing_ok=True)
+            write_text_atomic(self.settings_file, json.dumps(settings, sort_keys=True))
+        new = not self.partial.exists()
+        self.fh = open(self.partial, 'a', newline='', encoding='utf-8')
+        self.w = csv.DictWriter(self.fh, fieldnames=LANDING_FIELDS, extrasaction='ignore')
+        if new:
+            self.w.writeheader()
+
+    def flown(self, condition: str, beta: float, seed: int) -> dict | None:
+        """The row of a landing an interrupted run already flew, or None."""
+        return self.done.get((condition, beta, seed))
+
+    def write(self, row: dict) -> None:
+        """Append one landing (flushed)."""
+        self.w.writerow(row)
+        self.fh.flush()
+
+    def sync(self) -> None:
+        """Make the landings written so far durable."""
+        self.fh.flush()
+        os.fsync(self.fh.fileno())
+
+    def close(self) -> None:
+        """Close the partial file (kept for a resume)."""
+        self.fh.close()
+
+    def commit(self, rows_by_cond: dict[str, list[dict]]) -> None:
+        """Replace landings.csv with the complete table (if any landing was flown); drop the partial files."""
+        self.close()
+        if rows_by_cond:        # nothing evaluated: an earlier landings.csv is kept as it is
+            write_landings(self.path, rows_by_cond)
+        self.partial.unlink(missing_ok=True)
+        self.settings_file.unlink(missing_ok=True)
+
+
+def write_landings(path: Path, rows_by_cond: dict[str, list[dict]]) -> None:
+    """Write a landings.csv in one atomic step."""
+    with atomic_path(path) as tmp, open(tmp, 'w', newline='', encoding='utf-8') as fh:
+        w = csv.DictWriter(fh, fieldnames=LANDING_FIELDS, extrasaction='ignore')
+        w.writeheader()
+        for rows in rows_by_cond.values():
+            w.writerows(rows)
 
 
 def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: float, alpha: float,
@@ -261,7 +335,8 @@ def plot(rows_by_cond: dict[str, list[dict]], path: Path) -> None:
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120)
     plt.close(fig)
 
 
@@ -277,14 +352,13 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
             merged = {(r['beta'], r['seed']): r for r in rows_by_cond.get(cond, [])}
             merged.update({(r['beta'], r['seed']): r for r in rows})
             rows_by_cond[cond] = sorted(merged.values(), key=lambda r: (r['beta'], r['seed'] or 0))
-    with open(out / 'landings.csv', 'w', newline='', encoding='utf-8') as fh:
-        w = csv.DictWriter(fh, fieldnames=LANDING_FIELDS, extrasaction='ignore')
-        w.writeheader()
-        for rows in rows_by_cond.values():
-            w.writerows(rows)
+    for cond in () if args.from_csv else args.conditions:
+        if cond not in CONDITIONS + BASELINES:
+            raise ValueError(f'unknown condition {cond!r}; choose from {CONDITIONS + BASELINES}')
+    results = None if args.from_csv else LandingLog(out, {k: v for k, v in dataclasses.asdict(args).items()
+                                                          if k not in ('out', 'plot')})
+    try:
         for cond in () if args.from_csv else args.conditions:
-            if cond not in CONDITIONS + BASELINES:
-                raise ValueError(f'unknown condition {cond!r}; choose from {CONDITIONS + BASELINES}')
             model = getattr(args, f'{cond}_model', '') if cond in CONDITIONS[1:] else ''
             try:
                 env, policy = make_policy(cond, model, args.encoder_path, args.max_episode_s, args.alpha,
@@ -294,18 +368,30 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
                 continue
             t0 = time.time()
             rows = []
+            name = cond + ('+guard' if args.safety and cond != 'unassisted' else '')
             for bi, beta in enumerate(args.betas):
                 for k in range(args.landings):
-                    row = run_landing(env, policy, args.seed + 1000 * bi + k, float(beta))
-                    row['condition'] = cond + ('+guard' if args.safety and cond != 'unassisted' else '')
-                    w.writerow(row)
+                    seed = args.seed + 1000 * bi + k
+                    row = results.flown(name, float(beta), seed)
+                    if row is None:
+                        row = (record_landing(run_landing, env, policy, seed, float(beta), name, args.record_dir)
+                               if args.record_dir else run_landing(env, policy, seed, float(beta)))
+                        row['condition'] = name
+                        results.write(row)
                     rows.append(row)
-                fh.flush()
+                results.sync()
             env.close()
-            rows_by_cond[rows[0]['condition'] if rows else cond] = rows
+            rows_by_cond[name] = rows
             log.info('%s: %d landings in %.0f s', cond, len(rows), time.time() - t0)
+    finally:
+        if results is not None:
+            results.close()
+    if results is not None:
+        results.commit(rows_by_cond)
+    elif rows_by_cond:
+        write_landings(out / 'landings.csv', rows_by_cond)
     summary = {c: summarize(r) for c, r in rows_by_cond.items()}
-    with open(out / 'summary.csv', 'w', newline='', encoding='utf-8') as fh:
+    with atomic_path(out / 'summary.csv') as tmp, open(tmp, 'w', newline='', encoding='utf-8') as fh:
         w = csv.writer(fh)
         keys = ['n', 'error_mean', 'error_std', 'error_median', 'specified_success', 'nearest_success',
                 'crash_rate', 'landed_on_goal', 'active_fraction', 'misaimed', 'misaimed_success']
@@ -316,7 +402,7 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
         plot(rows_by_cond, out / 'error_vs_beta.png')
     paired = paired_vs_unassisted(rows_by_cond)
     if paired:
-        (out / 'paired.txt').write_text(format_paired(paired) + '\n', encoding='utf-8')
+        write_text_atomic(out / 'paired.txt', format_paired(paired) + '\n')
     return summary
 
 
@@ -329,7 +415,7 @@ def main(argv: list[str] | None = None) -> int:
     args = dataclass_from_args(EvalArgs, parser.parse_args(argv))
     try:
         summary = evaluate(args)
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, BagError) as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 1
     if not summary:

@@ -53,8 +53,9 @@ def make_latent_fn(model_path: str | Path | None = None, depth_noise: bool = Tru
 
     def encode(rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
         d = apply_depth_noise(depth, rng, rgb=rgb) if depth_noise else depth
+        encode.last_input = (rgb, d)    # the frame as the encoder saw it (evaluate --record-dir saves it)
         try:
-            last['mu'] = np.asarray(encoder.encode(rgb, d).mu, dtype=float)
+            last['mu'] = np.asarray(encoder.encode(rgb, d, want_xyz=False).mu, dtype=float)
         except BadFrame as exc:
             # expected on the pad: the camera is inside the depth sensor's minimum range
             last['rejected'] += 1

@@ -28,6 +28,7 @@ DYNAMICS_DIM = 4      # v (3) + scaled altitude (1)
 ACTIONS_DIM = 9       # u, mean u, mean a
 IMAGE_SHAPE = (4, 64, 64)  # end-to-end: RGB (0..1) + depth (m / DEPTH_SCALE)
 DEPTH_SCALE = 5.0
+TIME_EPS = 1e-6   # s; sample times closer than this count as equal
 
 
 class Condition(str, Enum):
@@ -57,17 +58,23 @@ class ActionHistory:
         a = np.asarray(a, dtype=float).reshape(3)
         if not (np.all(np.isfinite(u)) and np.all(np.isfinite(a))):
             raise ValueError('ActionHistory.push: non-finite action')
+        if not np.isfinite(t):   # a NaN stamp would never be pruned: the history would grow for ever
+            raise ValueError(f'ActionHistory.push: non-finite time {t!r}')
         if self._items and t < self._items[-1][0]:
             self.clear()  # clock jumped backwards (sim reset): old samples are meaningless
         self._items.append((float(t), u, a))
         self._prune(t)
 
     def _prune(self, now: float) -> None:
-        while self._items and self._items[0][0] <= now - self.window_s:
+        # TIME_EPS: a sample exactly window_s old leaves the window whichever clock gave the times (float
+        # seconds in the env, integer ns in ROS and bags differ in the last bits)
+        while self._items and self._items[0][0] <= now - self.window_s + TIME_EPS:
             self._items.popleft()
 
     def means(self, now: float) -> tuple[np.ndarray, np.ndarray]:
         """Mean pilot and mean agent action over (now - window_s, now]; zeros when empty."""
+        if not np.isfinite(now):
+            raise ValueError(f'ActionHistory.means: non-finite time {now!r}')
         self._prune(now)
         if not self._items:
             return np.zeros(3), np.zeros(3)

@@ -1,23 +1,31 @@
 """Pure policy core behind policy_node: inputs with timestamps -> agent action a and blended V.
 
 Safety rules (ARCHITECTURE.md, "Timing and safety rules"):
+* every input is range-checked where it enters (finite, plausible magnitude, right size, right
+  frame); a bad one raises ``InputRejected`` (a ValueError with a short reason key), is counted in
+  ``rejections`` and never replaces the last good value;
 * pilot command older than pilot_timeout_s (or never received) -> u = 0;
 * scene feature (latent / goal / image) or odometry stale or absent -> relinquish: no a, V = u;
 * non-finite actor output is rejected (counted, V = u), never reaches V;
+* any exception inside a step relinquishes (V = u, reason key ``step_error``), never escapes;
 * V is clamped to max_speed_mps (horizontal norm) and max_vertical_mps;
 * floor guard (``safety.FloorGuard``, not learned): low over the floor with no pad under the legs in
-  the depth image, a descending V is replaced by a small climb (agent action a' = 2 V' - u); needs
-  fresh odometry and a depth image (``set_depth``) no older than feature_timeout_s.
+  the depth image, a descending V is replaced by a small climb (agent action a' = 2 V' - u, reason key
+  ``floor_guard``); needs fresh odometry and a depth image (``set_depth``) no older than feature_timeout_s.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
-import os
+import math
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
+
+from assist_sim.shipped import shipped_model_path
 
 from .actions import scale_action
 from .blending import DEFAULT_THRESHOLD, blend
@@ -27,23 +35,30 @@ from .td3 import load_actor
 
 log = logging.getLogger(__name__)
 
-
-def models_dir() -> Path:
-    """Directory of shipped models: $ASSIST_MODELS_DIR or <repo>/models."""
-    env = os.environ.get('ASSIST_MODELS_DIR')
-    if env:
-        return Path(env)
-    return Path(__file__).resolve().parents[4] / 'models'
+MAX_DEPTH_M = 100.0   # depth beyond this (or negative / non-finite) is a hole (0), as the sim and drivers mark them
 
 
 def default_model_path(mode: str) -> Path:
-    """Shipped actor for a mode: models/td3_<mode>_actor.pt."""
-    return models_dir() / f'td3_{Condition(mode).value}_actor.pt'
+    """Shipped actor for a mode, td3_<mode>_actor.pt: $ASSIST_MODELS_DIR, share/assist_policy/models or the repo's models/."""
+    return shipped_model_path('assist_policy', f'td3_{Condition(mode).value}_actor.pt')
+
+
+class InputRejected(ValueError):
+    """An input the core refused; `reason` is a short key for diagnostics (e.g. ``pilot_frame``)."""
+
+    def __init__(self, reason: str, detail: str):
+        super().__init__(detail)
+        self.reason = reason
+
+
+def _positive(name: str, value: float) -> None:
+    if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+        raise ValueError(f'PolicyCoreConfig.{name} must be a finite number > 0, got {value!r}')
 
 
 @dataclass
 class PolicyCoreConfig:
-    """Settings of the policy core (policy_node parameters map 1:1)."""
+    """Settings of the policy core (policy_node parameters map 1:1); validated on construction."""
 
     mode: str = 'latent'
     blend_threshold: float = DEFAULT_THRESHOLD
@@ -52,16 +67,44 @@ class PolicyCoreConfig:
     odom_timeout_s: float = 0.5
     max_speed_mps: float = 1.5
     max_vertical_mps: float = 1.0
-    safety: SafetyConfig | None = None     # floor guard settings (None: SafetyConfig() defaults)
+    max_input_mps: float = 5.0          # pilot commands faster than this (norm) are rejected
+    body_frame: str = 'base_link'       # pilot commands must be in this frame (or carry no frame)
+    max_odom_speed_mps: float = 50.0    # odometry faster than this is not a multirotor: rejected
+    max_position_m: float = 1.0e4       # odometry / goal coordinates beyond this are rejected
+    max_latent_abs: float = 1.0e3       # encoder means beyond this are rejected
+    safety: SafetyConfig | None = None  # floor guard settings (None: SafetyConfig() defaults)
+
+    def __post_init__(self) -> None:
+        """Reject settings that would reverse, suppress or invent motion (ValueError, one line)."""
+        self.mode = Condition(self.mode).value
+        thr = self.blend_threshold
+        if not (isinstance(thr, (int, float)) and math.isfinite(thr) and thr >= 0):
+            raise ValueError(f'PolicyCoreConfig.blend_threshold must be a finite number >= 0, got {thr!r}')
+        for name in ('pilot_timeout_s', 'feature_timeout_s', 'odom_timeout_s', 'max_speed_mps',
+                     'max_vertical_mps', 'max_input_mps', 'max_odom_speed_mps', 'max_position_m',
+                     'max_latent_abs'):
+            _positive(name, getattr(self, name))
 
 
 @dataclass
 class PolicyOutput:
-    """Result of one policy step: agent action (None when relinquished), blended V, reason."""
+    """Result of one policy step: agent action (None when relinquished), blended V, why.
+
+    `key` is a short stable reason for diagnostics: ``assisting``, ``small_action`` (the actor chose
+    |a| <= threshold), ``odom_stale``, ``feature_stale``, ``goal_absent``, ``actor_nonfinite`` or
+    ``step_error``, or ``floor_guard`` (the floor guard replaced a descent); `reason` is the text.
+    """
 
     agent: np.ndarray | None
     velocity: np.ndarray
     reason: str
+    key: str = 'assisting'
+    fault: str = ''           # exception type name when key is step_error
+
+    @property
+    def assisting(self) -> bool:
+        """True when the agent's action is blended into V."""
+        return self.key == 'assisting'
 
 
 class PolicyCore:
@@ -70,13 +113,12 @@ class PolicyCore:
     def __init__(self, actor_path: str | Path, cfg: PolicyCoreConfig | None = None):
         self.cfg = cfg or PolicyCoreConfig()
         self.mode = Condition(self.cfg.mode)
-        self.actor, self.meta = load_actor(actor_path)
+        self.actor, self.meta = load_actor(actor_path)      # metadata and weights validated there
         trained = self.meta.get('condition')
         if trained is not None and trained != self.mode.value:
             raise ValueError(f'{actor_path}: actor was trained for {trained!r}, not mode {self.mode.value!r}')
-        self.max_speed = tuple(self.meta.get('max_speed', (1.0, 1.0, 0.6)))
-        self.builder = ObservationBuilder(self.mode, int(self.meta.get('latent_dim', 0)),
-                                          float(self.meta.get('window_s', 1.0)))
+        self.max_speed = tuple(float(v) for v in self.meta['max_speed'])
+        self.builder = ObservationBuilder(self.mode, int(self.meta['latent_dim']), float(self.meta['window_s']))
         if self.builder.dim != int(self.meta['vec_dim']):
             raise ValueError(f'{actor_path}: actor expects {self.meta["vec_dim"]} inputs, the {self.mode.value} '
                              f'observation has {self.builder.dim}')
@@ -84,53 +126,105 @@ class PolicyCore:
         self._odom: tuple[float, np.ndarray, np.ndarray] | None = None
         self._feature: tuple[float, np.ndarray] | None = None
         self._goal: np.ndarray | None = None
-        self.rejected = 0
+        self.rejected = 0                      # non-finite actor outputs
+        self.rejections: Counter[str] = Counter()   # refused inputs, per reason key
+        self.faults: Counter[str] = Counter()       # exceptions inside step(), per exception type
         self.guard = FloorGuard(self.cfg.safety or SafetyConfig())
         self._depth: tuple[float, np.ndarray] | None = None
-        self.guard_engaged = 0
+        self.guard_engaged = 0                      # steps whose descent the floor guard replaced
+
+    def configure(self, **changes) -> None:
+        """Change settings at run time (e.g. speed limits); ValueError (nothing changed) if invalid."""
+        cfg = dataclasses.replace(self.cfg, **changes)
+        if cfg.mode != self.cfg.mode:
+            raise ValueError('the mode of a running policy core cannot change')
+        self.cfg = cfg
 
     # ------------------------------------------------------------- inputs
-    def set_pilot(self, t: float, u: np.ndarray) -> None:
-        """Latest pilot command (m/s, base_link); ValueError when non-finite."""
-        u = np.asarray(u, dtype=float).reshape(3)
-        if not np.all(np.isfinite(u)):
-            raise ValueError('pilot command not finite')
+    def _reject(self, reason: str, detail: str) -> InputRejected:
+        self.rejections[reason] += 1
+        return InputRejected(reason, detail)
+
+    def _vector(self, what: str, values, size: int, limit: float) -> np.ndarray:
+        """`values` as a float vector of `size` finite entries within +-limit, else InputRejected."""
+        try:
+            v = np.asarray(values, dtype=float).reshape(-1)
+        except (TypeError, ValueError) as exc:
+            raise self._reject(f'{what}_malformed', f'{what}: not numbers ({exc})') from None
+        if v.size != size:
+            raise self._reject(f'{what}_size', f'{what} has {v.size} values, expected {size}')
+        if not np.all(np.isfinite(v)):
+            raise self._reject(f'{what}_nonfinite', f'{what} not finite: {v.tolist()}')
+        if np.abs(v).max(initial=0.0) > limit:
+            raise self._reject(f'{what}_range', f'{what} out of range (|x| > {limit:g}): {v.tolist()}')
+        return v
+
+    def _stamp(self, what: str, t: float) -> float:
+        try:
+            t = float(t)
+        except (TypeError, ValueError):
+            raise self._reject(f'{what}_stamp', f'{what}: stamp {t!r} is not a number') from None
+        if not math.isfinite(t):
+            raise self._reject(f'{what}_stamp', f'{what}: stamp {t!r} is not finite')
+        return t
+
+    def set_pilot(self, t: float, u: np.ndarray, frame_id: str = '') -> None:
+        """Latest pilot command (m/s, body frame); InputRejected when malformed, too fast or in another frame."""
+        t = self._stamp('pilot', t)
+        if frame_id not in ('', self.cfg.body_frame):
+            raise self._reject('pilot_frame', f'pilot command in frame {frame_id!r}, expected '
+                                              f'{self.cfg.body_frame!r}')
+        u = self._vector('pilot', u, 3, math.inf)
+        speed = float(np.linalg.norm(u))
+        if speed > self.cfg.max_input_mps:
+            raise self._reject('pilot_range', f'pilot command {u.tolist()} ({speed:.3g} m/s) faster than '
+                                              f'max_input_speed {self.cfg.max_input_mps:g} m/s')
         self._pilot = (t, u)
 
     def set_odom(self, t: float, position: np.ndarray, velocity: np.ndarray) -> None:
-        """Latest odometry (odom ENU); ValueError when non-finite."""
-        p = np.asarray(position, dtype=float).reshape(3)
-        v = np.asarray(velocity, dtype=float).reshape(3)
-        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(v))):
-            raise ValueError('odometry not finite')
+        """Latest odometry (odom ENU); InputRejected when non-finite or implausible."""
+        t = self._stamp('odom', t)
+        p = self._vector('odom_position', position, 3, self.cfg.max_position_m)
+        v = self._vector('odom_velocity', velocity, 3, self.cfg.max_odom_speed_mps)
         self._odom = (t, p, v)
 
     def set_latent(self, t: float, mu: np.ndarray) -> None:
-        """Latest encoder mean (latent mode); ValueError on wrong size or non-finite values."""
-        mu = np.asarray(mu, dtype=float).reshape(-1)
-        if mu.size != self.builder.latent_dim:
-            raise ValueError(f'latent has {mu.size} values, the actor expects {self.builder.latent_dim}')
-        if not np.all(np.isfinite(mu)):
-            raise ValueError('latent not finite')
-        self._feature = (t, mu)
+        """Latest encoder mean (latent mode); InputRejected on wrong size, non-finite or huge values."""
+        t = self._stamp('latent', t)
+        self._feature = (t, self._vector('latent', mu, self.builder.latent_dim, self.cfg.max_latent_abs))
 
     def set_goal(self, goal: np.ndarray) -> None:
-        """True goal (oracle mode, simulation only)."""
-        g = np.asarray(goal, dtype=float).reshape(3)
-        if not np.all(np.isfinite(g)):
-            raise ValueError('goal not finite')
-        self._goal = g
+        """True goal (oracle mode, simulation only); InputRejected when non-finite or implausible."""
+        self._goal = self._vector('goal', goal, 3, self.cfg.max_position_m)
 
     def set_image(self, t: float, rgb: np.ndarray, depth: np.ndarray) -> None:
-        """Latest RGB-D frame (end-to-end mode)."""
-        self._feature = (t, image_feature(rgb, depth).reshape(-1))
+        """Latest RGB-D frame (end-to-end mode): uint8 HxWx3 + metres HxW (holes: 0, NaN, negative)."""
+        t = self._stamp('image', t)
+        rgb, depth = np.asarray(rgb), np.asarray(depth)
+        if rgb.dtype != np.uint8:
+            raise self._reject('image_encoding', f'colour image must be uint8, got {rgb.dtype}')
+        if not np.issubdtype(depth.dtype, np.number):
+            raise self._reject('image_encoding', f'depth image must be numeric, got {depth.dtype}')
+        depth = depth.astype(np.float32)
+        depth = np.where(np.isfinite(depth) & (depth >= 0) & (depth <= MAX_DEPTH_M), depth, 0.0)
+        try:
+            feature = image_feature(rgb, depth).reshape(-1)
+        except ValueError as exc:
+            raise self._reject('image_size', str(exc)) from None
+        if feature.size != self.actor.trunk.img_size:
+            raise self._reject('image_size', f'image of {feature.size} values, the actor expects '
+                                              f'{self.actor.trunk.img_size}')
+        self._feature = (t, feature)
 
     def set_depth(self, t: float, depth: np.ndarray) -> None:
-        """Latest depth image (HxW metres, invalid 0 or NaN) for the floor guard; ValueError if not 2-D."""
-        depth = np.asarray(depth, dtype=np.float32)
-        if depth.ndim != 2 or depth.size == 0:
-            raise ValueError(f'depth image must be HxW, got shape {depth.shape}')
-        self._depth = (t, depth)
+        """Latest depth image for the floor guard: metres HxW (holes: 0, NaN, negative); InputRejected if not 2-D."""
+        t = self._stamp('depth', t)
+        depth = np.asarray(depth)
+        if depth.ndim != 2 or depth.size == 0 or not np.issubdtype(depth.dtype, np.number):
+            raise self._reject('depth_image', f'depth image must be a numeric HxW array, got {depth.dtype} '
+                                              f'{depth.shape}')
+        depth = depth.astype(np.float32)
+        self._depth = (t, np.where(np.isfinite(depth) & (depth >= 0) & (depth <= MAX_DEPTH_M), depth, 0.0))
 
     def reset(self) -> None:
         """Forget the action history and the floor guard's last pad (new episode)."""
@@ -142,46 +236,76 @@ class PolicyCore:
         return stamp is not None and abs(now - stamp) <= timeout
 
     def _clamp(self, v: np.ndarray) -> np.ndarray:
-        v = v.copy()
+        v = np.array(v, dtype=float).reshape(3)
         sp = float(np.hypot(v[0], v[1]))
         if sp > self.cfg.max_speed_mps:
             v[:2] *= self.cfg.max_speed_mps / sp
         v[2] = float(np.clip(v[2], -self.cfg.max_vertical_mps, self.cfg.max_vertical_mps))
         return v
 
+    def pilot_command(self, now: float) -> np.ndarray:
+        """The pilot's u at `now`: the latest accepted command if fresh, else zero (never raises)."""
+        p = self._pilot
+        if p is not None and self._fresh(p[0], now, self.cfg.pilot_timeout_s):
+            return p[1].copy()
+        return np.zeros(3)
+
+    def fallback(self, now: float) -> PolicyOutput:
+        """What to fly when a step cannot run: V = u, clamped (finite by construction; never raises)."""
+        try:
+            v = self._clamp(self.pilot_command(now))
+            if not np.all(np.isfinite(v)):
+                v = np.zeros(3)
+        except Exception:  # noqa: BLE001 - the last line of defence must not raise
+            v = np.zeros(3)
+        return PolicyOutput(None, v, 'step failed: relinquished', 'step_error')
+
     def step(self, now: float) -> PolicyOutput:
-        """One control step at time `now` (seconds, same clock as the input stamps), floor guard last."""
-        return self._guarded(now, self._step(now))
+        """One control step at time `now` (seconds, same clock as the input stamps); never raises.
+
+        Any exception inside the step (a bad observation, the actor, the history) relinquishes:
+        V = u (clamped), reason key ``step_error``, counted in `faults` by exception type and logged.
+        """
+        try:
+            now = float(now)
+            if not math.isfinite(now):
+                raise ValueError(f'clock reads {now!r}')
+            return self._guarded(now, self._step(now))
+        except Exception as exc:  # noqa: BLE001 - contract: no exception leaves a control step
+            self.faults[type(exc).__name__] += 1
+            log.debug('policy step failed (%s: %s): relinquishing', type(exc).__name__, exc)
+            out = self.fallback(now)
+            out.reason = f'step failed ({type(exc).__name__}: {exc}): relinquished'
+            out.fault = type(exc).__name__
+            return out
 
     def _guarded(self, now: float, out: PolicyOutput) -> PolicyOutput:
+        """The floor guard on this step's output (needs fresh odometry and depth; else unchanged)."""
         c = self.cfg
         if not (self.guard.cfg.enabled and self._odom is not None and self._fresh(self._odom[0], now, c.odom_timeout_s)
                 and self._depth is not None and self._fresh(self._depth[0], now, c.feature_timeout_s)):
             return out
-        u = self._pilot[1] if self._pilot is not None and self._fresh(self._pilot[0], now, c.pilot_timeout_s) \
-            else np.zeros(3)
-        g = self.guard.apply(u, out.agent, out.velocity, self._depth[1], self._odom[1], c.blend_threshold)
+        g = self.guard.apply(self.pilot_command(now), out.agent, out.velocity, self._depth[1], self._odom[1],
+                             c.blend_threshold)
         if not g.engaged:
             return out
         self.guard_engaged += 1
-        return PolicyOutput(g.agent, self._clamp(g.velocity), 'floor guard: descent blocked')
+        return PolicyOutput(g.agent, self._clamp(g.velocity), 'floor guard: descent blocked', 'floor_guard')
 
     def _step(self, now: float) -> PolicyOutput:
         c = self.cfg
-        u = np.zeros(3)
-        if self._pilot is not None and self._fresh(self._pilot[0], now, c.pilot_timeout_s):
-            u = self._pilot[1]
+        u = self.pilot_command(now)
         odom_ok = self._odom is not None and self._fresh(self._odom[0], now, c.odom_timeout_s)
         if not odom_ok:
-            return self._relinquish(now, u, 'odometry stale or absent')
+            return self._relinquish(now, u, 'odometry stale or absent', 'odom_stale')
         _, pos, vel = self._odom
         if self.mode is Condition.ORACLE:
             if self._goal is None:
-                return self._relinquish(now, u, 'goal absent')
+                return self._relinquish(now, u, 'goal absent', 'goal_absent')
             feature = oracle_feature(self._goal, pos)
         else:
             if self._feature is None or not self._fresh(self._feature[0], now, c.feature_timeout_s):
-                return self._relinquish(now, u, f'{self.mode.value} input stale or absent')
+                return self._relinquish(now, u, f'{self.mode.value} input stale or absent', 'feature_stale')
             feature = self._feature[1]
         if self.mode is Condition.END_TO_END:
             vec = self.builder.build(now, np.zeros(0), vel, pos[2], u)
@@ -192,12 +316,14 @@ class PolicyCore:
             raw = self.actor(torch.as_tensor(obs).unsqueeze(0))[0].numpy().astype(float)
         if not np.all(np.isfinite(raw)):
             self.rejected += 1
-            return self._relinquish(now, u, 'actor output not finite (rejected)')
+            return self._relinquish(now, u, 'actor output not finite (rejected)', 'actor_nonfinite')
         a = scale_action(raw, self.max_speed)
         v = self._clamp(blend(u, a, c.blend_threshold))
         self.builder.record(now, u, a)
-        return PolicyOutput(a, v, 'assisting' if np.linalg.norm(a) > c.blend_threshold else 'relinquished')
+        if np.linalg.norm(a) > c.blend_threshold:
+            return PolicyOutput(a, v, 'assisting', 'assisting')
+        return PolicyOutput(a, v, 'relinquished', 'small_action')
 
-    def _relinquish(self, now: float, u: np.ndarray, reason: str) -> PolicyOutput:
+    def _relinquish(self, now: float, u: np.ndarray, reason: str, key: str) -> PolicyOutput:
         self.builder.record(now, u, np.zeros(3))
-        return PolicyOutput(None, self._clamp(u), reason)
+        return PolicyOutput(None, self._clamp(u), reason, key)

@@ -1,14 +1,19 @@
 """policy_node: runs the TD3 actor at a fixed rate and publishes /assist/agent_cmd and blended /cmd_vel.
 
-Thin rclpy shell over ``policy_core.PolicyCore`` (inputs, staleness, blending, NaN rejection).
+Thin rclpy shell over ``policy_core.PolicyCore`` (input range checks, staleness, blending, NaN rejection).
+Run-time parameters (``ros2 param set``): blend_threshold, the three timeouts, max_speed,
+max_vertical_speed, max_input_speed, floor_guard, floor_guard_height_m, floor_guard_climb_mps; every
+other parameter is read-only. The floor guard (assist_policy.safety) reads /camera/depth/image_raw in
+every mode; /diagnostics shows floor_guard (on/off) and floor_guard_engaged (steps it replaced a descent).
 """
 from __future__ import annotations
 
-import sys
 import threading
+import time
 
 import numpy as np
 import torch
+from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PointStamped, TwistStamped
 from nav_msgs.msg import Odometry
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
@@ -17,25 +22,43 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import Float32MultiArray
 
 from assist_sim.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError,
-                                   declare_parameters, fill_twist, run_node, twist_to_array)
+                                   declare_parameters, exit_process, fill_twist, run_node, twist_to_array)
 
 from .blending import DEFAULT_THRESHOLD
-from .policy_core import PolicyCore, PolicyCoreConfig, default_model_path
+from .policy_core import PolicyCore, PolicyCoreConfig, PolicyOutput, default_model_path
 from .safety import SafetyConfig
 
 PARAMS = {
     'model_path': Param('', 'TD3 actor file; empty: the shipped models/td3_<mode>_actor.pt.'),
     'mode': Param('latent', 'Assistant input: latent (CM-VAE /assist/latent), oracle (/sim/goal, sim only), '
-                            'end_to_end (raw RGB-D images).'),
-    'rate_hz': Param(20.0, 'Actor rate (the training control rate is 20 Hz).'),
-    'blend_threshold': Param(DEFAULT_THRESHOLD, 'Agent actions with |a| at or below this (m/s) are ignored: V = u.'),
-    'pilot_timeout_s': Param(0.5, 'Pilot command older than this counts as absent (u = 0).'),
-    'latent_timeout_s': Param(0.5, 'Latent (or image) older than this: the assistant relinquishes (V = u).'),
-    'odom_timeout_s': Param(0.5, 'Odometry older than this: the assistant relinquishes (V = u).'),
-    'max_speed': Param(1.5, 'Horizontal speed limit of the published /cmd_vel (m/s).'),
-    'max_vertical_speed': Param(1.0, 'Vertical speed limit of the published /cmd_vel (m/s).'),
-    'max_input_speed': Param(5.0, 'Pilot commands faster than this are rejected as out of range (m/s).'),
-    'frame_id': Param('base_link', 'frame_id of the published commands.'),
+                            'end_to_end (raw RGB-D images).', choices=('latent', 'oracle', 'end_to_end')),
+    'rate_hz': Param(20.0, 'Actor rate (the training control rate is 20 Hz).', min=0.0, max=200.0,
+                     min_exclusive=True),
+    'blend_threshold': Param(DEFAULT_THRESHOLD, 'Agent actions with |a| at or below this (m/s) are ignored: V = u.',
+                             min=0.0, max=10.0, dynamic=True),
+    'pilot_timeout_s': Param(0.5, 'Pilot command older than this counts as absent (u = 0).', min=0.0, max=10.0,
+                             min_exclusive=True, dynamic=True),
+    'latent_timeout_s': Param(0.5, 'Latent (or image) older than this: the assistant relinquishes (V = u).',
+                              min=0.0, max=10.0, min_exclusive=True, dynamic=True),
+    'odom_timeout_s': Param(0.5, 'Odometry older than this: the assistant relinquishes (V = u).', min=0.0, max=10.0,
+                            min_exclusive=True, dynamic=True),
+    'max_speed': Param(1.5, 'Horizontal speed limit of the published /cmd_vel (m/s).', min=0.0, max=20.0,
+                       min_exclusive=True, dynamic=True),
+    'max_vertical_speed': Param(1.0, 'Vertical speed limit of the published /cmd_vel (m/s).', min=0.0, max=10.0,
+                                min_exclusive=True, dynamic=True),
+    'max_input_speed': Param(5.0, 'Pilot commands faster than this (speed, the norm) are rejected (m/s).',
+                             min=0.0, max=50.0, min_exclusive=True, dynamic=True),
+    'frame_id': Param('base_link', 'Body frame: frame_id of the published commands; pilot commands must carry it '
+                                   '(or none).'),
+    'torch_threads': Param(1, 'Intra-op CPU threads for the actor (1 is fastest for this small network).',
+                           min=1, max=64),
+    'error_after_faults': Param(20, 'Consecutive failed steps (exceptions or non-finite actor output) after which '
+                                    'diagnostics report ERROR (20 = 1 s at 20 Hz).', min=1, max=100_000),
+    'warn_period_s': Param(2.0, 'Minimum seconds between repeated warnings of the same reason.', min=0.0,
+                           max=3600.0),
+    'step_on_latent': Param(True, 'latent mode: run the actor as soon as a new latent arrives (camera-to-command '
+                                  'latency = one inference, /cmd_vel stamped with the frame\'s sim time); the '
+                                  'rate_hz timer then runs only while latents are missing.'),
     'floor_guard': Param(True, 'Floor guard (assist_policy.safety, not learned): low over the floor with no pad under '
                                'the legs in /camera/depth/image_raw, a descent is replaced by a small climb.',
                          dynamic=True),
@@ -43,8 +66,34 @@ PARAMS = {
                                   min=0.0, max=10.0, dynamic=True),
     'floor_guard_climb_mps': Param(0.15, 'Vertical velocity the floor guard imposes instead of a descent (m/s; at '
                                          'least blend_threshold / 2 + 0.01 is used).', min=0.0, max=1.0, dynamic=True),
-    'torch_threads': Param(1, 'Intra-op CPU threads for the actor (1 is fastest for this small network).'),
 }
+
+# node parameter -> PolicyCoreConfig field, for the parameters applied to the core at run time
+CORE_FIELDS = {'blend_threshold': 'blend_threshold', 'pilot_timeout_s': 'pilot_timeout_s',
+               'latent_timeout_s': 'feature_timeout_s', 'odom_timeout_s': 'odom_timeout_s',
+               'max_speed': 'max_speed_mps', 'max_vertical_speed': 'max_vertical_mps',
+               'max_input_speed': 'max_input_mps'}
+# step outcomes that are normal operation (diagnostics OK); everything else is a WARN with its reason
+OK_KEYS = ('assisting', 'small_action', 'floor_guard')
+FAULT_KEYS = ('actor_nonfinite', 'step_error')
+
+
+class ReasonThrottle:
+    """Per-reason rate limit for warnings: distinct faults are each logged, repeats of one are not."""
+
+    def __init__(self, period_s: float, clock=time.monotonic):
+        self.period_s = float(period_s)
+        self._clock = clock
+        self._last: dict[str, float] = {}
+
+    def ready(self, reason: str) -> bool:
+        """True (and remember the time) when `reason` was not logged within the last period."""
+        now = self._clock()
+        last = self._last.get(reason)
+        if last is not None and now - last < self.period_s:
+            return False
+        self._last[reason] = now
+        return True
 
 
 def _image_to_array(msg: Image) -> np.ndarray:
@@ -60,157 +109,204 @@ def _image_to_array(msg: Image) -> np.ndarray:
 
 
 class PolicyNode(Node):
-    """Subscribes latent/odom/pilot (+goal in oracle mode), publishes agent_cmd and cmd_vel."""
+    """Subscribes latent/odom/pilot (+goal in oracle mode), publishes agent_cmd and cmd_vel.
+
+    No exception in a callback may stop the node: bad inputs are rejected (counted per reason,
+    warned once per reason per warn_period_s); a failed control step publishes V = u (clamped).
+    """
 
     def __init__(self, **kwargs):
         super().__init__('policy_node', **kwargs)
         self.p = declare_parameters(self, PARAMS, on_change=self._on_params)
         self.diag = Diagnostics(self)
+        self._warn_throttle = ReasonThrottle(self.p['warn_period_s'])
         mode = self.p['mode']
-        if mode not in ('latent', 'oracle', 'end_to_end'):
-            raise StartupError(f"policy_node: mode must be latent, oracle or end_to_end, got '{mode}'")
-        if not self.p['rate_hz'] > 0:
-            raise StartupError('policy_node: rate_hz must be > 0')
-        if int(self.p['torch_threads']) < 1:
-            raise StartupError('policy_node: torch_threads must be >= 1')
         # a 256x256 MLP gains nothing from intra-op threads; spinning OpenMP workers would starve
         # the sim and the other nodes on a small machine
         torch.set_num_threads(int(self.p['torch_threads']))
         path = self.p['model_path'] or str(default_model_path(mode))
-        cfg = PolicyCoreConfig(mode=mode, blend_threshold=float(self.p['blend_threshold']),
-                               pilot_timeout_s=float(self.p['pilot_timeout_s']),
-                               feature_timeout_s=float(self.p['latent_timeout_s']),
-                               odom_timeout_s=float(self.p['odom_timeout_s']),
-                               max_speed_mps=float(self.p['max_speed']),
-                               max_vertical_mps=float(self.p['max_vertical_speed']),
-                               safety=SafetyConfig(enabled=bool(self.p['floor_guard']),
-                                                   guard_height_m=float(self.p['floor_guard_height_m']),
-                                                   min_climb_mps=float(self.p['floor_guard_climb_mps'])))
         try:
+            cfg = PolicyCoreConfig(mode=mode, body_frame=self.p['frame_id'],
+                                   safety=SafetyConfig(enabled=bool(self.p['floor_guard']),
+                                                       guard_height_m=float(self.p['floor_guard_height_m']),
+                                                       min_climb_mps=float(self.p['floor_guard_climb_mps'])),
+                                   **{f: self.p[k] for k, f in CORE_FIELDS.items()})
             self.core = PolicyCore(path, cfg)
         except ValueError as exc:
-            raise StartupError(f'policy_node: {exc}') from exc
+            raise StartupError(f'policy_node: {exc}') from None
         self._lock = threading.Lock()
+        self._consecutive_faults = 0
         inputs = MutuallyExclusiveCallbackGroup()
         self.pub_agent = self.create_publisher(TwistStamped, '/assist/agent_cmd', RELIABLE_QOS)
         self.pub_cmd = self.create_publisher(TwistStamped, '/cmd_vel', RELIABLE_QOS)
-        self.create_subscription(Odometry, '/odom', self._on_odom, SENSOR_QOS, callback_group=inputs)
-        self.create_subscription(TwistStamped, '/pilot/cmd_vel', self._on_pilot, RELIABLE_QOS,
+        self.create_subscription(Odometry, '/odom', self._guard('odom', self._on_odom), SENSOR_QOS,
                                  callback_group=inputs)
+        self.create_subscription(TwistStamped, '/pilot/cmd_vel', self._guard('pilot', self._on_pilot),
+                                 RELIABLE_QOS, callback_group=inputs)
         if mode == 'latent':
-            self.create_subscription(Float32MultiArray, '/assist/latent', self._on_latent, SENSOR_QOS,
-                                     callback_group=inputs)
+            self.create_subscription(Float32MultiArray, '/assist/latent', self._guard('latent', self._on_latent),
+                                     SENSOR_QOS, callback_group=inputs)
         elif mode == 'oracle':
-            self.create_subscription(PointStamped, '/sim/goal', self._on_goal, LATCHED_QOS,
+            self.create_subscription(PointStamped, '/sim/goal', self._guard('goal', self._on_goal), LATCHED_QOS,
                                      callback_group=inputs)
         else:
-            self.create_subscription(Image, '/camera/color/image_raw', self._on_rgb, SENSOR_QOS,
-                                     callback_group=inputs)
+            self.create_subscription(Image, '/camera/color/image_raw', self._guard('image', self._on_rgb),
+                                     SENSOR_QOS, callback_group=inputs)
         self._rgb = None
         # every mode: the floor guard reads the depth image (end_to_end also feeds it to the actor)
-        self.create_subscription(Image, '/camera/depth/image_raw', self._on_depth, SENSOR_QOS,
-                                 callback_group=inputs)
-        self.create_timer(1.0 / float(self.p['rate_hz']), self._tick,
+        self.create_subscription(Image, '/camera/depth/image_raw', self._guard('depth', self._on_depth),
+                                 SENSOR_QOS, callback_group=inputs)
+        self._on_latent_steps = mode == 'latent' and bool(self.p['step_on_latent'])
+        self._last_latent_step = -1e9           # node-clock time of the last latent-driven step
+        self.create_timer(1.0 / float(self.p['rate_hz']), self._on_timer,
                           callback_group=MutuallyExclusiveCallbackGroup())
         self.diag.set('model_path', path)
         self.diag.set('mode', mode)
         self.diag.set('floor_guard', 'on' if self.p['floor_guard'] else 'off')
+        self.diag.status(DiagnosticStatus.WARN, 'relinquished: waiting for inputs')
         self.get_logger().info(f'policy_node: {mode} actor {path} at {self.p["rate_hz"]} Hz')
 
+    # ------------------------------------------------------------- parameters
+    def _on_params(self, changed: dict) -> None:
+        """Apply run-time parameter changes to the core (ValueError refuses the whole set)."""
+        core_changes = {CORE_FIELDS[k]: v for k, v in changed.items() if k in CORE_FIELDS}
+        if core_changes:
+            with self._lock:
+                self.core.configure(**core_changes)
+        guard = {k: changed[k] for k in ('floor_guard', 'floor_guard_height_m', 'floor_guard_climb_mps') if k in changed}
+        if guard:
+            with self._lock:
+                g = self.core.guard.cfg
+                g.enabled = bool(guard.get('floor_guard', g.enabled))
+                g.guard_height_m = float(guard.get('floor_guard_height_m', g.guard_height_m))
+                g.min_climb_mps = float(guard.get('floor_guard_climb_mps', g.min_climb_mps))
+            self.diag.set('floor_guard', 'on' if g.enabled else 'off')
+
+    # ------------------------------------------------------------- inputs
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
 
+    def _warn(self, reason: str, text: str) -> None:
+        if self._warn_throttle.ready(reason):
+            self.get_logger().warning(text)
+
     def _reject(self, what: str, exc: Exception) -> None:
+        reason = getattr(exc, 'reason', None) or f'{what}_{type(exc).__name__}'
         self.diag.count(f'rejected_{what}')
-        self.get_logger().warning(f'rejected {what}: {exc}', throttle_duration_sec=2.0)
+        self.diag.count(f'rejected_{reason}')
+        self._warn(reason, f'rejected {what} ({reason}): {exc}')
+
+    def _guard(self, what: str, callback):
+        """Wrap an input callback: any exception rejects the message (counted, logged), never escapes."""
+        def guarded(msg) -> None:
+            try:
+                callback(msg)
+            except Exception as exc:  # noqa: BLE001 - contract: a bad message never kills the node
+                self._reject(what, exc)
+        return guarded
 
     def _on_odom(self, msg: Odometry) -> None:
         p, v = msg.pose.pose.position, msg.twist.twist.linear
-        try:
-            with self._lock:
-                self.core.set_odom(self._now(), [p.x, p.y, p.z], [v.x, v.y, v.z])
-        except ValueError as exc:
-            self._reject('odom', exc)
+        with self._lock:
+            self.core.set_odom(self._now(), [p.x, p.y, p.z], [v.x, v.y, v.z])
 
     def _on_pilot(self, msg: TwistStamped) -> None:
-        u = twist_to_array(msg)
-        try:
-            if np.all(np.isfinite(u)) and np.abs(u).max() > float(self.p['max_input_speed']):
-                raise ValueError(f'pilot command {u.tolist()} out of range')
-            with self._lock:
-                self.core.set_pilot(self._now(), u)
-        except ValueError as exc:
-            self._reject('pilot', exc)
+        with self._lock:
+            self.core.set_pilot(self._now(), twist_to_array(msg), msg.header.frame_id)
 
     def _on_latent(self, msg: Float32MultiArray) -> None:
-        try:
-            with self._lock:
-                self.core.set_latent(self._now(), np.asarray(msg.data, dtype=float))
-        except ValueError as exc:
-            self._reject('latent', exc)
+        with self._lock:
+            self.core.set_latent(self._now(), np.asarray(msg.data, dtype=float))
+        if self._on_latent_steps:               # a rejected latent raised above: no step for it
+            self._last_latent_step = self._now()
+            self._tick()
+
+    def _on_timer(self) -> None:
+        # with latent-driven steps the timer only covers gaps in the latent stream
+        if not 0.0 <= self._now() - self._last_latent_step <= 1.5 / float(self.p['rate_hz']):
+            self._tick()
 
     def _on_goal(self, msg: PointStamped) -> None:
-        try:
-            with self._lock:
-                self.core.set_goal([msg.point.x, msg.point.y, msg.point.z])
-                self.core.reset()
-        except ValueError as exc:
-            self._reject('goal', exc)
+        with self._lock:
+            self.core.set_goal([msg.point.x, msg.point.y, msg.point.z])
+            self.core.reset()
 
     def _on_rgb(self, msg: Image) -> None:
-        try:
-            self._rgb = _image_to_array(msg)
-        except ValueError as exc:
-            self._reject('image', exc)
+        self._rgb = _image_to_array(msg)
 
     def _on_depth(self, msg: Image) -> None:
-        try:
-            depth = _image_to_array(msg)
-            if depth.ndim != 2:
-                raise ValueError(f'depth image must be 32FC1 or 16UC1, got {msg.encoding!r}')
-            with self._lock:
-                self.core.set_depth(self._now(), depth)
-                if self.core.mode.value == 'end_to_end' and self._rgb is not None:
-                    self.core.set_image(self._now(), self._rgb, depth)
-        except ValueError as exc:
-            self._reject('image', exc)
-
-    def _on_params(self, changed: dict) -> None:
-        """Apply run-time changes of the floor guard parameters."""
+        depth = _image_to_array(msg)
+        if depth.ndim != 2:
+            raise ValueError(f'depth image must be 32FC1 or 16UC1, got {msg.encoding!r}')
         with self._lock:
-            g = self.core.guard.cfg
-            g.enabled = bool(changed.get('floor_guard', g.enabled))
-            g.guard_height_m = float(changed.get('floor_guard_height_m', g.guard_height_m))
-            g.min_climb_mps = float(changed.get('floor_guard_climb_mps', g.min_climb_mps))
-            self.diag.set('floor_guard', 'on' if g.enabled else 'off')
+            self.core.set_depth(self._now(), depth)
+            if self.core.mode.value == 'end_to_end' and self._rgb is not None:
+                self.core.set_image(self._now(), self._rgb, depth)
 
-    def _tick(self) -> None:
-        now = self._now()
-        with self._lock:
-            out = self.core.step(now)
-            rejected = self.core.rejected
-            guarded = self.core.guard_engaged
+    # ------------------------------------------------------------- control step
+    def _publish(self, out: PolicyOutput) -> None:
         stamp = self.get_clock().now().to_msg()
         frame = self.p['frame_id']
-        if out.agent is not None:
+        if out.agent is not None and np.all(np.isfinite(out.agent)):
             msg = TwistStamped()
             msg.header.stamp, msg.header.frame_id = stamp, frame
             self.pub_agent.publish(fill_twist(msg, out.agent))
             self.diag.count('agent_cmds')
-        if not np.all(np.isfinite(out.velocity)):  # defence in depth: never reaches an actuator
-            self.diag.count('rejected_velocity')
-            return
         cmd = TwistStamped()
         cmd.header.stamp, cmd.header.frame_id = stamp, frame
         self.pub_cmd.publish(fill_twist(cmd, out.velocity))
-        self.diag.set('state', out.reason)
-        self.diag.set('rejected_actor_outputs', rejected)
-        self.diag.set('floor_guard_engaged', guarded)
+
+    def _tick(self) -> None:
+        """One control step; any exception relinquishes (V = u, clamped), is counted and logged."""
+        try:
+            with self._lock:
+                out = self.core.step(self._now())
+                if not np.all(np.isfinite(out.velocity)):   # defence in depth: never reaches an actuator
+                    out = self.core.fallback(self._now())
+                    out.reason = 'blended velocity not finite: relinquished'
+            self._publish(out)
+        except Exception as exc:  # noqa: BLE001 - contract: no exception kills a control step
+            out = self.core.fallback(self._now())
+            out.reason = f'control step failed ({type(exc).__name__}: {exc}): relinquished'
+            out.fault = type(exc).__name__
+            try:
+                self._publish(out)
+            except Exception as exc2:  # noqa: BLE001 - publishing itself failed: count and go on
+                self.diag.count('publish_errors')
+                self._warn('publish_error', f'cannot publish /cmd_vel: {type(exc2).__name__}: {exc2}')
+        self._report(out)
+
+    def _report(self, out: PolicyOutput) -> None:
+        """Counters, throttled warnings and the diagnostic level/message for this step's outcome."""
+        self.diag.set('state', out.key)
+        self.diag.set('rejected_actor_outputs', self.core.rejected)
+        self.diag.set('floor_guard_engaged', self.core.guard_engaged)
+        if out.key in FAULT_KEYS:
+            self._consecutive_faults += 1
+            self.diag.count(f'fault_{out.key}')
+            if out.fault:
+                self.diag.count(f'fault_{out.fault}')
+            self._warn(f'{out.key}:{out.fault}', out.reason)
+        else:
+            self._consecutive_faults = 0
+        if out.key not in OK_KEYS:
+            self.diag.count(f'relinquished_{out.key}')
+        if self._consecutive_faults >= int(self.p['error_after_faults']):
+            self.diag.status(DiagnosticStatus.ERROR, f'relinquished: {self._consecutive_faults} consecutive '
+                                                     f'failed steps ({out.reason})')
+        elif out.key == 'assisting':
+            self.diag.status(DiagnosticStatus.OK, 'assisting')
+        elif out.key == 'floor_guard':
+            self.diag.status(DiagnosticStatus.OK, 'floor guard: descent over bare floor blocked')
+        elif out.key == 'small_action':
+            self.diag.status(DiagnosticStatus.OK, 'relinquished: agent action at or below blend_threshold')
+        else:
+            self.diag.status(DiagnosticStatus.WARN, f'relinquished: {out.reason}')
 
 
 def main(args=None):
     """Console entry point."""
-    sys.exit(run_node(lambda: PolicyNode(), args))
+    exit_process(run_node(lambda: PolicyNode(), args))
 
 
 if __name__ == '__main__':

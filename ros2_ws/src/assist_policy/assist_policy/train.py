@@ -4,8 +4,11 @@
     train_td3 --resume runs/oracle_a            # continue where it stopped (other session, same flags)
 
 Run directory runs/<name>/: config.json, metrics.csv (one row per training landing), eval.csv
-(periodic deterministic evaluation), progress.txt (last status line), ckpt.pt (+ replay.npz):
-full training state, actor_last.pt / actor_best.pt: shippable actors (``td3.load_actor``).
+(periodic deterministic evaluation), progress.txt (last status line), checkpoint/ (state.pt +
+replay.npz: the full training state, written as one unit: a crash leaves the previous checkpoint or
+the new one, never a mix), actor_last.pt / actor_best.pt: shippable actors (``td3.load_actor``).
+On --resume, metrics.csv and eval.csv rows written after the checkpoint are dropped (they are
+flown again). Every file is written via a temporary file renamed into place (``assist_sim.atomic``).
 """
 from __future__ import annotations
 
@@ -15,6 +18,7 @@ import dataclasses
 import json
 import logging
 import math
+import os
 import sys
 import time
 from dataclasses import dataclass
@@ -24,6 +28,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from assist_sim.atomic import (atomic_dir, atomic_path, committed_dir, remove_stale_temporaries, truncate_csv,
+                               write_text_atomic)
 from assist_sim.pilots import HELDOUT_FAMILIES, TRAIN_FAMILIES
 
 from .cli import add_dataclass_args, dataclass_from_args
@@ -92,11 +98,12 @@ HELP = {
     'total_steps': 'environment steps to train for (in total, across resumes)',
     'start_steps': 'initial steps with uniformly random actions',
     'updates_per_step': 'gradient updates per environment step',
-    'preload': 'replay.npz files of earlier runs to preload into the buffer',
+    'preload': 'replay.npz files of earlier runs (runs/<name>/checkpoint/replay.npz, demos.npz) to preload into '
+               'the buffer',
     'ou_sigma': 'initial Ornstein-Uhlenbeck noise scale (raw action units)',
     'ou_decay': 'noise scale multiplier per landing',
     'eval_every_episodes': 'deterministic evaluation every this many landings',
-    'checkpoint_every_steps': 'write ckpt.pt (+ replay.npz) every this many steps',
+    'checkpoint_every_steps': 'write checkpoint/ (state.pt + replay.npz, one unit) every this many steps',
     'encoder_path': 'CM-VAE weights for the latent condition (default: the shipped model)',
     'torch_threads': 'torch CPU threads (the machine is shared)',
     'demo_episodes': 'landings flown by the scripted oracle assistant to preload the buffer (paper: preload '
@@ -225,9 +232,56 @@ class CsvLog:
         self.w.writerow(row)
         self.fh.flush()
 
+    def sync(self) -> None:
+        """Make the rows written so far durable (before a checkpoint that counts them)."""
+        self.fh.flush()
+        os.fsync(self.fh.fileno())
+
     def close(self) -> None:
         """Close the file."""
         self.fh.close()
+
+
+CHECKPOINT_DIR = 'checkpoint'
+
+
+def save_checkpoint(run_dir: Path, agent: TD3, buffer: ReplayBuffer | None, step: int, episode: int,
+                    best: float) -> Path:
+    """Write the training state (agent, counters, replay buffer) as one unit: run_dir/checkpoint/."""
+    path = run_dir / CHECKPOINT_DIR
+    with atomic_dir(path) as tmp:
+        torch.save({'agent': agent.state_dict(), 'step': step, 'episode': episode, 'best': best,
+                    'buffer_size': None if buffer is None else buffer.size}, tmp / 'state.pt')
+        if buffer is not None:
+            buffer.save(tmp / 'replay.npz')
+    return path
+
+
+def load_checkpoint(run_dir: Path) -> tuple[dict, Path | None] | None:
+    """(state, replay.npz or None) of the last complete checkpoint of a run, or None if it has none."""
+    path = committed_dir(run_dir / CHECKPOINT_DIR)
+    if path is None:
+        legacy = run_dir / 'ckpt.pt'       # runs from before checkpoints were written as one unit
+        if not legacy.exists():
+            return None
+        log.warning('%s: old checkpoint layout (ckpt.pt + replay.npz written one by one): their steps may '
+                    'disagree', run_dir)
+        state = torch.load(legacy, map_location='cpu', weights_only=True)
+        replay = run_dir / 'replay.npz'
+        return state, replay if replay.exists() else None
+    state = torch.load(path / 'state.pt', map_location='cpu', weights_only=True)
+    replay = path / 'replay.npz'
+    if state.get('buffer_size') is not None and not replay.exists():
+        raise ValueError(f'{path}: checkpoint lacks replay.npz')
+    return state, replay if replay.exists() else None
+
+
+def _best_on_disk(path: Path) -> float:
+    """Eval error recorded in actor_best.pt (inf if absent or unreadable)."""
+    try:
+        return float(load_actor(path)[1]['eval']['eval_error_mean'])
+    except (ValueError, KeyError, TypeError):
+        return math.inf
 
 
 def train(args: TrainArgs) -> Path:
@@ -241,12 +295,14 @@ def train(args: TrainArgs) -> Path:
         args.total_steps = max(total, args.total_steps) if total != TrainArgs.total_steps else args.total_steps
         args.resume = str(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
+    for stale in remove_stale_temporaries(run_dir):
+        log.info('removed %s (left by an interrupted write)', stale)
     env_cfg = env_config_from(args)
     env = make_env(env_cfg)
     eval_env = make_env(env_config_from(args))
-    (run_dir / 'config.json').write_text(json.dumps(
+    write_text_atomic(run_dir / 'config.json', json.dumps(
         {'train': dataclasses.asdict(args), 'env': dataclasses.asdict(env_cfg),
-         'td3': dataclasses.asdict(TD3Config(hidden=args.hidden))}, indent=2, default=str), encoding='utf-8')
+         'td3': dataclasses.asdict(TD3Config(hidden=args.hidden))}, indent=2, default=str))
     obs_dim = env.observation_space.shape[0]
     agent = TD3(obs_dim - env.image_size, cfg=TD3Config(hidden=args.hidden),
                 image=env.image_size > 0, seed=args.seed)
@@ -258,16 +314,25 @@ def train(args: TrainArgs) -> Path:
     rng = np.random.default_rng(args.seed)
     noise = OUNoise(3, args.ou_theta, args.ou_sigma, args.ou_sigma_min, args.ou_decay, rng=rng)
     step, episode, best = 0, 0, math.inf
-    ckpt = run_dir / 'ckpt.pt'
-    if args.resume and ckpt.exists():
-        state = torch.load(ckpt, map_location='cpu', weights_only=True)
+    saved = load_checkpoint(run_dir) if args.resume else None
+    if saved is not None:
+        state, replay = saved
         agent.load_state_dict(state['agent'])
         step, episode, best = int(state['step']), int(state['episode']), float(state['best'])
         noise.landings = episode
-        if (run_dir / 'replay.npz').exists():
-            buffer.load(run_dir / 'replay.npz')
+        if replay is not None:
+            buffer.load(replay)
+        if state.get('buffer_size') is not None and buffer.size != int(state['buffer_size']):
+            raise ValueError(f'{run_dir}: checkpoint at step {step} holds {buffer.size} transitions, '
+                             f'expected {state["buffer_size"]}')
         rng = np.random.default_rng([args.seed, episode])
         noise.rng = rng
+        # rows logged after this checkpoint are flown again: drop them so none is counted twice
+        for name in ('metrics.csv', 'eval.csv'):
+            n = truncate_csv(run_dir / name, lambda row, e=episode: int(row['episode']) <= e)
+            if n:
+                log.info('%s: dropped %d rows logged after the checkpoint', name, n)
+        best = min(best, _best_on_disk(run_dir / 'actor_best.pt'))
         log.info('resumed %s at step %d, episode %d, buffer %d', run_dir, step, episode, buffer.size)
     demos = None
     if args.bc_alpha > 0 and args.resume and (run_dir / 'demos_bc.npz').exists():
@@ -308,7 +373,8 @@ def train(args: TrainArgs) -> Path:
                      '%d labelled states in all, cloning MSE %.4f', rnd + 1, len(res),
                      np.mean([r['error_m'] for r in res]), np.mean([r['success'] for r in res]),
                      np.mean([r['crash'] for r in res]), len(d_obs), mse)
-        np.savez(run_dir / 'demos_bc.npz', obs=d_obs, act=d_act)   # what --resume's TD3+BC term reads
+        with atomic_path(run_dir / 'demos_bc.npz') as tmp:          # what --resume's TD3+BC term reads
+            np.savez(tmp, obs=d_obs, act=d_act)
         demos = (d_obs, d_act) if args.bc_alpha > 0 else None
         for _ in range(args.critic_warmup_updates):
             agent.update(buffer, train_actor=False)
@@ -325,11 +391,9 @@ def train(args: TrainArgs) -> Path:
     update_credit = 0.0
 
     def checkpoint() -> None:
-        tmp = ckpt.with_name('ckpt.pt.tmp')
-        torch.save({'agent': agent.state_dict(), 'step': step, 'episode': episode, 'best': best}, tmp)
-        tmp.replace(ckpt)
-        if args.save_buffer:
-            buffer.save(run_dir / 'replay.npz')
+        metrics.sync()
+        evals.sync()
+        save_checkpoint(run_dir, agent, buffer if args.save_buffer else None, step, episode, best)
         save_actor(agent.actor, agent.meta, run_dir / 'actor_last.pt')
 
     def run_eval() -> None:
@@ -342,7 +406,7 @@ def train(args: TrainArgs) -> Path:
             save_actor(agent.actor, {**agent.meta, 'eval': ev}, run_dir / 'actor_best.pt')
         msg = (f'step {step} ep {episode} eval err {ev["eval_error_mean"]:.3f} '
                f'succ {ev["eval_success"]:.2f} crash {ev["eval_crash"]:.2f} best {best:.3f}')
-        (run_dir / 'progress.txt').write_text(msg + '\n', encoding='utf-8')
+        write_text_atomic(run_dir / 'progress.txt', msg + '\n')
         log.info(msg)
 
     try:

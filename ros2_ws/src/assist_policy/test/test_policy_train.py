@@ -7,7 +7,7 @@ import torch
 from assist_policy.env import EnvConfig, LandingAssistEnv
 from assist_policy.scripted import ScriptedOracle
 from assist_policy.td3 import load_actor
-from assist_policy.train import TrainArgs, train
+from assist_policy.train import TrainArgs, load_checkpoint, train
 
 
 def test_train_writes_run_dir_and_resumes(tmp_path):
@@ -18,7 +18,7 @@ def test_train_writes_run_dir_and_resumes(tmp_path):
     run = train(args)
     cfg = json.loads((run / 'config.json').read_text())
     assert cfg['train']['total_steps'] == 400 and cfg['env']['condition'] == 'oracle'
-    state = torch.load(run / 'ckpt.pt', weights_only=True)
+    state, _ = load_checkpoint(run)
     assert state['step'] >= 400
     rows = list(csv.DictReader(open(run / 'metrics.csv')))
     assert len(rows) >= 3 and all(r['outcome'] for r in rows)
@@ -26,7 +26,7 @@ def test_train_writes_run_dir_and_resumes(tmp_path):
     assert meta['condition'] == 'oracle' and meta['vec_dim'] == 16
     # resume with a larger budget: continues from the checkpoint (steps and episodes keep counting)
     train(TrainArgs(resume=str(run), total_steps=700))
-    state2 = torch.load(run / 'ckpt.pt', weights_only=True)
+    state2, _ = load_checkpoint(run)
     rows2 = list(csv.DictReader(open(run / 'metrics.csv')))
     assert state2['step'] >= 700 and state2['episode'] > state['episode']
     assert int(rows2[len(rows)]['episode']) == int(rows[-1]['episode']) + 1

@@ -6,7 +6,12 @@ arming with pre-arm refusal until the EKF has a position estimate, MAV_CMD_NAV_T
 LAND mode with disarm on touchdown, SET_POSITION_TARGET_LOCAL_NED velocity targets (LOCAL_NED and
 BODY_(OFFSET_)NED frames) that expire after GUID_TIMEOUT, WP_YAW_BEHAVIOR (face the direction of
 travel when yaw and yaw rate are left free), COMMAND_ACK with honest results, STATUSTEXT, and the
-telemetry a bridge needs at rates set by MAV_CMD_SET_MESSAGE_INTERVAL or REQUEST_DATA_STREAM.
+telemetry a bridge needs at rates set by MAV_CMD_SET_MESSAGE_INTERVAL or REQUEST_DATA_STREAM,
+and MAVLink 2 signing with a key file (the bridge's format: 32 raw bytes or 64 hex characters).
+
+Telemetry goes out from `step`, so no message is sent faster than the step rate: sim_node steps at
+its physics control rate (20 Hz), and a request for 30 Hz gets 20 Hz (ArduPilot likewise caps
+streams at its scheduler rate); this is said once in the log when it happens.
 
 Without an RC transmitter the manual modes (STABILIZE, ALT_HOLD, LOITER, POSHOLD) behave as
 with centred sticks: the vehicle holds its position. Position setpoints are not emulated
@@ -31,7 +36,8 @@ os.environ['MAVLINK20'] = '1'  # MAVLink 2 framing; must be set before mavutil i
 from pymavlink import mavutil  # noqa: E402
 
 from .core.world import quat_to_matrix, yaw_rotation  # noqa: E402
-from .mavlink_io import next_message  # noqa: E402
+from .mavlink_io import (enable_signing, load_signing_key, next_message, open_connection,  # noqa: E402
+                         refresh_signing_timestamp)
 
 _LOG = logging.getLogger(__name__)
 mavlink = mavutil.mavlink
@@ -114,6 +120,7 @@ class MavlinkVehicleConfig:
     # Streams sent without being asked (message name -> interval s); ArduPilot's default is none.
     default_intervals_s: dict[str, float] = field(default_factory=dict)
     max_messages_per_step: int = 1000        # bound on incoming messages handled per step
+    signing_key_file: str = ''               # MAVLink 2 signing key file; '' = unsigned
 
     def __post_init__(self) -> None:
         if self.initial_mode not in SUPPORTED_MODES:
@@ -146,13 +153,16 @@ class MavlinkVehicle:
         self.cfg = config or MavlinkVehicleConfig()
         self._clock = clock
         self._boot = clock()
+        key = load_signing_key(self.cfg.signing_key_file) if self.cfg.signing_key_file else None
         try:
-            self._conn = mavutil.mavlink_connection(
-                url, source_system=self.cfg.system_id, source_component=self.cfg.component_id,
-                dialect='ardupilotmega', autoreconnect=True)
+            self._conn = open_connection(url, source_system=self.cfg.system_id,
+                                         source_component=self.cfg.component_id)
         except (OSError, ValueError) as exc:
             raise ConnectionError(f'cannot open MAVLink endpoint {url!r}: {exc}') from exc
-        self._conn.mav.robust_parsing = True
+        if key is not None:
+            enable_signing(self._conn, key)
+        self._rate_capped_warned = False
+        self._muted = False
         self.counters: dict[str, int] = {}
         self._intervals: dict[int, float] = {mavlink.MAVLINK_MSG_ID_HEARTBEAT: self.cfg.heartbeat_interval_s}
         name_to_id = {v: k for k, v in TELEMETRY.items()}
@@ -194,6 +204,8 @@ class MavlinkVehicle:
             raise ValueError(f'dt must be positive and finite, got {dt!r}')
         self._sync_episode()
         self._receive()
+        refresh_signing_timestamp(self._conn)
+        self._note_rate_cap(dt)
         now = self._clock()
         state = self.world.state
         cmd_enu = self._control(now, dt, state)
@@ -202,6 +214,20 @@ class MavlinkVehicle:
         self.world.step(cmd_flu, dt)
         self._after_step(self._clock())
         self._send_telemetry(self._clock())
+
+    def _note_rate_cap(self, dt: float) -> None:
+        if self._rate_capped_warned:
+            return
+        capped = sorted(TELEMETRY[m] for m, interval in self._intervals.items() if interval < dt * 0.999)
+        if capped:
+            self._rate_capped_warned = True
+            _LOG.info('%s requested faster than this vehicle steps (%.0f Hz): sent once per step',
+                      ', '.join(capped), 1.0 / dt)
+
+    def set_telemetry_muted(self, muted: bool) -> None:
+        """Fault injection: stop (or resume) the telemetry streams, HEARTBEAT included, while still
+        receiving and flying: a link lost in the vehicle -> companion direction only."""
+        self._muted = bool(muted)
 
     def close(self) -> None:
         """Close the MAVLink endpoint."""
@@ -260,6 +286,8 @@ class MavlinkVehicle:
             mtype = msg.get_type()
             if mtype == 'BAD_DATA':
                 self._count('rx_bad_data')
+                if 'signature' in str(getattr(msg, 'reason', '')):
+                    self._count('rx_bad_signature')
                 continue
             self._count('rx_messages')
             try:
@@ -285,8 +313,8 @@ class MavlinkVehicle:
             self._handle_request_data_stream(msg)
 
     def _ack(self, msg, command: int, result: int) -> None:
+        self._count(f'ack_{command}_{result}')    # counted first: a peer that sees the ACK sees the count
         self._conn.mav.command_ack_send(command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
-        self._count(f'ack_{command}_{result}')
 
     def _statustext(self, severity: int, text: str) -> None:
         self._conn.mav.statustext_send(severity, text.encode('ascii', 'replace')[:50])
@@ -538,6 +566,8 @@ class MavlinkVehicle:
 
     # ------------------------------------------------------------------ telemetry
     def _send_telemetry(self, now: float) -> None:
+        if self._muted:
+            return
         for mid, interval in list(self._intervals.items()):
             due = self._next_due.get(mid)
             if due is None or now >= due:

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import logging
 import math
+import os
+import signal
 import sys
 import threading
 from collections import Counter
@@ -10,10 +12,12 @@ from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import rclpy
+import rclpy.logging
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import TwistStamped
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy._rclpy_pybind11 import RCLError
+from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
@@ -87,15 +91,21 @@ class Param:
             return list(value)
         return value
 
+    def rule(self) -> str:
+        """The accepted values in words ('> 0.0 and <= 10.0', 'one of a, b'); empty when unrestricted."""
+        if self.choices is not None:
+            return 'one of ' + ', '.join(self.choices)
+        lo, hi = self.min, self.max
+        lo_s = '' if lo is None else (f'> {lo}' if self.min_exclusive else f'>= {lo}')
+        hi_s = '' if hi is None else f'<= {hi}'
+        return ' and '.join(x for x in (lo_s, hi_s) if x)
+
     def _check_range(self, name: str, value: float) -> None:
         lo, hi = self.min, self.max
         below = lo is not None and (value <= lo if self.min_exclusive else value < lo)
         above = hi is not None and value > hi
         if below or above:
-            lo_s = '' if lo is None else (f'> {lo}' if self.min_exclusive else f'>= {lo}')
-            hi_s = '' if hi is None else f'<= {hi}'
-            rule = ' and '.join(x for x in (lo_s, hi_s) if x)
-            raise ValueError(f"parameter '{name}' must be {rule}, got {value!r}")
+            raise ValueError(f"parameter '{name}' must be {self.rule()}, got {value!r}")
 
 
 class ParamValues(dict):
@@ -115,7 +125,9 @@ def declare_parameters(node: Node, spec: Mapping[str, Param],
 
     values = ParamValues()
     for name, p in spec.items():
-        desc = ParameterDescriptor(description=p.description, read_only=not p.dynamic,
+        rule = p.rule()
+        text = p.description + (f' Accepted: {rule}.' if rule else '') + ('' if p.dynamic else ' Read-only.')
+        desc = ParameterDescriptor(description=text, read_only=not p.dynamic,
                                    dynamic_typing=isinstance(p.default, (int, float)) and not isinstance(p.default, bool))
         try:
             raw = node.declare_parameter(name, p.default, desc).value
@@ -188,7 +200,8 @@ class Diagnostics:
         self._level = 0  # DiagnosticStatus.OK
         self._message = 'ok'
         self._pub = node.create_publisher(DiagnosticArray, topic, 10)
-        self._timer = node.create_timer(period_s, self.publish)
+        # a steady timer: the status keeps coming when sim time stalls or races (stamps: node clock)
+        self._timer = node.create_timer(period_s, self.publish, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def count(self, key: str, n: int = 1) -> None:
         """Increment counter `key`."""
@@ -228,6 +241,83 @@ class Diagnostics:
         self._pub.publish(arr)
 
 
+class RosLogHandler(logging.Handler):
+    """Forwards Python `logging` records (cores, libraries) to a node's rclpy logger.
+
+    Each Python logger becomes a child of the node's logger (`sim_node.assist_sim.mavlink_vehicle`),
+    so the messages get rclpy's timestamps and console format and reach /rosout. Without a node
+    (before it exists, after it is destroyed) records go to an rclpy logger of the same name:
+    console only.
+    """
+
+    def __init__(self) -> None:
+        super().__init__(level=logging.DEBUG)
+        self.setFormatter(logging.Formatter('%(message)s'))
+        self._node: Node | None = None
+        self._loggers: dict[str, Any] = {}
+        self._map_lock = threading.Lock()
+
+    def attach(self, node: Node | None) -> None:
+        """Forward to `node`'s logger from now on (None: console only)."""
+        with self._map_lock:
+            self._node = node
+            self._loggers = {}
+
+    def _logger(self, name: str):
+        with self._map_lock:
+            logger = self._loggers.get(name)
+            if logger is None:
+                if self._node is not None:
+                    logger = self._node.get_logger().get_child(name or 'python')
+                else:
+                    logger = rclpy.logging.get_logger(name or 'python')
+                self._loggers[name] = logger
+            return logger
+
+    def emit(self, record: logging.LogRecord) -> None:
+        """Send one record at the matching rclpy severity (debug for anything below INFO)."""
+        try:
+            text = self.format(record)
+            logger = self._logger(record.name)
+            # one call site per severity: rclpy ties a call site to one severity
+            if record.levelno >= logging.CRITICAL:
+                logger.fatal(text)
+            elif record.levelno >= logging.ERROR:
+                logger.error(text)
+            elif record.levelno >= logging.WARNING:
+                logger.warning(text)
+            elif record.levelno >= logging.INFO:
+                logger.info(text)
+            else:
+                logger.debug(text)
+        except Exception:  # noqa: BLE001 - logging must never raise into the caller
+            self.handleError(record)
+
+
+_LOG_HANDLER: RosLogHandler | None = None
+
+
+def forward_logging(node: Node | None) -> RosLogHandler:
+    """Route the root Python logger (level INFO) to `node`'s rclpy logger; returns the one handler.
+
+    run_node calls it with the node it built; a node may call it first thing in __init__ so that
+    messages logged while it starts up reach /rosout too.
+    """
+    global _LOG_HANDLER
+    root = logging.getLogger()
+    if _LOG_HANDLER is None:
+        _LOG_HANDLER = RosLogHandler()
+    if _LOG_HANDLER not in root.handlers:
+        for h in list(root.handlers):   # e.g. a basicConfig stream handler: one console line per message
+            if isinstance(h, logging.StreamHandler) and not isinstance(h, logging.FileHandler):
+                root.removeHandler(h)
+        root.addHandler(_LOG_HANDLER)
+    if root.level == logging.NOTSET or root.level > logging.INFO:
+        root.setLevel(logging.INFO)
+    _LOG_HANDLER.attach(node)
+    return _LOG_HANDLER
+
+
 def run_node(factory: Callable[[], Node], args: list[str] | None = None,
              num_threads: int = 1) -> int:
     """Init rclpy, build the node, spin it, always clean up; returns the process exit code.
@@ -238,14 +328,15 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
     /cmd_vel behind its GIL-heavy sim thread) asks for more threads; blocking waits belong in
     coroutine callbacks (see mavlink_bridge_node's services). A StartupError raised by `factory` (nodes wrap bad parameters, missing
     models and unreachable endpoints in it) is reported as one clear line on stderr and gives
-    exit code 1, no traceback.
+    exit code 1, no traceback. Python `logging` records go to the node's logger (/rosout).
     """
-    logging.basicConfig(level=logging.INFO, format='[%(levelname)s] [%(name)s]: %(message)s')
     rclpy.init(args=args)
+    handler = forward_logging(None)
     node = None
     code = 0
     try:
         node = factory()
+        handler.attach(node)
         executor = (SingleThreadedExecutor() if num_threads <= 1
                     else MultiThreadedExecutor(num_threads=num_threads))
         executor.add_node(node)
@@ -259,11 +350,37 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
         if rclpy.ok():      # a real failure, not the context going away under SIGINT
             raise
     finally:
+        # Going down: another Ctrl-C (a second key press, or launch's SIGINT to a node that is
+        # already exiting) must not interrupt the clean-up with a KeyboardInterrupt traceback.
+        _ignore_sigint()
         if node is not None:
             close = getattr(node, 'close', None)
             if callable(close):
                 close()
+            handler.attach(None)
             node.destroy_node()
         if rclpy.ok():
             rclpy.try_shutdown()
+        _ignore_sigint()      # rclpy's shutdown restored the interrupting handler
     return code
+
+
+def exit_process(code: int) -> None:
+    """End a node process after run_node: flush output and exit without interpreter finalization.
+
+    Everything of the node is cleaned up by then (threads stopped, node destroyed, rclpy shut
+    down); tearing down torch's and the middleware's modules at interpreter exit takes another
+    2-4 s on a loaded machine, which makes `ros2 launch` escalate a Ctrl-C to SIGTERM.
+    """
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(code)
+
+
+def _ignore_sigint() -> None:
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)

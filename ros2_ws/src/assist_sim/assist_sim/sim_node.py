@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import os
 import sys
 import threading
 import time
@@ -11,6 +12,8 @@ from geometry_msgs.msg import PointStamped, TwistStamped
 from nav_msgs.msg import Odometry
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
@@ -23,27 +26,48 @@ from .core.scene_markers import scene_markers
 from .core.world import LandingWorld, quat_to_matrix
 from .scene_msgs import scene_marker_array
 from .ros_common import (LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param,
-                         StartupError, declare_parameters, run_node, twist_to_array)
+                         StartupError, declare_parameters, exit_process, forward_logging, run_node, twist_to_array)
 
 PARAMS = {
-    'seed': Param(0, 'Seed of the scene and episode sequence; same seed, same episodes.'),
-    'real_time_factor': Param(1.0, 'Sim speed: 1.0 = wall clock, 10.0 = ten times faster, 0 = as fast as possible.'),
-    'camera_width': Param(64, 'Camera image width in pixels.'),
-    'camera_height': Param(64, 'Camera image height in pixels.'),
-    'camera_rate_hz': Param(20.0, 'Camera frame rate in sim time (0 disables the camera).'),
-    'auto_reset': Param(True, 'Start the next episode automatically after a landing.'),
-    'reset_delay_s': Param(1.0, 'Sim seconds between a landing and the next episode (auto_reset).'),
+    'seed': Param(0, 'Seed of the scene and episode sequence; same seed, same episodes.', min=0, max=2**31 - 1),
+    'real_time_factor': Param(1.0, 'Sim speed: 1.0 = wall clock, 10.0 = ten times faster, 0 = as fast as possible '
+                                   '(settable at run time; fixed at 1.0 as a MAVLink vehicle).',
+                              min=0.0, max=1000.0, dynamic=True),
+    'camera_width': Param(64, 'Camera image width in pixels.', min=8, max=1024),
+    'camera_height': Param(64, 'Camera image height in pixels.', min=8, max=1024),
+    'camera_rate_hz': Param(20.0, 'Camera frame rate in sim time, at most the control rate (0 disables the '
+                                  'camera; settable at run time).', min=0.0, max=1000.0, dynamic=True),
+    'auto_reset': Param(True, 'Start the next episode automatically after a landing (settable at run time).',
+                        dynamic=True),
+    'reset_delay_s': Param(1.0, 'Sim seconds between a landing and the next episode (auto_reset; settable at '
+                                'run time).', min=0.0, max=60.0, dynamic=True),
     'mavlink_url': Param('', 'Empty: driven by /cmd_vel. Else act as a MAVLink vehicle on this pymavlink '
                               'address (e.g. tcpin:127.0.0.1:5760); then the sim runs at wall-clock speed.'),
+    'mavlink_signing_key_file': Param('', 'MAVLink 2 signing key file for mavlink_url (32 raw bytes or 64 hex '
+                                          'characters, mode 600; the bridge uses the same file); empty = unsigned.'),
+    'physics': Param('velocity', 'velocity: the velocity-tracking controller (training/evaluation); ardupilot_json: '
+                                 'rigid-body quad flown by ArduPilot SITL motor outputs over its JSON interface.',
+                     choices=('velocity', 'ardupilot_json')),
+    'json_host': Param('127.0.0.1', 'ardupilot_json: UDP address the physics backend listens on for SITL.'),
+    'json_port': Param(9002, 'ardupilot_json: UDP port for SITL (--model JSON:<host> sends to 9002).',
+                       min=1, max=65535),
+    'json_silence_timeout_s': Param(1.0, 'ardupilot_json: SITL silent this long -> diagnostics error.',
+                                    min=0.0, min_exclusive=True),
     'gui': Param(False, 'Open the pybullet GUI window (needs a display).'),
     'world_config': Param('', 'Optional YAML file overriding assist_sim.core.config.WorldConfig fields.'),
-    'cmd_timeout_s': Param(0.5, '/cmd_vel older than this (sim time) counts as absent: the vehicle hovers.'),
-    'max_cmd_speed_mps': Param(5.0, 'Commands faster than this are rejected as out of range.'),
+    'cmd_timeout_s': Param(0.5, '/cmd_vel older than this (sim time) counts as absent: the vehicle hovers '
+                                '(settable at run time).', min=0.0, max=10.0, min_exclusive=True, dynamic=True),
+    'max_cmd_speed_mps': Param(5.0, 'Commands faster than this are rejected as out of range (settable at run '
+                                    'time).', min=0.0, max=50.0, min_exclusive=True, dynamic=True),
     'turbulence': Param(True, 'Ground-effect turbulence on the target velocity.'),
     'odom_frame': Param('odom', 'World frame id (ENU).'),
     'base_frame': Param('base_link', 'Body frame id (FLU).'),
     'camera_frame': Param('camera_optical_frame', 'Optical frame id of the camera images.'),
 }
+# parameters applied to the running SimRunner (RunnerConfig fields of the same name)
+RUNNER_PARAMS = ('camera_rate_hz', 'auto_reset', 'reset_delay_s', 'cmd_timeout_s', 'max_cmd_speed_mps')
+# /sim/reset requests queued before the middleware drops more (each reset takes ~10-50 ms)
+RESET_QUEUE_DEPTH = 100
 ACCEPTED_CMD_FRAMES = ('', 'base_link')
 
 
@@ -51,49 +75,81 @@ class SimNode(Node):
     """Publishes camera, odometry, clock, goal and landings; flies /cmd_vel."""
 
     def __init__(self, **kwargs):
-        super().__init__('sim_node', **kwargs)
-        self.p = declare_parameters(self, PARAMS)
+        # The node clock is the sim's clock: sim_node publishes /clock and follows it (use_sim_time),
+        # so /diagnostics and every stamp are in sim time like the sensor topics.
+        overrides = list(kwargs.pop('parameter_overrides', None) or [])
+        overrides.append(Parameter('use_sim_time', Parameter.Type.BOOL, True))
+        super().__init__('sim_node', parameter_overrides=overrides, **kwargs)
+        forward_logging(self)
+        self.p = declare_parameters(self, PARAMS, on_change=self._on_params)
         self.diag = Diagnostics(self)
         try:
             cfg = WorldConfig.from_yaml(self.p['world_config']) if self.p['world_config'] else WorldConfig()
         except (OSError, ValueError, TypeError) as exc:
             raise StartupError(f"sim_node: cannot load world_config '{self.p['world_config']}': {exc}") from exc
-        if self.p['camera_width'] <= 0 or self.p['camera_height'] <= 0:
-            raise StartupError('sim_node: camera_width and camera_height must be positive')
-        if self.p['real_time_factor'] < 0 or not math.isfinite(self.p['real_time_factor']):
-            raise StartupError('sim_node: real_time_factor must be >= 0 (0 = as fast as possible)')
+        self.control_hz = float(cfg.control_hz)
+        try:
+            self._check_camera_rate(self.p['camera_rate_hz'])
+        except ValueError as exc:
+            raise StartupError(f'sim_node: {exc}') from exc
+        if self.p['gui'] and not (os.environ.get('DISPLAY') or os.environ.get('WAYLAND_DISPLAY')):
+            raise StartupError('sim_node: gui:=true needs a display but DISPLAY is not set; run it in a desktop '
+                               'session (or ssh -X, or xvfb-run), or leave gui:=false')
         cfg.camera.width, cfg.camera.height = int(self.p['camera_width']), int(self.p['camera_height'])
         cfg.turbulence.enabled = bool(self.p['turbulence'])
         self.mavlink = bool(self.p['mavlink_url'])
+        if self.mavlink and self.p['real_time_factor'] != 1.0:
+            raise StartupError(f"sim_node: real_time_factor {self.p['real_time_factor']:g} cannot apply: as a "
+                               'MAVLink vehicle (mavlink_url set) the sim runs at wall-clock speed (1.0)')
+        self.json_mode = self.p['physics'] == 'ardupilot_json'
+        if self.json_mode and self.mavlink:
+            raise StartupError('sim_node: physics ardupilot_json and mavlink_url are exclusive (SITL is the vehicle)')
         self.world = LandingWorld(cfg, seed=int(self.p['seed']), gui=bool(self.p['gui']))
-        self.runner = SimRunner(self.world, RunnerConfig(
+        runner_cfg = RunnerConfig(
             camera_rate_hz=float(self.p['camera_rate_hz']), auto_reset=bool(self.p['auto_reset']),
             reset_delay_s=float(self.p['reset_delay_s']), cmd_timeout_s=float(self.p['cmd_timeout_s']),
-            max_cmd_speed_mps=float(self.p['max_cmd_speed_mps']), airborne_start=not self.mavlink))
+            max_cmd_speed_mps=float(self.p['max_cmd_speed_mps']), airborne_start=not (self.mavlink or self.json_mode))
+        if self.json_mode:   # ArduPilot SITL flies the airframe; the runner serves its JSON physics link
+            from .json_backend import make_json_runner
+            try:
+                self.runner = make_json_runner(self.world, runner_cfg, self.p, self.diag)
+            except OSError as exc:
+                raise StartupError(f"sim_node: cannot listen for SITL on udp {self.p['json_host']}:"
+                                   f"{self.p['json_port']}: {exc}") from exc
+            self.get_logger().info(f'physics ardupilot_json: serving SITL on udp {self.runner.server.address}')
+            if self.p['real_time_factor'] != 1.0:
+                self.get_logger().warning('real_time_factor is not used with ardupilot_json: SITL sets the pace '
+                                          '(its --speedup)')
+        else:
+            self.runner = SimRunner(self.world, runner_cfg)
         self.vehicle = None
         if self.mavlink:
-            from .mavlink_vehicle import MavlinkVehicle
+            from .mavlink_vehicle import MavlinkVehicle, MavlinkVehicleConfig
             try:
-                self.vehicle = MavlinkVehicle(self.world, self.p['mavlink_url'])
+                self.vehicle = MavlinkVehicle(self.world, self.p['mavlink_url'], MavlinkVehicleConfig(
+                    signing_key_file=self.p['mavlink_signing_key_file']))
             except (OSError, ValueError) as exc:
                 raise StartupError(f"sim_node: cannot open MAVLink endpoint '{self.p['mavlink_url']}': {exc}") from exc
-        self.rtf = 1.0 if self.mavlink else float(self.p['real_time_factor'])
+        self.rtf = 1.0 if self.mavlink else 0.0 if self.json_mode else float(self.p['real_time_factor'])
+        self._reanchor = threading.Event()      # the pace changed: the sim loop restarts its wall/sim anchor
         self.lock = threading.Lock()
 
         self.pub_rgb = self.create_publisher(Image, '/camera/color/image_raw', SENSOR_QOS)
         self.pub_depth = self.create_publisher(Image, '/camera/depth/image_raw', SENSOR_QOS)
         self.pub_info = self.create_publisher(CameraInfo, '/camera/color/camera_info', SENSOR_QOS)
-        self.pub_odom = None if self.mavlink else self.create_publisher(Odometry, '/odom', SENSOR_QOS)
+        self.pub_odom = None if self.mavlink or self.json_mode else self.create_publisher(Odometry, '/odom', SENSOR_QOS)
         self.pub_clock = self.create_publisher(Clock, '/clock', 10)
         self.pub_goal = self.create_publisher(PointStamped, '/sim/goal', LATCHED_QOS)
         self.pub_landing = self.create_publisher(String, '/sim/landing', LANDING_QOS)
         self.pub_scene = self.create_publisher(MarkerArray, '/sim/scene', LATCHED_QOS)
         group = MutuallyExclusiveCallbackGroup()
-        if not self.mavlink:
+        if not (self.mavlink or self.json_mode):
             self.create_subscription(TwistStamped, '/cmd_vel', self._on_cmd, RELIABLE_QOS, callback_group=group)
         self.create_subscription(TwistStamped, '/assist/agent_cmd', self._on_agent, RELIABLE_QOS,
                                  callback_group=group)
-        self.create_service(Trigger, '/sim/reset', self._on_reset, callback_group=group)
+        self.create_service(Trigger, '/sim/reset', self._on_reset, callback_group=group,
+                            qos_profile=QoSProfile(depth=RESET_QUEUE_DEPTH,
+                                                   reliability=ReliabilityPolicy.RELIABLE))
 
         with self.lock:
             self.runner.reset()
@@ -101,10 +157,33 @@ class SimNode(Node):
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, name='sim_loop', daemon=True)
         self._thread.start()
+        how = ('MAVLink vehicle on ' + self.p['mavlink_url'] if self.mavlink
+               else 'flown by ArduPilot SITL (JSON physics)' if self.json_mode else 'driven by /cmd_vel')
         self.get_logger().info(
             f"sim_node up: seed={self.p['seed']} rtf={self.rtf or 'max'} camera="
-            f"{cfg.camera.width}x{cfg.camera.height}@{self.p['camera_rate_hz']}Hz "
-            f"{'MAVLink vehicle on ' + self.p['mavlink_url'] if self.mavlink else 'driven by /cmd_vel'}")
+            f"{cfg.camera.width}x{cfg.camera.height}@{self.p['camera_rate_hz']}Hz {how}")
+
+    # ------------------------------------------------------------------ parameters
+    def _check_camera_rate(self, hz: float) -> None:
+        if hz > self.control_hz:
+            raise ValueError(f'camera_rate_hz {hz:g} is above the sim step rate {self.control_hz:g} Hz '
+                             '(one frame per step at most)')
+
+    def _on_params(self, changed: dict) -> None:
+        """Apply run-time parameter sets (validated by Param already); ValueError refuses the set."""
+        if 'real_time_factor' in changed and self.mavlink:
+            raise ValueError('real_time_factor is fixed at 1.0 while sim_node is a MAVLink vehicle')
+        if 'real_time_factor' in changed and self.json_mode:
+            raise ValueError('real_time_factor is not used with physics ardupilot_json: SITL sets the pace')
+        if 'camera_rate_hz' in changed:
+            self._check_camera_rate(changed['camera_rate_hz'])
+        with self.lock:
+            for key in RUNNER_PARAMS:
+                if key in changed:
+                    setattr(self.runner.cfg, key, changed[key])
+            if 'real_time_factor' in changed:
+                self.rtf = float(changed['real_time_factor'])
+                self._reanchor.set()
 
     # ------------------------------------------------------------------ inputs
     def _on_cmd(self, msg: TwistStamped) -> None:
@@ -131,9 +210,12 @@ class SimNode(Node):
         with self.lock:
             self.runner.reset()
             episode, goal = self.world.episode, self.world.goal_index
-        self._publish_goal()
         response.success = True
         response.message = f'episode {episode}: goal pad {goal}'
+        if getattr(self.runner, 'reset_pending', False):   # ardupilot_json: not while the motors spin
+            response.message = f'reset deferred until SITL disarms (episode {episode} goes on)'
+        else:
+            self._publish_goal()
         return response
 
     # ------------------------------------------------------------------ loop
@@ -143,6 +225,9 @@ class SimNode(Node):
         wall0, sim0 = time.monotonic(), self.world.time
         n_steps = 0
         while not self._stop.is_set():
+            if self._reanchor.is_set():
+                self._reanchor.clear()
+                wall0, sim0 = time.monotonic(), self.world.time
             if self.rtf > 0:
                 ahead = (self.world.time - sim0) - (time.monotonic() - wall0) * self.rtf
                 if ahead > 0:
@@ -241,9 +326,11 @@ class SimNode(Node):
 
     def _publish_goal(self) -> None:
         with self.lock:
-            g = self.world.goal_position
+            g = self.world.goal_position - getattr(self.runner, 'odom_offset', 0.0)   # odom frame
             stamp = self._stamp(self.world.time).clock
             boxes = scene_markers(self.world.scene, self.world.goal_index)
+            if self.json_mode:   # the autopilot's odom frame, like /sim/goal
+                boxes = self.runner.markers_in_odom(boxes)
         self.pub_scene.publish(scene_marker_array(boxes, self.p['odom_frame'], stamp))  # /sim/scene, every reset
         msg = PointStamped()
         msg.header.stamp, msg.header.frame_id = stamp, self.p['odom_frame']
@@ -257,6 +344,8 @@ class SimNode(Node):
             self._thread.join(timeout=2.0)
         if self.vehicle is not None:
             self.vehicle.close()
+        if hasattr(self.runner, 'close'):
+            self.runner.close()
         self.world.close()
 
 
@@ -264,7 +353,7 @@ def main(args=None):
     """Entry point of `ros2 run assist_sim sim_node`."""
     # two executor threads: with one, /cmd_vel callbacks queue behind the GIL-heavy sim thread at
     # real_time_factor > 1 and commands go stale (measured: 1.75 m instead of 3.5 m flown in 2 s)
-    sys.exit(run_node(SimNode, args, num_threads=2))
+    exit_process(run_node(SimNode, args, num_threads=2))
 
 
 if __name__ == '__main__':

@@ -8,7 +8,6 @@ for every landing; the pad positions for the wrong-pad family come from the latc
 """
 from __future__ import annotations
 
-import sys
 import threading
 
 import numpy as np
@@ -16,22 +15,26 @@ from geometry_msgs.msg import PointStamped, TwistStamped
 from nav_msgs.msg import Odometry
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
-
 from visualization_msgs.msg import MarkerArray
 
 from .pilot import PilotConfig
 from .pilots import PILOT_NAMES, make_pilot
-from .ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError,
-                         declare_parameters, fill_twist, run_node, twist_to_array)
+from .ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, declare_parameters,
+                         exit_process, fill_twist, forward_logging, run_node, twist_to_array)
 
 PARAMS = {
-    'alpha': Param(0.5, 'Conformance to the assistant in [0, 1] (paper alpha).'),
-    'beta': Param(0.5, 'Skill in [0, 1]: how fast the pilot fixes its goal estimate (paper beta).'),
-    'seed': Param(0, 'Randomness of the pilot (initial estimates, perception errors).'),
-    'rate_hz': Param(20.0, 'Command rate (the pilot model is calibrated at 20 Hz).'),
-    'blend_threshold': Param(0.25, 'Assistant actions at or below this norm (m/s) are not felt by the pilot.'),
-    'agent_timeout_s': Param(0.5, '/assist/agent_cmd older than this counts as absent.'),
-    'odom_timeout_s': Param(0.5, 'With /odom older than this the pilot sends zero velocity.'),
+    'alpha': Param(0.5, 'Conformance to the assistant in [0, 1] (paper alpha; settable at run time).',
+                   min=0.0, max=1.0, dynamic=True),
+    'beta': Param(0.5, 'Skill in [0, 1]: how fast the pilot fixes its goal estimate (paper beta; settable at '
+                       'run time).', min=0.0, max=1.0, dynamic=True),
+    'seed': Param(0, 'Randomness of the pilot (initial estimates, perception errors).', min=0, max=2**31 - 1),
+    'rate_hz': Param(20.0, 'Command rate (the pilot model is calibrated at 20 Hz).', min=1.0, max=200.0),
+    'blend_threshold': Param(0.25, 'Assistant actions at or below this norm (m/s) are not felt by the pilot '
+                                   '(settable at run time).', min=0.0, max=10.0, dynamic=True),
+    'agent_timeout_s': Param(0.5, '/assist/agent_cmd older than this counts as absent (settable at run time).',
+                             min=0.0, max=10.0, min_exclusive=True, dynamic=True),
+    'odom_timeout_s': Param(0.5, 'With /odom older than this the pilot sends zero velocity (settable at run '
+                                 'time).', min=0.0, max=10.0, min_exclusive=True, dynamic=True),
     'pilot': Param('paper', 'Pilot model: paper (the reference) or an assist_sim.pilots family or population '
                             '(mix = held-out families, train_mix = training families), drawn anew per landing.',
                    choices=PILOT_NAMES),
@@ -44,19 +47,15 @@ class SimPilotNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__('sim_pilot_node', **kwargs)
-        self.p = declare_parameters(self, PARAMS)
+        forward_logging(self)
+        self._lock = threading.Lock()
+        self.p = declare_parameters(self, PARAMS, on_change=self._on_params)
         self.diag = Diagnostics(self)
-        if not (0.0 <= self.p['alpha'] <= 1.0 and 0.0 <= self.p['beta'] <= 1.0):
-            raise StartupError(f"sim_pilot_node: alpha and beta must be in [0, 1], got "
-                               f"{self.p['alpha']}, {self.p['beta']}")
-        if not self.p['rate_hz'] > 0:
-            raise StartupError('sim_pilot_node: rate_hz must be > 0')
         cfg = PilotConfig(control_hz=float(self.p['rate_hz']), k_alpha=float(self.p['rate_hz']))
         self._cfg = cfg
         self._rng = np.random.default_rng(int(self.p['seed']))
         self._pads: np.ndarray | None = None
         self.pilot = self._new_pilot()
-        self._lock = threading.Lock()
         self._odom: tuple[float, np.ndarray] | None = None
         self._agent: tuple[float, np.ndarray] | None = None
         self._pending_goal: np.ndarray | None = None
@@ -87,6 +86,14 @@ class SimPilotNode(Node):
             return
         with self._lock:
             self._pads = pads
+
+    def _on_params(self, changed: dict) -> None:
+        """alpha / beta go to the pilot model; the thresholds and timeouts are read every tick."""
+        with self._lock:
+            if 'alpha' in changed:
+                self.pilot.alpha = self.pilot.base_alpha = float(changed['alpha'])
+            if 'beta' in changed:
+                self.pilot.beta = float(changed['beta'])
 
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
@@ -149,7 +156,7 @@ class SimPilotNode(Node):
 
 def main(args=None):
     """Console entry point."""
-    sys.exit(run_node(lambda: SimPilotNode(), args))
+    exit_process(run_node(lambda: SimPilotNode(), args))
 
 
 if __name__ == '__main__':

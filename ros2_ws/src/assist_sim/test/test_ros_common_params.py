@@ -79,3 +79,15 @@ def test_on_change_can_refuse_and_values_roll_back():
         assert not res.successful and res.reason == 'not now' and values['rate_hz'] == 20.0
     finally:
         close(ctx, node)
+
+
+def test_descriptor_states_the_rule_for_ros2_param_describe():
+    ctx, node = make([])
+    try:
+        declare_parameters(node, SPEC)
+        rate, mode, fixed = node.describe_parameters(['rate_hz', 'mode', 'fixed'])
+        assert rate.description == 'rate Accepted: > 0.0.' and not rate.read_only
+        assert mode.description == 'mode Accepted: one of a, b. Read-only.' and mode.read_only
+        assert fixed.description == 'read-only float Read-only.'
+    finally:
+        close(ctx, node)

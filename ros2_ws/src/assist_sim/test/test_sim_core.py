@@ -233,8 +233,11 @@ def test_world_config_yaml_roundtrip(tmp_path):
 
 def test_analytic_floor_matches_the_rasterised_floor():
     cfg = WorldConfig()
+    cfg.camera.renderer = 'pybullet'                    # TinyRenderer, floor rasterised too
     cfg.camera.analytic_floor = False
-    fast, slow = LandingWorld(seed=1), LandingWorld(cfg, seed=1)
+    fast_cfg = WorldConfig()
+    fast_cfg.camera.renderer = 'pybullet'               # TinyRenderer pads + analytic floor
+    fast, slow = LandingWorld(fast_cfg, seed=1), LandingWorld(cfg, seed=1)
     fast.reset(3)
     slow.reset(3)
     try:

@@ -7,7 +7,6 @@ and at once on every key change.
 from __future__ import annotations
 
 import math
-import sys
 import threading
 import time
 
@@ -21,7 +20,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from assist_policy.blending import DEFAULT_THRESHOLD
 from assist_sim.ros_common import (LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param,
-                                   StartupError, declare_parameters, fill_twist, run_node, twist_to_array)
+                                   StartupError, declare_parameters, exit_process, fill_twist, run_node, twist_to_array)
 
 from .server import ServerConfig, StationServer
 from .station_core import (MODES, AssistMonitor, KeyState, StationConfig, camera_payload, landing_feedback,
@@ -198,7 +197,7 @@ class PilotStation(Node):
 
 def main(args=None):
     """Entry point of `ros2 run assist_station pilot_station`."""
-    sys.exit(run_node(PilotStation, args))
+    exit_process(run_node(PilotStation, args))
 
 
 if __name__ == '__main__':

@@ -15,27 +15,36 @@ from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument
 from launch.conditions import IfCondition, UnlessCondition
-from launch.substitutions import LaunchConfiguration, PythonExpression
+from launch.substitutions import AndSubstitution, EqualsSubstitution, LaunchConfiguration
 from launch_ros.actions import Node
+
+from assist_sim.launch_tools import BOOL_CHOICES, shutdown_when_exits
 
 
 def generate_launch_description():
-    """sim_node (+ encoder + policy when assisted) and pilot_station."""
+    """sim_node (+ encoder + policy when assisted) and pilot_station; any of them exiting ends the launch."""
     station_params = os.path.join(get_package_share_directory('assist_station'), 'config', 'station.yaml')
     sim_params = os.path.join(get_package_share_directory('assist_sim'), 'config', 'sim.yaml')
     policy_params = os.path.join(get_package_share_directory('assist_policy'), 'config', 'assist.yaml')
     assisted, assist_mode = LaunchConfiguration('assisted'), LaunchConfiguration('assist_mode')
-    args = [DeclareLaunchArgument('assisted', default_value='true', description='run the assistant'),
-            DeclareLaunchArgument('assist_mode', default_value='latent', description='latent | oracle | end_to_end'),
-            DeclareLaunchArgument('mode', default_value='practice', description='practice | study | free'),
-            DeclareLaunchArgument('seed', default_value='0'),
-            DeclareLaunchArgument('port', default_value='8080'),
-            DeclareLaunchArgument('sim', default_value='true', description='start sim_node')]
+    args = [DeclareLaunchArgument('assisted', default_value='true', choices=BOOL_CHOICES,
+                                  description='Run the assistant (encoder_node + policy_node) between the pilot '
+                                              'and the vehicle'),
+            DeclareLaunchArgument('assist_mode', default_value='latent', choices=['latent', 'oracle', 'end_to_end'],
+                                  description="The assistant's observation (policy_node mode)"),
+            DeclareLaunchArgument('mode', default_value='practice', choices=['practice', 'study', 'free'],
+                                  description='Station mode: practice, study (the user-study protocol) or free'),
+            DeclareLaunchArgument('seed', default_value='0',
+                                  description='Seed of the scene and episode sequence (integer >= 0)'),
+            DeclareLaunchArgument('port', default_value='8080',
+                                  description='TCP port of the station page on 127.0.0.1 (0: any free port)'),
+            DeclareLaunchArgument('sim', default_value='true', choices=BOOL_CHOICES,
+                                  description='Start sim_node (false: /odom from the bridge or a real vehicle)')]
     sim_time = {'use_sim_time': LaunchConfiguration('sim')}   # sim time only with sim_node's /clock
     sim = Node(package='assist_sim', executable='sim_node', name='sim_node', output='screen',
                parameters=[sim_params, {'seed': LaunchConfiguration('seed'), 'real_time_factor': 1.0}],
                condition=IfCondition(LaunchConfiguration('sim')))
-    latent = PythonExpression(["'", assisted, "'.lower() == 'true' and '", assist_mode, "' == 'latent'"])
+    latent = AndSubstitution(assisted, EqualsSubstitution(assist_mode, 'latent'))
     encoder = Node(package='assist_perception', executable='encoder_node', name='encoder_node', output='screen',
                    parameters=[sim_time, {'depth_noise': True}], condition=IfCondition(latent))
     policy = Node(package='assist_policy', executable='policy_node', name='policy_node', output='screen',
@@ -47,4 +56,11 @@ def generate_launch_description():
     station_direct = Node(package='assist_station', executable='pilot_station', name='pilot_station',
                           output='screen', parameters=station_args, remappings=[('/pilot/cmd_vel', '/cmd_vel')],
                           condition=UnlessCondition(assisted))
-    return LaunchDescription(args + [sim, encoder, policy, station, station_direct])
+    return LaunchDescription(args + [
+        sim, encoder, policy, station, station_direct,
+        shutdown_when_exits(sim, 'nothing flies without the simulation'),
+        shutdown_when_exits(encoder, 'the latent assistant needs the encoder'),
+        shutdown_when_exits(policy, 'the pilot would fly unassisted without policy_node'),
+        shutdown_when_exits(station, 'the pilot has no controls without the station'),
+        shutdown_when_exits(station_direct, 'the pilot has no controls without the station'),
+    ])

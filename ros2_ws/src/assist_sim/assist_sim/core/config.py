@@ -82,8 +82,12 @@ class CameraConfig:
     near_m: float = 0.1
     far_m: float = 20.0
     offset_below_base_m: float = 0.05  # optical centre below base_link origin, on the body z axis
-    # Draw the floor plane analytically (ray-plane intersection + texture lookup) instead of through
-    # TinyRenderer, which spends ~85% of a 64x64 frame shading the floor. Same depth, same texels.
+    # 'analytic': per-pixel ray casting of floor, walls and pads in numpy (assist_sim.core.render),
+    # pixel-identical to the 'pybullet' path and several times faster; any camera pose.
+    # 'pybullet': pybullet's TinyRenderer (the baseline; also what the GUI shows).
+    renderer: str = 'analytic'
+    # pybullet path only: draw the floor plane analytically (ray-plane intersection + texture
+    # lookup) instead of through TinyRenderer, which spends ~85% of a 64x64 frame shading the floor.
     analytic_floor: bool = True
     floor_tile_m: float = 1.5          # floor texture repeat length
     floor_shading: float = 0.935       # TinyRenderer's default lighting of an upward-facing surface

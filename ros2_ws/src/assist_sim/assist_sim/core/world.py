@@ -8,15 +8,21 @@ import math
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
-import pybullet as p
-from pybullet_utils import bullet_client
 
 from .config import WorldConfig
+from .quiet import quiet_output
+from .render import SceneRenderer
 from .scene import PadSpec, SceneSpec, generate_scene
 from .textures import make_texture, texture_path
 
+with quiet_output():                 # pybullet prints its build time on import
+    import pybullet as p
+    from pybullet_utils import bullet_client
+
 _LOG = logging.getLogger(__name__)
 N_LEGS = 4
+RENDERERS = ('analytic', 'pybullet')
+WALL_TILE_M = 1.5                      # wall texture repeat length
 
 
 @dataclass(frozen=True)
@@ -123,8 +129,11 @@ class LandingWorld:
             raise ValueError('physics_hz must be >= 240')
         if self.cfg.physics_hz % self.cfg.control_hz:
             raise ValueError('physics_hz must be a multiple of control_hz')
+        if self.cfg.camera.renderer not in RENDERERS:
+            raise ValueError(f'camera.renderer must be one of {RENDERERS}, got {self.cfg.camera.renderer!r}')
         self._gui = bool(gui)
-        self._bc = bullet_client.BulletClient(p.GUI if gui else p.DIRECT)
+        with quiet_output(stderr=not gui):  # ... and `argv[0]=` on every connect (GUI: keep X errors)
+            self._bc = bullet_client.BulletClient(p.GUI if gui else p.DIRECT)
         self._cid = self._bc._client
         self._tick_dt = 1.0 / self.cfg.physics_hz
         self._bc.setGravity(0, 0, -self.cfg.gravity_mps2)
@@ -135,6 +144,9 @@ class LandingWorld:
         self._scene_bodies: list[int] = []
         self._pad_ids: list[int] = []
         self._floor_id = -1
+        self._scene_renderer: SceneRenderer | None = None
+        # the GUI shows pybullet's own rendering, so the camera uses it as well there
+        self._analytic = self.cfg.camera.renderer == 'analytic' and not self._gui
         self.scene: SceneSpec | None = None
         self.goal_index = 0
         self.episode = -1
@@ -215,6 +227,7 @@ class LandingWorld:
     def _build_scene(self, scene: SceneSpec) -> None:
         bc = self._bc
         self._clear_scene()
+        self._scene_renderer = None        # built on the first analytic frame of this scene
         (x0, y0), (x1, y1) = scene.room_min, scene.room_max
         cam = self.cfg.camera
         self._floor_texture = make_texture(scene.floor_material, self.cfg.scene.texture_px)
@@ -241,7 +254,7 @@ class LandingWorld:
         for corners, normal in walls:
             corners = np.array(corners, dtype=float)
             centre = corners.mean(axis=0)
-            vis = self._textured_quad(corners - centre, normal, tile_m=1.5)
+            vis = self._textured_quad(corners - centre, normal, tile_m=WALL_TILE_M)
             half = np.abs(corners - centre).max(axis=0)
             half = np.maximum(half, 0.05)
             col = bc.createCollisionShape(p.GEOM_BOX, halfExtents=half.tolist())
@@ -513,11 +526,13 @@ class LandingWorld:
     def render(self) -> CameraFrame:
         """RGB-D frame from the vehicle's downward camera."""
         cam, r_wo = self.camera_pose()
-        return self._render(cam, r_wo)
+        return self.render_pose(cam, r_wo)
 
     def render_from(self, position, yaw: float = 0.0) -> CameraFrame:
         """RGB-D frame as if base_link were level at `position` with heading `yaw`."""
         cam, r_wo = self.camera_pose(position, yaw)
+        if self._analytic:                 # the airframe is never in its own camera's view
+            return self.render_pose(cam, r_wo)
         saved = self._bc.getBasePositionAndOrientation(self._vehicle)
         vel = self._bc.getBaseVelocity(self._vehicle)
         # move the airframe to the camera pose so it is behind the lens, as in flight
@@ -525,12 +540,26 @@ class LandingWorld:
             self._vehicle, np.asarray(position, dtype=float).tolist(),
             self._bc.getQuaternionFromEuler([0, 0, yaw]))
         try:
-            return self._render(cam, r_wo)
+            return self.render_pose(cam, r_wo)
         finally:
             self._bc.resetBasePositionAndOrientation(self._vehicle, *saved)
             self._bc.resetBaseVelocity(self._vehicle, *vel)
 
-    def _render(self, cam: np.ndarray, r_wo: np.ndarray) -> CameraFrame:
+    def render_pose(self, cam: np.ndarray, r_wo: np.ndarray) -> CameraFrame:
+        """RGB-D frame from optical centre `cam` (odom) with rotation `r_wo` (odom <- optical), any
+        attitude; drawn by the configured renderer (camera.renderer: analytic or pybullet)."""
+        if self._analytic:
+            if self._scene_renderer is None:
+                c = self.cfg.camera
+                self._scene_renderer = SceneRenderer(
+                    self.scene, width=c.width, height=c.height, vertical_fov_deg=c.vertical_fov_deg,
+                    near_m=c.near_m, far_m=c.far_m, floor_tile_m=c.floor_tile_m,
+                    floor_shading=c.floor_shading, wall_tile_m=WALL_TILE_M, texture_px=self.cfg.scene.texture_px)
+            rgb, depth = self._scene_renderer.render(cam, r_wo)
+            return CameraFrame(rgb=rgb, depth=depth, K=self._K.copy(), time=self.time)
+        return self._render_pybullet(np.asarray(cam, dtype=float), np.asarray(r_wo, dtype=float))
+
+    def _render_pybullet(self, cam: np.ndarray, r_wo: np.ndarray) -> CameraFrame:
         c = self.cfg.camera
         forward = r_wo[:, 2]
         up = -r_wo[:, 1]                      # image up = -optical y

@@ -1,0 +1,208 @@
+"""Graph section of `make bench`: camera-to-latent and camera-to-command latency through the real graph.
+
+sim_node (real_time_factor 1, 64x64 RGB-D at 20 Hz) -> encoder_node -> policy_node (mode latent,
+step_on_latent, use_sim_time) run as subprocesses on a private ROS domain; this bench node listens.
+
+Definitions (all times are this process's receive times, perf_counter, in its executor thread):
+- a frame is the depth image with sim stamp s (its colour image has the same stamp);
+- frame s's latent time is the receipt of /assist/pad_estimate stamped s: /assist/latent has no
+  header, and the encoder publishes the pad estimate (with the frame's header) right after that
+  frame's latent, from the same thread (one small MLP later);
+- frame s's command is the /cmd_vel the policy publishes on receiving that latent: the policy's
+  clock is the sim clock, which does not move until the next frame, so that command carries
+  header.stamp == s, and it is the last /cmd_vel stamped s (the policy's timer stays quiet while
+  latents arrive); latency = its receipt - receipt of frame s's depth image.
+Frames with no latent or command before the next frame count as lost.
+
+Profile a node under this load with e.g.
+    py-spy record -o encoder.svg --pid <encoder_node pid>      (or: py-spy top --pid ...)
+"""
+from __future__ import annotations
+
+import os
+import random
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from assist_sim.testing import stop_process
+
+BIN = Path(sys.executable).parent
+FRAMES = 400          # 20 s of camera at 20 Hz after start-up
+
+
+def _start(exe: str, params: dict, env: dict, log) -> subprocess.Popen:
+    cmd = [str(BIN / exe), '--ros-args']
+    for k, v in params.items():
+        cmd += ['-p', f'{k}:={str(v).lower() if isinstance(v, bool) else v}']
+    return subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def measure(frames: int = FRAMES, startup_timeout_s: float = 90.0) -> dict:
+    """Run the graph until `frames` frames have been seen after the first command; latencies in ms."""
+    import rclpy
+    from geometry_msgs.msg import PointStamped, TwistStamped
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from sensor_msgs.msg import Image
+
+    from assist_sim.ros_common import RELIABLE_QOS, SENSOR_QOS
+
+    domain = random.Random(os.getpid() ^ time.monotonic_ns()).randint(150, 199)
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED='1')
+    log = tempfile.TemporaryFile()
+    procs = [
+        _start('sim_node', {'seed': 3, 'real_time_factor': 1.0, 'camera_rate_hz': 20.0}, env, log),
+        _start('encoder_node', {'use_sim_time': True}, env, log),
+        _start('policy_node', {'use_sim_time': True, 'mode': 'latent', 'step_on_latent': True}, env, log),
+    ]
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    node = Node('bench_graph', context=ctx)
+    lock = threading.Lock()
+    frames_seen: list[tuple[int, float]] = []            # (stamp ns, receipt)
+    pads: dict[int, float] = {}                           # stamp ns -> receipt of /assist/pad_estimate
+    cmds: dict[int, float] = {}                           # stamp ns -> receipt of the last /cmd_vel so stamped
+    done = threading.Event()
+
+    def ns(stamp) -> int:
+        return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+    started: list[int] = []                               # frames seen when the first command came
+
+    def on_depth(msg: Image) -> None:
+        t = time.perf_counter()
+        with lock:
+            frames_seen.append((ns(msg.header.stamp), t))
+            if cmds and not started:
+                started.append(len(frames_seen))
+            if started and len(frames_seen) - started[0] > frames + 2:
+                done.set()
+
+    def on_pad(msg: PointStamped) -> None:
+        t = time.perf_counter()
+        with lock:
+            pads.setdefault(ns(msg.header.stamp), t)
+
+    def on_cmd(msg: TwistStamped) -> None:
+        t = time.perf_counter()
+        with lock:
+            cmds[ns(msg.header.stamp)] = t
+
+    node.create_subscription(Image, '/camera/depth/image_raw', on_depth, SENSOR_QOS)
+    node.create_subscription(PointStamped, '/assist/pad_estimate', on_pad, SENSOR_QOS)
+    node.create_subscription(TwistStamped, '/cmd_vel', on_cmd, RELIABLE_QOS)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    spin = threading.Thread(target=ex.spin, daemon=True)
+    spin.start()
+    try:
+        t0 = time.monotonic()
+        while not done.wait(1.0):
+            if time.monotonic() - t0 > startup_timeout_s + frames / 20.0 * 3:
+                break
+            if any(p.poll() is not None for p in procs):
+                break
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        rclpy.shutdown(context=ctx)
+        for p in procs:
+            stop_process(p)
+        log.seek(0)
+        tail = log.read()[-2000:].decode(errors='replace')
+        log.close()
+    with lock:
+        fr, pad, cm = list(frames_seen), dict(pads), dict(cmds)
+    if not cm:
+        raise RuntimeError(f'the graph produced no /cmd_vel; node output tail:\n{tail}')
+    # skip start-up: from the first frame that got a command
+    first = next(i for i, (s, _) in enumerate(fr) if s in cm)
+    fr = fr[first:first + frames + 1]
+    to_latent, to_cmd, lost_latent, lost_cmd = [], [], 0, 0
+    for (s, t_img), (_, t_next) in zip(fr[:-1], fr[1:]):
+        if s in pad and t_img < pad[s] < t_next:
+            to_latent.append(pad[s] - t_img)
+        else:
+            lost_latent += 1
+        if s in cm and cm[s] > t_img:
+            to_cmd.append(cm[s] - t_img)
+        else:
+            lost_cmd += 1
+    if not to_cmd:
+        raise RuntimeError('no frame could be matched to its command')
+    ms = lambda x: 1e3 * np.asarray(x)  # noqa: E731
+    return {'frames': len(fr) - 1,
+            'latent_p50': float(np.percentile(ms(to_latent), 50)), 'latent_p99': float(np.percentile(ms(to_latent), 99)),
+            'cmd_p50': float(np.percentile(ms(to_cmd), 50)), 'cmd_p99': float(np.percentile(ms(to_cmd), 99)),
+            'lost_latent': lost_latent, 'lost_cmd': lost_cmd}
+
+
+def path_cpu(n: int = 300) -> dict:
+    """CPU ms per frame of the camera-to-command work, in one process: the sim's image messages,
+    the encoder's decode + CM-VAE mu, the policy core's step (shipped latent actor). This is
+    the work on the critical path without transport and scheduling."""
+    import array
+
+    import torch
+
+    from assist_perception.encoder_core import LatentEncoder, decode_color, decode_depth
+    from assist_policy.policy_core import PolicyCore, PolicyCoreConfig, default_model_path
+    from assist_sim.core.world import LandingWorld
+
+    torch.set_num_threads(1)
+    world = LandingWorld(seed=0)
+    world.reset(5)
+    frames = [world.render_from(world.goal_position + np.array([dx, 0.2, 2.5])) for dx in np.linspace(-2, 2, 16)]
+    world.close()
+    enc = LatentEncoder(threads=1)
+    core = PolicyCore(str(default_model_path('latent')), PolicyCoreConfig(mode='latent'))
+    msgs = [(array.array('B', f.rgb.tobytes()), array.array('B', f.depth.astype('<f4').tobytes())) for f in frames]
+    t_enc = t_pol = 0.0
+    for k in range(n):
+        rgb_b, dep_b = msgs[k % len(msgs)]
+        now = 0.05 * k
+        c0 = time.process_time()
+        rgb = decode_color(rgb_b, 'rgb8', 64, 64, 192)
+        dep = decode_depth(dep_b, '32FC1', 64, 64, 256)
+        mu = enc.encode(rgb, dep, want_xyz=False).mu
+        c1 = time.process_time()
+        core.set_odom(now, [0.0, 0.0, 3.0], [0.0, 0.0, 0.0])
+        core.set_pilot(now, [0.5, 0.0, -0.2])
+        core.set_latent(now, mu)
+        core.step(now)
+        c2 = time.process_time()
+        t_enc += c1 - c0
+        t_pol += c2 - c1
+    return {'encode_ms': 1e3 * t_enc / n, 'policy_ms': 1e3 * t_pol / n}
+
+
+def run() -> list[dict]:
+    """Measure and return rows (name, value, unit, target)."""
+    cpu = path_cpu()
+    m = measure()
+    n = m['frames']
+    return [
+        {'name': 'camera-to-command work, CPU per frame (decode + CM-VAE mu + policy step, one process)',
+         'value': cpu['encode_ms'] + cpu['policy_ms'], 'unit': 'ms', 'target': '<= 5 ms (floor of the graph latency)'},
+        {'name': '  of which decode + CM-VAE mu', 'value': cpu['encode_ms'], 'unit': 'ms', 'target': ''},
+        {'name': '  of which policy core step (shipped latent actor)', 'value': cpu['policy_ms'], 'unit': 'ms',
+         'target': ''},
+        {'name': 'camera image -> /assist/latent p50 (real graph: sim, encoder, policy; at its pad estimate)',
+         'value': m['latent_p50'],
+         'unit': 'ms', 'target': ''},
+        {'name': 'camera image -> /assist/latent p99 (real graph)', 'value': m['latent_p99'], 'unit': 'ms',
+         'target': '<= 3 ms'},
+        {'name': 'camera image -> /cmd_vel p50 (real graph, that frame\'s command)', 'value': m['cmd_p50'],
+         'unit': 'ms', 'target': ''},
+        {'name': 'camera image -> /cmd_vel p99 (real graph)', 'value': m['cmd_p99'], 'unit': 'ms',
+         'target': '<= 5 ms'},
+        {'name': f'frames without a latent / command before the next frame (of {n})',
+         'value': f"{m['lost_latent']} / {m['lost_cmd']}", 'unit': 'frames', 'target': '0 / 0'},
+    ]

@@ -1,0 +1,132 @@
+"""Record one simulated landing of the training/evaluation env as a bag with the graph's topics and types.
+
+evaluate runs without ROS, so `EpisodeRecorder` writes what the graph would have carried: camera
+frames (the ones the assistant saw; in the latent condition the depth after the simulated sensor
+noise, i.e. the encoder's input), /odom (twist in base_link, REP-105), /pilot/cmd_vel (u),
+/assist/latent, /assist/agent_cmd (a) and /cmd_vel (V) at every control step, /sim/goal and
+/sim/scene at the start and the /sim/landing JSON at the end. Times are the episode's sim time
+(0 at the start pose). The bag's custom_data records that the assistant observed world-frame
+velocity (as the env does), which replay_assist honours.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from assist_sim.core.scene_markers import scene_markers
+
+from ..actions import scale_action
+from ..blending import blend
+from ..observation import Condition
+from . import msgs
+from .bagio import CONTRACT_TOPICS, BagWriter
+
+EPISODE_TOPICS = ('/camera/color/image_raw', '/camera/depth/image_raw', '/odom', '/pilot/cmd_vel', '/assist/latent',
+                  '/assist/agent_cmd', '/cmd_vel', '/sim/goal', '/sim/scene', '/sim/landing')
+VELOCITY_FRAME_KEY = 'assist.velocity_frame'   # custom_data: 'odom' when the assistant saw world-frame velocity
+
+
+def ns(t: float) -> int:
+    """Episode seconds -> bag nanoseconds."""
+    return int(round(float(t) * 1e9))
+
+
+class EpisodeRecorder:
+    """Wraps an evaluate policy; `policy` records each step, `finish` writes the landing and closes the bag."""
+
+    def __init__(self, env: Any, policy: Callable | None, path: str | Path, storage: str = 'mcap',
+                 custom: dict[str, str] | None = None):
+        self.env = env
+        self._policy = policy
+        self.writer = BagWriter(path, storage=storage, atomic=True)
+        for topic in EPISODE_TOPICS:
+            if topic == '/assist/latent' and env.condition is not Condition.LATENT:
+                continue
+            self.writer.add_topic(topic, *CONTRACT_TOPICS[topic])
+        self.writer.custom_data = {VELOCITY_FRAME_KEY: 'odom', **(custom or {})}
+        self._t0: float | None = None
+        self._latent_fn = getattr(env, 'latent_fn', None)
+        self._last_mu: np.ndarray | None = None
+        if self._latent_fn is not None:
+            env.latent_fn = self._capture_latent
+
+    def _capture_latent(self, rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        mu = self._latent_fn(rgb, depth)
+        self._last_mu = np.asarray(mu, dtype=float)
+        return mu
+
+    def _t(self) -> float:
+        return self.env.world.state.time - self._t0
+
+    def policy(self, obs: np.ndarray) -> np.ndarray:
+        """The wrapped policy's raw action for `obs`; records the step's inputs and outputs first."""
+        env, w = self.env, self.writer
+        st = env.world.state
+        if self._t0 is None:     # first step of the episode: the start pose, goal and scene
+            self._t0 = st.time
+            w.write_msg('/sim/goal', 0, msgs.point_stamped(0, env.world.goal_position))
+            w.write_msg('/sim/scene', 0, msgs.scene_markers(0, scene_markers(env.world.scene, env.world.goal_index)))
+        t = ns(st.time - self._t0)
+        raw = np.zeros(3) if self._policy is None else np.asarray(self._policy(obs), dtype=float)
+        frame = getattr(self._latent_fn, 'last_input', None) if self._latent_fn is not None else None
+        if frame is None:
+            f = env.world.render()
+            frame = (f.rgb, f.depth)
+        w.write_msg('/camera/color/image_raw', t, msgs.image(t, frame[0]))
+        w.write_msg('/camera/depth/image_raw', t, msgs.image(t, frame[1]))
+        w.write_msg('/odom', t, msgs.odometry(t, st.position, st.quaternion, st.velocity))
+        u = env.pilot_action
+        w.write_msg('/pilot/cmd_vel', t, msgs.twist_stamped(t, u))
+        if self._last_mu is not None:
+            w.write_msg('/assist/latent', t, msgs.float_array(self._last_mu))
+        if not env.unassisted:
+            a = scale_action(raw, env.cfg.max_speed)
+            w.write_msg('/assist/agent_cmd', t, msgs.twist_stamped(t, a))
+        else:
+            a = np.zeros(3)
+        w.write_msg('/cmd_vel', t, msgs.twist_stamped(t, blend(u, a, env.cfg.blend_threshold)))
+        return raw
+
+    def finish(self, row: dict) -> Path:
+        """Write the final pose and the /sim/landing JSON, close the bag; returns its path."""
+        st = self.env.world.state
+        t = ns(st.time - (self._t0 if self._t0 is not None else st.time))
+        self.writer.write_msg('/odom', t, msgs.odometry(t, st.position, st.quaternion, st.velocity))
+        landing = {'episode': int(row.get('seed', 0)), 'goal_index': row['goal_index'],
+                   'landed_index': row['landed_index'], 'nearest_index': row['nearest_index'],
+                   'error_m': row['error_m'], 'nearest_error_m': row['nearest_error_m'],
+                   'success': bool(row['success']), 'crash': bool(row['crash']), 'duration_s': row['duration_s'],
+                   'assisted': not self.env.unassisted, 'outcome': row.get('outcome')}
+        self.writer.write_msg('/sim/landing', t, msgs.string(json.dumps(landing)))
+        if self._latent_fn is not None:
+            self.env.latent_fn = self._latent_fn
+        return self.writer.close()
+
+    def abort(self) -> None:
+        """Drop the unfinished bag and restore the env."""
+        if self._latent_fn is not None:
+            self.env.latent_fn = self._latent_fn
+        self.writer.abort()
+
+
+def landing_bag_name(condition: str, beta: float, seed: int) -> str:
+    """Directory name of a landing's bag under --record-dir (one per landings.csv row)."""
+    return f'{condition}_beta{float(beta):.2f}_seed{int(seed)}'
+
+
+def record_landing(run_landing: Callable, env: Any, policy: Callable | None, seed: int, beta: float,
+                   condition: str, record_dir: str | Path) -> dict:
+    """evaluate's run_landing with the landing saved as <record_dir>/<condition>_beta<b>_seed<s>/ (a bag)."""
+    path = Path(record_dir) / landing_bag_name(condition, beta, seed)
+    rec = EpisodeRecorder(env, policy, path, custom={'assist.condition': condition, 'assist.beta': str(beta),
+                                                      'assist.seed': str(seed)})
+    try:
+        row = run_landing(env, rec.policy, seed, beta)
+    except BaseException:
+        rec.abort()
+        raise
+    rec.finish(row)
+    return row

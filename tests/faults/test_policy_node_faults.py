@@ -1,0 +1,285 @@
+"""Fault injection, policy_node: hostile messages, failing control steps, bad parameters, wrong frames;
+diagnostics that tell the state. In-process tests drive the node's callbacks on a private context;
+graph tests run the console script on the test's private domain.
+"""
+from __future__ import annotations
+
+import importlib.util
+import math
+import random
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rclpy
+import torch
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import TwistStamped
+from nav_msgs.msg import Odometry
+from rclpy.context import Context
+from rclpy.parameter import Parameter
+from std_msgs.msg import Float32MultiArray
+
+from assist_policy.policy_node import PolicyNode, ReasonThrottle
+from assist_sim.ros_common import RELIABLE_QOS, SENSOR_QOS
+
+REPO = Path(__file__).resolve().parents[2]
+_spec = importlib.util.spec_from_file_location('policy_core_helpers_faults',
+                                               REPO / 'ros2_ws/src/assist_policy/test/test_policy_core.py')
+_helpers = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_helpers)
+constant_actor, LATENT = _helpers.constant_actor, _helpers.LATENT
+OK, WARN, ERROR = (int.from_bytes(x, 'little') for x in (DiagnosticStatus.OK, DiagnosticStatus.WARN,
+                                                          DiagnosticStatus.ERROR))
+
+
+# ------------------------------------------------------------------ in-process: the node's own callbacks
+class InProcess:
+    """PolicyNode on a private context; publishes into its callbacks and records its outputs."""
+
+    def __init__(self, model, **params):
+        self.ctx = Context()
+        args = ['--ros-args', '-p', f'model_path:={model}', '-p', 'mode:=latent']
+        for k, v in params.items():
+            args += ['-p', f'{k}:={v}']
+        rclpy.init(args=args, context=self.ctx, domain_id=random.randint(100, 199))
+        self.node = PolicyNode(context=self.ctx)
+        self.cmds, self.agents = [], []
+        self.node.pub_cmd.publish = lambda m: self.cmds.append(_vec(m))
+        self.node.pub_agent.publish = lambda m: self.agents.append(_vec(m))
+
+    def inputs(self, u=(0.0, 1.0, 0.0), frame='base_link', odom_v=(0.0, 0.0, 0.0), latent=0.0):
+        od = Odometry()
+        od.pose.pose.position.z = 2.0
+        od.twist.twist.linear.x, od.twist.twist.linear.y, od.twist.twist.linear.z = odom_v
+        subs = list(self.node.subscriptions)
+        subs[0].callback(od)
+        tw = TwistStamped()
+        tw.header.frame_id = frame
+        tw.twist.linear.x, tw.twist.linear.y, tw.twist.linear.z = (float(x) for x in u)
+        subs[1].callback(tw)
+        if latent is not None:
+            subs[2].callback(Float32MultiArray(data=[float(latent)] * LATENT))
+
+    def tick(self, n=1):
+        for _ in range(n):
+            self.node._tick()
+        return self.cmds[-1]
+
+    @property
+    def level(self):
+        return self.node.diag._level, self.node.diag._message
+
+    def close(self):
+        self.node.destroy_node()
+        rclpy.shutdown(context=self.ctx)
+
+
+def _vec(msg):
+    return np.array([msg.twist.linear.x, msg.twist.linear.y, msg.twist.linear.z])
+
+
+@pytest.fixture
+def model(tmp_path):
+    return constant_actor(tmp_path / 'actor.pt', [0.8, 0.0, 0.0])
+
+
+@pytest.fixture
+def make(model):
+    made = []
+
+    def _make(**params):
+        made.append(InProcess(model, **params))
+        return made[-1]
+    yield _make
+    for m in made:
+        m.close()
+
+
+def test_exception_anywhere_in_the_step_relinquishes_counts_and_stays_up(make):
+    n = make()
+    n.inputs(u=(0.0, 2.0, 0.3))
+    np.testing.assert_allclose(n.tick(), [0.4, 1.0, 0.15], atol=1e-6)     # assisting: (u + a) / 2
+    assert n.level == (OK, 'assisting') and len(n.agents) == 1
+
+    def boom(now):
+        raise RuntimeError('simulated failure in the step')
+    n.node.core.step = boom            # an exception the core itself does not catch
+    np.testing.assert_allclose(n.tick(), [0.0, 1.5, 0.3], atol=1e-9)      # V = u, clamped to max_speed
+    assert len(n.agents) == 1                                              # no agent command
+    assert n.node.diag.get('fault_step_error') == 1 and n.node.diag.get('fault_RuntimeError') == 1
+    assert n.level[0] == WARN and 'RuntimeError' in n.level[1]
+    n.tick(25)                          # many failures in a row: ERROR
+    assert n.level[0] == ERROR and 'consecutive failed steps' in n.level[1]
+    assert all(np.allclose(v, [0.0, 1.5, 0.3]) for v in n.cmds[1:])
+
+
+def test_broken_actor_output_is_an_error_state_not_ok(make):
+    n = make(error_after_faults=5)
+    n.inputs()
+    n.node.core.actor = lambda obs: torch.full((1, 3), math.nan)
+    n.tick()
+    assert n.level[0] == WARN and 'not finite' in n.level[1]
+    n.inputs()
+    n.tick(5)
+    assert n.level[0] == ERROR
+    np.testing.assert_allclose(n.cmds[-1], [0, 1, 0])
+
+
+def test_odometry_overflowing_float32_is_rejected_and_flying_goes_on(make):
+    n = make()
+    n.inputs(odom_v=(1e39, 0.0, 0.0))
+    assert n.node.diag.get('rejected_odom_velocity_range') == 1
+    np.testing.assert_allclose(n.tick(), [0, 1, 0])                # no odometry yet: V = u
+    assert n.level[0] == WARN and 'odometry' in n.level[1]
+
+
+def test_pilot_frame_and_speed_norm(make):
+    n = make(max_input_speed=5.0)
+    n.inputs(u=(0.0, 1.0, 0.0))
+    n.inputs(u=(3.0, 0.0, 0.0), frame='map')                        # refused: last good u stays
+    assert n.node.diag.get('rejected_pilot_frame') == 1
+    np.testing.assert_allclose(n.tick(), [0.4, 0.5, 0.0], atol=1e-6)
+    n.inputs(u=(4.0, 4.0, 0.0))                                     # each axis < 5, speed 5.66: refused
+    assert n.node.diag.get('rejected_pilot_range') == 1
+    n.inputs(u=(0.0, 1.0, 0.0), frame='')                           # no frame: body frame
+    assert n.node.diag.get('rejected_pilot') == 2
+
+
+def test_runtime_parameters_are_validated_and_applied(make):
+    n = make()
+    node = n.node
+    for name, bad in [('max_speed', -1.0), ('max_vertical_speed', -1.0), ('max_speed', math.nan),
+                      ('blend_threshold', -0.5), ('pilot_timeout_s', 0.0), ('max_input_speed', math.inf)]:
+        res = node.set_parameters([Parameter(name, value=bad)])[0]
+        assert not res.successful, (name, bad)
+    assert node.core.cfg.max_speed_mps == 1.5 and node.core.cfg.max_vertical_mps == 1.0
+    for name in ('mode', 'model_path', 'rate_hz', 'frame_id', 'torch_threads'):
+        value = {'mode': 'oracle', 'model_path': '/x', 'rate_hz': 5.0, 'frame_id': 'map', 'torch_threads': 2}[name]
+        res = node.set_parameters([Parameter(name, value=value)])[0]
+        assert not res.successful and 'read-only' in res.reason, name
+    assert node.set_parameters([Parameter('max_speed', value=0.2)])[0].successful
+    assert node.set_parameters([Parameter('max_vertical_speed', value=1)])[0].successful   # int for float
+    n.inputs(u=(0.0, 1.0, -3.0))
+    v = n.tick()
+    assert math.hypot(v[0], v[1]) == pytest.approx(0.2) and v[2] == pytest.approx(-1.0)
+
+
+def test_each_reason_has_its_own_throttle():
+    clock = [0.0]
+    t = ReasonThrottle(2.0, clock=lambda: clock[0])
+    assert t.ready('pilot_frame') and t.ready('odom_velocity_range')     # distinct faults: both logged
+    assert not t.ready('pilot_frame')
+    clock[0] = 1.9
+    assert not t.ready('odom_velocity_range')
+    clock[0] = 2.0
+    assert t.ready('pilot_frame') and t.ready('odom_velocity_range')
+
+
+# ------------------------------------------------------------------ graph: the console script
+
+class Probe:
+    def __init__(self, node):
+        self.node, self.lock = node, threading.Lock()
+        self.cmd, self.diag = [], []
+        self.subs = [node.create_subscription(TwistStamped, '/cmd_vel', self._cmd, RELIABLE_QOS),
+                     node.create_subscription(DiagnosticArray, '/diagnostics', self._diag, 10)]
+        self.pub_odom = node.create_publisher(Odometry, '/odom', SENSOR_QOS)
+        self.pub_pilot = node.create_publisher(TwistStamped, '/pilot/cmd_vel', RELIABLE_QOS)
+        self.pub_latent = node.create_publisher(Float32MultiArray, '/assist/latent', SENSOR_QOS)
+
+    def _cmd(self, msg):
+        with self.lock:
+            self.cmd.append((time.monotonic(), _vec(msg)))
+
+    def _diag(self, msg):
+        with self.lock:
+            self.diag += [(time.monotonic(), s) for s in msg.status if s.hardware_id == 'policy_node']
+
+    def since(self, store, t0):
+        with self.lock:
+            return [v for t, v in store if t >= t0]
+
+    def publish(self, u=(0.0, 1.0, 0.0), frame='base_link', odom_v=(0.0, 0.0, 0.0)):
+        od = Odometry()
+        od.pose.pose.position.z = 2.0
+        od.twist.twist.linear.x, od.twist.twist.linear.y, od.twist.twist.linear.z = odom_v
+        self.pub_odom.publish(od)
+        tw = TwistStamped()
+        tw.header.frame_id = frame
+        tw.twist.linear.x, tw.twist.linear.y, tw.twist.linear.z = (float(x) for x in u)
+        self.pub_pilot.publish(tw)
+        self.pub_latent.publish(Float32MultiArray(data=[0.0] * LATENT))
+
+    def run(self, seconds, **kw):
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < seconds:
+            self.publish(**kw)
+            time.sleep(0.05)
+        return t0
+
+    def close(self):
+        for s in self.subs:
+            self.node.destroy_subscription(s)
+        for p in (self.pub_odom, self.pub_pilot, self.pub_latent):
+            self.node.destroy_publisher(p)
+
+
+@pytest.fixture
+def probe(ros):
+    p = Probe(ros)
+    yield p
+    p.close()
+
+
+@pytest.mark.graph
+def test_node_survives_hostile_odometry_and_wrong_frames(probe, start_node, wait, model):
+    """An /odom twist of 1e39 used to kill policy_node (the ValueError escaped the timer)."""
+    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0})
+    t0 = time.monotonic()
+    while not probe.since(probe.cmd, t0) and node.proc.poll() is None and time.monotonic() - t0 < 60:
+        probe.run(0.2)
+    assert probe.since(probe.cmd, t0), node.log()
+    t1 = probe.run(2.5)
+    assert any(s.level == DiagnosticStatus.OK and s.message == 'assisting' for s in probe.since(probe.diag, t1)), \
+        ([s.message for s in probe.diag[-5:]], node.log())
+    # hostile odometry and a command in another frame within the same 2 s: both rejected, both logged
+    probe.run(1.5, odom_v=(1e39, 0.0, 0.0), u=(1.0, 0.0, 0.0), frame='map')
+    assert node.proc.poll() is None, node.log()
+    t3 = probe.run(2.5, odom_v=(1e39, 0.0, 0.0))
+    late = probe.since(probe.cmd, t3 + 1.0)
+    # only hostile odometry arrives: odometry stale, relinquished, V = u = (0, 1, 0), and the node says so
+    assert late and all(np.allclose(v, [0, 1, 0], atol=1e-6) for v in late), late[-3:]
+    assert any(s.level == DiagnosticStatus.WARN and 'odometry' in s.message
+               for s in probe.since(probe.diag, t3 + 1.0)), [s.message for s in probe.diag[-5:]]
+    log = node.log()
+    assert 'rejected odom (odom_velocity_range)' in log and 'rejected pilot (pilot_frame)' in log, log
+    assert node.proc.poll() is None
+
+
+@pytest.mark.graph
+@pytest.mark.parametrize('param, value, words', [('max_vertical_speed', '-1.0', "'max_vertical_speed' must be > 0"),
+                                                 ('max_speed', '.nan', "'max_speed' must be finite"),
+                                                 ('rate_hz', '0', "'rate_hz' must be > 0")])
+def test_bad_parameter_exits_with_one_line(start_node, wait, model, param, value, words):
+    """max_vertical_speed:=-1 used to publish a continuous 1 m/s descent; max_speed:=-1 a ZeroDivisionError."""
+    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), param: value})
+    assert wait(lambda: node.proc.poll() is not None, 60), node.log()
+    log = node.log()
+    assert node.proc.returncode == 1 and words in log and 'Traceback' not in log, log
+    assert len([ln for ln in log.splitlines() if ln.startswith('error:')]) == 1
+
+
+@pytest.mark.graph
+def test_nan_max_speed_model_exits_with_one_line(start_node, wait, tmp_path):
+    """A model file with a NaN max_speed used to start and then crash on the first tick."""
+    path = constant_actor(tmp_path / 'nan_speed.pt', [0.5, 0.0, 0.0])
+    blob = torch.load(path, weights_only=True)
+    blob['meta']['max_speed'] = [math.nan, 1.0, 0.6]
+    torch.save(blob, path)
+    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(path)})
+    assert wait(lambda: node.proc.poll() is not None, 60), node.log()
+    log = node.log()
+    assert node.proc.returncode == 1 and 'max_speed' in log and str(path) in log and 'Traceback' not in log, log

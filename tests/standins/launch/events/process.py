@@ -1,0 +1,2 @@
+"""launch.events.process stand-in."""
+from .._impl import ProcessExited, ProcessStarted  # noqa: F401

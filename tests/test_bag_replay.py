@@ -1,0 +1,114 @@
+"""evaluate --record-dir bags: replay_assist reproduces the flown commands; plot_flight draws the landing."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from assist_policy import evaluate
+from assist_policy.bags import plot
+from assist_policy.bags.bagio import BagReader, BagWriter
+from assist_policy.bags.episode import landing_bag_name
+from assist_policy.bags.replay import ReplayConfig, replay, summarize, write_outputs
+
+BIN = Path(sys.executable).parent
+
+
+@pytest.fixture(scope='module')
+def landing(tmp_path_factory):
+    """One latent-assisted landing flown by evaluate with --record-dir (shipped CM-VAE and actor)."""
+    out = tmp_path_factory.mktemp('eval')
+    code = evaluate.main(['--out', str(out), '--conditions', 'latent', '--betas', '1.0', '--landings', '1',
+                          '--max-episode-s', '10', '--record-dir', str(out / 'bags'), '--plot', 'false'])
+    assert code == 0
+    row = evaluate.read_landings(out / 'landings.csv')['latent'][0]
+    bag = out / 'bags' / landing_bag_name('latent', row['beta'], row['seed'])
+    assert sorted(p.name for p in (out / 'bags').iterdir()) == [bag.name]
+    return bag, row
+
+
+def test_landing_bag_matches_its_csv_row(landing):
+    bag, row = landing
+    with BagReader(bag) as r:
+        steps = r.topics['/cmd_vel'].count
+        assert steps > 50
+        for topic in ('/camera/color/image_raw', '/camera/depth/image_raw', '/odom', '/pilot/cmd_vel',
+                      '/assist/latent', '/assist/agent_cmd'):
+            assert r.topics[topic].count >= steps
+        (_, _, raw), = list(r.messages(['/sim/landing']))
+        result = json.loads(r.deserialize(raw, '/sim/landing').data)
+    assert result['goal_index'] == row['goal_index'] and result['error_m'] == pytest.approx(row['error_m'])
+    assert result['assisted'] is True
+
+
+def test_replay_reproduces_the_recorded_commands(landing):
+    bag, _ = landing
+    res = replay(bag, ReplayConfig())
+    s = summarize(res)
+    assert s['mode'] == 'latent' and s['latent_source'] == 'encode' and s['velocity_frame'] == 'odom'
+    with BagReader(bag) as r:
+        n = r.topics['/cmd_vel'].count
+    assert s['steps'] == s['cmd_vel']['compared'] == s['agent_cmd']['compared'] == n
+    assert s['agent_cmd']['only_new'] == s['agent_cmd']['only_recorded'] == 0
+    assert s['latent']['max'] < 1e-5
+    assert s['agent_cmd']['max'] < 1e-4 and s['cmd_vel']['max'] < 1e-4
+    # the comparison sees a change: an assistant that never blends in flies V = u, not what was flown
+    off = summarize(replay(bag, ReplayConfig(latent='recorded', blend_threshold=10.0)))
+    assert off['cmd_vel']['max'] > 0.1
+
+
+def test_replay_cli_writes_a_bag_and_summary(landing, tmp_path):
+    bag, _ = landing
+    out = tmp_path / 'replayed'
+    proc = subprocess.run([str(BIN / 'replay_assist'), str(bag), '--out', str(out)], capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert 'cmd_vel    vs recorded' in proc.stdout
+    summary = json.loads((tmp_path / 'replayed.summary.json').read_text())
+    assert summary['cmd_vel']['max'] < 1e-4
+    with BagReader(out) as r:
+        n = summary['steps']
+        assert {t: v.count for t, v in r.topics.items()} == {'/assist/latent': n, '/assist/agent_cmd': n,
+                                                            '/cmd_vel': n}
+    # the same result as CSV
+    res = replay(bag, ReplayConfig(latent='recorded'))
+    csv_path = write_outputs(res, tmp_path / 'replayed.csv')
+    lines = csv_path.read_text().splitlines()
+    assert len(lines) == 1 + len(res.times_ns) and lines[0].startswith('t_s,agent_x')
+
+
+def test_plot_flight_draws_the_landing(landing, tmp_path):
+    bag, row = landing
+    assert plot.main([str(bag), '--out', str(tmp_path)]) == 0
+    png = tmp_path / f'{bag.name}_landing0.png'
+    import matplotlib.image as mpimg
+    img = mpimg.imread(png)
+    assert img.shape[0] > 500 and img.shape[1] > 900 and img.std() > 0.05
+    (f,) = plot.read_flights(bag)
+    assert len(f.pads) == 5 and f.goal_index == row['goal_index']
+    assert np.allclose(f.goal[:2], f.pads[row['goal_index']]['centre'][:2])
+    fig = plot.plot_flight(f, tmp_path / 'again.png', 'test')
+    assert [ax.get_title() for ax in fig.axes] == list(plot.PANELS)
+    labels = {line.get_label() for ax in fig.axes[2:] for line in ax.get_lines()}
+    assert {'pilot u', 'assistant a', 'blended V'} <= labels
+
+
+def test_plot_flight_without_scene_marks_the_goal_from_sim_goal(landing, tmp_path):
+    bag, row = landing
+    stripped = tmp_path / 'no_scene'
+    with BagReader(bag) as r, BagWriter(stripped) as w:
+        keep = [t for t in r.topics if t != '/sim/scene']
+        for t in keep:
+            info = r.topics[t]
+            w.add_topic(t, info.msgtype, info.qos)
+        for topic, t, raw in r.messages(keep):
+            w.write(topic, t, raw)
+    (f,) = plot.read_flights(stripped)
+    assert f.pads == [] and f.goal is not None and f.goal_index == row['goal_index']
+    assert 'pads not recorded' in plot.describe(f, 'x', 0)
+    assert plot.main([str(stripped), '--out', str(tmp_path / 'p')]) == 0
+    assert (tmp_path / 'p' / 'no_scene_landing0.png').stat().st_size > 10_000

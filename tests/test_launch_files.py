@@ -1,0 +1,243 @@
+"""What a ROS user does with the colcon-installed workspace: `ros2 launch` each launch file, wait for
+its topics, Ctrl-C, and expect a clean exit (0, no traceback, no error line, every node finished).
+
+`ros2 launch` is tests/standins/ros2launch.py over a stand-in of the launch / launch_ros API (the
+real ones do not install from a package registry here; see tests/standins/README.md), run with the
+environment of `source install/setup.bash`, so the installed executables, share/ files and
+models are used, not the editable venv.
+"""
+from __future__ import annotations
+
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.graph
+
+REPO = Path(__file__).resolve().parents[1]
+RUNNER = REPO / 'tests' / 'standins' / 'ros2launch.py'
+START_TIMEOUT_S = 180.0   # torch imports and pybullet start-up on 2 loaded cores
+STOP_TIMEOUT_S = 60.0
+QUIET = ('Traceback', 'Failed to publish', 'never awaited', 'argv[0]=', 'process has died',
+         'context is invalid', 'cannot connect to X server')
+
+
+def free_udp_port() -> int:
+    """A UDP port on 127.0.0.1 that nobody is bound to right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(('127.0.0.1', 0))
+        return s.getsockname()[1]
+
+
+def free_tcp_port() -> int:
+    """A TCP port on 127.0.0.1 that nobody listens on right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(('127.0.0.1', 0))
+        return s.getsockname()[1]
+
+
+class Launch:
+    """`ros2 launch PKG FILE args...` in its own process group (a terminal's Ctrl-C reaches all of it)."""
+
+    def __init__(self, ws, domain_id: int, package: str, file: str, args: list[str], log_dir: Path):
+        self.ws = ws
+        env = dict(ws.env, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED='1')
+        env.pop('DISPLAY', None)
+        self.log_path = log_dir / f'{file}-{time.monotonic_ns()}.log'
+        self._log = open(self.log_path, 'w')
+        self.proc = subprocess.Popen([sys.executable, str(RUNNER), package, file, *args], env=env,
+                                     cwd=ws.root, stdout=self._log, stderr=subprocess.STDOUT,
+                                     start_new_session=True)
+
+    def output(self) -> str:
+        """Everything printed so far."""
+        if not self._log.closed:
+            self._log.flush()
+        return self.log_path.read_text(errors='replace')
+
+    def ctrl_c(self) -> int:
+        """SIGINT to the whole process group, as Ctrl-C in a terminal; the launch's exit code."""
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGINT)
+        return self.wait()
+
+    def wait(self, timeout: float = STOP_TIMEOUT_S) -> int:
+        """Exit code (the group is killed and the test fails if it hangs)."""
+        try:
+            return self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait(10)
+            pytest.fail(f'launch did not exit within {timeout} s:\n{self.output()[-4000:]}')
+
+    def kill(self) -> None:
+        """Teardown: nothing may outlive the test."""
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait(10)
+        if not self._log.closed:
+            self._log.close()
+
+
+@pytest.fixture
+def launch(colcon_workspace, domain_id, tmp_path):
+    """Factory: launch(package, file, *args, symlink=False) -> Launch; killed at teardown."""
+    started: list[Launch] = []
+
+    def _start(package: str, file: str, *args: str, symlink: bool = False) -> Launch:
+        ws = colcon_workspace(symlink)
+        lau = Launch(ws, domain_id, package, file, list(args), tmp_path)
+        started.append(lau)
+        return lau
+    yield _start
+    for lau in started:
+        lau.kill()
+
+
+def wait_for_topics(ros, topics: dict, lau: Launch, timeout: float = START_TIMEOUT_S) -> None:
+    """Each topic (name -> (type, predicate or None)) delivers a matching message, or the test fails."""
+    from rclpy.qos import qos_profile_sensor_data
+    got = {name: threading.Event() for name in topics}
+    subs = []
+    for name, (msg_type, pred) in topics.items():
+        def cb(msg, name=name, pred=pred):
+            if pred is None or pred(msg):
+                got[name].set()
+        subs.append(ros.create_subscription(msg_type, name, cb, qos_profile_sensor_data))
+    try:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end and not all(e.is_set() for e in got.values()):
+            if lau.proc.poll() is not None:
+                break
+            time.sleep(0.2)
+        missing = [n for n, e in got.items() if not e.is_set()]
+        assert not missing, f'no message on {missing}:\n{lau.output()[-5000:]}'
+    finally:
+        for s in subs:
+            ros.destroy_subscription(s)
+
+
+def from_node(name: str):
+    """Predicate on DiagnosticArray: a status published by node `name`."""
+    return lambda msg: any(st.hardware_id == name for st in msg.status)
+
+
+def assert_clean_exit(code: int, out: str, nodes: int) -> None:
+    """Exit 0, every node finished cleanly, no traceback / error line / known shutdown noise."""
+    assert code == 0, out[-5000:]
+    errors = [ln for ln in out.splitlines() if '[ERROR]' in ln or '[FATAL]' in ln]
+    assert not errors, '\n'.join(errors) + '\n---\n' + out[-5000:]
+    noisy = [word for word in QUIET if word in out]
+    assert not noisy, f'{noisy}:\n{out[-5000:]}'
+    assert out.count('process has finished cleanly') == nodes, out[-5000:]
+
+
+def _types():
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import TwistStamped
+    from nav_msgs.msg import Odometry
+    from rosgraph_msgs.msg import Clock
+    from sensor_msgs.msg import Image
+    from std_msgs.msg import Float32MultiArray
+    return DiagnosticArray, TwistStamped, Odometry, Clock, Image, Float32MultiArray
+
+
+def test_sim_launch(ros, launch):
+    Diag, Twist, Odom, Clock, Image, Floats = _types()
+    lau = launch('assist_sim', 'sim.launch.py', 'seed:=2', 'real_time_factor:=2')  # an integer for a float
+    wait_for_topics(ros, {'/clock': (Clock, None), '/odom': (Odom, None),
+                          '/camera/color/image_raw': (Image, None), '/camera/depth/image_raw': (Image, None),
+                          '/diagnostics': (Diag, from_node('sim_node'))}, lau)
+    assert_clean_exit(lau.ctrl_c(), lau.output(), nodes=1)
+
+
+def test_encoder_launch(ros, launch):
+    Diag, *_ = _types()
+    lau = launch('assist_perception', 'encoder.launch.py')
+    wait_for_topics(ros, {'/diagnostics': (Diag, from_node('encoder_node'))}, lau)
+    assert_clean_exit(lau.ctrl_c(), lau.output(), nodes=1)
+
+
+def test_bridge_launch(ros, launch):
+    Diag, *_ = _types()
+    lau = launch('assist_bridge', 'bridge.launch.py')
+    wait_for_topics(ros, {'/diagnostics': (Diag, from_node('mavlink_bridge_node'))}, lau)
+    assert_clean_exit(lau.ctrl_c(), lau.output(), nodes=1)
+
+
+def test_sim_mavlink_launch(ros, launch):
+    Diag, Twist, Odom, Clock, Image, Floats = _types()
+    lau = launch('assist_bridge', 'sim_mavlink.launch.py', f'port:={free_udp_port()}', 'seed:=1')
+    # /odom here comes from the bridge (vehicle telemetry over MAVLink): the link is up
+    wait_for_topics(ros, {'/odom': (Odom, None), '/camera/color/image_raw': (Image, None),
+                          '/diagnostics': (Diag, from_node('mavlink_bridge_node'))}, lau)
+    assert_clean_exit(lau.ctrl_c(), lau.output(), nodes=2)
+
+
+def test_station_launch_unassisted(ros, launch):
+    Diag, Twist, Odom, Clock, Image, Floats = _types()
+    lau = launch('assist_station', 'station.launch.py', 'assisted:=false', f'port:={free_tcp_port()}')
+    # the pilot's commands go straight to /cmd_vel without the assistant
+    wait_for_topics(ros, {'/clock': (Clock, None), '/cmd_vel': (Twist, None),
+                          '/diagnostics': (Diag, from_node('pilot_station'))}, lau)
+    assert_clean_exit(lau.ctrl_c(), lau.output(), nodes=2)
+
+
+@pytest.mark.parametrize('symlink', [False, True], ids=['plain', 'symlink'])
+def test_assist_launch_latent(ros, launch, symlink):
+    Diag, Twist, Odom, Clock, Image, Floats = _types()
+    lau = launch('assist_policy', 'assist.launch.py', 'mode:=latent', 'alpha:=1', symlink=symlink)
+    wait_for_topics(ros, {'/pilot/cmd_vel': (Twist, None), '/assist/latent': (Floats, None),
+                          '/assist/agent_cmd': (Twist, None), '/cmd_vel': (Twist, None)}, lau)
+    # the installed shipped models, found through the ament index
+    install = lau.ws.install
+    out = lau.output()
+    assert f'{install}/assist_policy/share/assist_policy/models/td3_latent_actor.pt' in out, out[-4000:]
+    assert f'{install}/assist_perception/share/assist_perception/models/cmvae.pt' in out, out[-4000:]
+    assert_clean_exit(lau.ctrl_c(), lau.output(), nodes=4)
+
+
+def test_a_dead_required_node_ends_the_launch_with_the_reason(ros, launch):
+    Diag, Twist, Odom, Clock, Image, Floats = _types()
+    lau = launch('assist_bridge', 'sim_mavlink.launch.py', f'port:={free_udp_port()}')
+    wait_for_topics(ros, {'/odom': (Odom, None)}, lau)      # both up, the link too
+    pid = int(re.search(r'\[sim_node-1\]: process started with pid \[(\d+)\]', lau.output()).group(1))
+    os.kill(pid, signal.SIGKILL)                              # the sim crashes
+    code = lau.wait(STOP_TIMEOUT_S)
+    out = lau.output()
+    assert code == 0, out[-4000:]           # ros2 launch itself did not fail; the node did
+    assert 'sim_node-1 exited with code -9; the bridge has no vehicle without the sim: shutting the launch down' \
+        in out, out[-4000:]
+    assert '[INFO] [mavlink_bridge_node-2]: process has finished cleanly' in out, out[-4000:]
+    assert 'Traceback' not in out
+
+
+def test_every_launch_argument_is_described(colcon_workspace):
+    ws = colcon_workspace(False)
+    files = sorted(ws.install.glob('*/share/*/launch/*.launch.py'))
+    assert len(files) >= 6
+    for path in files:
+        pkg = path.parents[1].name
+        out = subprocess.run([sys.executable, str(RUNNER), pkg, path.name, '--show-args'], env=ws.env,
+                             capture_output=True, text=True, timeout=60)
+        assert out.returncode == 0, out.stderr[-2000:]
+        assert "'" in out.stdout and 'no description given' not in out.stdout, (path.name, out.stdout)
+
+
+def test_launch_arguments_are_never_evaluated_as_code(launch, tmp_path):
+    marker = tmp_path / 'pwned'
+    payload = f"__import__('pathlib').Path('{marker}').touch()"
+    lau = launch('assist_policy', 'assist.launch.py', f"mode:=latent' == 'latent' or {payload} or '")
+    assert lau.wait(START_TIMEOUT_S) == 1        # not one of latent / oracle / end_to_end
+    assert 'is not valid' in lau.output() and 'process started' not in lau.output()
+    lau = launch('assist_bridge', 'sim_mavlink.launch.py', f"port:=1' + str({payload}) + '")
+    lau.wait(START_TIMEOUT_S)
+    assert not marker.exists(), lau.output()[-4000:]
