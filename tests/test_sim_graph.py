@@ -66,10 +66,20 @@ def probe(ros):
     p.close()
 
 
-def _fly(probe, v, seconds):
+def _sim_now(probe) -> float:
+    od = probe.last('odom')
+    return od.header.stamp.sec + 1e-9 * od.header.stamp.nanosec
+
+
+def _fly(probe, v, sim_seconds, wall_limit=60.0):
+    """Send `v` at 20 Hz (wall) until the sim clock (odometry stamps) has advanced `sim_seconds`.
+
+    Sim time, not wall time: on a loaded machine the sim may run slower than its real_time_factor.
+    """
     import time
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
+    t0 = _sim_now(probe)
+    end = time.monotonic() + wall_limit
+    while _sim_now(probe) - t0 < sim_seconds and time.monotonic() < end:
         probe.send(v)
         time.sleep(0.05)
 
@@ -83,7 +93,7 @@ def test_sim_node_command_in_odometry_and_images_out(probe, start_node, wait):
     assert goal.header.frame_id == 'odom' and 0.3 < goal.point.z < 1.5
 
     x0 = probe.last('odom').pose.pose.position.x
-    _fly(probe, (1.0, 0.0, 0.0), 2.0)                      # 2 s wall = 4 s sim at rtf 2
+    _fly(probe, (1.0, 0.0, 0.0), 4.0)                      # 4 s of sim time (2 s wall at rtf 2)
     od = probe.last('odom')
     assert od.header.frame_id == 'odom' and od.child_frame_id == 'base_link'
     assert od.pose.pose.position.x - x0 > 2.0             # moved forward (+x ENU)
@@ -102,7 +112,7 @@ def test_sim_node_command_in_odometry_and_images_out(probe, start_node, wait):
     assert c.sec + c.nanosec * 1e-9 > 3.0
 
     # a NaN command is rejected: the vehicle stops (stale command -> hover), it does not fly NaN
-    _fly(probe, (math.nan, 0.0, 0.0), 1.5)
+    _fly(probe, (math.nan, 0.0, 0.0), 3.0)
     od = probe.last('odom')
     assert abs(od.twist.twist.linear.x) < 0.3 and math.isfinite(od.pose.pose.position.x)
     assert sim.proc.poll() is None and 'rejected' in sim.log()

@@ -172,37 +172,6 @@ class Odometry:
 
 
 @dataclass
-class VehicleStatus:
-    """What the bridge knows about the autopilot (guarded by the bridge lock)."""
-
-    link_up: bool = False
-    ever_connected: bool = False
-    last_heartbeat: float | None = None
-    mode: str = 'UNKNOWN'
-    armed: bool = False
-    system_status: int = 0
-    landed_state: int = 0
-    position_ned: np.ndarray | None = None
-    velocity_ned: np.ndarray | None = None
-    last_position: float | None = None
-    attitude: tuple[float, float, float] | None = None     # roll, pitch, yaw (NED/FRD)
-    rates_frd: np.ndarray = field(default_factory=lambda: np.zeros(3))
-
-
-
-
-@dataclass
-class Odometry:
-    """Vehicle odometry in ROS frames: pose in odom (ENU), twist in base_link (FLU)."""
-
-    position: np.ndarray
-    quaternion: np.ndarray          # x, y, z, w (odom -> base_link)
-    linear_velocity: np.ndarray     # base_link FLU
-    angular_velocity: np.ndarray    # base_link FLU
-    yaw: float                      # ROS yaw (ENU)
-
-
-@dataclass
 class VehiclePeer:
     """The vehicle the bridge is locked onto: MAVLink ids and source address (None on streams)."""
 

@@ -36,7 +36,6 @@ import csv
 import dataclasses
 import json
 import logging
-import os
 import sys
 import time
 from dataclasses import dataclass
@@ -45,7 +44,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from assist_sim.atomic import atomic_path, truncate_csv, write_text_atomic
+from assist_sim.atomic import CsvLog, atomic_path, truncate_csv, write_text_atomic
 from assist_sim.pilots import PILOT_NAMES
 
 from .bags.bagio import BagError
@@ -157,11 +156,7 @@ class LandingLog:
         else:
             self.partial.unlink(missing_ok=True)
             write_text_atomic(self.settings_file, json.dumps(settings, sort_keys=True))
-        new = not self.partial.exists()
-        self.fh = open(self.partial, 'a', newline='', encoding='utf-8')
-        self.w = csv.DictWriter(self.fh, fieldnames=LANDING_FIELDS, extrasaction='ignore')
-        if new:
-            self.w.writeheader()
+        self.csv = CsvLog(self.partial, LANDING_FIELDS)
 
     def flown(self, condition: str, beta: float, seed: int) -> dict | None:
         """The row of a landing an interrupted run already flew, or None."""
@@ -169,17 +164,15 @@ class LandingLog:
 
     def write(self, row: dict) -> None:
         """Append one landing (flushed)."""
-        self.w.writerow(row)
-        self.fh.flush()
+        self.csv.write(row)
 
     def sync(self) -> None:
         """Make the landings written so far durable."""
-        self.fh.flush()
-        os.fsync(self.fh.fileno())
+        self.csv.sync()
 
     def close(self) -> None:
         """Close the partial file (kept for a resume)."""
-        self.fh.close()
+        self.csv.close()
 
     def commit(self, rows_by_cond: dict[str, list[dict]]) -> None:
         """Replace landings.csv with the complete table (if any landing was flown); drop the partial files."""

@@ -13,12 +13,10 @@ flown again). Every file is written via a temporary file renamed into place (``a
 from __future__ import annotations
 
 import argparse
-import csv
 import dataclasses
 import json
 import logging
 import math
-import os
 import sys
 import time
 from dataclasses import dataclass
@@ -28,7 +26,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from assist_sim.atomic import (atomic_dir, atomic_path, committed_dir, remove_stale_temporaries, truncate_csv,
+from assist_sim.atomic import (CsvLog, atomic_dir, atomic_path, committed_dir, remove_stale_temporaries, truncate_csv,
                                write_text_atomic)
 from assist_sim.pilots import HELDOUT_FAMILIES, TRAIN_FAMILIES
 
@@ -214,32 +212,6 @@ def init_actor(agent: TD3, path: str, condition: str) -> None:
         raise ValueError(f'{path}: actor does not fit this run (observation size / hidden layers): {exc}') from exc
     agent.actor_target.load_state_dict(actor.state_dict())
     log.info('actor initialised from %s', path)
-
-
-class CsvLog:
-    """Append-only CSV with a fixed header (survives resumes)."""
-
-    def __init__(self, path: Path, fields: list[str]):
-        self.path, self.fields = path, fields
-        new = not path.exists()
-        self.fh = open(path, 'a', newline='', encoding='utf-8')
-        self.w = csv.DictWriter(self.fh, fieldnames=fields, extrasaction='ignore')
-        if new:
-            self.w.writeheader()
-
-    def write(self, row: dict) -> None:
-        """Write one row and flush (so tail -f shows progress)."""
-        self.w.writerow(row)
-        self.fh.flush()
-
-    def sync(self) -> None:
-        """Make the rows written so far durable (before a checkpoint that counts them)."""
-        self.fh.flush()
-        os.fsync(self.fh.fileno())
-
-    def close(self) -> None:
-        """Close the file."""
-        self.fh.close()
 
 
 CHECKPOINT_DIR = 'checkpoint'

@@ -198,3 +198,30 @@ def truncate_csv(path: str | Path, keep: Callable[[dict], bool]) -> int:
     w.writerows(kept)
     write_text_atomic(path, buf.getvalue())
     return dropped
+
+
+class CsvLog:
+    """Append-only CSV with a fixed header (survives resumes: run truncate_csv on it first)."""
+
+    def __init__(self, path: str | Path, fields: list[str]):
+        path = Path(path)
+        self.path, self.fields = path, fields
+        new = not path.exists()
+        self.fh = open(path, 'a', newline='', encoding='utf-8')
+        self.w = csv.DictWriter(self.fh, fieldnames=fields, extrasaction='ignore')
+        if new:
+            self.w.writeheader()
+
+    def write(self, row: dict) -> None:
+        """Write one row and flush (so tail -f shows progress)."""
+        self.w.writerow(row)
+        self.fh.flush()
+
+    def sync(self) -> None:
+        """Make the rows written so far durable (before a checkpoint that counts them)."""
+        self.fh.flush()
+        os.fsync(self.fh.fileno())
+
+    def close(self) -> None:
+        """Close the file."""
+        self.fh.close()
