@@ -85,7 +85,7 @@ def _fly(probe, v, sim_seconds, wall_limit=60.0):
 
 
 def test_sim_node_command_in_odometry_and_images_out(probe, start_node, wait):
-    sim = start_node('sim_node', {'seed': 3, 'real_time_factor': 2.0, 'camera_width': 48, 'camera_height': 40})
+    sim = start_node('sim_node', {'seed': 3, 'real_time_factor': 1.0, 'camera_width': 48, 'camera_height': 40})
     assert wait(lambda: probe.count('odom') > 5 and probe.count('rgb') > 2, 30), sim.log()
     goal = probe.last('goal')
     assert wait(lambda: probe.last('goal') is not None, 5)
@@ -93,7 +93,7 @@ def test_sim_node_command_in_odometry_and_images_out(probe, start_node, wait):
     assert goal.header.frame_id == 'odom' and 0.3 < goal.point.z < 1.5
 
     x0 = probe.last('odom').pose.pose.position.x
-    _fly(probe, (1.0, 0.0, 0.0), 4.0)                      # 4 s of sim time (2 s wall at rtf 2)
+    _fly(probe, (1.0, 0.0, 0.0), 4.0)                      # 4 s of sim time (at rtf 1 a command stays fresh for 0.5 s of wall time)
     od = probe.last('odom')
     assert od.header.frame_id == 'odom' and od.child_frame_id == 'base_link'
     assert od.pose.pose.position.x - x0 > 2.0             # moved forward (+x ENU)
