@@ -255,7 +255,7 @@ def test_shipped_parm_file_matches_the_motor_model():
     # spinning-when-armed PWM is above the runner's disarmed threshold, MOT_PWM_MIN below it
     armed_idle = params['MOT_PWM_MIN'] + params['MOT_SPIN_ARM'] * (params['MOT_PWM_MAX'] - params['MOT_PWM_MIN'])
     assert params['MOT_PWM_MIN'] <= JsonRunnerConfig().disarmed_pwm_max < armed_idle
-    assert params['SIM_RATE_HZ'] == 400 and params['RNGFND1_TYPE'] == 100 and params['RNGFND1_ORIENT'] == 25
+    assert params['SIM_RATE_HZ'] == 800 and params['RNGFND1_TYPE'] == 100 and params['RNGFND1_ORIENT'] == 25
     assert params['RNGFND1_GNDCLR'] == pytest.approx(veh.leg_length_m, abs=0.01)
     assert params['GUID_TIMEOUT'] > 0
 
