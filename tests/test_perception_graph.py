@@ -86,6 +86,8 @@ def test_latents_from_sim_frames_have_model_size_and_camera_rate(probe, start_no
     enc = start_node('encoder_node')
     sim = start_node('sim_node', {'seed': 5, 'real_time_factor': 1.0, 'camera_rate_hz': 20.0})
     assert wait(lambda: probe.count('latent') >= 40, 90), sim.log() + enc.log()
+    import time
+    time.sleep(2.0)        # past start-up (first inferences, DDS matching): count the steady state
     n_rgb0, n_lat0 = probe.count('rgb'), probe.count('latent')
     assert wait(lambda: probe.count('rgb') >= n_rgb0 + 40, 60), sim.log()
     n_rgb, n_lat = probe.count('rgb') - n_rgb0, probe.count('latent') - n_lat0
