@@ -138,6 +138,8 @@ def test_arm_takeoff_fly_stop_land_disarm(rig, wait):
     res = probe.call('takeoff')
     assert res.success, res.message
     assert wait(lambda: probe.pos()[2] > ground[2] + 1.8, 40.0), f'no climb: {probe.pos()}'
+    # the bridge holds velocity setpoints back until it has seen the takeoff complete
+    assert wait(lambda: 'takeoff complete' in bridge.log(), 20.0), bridge.log()[-2000:]
     time.sleep(0.5)
     p0 = probe.pos()
     end = time.monotonic() + 2.0
