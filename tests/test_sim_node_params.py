@@ -137,7 +137,9 @@ def test_sim_node_parameters_apply_at_run_time_or_are_refused(ros, start_node, w
 
 def test_a_burst_of_resets_is_answered(ros, start_node):
     start_node('sim_node', {'seed': 3, 'camera_rate_hz': 0.0})
-    client = ros.create_client(Trigger, '/sim/reset')
+    from rclpy.qos import QoSProfile
+    # the client's own response queue must hold the burst too (default depth 10 drops answers)
+    client = ros.create_client(Trigger, '/sim/reset', qos_profile=QoSProfile(depth=100))
     try:
         assert client.wait_for_service(timeout_sec=120.0)
         answered = []
