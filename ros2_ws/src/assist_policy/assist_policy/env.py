@@ -13,7 +13,10 @@ Reward (paper, "TD3 implementation"), weights in ``RewardConfig``:
         (0 by default: the paper names only the three terms);
   (ii)  each step: progress_weight * (d_t - d_{t+1}) when d_{t+1} < progress_radius_m, d = 3-D
         distance to the true goal's top centre;
-  (iii) each step: -action_weight * |a_t| (m/s).
+  (iii) each step: -action_weight * |a_t| (m/s);
+  (iv)  optional safety term (not in the paper, 0 by default): each step below floor_descent_height_m
+        with no pad under the vehicle (privileged pad geometry, ``over_pad``), -floor_descent_weight *
+        the flown descent speed (m/s), so descending over bare floor costs more than countering it.
 An episode cut at max_episode_s gets the landing term for where the vehicle is (so stalling a
 landing never pays); trainers treat it as terminal.
 """
@@ -50,6 +53,9 @@ class RewardConfig:
     action_weight: float = 0.02        # per m/s of assistant action, every step
     success_bonus: float = 0.0         # extra terminal reward on success (not in the paper)
     crash_penalty: float = 0.0         # extra terminal penalty on a crash (not in the paper)
+    floor_descent_weight: float = 0.0  # per m/s of flown descent over bare floor, every step (not in the paper)
+    floor_descent_height_m: float = 1.5  # the safety term counts below this height above the floor
+    floor_pad_margin_m: float = 0.15   # a pad footprint grown by this (the legs' reach) counts as under
 
 
 @dataclass
@@ -63,9 +69,11 @@ class EnvConfig:
     blend_threshold: float = DEFAULT_THRESHOLD
     max_speed: tuple[float, float, float] = DEFAULT_MAX_SPEED
     window_s: float = 1.0
+    feature_lags_s: tuple[float, ...] = ()           # feature memory (observation.FeatureMemory); () = none
     latent_dim: int = 0                              # set from the encoder for the latent condition
     encoder_path: str = ''                           # CM-VAE weights (latent condition)
     pilot_family: str = 'paper'                      # assist_sim.pilots name: a family, 'mix' or 'train_mix'
+    paper_share: float = 0.0                         # chance per landing of the paper pilot instead (training)
     safety: SafetyConfig | None = None               # floor guard on the blended command (None: off)
     reward: RewardConfig = field(default_factory=RewardConfig)
     pilot: PilotConfig = field(default_factory=PilotConfig)
@@ -88,7 +96,8 @@ class LandingAssistEnv(gym.Env):
             raise ValueError('latent condition needs latent_fn(rgb, depth) -> mu')
         self.latent_fn = latent_fn
         self.world = LandingWorld(self.cfg.world)
-        self.builder = ObservationBuilder(self.condition, self.cfg.latent_dim, self.cfg.window_s)
+        self.builder = ObservationBuilder(self.condition, self.cfg.latent_dim, self.cfg.window_s,
+                                          tuple(self.cfg.feature_lags_s))
         self.dt = 1.0 / self.cfg.world.control_hz
         self.pilot_cfg = self.cfg.pilot
         self.pilot_cfg.control_hz = float(self.cfg.world.control_hz)
@@ -140,7 +149,10 @@ class LandingAssistEnv(gym.Env):
         st = self.world.reset(seed=scene_seed, goal_index=options.get('goal_index'))
         beta = float(options.get('beta', rng.uniform(*self.cfg.beta_range)))
         alpha = float(options.get('alpha', self.cfg.alpha))
-        self.pilot = make_pilot(str(options.get('pilot', self.cfg.pilot_family)), alpha, beta, self.pilot_cfg,
+        family = str(options.get('pilot', self.cfg.pilot_family))
+        if 'pilot' not in options and self.cfg.paper_share > 0 and rng.uniform() < self.cfg.paper_share:
+            family = 'paper'
+        self.pilot = make_pilot(family, alpha, beta, self.pilot_cfg,
                                 np.random.default_rng(int(rng.integers(2**31))), pads=self.world.pad_top_centers)
         self.pilot.reset(self.world.goal_position, st.position)
         self.builder.reset()
@@ -180,6 +192,9 @@ class LandingAssistEnv(gym.Env):
         reward = -r.action_weight * float(np.linalg.norm(a))
         if d < r.progress_radius_m:
             reward += r.progress_weight * (self._dist - d)
+        if (r.floor_descent_weight > 0 and v[2] < 0 and st.position[2] < r.floor_descent_height_m
+                and not over_pad(self.world.scene.pads, st.position[:2], r.floor_pad_margin_m)):
+            reward -= r.floor_descent_weight * float(-v[2])
         self._dist = d
         terminated = self.world.done
         truncated = (not terminated) and (st.time - self._t0) >= self.cfg.max_episode_s
@@ -216,6 +231,16 @@ class LandingAssistEnv(gym.Env):
     def close(self) -> None:
         """Release the pybullet client."""
         self.world.close()
+
+
+def over_pad(pads, xy: np.ndarray, margin_m: float = 0.0) -> bool:
+    """True if the horizontal point `xy` lies over a pad's yawed footprint grown by `margin_m` on each side."""
+    for pad in pads:
+        c, s = np.cos(pad.yaw), np.sin(pad.yaw)
+        dx, dy = float(xy[0]) - pad.center[0], float(xy[1]) - pad.center[1]
+        if abs(c * dx + s * dy) <= pad.length / 2 + margin_m and abs(-s * dx + c * dy) <= pad.width / 2 + margin_m:
+            return True
+    return False
 
 
 def run_episode(env: LandingAssistEnv, policy, seed: int, options: dict | None = None) -> dict:

@@ -209,7 +209,8 @@ def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: fl
     actor, meta = load_actor(path)
     cfg = EnvConfig(condition=condition, alpha=alpha, max_episode_s=max_episode_s,
                     max_speed=tuple(meta.get('max_speed', (1.0, 1.0, 0.6))),
-                    latent_dim=int(meta.get('latent_dim', 0)), pilot_family=pilot, safety=safety)
+                    latent_dim=int(meta.get('latent_dim', 0)), pilot_family=pilot, safety=safety,
+                    feature_lags_s=tuple(meta['feature_lags_s']))
     if condition == 'latent':
         latent_fn, dim = make_latent_fn(encoder_path or None)
         if dim != cfg.latent_dim:

@@ -12,6 +12,11 @@ feature per condition (``Condition``):
 
 The vector part is the same for every condition, so one builder serves training, evaluation
 and the policy node. Times are in seconds of whatever clock the caller uses (sim or ROS).
+
+Feature memory (issue 12, optional): an actor whose metadata lists ``feature_lags_s`` (e.g. [1, 2])
+also sees the scene feature as it was that many seconds ago (``FeatureMemory``), appended after the
+vector above, so it still knows where the pads were after they left the view. Actors without it
+(every older file) see exactly the layout above.
 """
 from __future__ import annotations
 
@@ -86,6 +91,52 @@ class ActionHistory:
         return len(self._items)
 
 
+MAX_FEATURE_LAGS = 8      # lagged copies of the feature an actor may ask for
+MAX_FEATURE_LAG_S = 30.0  # s
+
+
+class FeatureMemory:
+    """Time-stamped scene features; the feature as it was `lag` seconds ago, for each of `lags_s`."""
+
+    def __init__(self, lags_s: tuple[float, ...] = ()):
+        lags = tuple(float(x) for x in lags_s)
+        if len(lags) > MAX_FEATURE_LAGS or any(not (0.0 < x <= MAX_FEATURE_LAG_S) for x in lags):
+            raise ValueError(f'feature lags must be at most {MAX_FEATURE_LAGS} values in (0, {MAX_FEATURE_LAG_S:g}] s, '
+                             f'got {list(lags_s)}')
+        self.lags_s = lags
+        self._items: deque[tuple[float, np.ndarray]] = deque()
+
+    def clear(self) -> None:
+        """Forget every feature (new episode)."""
+        self._items.clear()
+
+    def lagged(self, now: float, feature: np.ndarray) -> np.ndarray:
+        """Record `feature` at `now`; the features seen at now - lag (oldest known if none that old), concatenated.
+
+        Empty when no lags are configured. A clock that jumps backwards (sim reset) clears the memory.
+        """
+        if not self.lags_s:
+            return np.zeros(0)
+        if not np.isfinite(now):
+            raise ValueError(f'FeatureMemory.lagged: non-finite time {now!r}')
+        if self._items and now < self._items[-1][0]:
+            self.clear()
+        self._items.append((float(now), np.asarray(feature, dtype=float).reshape(-1).copy()))
+        horizon = now - max(self.lags_s) + TIME_EPS
+        while len(self._items) > 1 and self._items[1][0] <= horizon:   # keep one sample at least max lag old
+            self._items.popleft()
+        out = []
+        for lag in self.lags_s:
+            target = now - lag + TIME_EPS
+            chosen = self._items[0][1]
+            for t, f in self._items:
+                if t > target:
+                    break
+                chosen = f
+            out.append(chosen)
+        return np.concatenate(out)
+
+
 def feature_dim(condition: Condition | str, latent_dim: int = 0) -> int:
     """Length of the condition-specific part of the vector observation."""
     condition = Condition(condition)
@@ -98,9 +149,9 @@ def feature_dim(condition: Condition | str, latent_dim: int = 0) -> int:
     return 0
 
 
-def vector_dim(condition: Condition | str, latent_dim: int = 0) -> int:
-    """Length of the full vector observation for `condition`."""
-    return feature_dim(condition, latent_dim) + DYNAMICS_DIM + ACTIONS_DIM
+def vector_dim(condition: Condition | str, latent_dim: int = 0, n_lags: int = 0) -> int:
+    """Length of the full vector observation for `condition` (with `n_lags` lagged copies of the feature)."""
+    return feature_dim(condition, latent_dim) * (1 + n_lags) + DYNAMICS_DIM + ACTIONS_DIM
 
 
 def oracle_feature(goal: np.ndarray, position: np.ndarray) -> np.ndarray:
@@ -142,15 +193,20 @@ class ObservationBuilder:
     condition: Condition = Condition.ORACLE
     latent_dim: int = 0
     window_s: float = 1.0
+    feature_lags_s: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         self.condition = Condition(self.condition)
+        if self.feature_lags_s and self.condition is Condition.END_TO_END:
+            raise ValueError('feature lags need a vector feature (latent or oracle), not end_to_end')
         self.history = ActionHistory(self.window_s)
-        self.dim = vector_dim(self.condition, self.latent_dim)
+        self.memory = FeatureMemory(tuple(self.feature_lags_s))
+        self.dim = vector_dim(self.condition, self.latent_dim, len(self.memory.lags_s))
 
     def reset(self) -> None:
         """Start a new episode."""
         self.history.clear()
+        self.memory.clear()
 
     def build(self, now: float, feature: np.ndarray, velocity: np.ndarray, altitude: float,
               u: np.ndarray) -> np.ndarray:
@@ -160,7 +216,10 @@ class ObservationBuilder:
         if feature.size != expected:
             raise ValueError(f'{self.condition.value} feature has {feature.size} values, expected {expected}')
         mean_u, mean_a = self.history.means(now)
-        return build_vector(feature, velocity, altitude, u, mean_u, mean_a)
+        obs = build_vector(feature, velocity, altitude, u, mean_u, mean_a)
+        if not self.memory.lags_s:
+            return obs
+        return np.concatenate([obs, self.memory.lagged(now, feature).astype(np.float32)])
 
     def record(self, now: float, u: np.ndarray, a: np.ndarray) -> None:
         """Remember the pilot action and agent action applied at time `now`."""

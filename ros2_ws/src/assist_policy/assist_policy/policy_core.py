@@ -118,7 +118,8 @@ class PolicyCore:
         if trained is not None and trained != self.mode.value:
             raise ValueError(f'{actor_path}: actor was trained for {trained!r}, not mode {self.mode.value!r}')
         self.max_speed = tuple(float(v) for v in self.meta['max_speed'])
-        self.builder = ObservationBuilder(self.mode, int(self.meta['latent_dim']), float(self.meta['window_s']))
+        self.builder = ObservationBuilder(self.mode, int(self.meta['latent_dim']), float(self.meta['window_s']),
+                                          tuple(self.meta['feature_lags_s']))
         if self.builder.dim != int(self.meta['vec_dim']):
             raise ValueError(f'{actor_path}: actor expects {self.meta["vec_dim"]} inputs, the {self.mode.value} '
                              f'observation has {self.builder.dim}')

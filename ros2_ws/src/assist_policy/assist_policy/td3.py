@@ -23,7 +23,7 @@ from torch.nn import functional as F
 
 from assist_sim.atomic import atomic_path
 
-from .observation import IMAGE_SHAPE, Condition, vector_dim
+from .observation import IMAGE_SHAPE, MAX_FEATURE_LAG_S, MAX_FEATURE_LAGS, Condition, vector_dim
 
 log = logging.getLogger(__name__)
 
@@ -317,7 +317,8 @@ def save_actor(actor: Actor, meta: dict[str, Any], path: str | Path) -> None:
 
 
 META_DEFAULTS = {'act_dim': 3, 'image': False, 'image_channels': [32, 32, 64, 64], 'latent_dim': 0,
-                 'max_speed': [1.0, 1.0, 0.6], 'window_s': 1.0}   # older actor files may lack these
+                 'max_speed': [1.0, 1.0, 0.6], 'window_s': 1.0,
+                 'feature_lags_s': []}   # older actor files may lack these (no lags: the original layout)
 MAX_ACTION_SPEED = 20.0   # m/s; an actor file claiming faster assistant actions is not one of ours
 
 
@@ -368,6 +369,11 @@ def validate_actor_meta(meta: Any) -> dict[str, Any]:
     meta['max_speed'] = [_float(v, f'max_speed[{i}]', 0.0, MAX_ACTION_SPEED, lo_open=True)
                          for i, v in enumerate(ms)]
     meta['window_s'] = _float(meta['window_s'], "'window_s'", 0.0, 3600.0, lo_open=True)
+    lags = meta['feature_lags_s']
+    if not isinstance(lags, (list, tuple)) or len(lags) > MAX_FEATURE_LAGS:
+        raise ValueError(f"metadata 'feature_lags_s' must be a list of at most {MAX_FEATURE_LAGS} lags (s), got {lags!r}")
+    meta['feature_lags_s'] = [_float(v, f'feature_lags_s[{i}]', 0.0, MAX_FEATURE_LAG_S, lo_open=True)
+                              for i, v in enumerate(lags)]
     if 'blend_threshold' in meta:
         meta['blend_threshold'] = _float(meta['blend_threshold'], "'blend_threshold'", 0.0, MAX_ACTION_SPEED)
     cond = meta.get('condition')
@@ -375,7 +381,9 @@ def validate_actor_meta(meta: Any) -> dict[str, Any]:
         raise ValueError(f"metadata 'condition' must be one of latent, oracle, end_to_end; got {cond!r}")
     if cond == 'latent' and meta['latent_dim'] < 1:
         raise ValueError("metadata 'latent_dim' must be >= 1 for a latent actor")
-    expected = vector_dim(cond, meta['latent_dim']) if cond is not None else None
+    if meta['feature_lags_s'] and (cond is None or cond == 'end_to_end'):
+        raise ValueError("metadata 'feature_lags_s' needs a latent or oracle actor")
+    expected = vector_dim(cond, meta['latent_dim'], len(meta['feature_lags_s'])) if cond is not None else None
     if expected is not None and expected != meta['vec_dim']:
         raise ValueError(f"metadata 'vec_dim' {meta['vec_dim']} does not fit a {cond} actor "
                          f"(latent_dim {meta['latent_dim']}: {expected})")

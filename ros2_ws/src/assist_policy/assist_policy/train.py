@@ -86,7 +86,10 @@ class TrainArgs:
     dagger_episodes: int = 100
     hidden: tuple[int, ...] = (256, 256)
     pilot: str = 'paper'
+    paper_share: float = 0.0
     safety: bool = False
+    floor_descent_weight: float = 0.0
+    feature_lags_s: tuple[float, ...] = ()
 
 
 HELP = {
@@ -123,6 +126,12 @@ HELP = {
     'pilot': 'simulated pilots to train with (domain randomisation): paper, a training family of '
              'assist_sim.pilots (TRAIN_FAMILIES) or train_mix (one training family per landing); the held-out '
              'families and mix are refused',
+    'paper_share': 'chance per training landing of the paper pilot instead of --pilot (keeps the reference '
+                   'pilot at a solid share of a population run)',
+    'floor_descent_weight': 'safety reward term: cost per m/s of flown descent below 1.5 m with no pad under '
+                            'the vehicle (0 = the paper reward)',
+    'feature_lags_s': 'feature memory: the actor also sees the scene feature as it was this many seconds ago '
+                      '(one copy per lag, e.g. 1 2); an --init-actor with fewer lags is widened with zero weights',
     'safety': 'fly with the floor guard (assist_policy.safety) on, as policy_node does by default',
 }
 
@@ -169,14 +178,16 @@ def env_config_from(args: TrainArgs) -> EnvConfig:
     """The task the run trains on."""
     check_training_pilot(args.pilot)
     return EnvConfig(condition=args.condition, alpha=args.alpha, max_episode_s=args.max_episode_s,
-                     encoder_path=args.encoder_path, pilot_family=args.pilot,
+                     encoder_path=args.encoder_path, pilot_family=args.pilot, paper_share=args.paper_share,
+                     feature_lags_s=tuple(args.feature_lags_s),
                      safety=SafetyConfig() if args.safety else None,
                      reward=RewardConfig(landing_weight=args.landing_weight,
                                          progress_weight=args.progress_weight,
                                          progress_radius_m=args.progress_radius_m,
                                          action_weight=args.action_weight,
                                          success_bonus=args.success_bonus,
-                                         crash_penalty=args.crash_penalty))
+                                         crash_penalty=args.crash_penalty,
+                                         floor_descent_weight=args.floor_descent_weight))
 
 
 def make_env(env_cfg: EnvConfig) -> LandingAssistEnv:
@@ -201,16 +212,39 @@ def evaluate_agent(env: LandingAssistEnv, agent: TD3, per_beta: int, seed: int =
             'eval_active': float(np.mean([r['active_fraction'] for r in rows]))}
 
 
+def widen_state(state: dict, src_lags: list, dst_lags: list, dst_vec_dim: int) -> dict:
+    """An actor state dict for more feature lags: the extra inputs (appended last) get zero weights.
+
+    The widened actor acts exactly like the original until training moves the new weights.
+    ValueError unless the source's lags are a prefix of the destination's.
+    """
+    if list(dst_lags[:len(src_lags)]) != list(src_lags):
+        raise ValueError(f'feature lags {list(src_lags)} are not a prefix of {list(dst_lags)}')
+    state = dict(state)
+    w = state['head.0.weight']
+    extra = dst_vec_dim - w.shape[1]
+    if extra < 0:
+        raise ValueError(f'actor has {w.shape[1]} inputs, more than the {dst_vec_dim} of this run')
+    state['head.0.weight'] = torch.cat([w, torch.zeros(w.shape[0], extra, dtype=w.dtype)], dim=1)
+    return state
+
+
 def init_actor(agent: TD3, path: str, condition: str) -> None:
     """Start from a saved actor (actor and its target); ValueError if it does not fit this run."""
     actor, meta = load_actor(path)
     if meta.get('condition', condition) != condition:
         raise ValueError(f'{path}: actor was trained for {meta.get("condition")!r}, this run is {condition!r}')
+    state = actor.state_dict()
+    dst_lags = agent.meta.get('feature_lags_s', [])
+    if list(meta['feature_lags_s']) != list(dst_lags):
+        state = widen_state(state, meta['feature_lags_s'], dst_lags, agent.meta['vec_dim'])
+        log.info('actor widened from feature lags %s to %s (new inputs start at zero weight)',
+                 meta['feature_lags_s'], dst_lags)
     try:
-        agent.actor.load_state_dict(actor.state_dict())
+        agent.actor.load_state_dict(state)
     except RuntimeError as exc:
         raise ValueError(f'{path}: actor does not fit this run (observation size / hidden layers): {exc}') from exc
-    agent.actor_target.load_state_dict(actor.state_dict())
+    agent.actor_target.load_state_dict(state)
     log.info('actor initialised from %s', path)
 
 
@@ -280,7 +314,7 @@ def train(args: TrainArgs) -> Path:
                 image=env.image_size > 0, seed=args.seed)
     agent.meta.update(condition=args.condition, latent_dim=int(env_cfg.latent_dim),
                       max_speed=list(env_cfg.max_speed), blend_threshold=env_cfg.blend_threshold,
-                      window_s=env_cfg.window_s)
+                      window_s=env_cfg.window_s, feature_lags_s=list(env_cfg.feature_lags_s))
     obs_dtype = np.float16 if env.image_size else np.float32
     buffer = ReplayBuffer(obs_dim, 3, args.buffer_size, obs_dtype=obs_dtype)
     rng = np.random.default_rng(args.seed)
