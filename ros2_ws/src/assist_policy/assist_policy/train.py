@@ -78,6 +78,7 @@ class TrainArgs:
     demo_noise: float = 0.2
     bc_steps: int = 0
     critic_warmup_updates: int = 0
+    actor_start_steps: int = 0
     bc_alpha: float = 0.0
     demo_policy: str = 'oracle'
     demo_bc_file: str = ''
@@ -85,6 +86,7 @@ class TrainArgs:
     dagger_rounds: int = 0
     dagger_episodes: int = 100
     hidden: tuple[int, ...] = (256, 256)
+    actor_lr: float = 1e-3
     pilot: str = 'paper'
     paper_share: float = 0.0
     safety: bool = False
@@ -112,6 +114,8 @@ HELP = {
     'demo_noise': 'Gaussian noise (raw action units) on the demonstrations, for action diversity',
     'bc_steps': 'supervised actor pre-training steps on the (noise-free) demonstration actions',
     'critic_warmup_updates': 'critic-only updates on the preloaded buffer before training starts',
+    'actor_start_steps': 'update only the critic (on the run\'s own landings) until this many environment steps, '
+                         'so a fine-tuned actor is not moved by a critic that has not yet seen it fly',
     'demo_policy': 'demonstrator: oracle (knows the goal), nearest_pad_yield (nearest_pad that lets a held-key '
                    'correction through) or nearest_pad (goal-agnostic: centres the '
                    'descending pilot on the pad below; imitable from the latent)',
@@ -123,6 +127,7 @@ HELP = {
     'dagger_rounds': 'DAgger rounds before TD3: fly the current actor, label every visited state with the '
                      'scripted demonstrator, clone again (--bc-steps) on all demonstrations so far',
     'dagger_episodes': 'landings flown per DAgger round',
+    'actor_lr': 'actor learning rate (paper: 1e-3; lower for fine-tuning a trained actor)',
     'pilot': 'simulated pilots to train with (domain randomisation): paper, a training family of '
              'assist_sim.pilots (TRAIN_FAMILIES) or train_mix (one training family per landing); the held-out '
              'families and mix are refused',
@@ -308,9 +313,9 @@ def train(args: TrainArgs) -> Path:
     eval_env = make_env(env_config_from(args))
     write_text_atomic(run_dir / 'config.json', json.dumps(
         {'train': dataclasses.asdict(args), 'env': dataclasses.asdict(env_cfg),
-         'td3': dataclasses.asdict(TD3Config(hidden=args.hidden))}, indent=2, default=str))
+         'td3': dataclasses.asdict(TD3Config(hidden=args.hidden, actor_lr=args.actor_lr))}, indent=2, default=str))
     obs_dim = env.observation_space.shape[0]
-    agent = TD3(obs_dim - env.image_size, cfg=TD3Config(hidden=args.hidden),
+    agent = TD3(obs_dim - env.image_size, cfg=TD3Config(hidden=args.hidden, actor_lr=args.actor_lr),
                 image=env.image_size > 0, seed=args.seed)
     agent.meta.update(condition=args.condition, latent_dim=int(env_cfg.latent_dim),
                       max_speed=list(env_cfg.max_speed), blend_threshold=env_cfg.blend_threshold,
@@ -439,7 +444,8 @@ def train(args: TrainArgs) -> Path:
                 if buffer.size >= agent.cfg.batch_size and step >= min(args.start_steps, 1000):
                     update_credit += args.updates_per_step
                     while update_credit >= 1.0:
-                        losses.append(agent.update(buffer, demos=demos, bc_alpha=args.bc_alpha))
+                        losses.append(agent.update(buffer, train_actor=step >= args.actor_start_steps, demos=demos,
+                                                   bc_alpha=args.bc_alpha))
                         update_credit -= 1.0
                 if step % args.checkpoint_every_steps == 0:
                     checkpoint()

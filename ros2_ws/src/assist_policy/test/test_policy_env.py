@@ -119,3 +119,34 @@ def test_aimed_index_is_the_pad_nearest_the_pilots_first_estimate(env):
         misaimed += info['aimed_index'] != info['goal_index']
     # depth errors of 5-19 % of the range put some first estimates nearer a neighbouring pad, not most
     assert 1 <= misaimed <= 20, misaimed
+
+
+def test_floor_descent_term_costs_only_low_descents_over_bare_floor():
+    envs = [LandingAssistEnv(EnvConfig(condition='oracle', max_episode_s=20.0,
+                                       reward=RewardConfig(floor_descent_weight=w))) for w in (0.0, 1.0)]
+    for e in envs:
+        e.reset(seed=5, options={'beta': 0.0})
+    diffs, low = [], []
+    for _ in range(200):                           # the agent pushes straight down from the start (over the floor)
+        z_before = envs[0].world.state.position[2]
+        r0 = envs[0].step(np.array([0.0, 0.0, -1.0]))
+        r1 = envs[1].step(np.array([0.0, 0.0, -1.0]))
+        diffs.append(r0[1] - r1[1])
+        low.append(envs[0].world.state.position[2] < 1.5)
+        if r0[2] or r0[3]:
+            break
+    diffs, low = np.array(diffs), np.array(low)
+    assert np.all(diffs[~low] == 0.0)              # above 1.5 m: the paper's reward
+    assert np.all(diffs >= 0.0) and diffs[low].max() > 0.1   # below: a descent over the floor costs ~|v_z|
+    for e in envs:
+        e.close()
+
+
+def test_paper_share_swaps_in_the_paper_pilot_unless_a_pilot_is_asked_for():
+    env = LandingAssistEnv(EnvConfig(condition='oracle', pilot_family='delay', paper_share=1.0))
+    assert env.reset(seed=1)[1]['pilot'] == 'paper'
+    assert env.reset(seed=1, options={'pilot': 'tapper'})[1]['pilot'] == 'tapper'
+    env.close()
+    env = LandingAssistEnv(EnvConfig(condition='oracle', pilot_family='delay'))
+    assert env.reset(seed=1)[1]['pilot'] == 'delay'
+    env.close()

@@ -6,7 +6,7 @@ import torch
 
 from assist_policy.env import EnvConfig, LandingAssistEnv
 from assist_policy.scripted import ScriptedOracle
-from assist_policy.td3 import load_actor
+from assist_policy.td3 import TD3, TD3Config, load_actor
 from assist_policy.train import TrainArgs, load_checkpoint, train
 
 
@@ -88,3 +88,26 @@ def test_dagger_round_labels_the_actors_own_states(tmp_path):
         assert 'needs demonstrations' in str(exc)
     else:
         raise AssertionError('DAgger without demonstrations was accepted')
+
+
+def test_actor_start_steps_keeps_the_actor_while_the_critic_learns_and_lags_widen_it(tmp_path):
+    torch.set_num_threads(1)
+    base = dict(runs_dir=str(tmp_path), total_steps=150, start_steps=0, checkpoint_every_steps=1000,
+                eval_every_episodes=1000, hidden=(32, 32), max_episode_s=4.0, buffer_size=2000)
+    first = train(TrainArgs(name='first', **base))
+    src, _ = load_actor(first / 'actor_last.pt')
+    # critic-only for the whole run, fine-tuned with one lagged copy of the feature: the widened actor is unchanged
+    held = train(TrainArgs(name='held', init_actor=str(first / 'actor_last.pt'), actor_start_steps=10_000,
+                           feature_lags_s=(1.0,), **base))
+    out, meta = load_actor(held / 'actor_last.pt')
+    assert meta['feature_lags_s'] == [1.0] and meta['vec_dim'] == 16 + 3
+    sd_src, sd_out = src.state_dict(), out.state_dict()
+    torch.testing.assert_close(sd_out['head.0.weight'][:, :16], sd_src['head.0.weight'])
+    assert torch.count_nonzero(sd_out['head.0.weight'][:, 16:]) == 0
+    for k in sd_src:
+        if k != 'head.0.weight':
+            torch.testing.assert_close(sd_out[k], sd_src[k])
+    state, _ = load_checkpoint(held)
+    critic0 = TD3(19, cfg=TD3Config(hidden=(32, 32)), seed=0).critic    # the run's critic as initialised
+    moved = any(not torch.equal(a, b) for a, b in zip(critic0.state_dict().values(), state['agent']['critic'].values()))
+    assert moved                                  # the critic did learn meanwhile
