@@ -36,3 +36,32 @@ def test_runner_flies_two_episodes_on_the_mavlink_vehicle(ros, start_node, wait,
     # a skilled pilot (beta 1) on a stand-in that holds its velocity well reaches the goal pad
     assert any(r['success'] == 'True' for r in rows), rows
     assert pilot.proc.poll() is None
+
+
+def test_pilot_starts_the_landing_only_above_start_altitude(ros, start_node, wait):
+    """start_altitude_m: below it the simulated pilot holds (zero command); at 0 it flies at once."""
+    import threading
+
+    import numpy as np
+    from geometry_msgs.msg import TwistStamped
+
+    from assist_sim.ros_common import RELIABLE_QOS, twist_to_array
+    start_node('sim_node', {'camera_rate_hz': 0.0, 'seed': 3})      # velocity mode: episodes start airborne
+    start_node('sim_pilot_node', {'start_altitude_m': 50.0, 'seed': 1}, remaps={'/pilot/cmd_vel': '/pilot_high'})
+    start_node('sim_pilot_node', {'start_altitude_m': 0.0, 'seed': 1}, remaps={'/pilot/cmd_vel': '/pilot_now',
+                                                                            '__node': 'sim_pilot_now'})
+    seen = {'/pilot_high': [], '/pilot_now': []}
+    lock = threading.Lock()
+
+    def keep(topic):
+        def cb(msg):
+            with lock:
+                seen[topic].append(float(np.linalg.norm(twist_to_array(msg))))
+        return cb
+    subs = [ros.create_subscription(TwistStamped, t, keep(t), RELIABLE_QOS) for t in seen]
+    assert wait(lambda: len(seen['/pilot_high']) > 60 and any(s > 0.1 for s in seen['/pilot_now']), 60.0), \
+        {k: len(v) for k, v in seen.items()}
+    with lock:
+        assert max(seen['/pilot_high']) == 0.0
+    for s in subs:
+        ros.destroy_subscription(s)
