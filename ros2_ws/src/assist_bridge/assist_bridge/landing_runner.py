@@ -115,14 +115,15 @@ class LandingRunner(Node):
                 self.core.on_answer(self._call_name, False, f"no answer in {self.p['call_timeout_s']:.0f} s", now)
             else:
                 return
+        missing = [n for n, c in self.uav.items() if not c.service_is_ready()]
+        if missing:                     # wait for the bridge rather than time a call out
+            self.get_logger().warning(f"waiting for /uav/{', /uav/'.join(missing)} (is mavlink_bridge_node up?)",
+                                      throttle_duration_sec=10.0)
+            return
         name = self.core.poll(now)
         if name is not None:
-            client = self.uav[name]
-            if not client.service_is_ready():
-                self.get_logger().warning(f'/uav/{name} not available (is mavlink_bridge_node up?)',
-                                          throttle_duration_sec=10.0)
             self._call_name, self._call_started = name, now
-            self._future = client.call_async(Trigger.Request())
+            self._future = self.uav[name].call_async(Trigger.Request())
         self.diag.set('state', self.core.state.value)
         if self.core.state == RunnerState.FAILED and self.exit_code is None:
             self.exit_code = 1

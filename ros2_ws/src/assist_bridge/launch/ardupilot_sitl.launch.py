@@ -74,7 +74,7 @@ def generate_launch_description():
     # conditions from substitutions that compare text, never evaluate it
     simulated_pilot = EqualsSubstitution(pilot, 'sim')
     encoder = Node(package='assist_perception', executable='encoder_node', name='encoder_node', output='screen',
-                   parameters=[sim_time, {'depth_noise': True}],
+                   parameters=[sim_time, {'depth_noise': True, 'level_camera': True}],
                    condition=IfCondition(AndSubstitution(assist, EqualsSubstitution(LaunchConfiguration('mode'),
                                                                                     'latent'))))
     policy = Node(package='assist_policy', executable='policy_node', name='policy_node', output='screen',
