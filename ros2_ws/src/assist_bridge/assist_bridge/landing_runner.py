@@ -37,6 +37,10 @@ PARAMS = {
                               min=1.0, max=86400.0),
     'call_timeout_s': Param(30.0, 'A /uav/* call not answered within this counts as failed.', min=0.5, max=600.0),
     'land_after_touchdown': Param(True, 'Call /uav/land after each landing result (disarms on the ground).'),
+    'reboot_after_s': Param(120.0, 'Call /uav/reboot once when an episode has been refused arming this long (an '
+                                   'EKF that did not recover from a crash); 0: never.', min=0.0, max=86400.0),
+    'reboot_after_crash': Param(False, 'Call /uav/reboot before the episode that follows a crash (ArduCopter '
+                                       "SITL's EKF may be corrupted by one, yet accept arming)."),
     'results_file': Param('', 'CSV file for the landing results (appended; empty: log only).'),
 }
 _CALL_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -55,7 +59,9 @@ class LandingRunner(Node):
             cfg = RunnerConfig(episodes=int(self.p['episodes']), arm_retry_s=float(self.p['arm_retry_s']),
                                arm_give_up_s=float(self.p['arm_give_up_s']),
                                flight_timeout_s=float(self.p['flight_timeout_s']),
-                               land_after_touchdown=bool(self.p['land_after_touchdown']))
+                               land_after_touchdown=bool(self.p['land_after_touchdown']),
+                               reboot_after_s=float(self.p['reboot_after_s']),
+                               reboot_after_crash=bool(self.p['reboot_after_crash']))
         except ValueError as exc:
             raise StartupError(str(exc)) from exc
         self.core = LandingRunnerCore(cfg)
@@ -66,7 +72,7 @@ class LandingRunner(Node):
         self._call_name = ''
         self._call_started = 0.0
         self.uav = {n: self.create_client(Trigger, f'/uav/{n}', qos_profile=_CALL_QOS)
-                        for n in ('guided', 'arm', 'takeoff', 'land')}
+                    for n in ('guided', 'arm', 'takeoff', 'land', 'reboot')}
         self.create_subscription(PointStamped, '/sim/goal', self._on_goal, LATCHED_QOS)
         self.create_subscription(String, '/sim/landing', self._on_landing, LANDING_QOS)
         self.create_timer(0.1, self._tick)
@@ -115,13 +121,15 @@ class LandingRunner(Node):
                 self.core.on_answer(self._call_name, False, f"no answer in {self.p['call_timeout_s']:.0f} s", now)
             else:
                 return
-        missing = [n for n, c in self.uav.items() if not c.service_is_ready()]
+        missing = [n for n, c in self.uav.items() if n != 'reboot' and not c.service_is_ready()]
         if missing:                     # wait for the bridge rather than time a call out
             self.get_logger().warning(f"waiting for /uav/{', /uav/'.join(missing)} (is mavlink_bridge_node up?)",
                                       throttle_duration_sec=10.0)
             return
         name = self.core.poll(now)
-        if name is not None:
+        if name is not None and not self.uav[name].service_is_ready():
+            self.core.on_answer(name, False, f'/uav/{name} not offered by the bridge', now)
+        elif name is not None:
             self._call_name, self._call_started = name, now
             self._future = self.uav[name].call_async(Trigger.Request())
         self.diag.set('state', self.core.state.value)

@@ -38,6 +38,8 @@ class RunnerConfig:
     arm_give_up_s: float = 300.0      # fail when no arm + takeoff succeeded this long into an episode
     flight_timeout_s: float = 150.0   # no landing result this long after takeoff: request LAND
     land_after_touchdown: bool = True  # request LAND after the landing result (disarms on the ground)
+    reboot_after_s: float = 120.0     # still refused this long into an episode: reboot the autopilot once; 0: never
+    reboot_after_crash: bool = False  # reboot before the episode after a crash (SITL's EKF may not survive one)
 
     def __post_init__(self) -> None:
         if int(self.episodes) < 0:
@@ -46,6 +48,8 @@ class RunnerConfig:
             v = float(getattr(self, name))
             if not math.isfinite(v) or v <= 0.0:
                 raise ValueError(f'{name} must be finite and > 0, got {v}')
+        if not math.isfinite(float(self.reboot_after_s)) or self.reboot_after_s < 0.0:
+            raise ValueError(f'reboot_after_s must be finite and >= 0, got {self.reboot_after_s}')
 
 
 @dataclass
@@ -83,6 +87,8 @@ class LandingRunnerCore:
         self._not_before = 0.0
         self._takeoff_at: float | None = None
         self._flight_land_sent = False
+        self._rebooted = False
+        self._reboot_next = False
         self.failure: str | None = None
 
     # inputs -------------------------------------------------------------------------------------
@@ -99,6 +105,7 @@ class LandingRunnerCore:
             _LOG.warning('landing result while %s (episode %s): recorded anyway', self.state.value,
                          result.get('episode'))
         self.stats.results.append(result)
+        self._reboot_next = self.cfg.reboot_after_crash and bool(result.get('crash'))
         _LOG.info('landing %d: %s, error %s m (%s)', len(self.stats.results), result.get('outcome'),
                   _fmt(result.get('error_m')), result.get('reason'))
         self._queue = ['land'] if self.cfg.land_after_touchdown else []
@@ -118,7 +125,11 @@ class LandingRunnerCore:
         self._in_flight = None
         if success:
             _LOG.info('/uav/%s: %s', name, message)
-        if self.state == RunnerState.ARMING:
+        if name == 'reboot':
+            if not success:
+                _LOG.warning('reboot refused (%s); arming goes on', message)
+            self._not_before = now + self.cfg.arm_retry_s
+        elif self.state == RunnerState.ARMING:
             if name == 'arm' and not success:
                 _LOG.info('arm refused (%s); retrying in %.0f s', message, self.cfg.arm_retry_s)
                 self._retry(now, ['guided', 'arm'])
@@ -149,8 +160,11 @@ class LandingRunnerCore:
             self._goal_pending = False
             self.state = RunnerState.ARMING
             self.episode_started = now
-            self._queue = ['guided', 'arm']
-            _LOG.info('episode %d: arming', len(self.stats.results) + 1)
+            self._rebooted = self._reboot_next
+            self._queue = ['reboot', 'guided', 'arm'] if self._reboot_next else ['guided', 'arm']
+            _LOG.info('episode %d: %s', len(self.stats.results) + 1,
+                      'rebooting the autopilot after the crash, then arming' if self._reboot_next else 'arming')
+            self._reboot_next = False
         if self.state == RunnerState.ARMING and self.episode_started is not None \
                 and now - self.episode_started > self.cfg.arm_give_up_s:
             self.state = RunnerState.FAILED
@@ -158,6 +172,14 @@ class LandingRunnerCore:
                             f'(episode {len(self.stats.results) + 1})')
             _LOG.error('%s', self.failure)
             return None
+        if self.state == RunnerState.ARMING and self.cfg.reboot_after_s > 0 and not self._rebooted \
+                and self.episode_started is not None and now - self.episode_started > self.cfg.reboot_after_s:
+            # e.g. ArduCopter SITL's EKF after a crash flipped the airframe: it never re-converges
+            _LOG.warning('the autopilot has refused to arm for %.0f s: rebooting it once',
+                         now - self.episode_started)
+            self._rebooted = True
+            self._queue = ['reboot', 'guided', 'arm']
+            self._not_before = now
         if self.state == RunnerState.FLYING and self._takeoff_at is not None and not self._flight_land_sent \
                 and now - self._takeoff_at > self.cfg.flight_timeout_s:
             _LOG.warning('no landing result %.0f s after takeoff: requesting LAND', self.cfg.flight_timeout_s)

@@ -90,7 +90,8 @@ def generate_launch_description():
                         remappings=[('/pilot/cmd_vel', '/cmd_vel')],
                         condition=IfCondition(AndSubstitution(simulated_pilot, NotSubstitution(assist))))
     runner = Node(package='assist_bridge', executable='landing_runner', name='landing_runner', output='screen',
-                  parameters=[{'episodes': ParameterValue(LaunchConfiguration('landings'), value_type=int),
+                  parameters=[{'reboot_after_crash': True,
+                               'episodes': ParameterValue(LaunchConfiguration('landings'), value_type=int),
                                'results_file': ParameterValue(LaunchConfiguration('results_file'), value_type=str)}],
                   condition=IfCondition(NotSubstitution(EqualsSubstitution(LaunchConfiguration('landings'), '0'))))
     return LaunchDescription(args + [

@@ -110,3 +110,37 @@ def test_no_land_after_touchdown_when_disabled():
 def test_bad_config_refused(kwargs):
     with pytest.raises(ValueError):
         RunnerConfig(**kwargs)
+
+
+def test_reboots_once_when_arming_is_refused_too_long():
+    core = LandingRunnerCore(RunnerConfig(arm_retry_s=2.0, arm_give_up_s=100.0, reboot_after_s=20.0))
+    core.on_goal('a', 0.0)
+    calls = []
+    t = 0.0
+    while t < 60.0:
+        name = core.poll(t)
+        if name is not None:
+            calls.append((round(t, 1), name))
+            core.on_answer(name, name in ('guided', 'reboot'), 'FAILED (Arm: Check mag field)', t)
+        t += 0.1
+    reboots = [c for c in calls if c[1] == 'reboot']
+    assert len(reboots) == 1 and 20.0 <= reboots[0][0] < 21.0, reboots
+    after = [c for c in calls if c[0] > reboots[0][0]]
+    assert after[0][1] == 'guided' and after[0][0] >= reboots[0][0] + 2.0     # arming resumes after a pause
+    assert core.state == RunnerState.ARMING and len(after) > 10          # still retrying, no second reboot
+
+
+def test_reboot_before_the_episode_after_a_crash_only():
+    core = LandingRunnerCore(RunnerConfig(reboot_after_crash=True))
+    core.on_goal('a', 0.0)
+    assert [answer(core, 0.0) for _ in range(3)] == ['guided', 'arm', 'takeoff']
+    core.on_landing(landing(0, success=False, crash=True), 10.0)
+    assert answer(core, 10.0) == 'land'
+    core.on_goal('b', 20.0)
+    assert answer(core, 20.0) == 'reboot'
+    assert core.poll(20.1) is None                       # a pause after the reboot
+    assert [answer(core, 30.0 + i) for i in range(3)] == ['guided', 'arm', 'takeoff']
+    core.on_landing(landing(1), 60.0)                    # a good landing: no reboot next time
+    assert answer(core, 60.0) == 'land'
+    core.on_goal('c', 70.0)
+    assert answer(core, 70.0) == 'guided'
