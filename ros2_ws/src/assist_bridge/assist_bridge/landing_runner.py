@@ -41,6 +41,9 @@ PARAMS = {
                                    'EKF that did not recover from a crash); 0: never.', min=0.0, max=86400.0),
     'reboot_after_crash': Param(False, 'Call /uav/reboot before the episode that follows a crash (ArduCopter '
                                        "SITL's EKF may be corrupted by one, yet accept arming)."),
+    'disarm_timeout_s': Param(20.0, 'No next episode this long after a landing (the autopilot never detected it, '
+                                    'e.g. resting on a pad edge): call /uav/force_disarm (the bridge refuses '
+                                    'unless its allow_force_disarm is set); 0: never.', min=0.0, max=3600.0),
     'results_file': Param('', 'CSV file for the landing results (appended; empty: log only).'),
 }
 _CALL_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -61,7 +64,8 @@ class LandingRunner(Node):
                                flight_timeout_s=float(self.p['flight_timeout_s']),
                                land_after_touchdown=bool(self.p['land_after_touchdown']),
                                reboot_after_s=float(self.p['reboot_after_s']),
-                               reboot_after_crash=bool(self.p['reboot_after_crash']))
+                               reboot_after_crash=bool(self.p['reboot_after_crash']),
+                               disarm_timeout_s=float(self.p['disarm_timeout_s']))
         except ValueError as exc:
             raise StartupError(str(exc)) from exc
         self.core = LandingRunnerCore(cfg)
@@ -72,7 +76,7 @@ class LandingRunner(Node):
         self._call_name = ''
         self._call_started = 0.0
         self.uav = {n: self.create_client(Trigger, f'/uav/{n}', qos_profile=_CALL_QOS)
-                    for n in ('guided', 'arm', 'takeoff', 'land', 'reboot')}
+                    for n in ('guided', 'arm', 'takeoff', 'land', 'reboot', 'force_disarm')}
         self.create_subscription(PointStamped, '/sim/goal', self._on_goal, LATCHED_QOS)
         self.create_subscription(String, '/sim/landing', self._on_landing, LANDING_QOS)
         self.create_timer(0.1, self._tick)
@@ -121,7 +125,8 @@ class LandingRunner(Node):
                 self.core.on_answer(self._call_name, False, f"no answer in {self.p['call_timeout_s']:.0f} s", now)
             else:
                 return
-        missing = [n for n, c in self.uav.items() if n != 'reboot' and not c.service_is_ready()]
+        missing = [n for n, c in self.uav.items()
+                   if n not in ('reboot', 'force_disarm') and not c.service_is_ready()]
         if missing:                     # wait for the bridge rather than time a call out
             self.get_logger().warning(f"waiting for /uav/{', /uav/'.join(missing)} (is mavlink_bridge_node up?)",
                                       throttle_duration_sec=10.0)

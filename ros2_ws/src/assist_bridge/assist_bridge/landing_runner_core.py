@@ -40,6 +40,7 @@ class RunnerConfig:
     land_after_touchdown: bool = True  # request LAND after the landing result (disarms on the ground)
     reboot_after_s: float = 120.0     # still refused this long into an episode: reboot the autopilot once; 0: never
     reboot_after_crash: bool = False  # reboot before the episode after a crash (SITL's EKF may not survive one)
+    disarm_timeout_s: float = 20.0    # no next episode this long after the landing's LAND: force-disarm; 0: never
 
     def __post_init__(self) -> None:
         if int(self.episodes) < 0:
@@ -48,8 +49,10 @@ class RunnerConfig:
             v = float(getattr(self, name))
             if not math.isfinite(v) or v <= 0.0:
                 raise ValueError(f'{name} must be finite and > 0, got {v}')
-        if not math.isfinite(float(self.reboot_after_s)) or self.reboot_after_s < 0.0:
-            raise ValueError(f'reboot_after_s must be finite and >= 0, got {self.reboot_after_s}')
+        for name in ('reboot_after_s', 'disarm_timeout_s'):
+            v = float(getattr(self, name))
+            if not math.isfinite(v) or v < 0.0:
+                raise ValueError(f'{name} must be finite and >= 0, got {v}')
 
 
 @dataclass
@@ -89,6 +92,7 @@ class LandingRunnerCore:
         self._flight_land_sent = False
         self._rebooted = False
         self._reboot_next = False
+        self._landed_at: float | None = None
         self.failure: str | None = None
 
     # inputs -------------------------------------------------------------------------------------
@@ -110,6 +114,7 @@ class LandingRunnerCore:
                   _fmt(result.get('error_m')), result.get('reason'))
         self._queue = ['land'] if self.cfg.land_after_touchdown else []
         self._takeoff_at = None
+        self._landed_at = now
         if self.cfg.episodes and len(self.stats.results) >= self.cfg.episodes:
             self.state = RunnerState.DONE
             _LOG.info('all %d episodes flown: %s', self.cfg.episodes, self.stats.summary())
@@ -156,8 +161,17 @@ class LandingRunnerCore:
         """The /uav/* service to call now (None: nothing to do); one call at a time."""
         if self._in_flight is not None or self.state == RunnerState.FAILED:
             return None
+        if self.state == RunnerState.WAIT_EPISODE and not self._goal_pending and self._landed_at is not None \
+                and self.cfg.disarm_timeout_s > 0 and now - self._landed_at > self.cfg.disarm_timeout_s:
+            # the sim starts the next episode once the motors stop: an autopilot that never detects
+            # this landing (resting on a pad edge, on its side) never disarms by itself
+            _LOG.warning('no new episode %.0f s after the landing: the vehicle did not disarm; force-disarming',
+                         now - self._landed_at)
+            self._landed_at = None
+            self._queue = ['force_disarm']
         if self.state == RunnerState.WAIT_EPISODE and self._goal_pending and not self._queue:
             self._goal_pending = False
+            self._landed_at = None
             self.state = RunnerState.ARMING
             self.episode_started = now
             self._rebooted = self._reboot_next

@@ -70,7 +70,10 @@ def generate_launch_description():
                                                {'connection': ParameterValue(LaunchConfiguration('connection'),
                                                                              value_type=str),
                                                 'signing_key_file': ParameterValue(
-                                                    LaunchConfiguration('signing_key_file'), value_type=str)}])
+                                                    LaunchConfiguration('signing_key_file'), value_type=str),
+                                                # episodes in simulation: landing_runner ends a landing the
+                                                # autopilot never detects (resting on a pad edge) this way
+                                                'allow_force_disarm': True}])
     # conditions from substitutions that compare text, never evaluate it
     simulated_pilot = EqualsSubstitution(pilot, 'sim')
     encoder = Node(package='assist_perception', executable='encoder_node', name='encoder_node', output='screen',
