@@ -169,6 +169,17 @@ def stamp_to_sec(stamp) -> float:
     return float(stamp.sec) + 1e-9 * float(stamp.nanosec)
 
 
+def sec_to_stamp(t: float, stamp=None):
+    """Float seconds >= 0 -> builtin_interfaces/Time (into `stamp` if given), rounded to the nanosecond.
+
+    Rounds the whole time, not the fraction alone: 6.9999999999 s is 7 s 0 ns, never 6 s 0 ns."""
+    from builtin_interfaces.msg import Time
+    stamp = Time() if stamp is None else stamp
+    sec, nanosec = divmod(int(round(float(t) * 1e9)), 1_000_000_000)
+    stamp.sec, stamp.nanosec = int(sec), int(nanosec)
+    return stamp
+
+
 def twist_to_array(msg: TwistStamped):
     """Linear part of a TwistStamped as a 3-vector (numpy), without validation."""
     import numpy as np

@@ -26,7 +26,8 @@ from .core.scene_markers import scene_markers
 from .core.world import LandingWorld, quat_to_matrix
 from .scene_msgs import scene_marker_array
 from .ros_common import (LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param,
-                         StartupError, declare_parameters, exit_process, forward_logging, run_node, twist_to_array)
+                         StartupError, declare_parameters, exit_process, forward_logging, run_node, sec_to_stamp,
+                         twist_to_array)
 
 PARAMS = {
     'seed': Param(0, 'Seed of the scene and episode sequence; same seed, same episodes.', min=0, max=2**31 - 1),
@@ -261,8 +262,7 @@ class SimNode(Node):
 
     def _stamp(self, sim_time: float):
         msg = Clock()
-        msg.clock.sec = int(math.floor(sim_time))
-        msg.clock.nanosec = int(round((sim_time - math.floor(sim_time)) * 1e9)) % 1_000_000_000
+        sec_to_stamp(sim_time, msg.clock)
         return msg
 
     def _publish(self, out: StepOutput) -> None:
