@@ -25,7 +25,7 @@ from .core.runner import RunnerConfig, SimRunner, StepOutput
 from .core.scene_markers import scene_markers
 from .core.world import LandingWorld, quat_to_matrix
 from .scene_msgs import scene_marker_array
-from .ros_common import (LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param,
+from .ros_common import (EXECUTORS, LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param,
                          StartupError, declare_parameters, exit_process, forward_logging, run_node, sec_to_stamp,
                          twist_to_array)
 
@@ -61,6 +61,7 @@ PARAMS = {
     'max_cmd_speed_mps': Param(5.0, 'Commands faster than this are rejected as out of range (settable at run '
                                     'time).', min=0.0, max=50.0, min_exclusive=True, dynamic=True),
     'turbulence': Param(True, 'Ground-effect turbulence on the target velocity.'),
+    'executor': Param('events', 'rclpy executor: events (rclpy.experimental.EventsExecutor, C++ event queue: least CPU and latency), single (SingleThreadedExecutor) or multi (MultiThreadedExecutor, 2 threads).', choices=EXECUTORS),
     'odom_frame': Param('odom', 'World frame id (ENU).'),
     'base_frame': Param('base_link', 'Body frame id (FLU).'),
     'camera_frame': Param('camera_optical_frame', 'Optical frame id of the camera images.'),
