@@ -17,8 +17,8 @@ from rclpy.node import Node
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float32MultiArray, MultiArrayDimension
 
-from assist_sim.ros_common import (EXECUTORS, SENSOR_QOS, Diagnostics, Param, StartupError, declare_parameters,
-                                   exit_process, forward_logging, run_node, stamp_to_sec)
+from assist_sim.ros_common import (SENSOR_QOS, Diagnostics, Param, StartupError, declare_parameters,
+                                   executor_param, exit_process, forward_logging, run_node, stamp_to_sec)
 
 from .encoder_core import BadFrame, LatentEncoder, LatestOnly, StampPairer, decode_color, decode_depth
 from .model import ModelLoadError
@@ -40,7 +40,7 @@ PARAMS = {
     'depth_noise': Param(False, 'Apply the D435i-like noise model to incoming depth (clean sim depth -> '
                                 'training distribution); leave off for a real camera.'),
     'noise_seed': Param(0, 'Seed of the depth noise (depth_noise only).', min=0, max=2**31 - 1),
-    'executor': Param('events', 'rclpy executor: events (rclpy.experimental.EventsExecutor, C++ event queue: least CPU and latency), single (SingleThreadedExecutor) or multi (MultiThreadedExecutor, 2 threads).', choices=EXECUTORS),
+    'executor': executor_param('events'),
     'warn_period_s': Param(5.0, 'Minimum seconds between repeated bad-frame warnings (settable at run time).',
                            min=0.0, max=3600.0, dynamic=True),
 }

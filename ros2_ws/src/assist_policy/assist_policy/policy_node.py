@@ -21,8 +21,9 @@ from rclpy.node import Node
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float32MultiArray
 
-from assist_sim.ros_common import (EXECUTORS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError,
-                                   declare_parameters, exit_process, fill_twist, run_node, twist_to_array)
+from assist_sim.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError,
+                                   declare_parameters, executor_param, exit_process, fill_twist, run_node,
+                                   twist_to_array)
 
 from .blending import DEFAULT_THRESHOLD
 from .policy_core import PolicyCore, PolicyCoreConfig, PolicyOutput, default_model_path
@@ -59,7 +60,7 @@ PARAMS = {
     'step_on_latent': Param(True, 'latent mode: run the actor as soon as a new latent arrives (camera-to-command '
                                   'latency = one inference, /cmd_vel stamped with the frame\'s sim time); the '
                                   'rate_hz timer then runs only while latents are missing.'),
-    'executor': Param('events', 'rclpy executor: events (rclpy.experimental.EventsExecutor, C++ event queue: least CPU and latency), single (SingleThreadedExecutor) or multi (MultiThreadedExecutor, 2 threads).', choices=EXECUTORS),
+    'executor': executor_param('events'),
     'floor_guard': Param(True, 'Floor guard (assist_policy.safety, not learned): low over the floor with no pad under '
                                'the legs in /camera/depth/image_raw, a descent is replaced by a small climb.',
                          dynamic=True),

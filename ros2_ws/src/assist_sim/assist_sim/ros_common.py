@@ -350,24 +350,34 @@ class EventsExecutorLoop:
         self._executor.add_node(node)
 
     def spin(self) -> None:
-        """Dispatch callbacks until the context shuts down."""
-        while self._context.ok():
-            self._executor.spin_once(timeout_sec=0.5)
+        """Dispatch callbacks until the context shuts down, then return."""
+        try:
+            while self._context.ok():
+                self._executor.spin_once(timeout_sec=0.5)
+        except ExternalShutdownException:
+            pass
 
     def shutdown(self) -> None:
         """Stop serving; spin returns after its current callback."""
         self._executor.shutdown()
 
 
-def make_executor(kind: str, num_threads: int = 2):
+def executor_param(default: str = 'events') -> Param:
+    """The `executor` node parameter that run_node honours (one definition for every node)."""
+    return Param(default, 'rclpy executor: events (rclpy.experimental.EventsExecutor: a C++ event queue, least '
+                          'CPU and latency), single (SingleThreadedExecutor) or multi (MultiThreadedExecutor).',
+                 choices=EXECUTORS)
+
+
+def make_executor(kind: str, num_threads: int = 2, context=None):
     """An executor by name: single (SingleThreadedExecutor), multi (MultiThreadedExecutor with
-    `num_threads`), events (EventsExecutorLoop); ValueError for any other name."""
+    `num_threads`, at least 2), events (EventsExecutorLoop); ValueError for any other name."""
     if kind == 'single':
-        return SingleThreadedExecutor()
+        return SingleThreadedExecutor(context=context)
     if kind == 'multi':
-        return MultiThreadedExecutor(num_threads=max(2, int(num_threads)))
+        return MultiThreadedExecutor(num_threads=max(2, int(num_threads)), context=context)
     if kind == 'events':
-        return EventsExecutorLoop()
+        return EventsExecutorLoop(context=context)
     raise ValueError(f"executor must be one of {', '.join(EXECUTORS)}, got {kind!r}")
 
 
