@@ -129,6 +129,7 @@ def measure(frames: int = FRAMES, startup_timeout_s: float = 90.0, node_params: 
     spin = threading.Thread(target=ex.spin, daemon=True)
     spin.start()
     cpu_share = [float('nan')] * len(procs)
+    load0 = os.getloadavg()[0]
     try:
         t0 = time.monotonic()
         while not done.wait(1.0):
@@ -185,7 +186,7 @@ def measure(frames: int = FRAMES, startup_timeout_s: float = 90.0, node_params: 
             'cmd_p50': float(np.percentile(ms(to_cmd), 50)), 'cmd_p99': float(np.percentile(ms(to_cmd), 99)),
             'lost_latent': lost['latent'], 'lost_cmd': lost['cmd'], 'skipped_no_depth': lost['no_depth'],
             'lost_in_burst': lost['burst'], 'burst_frames': int(np.count_nonzero(gaps < 0.5 * PERIOD_S)),
-            'cpu_sim': 100 * cpu_share[0], 'cpu_encoder': 100 * cpu_share[1], 'cpu_policy': 100 * cpu_share[2]}
+            'load': (load0, os.getloadavg()[0]), 'cpu_sim': 100 * cpu_share[0], 'cpu_encoder': 100 * cpu_share[1], 'cpu_policy': 100 * cpu_share[2]}
 
 
 def path_cpu(n: int = 300) -> dict:
@@ -255,6 +256,8 @@ def run() -> list[dict]:
          'value': m['lost_in_burst'], 'unit': 'frames', 'target': ''},
         {'name': 'frames arriving < 25 ms after the previous one (sim pacing at 1x)', 'value': m['burst_frames'],
          'unit': 'frames', 'target': '0'},
+        {'name': 'machine load average (1 min) at the start / end of the run (2 cores)',
+         'value': f"{m['load'][0]:.1f} / {m['load'][1]:.1f}", 'unit': '', 'target': ''},
         {'name': 'CPU during the run: sim_node / encoder_node / policy_node',
          'value': f"{m['cpu_sim']:.1f} / {m['cpu_encoder']:.1f} / {m['cpu_policy']:.1f}", 'unit': '% of a core',
          'target': ''},
