@@ -753,6 +753,22 @@ class MavlinkBridge:
         t0 = self._clock()
         return self._report('disarm', self.command_long(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [0.0]), t0)
 
+    def reboot(self) -> tuple[bool, str]:
+        """Reboot the autopilot (MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN), only while disarmed.
+
+        For a vehicle whose state estimate did not recover by itself (e.g. ArduCopter SITL's EKF
+        after the airframe was flipped in a crash refuses to arm on "Check mag field"); the link
+        drops while it restarts and the bridge reconnects.
+        """
+        refused = self._require_link('reboot')
+        if refused:
+            return refused
+        with self._lock:
+            if self.status.armed:
+                return False, 'reboot: refused, the vehicle is armed'
+        t0 = self._clock()
+        return self._report('reboot', self.command_long(mavlink.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, [1.0]), t0)
+
     def takeoff(self, altitude_m: float | None = None) -> tuple[bool, str]:
         """MAV_CMD_NAV_TAKEOFF to `altitude_m` (default from config); setpoints pause during the climb."""
         alt = self.cfg.takeoff_altitude_m if altitude_m is None else float(altitude_m)

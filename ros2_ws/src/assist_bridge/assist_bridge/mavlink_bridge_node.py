@@ -132,7 +132,7 @@ class MavlinkBridgeNode(Node):
         services = ReentrantCallbackGroup()
         for name, action in (('arm', self.bridge.arm), ('disarm', self.bridge.disarm),
                              ('takeoff', self.bridge.takeoff), ('land', self.bridge.land),
-                             ('guided', self.bridge.guided)):
+                             ('guided', self.bridge.guided), ('reboot', self.bridge.reboot)):
             self.create_service(Trigger, f'/uav/{name}', self._srv(name, action), qos_profile=SERVICE_QOS,
                                 callback_group=services)
         self.create_timer(1.0, self._update_diagnostics)
