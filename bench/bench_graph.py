@@ -59,6 +59,35 @@ def _start(exe: str, params: dict, env: dict, log) -> subprocess.Popen:
     return subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
 
 
+def count_frames(fr: list[tuple[int, float, float]], pad: dict[int, float], cm: dict[int, float],
+                 frames: int = FRAMES) -> dict:
+    """Match frames (stamp ns, receipt, valid depth fraction) to their pad-estimate and command
+    receipts (by stamp) under the rules in the module doc; returns latencies (s), lost counts, gaps."""
+    first = next((i for i, (s, _, _) in enumerate(fr) if s in cm and s in pad), None)
+    if first is None:
+        raise RuntimeError('no frame got both a pad estimate and a command')
+    fr = fr[first:first + frames + 1]
+    to_latent, to_cmd = [], []
+    lost = {'latent': 0, 'cmd': 0, 'no_depth': 0, 'burst': 0}
+    for (s, t_img, valid), (_, t_next, _) in zip(fr[:-1], fr[1:]):
+        got_latent = s in pad and t_img < pad[s] < t_next
+        got_cmd = s in cm and cm[s] > t_img
+        if got_latent:
+            to_latent.append(pad[s] - t_img)
+        if got_cmd:
+            to_cmd.append(cm[s] - t_img)
+        if got_latent and got_cmd:
+            continue
+        if valid < MIN_VALID_DEPTH:
+            lost['no_depth'] += 1          # the encoder skips it on purpose
+        elif t_next - t_img < 0.5 * PERIOD_S:
+            lost['burst'] += 1             # the next frame came right behind it
+        else:
+            lost['latent'] += not got_latent
+            lost['cmd'] += not got_cmd
+    return {'to_latent': to_latent, 'to_cmd': to_cmd, 'lost': lost, 'gaps': np.diff([t for _, t, _ in fr])}
+
+
 def measure(frames: int = FRAMES, startup_timeout_s: float = 90.0, node_params: dict | None = None) -> dict:
     """Run the graph until `frames` frames have been seen after the first command; latencies in ms.
 
@@ -154,39 +183,18 @@ def measure(frames: int = FRAMES, startup_timeout_s: float = 90.0, node_params: 
         fr, pad, cm = list(frames_seen), dict(pads), dict(cmds)
     if not cm:
         raise RuntimeError(f'the graph produced no /cmd_vel; node output tail:\n{tail}')
-    # skip start-up: from the first frame that got both its pad estimate and its command
-    first = next((i for i, (s, _, _) in enumerate(fr) if s in cm and s in pad), None)
-    if first is None:
-        raise RuntimeError('no frame got both a pad estimate and a command')
-    fr = fr[first:first + frames + 1]
-    to_latent, to_cmd = [], []
-    lost = {'latent': 0, 'cmd': 0, 'no_depth': 0, 'burst': 0}
-    for (s, t_img, valid), (_, t_next, _) in zip(fr[:-1], fr[1:]):
-        got_latent = s in pad and t_img < pad[s] < t_next
-        got_cmd = s in cm and cm[s] > t_img
-        if got_latent:
-            to_latent.append(pad[s] - t_img)
-        if got_cmd:
-            to_cmd.append(cm[s] - t_img)
-        if got_latent and got_cmd:
-            continue
-        if valid < MIN_VALID_DEPTH:
-            lost['no_depth'] += 1          # the encoder skips it on purpose
-        elif t_next - t_img < 0.5 * PERIOD_S:
-            lost['burst'] += 1             # the next frame came right behind it
-        else:
-            lost['latent'] += not got_latent
-            lost['cmd'] += not got_cmd
-    if not to_cmd:
-        raise RuntimeError('no frame could be matched to its command')
-    gaps = np.diff([t for _, t, _ in fr])
+    c = count_frames(fr, pad, cm, frames)
+    to_latent, to_cmd, lost, gaps = c['to_latent'], c['to_cmd'], c['lost'], c['gaps']
+    if not to_cmd or not to_latent:
+        raise RuntimeError('no frame could be matched to its latent and command')
     ms = lambda x: 1e3 * np.asarray(x)  # noqa: E731
-    return {'frames': len(fr) - 1,
+    return {'frames': len(gaps),
             'latent_p50': float(np.percentile(ms(to_latent), 50)), 'latent_p99': float(np.percentile(ms(to_latent), 99)),
             'cmd_p50': float(np.percentile(ms(to_cmd), 50)), 'cmd_p99': float(np.percentile(ms(to_cmd), 99)),
             'lost_latent': lost['latent'], 'lost_cmd': lost['cmd'], 'skipped_no_depth': lost['no_depth'],
             'lost_in_burst': lost['burst'], 'burst_frames': int(np.count_nonzero(gaps < 0.5 * PERIOD_S)),
-            'load': (load0, os.getloadavg()[0]), 'cpu_sim': 100 * cpu_share[0], 'cpu_encoder': 100 * cpu_share[1], 'cpu_policy': 100 * cpu_share[2]}
+            'load': (load0, os.getloadavg()[0]),
+            'cpu_sim': 100 * cpu_share[0], 'cpu_encoder': 100 * cpu_share[1], 'cpu_policy': 100 * cpu_share[2]}
 
 
 def path_cpu(n: int = 300) -> dict:
