@@ -249,14 +249,14 @@ class PolicyNode(Node):
     def _publish(self, out: PolicyOutput) -> None:
         stamp = self.get_clock().now().to_msg()
         frame = self.p['frame_id']
+        cmd = TwistStamped()                    # /cmd_vel first: it is on the camera-to-command path
+        cmd.header.stamp, cmd.header.frame_id = stamp, frame
+        self.pub_cmd.publish(fill_twist(cmd, out.velocity))
         if out.agent is not None and np.all(np.isfinite(out.agent)):
             msg = TwistStamped()
             msg.header.stamp, msg.header.frame_id = stamp, frame
             self.pub_agent.publish(fill_twist(msg, out.agent))
             self.diag.count('agent_cmds')
-        cmd = TwistStamped()
-        cmd.header.stamp, cmd.header.frame_id = stamp, frame
-        self.pub_cmd.publish(fill_twist(cmd, out.velocity))
 
     def _tick(self) -> None:
         """One control step; any exception relinquishes (V = u, clamped), is counted and logged."""
