@@ -19,7 +19,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Float32MultiArray, MultiArrayDimension
 
 from assist_sim.ros_common import (SENSOR_QOS, Diagnostics, Param, StartupError, declare_parameters,
-                                   exit_process, forward_logging, run_node, stamp_to_sec)
+                                   executor_param, exit_process, forward_logging, run_node, stamp_to_sec)
 
 from .encoder_core import BadFrame, LatentEncoder, LatestOnly, StampPairer, decode_color, decode_depth
 from .level import AttitudeBuffer, level_frame, level_rotation, tilt_deg
@@ -42,6 +42,7 @@ PARAMS = {
     'depth_noise': Param(False, 'Apply the D435i-like noise model to incoming depth (clean sim depth -> '
                                 'training distribution); leave off for a real camera.'),
     'noise_seed': Param(0, 'Seed of the depth noise (depth_noise only).', min=0, max=2**31 - 1),
+    'executor': executor_param('events'),
     'level_camera': Param(False, 'Undo the camera tilt before encoding (camera rigidly mounted on an airframe '
                                  'that rolls and pitches: ArduPilot SITL/JSON physics, real vehicles): each frame '
                                  'is re-rendered as a level camera would see it, using the /odom attitude nearest '
