@@ -149,3 +149,60 @@ def test_corrupt_model_file_gives_one_clear_error(start_node, tmp_path, wait):
     assert enc.proc.returncode == 1
     assert 'error: encoder_node: cannot read CM-VAE weights' in log and str(bad) in log
     assert 'Traceback' not in log
+
+
+def test_level_camera_needs_attitude_and_intrinsics_then_levels(probe, ros, start_node, wait):
+    """level_camera: frames without a near /odom attitude or camera_info are skipped and counted;
+    with both, tilted frames are levelled (counted) and encoded."""
+    from nav_msgs.msg import Odometry
+    from scipy.spatial.transform import Rotation
+    from sensor_msgs.msg import CameraInfo
+
+    from assist_sim.core.config import WorldConfig
+    from assist_sim.core.world import LandingWorld
+    enc = start_node('encoder_node', {'level_camera': True, 'warn_period_s': 0.0})
+    world = LandingWorld(WorldConfig(), seed=0)
+    world.reset(4, airborne=True)
+    q = Rotation.from_euler('ZYX', [20.0, 8.0, -6.0], degrees=True).as_quat()     # yaw, pitch, roll
+    world._bc.resetBasePositionAndOrientation(world._vehicle, (world.scene.pads[1].top_center
+                                                               + [0.2, 0.1, 1.6]).tolist(), q.tolist())
+    f = world.render()
+    world.close()
+    h, w = f.depth.shape
+    pub_info = ros.create_publisher(CameraInfo, '/camera/color/camera_info', SENSOR_QOS)
+    pub_odom = ros.create_publisher(Odometry, '/odom', SENSOR_QOS)
+    assert wait(lambda: probe.count('diag') > 0, 60), enc.log()
+
+    def send(t, info=True, odom=True):
+        stamp = ros.get_clock().now().to_msg()
+        stamp.sec, stamp.nanosec = int(t), int((t - int(t)) * 1e9)
+        if info:
+            pub_info.publish(CameraInfo(width=w, height=h, k=f.K.ravel().tolist()))
+        if odom:
+            o = Odometry()
+            o.header.stamp = stamp
+            o.pose.pose.orientation.x, o.pose.pose.orientation.y, o.pose.pose.orientation.z, \
+                o.pose.pose.orientation.w = (float(v) for v in q)
+            pub_odom.publish(o)
+        probe.publish_pair(f.rgb.tobytes(), 'rgb8', f.depth.astype('<f4').tobytes(), '32FC1', h, w, 4 * w, t)
+
+    t = 50.0
+    for _ in range(8):                     # intrinsics but no attitude: skipped
+        send(t, info=True, odom=False)
+        t += 0.5
+        if wait(lambda: probe.counter('bad_no_attitude') > 0, 1.5):
+            break
+    assert probe.counter('bad_no_attitude') > 0, enc.log()
+    assert probe.count('latent') == 0
+    for _ in range(10):                    # both: levelled and encoded
+        send(t)
+        t += 0.5
+        if wait(lambda: probe.counter('frames_levelled') > 0 and probe.count('latent') > 0, 1.5):
+            break
+    assert probe.counter('frames_levelled') > 0 and probe.count('latent') > 0, enc.log()
+    tilt = float(probe.get('diag')[-1].get('tilt_deg', 'nan'))
+    assert tilt == pytest.approx(float(np.degrees(np.arccos(np.cos(np.radians(8)) * np.cos(np.radians(6))))),
+                                 abs=0.2)
+    ros.destroy_publisher(pub_info)
+    ros.destroy_publisher(pub_odom)
+    assert enc.proc.poll() is None

@@ -27,6 +27,7 @@ setup(
         'console_scripts': [
             'mavlink_bridge_node = assist_bridge.mavlink_bridge_node:main',
             'teleop_keyboard = assist_bridge.teleop_keyboard:main',
+            'landing_runner = assist_bridge.landing_runner:main',
         ],
     },
 )

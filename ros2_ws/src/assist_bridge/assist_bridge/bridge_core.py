@@ -50,6 +50,7 @@ from . import frames  # noqa: E402
 _LOG = logging.getLogger(__name__)
 mavlink = mavutil.mavlink
 
+FORCE_DISARM_MAGIC = 21196.0            # ArduPilot's magic_force_arm_disarm_value (GCS_Common.cpp)
 COPTER_MODES: dict[str, int] = {
     'STABILIZE': 0, 'ACRO': 1, 'ALT_HOLD': 2, 'AUTO': 3, 'GUIDED': 4, 'LOITER': 5, 'RTL': 6,
     'CIRCLE': 7, 'LAND': 9, 'DRIFT': 11, 'SPORT': 13, 'FLIP': 14, 'AUTOTUNE': 15, 'POSHOLD': 16,
@@ -115,6 +116,7 @@ class BridgeConfig:
     takeoff_done_margin_m: float = 0.15    # climb done within this of the target altitude
     max_messages_per_poll: int = 1000
     error_log_period_s: float = 5.0        # receive-loop errors: one line per kind per period
+    allow_force_disarm: bool = False       # /uav/force_disarm stops the motors even in flight: sim/SITL only
 
     def __post_init__(self) -> None:
         positive = ('max_speed_x_mps', 'max_speed_y_mps', 'max_climb_mps', 'max_descent_mps',
@@ -752,6 +754,38 @@ class MavlinkBridge:
             return refused
         t0 = self._clock()
         return self._report('disarm', self.command_long(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, [0.0]), t0)
+
+    def force_disarm(self) -> tuple[bool, str]:
+        """Disarm even when the autopilot thinks it is flying (ARM_DISARM param2 21196); only if allowed.
+
+        For simulation episodes: a vehicle the landing judge saw come to rest on a pad edge or on its
+        side in LAND may never detect its landing, so it never disarms and the next episode never
+        starts. On a real vehicle this is a motor kill, hence allow_force_disarm (off by default).
+        """
+        if not self.cfg.allow_force_disarm:
+            return False, 'force_disarm: refused, allow_force_disarm is false (it stops the motors even in flight)'
+        refused = self._require_link('force_disarm')
+        if refused:
+            return refused
+        t0 = self._clock()
+        return self._report('force_disarm', self.command_long(mavlink.MAV_CMD_COMPONENT_ARM_DISARM,
+                                                              [0.0, FORCE_DISARM_MAGIC]), t0)
+
+    def reboot(self) -> tuple[bool, str]:
+        """Reboot the autopilot (MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN), only while disarmed.
+
+        For a vehicle whose state estimate did not recover by itself (e.g. ArduCopter SITL's EKF
+        after the airframe was flipped in a crash refuses to arm on "Check mag field"); the link
+        drops while it restarts and the bridge reconnects.
+        """
+        refused = self._require_link('reboot')
+        if refused:
+            return refused
+        with self._lock:
+            if self.status.armed:
+                return False, 'reboot: refused, the vehicle is armed'
+        t0 = self._clock()
+        return self._report('reboot', self.command_long(mavlink.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, [1.0]), t0)
 
     def takeoff(self, altitude_m: float | None = None) -> tuple[bool, str]:
         """MAV_CMD_NAV_TAKEOFF to `altitude_m` (default from config); setpoints pause during the climb."""

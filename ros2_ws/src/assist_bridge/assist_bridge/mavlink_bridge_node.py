@@ -86,6 +86,9 @@ PARAMS = {
     'takeoff_altitude_m': Param(2.0, 'Altitude above the ground for /uav/takeoff (m).', min=0.0, max=100.0,
                                 min_exclusive=True),
     'ack_timeout_s': Param(3.0, 'How long a service waits for the COMMAND_ACK.', min=0.1, max=60.0),
+    'allow_force_disarm': Param(False, 'Let /uav/force_disarm disarm even when the autopilot thinks it is flying '
+                                       '(a motor kill): for simulation episodes only (ardupilot_sitl.launch.py '
+                                       'sets it); otherwise the service refuses.'),
     'max_pending_commands': Param(4, 'Vehicle commands (/uav/* calls) queued at most; further calls are '
                                   "answered at once with success=false, 'busy'.", min=1, max=SERVICE_QUEUE_DEPTH),
     'auto_guided': Param(False, 'Removed: the bridge never changes the flight mode on its own. Call /uav/guided '
@@ -132,7 +135,8 @@ class MavlinkBridgeNode(Node):
         services = ReentrantCallbackGroup()
         for name, action in (('arm', self.bridge.arm), ('disarm', self.bridge.disarm),
                              ('takeoff', self.bridge.takeoff), ('land', self.bridge.land),
-                             ('guided', self.bridge.guided)):
+                             ('guided', self.bridge.guided), ('reboot', self.bridge.reboot),
+                             ('force_disarm', self.bridge.force_disarm)):
             self.create_service(Trigger, f'/uav/{name}', self._srv(name, action), qos_profile=SERVICE_QOS,
                                 callback_group=services)
         self.create_timer(1.0, self._update_diagnostics)

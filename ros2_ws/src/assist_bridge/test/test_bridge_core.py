@@ -222,3 +222,35 @@ def test_garbage_on_the_bridge_port_never_crashes_it(link):
     assert ok, msg
     assert b.counters['loop_errors'] == 0
     assert b.snapshot()['link'] == 'up'
+
+
+def test_reboot_only_while_disarmed_and_the_vehicle_starts_over(link):
+    b, v = link.bridge, link.vt.vehicle
+    assert b.wait_heartbeat(5.0)
+    wait_for(lambda: v.ekf_ready, what='EKF ready')
+    assert b.arm()[0]
+    assert b.reboot() == (False, 'reboot: refused, the vehicle is armed')
+    assert v.counters.get(f'ack_{mavlink.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN}_0', 0) == 0    # nothing was sent
+    assert b.disarm()[0]
+    wait_for(lambda: not b.snapshot()['armed'], what='disarmed heartbeat')
+    ok, msg = b.reboot()
+    assert ok, msg
+    assert v.counters.get(f'ack_{mavlink.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN}_0', 0) == 1
+    assert not v.ekf_ready and v.mode == 'STABILIZE'                # booting again: not armable yet
+    ok, msg = b.arm()
+    assert not ok, msg
+
+
+def test_force_disarm_only_when_allowed(link):
+    b, v = link.bridge, link.vt.vehicle
+    assert b.wait_heartbeat(5.0)
+    wait_for(lambda: v.ekf_ready, what='EKF ready')
+    assert b.arm()[0] and b.takeoff(1.0)[0]
+    wait_for(lambda: not b.snapshot()['taking_off'], what='takeoff climb')
+    ok, msg = b.force_disarm()
+    assert not ok and 'allow_force_disarm is false' in msg
+    assert b.disarm()[0] is False                    # a normal disarm is refused in flight
+    b.cfg.allow_force_disarm = True
+    ok, msg = b.force_disarm()
+    assert ok, msg
+    wait_for(lambda: not b.snapshot()['armed'], what='disarmed heartbeat')

@@ -138,13 +138,35 @@ class LatentEncoder:
     """Loads the CM-VAE once and encodes RGB-D frames (any resolution) to mu / pad XYZ / depth."""
 
     def __init__(self, model_path: str | Path | None = None, device: str = 'cpu',
-                 threads: int = 1, min_valid_fraction: float = 0.01):
+                 threads: int = 1, min_valid_fraction: float = 0.01, warm_up: bool = True):
         self.model_path = Path(model_path) if model_path else default_model_path()
         self.device = check_device(device)
         if threads > 0:
             torch.set_num_threads(threads)
         self.model: CMVAE = load_model(self.model_path, self.device)
+        # NHWC ("channels last") weights and inputs: on CPU the 64x64 convolutions and the max-pool
+        # run ~2.3x faster than NCHW (bench `perception`); mu agrees with NCHW to ~1e-6
+        self.model.to(memory_format=torch.channels_last)
         self.min_valid_fraction = float(min_valid_fraction)
+        if warm_up:
+            self.warm_up()
+
+    @torch.inference_mode()
+    def warm_up(self) -> None:
+        """Run every network once on a synthetic frame: torch's first inference allocates and picks
+        kernels (~15 ms instead of ~1 ms), which must not land on the first real frame."""
+        s = self.model.cfg.image_size
+        rgb = np.full((s, s, 3), 128, np.uint8)
+        depth = np.full((s, s), 2.5, np.float32)
+        for _ in range(2):
+            mu, _ = self.model.encode(self._input(rgb, depth))
+            self.model.decode_xyz(mu)
+            self.model.decode_depth(mu)
+
+    def _input(self, rgb64: np.ndarray, d64: np.ndarray) -> torch.Tensor:
+        """Prepared 64x64 frame(s) -> the network input on the device, channels-last like the weights."""
+        x = preprocess(rgb64, d64, self.model.cfg)
+        return x.to(self.device).contiguous(memory_format=torch.channels_last)
 
     @property
     def latent_dim(self) -> int:
@@ -179,8 +201,7 @@ class LatentEncoder:
         The decoders run only when asked: `want_xyz` for the pad estimate, `want_depth` for the
         denoised depth image (the policy needs only mu); pad_xyz is NaN when not computed."""
         rgb64, d64 = self.prepare(rgb, depth_m)
-        x = preprocess(rgb64, d64, self.model.cfg).to(self.device)
-        mu, _ = self.model.encode(x)
+        mu, _ = self.model.encode(self._input(rgb64, d64))
         if want_xyz:
             xyz = self.model.decode_xyz(mu)[0].cpu().numpy().astype(np.float32)
         else:
@@ -215,9 +236,8 @@ class LatentEncoder:
                 prepared.append(self.prepare(rgb, depth))
             except BadFrame as exc:
                 raise BadFrame(exc.reason, f'frame {i}: {exc}') from exc
-        x = preprocess(np.stack([p[0] for p in prepared]), np.stack([p[1] for p in prepared]),
-                       self.model.cfg).to(self.device)
-        mu, _ = self.model.encode(x)
+        mu, _ = self.model.encode(self._input(np.stack([p[0] for p in prepared]),
+                                              np.stack([p[1] for p in prepared])))
         bad = ~torch.isfinite(mu).all(dim=1)
         if bad.any():
             raise BadFrame('nonfinite_output', f'frame {int(torch.nonzero(bad)[0])}: the model produced '

@@ -13,14 +13,16 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PointStamped
 from rclpy.callback_groups import ReentrantCallbackGroup
+from nav_msgs.msg import Odometry
 from rclpy.node import Node
-from sensor_msgs.msg import Image
+from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Float32MultiArray, MultiArrayDimension
 
 from assist_sim.ros_common import (SENSOR_QOS, Diagnostics, Param, StartupError, declare_parameters,
-                                   exit_process, forward_logging, run_node, stamp_to_sec)
+                                   executor_param, exit_process, forward_logging, run_node, stamp_to_sec)
 
 from .encoder_core import BadFrame, LatentEncoder, LatestOnly, StampPairer, decode_color, decode_depth
+from .level import AttitudeBuffer, level_frame, level_rotation, tilt_deg
 from .model import ModelLoadError
 from .noise import apply_depth_noise
 
@@ -40,6 +42,16 @@ PARAMS = {
     'depth_noise': Param(False, 'Apply the D435i-like noise model to incoming depth (clean sim depth -> '
                                 'training distribution); leave off for a real camera.'),
     'noise_seed': Param(0, 'Seed of the depth noise (depth_noise only).', min=0, max=2**31 - 1),
+    'executor': executor_param('events'),
+    'level_camera': Param(False, 'Undo the camera tilt before encoding (camera rigidly mounted on an airframe '
+                                 'that rolls and pitches: ArduPilot SITL/JSON physics, real vehicles): each frame '
+                                 'is re-rendered as a level camera would see it, using the /odom attitude nearest '
+                                 'its stamp and the colour camera_info. Frames without both are skipped.'),
+    'attitude_topic': Param('/odom', 'Attitude source for level_camera (nav_msgs/Odometry, odom <- base_link).'),
+    'camera_info_topic': Param('/camera/color/camera_info', 'Intrinsics for level_camera (sensor_msgs/CameraInfo).'),
+    'attitude_max_offset_s': Param(0.1, 'level_camera: an attitude sample must be this close to the frame stamp.',
+                                   min=0.0, max=5.0, min_exclusive=True),
+    'level_min_tilt_deg': Param(0.5, 'level_camera: frames tilted less than this pass unchanged.', min=0.0, max=45.0),
     'warn_period_s': Param(5.0, 'Minimum seconds between repeated bad-frame warnings (settable at run time).',
                            min=0.0, max=3600.0, dynamic=True),
 }
@@ -79,6 +91,13 @@ class EncoderNode(Node):
                                  SENSOR_QOS, callback_group=group)
         self.create_subscription(Image, self.p['depth_topic'], lambda m: self._on_image('depth', m),
                                  SENSOR_QOS, callback_group=group)
+        self.attitude = AttitudeBuffer()
+        self._K: tuple[int, int, np.ndarray] | None = None
+        if self.p['level_camera']:
+            self.create_subscription(Odometry, self.p['attitude_topic'], self._on_attitude, SENSOR_QOS,
+                                     callback_group=group)
+            self.create_subscription(CameraInfo, self.p['camera_info_topic'], self._on_camera_info, SENSOR_QOS,
+                                     callback_group=group)
         self._worker = threading.Thread(target=self._work, name='cmvae_inference', daemon=True)
         self._worker.start()
         self.get_logger().info(f'CM-VAE {self.encoder.model_path} (latent {self.encoder.latent_dim}) '
@@ -99,6 +118,40 @@ class EncoderNode(Node):
         if pair is not None:
             self.diag.count('pairs')
             self.slot.put(pair)
+
+    def _on_attitude(self, msg: Odometry) -> None:
+        q = msg.pose.pose.orientation
+        try:
+            self.attitude.add(stamp_to_sec(msg.header.stamp), (q.x, q.y, q.z, q.w))
+        except ValueError as exc:
+            self._bad('attitude', f'{self.p["attitude_topic"]}: {exc}')
+
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        K = np.array(msg.k, dtype=float).reshape(3, 3)
+        if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0 and msg.width > 0 and msg.height > 0):
+            self._bad('camera_info', f'{self.p["camera_info_topic"]}: unusable intrinsics {msg.k.tolist()}')
+            return
+        self._K = (int(msg.height), int(msg.width), K)
+
+    def _level(self, rgb: np.ndarray, dep: np.ndarray, stamp: float) -> tuple[np.ndarray, np.ndarray]:
+        """The frame as a level camera would see it (BadFrame when attitude or intrinsics are missing)."""
+        if self._K is None:
+            raise BadFrame('no_camera_info', f'level_camera: nothing on {self.p["camera_info_topic"]} yet')
+        h, w, K = self._K
+        if (h, w) != dep.shape or rgb.shape[:2] != dep.shape:
+            raise BadFrame('camera_info_mismatch', f'level_camera: camera_info is {w}x{h}, frames '
+                                                   f'{dep.shape[1]}x{dep.shape[0]}')
+        q = self.attitude.nearest(stamp, float(self.p['attitude_max_offset_s']))
+        if q is None:
+            raise BadFrame('no_attitude', f'level_camera: no {self.p["attitude_topic"]} attitude within '
+                                          f'{self.p["attitude_max_offset_s"]} s of the frame')
+        r = level_rotation(q)
+        tilt = tilt_deg(r)
+        self.diag.set('tilt_deg', f'{tilt:.1f}')
+        if tilt < float(self.p['level_min_tilt_deg']):
+            return rgb, dep
+        self.diag.count('frames_levelled')
+        return level_frame(rgb, dep, K, r)
 
     # ------------------------------------------------------------------ worker thread
     def _work(self) -> None:
@@ -142,6 +195,8 @@ class EncoderNode(Node):
                            bool(depth.is_bigendian))
         if self.p['depth_noise']:
             dep = apply_depth_noise(dep, self.rng, rgb=rgb if rgb.shape[:2] == dep.shape else None)
+        if self.p['level_camera']:             # after the noise: the sensor sees the tilted scene
+            rgb, dep = self._level(rgb, dep, stamp_to_sec(depth.header.stamp))
         t0 = time.perf_counter()
         out = self.encoder.encode(rgb, dep, want_depth=False)   # mu first: the policy waits for it
         self.diag.set('inference_ms', f'{1000 * (time.perf_counter() - t0):.2f}')

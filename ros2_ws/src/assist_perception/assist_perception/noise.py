@@ -69,18 +69,21 @@ class NoiseConfig:
             raise ValueError('NoiseConfig.focal_baseline_px_m must be > 0')
 
 
+def _neighbour_extremum(z: np.ndarray, radius: int, op) -> np.ndarray:
+    """cv2.erode (min) or cv2.dilate (max) of z over a (2r+1)^2 window (edge-replicated), batched over (N,H,W)."""
+    zf = np.ascontiguousarray(z, dtype=np.float32)
+    if radius == 0:
+        return zf.copy()
+    kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    out = np.empty_like(zf)
+    for i in range(zf.shape[0]):
+        out[i] = op(zf[i], kernel, borderType=cv2.BORDER_REPLICATE)
+    return out
+
+
 def _neighbour_extrema(z: np.ndarray, radius: int) -> tuple[np.ndarray, np.ndarray]:
     """Min and max of z over a (2r+1)^2 window per pixel (edge-replicated), batched over (N,H,W)."""
-    if radius == 0:
-        return z.copy(), z.copy()
-    kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
-    zf = np.ascontiguousarray(z, dtype=np.float32)
-    lo = np.empty_like(zf)
-    hi = np.empty_like(zf)
-    for i in range(zf.shape[0]):
-        lo[i] = cv2.erode(zf[i], kernel, borderType=cv2.BORDER_REPLICATE)
-        hi[i] = cv2.dilate(zf[i], kernel, borderType=cv2.BORDER_REPLICATE)
-    return lo, hi
+    return _neighbour_extremum(z, radius, cv2.erode), _neighbour_extremum(z, radius, cv2.dilate)
 
 
 def discontinuity_band(depth: np.ndarray, threshold_m: float, band_px: int) -> np.ndarray:
@@ -97,8 +100,7 @@ def discontinuity_band(depth: np.ndarray, threshold_m: float, band_px: int) -> n
     jump[:, :, 1:] |= dx
     jump[:, :, :-1] |= dx
     if band_px > 1:
-        lo, hi = _neighbour_extrema(jump.astype(np.float32), band_px - 1)
-        jump = hi > 0.5
+        jump = _neighbour_extremum(jump.astype(np.float32), band_px - 1, cv2.dilate) > 0.5
     return jump[0] if squeeze else jump
 
 
@@ -108,6 +110,19 @@ def luminance(rgb: np.ndarray) -> np.ndarray:
     return rgb[..., 0] * 0.299 + rgb[..., 1] * 0.587 + rgb[..., 2] * 0.114
 
 
+_GRIDS: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _pixel_grid(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """(yy, xx) float32 pixel coordinates of an h x w image, built once per size (read-only)."""
+    grid = _GRIDS.get((h, w))
+    if grid is None:
+        yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+        yy.flags.writeable = xx.flags.writeable = False
+        grid = _GRIDS[(h, w)] = (yy, xx)
+    return grid
+
+
 def _blob_mask(rng: np.random.Generator, n: int, h: int, w: int,
                rate: float, radius_frac: tuple[float, float]) -> np.ndarray:
     """Elliptical dropout blobs: a Poisson(rate) count per frame, random centre/axes/angle."""
@@ -115,7 +130,9 @@ def _blob_mask(rng: np.random.Generator, n: int, h: int, w: int,
     if rate <= 0:
         return mask
     counts = rng.poisson(rate, size=n)
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    if not counts.any():
+        return mask
+    yy, xx = _pixel_grid(h, w)
     for i in np.nonzero(counts)[0]:
         for _ in range(int(counts[i])):
             cy, cx = rng.uniform(0, h), rng.uniform(0, w)
@@ -150,8 +167,8 @@ def apply_depth_noise(depth: np.ndarray, rng: np.random.Generator,
     # discontinuities are a property of the clean scene
     band = discontinuity_band(np.where(invalid, 0.0, z), cfg.edge_threshold_m, cfg.edge_band_px)
     win = max(cfg.edge_band_px, 1)
-    near = _neighbour_extrema(np.where(invalid, np.inf, z), win)[0]
-    far = _neighbour_extrema(np.where(invalid, -np.inf, z), win)[1]
+    near = _neighbour_extremum(np.where(invalid, np.inf, z), win, cv2.erode)
+    far = _neighbour_extremum(np.where(invalid, -np.inf, z), win, cv2.dilate)
 
     # axial noise growing with z^2
     noisy = z + rng.standard_normal(z.shape, dtype=np.float32) * (cfg.sigma_z2 * z * z)

@@ -67,3 +67,35 @@ def test_batched_mu_equals_frame_by_frame(encoder):
         encoder.encode_mu_batch(rgbs, depths)
     with pytest.raises(ValueError):
         encoder.encode_mu_batch(rgbs, depths[:2])
+
+
+def test_channels_last_inference_matches_the_plain_model(encoder, tmp_path):
+    """The encoder runs NHWC weights and inputs for speed; outputs equal the NCHW model's."""
+    from assist_perception.model import load_model, preprocess
+    assert encoder.model.encoder.conv.weight.is_contiguous(memory_format=torch.channels_last)
+    plain = load_model(encoder.model_path)
+    assert not plain.encoder.conv.weight.is_contiguous(memory_format=torch.channels_last)
+    rgbs, depths = _frames(4, np.random.default_rng(3))
+    for rgb, depth in zip(rgbs, depths):
+        out = encoder.encode(rgb, depth, want_depth=True)
+        with torch.inference_mode():
+            mu, _ = plain.encode(preprocess(rgb, depth, plain.cfg))
+            np.testing.assert_allclose(out.mu, mu[0].numpy(), atol=1e-5)
+            np.testing.assert_allclose(out.pad_xyz, plain.decode_xyz(mu)[0].numpy(), atol=1e-5)
+            np.testing.assert_allclose(out.depth, plain.decode_depth(mu)[0].numpy(), atol=1e-4)
+
+
+def test_construction_warms_every_network_up_once_unless_told_not_to(encoder, monkeypatch):
+    """torch's first inference is ~15x slower than the next: the encoder pays it at start-up."""
+    calls = {'encode': 0, 'decode_xyz': 0, 'decode_depth': 0}
+    for name in calls:
+        orig = getattr(CMVAE, name)
+
+        def counting(self, z, _name=name, _orig=orig):
+            calls[_name] += 1
+            return _orig(self, z)
+        monkeypatch.setattr(CMVAE, name, counting)
+    LatentEncoder(encoder.model_path, threads=1, warm_up=False)
+    assert calls == {'encode': 0, 'decode_xyz': 0, 'decode_depth': 0}
+    LatentEncoder(encoder.model_path, threads=1)
+    assert all(n >= 1 for n in calls.values()), calls

@@ -22,7 +22,8 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import Float32MultiArray
 
 from assist_sim.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError,
-                                   declare_parameters, exit_process, fill_twist, run_node, twist_to_array)
+                                   declare_parameters, executor_param, exit_process, fill_twist, run_node,
+                                   twist_to_array)
 
 from .blending import DEFAULT_THRESHOLD
 from .policy_core import PolicyCore, PolicyCoreConfig, PolicyOutput, default_model_path
@@ -59,6 +60,7 @@ PARAMS = {
     'step_on_latent': Param(True, 'latent mode: run the actor as soon as a new latent arrives (camera-to-command '
                                   'latency = one inference, /cmd_vel stamped with the frame\'s sim time); the '
                                   'rate_hz timer then runs only while latents are missing.'),
+    'executor': executor_param('events'),
     'floor_guard': Param(True, 'Floor guard (assist_policy.safety, not learned): low over the floor with no pad under '
                                'the legs in /camera/depth/image_raw, a descent is replaced by a small climb.',
                          dynamic=True),
@@ -247,14 +249,14 @@ class PolicyNode(Node):
     def _publish(self, out: PolicyOutput) -> None:
         stamp = self.get_clock().now().to_msg()
         frame = self.p['frame_id']
+        cmd = TwistStamped()                    # /cmd_vel first: it is on the camera-to-command path
+        cmd.header.stamp, cmd.header.frame_id = stamp, frame
+        self.pub_cmd.publish(fill_twist(cmd, out.velocity))
         if out.agent is not None and np.all(np.isfinite(out.agent)):
             msg = TwistStamped()
             msg.header.stamp, msg.header.frame_id = stamp, frame
             self.pub_agent.publish(fill_twist(msg, out.agent))
             self.diag.count('agent_cmds')
-        cmd = TwistStamped()
-        cmd.header.stamp, cmd.header.frame_id = stamp, frame
-        self.pub_cmd.publish(fill_twist(cmd, out.velocity))
 
     def _tick(self) -> None:
         """One control step; any exception relinquishes (V = u, clamped), is counted and logged."""

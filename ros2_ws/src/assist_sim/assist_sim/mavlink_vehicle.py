@@ -340,9 +340,22 @@ class MavlinkVehicle:
             result = self._set_interval(params[0], params[1])
         elif cmd == mavlink.MAV_CMD_REQUEST_MESSAGE:
             result = self._request_message(params[0])
+        elif cmd == mavlink.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN:
+            result = self._reboot(params[0])
         else:
             result = mavlink.MAV_RESULT_UNSUPPORTED
         self._ack(msg, cmd, result)
+
+    def _reboot(self, p1: float) -> int:
+        """param1 1: reboot the autopilot (ArduPilot: only while disarmed); boot time and EKF start over."""
+        if p1 != 1.0:
+            return mavlink.MAV_RESULT_UNSUPPORTED
+        if self._armed:
+            return mavlink.MAV_RESULT_DENIED
+        self._boot = self._clock()
+        self._set_mode_name('STABILIZE')
+        self._statustext(mavlink.MAV_SEVERITY_INFO, 'Rebooting')
+        return mavlink.MAV_RESULT_ACCEPTED
 
     def _arm_disarm(self, p1: float, p2: float) -> int:
         forced = p2 == FORCE_ARM_MAGIC

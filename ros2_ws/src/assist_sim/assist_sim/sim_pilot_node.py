@@ -39,6 +39,11 @@ PARAMS = {
                             '(mix = held-out families, train_mix = training families), drawn anew per landing.',
                    choices=PILOT_NAMES),
     'frame_id': Param('base_link', 'frame_id of /pilot/cmd_vel.'),
+    'start_altitude_m': Param(0.0, 'A landing starts (the pilot model is reset to the new goal) once /odom is at '
+                                   'or above this altitude; 0: at once. For episodes that start on the ground '
+                                   '(ArduPilot SITL, MAVLink vehicles) set it just below the takeoff altitude '
+                                   'so the pilot does not spend the arming wait on the ground.',
+                               min=0.0, max=100.0),
 }
 
 
@@ -116,6 +121,7 @@ class SimPilotNode(Node):
             return
         with self._lock:
             self._pending_goal = g
+            self._active = False        # no commands for the previous landing while this one waits to start
 
     def _on_agent(self, msg: TwistStamped) -> None:
         a = twist_to_array(msg)
@@ -130,7 +136,8 @@ class SimPilotNode(Node):
         now = self._now()
         with self._lock:
             odom_ok = self._odom is not None and abs(now - self._odom[0]) <= self.p['odom_timeout_s']
-            if self._pending_goal is not None and self._odom is not None:
+            if self._pending_goal is not None and self._odom is not None \
+                    and self._odom[1][2] >= self.p['start_altitude_m']:
                 if self.p['pilot'] != 'paper':
                     self.pilot = self._new_pilot()      # new family draw (and pads) per landing
                 self.pilot.reset(self._pending_goal, self._odom[1])

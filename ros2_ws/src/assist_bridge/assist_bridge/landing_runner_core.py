@@ -1,0 +1,218 @@
+"""Episode sequencing for landings on a real (or SITL) autopilot, without rclpy.
+
+In MAVLink / ArduPilot-SITL set-ups every landing episode starts landed and disarmed, so somebody
+has to put the vehicle in the air before the pilot (simulated or human) and the assistant can fly
+the landing: GUIDED, arm (retried until the EKF accepts it), take off; then wait for the landing
+judge's result on /sim/landing, and make sure the vehicle is disarmed so the simulator starts the
+next episode (LAND disarms on the ground). `LandingRunnerCore` is that sequence as a state machine
+driven by `poll(now)`; the node (landing_runner.py) turns its requests into /uav/* service calls.
+Times are seconds on a steady clock (the arm retries wait for the autopilot, not for sim time).
+"""
+from __future__ import annotations
+
+import enum
+import logging
+import math
+from dataclasses import dataclass, field
+
+_LOG = logging.getLogger(__name__)
+
+
+class RunnerState(enum.Enum):
+    """Where the runner is in the current episode."""
+
+    WAIT_EPISODE = 'wait_episode'   # waiting for a new /sim/goal (the next episode's scene)
+    ARMING = 'arming'               # GUIDED + arm, retried while the autopilot refuses
+    TAKING_OFF = 'taking_off'       # takeoff requested
+    FLYING = 'flying'               # the pilot flies; waiting for the landing result
+    DONE = 'done'                   # all episodes flown
+    FAILED = 'failed'               # the autopilot kept refusing for arm_give_up_s
+
+
+@dataclass
+class RunnerConfig:
+    """Settings of the episode sequence (the node's parameters)."""
+
+    episodes: int = 0                 # landings to fly; 0: until stopped
+    arm_retry_s: float = 5.0          # wait this long after a refused arm / takeoff before retrying
+    arm_give_up_s: float = 300.0      # fail when no arm + takeoff succeeded this long into an episode
+    flight_timeout_s: float = 150.0   # no landing result this long after takeoff: request LAND
+    land_after_touchdown: bool = True  # request LAND after the landing result (disarms on the ground)
+    reboot_after_s: float = 120.0     # still refused this long into an episode: reboot the autopilot once; 0: never
+    reboot_after_crash: bool = False  # reboot before the episode after a crash (SITL's EKF may not survive one)
+    disarm_timeout_s: float = 20.0    # no next episode this long after the landing's LAND: force-disarm; 0: never
+
+    def __post_init__(self) -> None:
+        if int(self.episodes) < 0:
+            raise ValueError(f'episodes must be >= 0, got {self.episodes}')
+        for name in ('arm_retry_s', 'arm_give_up_s', 'flight_timeout_s'):
+            v = float(getattr(self, name))
+            if not math.isfinite(v) or v <= 0.0:
+                raise ValueError(f'{name} must be finite and > 0, got {v}')
+        for name in ('reboot_after_s', 'disarm_timeout_s'):
+            v = float(getattr(self, name))
+            if not math.isfinite(v) or v < 0.0:
+                raise ValueError(f'{name} must be finite and >= 0, got {v}')
+
+
+@dataclass
+class RunnerStats:
+    """Landing results seen so far (dicts as published on /sim/landing)."""
+
+    results: list[dict] = field(default_factory=list)
+
+    def summary(self) -> str:
+        """One line: count, goal-pad success, crash rate, mean error."""
+        n = len(self.results)
+        if n == 0:
+            return 'no landings'
+        ok = sum(bool(r.get('success')) for r in self.results)
+        crash = sum(bool(r.get('crash')) for r in self.results)
+        errs = [float(r['error_m']) for r in self.results
+                if isinstance(r.get('error_m'), (int, float)) and math.isfinite(float(r['error_m']))]
+        mean = f'{sum(errs) / len(errs):.3f} m' if errs else 'n/a'
+        return (f'{n} landings: success {ok}/{n} ({100.0 * ok / n:.1f} %), crash {crash}/{n} '
+                f'({100.0 * crash / n:.1f} %), mean error {mean}')
+
+
+class LandingRunnerCore:
+    """GUIDED -> arm -> takeoff -> (pilot flies) -> landing result -> LAND, once per episode."""
+
+    def __init__(self, cfg: RunnerConfig):
+        self.cfg = cfg
+        self.state = RunnerState.WAIT_EPISODE
+        self.stats = RunnerStats()
+        self.episode_started: float | None = None
+        self._goal_key: object = None
+        self._goal_pending = False
+        self._queue: list[str] = []       # service calls still to make in this step of the sequence
+        self._in_flight: str | None = None
+        self._not_before = 0.0
+        self._takeoff_at: float | None = None
+        self._flight_land_sent = False
+        self._rebooted = False
+        self._reboot_next = False
+        self._landed_at: float | None = None
+        self.failure: str | None = None
+
+    # inputs -------------------------------------------------------------------------------------
+    def on_goal(self, key: object, now: float) -> None:
+        """A /sim/goal message; a key (stamp + point) not seen before announces a new episode."""
+        if key == self._goal_key:
+            return
+        self._goal_key = key
+        self._goal_pending = True
+
+    def on_landing(self, result: dict, now: float) -> None:
+        """A landing result from the judge: the episode is over."""
+        if self.state not in (RunnerState.FLYING, RunnerState.TAKING_OFF):
+            _LOG.warning('landing result while %s (episode %s): recorded anyway', self.state.value,
+                         result.get('episode'))
+        self.stats.results.append(result)
+        self._reboot_next = self.cfg.reboot_after_crash and bool(result.get('crash'))
+        _LOG.info('landing %d: %s, error %s m (%s)', len(self.stats.results), result.get('outcome'),
+                  _fmt(result.get('error_m')), result.get('reason'))
+        self._queue = ['land'] if self.cfg.land_after_touchdown else []
+        self._takeoff_at = None
+        self._landed_at = now
+        if self.cfg.episodes and len(self.stats.results) >= self.cfg.episodes:
+            self.state = RunnerState.DONE
+            _LOG.info('all %d episodes flown: %s', self.cfg.episodes, self.stats.summary())
+        else:
+            self.state = RunnerState.WAIT_EPISODE
+            self._goal_pending = False      # the next episode is announced by the next new goal
+
+    def on_answer(self, name: str, success: bool, message: str, now: float) -> None:
+        """The answer (or a timeout, success False) of the service call `poll` asked for."""
+        if name != self._in_flight:
+            _LOG.warning('answer to /uav/%s, which was not in flight (%s): ignored', name, self._in_flight)
+            return
+        self._in_flight = None
+        if success:
+            _LOG.info('/uav/%s: %s', name, message)
+        if name == 'reboot':
+            if not success:
+                _LOG.warning('reboot refused (%s); arming goes on', message)
+            self._not_before = now + self.cfg.arm_retry_s
+        elif self.state == RunnerState.ARMING:
+            if name == 'arm' and not success:
+                _LOG.info('arm refused (%s); retrying in %.0f s', message, self.cfg.arm_retry_s)
+                self._retry(now, ['guided', 'arm'])
+            elif name == 'guided' and not success:
+                _LOG.info('GUIDED refused (%s); retrying in %.0f s', message, self.cfg.arm_retry_s)
+                self._retry(now, ['guided', 'arm'])
+            elif name == 'arm' and not self._queue:
+                self.state = RunnerState.TAKING_OFF
+                self._queue = ['takeoff']
+        elif self.state == RunnerState.TAKING_OFF and name == 'takeoff':
+            if success:
+                self.state = RunnerState.FLYING
+                self._takeoff_at = now
+                self._flight_land_sent = False
+            else:                           # e.g. auto-disarmed meanwhile: arm again
+                _LOG.info('takeoff refused (%s); arming again in %.0f s', message, self.cfg.arm_retry_s)
+                self.state = RunnerState.ARMING
+                self._retry(now, ['guided', 'arm'])
+        elif not success:
+            _LOG.warning('/uav/%s failed while %s: %s', name, self.state.value, message)
+
+    # output -------------------------------------------------------------------------------------
+    def poll(self, now: float) -> str | None:
+        """The /uav/* service to call now (None: nothing to do); one call at a time."""
+        if self._in_flight is not None or self.state == RunnerState.FAILED:
+            return None
+        if self.state == RunnerState.WAIT_EPISODE and not self._goal_pending and self._landed_at is not None \
+                and self.cfg.disarm_timeout_s > 0 and now - self._landed_at > self.cfg.disarm_timeout_s:
+            # the sim starts the next episode once the motors stop: an autopilot that never detects
+            # this landing (resting on a pad edge, on its side) never disarms by itself
+            _LOG.warning('no new episode %.0f s after the landing: the vehicle did not disarm; force-disarming',
+                         now - self._landed_at)
+            self._landed_at = None
+            self._queue = ['force_disarm']
+        if self.state == RunnerState.WAIT_EPISODE and self._goal_pending and not self._queue:
+            self._goal_pending = False
+            self._landed_at = None
+            self.state = RunnerState.ARMING
+            self.episode_started = now
+            self._rebooted = self._reboot_next
+            self._queue = ['reboot', 'guided', 'arm'] if self._reboot_next else ['guided', 'arm']
+            _LOG.info('episode %d: %s', len(self.stats.results) + 1,
+                      'rebooting the autopilot after the crash, then arming' if self._reboot_next else 'arming')
+            self._reboot_next = False
+        if self.state == RunnerState.ARMING and self.episode_started is not None \
+                and now - self.episode_started > self.cfg.arm_give_up_s:
+            self.state = RunnerState.FAILED
+            self.failure = (f'the autopilot did not arm and take off within {self.cfg.arm_give_up_s:.0f} s '
+                            f'(episode {len(self.stats.results) + 1})')
+            _LOG.error('%s', self.failure)
+            return None
+        if self.state == RunnerState.ARMING and self.cfg.reboot_after_s > 0 and not self._rebooted \
+                and self.episode_started is not None and now - self.episode_started > self.cfg.reboot_after_s:
+            # e.g. ArduCopter SITL's EKF after a crash flipped the airframe: it never re-converges
+            _LOG.warning('the autopilot has refused to arm for %.0f s: rebooting it once',
+                         now - self.episode_started)
+            self._rebooted = True
+            self._queue = ['reboot', 'guided', 'arm']
+            self._not_before = now
+        if self.state == RunnerState.FLYING and self._takeoff_at is not None and not self._flight_land_sent \
+                and now - self._takeoff_at > self.cfg.flight_timeout_s:
+            _LOG.warning('no landing result %.0f s after takeoff: requesting LAND', self.cfg.flight_timeout_s)
+            self._flight_land_sent = True
+            self._queue = ['land']
+        if not self._queue or now < self._not_before:
+            return None
+        self._in_flight = self._queue.pop(0)
+        return self._in_flight
+
+    @property
+    def finished(self) -> bool:
+        """True once all episodes are flown and the final LAND request is answered."""
+        return self.state == RunnerState.DONE and not self._queue and self._in_flight is None
+
+    def _retry(self, now: float, calls: list[str]) -> None:
+        self._queue = list(calls)
+        self._not_before = now + self.cfg.arm_retry_s
+
+
+def _fmt(v: object) -> str:
+    return f'{float(v):.3f}' if isinstance(v, (int, float)) else str(v)

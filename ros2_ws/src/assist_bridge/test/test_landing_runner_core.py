@@ -1,0 +1,172 @@
+"""LandingRunnerCore: the GUIDED -> arm -> takeoff -> landing -> LAND sequence, driven by hand."""
+import pytest
+
+from assist_bridge.landing_runner_core import LandingRunnerCore, RunnerConfig, RunnerState
+
+
+def answer(core, now, ok=True, msg='ACCEPTED'):
+    """Poll once and answer the requested call; returns its name."""
+    name = core.poll(now)
+    assert name is not None, f'no call requested in state {core.state}'
+    core.on_answer(name, ok, msg, now)
+    return name
+
+
+def landing(ep, success=True, crash=False, error=0.1):
+    return {'episode': ep, 'success': success, 'crash': crash, 'error_m': error,
+            'outcome': 'success' if success else 'crash', 'reason': 'landed'}
+
+
+def test_two_episodes_with_arm_retries_then_done():
+    core = LandingRunnerCore(RunnerConfig(episodes=2, arm_retry_s=5.0))
+    assert core.poll(0.0) is None                        # no goal yet: nothing to do
+    core.on_goal(('g', 1), 0.0)
+    assert answer(core, 0.0) == 'guided'
+    assert answer(core, 0.1, ok=False, msg='arm: FAILED (PreArm: Need Position Estimate)') == 'arm'
+    assert core.poll(1.0) is None                        # waits arm_retry_s before trying again
+    assert core.state == RunnerState.ARMING
+    assert answer(core, 5.2) == 'guided'
+    assert answer(core, 5.3) == 'arm'
+    assert core.state == RunnerState.TAKING_OFF
+    assert answer(core, 5.4) == 'takeoff'
+    assert core.state == RunnerState.FLYING
+    assert core.poll(30.0) is None                       # the pilot flies
+    core.on_goal(('g', 1), 31.0)                         # the latched goal again: not a new episode
+    core.on_landing(landing(0), 40.0)
+    assert answer(core, 40.0) == 'land'
+    assert core.state == RunnerState.WAIT_EPISODE
+    assert core.poll(41.0) is None                       # no new goal yet
+    core.on_goal(('g', 2), 45.0)
+    assert [answer(core, 45.0 + i) for i in range(3)] == ['guided', 'arm', 'takeoff']
+    core.on_landing(landing(1, success=False, crash=True, error=1.5), 70.0)
+    assert core.state == RunnerState.DONE and not core.finished
+    assert answer(core, 70.0) == 'land'
+    assert core.finished
+    assert core.stats.summary() == ('2 landings: success 1/2 (50.0 %), crash 1/2 (50.0 %), '
+                                    'mean error 0.800 m')
+
+
+def test_takeoff_refused_goes_back_to_arming():
+    core = LandingRunnerCore(RunnerConfig(episodes=1, arm_retry_s=2.0))
+    core.on_goal('a', 0.0)
+    answer(core, 0.0), answer(core, 0.0)
+    assert answer(core, 0.0, ok=False, msg='takeoff: FAILED') == 'takeoff'
+    assert core.state == RunnerState.ARMING
+    assert core.poll(1.0) is None
+    assert answer(core, 2.5) == 'guided'
+
+
+def test_gives_up_when_the_autopilot_never_arms():
+    core = LandingRunnerCore(RunnerConfig(episodes=0, arm_retry_s=1.0, arm_give_up_s=10.0))
+    core.on_goal('a', 0.0)
+    t = 0.0
+    while core.state != RunnerState.FAILED and t < 30.0:
+        name = core.poll(t)
+        if name is not None:
+            core.on_answer(name, name == 'guided', 'FAILED', t)
+        t += 0.1
+    assert core.state == RunnerState.FAILED
+    assert 10.0 < t < 11.5
+    assert 'did not arm' in core.failure
+    assert core.poll(t + 1) is None
+
+
+def test_flight_timeout_requests_land_once():
+    core = LandingRunnerCore(RunnerConfig(flight_timeout_s=60.0))
+    core.on_goal('a', 0.0)
+    for _ in range(3):
+        answer(core, 0.0)
+    assert core.state == RunnerState.FLYING
+    assert core.poll(59.0) is None
+    assert answer(core, 61.0) == 'land'
+    assert core.poll(200.0) is None                      # asked once; the judge's result ends the episode
+    core.on_landing(landing(0), 210.0)
+    assert answer(core, 210.0) == 'land'
+    assert core.state == RunnerState.WAIT_EPISODE       # episodes=0: runs until stopped
+
+
+def test_one_call_at_a_time_and_stray_answers_ignored():
+    core = LandingRunnerCore(RunnerConfig())
+    core.on_goal('a', 0.0)
+    assert core.poll(0.0) == 'guided'
+    assert core.poll(0.0) is None                        # guided still in flight
+    core.on_answer('arm', True, 'x', 0.0)                # not the call in flight: ignored
+    assert core.state == RunnerState.ARMING
+    core.on_answer('guided', True, 'ok', 0.1)
+    assert core.poll(0.1) == 'arm'
+
+
+def test_no_land_after_touchdown_when_disabled():
+    core = LandingRunnerCore(RunnerConfig(land_after_touchdown=False))
+    core.on_goal('a', 0.0)
+    for _ in range(3):
+        answer(core, 0.0)
+    core.on_landing(landing(0), 5.0)
+    assert core.poll(5.0) is None
+
+
+@pytest.mark.parametrize('kwargs', [{'episodes': -1}, {'arm_retry_s': 0.0}, {'arm_give_up_s': float('nan')},
+                                    {'flight_timeout_s': -5.0}])
+def test_bad_config_refused(kwargs):
+    with pytest.raises(ValueError):
+        RunnerConfig(**kwargs)
+
+
+def test_reboots_once_when_arming_is_refused_too_long():
+    core = LandingRunnerCore(RunnerConfig(arm_retry_s=2.0, arm_give_up_s=100.0, reboot_after_s=20.0))
+    core.on_goal('a', 0.0)
+    calls = []
+    t = 0.0
+    while t < 60.0:
+        name = core.poll(t)
+        if name is not None:
+            calls.append((round(t, 1), name))
+            core.on_answer(name, name in ('guided', 'reboot'), 'FAILED (Arm: Check mag field)', t)
+        t += 0.1
+    reboots = [c for c in calls if c[1] == 'reboot']
+    assert len(reboots) == 1 and 20.0 <= reboots[0][0] < 21.0, reboots
+    after = [c for c in calls if c[0] > reboots[0][0]]
+    assert after[0][1] == 'guided' and after[0][0] >= reboots[0][0] + 2.0     # arming resumes after a pause
+    assert core.state == RunnerState.ARMING and len(after) > 10          # still retrying, no second reboot
+
+
+def test_reboot_before_the_episode_after_a_crash_only():
+    core = LandingRunnerCore(RunnerConfig(reboot_after_crash=True))
+    core.on_goal('a', 0.0)
+    assert [answer(core, 0.0) for _ in range(3)] == ['guided', 'arm', 'takeoff']
+    core.on_landing(landing(0, success=False, crash=True), 10.0)
+    assert answer(core, 10.0) == 'land'
+    core.on_goal('b', 20.0)
+    assert answer(core, 20.0) == 'reboot'
+    assert core.poll(20.1) is None                       # a pause after the reboot
+    assert [answer(core, 30.0 + i) for i in range(3)] == ['guided', 'arm', 'takeoff']
+    core.on_landing(landing(1), 60.0)                    # a good landing: no reboot next time
+    assert answer(core, 60.0) == 'land'
+    core.on_goal('c', 70.0)
+    assert answer(core, 70.0) == 'guided'
+
+
+def test_force_disarm_when_no_next_episode_follows_a_landing():
+    core = LandingRunnerCore(RunnerConfig(disarm_timeout_s=20.0))
+    core.on_goal('a', 0.0)
+    for _ in range(3):
+        answer(core, 0.0)
+    core.on_landing(landing(0, success=False, error=0.6), 30.0)
+    assert answer(core, 30.0) == 'land'
+    assert core.poll(49.0) is None                       # LAND may still disarm by itself
+    assert answer(core, 50.5) == 'force_disarm'
+    assert core.poll(80.0) is None                       # once
+    core.on_goal('b', 81.0)                              # the sim reset after the disarm
+    assert answer(core, 81.0) == 'guided'
+
+
+def test_no_force_disarm_when_the_next_episode_comes_in_time():
+    core = LandingRunnerCore(RunnerConfig(disarm_timeout_s=20.0))
+    core.on_goal('a', 0.0)
+    for _ in range(3):
+        answer(core, 0.0)
+    core.on_landing(landing(0), 30.0)
+    assert answer(core, 30.0) == 'land'
+    core.on_goal('b', 36.0)
+    assert [answer(core, 36.0 + i) for i in range(3)] == ['guided', 'arm', 'takeoff']
+    assert all(core.poll(t) is None for t in (60.0, 100.0))    # flying: no force-disarm

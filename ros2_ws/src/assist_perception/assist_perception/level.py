@@ -1,0 +1,108 @@
+"""Camera levelling: re-render a frame from a tilted, rigidly mounted camera as a level camera would see it.
+
+On a real airframe (and in sim_node's ardupilot_json mode) the downward camera tilts with the
+vehicle, but the CM-VAE and the assistants were trained on level images (velocity mode keeps the
+camera level). Read as if level, a pad estimate from a frame tilted by 5 / 10 / 20 deg is off by
+0.25 / 0.46 / 0.72 m horizontally (median, `python -m bench json`). Levelling removes most of that.
+
+The level camera shares the optical centre and heading of the real one; only roll and pitch are
+undone. A pure rotation about the optical centre maps pixels by the homography K R K^-1, whatever
+the depth, so every output pixel is looked up in the input (no holes, nearest-neighbour so depth
+edges are never blended); the depth along the new optical axis is the input depth divided by the
+z component of the output pixel's ray expressed in the input camera. Pixels the tilted camera did
+not see (strips at the image border) repeat the nearest border pixel, which is what the encoder
+handled best when measured. Invalid depth (0 or NaN) stays invalid. The camera's small offset from
+base_link is neglected: 10 cm below base_link at 10 deg tilt moves the optical centre 1.7 cm.
+"""
+from __future__ import annotations
+
+import math
+from bisect import bisect_left
+from collections import deque
+
+import cv2
+import numpy as np
+
+# optical frame axes in base_link (ARCHITECTURE.md: optical x = body -y, y = body -x, z = body -z)
+R_BODY_FROM_OPTICAL = np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+
+
+def quaternion_matrix(q_xyzw) -> np.ndarray:
+    """Rotation matrix of a unit quaternion (x, y, z, w); raises ValueError if not finite or ~zero."""
+    x, y, z, w = (float(v) for v in q_xyzw)
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    if not math.isfinite(n) or n < 1e-6:
+        raise ValueError(f'bad attitude quaternion {q_xyzw!r}')
+    x, y, z, w = x / n, y / n, z / n, w / n
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def level_rotation(q_world_from_base) -> np.ndarray:
+    """R (level optical <- tilted optical) for a base_link attitude quaternion (x, y, z, w) in odom."""
+    r_wb = quaternion_matrix(q_world_from_base)
+    yaw = math.atan2(r_wb[1, 0], r_wb[0, 0])
+    c, s = math.cos(yaw), math.sin(yaw)
+    r_level_from_body = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]]) @ r_wb   # yaw removed
+    return R_BODY_FROM_OPTICAL.T @ r_level_from_body @ R_BODY_FROM_OPTICAL
+
+
+def tilt_deg(r: np.ndarray) -> float:
+    """Angle between the optical axes of the two cameras related by rotation `r`, in degrees."""
+    return math.degrees(math.acos(max(-1.0, min(1.0, float(r[2, 2])))))
+
+
+def level_frame(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, r_level_from_cam: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """The (rgb HxWx3, depth HxW metres along the optical axis) a level camera would see."""
+    h, w = depth.shape
+    if rgb.shape[:2] != (h, w):
+        raise ValueError(f'colour {rgb.shape[:2]} and depth {(h, w)} differ in size')
+    K = np.asarray(K, dtype=np.float64)
+    v, u = np.mgrid[0:h, 0:w]
+    rays = np.stack([(u + 0.5 - K[0, 2]) / K[0, 0], (v + 0.5 - K[1, 2]) / K[1, 1], np.ones((h, w))], -1)
+    src = rays @ np.asarray(r_level_from_cam, dtype=np.float64)    # = (R^T ray) per pixel: rays in the input camera
+    sz = src[..., 2]
+    ahead = sz > 1e-6
+    sz_safe = np.where(ahead, sz, 1.0)
+    map_x = np.where(ahead, K[0, 0] * src[..., 0] / sz_safe + K[0, 2] - 0.5, -1e4).astype(np.float32)
+    map_y = np.where(ahead, K[1, 1] * src[..., 1] / sz_safe + K[1, 2] - 0.5, -1e4).astype(np.float32)
+    out_rgb = cv2.remap(np.ascontiguousarray(rgb), map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+    d = cv2.remap(np.ascontiguousarray(depth, dtype=np.float32), map_x, map_y, cv2.INTER_NEAREST,
+                  borderMode=cv2.BORDER_REPLICATE)
+    out_depth = (d / sz_safe).astype(np.float32)
+    out_depth[~ahead] = np.nan
+    return out_rgb, out_depth
+
+
+class AttitudeBuffer:
+    """Recent (stamp, quaternion) samples; the one nearest a frame's stamp within a tolerance."""
+
+    def __init__(self, horizon_s: float = 2.0, maxlen: int = 1000):
+        self.horizon_s = float(horizon_s)
+        self._t: deque[float] = deque(maxlen=maxlen)
+        self._q: deque[tuple[float, float, float, float]] = deque(maxlen=maxlen)
+
+    def add(self, stamp: float, q_xyzw) -> None:
+        """Add a sample (stamps must not go backwards; a jump back clears the buffer: sim reset)."""
+        q = tuple(float(v) for v in q_xyzw)
+        if not (math.isfinite(stamp) and all(math.isfinite(v) for v in q)):
+            raise ValueError('non-finite attitude sample')
+        if self._t and stamp < self._t[-1]:
+            self._t.clear()
+            self._q.clear()
+        self._t.append(stamp)
+        self._q.append(q)
+        while self._t and self._t[0] < stamp - self.horizon_s:
+            self._t.popleft()
+            self._q.popleft()
+
+    def nearest(self, stamp: float, max_offset_s: float) -> tuple[float, float, float, float] | None:
+        """The sample closest to `stamp`, or None when none is within `max_offset_s`."""
+        if not self._t:
+            return None
+        ts = list(self._t)
+        i = bisect_left(ts, stamp)
+        best = min((j for j in (i - 1, i) if 0 <= j < len(ts)), key=lambda j: abs(ts[j] - stamp))
+        return self._q[best] if abs(ts[best] - stamp) <= max_offset_s else None

@@ -1,0 +1,133 @@
+"""ros_common executors: make_executor, the EventsExecutor loop, run_node's `executor` parameter, heap freeze."""
+import gc
+import random
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+
+import pytest
+import rclpy
+from rclpy.clock import Clock, ClockType
+from rclpy.context import Context
+from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rosgraph_msgs.msg import Clock as ClockMsg
+from std_msgs.msg import String
+
+from assist_sim.ros_common import (EXECUTORS, EventsExecutorLoop, freeze_startup_heap, make_executor,
+                                   sec_to_stamp)
+
+
+def test_executor_kinds_by_name():
+    assert EXECUTORS == ('single', 'multi', 'events')
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=random.randint(100, 199))
+    try:
+        assert isinstance(make_executor('single', context=ctx), SingleThreadedExecutor)
+        assert isinstance(make_executor('multi', 3, context=ctx), MultiThreadedExecutor)
+        assert isinstance(make_executor('events', context=ctx), EventsExecutorLoop)
+    finally:
+        rclpy.shutdown(context=ctx)
+    with pytest.raises(ValueError, match='executor must be one of single, multi, events'):
+        make_executor('fast')
+
+
+def _wait_for(cond, timeout=10.0):
+    t0 = time.monotonic()
+    while not cond() and time.monotonic() - t0 < timeout:
+        time.sleep(0.02)
+    return cond()
+
+
+def test_events_loop_serves_steady_and_sim_time_timers_and_subscriptions_and_stops_at_shutdown():
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=random.randint(100, 199))
+    node = Node('events_loop_test', context=ctx,
+                parameter_overrides=[Parameter('use_sim_time', Parameter.Type.BOOL, True)])
+    steady, sim, got = [], [], []
+    node.create_timer(0.02, lambda: steady.append(1), clock=Clock(clock_type=ClockType.STEADY_TIME))
+    node.create_timer(0.05, lambda: sim.append(node.get_clock().now().nanoseconds))   # on /clock
+    node.create_subscription(String, '/events_loop_test', lambda m: got.append(m.data), 10)
+    pub = node.create_publisher(String, '/events_loop_test', 10)
+    clock_pub = node.create_publisher(ClockMsg, '/clock', 10)
+    loop = EventsExecutorLoop(context=ctx)
+    loop.add_node(node)
+    spin = threading.Thread(target=loop.spin, daemon=True)
+    spin.start()
+    try:
+        assert _wait_for(lambda: len(steady) >= 5), 'steady timer did not fire'
+        sim_t = 100.0
+        for i in range(40):                  # 2 s of sim time, 20 ms apart on the wall clock
+            sim_t += 0.05
+            msg = ClockMsg()
+            sec_to_stamp(sim_t, msg.clock)
+            clock_pub.publish(msg)
+            pub.publish(String(data=str(i)))
+            time.sleep(0.02)
+        assert _wait_for(lambda: len(got) >= 30), f'{len(got)} of 40 messages delivered'
+        assert _wait_for(lambda: len(sim) >= 10), f'sim-time timer fired {len(sim)} times in 2 s of sim time'
+        assert all(t >= 100e9 for t in sim)   # it ran on the sim clock, not the wall clock
+    finally:
+        rclpy.shutdown(context=ctx)
+    spin.join(timeout=3.0)
+    assert not spin.is_alive(), 'spin did not return after the context shut down'
+    node.destroy_node()
+
+
+def test_freeze_startup_heap_freezes_what_is_alive():
+    try:
+        assert freeze_startup_heap() > 1000
+        assert gc.get_freeze_count() > 1000
+    finally:
+        gc.unfreeze()
+
+
+SCRIPT = textwrap.dedent('''
+    import gc, sys
+    import rclpy
+    from rclpy.node import Node
+    import assist_sim.ros_common as rc
+
+    made = []
+    real = rc.make_executor
+    rc.make_executor = lambda kind, n=2, **kw: made.append(kind) or real(kind, n, **kw)
+
+    class N(Node):
+        def __init__(self):
+            super().__init__('executor_param_test')
+            rc.declare_parameters(self, {'executor': rc.Param('single', 'kind', choices=rc.EXECUTORS)})
+            self.ticks = 0
+            self.create_timer(0.02, self.tick)
+
+        def tick(self):
+            self.ticks += 1
+            if self.ticks == 3:
+                print('frozen', gc.get_freeze_count() > 1000, 'made', made, flush=True)
+                rclpy.shutdown()
+
+    sys.exit(rc.run_node(N, sys.argv[1:]))
+''')
+
+
+@pytest.mark.parametrize('kind', ['events', 'single'])
+def test_run_node_spins_the_executor_the_node_parameter_names(kind, tmp_path):
+    script = tmp_path / 'node.py'
+    script.write_text(SCRIPT)
+    env_args = ['--ros-args', '-p', f'executor:={kind}']
+    out = subprocess.run([sys.executable, str(script), *env_args], capture_output=True, text=True, timeout=60,
+                         env={**__import__('os').environ, 'ROS_DOMAIN_ID': str(random.randint(100, 199))})
+    assert out.returncode == 0, out.stderr
+    assert f"frozen True made ['{kind}']" in out.stdout, out.stdout + out.stderr
+
+
+def test_run_node_refuses_an_unknown_executor_in_one_line(tmp_path):
+    script = tmp_path / 'node.py'
+    script.write_text(SCRIPT)
+    out = subprocess.run([sys.executable, str(script), '--ros-args', '-p', 'executor:=fast'], capture_output=True,
+                         text=True, timeout=60)
+    assert out.returncode == 1
+    assert "parameter 'executor' must be one of single, multi, events" in out.stderr
+    assert 'Traceback' not in out.stderr
