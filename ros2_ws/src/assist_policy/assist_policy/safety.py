@@ -25,6 +25,11 @@ plane and shows the floor behind it). So the guard remembers the last pad it saw
 ``pad_memory_radius_m`` of that spot and low enough for the camera to be inside ``blind_range_m`` of
 that pad top: a vehicle touching down on a pad is never pushed back up. ``reset`` forgets it.
 
+Edge rule (``edge_height_m`` > 0): a descent is also held while the legs straddle a pad edge (some
+legs over the floor, some over a pad) with the camera nearer than ``edge_height_m`` to that pad: a
+touchdown there tips the vehicle over (the crashes left with the floor rule alone). It watches up to
+``edge_watch_m`` of altitude (pads stand up to 1.2 m tall).
+
 ``guard_height_m`` = 1.0 m: from a 1 m/s descent the velocity controller (kp_z 4 /s, 2.5 m/s^2)
 stops within ~0.3 m, well above the judge's crash height (0.2 m), while pilots landing on a pad
 are over the pad (not the floor) when they come this low. Pure numpy; no rclpy.
@@ -53,6 +58,8 @@ class SafetyConfig:
     vertical_fov_deg: float = 58.0    # depth camera vertical field of view (square pixels)
     blind_range_m: float = 0.3        # camera minimum range (D435i ~0.2-0.3 m; sim near plane 0.1 m) + margin
     pad_memory_radius_m: float = 0.6  # a pad seen beneath the legs is assumed still there within this (x, y)
+    edge_height_m: float = 0.0        # hold a descent straddling a pad edge nearer than this to the pad (0: off)
+    edge_watch_m: float = 2.0         # the edge rule watches below this altitude
 
 
 @dataclass
@@ -74,8 +81,9 @@ class FloorGuard:
 
     @property
     def watch_height_m(self) -> float:
-        """Below this altitude the guard reads the depth image (guard height + blind range)."""
-        return self.cfg.guard_height_m + self.cfg.blind_range_m
+        """Below this altitude the guard reads the depth image (guard height + blind range; edge rule: edge_watch_m)."""
+        base = self.cfg.guard_height_m + self.cfg.blind_range_m
+        return max(base, self.cfg.edge_watch_m) if self.cfg.edge_height_m > 0 else base
 
     def reset(self) -> None:
         """Forget the last pad seen (new episode)."""
@@ -128,6 +136,16 @@ class FloorGuard:
         d_floor = float(altitude_m) - self.cfg.camera_offset_m
         return all(d >= d_floor - self.cfg.floor_tolerance_m for d in legs)
 
+    def straddle_depth(self, depth: np.ndarray, altitude_m: float) -> float | None:
+        """Depth of the nearest pad under a leg when other legs are over the floor (a pad edge), else None."""
+        legs = [d for d in self._leg_depths(depth, altitude_m) if d is not None]
+        if not legs:
+            return None
+        d_floor = float(altitude_m) - self.cfg.camera_offset_m
+        pad = [d for d in legs if d < d_floor - self.cfg.floor_tolerance_m]
+        floor = [d for d in legs if d >= d_floor - self.cfg.floor_tolerance_m]
+        return min(pad) if pad and floor else None
+
     def apply(self, u: np.ndarray, agent: np.ndarray | None, velocity: np.ndarray,
               depth: np.ndarray | None, position: np.ndarray | None, blend_threshold: float) -> GuardResult:
         """Guard one blended command V (= blend(u, agent)) at odom `position`; unchanged unless a floor descent."""
@@ -140,8 +158,12 @@ class FloorGuard:
         floor = self.floor_below(depth, float(position[2]))
         if floor is False:
             self._remember_pad(depth, position)     # watched from above the guard height on, too
-        if (v[2] >= 0.0 or float(position[2]) >= c.guard_height_m or not floor
-                or self._near_remembered_pad(position)):
+        edge = False
+        if c.edge_height_m > 0 and v[2] < 0.0 and floor is False:
+            pad_d = self.straddle_depth(depth, float(position[2]))
+            edge = pad_d is not None and pad_d < c.edge_height_m
+        if not edge and (v[2] >= 0.0 or float(position[2]) >= c.guard_height_m or not floor
+                         or self._near_remembered_pad(position)):
             return GuardResult(agent, v, False, floor)
         u = np.asarray(u, dtype=float).reshape(3)
         # only the vertical part of the assistance changes: a' = (a_xy, 2 climb - u_z), V' = blend(u, a').
@@ -154,4 +176,4 @@ class FloorGuard:
         a_safe = a_in if float(np.linalg.norm(a_in)) > blend_threshold else np.zeros(3)
         a_safe = a_safe.copy()
         a_safe[2] = 2.0 * climb - u[2]
-        return GuardResult(a_safe, blend(u, a_safe, blend_threshold), True, True)
+        return GuardResult(a_safe, blend(u, a_safe, blend_threshold), True, floor)

@@ -72,7 +72,7 @@ def test_descent_over_floor_becomes_a_climb_visible_in_the_agent_action(depth_at
 
 def test_passes_through_over_a_pad_above_the_guard_height_climbing_or_disabled(depth_at):
     u = np.array([0.0, 0.0, -0.5])
-    g = FloorGuard()
+    g = FloorGuard(SafetyConfig(edge_height_m=0.0))                    # the floor rule alone
     assert not g.apply(u, None, u, depth_at(5.0, 0.0, 1.1), [5.0, 0.0, 1.1], THR).engaged          # pad below
     assert not g.apply(u, None, u, depth_at(5.55, 0.0, 1.0), [5.55, 0.0, 1.0], THR).engaged         # edge: pad under 2 legs
     assert not g.apply(u, None, u, depth_at(0.0, 0.0, 1.3), [0.0, 0.0, 1.3], THR).engaged          # above 1 m
@@ -155,3 +155,18 @@ def test_touchdown_on_a_pad_inside_the_blind_range_is_not_pushed_back_up(depth_a
     g.reset()
     g.apply(u, None, u, depth_at(5.0, 0.0, 1.2), [5.0, 0.0, 1.2], THR)
     assert g.apply(u, None, u, depth_at(0.0, 0.0, 0.8), [0.0, 0.0, 0.8], THR).engaged       # far from it: floor
+
+
+def test_edge_rule_holds_a_descent_straddling_a_pad_edge_only(depth_at):
+    on, off = SafetyConfig(edge_height_m=0.5), SafetyConfig(edge_height_m=0.0)
+    u = np.array([0.0, 0.0, -0.4])
+    d = depth_at(5.55, 0.0, 1.0)                       # legs at x 5.4 (pad, top 0.6 m) and 5.7 (floor)
+    assert FloorGuard(on).straddle_depth(d, 1.0) == pytest.approx(0.35, abs=0.02)
+    r = FloorGuard(on).apply(u, None, blend(u, np.zeros(3), THR), d, [5.55, 0.0, 1.0], THR)
+    assert r.engaged and r.velocity[2] > 0 and np.linalg.norm(r.agent) > THR
+    assert not FloorGuard(off).apply(u, None, u.copy(), d, [5.55, 0.0, 1.0], THR).engaged
+    # higher above the same edge (camera 0.55 m from the pad top) and over the pad centre: passed through
+    assert not FloorGuard(on).apply(u, None, u.copy(), depth_at(5.55, 0.0, 1.2), [5.55, 0.0, 1.2], THR).engaged
+    assert FloorGuard(on).straddle_depth(depth_at(5.0, 0.0, 1.0), 1.0) is None
+    assert not FloorGuard(on).apply(u, None, u.copy(), depth_at(5.0, 0.0, 1.0), [5.0, 0.0, 1.0], THR).engaged
+    assert FloorGuard(on).watch_height_m == 2.0 and FloorGuard(off).watch_height_m == pytest.approx(1.3)
