@@ -131,3 +131,34 @@ def test_run_node_refuses_an_unknown_executor_in_one_line(tmp_path):
     assert out.returncode == 1
     assert "parameter 'executor' must be one of single, multi, events" in out.stderr
     assert 'Traceback' not in out.stderr
+
+
+class _FailingExecutor:
+    """Stands in for the C++ EventsExecutor: spin_once raises once the test says so."""
+
+    def __init__(self, ctx, shut_down_first):
+        self.ctx, self.shut_down_first, self.calls = ctx, shut_down_first, 0
+
+    def spin_once(self, timeout_sec=None):
+        self.calls += 1
+        if self.calls == 3:
+            if self.shut_down_first:
+                self.ctx.try_shutdown()
+            raise RuntimeError("Unable to convert call argument '0' to Python object")
+
+
+@pytest.mark.parametrize('during_shutdown', [True, False])
+def test_events_loop_ends_quietly_only_when_the_error_comes_with_shutdown(during_shutdown):
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=random.randint(100, 199))
+    try:
+        loop = EventsExecutorLoop(context=ctx)
+        loop._executor = _FailingExecutor(ctx, during_shutdown)
+        if during_shutdown:
+            loop.spin()                      # returns: the node is going down anyway
+            assert loop._executor.calls == 3
+        else:
+            with pytest.raises(RuntimeError, match='call argument'):
+                loop.spin()                  # a real failure while running is never swallowed
+    finally:
+        ctx.try_shutdown()
