@@ -146,13 +146,18 @@ def test_reboot_before_the_episode_after_a_crash_only():
     assert answer(core, 70.0) == 'guided'
 
 
-def test_force_disarm_when_no_next_episode_follows_a_landing():
+def landed_runner(result: dict, t: float = 30.0) -> LandingRunnerCore:
+    """A runner (disarm_timeout_s 20) that flew one episode and asked for LAND after `result` at `t`."""
     core = LandingRunnerCore(RunnerConfig(disarm_timeout_s=20.0))
     core.on_goal('a', 0.0)
-    for _ in range(3):
-        answer(core, 0.0)
-    core.on_landing(landing(0, success=False, error=0.6), 30.0)
-    assert answer(core, 30.0) == 'land'
+    assert [answer(core, 0.0) for _ in range(3)] == ['guided', 'arm', 'takeoff']
+    core.on_landing(result, t)
+    assert answer(core, t) == 'land'
+    return core
+
+
+def test_force_disarm_when_no_next_episode_follows_a_landing():
+    core = landed_runner(landing(0, success=False, error=0.6))
     assert core.poll(49.0) is None                       # LAND may still disarm by itself
     assert answer(core, 50.5) == 'force_disarm'
     assert core.poll(80.0) is None                       # once
@@ -161,12 +166,7 @@ def test_force_disarm_when_no_next_episode_follows_a_landing():
 
 
 def test_no_force_disarm_when_the_next_episode_comes_in_time():
-    core = LandingRunnerCore(RunnerConfig(disarm_timeout_s=20.0))
-    core.on_goal('a', 0.0)
-    for _ in range(3):
-        answer(core, 0.0)
-    core.on_landing(landing(0), 30.0)
-    assert answer(core, 30.0) == 'land'
+    core = landed_runner(landing(0))
     core.on_goal('b', 36.0)
     assert [answer(core, 36.0 + i) for i in range(3)] == ['guided', 'arm', 'takeoff']
     assert all(core.poll(t) is None for t in (60.0, 100.0))    # flying: no force-disarm
