@@ -25,6 +25,7 @@ from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry
 from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
@@ -154,6 +155,8 @@ class MavlinkBridgeNode(Node):
 
     # ------------------------------------------------------------------ callbacks from the core
     def _on_odometry(self, o: CoreOdometry) -> None:
+        if not self.context.ok():       # Ctrl-C: the context is gone before close() stops the link thread
+            return
         msg = Odometry()
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.header.frame_id = self.p['odom_frame']
@@ -164,7 +167,12 @@ class MavlinkBridgeNode(Node):
         tw = msg.twist.twist
         tw.linear.x, tw.linear.y, tw.linear.z = (float(x) for x in o.linear_velocity)
         tw.angular.x, tw.angular.y, tw.angular.z = (float(x) for x in o.angular_velocity)
-        self.pub_odom.publish(msg)
+        try:
+            self.pub_odom.publish(msg)
+        except RCLError:
+            if self.context.ok():
+                raise
+            return                      # shut down between the check above and the publish
         self.diag.count('odom_published')
 
     def _on_statustext(self, severity: int, text: str) -> None:
