@@ -133,32 +133,30 @@ def test_run_node_refuses_an_unknown_executor_in_one_line(tmp_path):
     assert 'Traceback' not in out.stderr
 
 
-class _FailingExecutor:
-    """Stands in for the C++ EventsExecutor: spin_once raises once the test says so."""
+class _Spinner:
+    """A spinner whose spin fails like rclpy at Ctrl-C (or, if `shutdown` is false, while running)."""
 
-    def __init__(self, ctx, shut_down_first):
-        self.ctx, self.shut_down_first, self.calls = ctx, shut_down_first, 0
+    def __init__(self, shutdown):
+        self.shutdown = shutdown
 
-    def spin_once(self, timeout_sec=None):
-        self.calls += 1
-        if self.calls == 3:
-            if self.shut_down_first:
-                self.ctx.try_shutdown()
-            raise RuntimeError("Unable to convert call argument '0' to Python object")
+    def add_node(self, node):
+        self.node = node
+
+    def spin(self):
+        if self.shutdown:
+            rclpy.try_shutdown()
+        raise RuntimeError("Unable to convert call argument '0' to Python object")
 
 
-@pytest.mark.parametrize('during_shutdown', [True, False])
-def test_events_loop_ends_quietly_only_when_the_error_comes_with_shutdown(during_shutdown):
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=random.randint(100, 199))
-    try:
-        loop = EventsExecutorLoop(context=ctx)
-        loop._executor = _FailingExecutor(ctx, during_shutdown)
-        if during_shutdown:
-            loop.spin()                      # returns: the node is going down anyway
-            assert loop._executor.calls == 3
-        else:
-            with pytest.raises(RuntimeError, match='call argument'):
-                loop.spin()                  # a real failure while running is never swallowed
-    finally:
-        ctx.try_shutdown()
+@pytest.mark.parametrize('shutdown', [True, False])
+def test_run_node_treats_a_runtime_error_as_shutdown_only_after_the_context_went_away(monkeypatch, shutdown):
+    import assist_sim.ros_common as rc
+    monkeypatch.setattr(rc, 'make_executor', lambda kind, num_threads=2: _Spinner(shutdown))
+    monkeypatch.setenv('ROS_DOMAIN_ID', str(random.randint(100, 199)))
+    factory = lambda: Node('runtime_error_probe')      # noqa: E731
+    if shutdown:
+        assert rc.run_node(factory, args=[]) == 0       # SIGINT's race: a clean exit
+    else:
+        with pytest.raises(RuntimeError, match='call argument'):
+            rc.run_node(factory, args=[])               # while running: never swallowed
+    assert not rclpy.ok()
