@@ -13,6 +13,8 @@ from typing import Sequence
 
 import numpy as np
 
+from assist_sim.core.geometry import unit_quat_to_matrix as quaternion_to_matrix  # noqa: F401 (re-exported)
+
 # Axis permutation world ENU <-> NED (its own inverse): x_ned = y_enu, y_ned = x_enu, z_ned = -z_enu.
 _ENU_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 # Body FLU <-> FRD (its own inverse): x same, y and z flipped.
@@ -132,20 +134,6 @@ def matrix_to_quaternion(r: np.ndarray) -> np.ndarray:
     qa = np.array(q, dtype=float)
     qa /= np.linalg.norm(qa)
     return -qa if qa[3] < 0.0 else qa
-
-
-def quaternion_to_matrix(q_xyzw: Sequence[float]) -> np.ndarray:
-    """Unit quaternion (x, y, z, w) -> rotation matrix."""
-    x, y, z, w = (float(c) for c in q_xyzw)
-    n = math.sqrt(x * x + y * y + z * z + w * w)
-    if n == 0.0 or not math.isfinite(n):
-        raise ValueError('quaternion must be finite and non-zero')
-    x, y, z, w = x / n, y / n, z / n, w / n
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
 
 
 def attitude_ned_frd_to_enu_flu(roll: float, pitch: float, yaw: float) -> np.ndarray:

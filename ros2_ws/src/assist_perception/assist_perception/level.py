@@ -23,28 +23,13 @@ from collections import deque
 import cv2
 import numpy as np
 
-# optical frame axes in base_link (ARCHITECTURE.md: optical x = body -y, y = body -x, z = body -z)
-R_BODY_FROM_OPTICAL = np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
-
-
-def quaternion_matrix(q_xyzw) -> np.ndarray:
-    """Rotation matrix of a unit quaternion (x, y, z, w); raises ValueError if not finite or ~zero."""
-    x, y, z, w = (float(v) for v in q_xyzw)
-    n = math.sqrt(x * x + y * y + z * z + w * w)
-    if not math.isfinite(n) or n < 1e-6:
-        raise ValueError(f'bad attitude quaternion {q_xyzw!r}')
-    x, y, z, w = x / n, y / n, z / n, w / n
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+from assist_sim.core.geometry import R_BODY_FROM_OPTICAL, unit_quat_to_matrix, yaw_rotation
 
 
 def level_rotation(q_world_from_base) -> np.ndarray:
     """R (level optical <- tilted optical) for a base_link attitude quaternion (x, y, z, w) in odom."""
-    r_wb = quaternion_matrix(q_world_from_base)
-    yaw = math.atan2(r_wb[1, 0], r_wb[0, 0])
-    c, s = math.cos(yaw), math.sin(yaw)
-    r_level_from_body = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]]) @ r_wb   # yaw removed
+    r_wb = unit_quat_to_matrix(q_world_from_base)
+    r_level_from_body = yaw_rotation(math.atan2(r_wb[1, 0], r_wb[0, 0])).T @ r_wb   # heading removed
     return R_BODY_FROM_OPTICAL.T @ r_level_from_body @ R_BODY_FROM_OPTICAL
 
 

@@ -10,6 +10,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from .config import WorldConfig
+from .geometry import R_BODY_FROM_OPTICAL, quat_to_matrix, yaw_rotation
 from .quiet import quiet_output
 from .render import SceneRenderer
 from .scene import PadSpec, SceneSpec, generate_scene
@@ -84,21 +85,6 @@ class LandingResult:
         return json.dumps(self.to_dict())
 
 
-def yaw_rotation(yaw: float) -> np.ndarray:
-    """3x3 rotation about +z."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def quat_to_matrix(q) -> np.ndarray:
-    """Quaternion (x, y, z, w) -> 3x3 rotation matrix."""
-    x, y, z, w = (float(v) for v in q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
 def turbulence_sigma(height_m: float, cfg) -> float:
     """Std of the target-velocity noise at a leg clearance `height_m` above the surface below."""
     h = max(0.0, float(height_m))
@@ -116,8 +102,6 @@ def linearize_depth(zbuf: np.ndarray, near: float, far: float) -> np.ndarray:
     return (far * near / (far - (far - near) * zbuf)).astype(np.float32)
 
 
-# Optical frame axes expressed in base_link (FLU): x_opt = -y_body, y_opt = -x_body, z_opt = -z_body.
-R_BODY_FROM_OPTICAL = np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 
 
 class LandingWorld:
