@@ -1,8 +1,8 @@
 """Bridge core: limits, setpoint encoding, and the full protocol against the sim's ArduCopter stand-in."""
+import functools
 import math
 import os
 import socket
-import threading
 import time
 from types import SimpleNamespace
 
@@ -14,8 +14,7 @@ from pymavlink import mavutil  # noqa: E402
 
 from assist_bridge.bridge_core import (TYPE_MASK_VELOCITY_YAW, BridgeConfig, MavlinkBridge,  # noqa: E402
                                        limit_velocity, velocity_setpoint)
-from assist_sim.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleConfig  # noqa: E402
-from assist_sim.testing import KinematicWorld, free_udp_port  # noqa: E402
+from assist_sim.testing import VehicleThread as _VehicleThread, free_udp_port  # noqa: E402
 
 mavlink = mavutil.mavlink
 
@@ -70,26 +69,8 @@ def test_unopenable_connection_is_a_clear_error():
 
 
 # ---------------------------------------------------------------------- against the stand-in
-class VehicleThread:
-    """The stand-in stepping in real time on its own thread."""
-
-    def __init__(self, port, world=None, **cfg):
-        self.world = world or KinematicWorld()
-        self.vehicle = MavlinkVehicle(self.world, f'udpout:127.0.0.1:{port}',
-                                      MavlinkVehicleConfig(**{'ekf_ready_delay_s': 0.5, **cfg}))
-        self._run = True
-        self.thread = threading.Thread(target=self._loop, daemon=True)
-        self.thread.start()
-
-    def _loop(self):
-        while self._run:
-            self.vehicle.step(0.02)
-            time.sleep(0.02)
-
-    def stop(self):
-        self._run = False
-        self.thread.join()
-        self.vehicle.close()
+# the stand-in with this file's timing (keywords given at a call still win)
+VehicleThread = functools.partial(_VehicleThread, ekf_ready_delay_s=0.5)
 
 
 @pytest.fixture

@@ -2,7 +2,8 @@
 
 Package tests cannot see tests/conftest.py, so what more than one of them needs lives here:
 a free UDP port for MAVLink loopback links, a clean stop for a node subprocess, a kinematic
-stand-in for LandingWorld that the MAVLink vehicle can fly without pybullet, and an autopilot that
+stand-in for LandingWorld that the MAVLink vehicle can fly without pybullet, that vehicle stepping in
+real time on its own thread (VehicleThread), and an autopilot that
 is always in GUIDED and armed but answers nothing (the bridge's bench and graph tests).
 """
 from __future__ import annotations
@@ -21,6 +22,7 @@ from typing import Sequence
 import numpy as np
 
 from .mavlink_io import mavlink, mavutil
+from .mavlink_vehicle import MavlinkVehicle, MavlinkVehicleConfig
 
 SO_TIMESTAMPNS = getattr(socket, 'SO_TIMESTAMPNS', 35)   # Linux value; Python < 3.12 has no constant
 
@@ -113,6 +115,31 @@ class KinematicWorld:
         err = (self.yaw_target - self.yaw + math.pi) % (2 * math.pi) - math.pi
         self.yaw += max(-2.0 * dt, min(2.0 * dt, err))
         return self.state
+
+
+class VehicleThread:
+    """The MAVLink ArduCopter stand-in (MavlinkVehicle) flying `world` (a KinematicWorld by default) in
+    real time on its own thread, sending to udpout:127.0.0.1:`port`; `cfg` are MavlinkVehicleConfig fields."""
+
+    def __init__(self, port: int, world=None, step_s: float = 0.02, **cfg):
+        self.world = world or KinematicWorld()
+        self.vehicle = MavlinkVehicle(self.world, f'udpout:127.0.0.1:{port}', MavlinkVehicleConfig(**cfg))
+        self._step_s = step_s
+        self._run = True
+        self.thread = threading.Thread(target=self._loop, daemon=True)
+        self.thread.start()
+
+    def _loop(self) -> None:
+        while self._run:
+            self.vehicle.step(self._step_s)
+            time.sleep(self._step_s)
+
+    def stop(self) -> None:
+        """Stop stepping and close the link (a second call does nothing)."""
+        if self._run:
+            self._run = False
+            self.thread.join()
+            self.vehicle.close()
 
 
 class SilentAutopilot:
