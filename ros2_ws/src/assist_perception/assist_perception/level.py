@@ -62,32 +62,33 @@ def level_frame(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, r_level_from_
 
 
 class AttitudeBuffer:
-    """Recent (stamp, quaternion) samples; the one nearest a frame's stamp within a tolerance."""
+    """Recent (stamp, quaternion) samples; the one nearest a frame's stamp within a tolerance.
+
+    Filled by the /odom callback and read by the inference thread: samples are kept as
+    (stamp, quaternion) pairs in one deque and `nearest` works on one snapshot of it, so a sample
+    added or pruned meanwhile cannot pair a stamp with another sample's attitude.
+    """
 
     def __init__(self, horizon_s: float = 2.0, maxlen: int = 1000):
         self.horizon_s = float(horizon_s)
-        self._t: deque[float] = deque(maxlen=maxlen)
-        self._q: deque[tuple[float, float, float, float]] = deque(maxlen=maxlen)
+        self._samples: deque[tuple[float, tuple[float, float, float, float]]] = deque(maxlen=maxlen)
 
     def add(self, stamp: float, q_xyzw) -> None:
         """Add a sample (stamps must not go backwards; a jump back clears the buffer: sim reset)."""
         q = tuple(float(v) for v in q_xyzw)
         if not (math.isfinite(stamp) and all(math.isfinite(v) for v in q)):
             raise ValueError('non-finite attitude sample')
-        if self._t and stamp < self._t[-1]:
-            self._t.clear()
-            self._q.clear()
-        self._t.append(stamp)
-        self._q.append(q)
-        while self._t and self._t[0] < stamp - self.horizon_s:
-            self._t.popleft()
-            self._q.popleft()
+        if self._samples and stamp < self._samples[-1][0]:
+            self._samples.clear()
+        self._samples.append((stamp, q))
+        while self._samples[0][0] < stamp - self.horizon_s:
+            self._samples.popleft()
 
     def nearest(self, stamp: float, max_offset_s: float) -> tuple[float, float, float, float] | None:
         """The sample closest to `stamp`, or None when none is within `max_offset_s`."""
-        if not self._t:
+        samples = list(self._samples)
+        if not samples:
             return None
-        ts = list(self._t)
-        i = bisect_left(ts, stamp)
-        best = min((j for j in (i - 1, i) if 0 <= j < len(ts)), key=lambda j: abs(ts[j] - stamp))
-        return self._q[best] if abs(ts[best] - stamp) <= max_offset_s else None
+        i = bisect_left(samples, stamp, key=lambda sample: sample[0])
+        t, q = min(samples[max(i - 1, 0):i + 1], key=lambda sample: abs(sample[0] - stamp))
+        return q if abs(t - stamp) <= max_offset_s else None
