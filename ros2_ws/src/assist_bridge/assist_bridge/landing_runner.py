@@ -119,7 +119,7 @@ class LandingRunner(Node):
                 self._future = None
                 self.core.on_answer(self._call_name, ok, text, now)
             elif now - self._call_started > self.p['call_timeout_s']:
-                self._future.cancel()
+                self.uav[self._call_name].remove_pending_request(self._future)   # a late answer is dropped
                 self._future = None
                 self.diag.count('call_timeouts')
                 self.core.on_answer(self._call_name, False, f"no answer in {self.p['call_timeout_s']:.0f} s", now)
