@@ -21,6 +21,7 @@ import torch
 from assist_sim.shipped import shipped_model_path
 
 from .model import CMVAE, load_model, preprocess
+from .onnx_backend import OnnxMuXyz, resolve_backend
 
 COLOR_ENCODINGS = {'rgb8': (3, False), 'bgr8': (3, True), 'rgba8': (4, False), 'bgra8': (4, True)}
 DEPTH_ENCODINGS = {'32FC1': np.float32, '16UC1': np.uint16}
@@ -138,15 +139,19 @@ class LatentEncoder:
     """Loads the CM-VAE once and encodes RGB-D frames (any resolution) to mu / pad XYZ / depth."""
 
     def __init__(self, model_path: str | Path | None = None, device: str = 'cpu',
-                 threads: int = 1, min_valid_fraction: float = 0.01, warm_up: bool = True):
+                 threads: int = 1, min_valid_fraction: float = 0.01, warm_up: bool = True,
+                 backend: str = 'auto'):
         self.model_path = Path(model_path) if model_path else default_model_path()
         self.device = check_device(device)
+        self.backend = resolve_backend(backend, self.device)
         if threads > 0:
             torch.set_num_threads(threads)
         self.model: CMVAE = load_model(self.model_path, self.device)
         # NHWC ("channels last") weights and inputs: on CPU the 64x64 convolutions and the max-pool
         # run ~2.3x faster than NCHW (bench `perception`); mu agrees with NCHW to ~1e-6
         self.model.to(memory_format=torch.channels_last)
+        # mu + pad XYZ (the per-frame path) through ONNX Runtime on CPU: same weights, exported in memory
+        self._ort = OnnxMuXyz(self.model, threads) if self.backend == 'onnxruntime' else None
         self.min_valid_fraction = float(min_valid_fraction)
         if warm_up:
             self.warm_up()
@@ -159,9 +164,16 @@ class LatentEncoder:
         rgb = np.full((s, s, 3), 128, np.uint8)
         depth = np.full((s, s), 2.5, np.float32)
         for _ in range(2):
-            mu, _ = self.model.encode(self._input(rgb, depth))
-            self.model.decode_xyz(mu)
-            self.model.decode_depth(mu)
+            mu, _ = self._mu_xyz(rgb[None], depth[None])
+            self.model.decode_depth(torch.as_tensor(mu, device=self.device))
+
+    def _mu_xyz(self, rgb64: np.ndarray, d64: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Prepared (N,64,64,3) + (N,64,64) frames -> mu (N,L) and pad XYZ (N,3), float32 numpy."""
+        if self._ort is not None:
+            return self._ort(preprocess(rgb64, d64, self.model.cfg).numpy())
+        mu, _ = self.model.encode(self._input(rgb64, d64))
+        xyz = self.model.decode_xyz(mu)
+        return mu.cpu().numpy().astype(np.float32), xyz.cpu().numpy().astype(np.float32)
 
     def _input(self, rgb64: np.ndarray, d64: np.ndarray) -> torch.Tensor:
         """Prepared 64x64 frame(s) -> the network input on the device, channels-last like the weights."""
@@ -201,16 +213,12 @@ class LatentEncoder:
         The decoders run only when asked: `want_xyz` for the pad estimate, `want_depth` for the
         denoised depth image (the policy needs only mu); pad_xyz is NaN when not computed."""
         rgb64, d64 = self.prepare(rgb, depth_m)
-        mu, _ = self.model.encode(self._input(rgb64, d64))
-        if want_xyz:
-            xyz = self.model.decode_xyz(mu)[0].cpu().numpy().astype(np.float32)
-        else:
-            xyz = np.full(3, np.nan, np.float32)
-        depth = self.model.decode_depth(mu)[0].cpu().numpy().astype(np.float32) if want_depth else None
-        if not (torch.isfinite(mu).all() and np.all(np.isfinite(xyz) | (not want_xyz))
-                and (depth is None or np.all(np.isfinite(depth)))):
+        mu, xyz = self._mu_xyz(rgb64[None], d64[None])    # the XYZ head is a few us: always computed
+        mu, xyz = mu[0], (xyz[0] if want_xyz else np.full(3, np.nan, np.float32))
+        depth = self.decode_depth(mu) if want_depth else None
+        if not (np.all(np.isfinite(mu)) and np.all(np.isfinite(xyz) | (not want_xyz))):
             raise BadFrame('nonfinite_output', 'the model produced non-finite values for this frame')
-        return EncoderOutput(mu[0].cpu().numpy().astype(np.float32), xyz, depth)
+        return EncoderOutput(mu, xyz, depth)
 
     @torch.inference_mode()
     def decode_depth(self, mu: np.ndarray) -> np.ndarray:
@@ -236,13 +244,12 @@ class LatentEncoder:
                 prepared.append(self.prepare(rgb, depth))
             except BadFrame as exc:
                 raise BadFrame(exc.reason, f'frame {i}: {exc}') from exc
-        mu, _ = self.model.encode(self._input(np.stack([p[0] for p in prepared]),
-                                              np.stack([p[1] for p in prepared])))
-        bad = ~torch.isfinite(mu).all(dim=1)
+        mu, _ = self._mu_xyz(np.stack([p[0] for p in prepared]), np.stack([p[1] for p in prepared]))
+        bad = ~np.isfinite(mu).all(axis=1)
         if bad.any():
-            raise BadFrame('nonfinite_output', f'frame {int(torch.nonzero(bad)[0])}: the model produced '
+            raise BadFrame('nonfinite_output', f'frame {int(np.flatnonzero(bad)[0])}: the model produced '
                                                'non-finite values')
-        return mu.cpu().numpy().astype(np.float32)
+        return mu
 
 
 class LatestOnly(Generic[_T]):

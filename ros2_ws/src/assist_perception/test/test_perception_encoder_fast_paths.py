@@ -95,7 +95,16 @@ def test_construction_warms_every_network_up_once_unless_told_not_to(encoder, mo
             calls[_name] += 1
             return _orig(self, z)
         monkeypatch.setattr(CMVAE, name, counting)
-    LatentEncoder(encoder.model_path, threads=1, warm_up=False)
+    LatentEncoder(encoder.model_path, threads=1, warm_up=False, backend='torch')
     assert calls == {'encode': 0, 'decode_xyz': 0, 'decode_depth': 0}
-    LatentEncoder(encoder.model_path, threads=1)
+    LatentEncoder(encoder.model_path, threads=1, backend='torch')
     assert all(n >= 1 for n in calls.values()), calls
+    # the onnxruntime backend: its session runs at start-up too (the export traces the torch model once)
+    from assist_perception.onnx_backend import OnnxMuXyz
+    runs = []
+    orig_call = OnnxMuXyz.__call__
+    monkeypatch.setattr(OnnxMuXyz, '__call__', lambda self, x: runs.append(x.shape) or orig_call(self, x))
+    LatentEncoder(encoder.model_path, threads=1, warm_up=False, backend='onnxruntime')
+    assert runs == []
+    LatentEncoder(encoder.model_path, threads=1, backend='onnxruntime')
+    assert len(runs) >= 1, runs

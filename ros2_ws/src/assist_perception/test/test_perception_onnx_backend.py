@@ -1,0 +1,68 @@
+"""The ONNX Runtime backend computes what the torch CM-VAE computes, on the shipped and a random model."""
+import numpy as np
+import pytest
+import torch
+
+from assist_perception.encoder_core import BadFrame, LatentEncoder, default_model_path
+from assist_perception.model import CMVAE, CMVAEConfig, load_model, save_model
+from assist_perception.onnx_backend import OnnxMuXyz, resolve_backend
+
+
+def _frames(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    rgb = rng.integers(0, 256, (n, 64, 64, 3), dtype=np.uint8)
+    depth = rng.uniform(0.3, 6.0, (n, 64, 64)).astype(np.float32)
+    depth[:, :5, :5] = 0.0                                  # a hole, as real depth has
+    return rgb, depth
+
+
+@pytest.mark.parametrize('which', ['shipped', 'random'])
+def test_mu_and_xyz_match_torch(which, tmp_path):
+    if which == 'shipped':
+        path = default_model_path()
+    else:
+        torch.manual_seed(3)
+        path = tmp_path / 'm.pt'
+        save_model(path, CMVAE(CMVAEConfig(latent_dim=8)).eval())
+    ort_enc = LatentEncoder(path, threads=1, backend='onnxruntime')
+    torch_enc = LatentEncoder(path, threads=1, backend='torch')
+    assert (ort_enc.backend, torch_enc.backend) == ('onnxruntime', 'torch')
+    rgb, depth = _frames(6)
+    for i in range(6):
+        a, b = ort_enc.encode(rgb[i], depth[i]), torch_enc.encode(rgb[i], depth[i])
+        np.testing.assert_allclose(a.mu, b.mu, atol=2e-5, rtol=1e-5)
+        np.testing.assert_allclose(a.pad_xyz, b.pad_xyz, atol=2e-5, rtol=1e-5)
+        assert a.mu.dtype == np.float32 and a.mu.shape == (ort_enc.latent_dim,)
+    # batched (vectorised envs): one ORT run with a dynamic batch axis
+    np.testing.assert_allclose(ort_enc.encode_mu_batch(list(rgb), list(depth)),
+                               torch_enc.encode_mu_batch(list(rgb), list(depth)), atol=2e-5, rtol=1e-5)
+    # the depth decoder (on demand) still runs on torch and agrees
+    np.testing.assert_allclose(ort_enc.encode(rgb[0], depth[0], want_depth=True).depth,
+                               torch_enc.encode(rgb[0], depth[0], want_depth=True).depth, atol=1e-6)
+
+
+def test_export_leaves_the_model_in_its_mode():
+    model = load_model(default_model_path())
+    model.train()
+    OnnxMuXyz(model)
+    assert model.training
+
+
+def test_backend_choice():
+    cpu = torch.device('cpu')
+    assert resolve_backend('auto', cpu) == 'onnxruntime'
+    assert resolve_backend('torch', cpu) == 'torch'
+    with pytest.raises(ValueError, match='unknown inference backend'):
+        resolve_backend('tensorrt', cpu)
+    with pytest.raises(ValueError, match='CPU only'):
+        resolve_backend('onnxruntime', torch.device('cuda'))
+    assert resolve_backend('auto', torch.device('cuda')) == 'torch'
+
+
+def test_onnx_backend_rejects_what_torch_rejects():
+    enc = LatentEncoder(threads=1, backend='onnxruntime')
+    rgb, depth = _frames(1)
+    with pytest.raises(BadFrame, match='no_valid_depth'):
+        enc.encode(rgb[0], np.zeros((64, 64), np.float32))
+    with pytest.raises(BadFrame, match='frame 1'):
+        enc.encode_mu_batch([rgb[0], rgb[0]], [depth[0], np.zeros((64, 64), np.float32)])
