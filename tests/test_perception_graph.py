@@ -83,9 +83,19 @@ def probe(ros):
 
 def test_latents_from_sim_frames_have_model_size_and_camera_rate(probe, start_node, wait):
     latent_dim = load_model(default_model_path()).cfg.latent_dim
-    enc = start_node('encoder_node')
+    enc = start_node('encoder_node', {'realtime_priority': 20})
     sim = start_node('sim_node', {'seed': 5, 'real_time_factor': 1.0, 'camera_rate_hz': 20.0})
     assert wait(lambda: probe.count('latent') >= 40, 90), sim.log() + enc.log()
+    assert 'onnxruntime' in enc.log()              # the default backend on CPU
+    # realtime_priority: every thread of the node (executor, inference, middleware) under SCHED_FIFO
+    import os
+    if os.geteuid() == 0:
+        assert 'realtime_priority: SCHED_FIFO 20 on' in enc.log(), enc.log()
+        tids = os.listdir(f'/proc/{enc.proc.pid}/task')
+        assert len(tids) >= 3 and all(os.sched_getscheduler(int(t)) == os.SCHED_FIFO
+                                      and os.sched_getparam(int(t)).sched_priority == 20 for t in tids)
+    else:
+        assert 'no right to use SCHED_FIFO' in enc.log(), enc.log()
     import time
     time.sleep(2.0)        # past start-up (first inferences, DDS matching): count the steady state
     n_rgb0, n_lat0 = probe.count('rgb'), probe.count('latent')

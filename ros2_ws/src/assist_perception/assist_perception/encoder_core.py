@@ -161,19 +161,20 @@ class LatentEncoder:
         """Run every network once on a synthetic frame: torch's first inference allocates and picks
         kernels (~15 ms instead of ~1 ms), which must not land on the first real frame."""
         s = self.model.cfg.image_size
-        rgb = np.full((s, s, 3), 128, np.uint8)
-        depth = np.full((s, s), 2.5, np.float32)
+        rgb = np.full((1, s, s, 3), 128, np.uint8)
+        depth = np.full((1, s, s), 2.5, np.float32)
         for _ in range(2):
-            mu, _ = self._mu_xyz(rgb[None], depth[None])
+            mu, _, _ = self._mu_xyz(rgb, depth)
             self.model.decode_depth(torch.as_tensor(mu, device=self.device))
 
-    def _mu_xyz(self, rgb64: np.ndarray, d64: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Prepared (N,64,64,3) + (N,64,64) frames -> mu (N,L) and pad XYZ (N,3), float32 numpy."""
+    def _mu_xyz(self, rgb64: np.ndarray, d64: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(N,64,64,3) uint8 + (N,64,64) depth -> mu (N,L), pad XYZ (N,3), valid-depth fraction (N,)."""
         if self._ort is not None:
-            return self._ort(preprocess(rgb64, d64, self.model.cfg).numpy())
+            return self._ort(rgb64, d64)
         mu, _ = self.model.encode(self._input(rgb64, d64))
         xyz = self.model.decode_xyz(mu)
-        return mu.cpu().numpy().astype(np.float32), xyz.cpu().numpy().astype(np.float32)
+        valid = (np.isfinite(d64) & (d64 > 0)).mean(axis=(1, 2))
+        return mu.cpu().numpy().astype(np.float32), xyz.cpu().numpy().astype(np.float32), valid
 
     def _input(self, rgb64: np.ndarray, d64: np.ndarray) -> torch.Tensor:
         """Prepared 64x64 frame(s) -> the network input on the device, channels-last like the weights."""
@@ -185,8 +186,12 @@ class LatentEncoder:
         """Size of mu."""
         return int(self.model.cfg.latent_dim)
 
-    def prepare(self, rgb: np.ndarray, depth_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Validate and resize a decoded frame; raises BadFrame."""
+    def _sized(self, rgb: np.ndarray, depth_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A decoded frame checked and resized to the network's input size; raises BadFrame."""
+        s = self.model.cfg.image_size
+        if (rgb.shape == (s, s, 3) and rgb.dtype == np.uint8 and depth_m.shape == (s, s)
+                and depth_m.dtype == np.float32):
+            return rgb, depth_m        # already the network's size (the simulator's camera): no copies
         rgb, depth_m = np.asarray(rgb), np.asarray(depth_m)
         if rgb.ndim != 3 or rgb.shape[2] != 3 or depth_m.ndim != 2 or 0 in rgb.shape or 0 in depth_m.shape:
             raise BadFrame('bad_size', f'rgb {rgb.shape}, depth {depth_m.shape}')
@@ -199,10 +204,17 @@ class LatentEncoder:
         if abs(ar_rgb - ar_d) > 0.02:
             raise BadFrame('size_mismatch', f'rgb {rgb.shape[1]}x{rgb.shape[0]} vs depth '
                            f'{depth_m.shape[1]}x{depth_m.shape[0]} (depth must be aligned to colour)')
-        rgb64, d64 = resize_pair(rgb, depth_m, self.model.cfg.image_size)
-        valid = np.isfinite(d64) & (d64 > 0)
-        if valid.mean() < self.min_valid_fraction:
-            raise BadFrame('no_valid_depth', f'{valid.mean():.1%} valid depth pixels')
+        return resize_pair(rgb, depth_m, s)
+
+    def _check_valid(self, fraction: float) -> None:
+        """BadFrame('no_valid_depth') when too few depth pixels are valid to encode."""
+        if fraction < self.min_valid_fraction:
+            raise BadFrame('no_valid_depth', f'{fraction:.1%} valid depth pixels')
+
+    def prepare(self, rgb: np.ndarray, depth_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Validate and resize a decoded frame; raises BadFrame."""
+        rgb64, d64 = self._sized(rgb, depth_m)
+        self._check_valid(float((np.isfinite(d64) & (d64 > 0)).mean()))
         return rgb64, d64
 
     @torch.inference_mode()
@@ -212,12 +224,13 @@ class LatentEncoder:
 
         The decoders run only when asked: `want_xyz` for the pad estimate, `want_depth` for the
         denoised depth image (the policy needs only mu); pad_xyz is NaN when not computed."""
-        rgb64, d64 = self.prepare(rgb, depth_m)
-        mu, xyz = self._mu_xyz(rgb64[None], d64[None])    # the XYZ head is a few us: always computed
+        rgb64, d64 = self._sized(rgb, depth_m)
+        mu, xyz, valid = self._mu_xyz(rgb64[None], d64[None])   # the XYZ head is a few us: always run
+        self._check_valid(float(valid[0]))
         mu, xyz = mu[0], (xyz[0] if want_xyz else np.full(3, np.nan, np.float32))
-        depth = self.decode_depth(mu) if want_depth else None
-        if not (np.all(np.isfinite(mu)) and np.all(np.isfinite(xyz) | (not want_xyz))):
+        if not (np.isfinite(mu).all() and (not want_xyz or np.isfinite(xyz).all())):
             raise BadFrame('nonfinite_output', 'the model produced non-finite values for this frame')
+        depth = self.decode_depth(mu) if want_depth else None
         return EncoderOutput(mu, xyz, depth)
 
     @torch.inference_mode()
@@ -244,7 +257,7 @@ class LatentEncoder:
                 prepared.append(self.prepare(rgb, depth))
             except BadFrame as exc:
                 raise BadFrame(exc.reason, f'frame {i}: {exc}') from exc
-        mu, _ = self._mu_xyz(np.stack([p[0] for p in prepared]), np.stack([p[1] for p in prepared]))
+        mu, _, _ = self._mu_xyz(np.stack([p[0] for p in prepared]), np.stack([p[1] for p in prepared]))
         bad = ~np.isfinite(mu).all(axis=1)
         if bad.any():
             raise BadFrame('nonfinite_output', f'frame {int(np.flatnonzero(bad)[0])}: the model produced '

@@ -6,6 +6,7 @@ the inference, so a slow frame never queues up old ones and callbacks never bloc
 """
 from __future__ import annotations
 
+import array
 import threading
 import time
 
@@ -19,7 +20,8 @@ from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Float32MultiArray, MultiArrayDimension
 
 from assist_sim.ros_common import (SENSOR_QOS, Diagnostics, Param, StartupError, declare_parameters,
-                                   executor_param, exit_process, forward_logging, run_node, stamp_to_sec)
+                                   executor_param, exit_process, forward_logging, realtime_priority_param,
+                                   run_node, stamp_to_sec)
 
 from .encoder_core import BadFrame, LatentEncoder, LatestOnly, StampPairer, decode_color, decode_depth
 from .level import AttitudeBuffer, level_frame, level_rotation, tilt_deg
@@ -47,6 +49,7 @@ PARAMS = {
                                 'training distribution); leave off for a real camera.'),
     'noise_seed': Param(0, 'Seed of the depth noise (depth_noise only).', min=0, max=2**31 - 1),
     'executor': executor_param('events'),
+    'realtime_priority': realtime_priority_param(0),
     'level_camera': Param(False, 'Undo the camera tilt before encoding (camera rigidly mounted on an airframe '
                                  'that rolls and pitches: ArduPilot SITL/JSON physics, real vehicles): each frame '
                                  'is re-rendered as a level camera would see it, using the /odom attitude nearest '
@@ -88,6 +91,9 @@ class EncoderNode(Node):
         self._last_warn: dict[str, float] = {}
         self._stopping = threading.Event()
 
+        n = self.encoder.latent_dim
+        self._latent_msg = Float32MultiArray()
+        self._latent_msg.layout.dim = [MultiArrayDimension(label='latent', size=n, stride=n)]
         self.pub_latent = self.create_publisher(Float32MultiArray, self.p['latent_topic'], SENSOR_QOS)
         self.pub_pad = self.create_publisher(PointStamped, self.p['pad_topic'], SENSOR_QOS)
         self.pub_depth = self.create_publisher(Image, self.p['denoised_topic'], SENSOR_QOS)
@@ -208,9 +214,8 @@ class EncoderNode(Node):
         header = depth.header
         if not header.frame_id:
             header.frame_id = self.p['frame_id']
-        lat = Float32MultiArray()
-        lat.layout.dim = [MultiArrayDimension(label='latent', size=int(out.mu.size), stride=int(out.mu.size))]
-        lat.data = out.mu.astype(float).tolist()
+        lat = self._latent_msg             # reused: publish() serialises before it returns
+        lat.data = array.array('f', out.mu.astype(np.float32, copy=False).tobytes())
         if not self._publish(self.pub_latent, lat):
             return
         pt = PointStamped()

@@ -269,6 +269,18 @@ def cmvae_loss(out: CMVAEOutput, depth_clean: torch.Tensor, xyz: torch.Tensor,
     return LossTerms(total, d, x, kl)
 
 
+def preprocess_tensor(rgb: torch.Tensor, depth_m: torch.Tensor, cfg: CMVAEConfig) -> torch.Tensor:
+    """uint8 RGB (N,H,W,3) + metric depth (N,H,W) tensors, holes 0/NaN -> float (N,4,H,W) network input.
+
+    The one definition of the input scaling: `preprocess` (training, evaluation, torch inference)
+    calls it, and the ONNX Runtime encoder exports it into its graph."""
+    depth = depth_m.to(torch.float32)
+    keep = torch.isfinite(depth) & (depth > 0) & (depth <= cfg.max_input_depth_m)
+    d = torch.where(keep, depth, torch.zeros((), dtype=torch.float32))
+    rgbf = rgb.permute(0, 3, 1, 2).to(torch.float32) / 255.0
+    return torch.cat([rgbf, (d / cfg.depth_scale_m).unsqueeze(1)], dim=1)
+
+
 def preprocess(rgb: np.ndarray, depth_m: np.ndarray, cfg: CMVAEConfig) -> torch.Tensor:
     """uint8 RGB (N,64,64,3) + metric depth (N,64,64), holes 0/NaN -> float tensor (N,4,64,64)."""
     rgb = np.asarray(rgb)
@@ -279,11 +291,8 @@ def preprocess(rgb: np.ndarray, depth_m: np.ndarray, cfg: CMVAEConfig) -> torch.
     if rgb.shape[1:] != (s, s, 3) or depth.shape[1:] != (s, s) or rgb.shape[0] != depth.shape[0]:
         raise ValueError(f'expected RGB (N,{s},{s},3) and depth (N,{s},{s}), '
                          f'got {rgb.shape} and {depth.shape}')
-    d = np.where(np.isfinite(depth) & (depth > 0) & (depth <= cfg.max_input_depth_m), depth, 0.0)
-    x = np.empty((rgb.shape[0], 4, s, s), dtype=np.float32)
-    x[:, :3] = np.moveaxis(rgb, -1, 1).astype(np.float32) / 255.0
-    x[:, 3] = d / cfg.depth_scale_m
-    return torch.from_numpy(x)
+    return preprocess_tensor(torch.from_numpy(np.ascontiguousarray(rgb, dtype=np.uint8)),
+                             torch.from_numpy(np.ascontiguousarray(depth)), cfg)
 
 
 def save_model(path: str | Path, model: CMVAE, metadata: dict[str, Any] | None = None) -> None:

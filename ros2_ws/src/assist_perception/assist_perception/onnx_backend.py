@@ -19,23 +19,27 @@ import numpy as np
 import torch
 from torch import nn
 
-from .model import CMVAE
+from .model import CMVAE, preprocess_tensor
 
 _LOG = logging.getLogger(__name__)
 BACKENDS = ('auto', 'torch', 'onnxruntime')
 
 
 class _MuXyz(nn.Module):
-    """The latency path as one graph: x -> (mu, pad XYZ in metres)."""
+    """The per-frame path as one graph: raw 64x64 frames -> (mu, pad XYZ in metres, valid-depth fraction).
+
+    The input scaling is `preprocess_tensor` itself, so the graph and training cannot disagree; doing
+    it in the graph saves the dozen small numpy calls that cost ~0.5 ms with cold caches at 20 Hz."""
 
     def __init__(self, model: CMVAE):
         super().__init__()
         self.model = model
 
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(N,4,64,64) -> mu (N,L), xyz (N,3)."""
-        mu, _ = self.model.encode(x)
-        return mu, self.model.decode_xyz(mu)
+    def forward(self, rgb: torch.Tensor, depth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """rgb (N,64,64,3) uint8, depth (N,64,64) float32 m -> mu (N,L), xyz (N,3), valid (N,)."""
+        mu, _ = self.model.encode(preprocess_tensor(rgb, depth, self.model.cfg))
+        valid = (torch.isfinite(depth) & (depth > 0)).to(torch.float32).mean(dim=(1, 2))
+        return mu, self.model.decode_xyz(mu), valid
 
 
 def resolve_backend(backend: str, device: torch.device) -> str:
@@ -55,7 +59,7 @@ def resolve_backend(backend: str, device: torch.device) -> str:
 
 
 def export_mu_xyz(model: CMVAE) -> bytes:
-    """ONNX bytes of encoder mean + pad-XYZ head, batch dimension dynamic (model left unchanged)."""
+    """ONNX bytes of input scaling + encoder mean + pad-XYZ head, batch dynamic (model left unchanged)."""
     s = model.cfg.image_size
     was_training = model.training
     model.eval()
@@ -66,15 +70,16 @@ def export_mu_xyz(model: CMVAE) -> bytes:
             # exports this plain conv net exactly (checked against torch in the tests)
             warnings.filterwarnings('ignore', category=DeprecationWarning)
             warnings.filterwarnings('ignore', message='.*legacy TorchScript-based ONNX export.*')
-            torch.onnx.export(_MuXyz(model), (torch.zeros(1, 4, s, s),), buf, input_names=['x'],
-                              output_names=['mu', 'xyz'], dynamic_axes={'x': {0: 'n'}}, dynamo=False)
+            torch.onnx.export(_MuXyz(model), (torch.zeros(1, s, s, 3, dtype=torch.uint8), torch.ones(1, s, s)),
+                              buf, input_names=['rgb', 'depth'], output_names=['mu', 'xyz', 'valid'],
+                              dynamic_axes={'rgb': {0: 'n'}, 'depth': {0: 'n'}}, dynamo=False)
     finally:
         model.train(was_training)
     return buf.getvalue()
 
 
 class OnnxMuXyz:
-    """An ONNX Runtime session computing (mu, xyz) from the preprocessed (N,4,64,64) float32 input."""
+    """An ONNX Runtime session computing (mu, xyz, valid-depth fraction) from raw 64x64 RGB-D frames."""
 
     def __init__(self, model: CMVAE, threads: int = 1):
         import onnxruntime as ort   # imported here: only this backend needs it
@@ -91,7 +96,7 @@ class OnnxMuXyz:
         self.session = ort.InferenceSession(export_mu_xyz(model_cpu), opts, providers=['CPUExecutionProvider'])
         _LOG.debug('onnxruntime %s session for the CM-VAE (%d intra-op threads)', ort.__version__, threads)
 
-    def __call__(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """x (N,4,64,64) float32 C-contiguous -> mu (N,L), xyz (N,3), both float32."""
-        mu, xyz = self.session.run(None, {'x': np.ascontiguousarray(x, dtype=np.float32)})
-        return mu, xyz
+    def __call__(self, rgb: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """rgb (N,64,64,3) uint8, depth (N,64,64) metres -> mu (N,L), xyz (N,3), valid (N,), float32."""
+        return tuple(self.session.run(None, {'rgb': np.ascontiguousarray(rgb, dtype=np.uint8),
+                                             'depth': np.ascontiguousarray(depth, dtype=np.float32)}))

@@ -103,7 +103,7 @@ def test_construction_warms_every_network_up_once_unless_told_not_to(encoder, mo
     from assist_perception.onnx_backend import OnnxMuXyz
     runs = []
     orig_call = OnnxMuXyz.__call__
-    monkeypatch.setattr(OnnxMuXyz, '__call__', lambda self, x: runs.append(x.shape) or orig_call(self, x))
+    monkeypatch.setattr(OnnxMuXyz, '__call__', lambda self, rgb, d: runs.append(rgb.shape) or orig_call(self, rgb, d))
     LatentEncoder(encoder.model_path, threads=1, warm_up=False, backend='onnxruntime')
     assert runs == []
     LatentEncoder(encoder.model_path, threads=1, backend='onnxruntime')

@@ -22,8 +22,8 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import Float32MultiArray
 
 from assist_sim.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError,
-                                   declare_parameters, executor_param, exit_process, fill_twist, run_node,
-                                   twist_to_array)
+                                   declare_parameters, executor_param, exit_process, fill_twist,
+                                   realtime_priority_param, run_node, twist_to_array)
 
 from .blending import DEFAULT_THRESHOLD
 from .policy_core import PolicyCore, PolicyCoreConfig, PolicyOutput, default_model_path
@@ -61,6 +61,7 @@ PARAMS = {
                                   'latency = one inference, /cmd_vel stamped with the frame\'s sim time); the '
                                   'rate_hz timer then runs only while latents are missing.'),
     'executor': executor_param('events'),
+    'realtime_priority': realtime_priority_param(0),
     'floor_guard': Param(True, 'Floor guard (assist_policy.safety, not learned): low over the floor with no pad under '
                                'the legs in /camera/depth/image_raw, a descent is replaced by a small climb.',
                          dynamic=True),

@@ -40,14 +40,18 @@ def generate_launch_description():
                                   description='Open the pybullet GUI window (needs a display)'),
             DeclareLaunchArgument('model_path', default_value='',
                                   description='TD3 actor file; empty = the shipped td3_<mode>_actor.pt'),
+            DeclareLaunchArgument('realtime_priority', default_value='0',
+                                  description='SCHED_FIFO priority 1-99 of encoder_node and policy_node (the '
+                                              'camera-to-command path; needs root or CAP_SYS_NICE); 0 = off'),
             DeclareLaunchArgument('record', default_value='',
                                   description='Bag directory to record the flight into (empty: no recording)')]
     sim_time = {'use_sim_time': True}
+    rt = {'realtime_priority': ParameterValue(LaunchConfiguration('realtime_priority'), value_type=int)}
     sim = Node(package='assist_sim', executable='sim_node', name='sim_node', output='screen',
                parameters=[sim_params, {'seed': LaunchConfiguration('seed'), 'gui': LaunchConfiguration('gui'),
                                         'real_time_factor': LaunchConfiguration('real_time_factor')}])
     encoder = Node(package='assist_perception', executable='encoder_node', name='encoder_node',
-                   output='screen', parameters=[sim_time, {'depth_noise': True}],  # sim depth is clean
+                   output='screen', parameters=[sim_time, rt, {'depth_noise': True}],  # sim depth is clean
                    condition=IfCondition(EqualsSubstitution(mode, 'latent')))
     pilot = Node(package='assist_sim', executable='sim_pilot_node', name='sim_pilot_node', output='screen',
                  parameters=[params, sim_time, {'alpha': LaunchConfiguration('alpha'),
@@ -55,7 +59,7 @@ def generate_launch_description():
                                                 'pilot': LaunchConfiguration('pilot'),
                                                 'seed': LaunchConfiguration('seed')}])
     policy = Node(package='assist_policy', executable='policy_node', name='policy_node', output='screen',
-                  parameters=[params, sim_time, {'mode': mode,
+                  parameters=[params, sim_time, rt, {'mode': mode,
                                                  'model_path': ParameterValue(LaunchConfiguration('model_path'),
                                                                               value_type=str)}])
     record = Node(package='assist_policy', executable='bag_record', name='bag_record', output='screen',

@@ -362,6 +362,55 @@ class EventsExecutorLoop:
         self._executor.shutdown()
 
 
+REALTIME_PARAM = 'realtime_priority'
+
+
+def realtime_priority_param(default: int = 0) -> Param:
+    """The `realtime_priority` node parameter that run_node honours (one definition for every node)."""
+    return Param(default, 'SCHED_FIFO priority (1-99) for every thread of this node\'s process (executor, '
+                          'inference, middleware), as ros2_control does for its control loop; 0 = the normal '
+                          'scheduler. Needs root, CAP_SYS_NICE or an rtprio limit (/etc/security/limits.conf); '
+                          'without the right the node logs a warning and runs normally.', min=0, max=99)
+
+
+def set_realtime_priority(priority: int, pid: int | None = None) -> int:
+    """Put every thread of process `pid` (default: this one) under SCHED_FIFO `priority`, or back
+    under SCHED_OTHER for 0; threads started later inherit it (so no SCHED_RESET_ON_FORK: it applies to
+    new threads too). Returns the number of threads changed; raises PermissionError without the right, ValueError for
+    a priority outside 0-99."""
+    if not 0 <= int(priority) <= 99:
+        raise ValueError(f'realtime priority must be 0-99, got {priority}')
+    pid = os.getpid() if pid is None else int(pid)
+    if priority > 0:
+        policy, param = os.SCHED_FIFO, os.sched_param(int(priority))
+    else:
+        policy, param = os.SCHED_OTHER, os.sched_param(0)
+    changed = 0
+    for tid in os.listdir(f'/proc/{pid}/task'):
+        try:
+            os.sched_setscheduler(int(tid), policy, param)
+        except ProcessLookupError:      # the thread ended meanwhile
+            continue
+        changed += 1
+    return changed
+
+
+def _apply_realtime_priority(node: Node) -> None:
+    """Honour the node's `realtime_priority` parameter (if it declares one); never fails the node."""
+    if not node.has_parameter(REALTIME_PARAM):
+        return
+    prio = int(node.get_parameter(REALTIME_PARAM).value)
+    if prio <= 0:
+        return
+    try:
+        n = set_realtime_priority(prio)
+    except PermissionError:
+        node.get_logger().warning(f'realtime_priority {prio}: no right to use SCHED_FIFO (run as root, give the '
+                                  'binary CAP_SYS_NICE, or set an rtprio limit); running with the normal scheduler')
+        return
+    node.get_logger().info(f'realtime_priority: SCHED_FIFO {prio} on {n} threads')
+
+
 def executor_param(default: str = 'events') -> Param:
     """The `executor` node parameter that run_node honours (one definition for every node)."""
     return Param(default, 'rclpy executor: events (rclpy.experimental.EventsExecutor: a C++ event queue, least '
@@ -414,7 +463,8 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
     /cmd_vel behind its GIL-heavy sim thread) asks for more threads; blocking waits belong in
     coroutine callbacks (see mavlink_bridge_node's services). `executor` names the kind
     (make_executor); a node that declares the parameter `executor` chooses it at run time. Once
-    the node is built, the start-up heap is frozen out of the garbage collector's way. A StartupError raised by `factory` (nodes wrap bad parameters, missing
+    the node is built, its threads get the SCHED_FIFO priority of its `realtime_priority` parameter
+    (if declared and > 0) and the start-up heap is frozen out of the garbage collector's way. A StartupError raised by `factory` (nodes wrap bad parameters, missing
     models and unreachable endpoints in it) is reported as one clear line on stderr and gives
     exit code 1, no traceback. Python `logging` records go to the node's logger (/rosout).
     """
@@ -430,6 +480,7 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
             kind = node.get_parameter(EXECUTOR_PARAM).value
         spinner = make_executor(kind, num_threads)
         spinner.add_node(node)
+        _apply_realtime_priority(node)
         freeze_startup_heap()
         spinner.spin()
     except StartupError as exc:
