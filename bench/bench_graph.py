@@ -66,6 +66,10 @@ def latent_receipt(latents: list[float], after: float, before: float, fallback: 
     return latents[i] if i < len(latents) and latents[i] < before else fallback
 
 
+RT_PRIORITY = 50        # SCHED_FIFO priority of encoder_node and policy_node in the second run
+RECORDER_PRIORITY = 60  # SCHED_FIFO priority of this bench's recorder (above the nodes)
+
+
 def count_frames(fr: list[tuple[int, float, float]], pad: dict[int, float], cm: dict[int, float],
                  frames: int = FRAMES, latents: list[float] | None = None) -> dict:
     """Match frames (stamp ns, receipt, valid depth fraction) to their latent, pad-estimate and command
@@ -104,11 +108,17 @@ def count_frames(fr: list[tuple[int, float, float]], pad: dict[int, float], cm: 
 
 
 def measure(frames: int = FRAMES, startup_timeout_s: float = 90.0, node_params: dict | None = None,
-            recorder_executor: str = 'events') -> dict:
+            recorder_executor: str = 'events', recorder_priority: int = RECORDER_PRIORITY) -> dict:
     """Run the graph until `frames` frames have been seen after the first command; latencies in ms.
 
     `node_params` adds parameters per node, e.g. {'encoder_node': {'executor': 'single'}}; the
-    bench's recorder node spins `recorder_executor` (the nodes' own default: events)."""
+    bench's recorder node spins `recorder_executor` (the nodes' own default: events). Where allowed
+    (root or an rtprio limit) the recorder runs under SCHED_FIFO `recorder_priority`, above the
+    nodes, so that its receive times are the instrument's and not its wait for a core: with nodes
+    at SCHED_FIFO and the recorder not, the encoder preempted the recorder and the recorder saw the
+    camera frame late (latent p50 0.28 ms, less than the encoder's own work)."""
+    from assist_sim.ros_common import set_realtime_priority
+
     import rclpy
     from geometry_msgs.msg import PointStamped, TwistStamped
     from rclpy.context import Context
@@ -179,8 +189,19 @@ def measure(frames: int = FRAMES, startup_timeout_s: float = 90.0, node_params: 
     node.create_subscription(TwistStamped, '/cmd_vel', on_cmd, RELIABLE_QOS)
     ex = make_executor(recorder_executor, context=ctx)
     ex.add_node(node)
-    spin = threading.Thread(target=ex.spin, daemon=True)
+    stop_spin = threading.Event()
+
+    def _spin() -> None:
+        # spin_once in a loop that the main thread can end: destroying the node or shutting the
+        # executor down while this thread is inside the events executor crashes the process
+        while not stop_spin.is_set() and ctx.ok():
+            ex.spin_once(timeout_sec=0.05)
+
+    spin = threading.Thread(target=_spin, daemon=True)
     spin.start()
+    fifo = recorder_priority > 0 and _may_use_fifo()
+    if fifo:                 # after the nodes started: they must not inherit it
+        set_realtime_priority(recorder_priority)
     cpu_share = [float('nan')] * len(procs)
     load0 = os.getloadavg()[0]
     try:
@@ -195,6 +216,10 @@ def measure(frames: int = FRAMES, startup_timeout_s: float = 90.0, node_params: 
             wall = time.monotonic() - w0
             cpu_share = [(_cpu_s(p.pid) - c) / wall for p, c in zip(procs, c0)]
     finally:
+        if fifo:
+            set_realtime_priority(0)
+        stop_spin.set()
+        spin.join(5.0)
         ex.shutdown()
         node.destroy_node()
         rclpy.shutdown(context=ctx)
@@ -260,7 +285,6 @@ def path_cpu(n: int = 300) -> dict:
     return {'encode_ms': 1e3 * t_enc / n, 'policy_ms': 1e3 * t_pol / n}
 
 
-RT_PRIORITY = 50      # SCHED_FIFO priority of encoder_node and policy_node in the second run
 
 
 def _may_use_fifo() -> bool:

@@ -66,3 +66,18 @@ def test_onnx_backend_rejects_what_torch_rejects():
         enc.encode(rgb[0], np.zeros((64, 64), np.float32))
     with pytest.raises(BadFrame, match='frame 1'):
         enc.encode_mu_batch([rgb[0], rgb[0]], [depth[0], np.zeros((64, 64), np.float32)])
+
+
+def test_preprocess_is_the_documented_scaling_bit_for_bit():
+    """preprocess (torch ops, exported into the ONNX graph) == the numpy formula training always used."""
+    from assist_perception.model import preprocess
+    cfg = CMVAEConfig()
+    rgb, depth = _frames(3, seed=5)
+    depth = depth * 3.0
+    depth[0, 0, :6] = [np.nan, np.inf, -np.inf, -1.0, 0.0, cfg.max_input_depth_m]
+    d = np.where(np.isfinite(depth) & (depth > 0) & (depth <= cfg.max_input_depth_m), depth, 0.0)
+    ref = np.empty((3, 4, 64, 64), np.float32)
+    ref[:, :3] = np.moveaxis(rgb, -1, 1).astype(np.float32) / 255.0
+    ref[:, 3] = d / cfg.depth_scale_m
+    out = preprocess(rgb, depth, cfg).numpy()
+    assert out.dtype == np.float32 and np.array_equal(out, ref)

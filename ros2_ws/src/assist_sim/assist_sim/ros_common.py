@@ -349,6 +349,10 @@ class EventsExecutorLoop:
         """Serve `node`'s callbacks."""
         self._executor.add_node(node)
 
+    def spin_once(self, timeout_sec: float | None = None) -> None:
+        """Dispatch what is ready, waiting up to `timeout_sec` for something."""
+        self._executor.spin_once(timeout_sec=timeout_sec)
+
     def spin(self) -> None:
         """Dispatch callbacks until the context shuts down, then return."""
         try:
