@@ -164,7 +164,8 @@ def run() -> list[dict]:
     rows += [
         {'name': 'image -> /assist/latent p50 (encoder_node alone, frames from this process)', 'value': p50,
          'unit': 'ms', 'target': ''},
-        {'name': 'image -> /assist/latent p99 (encoder_node alone)', 'value': p99, 'unit': 'ms', 'target': '<= 3 ms'},
+        {'name': 'image -> /assist/latent p99 (encoder_node alone, default scheduler)', 'value': p99, 'unit': 'ms',
+         'target': '(diagnostic: the p99 targets are on the graph rows)'},
         {'name': 'frames without a latent within 1 s (of 200)', 'value': lost, 'unit': 'frames', 'target': '0'},
     ]
     rows.append({'name': 'make_dataset rate (render+label+compress)', 'value': _dataset_rate(),
