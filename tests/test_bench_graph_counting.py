@@ -40,3 +40,21 @@ def test_no_frame_with_both_outputs_is_an_error():
     fr = _frames(3)
     with pytest.raises(RuntimeError, match='no frame got both'):
         count_frames(fr, {}, {s: t for s, t, _ in fr})
+
+
+def test_latent_receipts_are_matched_to_their_frame_else_the_pad_estimate_counts():
+    fr = _frames(6)
+    pad = {s: t + 0.004 for s, t, _ in fr}
+    cm = {s: t + 0.006 for s, t, _ in fr}
+    latents = [t + 0.003 for _, t, _ in fr]              # each latent 1 ms before its pad estimate
+    del latents[2]                                        # frame 2's latent was not received: its pad time counts
+    c = count_frames(fr, pad, cm, frames=5, latents=sorted(latents))
+    assert c['to_latent'] == pytest.approx([0.003, 0.003, 0.004, 0.003, 0.003])
+    # frame 1's pad estimate came late (after frame 2 arrived): frame 2's latent is the first one after it
+    fr2 = _frames(4)
+    pad2 = {s: t + 0.004 for s, t, _ in fr2}
+    pad2[1 * S] = fr2[2][1] + 0.002
+    lat2 = sorted([fr2[0][1] + 0.003, fr2[1][1] + 0.049, fr2[2][1] + 0.003, fr2[3][1] + 0.003])
+    c2 = count_frames(fr2, pad2, {s: t + 0.006 for s, t, _ in fr2}, frames=3, latents=lat2)
+    assert c2['lost']['latent'] == 1                      # frame 1: its latent came after frame 2
+    assert c2['to_latent'] == pytest.approx([0.003, 0.003])
