@@ -117,8 +117,9 @@ HELP = {
     'actor_start_steps': 'update only the critic (on the run\'s own landings) until this many environment steps, '
                          'so a fine-tuned actor is not moved by a critic that has not yet seen it fly',
     'demo_policy': 'demonstrator: oracle (knows the goal), nearest_pad_yield (nearest_pad that lets a held-key '
-                   'correction through) or nearest_pad (goal-agnostic: centres the '
-                   'descending pilot on the pad below; imitable from the latent)',
+                   'correction through), nearest_pad (goal-agnostic: centres the '
+                   'descending pilot on the pad below; imitable from the latent) or init_actor (the '
+                   '--init-actor itself, frozen: TD3+BC fine-tuning anchored to the actor it starts from)',
     'demo_bc_file': 'demos_bc.npz of an earlier run: reuse its demonstrations for behaviour cloning / TD3+BC '
                     'instead of collecting new ones (preload its demos.npz with --preload)',
     'bc_alpha': 'TD3+BC regulariser weight (0 = plain TD3); keeps the actor near the demonstrations',
@@ -141,16 +142,24 @@ HELP = {
 }
 
 
-def collect_demos(env: LandingAssistEnv, episodes: int, noise: float, seed: int, buffer: ReplayBuffer,
-                  demo_policy: str = 'oracle', act_fn=None) -> tuple[np.ndarray, np.ndarray, list[dict]]:
-    """Fly `episodes` landings into `buffer`; (obs, scripted actions, results).
+DEMO_POLICIES = ('oracle', 'nearest_pad', 'nearest_pad_yield', 'init_actor')
 
-    The scripted assistant `demo_policy` labels every state. It also flies (+ Gaussian `noise`) unless
-    `act_fn(obs)` is given: then that policy flies and the script only labels (DAgger).
+
+def collect_demos(env: LandingAssistEnv, episodes: int, noise: float, seed: int, buffer: ReplayBuffer,
+                  demo_policy: str = 'oracle', act_fn=None, label_fn=None) -> tuple[np.ndarray, np.ndarray, list[dict]]:
+    """Fly `episodes` landings into `buffer`; (obs, demonstrator actions, results).
+
+    The demonstrator labels every state: the scripted assistant `demo_policy`, or for 'init_actor'
+    `label_fn(obs)` (the starting actor, frozen: TD3+BC then anchors fine-tuning to it). It also flies
+    (+ Gaussian `noise`) unless `act_fn(obs)` is given: then that policy flies and the demonstrator
+    only labels (DAgger).
     """
-    if demo_policy not in ('oracle', 'nearest_pad', 'nearest_pad_yield'):
-        raise ValueError(f'demo_policy must be oracle, nearest_pad or nearest_pad_yield, got {demo_policy!r}')
-    script = (ScriptedOracle(max_speed=env.cfg.max_speed) if demo_policy == 'oracle' else
+    if demo_policy not in DEMO_POLICIES:
+        raise ValueError(f'demo_policy must be one of {", ".join(DEMO_POLICIES)}, got {demo_policy!r}')
+    if demo_policy == 'init_actor' and label_fn is None:
+        raise ValueError('demo_policy init_actor needs the starting actor (label_fn)')
+    script = (None if demo_policy == 'init_actor' else ScriptedOracle(max_speed=env.cfg.max_speed)
+              if demo_policy == 'oracle' else
               ScriptedNearestPad(ScriptedConfig(yield_speed_mps=YIELD_SPEED_MPS), max_speed=env.cfg.max_speed)
               if demo_policy == 'nearest_pad_yield' else ScriptedNearestPad(max_speed=env.cfg.max_speed))
     rng = np.random.default_rng(seed)
@@ -158,7 +167,7 @@ def collect_demos(env: LandingAssistEnv, episodes: int, noise: float, seed: int,
     for ep in range(episodes):
         obs, _ = env.reset(seed=int(seed * 7919 + ep))
         while True:
-            clean = script.raw_action(env)
+            clean = np.asarray(label_fn(obs), dtype=float) if script is None else script.raw_action(env)
             flown = clean if act_fn is None else np.asarray(act_fn(obs), dtype=float)
             act = np.clip(flown + rng.normal(0.0, noise, 3), -1.0, 1.0)
             nxt, rew, term, trunc, info = env.step(act)
@@ -354,6 +363,13 @@ def train(args: TrainArgs) -> Path:
     has_demos = not args.resume and bool(args.demo_episodes > 0 or args.demo_bc_file)
     if not args.resume and args.dagger_rounds > 0 and not has_demos:
         raise ValueError('--dagger-rounds needs demonstrations (--demo-episodes or --demo-bc-file)')
+    anchored = args.demo_policy == 'init_actor'
+    if anchored and not args.init_actor:
+        raise ValueError('--demo-policy init_actor needs --init-actor (the actor that labels the demonstrations)')
+    if anchored and args.dagger_rounds > 0:
+        raise ValueError('--demo-policy init_actor labels with the starting actor: DAgger would clone it onto itself')
+    if has_demos and anchored and not args.resume:
+        init_actor(agent, args.init_actor, args.condition)    # it labels the demonstrations
     if has_demos:
         if args.demo_bc_file:
             with np.load(args.demo_bc_file, allow_pickle=False) as data:
@@ -363,7 +379,7 @@ def train(args: TrainArgs) -> Path:
             log.info('demonstrations: %d transitions from %s', len(d_obs), args.demo_bc_file)
         else:
             d_obs, d_act, d_res = collect_demos(env, args.demo_episodes, args.demo_noise, args.seed + 17, buffer,
-                                                  args.demo_policy)
+                                                  args.demo_policy, label_fn=agent.act if anchored else None)
             err = np.mean([r['error_m'] for r in d_res])
             succ = np.mean([r['success'] for r in d_res])
             log.info('demonstrations: %d landings, %d transitions, error %.3f m, success %.2f',

@@ -111,3 +111,29 @@ def test_actor_start_steps_keeps_the_actor_while_the_critic_learns_and_lags_wide
     critic0 = TD3(19, cfg=TD3Config(hidden=(32, 32)), seed=0).critic    # the run's critic as initialised
     moved = any(not torch.equal(a, b) for a, b in zip(critic0.state_dict().values(), state['agent']['critic'].values()))
     assert moved                                  # the critic did learn meanwhile
+
+
+def test_init_actor_demonstrations_are_the_starting_actors_own_actions(tmp_path):
+    """--demo-policy init_actor: the frozen starting actor labels the demos (TD3+BC anchored to it)."""
+    torch.set_num_threads(1)
+    import numpy as np
+    base = dict(runs_dir=str(tmp_path), total_steps=60, start_steps=0, checkpoint_every_steps=1000,
+                eval_every_episodes=1000, hidden=(32, 32), max_episode_s=4.0, buffer_size=20000)
+    first = train(TrainArgs(name='first', **base))
+    src, _ = load_actor(first / 'actor_last.pt')
+    anch = train(TrainArgs(name='anch', init_actor=str(first / 'actor_last.pt'), demo_policy='init_actor',
+                           demo_episodes=2, demo_noise=0.1, bc_alpha=2.5, feature_lags_s=(1.0,), **base))
+    with np.load(anch / 'demos_bc.npz') as d:
+        obs, act = d['obs'], d['act']
+    assert len(obs) >= 2 * 10
+    with torch.no_grad():    # the widened actor's new inputs start at zero weight: the source actor's actions
+        ref = src(torch.as_tensor(obs[:, :16])).numpy()
+    np.testing.assert_allclose(act, ref, atol=1e-5)
+    for bad, text in ((dict(init_actor=''), 'needs --init-actor'),
+                      (dict(init_actor=str(first / 'actor_last.pt'), dagger_rounds=1), 'DAgger')):
+        try:
+            train(TrainArgs(name='bad', demo_policy='init_actor', demo_episodes=1, **bad, **base))
+        except ValueError as exc:
+            assert text in str(exc)
+        else:
+            raise AssertionError(f'{bad} was accepted')
