@@ -235,12 +235,7 @@ class LandingAssistEnv(gym.Env):
 
 def over_pad(pads, xy: np.ndarray, margin_m: float = 0.0) -> bool:
     """True if the horizontal point `xy` lies over a pad's yawed footprint grown by `margin_m` on each side."""
-    for pad in pads:
-        c, s = np.cos(pad.yaw), np.sin(pad.yaw)
-        dx, dy = float(xy[0]) - pad.center[0], float(xy[1]) - pad.center[1]
-        if abs(c * dx + s * dy) <= pad.length / 2 + margin_m and abs(-s * dx + c * dy) <= pad.width / 2 + margin_m:
-            return True
-    return False
+    return any(bool(pad.contains_xy(xy, margin=-margin_m)) for pad in pads)
 
 
 def run_episode(env: LandingAssistEnv, policy, seed: int, options: dict | None = None) -> dict:

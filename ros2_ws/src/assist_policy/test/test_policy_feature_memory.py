@@ -145,8 +145,8 @@ def test_env_and_evaluate_build_the_memory_observation(tmp_path):
 
 
 def test_over_pad_uses_the_yawed_footprint():
-    class Pad:
-        center, length, width, yaw = (2.0, 1.0), 1.0, 0.4, np.pi / 2     # long along world y
-    assert over_pad([Pad()], np.array([2.0, 1.45]))
-    assert not over_pad([Pad()], np.array([2.45, 1.0]))
-    assert over_pad([Pad()], np.array([2.3, 1.0]), margin_m=0.15)
+    from assist_sim.core.scene import PadSpec
+    pad = PadSpec(center=(2.0, 1.0), length=1.0, width=0.4, height=0.5, yaw=np.pi / 2, material=0)  # long along y
+    assert over_pad([pad], np.array([2.0, 1.45]))
+    assert not over_pad([pad], np.array([2.45, 1.0]))
+    assert over_pad([pad], np.array([2.3, 1.0]), margin_m=0.15)
