@@ -97,10 +97,9 @@ class FloorGuard:
         return (math.hypot(position[0] - x, position[1] - y) < c.pad_memory_radius_m
                 and position[2] - c.camera_offset_m - top < c.blind_range_m)
 
-    def _remember_pad(self, depth: np.ndarray, position: np.ndarray) -> None:
-        """Store the top height of the surface under the legs (nearest leg median) and where it was seen."""
-        tops = self._leg_depths(depth, float(position[2]))
-        tops = [d for d in tops if d is not None]
+    def _remember_pad(self, legs: list[float | None], position: np.ndarray) -> None:
+        """Store the top height of the surface under the legs (nearest of the leg depths `legs`) and where it was seen."""
+        tops = [d for d in legs if d is not None]
         if tops:
             self._pad = (float(position[0]), float(position[1]),
                          float(position[2]) - self.cfg.camera_offset_m - min(tops))
@@ -130,7 +129,10 @@ class FloorGuard:
 
     def floor_below(self, depth: np.ndarray, altitude_m: float) -> bool | None:
         """True when every leg's floor point shows the floor, False when any shows something nearer."""
-        legs = self._leg_depths(depth, altitude_m)
+        return self._floor_from(self._leg_depths(depth, altitude_m), altitude_m)
+
+    def _floor_from(self, legs: list[float | None], altitude_m: float) -> bool | None:
+        """floor_below from the leg depths `legs` (_leg_depths)."""
         if not legs or any(d is None for d in legs):
             return None
         d_floor = float(altitude_m) - self.cfg.camera_offset_m
@@ -138,7 +140,11 @@ class FloorGuard:
 
     def straddle_depth(self, depth: np.ndarray, altitude_m: float) -> float | None:
         """Depth of the nearest pad under a leg when other legs are over the floor (a pad edge), else None."""
-        legs = [d for d in self._leg_depths(depth, altitude_m) if d is not None]
+        return self._straddle_from(self._leg_depths(depth, altitude_m), altitude_m)
+
+    def _straddle_from(self, legs: list[float | None], altitude_m: float) -> float | None:
+        """straddle_depth from the leg depths `legs` (_leg_depths)."""
+        legs = [d for d in legs if d is not None]
         if not legs:
             return None
         d_floor = float(altitude_m) - self.cfg.camera_offset_m
@@ -155,12 +161,13 @@ class FloorGuard:
                 or float(position[2]) >= self.watch_height_m):
             return GuardResult(agent, v, False, None)
         position = np.asarray(position, dtype=float).reshape(3)
-        floor = self.floor_below(depth, float(position[2]))
+        legs = self._leg_depths(depth, float(position[2]))     # once per step: the rules below all read them
+        floor = self._floor_from(legs, float(position[2]))
         if floor is False:
-            self._remember_pad(depth, position)     # watched from above the guard height on, too
+            self._remember_pad(legs, position)      # watched from above the guard height on, too
         edge = False
         if c.edge_height_m > 0 and v[2] < 0.0 and floor is False:
-            pad_d = self.straddle_depth(depth, float(position[2]))
+            pad_d = self._straddle_from(legs, float(position[2]))
             edge = pad_d is not None and pad_d < c.edge_height_m
         if not edge and (v[2] >= 0.0 or float(position[2]) >= c.guard_height_m or not floor
                          or self._near_remembered_pad(position)):
