@@ -103,6 +103,11 @@ def decode_depth(data: Any, encoding: str, height: int, width: int, step: int,
     return depth
 
 
+def valid_fraction(depth: np.ndarray) -> np.ndarray:
+    """Fraction of finite, positive pixels of (..., H, W) depth, per image (the ONNX graph computes the same)."""
+    return (np.isfinite(depth) & (depth > 0)).mean(axis=(-2, -1))
+
+
 def center_square(img: np.ndarray) -> np.ndarray:
     """Centre crop to a square (the shorter side)."""
     h, w = img.shape[:2]
@@ -173,8 +178,7 @@ class LatentEncoder:
             return self._ort(rgb64, d64)
         mu, _ = self.model.encode(self._input(rgb64, d64))
         xyz = self.model.decode_xyz(mu)
-        valid = (np.isfinite(d64) & (d64 > 0)).mean(axis=(1, 2))
-        return mu.cpu().numpy().astype(np.float32), xyz.cpu().numpy().astype(np.float32), valid
+        return mu.cpu().numpy().astype(np.float32), xyz.cpu().numpy().astype(np.float32), valid_fraction(d64)
 
     def _input(self, rgb64: np.ndarray, d64: np.ndarray) -> torch.Tensor:
         """Prepared 64x64 frame(s) -> the network input on the device, channels-last like the weights."""
@@ -214,7 +218,7 @@ class LatentEncoder:
     def prepare(self, rgb: np.ndarray, depth_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Validate and resize a decoded frame; raises BadFrame."""
         rgb64, d64 = self._sized(rgb, depth_m)
-        self._check_valid(float((np.isfinite(d64) & (d64 > 0)).mean()))
+        self._check_valid(float(valid_fraction(d64)))
         return rgb64, d64
 
     @torch.inference_mode()
