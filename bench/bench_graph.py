@@ -24,8 +24,8 @@ Profile a node under this load with e.g.
 """
 from __future__ import annotations
 
-import os
 import bisect
+import os
 import random
 import subprocess
 import sys
@@ -90,7 +90,7 @@ def count_frames(fr: list[tuple[int, float, float]], pad: dict[int, float], cm: 
         got_latent = s in pad and t_img < pad[s] < t_next
         got_cmd = s in cm and cm[s] > t_img
         if got_latent:
-            after = max(t_img, pad.get(prev, t_img)) if prev is not None else t_img
+            after = max(t_img, pad.get(prev, t_img))    # prev None (first frame): t_img
             to_latent.append(latent_receipt(latents, after, pad[s] + 1e-9, pad[s]) - t_img)
         if got_cmd:
             to_cmd.append(cm[s] - t_img)
@@ -117,8 +117,6 @@ def measure(frames: int = FRAMES, startup_timeout_s: float = 90.0, node_params: 
     nodes, so that its receive times are the instrument's and not its wait for a core: with nodes
     at SCHED_FIFO and the recorder not, the encoder preempted the recorder and the recorder saw the
     camera frame late (latent p50 0.28 ms, less than the encoder's own work)."""
-    from assist_sim.ros_common import set_realtime_priority
-
     import rclpy
     from geometry_msgs.msg import PointStamped, TwistStamped
     from rclpy.context import Context
@@ -126,7 +124,7 @@ def measure(frames: int = FRAMES, startup_timeout_s: float = 90.0, node_params: 
     from sensor_msgs.msg import Image
     from std_msgs.msg import Float32MultiArray
 
-    from assist_sim.ros_common import RELIABLE_QOS, SENSOR_QOS, make_executor
+    from assist_sim.ros_common import RELIABLE_QOS, SENSOR_QOS, make_executor, set_realtime_priority
 
     domain = random.Random(os.getpid() ^ time.monotonic_ns()).randint(150, 199)
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED='1')
