@@ -102,8 +102,6 @@ def linearize_depth(zbuf: np.ndarray, near: float, far: float) -> np.ndarray:
     return (far * near / (far - (far - near) * zbuf)).astype(np.float32)
 
 
-
-
 class LandingWorld:
     """One pybullet world (own DIRECT client) that training, tests and sim_node all drive."""
 
