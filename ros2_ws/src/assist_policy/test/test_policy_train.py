@@ -10,6 +10,20 @@ from assist_policy.td3 import TD3, TD3Config, load_actor
 from assist_policy.train import TrainArgs, load_checkpoint, train
 
 
+def _tiny_run(tmp_path, total_steps: int, buffer_size: int, checkpoint_every_steps: int = 1000, **extra) -> dict:
+    """TrainArgs fields of a seconds-long oracle run in tmp_path (32x32 actor, 4 s landings, no periodic eval)."""
+    torch.set_num_threads(1)
+    return dict(runs_dir=str(tmp_path), total_steps=total_steps, start_steps=0,
+                checkpoint_every_steps=checkpoint_every_steps, eval_every_episodes=1000, hidden=(32, 32),
+                max_episode_s=4.0, buffer_size=buffer_size, **extra)
+
+
+def _first_actor(base: dict):
+    """Train run 'first' with `base`; (its run directory, its last actor)."""
+    first = train(TrainArgs(name='first', **base))
+    return first, load_actor(first / 'actor_last.pt')[0]
+
+
 def test_train_writes_run_dir_and_resumes(tmp_path):
     torch.set_num_threads(1)
     args = TrainArgs(name='tiny', runs_dir=str(tmp_path), total_steps=400, start_steps=100,
@@ -46,11 +60,8 @@ def test_scripted_oracle_lands_a_novice_on_its_goal():
 
 
 def test_init_actor_starts_from_a_saved_actor_and_rejects_a_foreign_one(tmp_path):
-    torch.set_num_threads(1)
-    base = dict(runs_dir=str(tmp_path), total_steps=150, start_steps=0, checkpoint_every_steps=100,
-                eval_every_episodes=1000, hidden=(32, 32), max_episode_s=4.0, buffer_size=2000)
-    first = train(TrainArgs(name='first', **base))
-    src, _ = load_actor(first / 'actor_last.pt')
+    base = _tiny_run(tmp_path, total_steps=150, buffer_size=2000, checkpoint_every_steps=100)
+    first, src = _first_actor(base)
     # the step-0 evaluation writes actor_best.pt: it must be the initial actor, weight for weight
     second = train(TrainArgs(name='second', init_actor=str(first / 'actor_last.pt'), eval_episodes_per_beta=1,
                              **base))
@@ -69,11 +80,9 @@ def test_init_actor_starts_from_a_saved_actor_and_rejects_a_foreign_one(tmp_path
 
 
 def test_dagger_round_labels_the_actors_own_states(tmp_path):
-    torch.set_num_threads(1)
     import numpy as np
-    base = dict(runs_dir=str(tmp_path), total_steps=50, start_steps=0, checkpoint_every_steps=1000,
-                eval_every_episodes=1000, eval_episodes_per_beta=1, hidden=(32, 32), max_episode_s=4.0,
-                buffer_size=20000, demo_episodes=2, bc_steps=50)
+    base = _tiny_run(tmp_path, total_steps=50, buffer_size=20000, eval_episodes_per_beta=1, demo_episodes=2,
+                     bc_steps=50)
     plain = train(TrainArgs(name='plain', **base))
     dag = train(TrainArgs(name='dag', dagger_rounds=1, dagger_episodes=2, **base))
     with np.load(plain / 'demos_bc.npz') as a, np.load(dag / 'demos_bc.npz') as b:
@@ -91,11 +100,8 @@ def test_dagger_round_labels_the_actors_own_states(tmp_path):
 
 
 def test_actor_start_steps_keeps_the_actor_while_the_critic_learns_and_lags_widen_it(tmp_path):
-    torch.set_num_threads(1)
-    base = dict(runs_dir=str(tmp_path), total_steps=150, start_steps=0, checkpoint_every_steps=1000,
-                eval_every_episodes=1000, hidden=(32, 32), max_episode_s=4.0, buffer_size=2000)
-    first = train(TrainArgs(name='first', **base))
-    src, _ = load_actor(first / 'actor_last.pt')
+    base = _tiny_run(tmp_path, total_steps=150, buffer_size=2000)
+    first, src = _first_actor(base)
     # critic-only for the whole run, fine-tuned with one lagged copy of the feature: the widened actor is unchanged
     held = train(TrainArgs(name='held', init_actor=str(first / 'actor_last.pt'), actor_start_steps=10_000,
                            feature_lags_s=(1.0,), **base))
@@ -115,12 +121,9 @@ def test_actor_start_steps_keeps_the_actor_while_the_critic_learns_and_lags_wide
 
 def test_init_actor_demonstrations_are_the_starting_actors_own_actions(tmp_path):
     """--demo-policy init_actor: the frozen starting actor labels the demos (TD3+BC anchored to it)."""
-    torch.set_num_threads(1)
     import numpy as np
-    base = dict(runs_dir=str(tmp_path), total_steps=60, start_steps=0, checkpoint_every_steps=1000,
-                eval_every_episodes=1000, hidden=(32, 32), max_episode_s=4.0, buffer_size=20000)
-    first = train(TrainArgs(name='first', **base))
-    src, _ = load_actor(first / 'actor_last.pt')
+    base = _tiny_run(tmp_path, total_steps=60, buffer_size=20000)
+    first, src = _first_actor(base)
     anch = train(TrainArgs(name='anch', init_actor=str(first / 'actor_last.pt'), demo_policy='init_actor',
                            demo_episodes=2, demo_noise=0.1, bc_alpha=2.5, feature_lags_s=(1.0,), **base))
     with np.load(anch / 'demos_bc.npz') as d:
