@@ -422,13 +422,29 @@ def executor_param(default: str = 'events') -> Param:
                  choices=EXECUTORS)
 
 
+class PoolWaitingExecutor(MultiThreadedExecutor):
+    """MultiThreadedExecutor whose shutdown waits for the callbacks still running in its thread pool.
+
+    rclpy 7.1's Executor.shutdown tests `_is_shutdown` right after setting it, so it never waits for
+    outstanding work; spin returns at context shutdown while pool threads are mid-callback, and a node
+    destroyed then has callbacks running into a dead node.
+    """
+
+    def shutdown(self, timeout_sec: float | None = None) -> bool:
+        """Stop taking callbacks, then wait until the pool's running ones have returned."""
+        done = super().shutdown(timeout_sec)
+        self._executor.shutdown(wait=True)      # rclpy's ThreadPoolExecutor of this executor
+        return done
+
+
 def make_executor(kind: str, num_threads: int = 2, context=None):
     """An executor by name: single (SingleThreadedExecutor), multi (MultiThreadedExecutor with
-    `num_threads`, at least 2), events (EventsExecutorLoop); ValueError for any other name."""
+    `num_threads`, at least 2; a PoolWaitingExecutor), events (EventsExecutorLoop); ValueError for any
+    other name."""
     if kind == 'single':
         return SingleThreadedExecutor(context=context)
     if kind == 'multi':
-        return MultiThreadedExecutor(num_threads=max(2, int(num_threads)), context=context)
+        return PoolWaitingExecutor(num_threads=max(2, int(num_threads)), context=context)
     if kind == 'events':
         return EventsExecutorLoop(context=context)
     raise ValueError(f"executor must be one of {', '.join(EXECUTORS)}, got {kind!r}")
@@ -457,6 +473,48 @@ def _context_going_down(grace_s: float) -> bool:
     return True
 
 
+SPIN_STOP_TIMEOUT_S = 5.0
+
+
+def spin_off_main_thread(spinner) -> None:
+    """Spin `spinner` on a worker thread while the main thread only waits for it; returns when spin does.
+
+    Python runs signal handlers on the main thread, between two bytecodes of whatever it is doing:
+    spun there, a Ctrl-C raised KeyboardInterrupt inside a callback halfway through its work (seen
+    in CI: policy_node's history push, which the events executor then logged as FATAL). Here it is
+    raised in this wait; the context is shut down (rclpy's own handler has usually done so), the
+    executor finishes its current callbacks, is shut down, and the worker ends before the caller
+    cleans up. An
+    exception that ends spin on the worker is re-raised here.
+    """
+    failure: list[BaseException] = []
+
+    def spin() -> None:
+        try:
+            spinner.spin()
+        except ExternalShutdownException:
+            pass
+        except BaseException as exc:  # noqa: BLE001 - handed to the main thread, re-raised below
+            failure.append(exc)
+        finally:
+            spinner.shutdown()          # waits for callbacks still running (MultiThreadedExecutor's pool)
+
+    worker = threading.Thread(target=spin, name='rclpy_spin', daemon=True)
+    worker.start()
+    try:
+        worker.join()                   # a lock wait: a signal interrupts it and its handler runs here
+    finally:
+        if worker.is_alive():           # interrupted: stop the executor, let its callback finish
+            _ignore_sigint()            # a second Ctrl-C must not cut this short
+            rclpy.try_shutdown()
+            worker.join(SPIN_STOP_TIMEOUT_S)
+            if worker.is_alive():
+                logging.getLogger(__name__).warning(
+                    'executor still in a callback %.0f s after shutdown; cleaning up anyway', SPIN_STOP_TIMEOUT_S)
+    if failure:
+        raise failure[0]
+
+
 def run_node(factory: Callable[[], Node], args: list[str] | None = None,
              num_threads: int = 1, executor: str | None = None) -> int:
     """Init rclpy, build the node, spin it, always clean up; returns the process exit code.
@@ -468,7 +526,9 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
     coroutine callbacks (see mavlink_bridge_node's services). `executor` names the kind
     (make_executor); a node that declares the parameter `executor` chooses it at run time. Once
     the node is built, its threads get the SCHED_FIFO priority of its `realtime_priority` parameter
-    (if declared and > 0) and the start-up heap is frozen out of the garbage collector's way. A StartupError raised by `factory` (nodes wrap bad parameters, missing
+    (if declared and > 0) and the start-up heap is frozen out of the garbage collector's way. The
+    executor spins off the main thread (spin_off_main_thread), so a Ctrl-C never lands inside a
+    callback. A StartupError raised by `factory` (nodes wrap bad parameters, missing
     models and unreachable endpoints in it) is reported as one clear line on stderr and gives
     exit code 1, no traceback. Python `logging` records go to the node's logger (/rosout).
     """
@@ -486,7 +546,7 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
         spinner.add_node(node)
         _apply_realtime_priority(node)
         freeze_startup_heap()
-        spinner.spin()
+        spin_off_main_thread(spinner)
     except StartupError as exc:
         sys.stderr.write(f'error: {exc}\n')
         code = 1

@@ -137,21 +137,26 @@ class _Spinner:
     """A spinner whose spin fails like rclpy at Ctrl-C (or, if `shutdown` is false, while running)."""
 
     def __init__(self, shutdown):
-        self.shutdown = shutdown
+        self.context_shutdown = shutdown
+        self.stopped = False
 
     def add_node(self, node):
         self.node = node
 
     def spin(self):
-        if self.shutdown:
+        if self.context_shutdown:
             rclpy.try_shutdown()
         raise RuntimeError("Unable to convert call argument '0' to Python object")
+
+    def shutdown(self):
+        self.stopped = True
 
 
 @pytest.mark.parametrize('shutdown', [True, False])
 def test_run_node_treats_a_runtime_error_as_shutdown_only_after_the_context_went_away(monkeypatch, shutdown):
     import assist_sim.ros_common as rc
-    monkeypatch.setattr(rc, 'make_executor', lambda kind, num_threads=2: _Spinner(shutdown))
+    spinner = _Spinner(shutdown)
+    monkeypatch.setattr(rc, 'make_executor', lambda kind, num_threads=2: spinner)
     monkeypatch.setenv('ROS_DOMAIN_ID', str(random.randint(100, 199)))
     factory = lambda: Node('runtime_error_probe')      # noqa: E731
     if shutdown:
@@ -160,3 +165,59 @@ def test_run_node_treats_a_runtime_error_as_shutdown_only_after_the_context_went
         with pytest.raises(RuntimeError, match='call argument'):
             rc.run_node(factory, args=[])               # while running: never swallowed
     assert not rclpy.ok()
+    assert spinner.stopped                              # the executor was shut down either way
+
+
+CTRL_C_SCRIPT = textwrap.dedent('''
+    import sys, time
+    from rclpy.node import Node
+    import assist_sim.ros_common as rc
+
+    class N(Node):
+        """A timer callback of ~1.5 s of pure-Python work: a Ctrl-C will land while it runs."""
+        def __init__(self):
+            super().__init__('ctrl_c_probe')
+            rc.declare_parameters(self, {'executor': rc.executor_param('events')})
+            self.create_timer(0.05, self.work)
+            self.done = 0
+
+        def work(self):
+            print('callback start', flush=True)
+            end, n = time.monotonic() + 1.5, 0
+            while time.monotonic() < end:
+                n += 1
+            self.done += 1
+            print('callback done', self.done, flush=True)
+
+        def close(self):
+            print('close after', self.done, 'callbacks', flush=True)
+
+    sys.exit(rc.run_node(N, sys.argv[1:]))
+''')
+
+
+@pytest.mark.parametrize('kind', ['events', 'single', 'multi'])
+def test_ctrl_c_during_a_callback_lets_it_finish_and_exits_cleanly(kind, tmp_path):
+    """Ctrl-C is taken on the main thread, never as a KeyboardInterrupt inside a callback (CI saw
+    the events executor log that as FATAL): the callback runs to its end, close() follows, rc 0."""
+    import os
+    import signal
+    script = tmp_path / 'node.py'
+    script.write_text(CTRL_C_SCRIPT)
+    proc = subprocess.Popen([sys.executable, str(script), '--ros-args', '-p', f'executor:={kind}'],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env={**os.environ, 'ROS_DOMAIN_ID': str(random.randint(100, 199))})
+    try:
+        assert proc.stdout.readline().strip() == 'callback start'
+        time.sleep(0.3)                           # well inside the 1.5 s callback
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=30)
+    finally:
+        proc.kill()
+    lines = out.splitlines()
+    assert proc.returncode == 0, out
+    assert 'Traceback' not in out and 'KeyboardInterrupt' not in out and 'FATAL' not in out, out
+    assert lines[0] == 'callback done 1', out    # the interrupted callback completed
+    assert lines[-1].startswith('close after'), out
+    done = int(lines[-1].split()[2])
+    assert done >= 1 and f'callback done {done}' in lines
