@@ -476,16 +476,17 @@ def _context_going_down(grace_s: float) -> bool:
 SPIN_STOP_TIMEOUT_S = 5.0
 
 
-def spin_off_main_thread(spinner) -> None:
+def spin_off_main_thread(spinner, teardown: Callable[[], None] | None = None) -> None:
     """Spin `spinner` on a worker thread while the main thread only waits for it; returns when spin does.
 
     Python runs signal handlers on the main thread, between two bytecodes of whatever it is doing:
     spun there, a Ctrl-C raised KeyboardInterrupt inside a callback halfway through its work (seen
     in CI: policy_node's history push, which the events executor then logged as FATAL). Here it is
     raised in this wait; the context is shut down (rclpy's own handler has usually done so), the
-    executor finishes its current callbacks, is shut down, and the worker ends before the caller
-    cleans up. An
-    exception that ends spin on the worker is re-raised here.
+    executor finishes its current callbacks and is shut down. `teardown` (run_node: the node's
+    close()) then runs on the worker too, the thread its callbacks ran on (sqlite connections, for
+    one, refuse any other), before the caller goes on. An exception that ends spin or teardown on
+    the worker is re-raised here.
     """
     failure: list[BaseException] = []
 
@@ -496,15 +497,19 @@ def spin_off_main_thread(spinner) -> None:
             pass
         except BaseException as exc:  # noqa: BLE001 - handed to the main thread, re-raised below
             failure.append(exc)
-        finally:
+        try:
             spinner.shutdown()          # waits for callbacks still running (MultiThreadedExecutor's pool)
+            if teardown is not None:
+                teardown()
+        except BaseException as exc:  # noqa: BLE001 - handed to the main thread, re-raised below
+            failure.append(exc)
 
     worker = threading.Thread(target=spin, name='rclpy_spin', daemon=True)
     worker.start()
     try:
         worker.join()                   # a lock wait: a signal interrupts it and its handler runs here
     finally:
-        if worker.is_alive():           # interrupted: stop the executor, let its callback finish
+        if worker.is_alive():           # interrupted: stop the executor, let its callbacks finish
             _ignore_sigint()            # a second Ctrl-C must not cut this short
             rclpy.try_shutdown()
             worker.join(SPIN_STOP_TIMEOUT_S)
@@ -528,7 +533,7 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
     the node is built, its threads get the SCHED_FIFO priority of its `realtime_priority` parameter
     (if declared and > 0) and the start-up heap is frozen out of the garbage collector's way. The
     executor spins off the main thread (spin_off_main_thread), so a Ctrl-C never lands inside a
-    callback. A StartupError raised by `factory` (nodes wrap bad parameters, missing
+    callback, and the node's close() (if it has one) runs on the thread its callbacks ran on. A StartupError raised by `factory` (nodes wrap bad parameters, missing
     models and unreachable endpoints in it) is reported as one clear line on stderr and gives
     exit code 1, no traceback. Python `logging` records go to the node's logger (/rosout).
     """
@@ -536,6 +541,15 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
     handler = forward_logging(None)
     node = None
     code = 0
+    closed = threading.Event()
+
+    def close_node() -> None:
+        try:
+            close = getattr(node, 'close', None)
+            if callable(close):
+                close()
+        finally:
+            closed.set()
     try:
         node = factory()
         handler.attach(node)
@@ -546,7 +560,7 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
         spinner.add_node(node)
         _apply_realtime_priority(node)
         freeze_startup_heap()
-        spin_off_main_thread(spinner)
+        spin_off_main_thread(spinner, teardown=close_node)
     except StartupError as exc:
         sys.stderr.write(f'error: {exc}\n')
         code = 1
@@ -564,9 +578,8 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
         # already exiting) must not interrupt the clean-up with a KeyboardInterrupt traceback.
         _ignore_sigint()
         if node is not None:
-            close = getattr(node, 'close', None)
-            if callable(close):
-                close()
+            if not closed.is_set():     # never spun (start-up failed), or the executor never came back
+                close_node()
             handler.attach(None)
             node.destroy_node()
         if rclpy.ok():

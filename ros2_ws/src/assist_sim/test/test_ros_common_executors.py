@@ -169,7 +169,7 @@ def test_run_node_treats_a_runtime_error_as_shutdown_only_after_the_context_went
 
 
 CTRL_C_SCRIPT = textwrap.dedent('''
-    import sys, time
+    import sys, threading, time
     from rclpy.node import Node
     import assist_sim.ros_common as rc
 
@@ -183,6 +183,7 @@ CTRL_C_SCRIPT = textwrap.dedent('''
 
         def work(self):
             print('callback start', flush=True)
+            self.thread = threading.get_ident()
             end, n = time.monotonic() + 1.5, 0
             while time.monotonic() < end:
                 n += 1
@@ -190,7 +191,8 @@ CTRL_C_SCRIPT = textwrap.dedent('''
             print('callback done', self.done, flush=True)
 
         def close(self):
-            print('close after', self.done, 'callbacks', flush=True)
+            print('close after', self.done, 'callbacks, on their thread:', threading.get_ident() == self.thread,
+                  flush=True)
 
     sys.exit(rc.run_node(N, sys.argv[1:]))
 ''')
@@ -199,7 +201,8 @@ CTRL_C_SCRIPT = textwrap.dedent('''
 @pytest.mark.parametrize('kind', ['events', 'single', 'multi'])
 def test_ctrl_c_during_a_callback_lets_it_finish_and_exits_cleanly(kind, tmp_path):
     """Ctrl-C is taken on the main thread, never as a KeyboardInterrupt inside a callback (CI saw
-    the events executor log that as FATAL): the callback runs to its end, close() follows, rc 0."""
+    the events executor log that as FATAL): the callback runs to its end, close() follows (on the
+    callbacks' thread where they share one: a sqlite bag writer needs that), rc 0."""
     import os
     import signal
     script = tmp_path / 'node.py'
@@ -221,3 +224,5 @@ def test_ctrl_c_during_a_callback_lets_it_finish_and_exits_cleanly(kind, tmp_pat
     assert lines[-1].startswith('close after'), out
     done = int(lines[-1].split()[2])
     assert done >= 1 and f'callback done {done}' in lines
+    if kind != 'multi':                         # multi runs callbacks on its pool's threads
+        assert lines[-1].endswith('on their thread: True'), out
