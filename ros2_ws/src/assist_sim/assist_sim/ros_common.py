@@ -489,6 +489,7 @@ def spin_off_main_thread(spinner, teardown: Callable[[], None] | None = None) ->
     the worker is re-raised here.
     """
     failure: list[BaseException] = []
+    finished = threading.Event()
 
     def spin() -> None:
         try:
@@ -503,17 +504,21 @@ def spin_off_main_thread(spinner, teardown: Callable[[], None] | None = None) ->
                 teardown()
         except BaseException as exc:  # noqa: BLE001 - handed to the main thread, re-raised below
             failure.append(exc)
+        finally:
+            finished.set()
 
     worker = threading.Thread(target=spin, name='rclpy_spin', daemon=True)
-    worker.start()
     try:
-        worker.join()                   # a lock wait: a signal interrupts it and its handler runs here
+        worker.start()
+        finished.wait()                 # a lock wait: a signal interrupts it and its handler runs here
     finally:
-        if worker.is_alive():           # interrupted: stop the executor, let its callbacks finish
+        # Not worker.join()/is_alive(): a join interrupted by Ctrl-C marks the running thread as
+        # stopped (CPython's bpo-45274 fix releases its lock), and the node was then closed twice,
+        # under a live executor (CI: pybullet "Not connected to physics server").
+        if not finished.is_set():       # interrupted: stop the executor, let its callbacks finish
             _ignore_sigint()            # a second Ctrl-C must not cut this short
             rclpy.try_shutdown()
-            worker.join(SPIN_STOP_TIMEOUT_S)
-            if worker.is_alive():
+            if not finished.wait(SPIN_STOP_TIMEOUT_S):
                 logging.getLogger(__name__).warning(
                     'executor still in a callback %.0f s after shutdown; cleaning up anyway', SPIN_STOP_TIMEOUT_S)
     if failure:

@@ -226,3 +226,39 @@ def test_ctrl_c_during_a_callback_lets_it_finish_and_exits_cleanly(kind, tmp_pat
     assert done >= 1 and f'callback done {done}' in lines
     if kind != 'multi':                         # multi runs callbacks on its pool's threads
         assert lines[-1].endswith('on their thread: True'), out
+
+
+class _SlowStopSpinner:
+    """Spins until the default context goes down, then takes 0.5 s to stop (a callback finishing)."""
+
+    def __init__(self):
+        self.events = []
+
+    def spin(self):
+        while rclpy.ok():
+            time.sleep(0.01)
+        time.sleep(0.5)
+        self.events.append('spin ended')
+
+    def shutdown(self):
+        self.events.append('executor shut down')
+
+
+def test_a_ctrl_c_in_the_wait_returns_only_after_spin_and_teardown_ended():
+    """The main thread's wait is interrupted by SIGINT; it must still wait for the worker: a plain
+    Thread.join would report the live worker as stopped (bpo-45274) and the node was closed twice."""
+    import os
+    import signal
+    from assist_sim.ros_common import spin_off_main_thread
+    rclpy.init(domain_id=random.randint(100, 199))
+    spinner = _SlowStopSpinner()
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    threading.Timer(0.3, lambda: os.kill(os.getpid(), signal.SIGINT)).start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            spin_off_main_thread(spinner, teardown=lambda: spinner.events.append('teardown'))
+        assert spinner.events == ['spin ended', 'executor shut down', 'teardown']
+        assert not rclpy.ok()
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        rclpy.try_shutdown()
