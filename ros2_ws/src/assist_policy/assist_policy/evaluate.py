@@ -54,14 +54,15 @@ from .env import EnvConfig, LandingAssistEnv, run_episode
 from .latent import make_latent_fn
 from .policy_core import default_model_path
 from .safety import SafetyConfig
-from .scripted import YIELD_SPEED_MPS, ScriptedConfig, ScriptedNearestPad, ScriptedOracle
+from .scripted import ScriptedOracle, make_nearest_pad
 from .td3 import load_actor
 
 log = logging.getLogger(__name__)
 
 CONDITIONS = ('unassisted', 'latent', 'oracle', 'end_to_end')
-# hand-written assistants (reference only); scripted_nearest_pad_yield: yields to a held key (scripted.py)
-BASELINES = ('scripted_oracle', 'scripted_nearest_pad', 'scripted_nearest_pad_yield')
+# hand-written assistants (reference only); scripted_nearest_pad_yield: yields to a held key,
+# scripted_nearest_pad_gentle: does not hurry the pilot's own descent (scripted.py)
+BASELINES = ('scripted_oracle', 'scripted_nearest_pad', 'scripted_nearest_pad_yield', 'scripted_nearest_pad_gentle')
 PAPER = {'unassisted': '0.67 +- 0.40', 'end_to_end': '0.37 +- 0.33', 'latent': '0.25 +- 0.15',
          'oracle': '0.10 +- 0.07'}
 
@@ -91,7 +92,8 @@ class EvalArgs:
 HELP = {
     'out': 'output directory (landings.csv, summary.csv, error_vs_beta.png)',
     'conditions': 'any of unassisted latent oracle end_to_end (assistants without a model are skipped); '
-                  'reference baselines: scripted_oracle scripted_nearest_pad',
+                  'reference baselines: scripted_oracle scripted_nearest_pad scripted_nearest_pad_yield '
+                  'scripted_nearest_pad_gentle',
     'betas': 'pilot skills to test (paper: 0 to 1 in steps of 0.05)',
     'landings': 'landings per beta and condition (paper: 40)',
     'latent_model': 'actor file (default: models/td3_latent_actor.pt)',
@@ -202,8 +204,7 @@ def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: fl
         env = LandingAssistEnv(EnvConfig(condition='oracle', alpha=alpha, max_episode_s=max_episode_s,
                                          pilot_family=pilot, safety=safety))
         script = (ScriptedOracle() if condition == 'scripted_oracle' else
-                  ScriptedNearestPad(ScriptedConfig(yield_speed_mps=YIELD_SPEED_MPS)) if condition.endswith('_yield')
-                  else ScriptedNearestPad())
+                  make_nearest_pad(condition[len('scripted_'):]))
         return env, lambda obs: script.raw_action(env)
     path = Path(model) if model else default_model_path(condition)
     actor, meta = load_actor(path)

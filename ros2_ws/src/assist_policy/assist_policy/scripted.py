@@ -43,6 +43,13 @@ class ScriptedConfig:
     # instead of cancelling the pilot on the pad below: a pilot who set off for a neighbour pad and
     # noticed late can leave it. Uses only what the actor observes (u and its 1 s mean).
     yield_speed_mps: float = 0.0
+    # Do not hurry a descent the pilot is already making (issue 12): while the pilot commands descent the
+    # nearest-pad assistant adds none of its own (a_z = 0, so V_z = u_z / 2 while it centres) instead of
+    # pushing down at descend_mps. It still descends for a pilot who hovers low over the pad. The pilot
+    # gets twice the time to see that the pad below is the wrong one and leave it, and under the paper's
+    # conformance update its goal estimate is no longer dragged down with the vehicle (which kept the
+    # late_correction pilots from ever noticing). Measured in assist_policy README, issue 12 teachers.
+    gentle_descent: bool = False
 
 
 class ScriptedOracle:
@@ -75,6 +82,21 @@ class ScriptedOracle:
                               self.max_speed)
 
 
+# Named nearest-pad teachers (all goal-agnostic; `nearest_pad` is the reference script of issue 12).
+NEAREST_PAD_VARIANTS = {
+    'nearest_pad': {},
+    'nearest_pad_yield': {'yield_speed_mps': YIELD_SPEED_MPS},
+    'nearest_pad_gentle': {'gentle_descent': True},
+}
+
+
+def make_nearest_pad(variant: str = 'nearest_pad', max_speed=DEFAULT_MAX_SPEED) -> 'ScriptedNearestPad':
+    """The named nearest-pad teacher (NEAREST_PAD_VARIANTS); ValueError for an unknown name."""
+    if variant not in NEAREST_PAD_VARIANTS:
+        raise ValueError(f'unknown nearest-pad variant {variant!r}; one of {", ".join(NEAREST_PAD_VARIANTS)}')
+    return ScriptedNearestPad(ScriptedConfig(**NEAREST_PAD_VARIANTS[variant]), max_speed=max_speed)
+
+
 class ScriptedNearestPad:
     """Goal-agnostic demonstrator: once the pilot descends (or is low), centre it on the pad below.
 
@@ -105,9 +127,13 @@ class ScriptedNearestPad:
         pads = np.asarray(pads, dtype=float)
         k = int(np.argmin(np.linalg.norm(pads[:, :2] - p[:2], axis=1)))
         low = p[2] - pads[k, 2] < self.low_height_m
-        if not (np.asarray(pilot)[2] < 0 or low):
+        descending = float(np.asarray(pilot, dtype=float)[2]) < 0
+        if not (descending or low):
             return np.zeros(3)
-        return self.oracle.velocity(pads[k], p, pilot)
+        a = self.oracle.velocity(pads[k], p, pilot)
+        if self.cfg.gentle_descent and descending and a[2] < 0:
+            a[2] = 0.0
+        return a
 
     def raw_action(self, env) -> np.ndarray:
         """Raw action in [-1, 1]^3 for the env's current state (pad positions, no goal)."""

@@ -34,7 +34,7 @@ from .cli import add_dataclass_args, dataclass_from_args
 from .env import EnvConfig, LandingAssistEnv, RewardConfig, run_episode
 from .latent import make_latent_fn
 from .safety import SafetyConfig
-from .scripted import YIELD_SPEED_MPS, ScriptedConfig, ScriptedNearestPad, ScriptedOracle
+from .scripted import ScriptedOracle, make_nearest_pad
 from .td3 import TD3, OUNoise, ReplayBuffer, TD3Config, load_actor, save_actor
 
 log = logging.getLogger(__name__)
@@ -117,7 +117,8 @@ HELP = {
     'actor_start_steps': 'update only the critic (on the run\'s own landings) until this many environment steps, '
                          'so a fine-tuned actor is not moved by a critic that has not yet seen it fly',
     'demo_policy': 'demonstrator: oracle (knows the goal), nearest_pad_yield (nearest_pad that lets a held-key '
-                   'correction through), nearest_pad (goal-agnostic: centres the '
+                   'correction through), nearest_pad_gentle (nearest_pad that does not hurry a descent the pilot '
+                   'is making), nearest_pad (goal-agnostic: centres the '
                    'descending pilot on the pad below; imitable from the latent) or init_actor (the '
                    '--init-actor itself, frozen: TD3+BC fine-tuning anchored to the actor it starts from)',
     'demo_bc_file': 'demos_bc.npz of an earlier run: reuse its demonstrations for behaviour cloning / TD3+BC '
@@ -142,7 +143,7 @@ HELP = {
 }
 
 
-DEMO_POLICIES = ('oracle', 'nearest_pad', 'nearest_pad_yield', 'init_actor')
+DEMO_POLICIES = ('oracle', 'nearest_pad', 'nearest_pad_yield', 'nearest_pad_gentle', 'init_actor')
 
 
 def collect_demos(env: LandingAssistEnv, episodes: int, noise: float, seed: int, buffer: ReplayBuffer,
@@ -159,9 +160,7 @@ def collect_demos(env: LandingAssistEnv, episodes: int, noise: float, seed: int,
     if demo_policy == 'init_actor' and label_fn is None:
         raise ValueError('demo_policy init_actor needs the starting actor (label_fn)')
     script = (None if demo_policy == 'init_actor' else ScriptedOracle(max_speed=env.cfg.max_speed)
-              if demo_policy == 'oracle' else
-              ScriptedNearestPad(ScriptedConfig(yield_speed_mps=YIELD_SPEED_MPS), max_speed=env.cfg.max_speed)
-              if demo_policy == 'nearest_pad_yield' else ScriptedNearestPad(max_speed=env.cfg.max_speed))
+              if demo_policy == 'oracle' else make_nearest_pad(demo_policy, max_speed=env.cfg.max_speed))
     rng = np.random.default_rng(seed)
     obs_l, act_l, results = [], [], []
     for ep in range(episodes):

@@ -103,3 +103,29 @@ def test_yielding_nearest_pad_script_lets_a_held_key_through_but_not_taps_or_des
     down = np.array([1.0, 0.0, -0.5])                              # overshooting while descending: no yield
     np.testing.assert_allclose(yld.velocity(pads, pos, down, mean_pilot=leaving),
                                ref.velocity(pads, pos, down, mean_pilot=leaving))
+
+
+def test_gentle_nearest_pad_script_adds_no_descent_to_a_descending_pilot_but_still_centres():
+    from assist_policy.scripted import NEAREST_PAD_VARIANTS, ScriptedNearestPad, make_nearest_pad
+    pads = np.array([[4.0, 0.0, 0.6], [8.0, 0.0, 0.8]])
+    pos = np.array([4.05, 0.1, 1.2])                              # low, within 0.25 m of pad 0's centre
+    ref, gentle = make_nearest_pad('nearest_pad'), make_nearest_pad('nearest_pad_gentle')
+    assert isinstance(gentle, ScriptedNearestPad) and set(NEAREST_PAD_VARIANTS) >= {'nearest_pad', 'nearest_pad_gentle'}
+    down = np.array([0.0, 0.0, -0.5])
+    r, g = ref.velocity(pads, pos, down), gentle.velocity(pads, pos, down)
+    assert r[2] == pytest.approx(-0.6) and g[2] == 0.0            # the reference pushes down (clipped), gentle not
+    np.testing.assert_allclose(g[:2], r[:2])                      # both centre: 2 * 4 /s * (-0.05, -0.1)
+    np.testing.assert_allclose(g[:2], [-0.4, -0.8])
+    hover = np.zeros(3)                                           # a pilot hovering low: both bring it down
+    assert gentle.velocity(pads, pos, hover)[2] == pytest.approx(-0.6)
+    with pytest.raises(ValueError, match='unknown nearest-pad variant'):
+        make_nearest_pad('nearest_pad_fast')
+
+
+def test_evaluate_runs_the_gentle_reference_as_a_baseline(tmp_path):
+    from assist_policy.evaluate import BASELINES, make_policy
+    assert 'scripted_nearest_pad_gentle' in BASELINES
+    env, policy = make_policy('scripted_nearest_pad_gentle', '', '', 5.0, 0.5)
+    obs, _ = env.reset(seed=3, options={'beta': 0.5})
+    a = policy(obs)
+    assert a.shape == (3,) and np.all(np.abs(a) <= 1.0)
