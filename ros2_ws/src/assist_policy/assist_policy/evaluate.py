@@ -54,15 +54,15 @@ from .env import EnvConfig, LandingAssistEnv, run_episode
 from .latent import make_latent_fn
 from .policy_core import default_model_path
 from .safety import SafetyConfig
-from .scripted import ScriptedOracle, make_nearest_pad
+from .scripted import NEAREST_PAD_VARIANTS, ScriptedOracle, make_nearest_pad
 from .td3 import load_actor
 
 log = logging.getLogger(__name__)
 
 CONDITIONS = ('unassisted', 'latent', 'oracle', 'end_to_end')
-# hand-written assistants (reference only); scripted_nearest_pad_yield: yields to a held key,
-# scripted_nearest_pad_gentle: does not hurry the pilot's own descent (scripted.py)
-BASELINES = ('scripted_oracle', 'scripted_nearest_pad', 'scripted_nearest_pad_yield', 'scripted_nearest_pad_gentle')
+# hand-written assistants (reference only): the oracle script and every named nearest-pad teacher
+# (scripted.NEAREST_PAD_VARIANTS: _yield yields to a held key, _gentle does not hurry the pilot's descent)
+BASELINES = ('scripted_oracle', *(f'scripted_{v}' for v in NEAREST_PAD_VARIANTS))
 PAPER = {'unassisted': '0.67 +- 0.40', 'end_to_end': '0.37 +- 0.33', 'latent': '0.25 +- 0.15',
          'oracle': '0.10 +- 0.07'}
 
@@ -92,8 +92,7 @@ class EvalArgs:
 HELP = {
     'out': 'output directory (landings.csv, summary.csv, error_vs_beta.png)',
     'conditions': 'any of unassisted latent oracle end_to_end (assistants without a model are skipped); '
-                  'reference baselines: scripted_oracle scripted_nearest_pad scripted_nearest_pad_yield '
-                  'scripted_nearest_pad_gentle',
+                  'reference baselines: ' + ' '.join(BASELINES),
     'betas': 'pilot skills to test (paper: 0 to 1 in steps of 0.05)',
     'landings': 'landings per beta and condition (paper: 40)',
     'latent_model': 'actor file (default: models/td3_latent_actor.pt)',

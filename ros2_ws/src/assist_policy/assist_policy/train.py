@@ -34,7 +34,7 @@ from .cli import add_dataclass_args, dataclass_from_args
 from .env import EnvConfig, LandingAssistEnv, RewardConfig, run_episode
 from .latent import make_latent_fn
 from .safety import SafetyConfig
-from .scripted import ScriptedOracle, make_nearest_pad
+from .scripted import NEAREST_PAD_VARIANTS, ScriptedOracle, make_nearest_pad
 from .td3 import TD3, OUNoise, ReplayBuffer, TD3Config, load_actor, save_actor
 
 log = logging.getLogger(__name__)
@@ -143,7 +143,7 @@ HELP = {
 }
 
 
-DEMO_POLICIES = ('oracle', 'nearest_pad', 'nearest_pad_yield', 'nearest_pad_gentle', 'init_actor')
+DEMO_POLICIES = ('oracle', *NEAREST_PAD_VARIANTS, 'init_actor')
 
 
 def collect_demos(env: LandingAssistEnv, episodes: int, noise: float, seed: int, buffer: ReplayBuffer,

@@ -122,7 +122,7 @@ def test_gentle_nearest_pad_script_adds_no_descent_to_a_descending_pilot_but_sti
         make_nearest_pad('nearest_pad_fast')
 
 
-def test_evaluate_runs_the_gentle_reference_as_a_baseline(tmp_path):
+def test_evaluate_runs_the_gentle_reference_as_a_baseline():
     from assist_policy.evaluate import BASELINES, make_policy
     assert 'scripted_nearest_pad_gentle' in BASELINES
     env, policy = make_policy('scripted_nearest_pad_gentle', '', '', 5.0, 0.5)

@@ -540,7 +540,8 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
     executor spins off the main thread (spin_off_main_thread), so a Ctrl-C never lands inside a
     callback, and the node's close() (if it has one) runs on the thread its callbacks ran on. A
     StartupError raised by `factory` (nodes wrap bad parameters, missing models and unreachable
-    endpoints in it) is reported as one clear line on stderr and gives exit code 1, no traceback. Python `logging` records go to the node's logger (/rosout).
+    endpoints in it) is reported as one clear line on stderr and gives exit code 1, no traceback.
+    Python `logging` records go to the node's logger (/rosout).
     """
     rclpy.init(args=args)
     handler = forward_logging(None)
