@@ -18,6 +18,10 @@ from .actions import DEFAULT_MAX_SPEED, unscale_action
 # pilot's fine taps reach (duty <= 0.5 per axis near its aim: <= 0.71 m/s on a diagonal), below a held key
 # (1 m/s).
 YIELD_SPEED_MPS = 0.75
+# Height over the pad (m) below which the `nearest_pad_commit` teacher pushes down again: under the
+# late_correction pilots' noticing heights (0.4-1.5 m) for most of them, and above the last ~0.35 m of
+# the descent (the vehicle's centre sits ~0.1 m over the pad top at touchdown).
+COMMIT_HEIGHT_M = 0.5
 
 
 @dataclass
@@ -50,6 +54,11 @@ class ScriptedConfig:
     # conformance update its goal estimate is no longer dragged down with the vehicle (which kept the
     # late_correction pilots from ever noticing). Measured in assist_policy README, issue 12 teachers.
     gentle_descent: bool = False
+    # With gentle_descent: below this height over the pad (m) the assistant pushes down again as the
+    # reference does: the last part of the descent is committed and quick, so the vehicle spends less time
+    # in the ground-effect turbulence (a learned actor, which sees the pad only through the latent, drifts
+    # to the pad's edge in a slow final descent). 0 = gentle all the way down.
+    commit_height_m: float = 0.0
 
 
 class ScriptedOracle:
@@ -84,9 +93,10 @@ class ScriptedOracle:
 
 # Named nearest-pad teachers (all goal-agnostic; `nearest_pad` is the reference script of issue 12).
 NEAREST_PAD_VARIANTS = {
-    'nearest_pad': {},
-    'nearest_pad_yield': {'yield_speed_mps': YIELD_SPEED_MPS},
-    'nearest_pad_gentle': {'gentle_descent': True},
+    'nearest_pad': {},                                                # centre and push down
+    'nearest_pad_yield': {'yield_speed_mps': YIELD_SPEED_MPS},        # + let a held-key correction through
+    'nearest_pad_gentle': {'gentle_descent': True},                   # + add no descent to the pilot's
+    'nearest_pad_commit': {'gentle_descent': True, 'commit_height_m': COMMIT_HEIGHT_M},  # gentle, then commit
 }
 
 
@@ -131,7 +141,8 @@ class ScriptedNearestPad:
         if not (descending or low):
             return np.zeros(3)
         a = self.oracle.velocity(pads[k], p, pilot)
-        if self.cfg.gentle_descent and descending and a[2] < 0:
+        committed = p[2] - pads[k, 2] < self.cfg.commit_height_m
+        if self.cfg.gentle_descent and descending and a[2] < 0 and not committed:
             a[2] = 0.0
         return a
 

@@ -116,11 +116,10 @@ HELP = {
     'critic_warmup_updates': 'critic-only updates on the preloaded buffer before training starts',
     'actor_start_steps': 'update only the critic (on the run\'s own landings) until this many environment steps, '
                          'so a fine-tuned actor is not moved by a critic that has not yet seen it fly',
-    'demo_policy': 'demonstrator: oracle (knows the goal), nearest_pad_yield (nearest_pad that lets a held-key '
-                   'correction through), nearest_pad_gentle (nearest_pad that does not hurry a descent the pilot '
-                   'is making), nearest_pad (goal-agnostic: centres the '
-                   'descending pilot on the pad below; imitable from the latent) or init_actor (the '
-                   '--init-actor itself, frozen: TD3+BC fine-tuning anchored to the actor it starts from)',
+    'demo_policy': 'demonstrator: oracle (knows the goal), init_actor (the --init-actor itself, frozen: TD3+BC '
+                   'fine-tuning anchored to the actor it starts from) or a goal-agnostic nearest-pad teacher, '
+                   'imitable from the latent (scripted.NEAREST_PAD_VARIANTS, each documented in ScriptedConfig): '
+                   + ', '.join(NEAREST_PAD_VARIANTS),
     'demo_bc_file': 'demos_bc.npz of an earlier run: reuse its demonstrations for behaviour cloning / TD3+BC '
                     'instead of collecting new ones (preload its demos.npz with --preload)',
     'bc_alpha': 'TD3+BC regulariser weight (0 = plain TD3); keeps the actor near the demonstrations',

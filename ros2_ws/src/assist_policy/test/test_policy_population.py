@@ -122,6 +122,20 @@ def test_gentle_nearest_pad_script_adds_no_descent_to_a_descending_pilot_but_sti
         make_nearest_pad('nearest_pad_fast')
 
 
+def test_commit_teacher_is_gentle_high_up_and_pushes_down_in_the_last_half_metre():
+    from assist_policy.scripted import COMMIT_HEIGHT_M, make_nearest_pad
+    pads = np.array([[4.0, 0.0, 0.6], [8.0, 0.0, 0.8]])
+    commit, gentle = make_nearest_pad('nearest_pad_commit'), make_nearest_pad('nearest_pad_gentle')
+    down = np.array([0.0, 0.0, -0.5])
+    high = np.array([4.05, 0.1, 0.6 + COMMIT_HEIGHT_M + 0.3])      # over pad 0, above the commit height
+    np.testing.assert_allclose(commit.velocity(pads, high, down), gentle.velocity(pads, high, down))
+    assert commit.velocity(pads, high, down)[2] == 0.0
+    low = np.array([4.05, 0.1, 0.6 + COMMIT_HEIGHT_M - 0.1])       # inside the last half metre: committed
+    c = commit.velocity(pads, low, down)
+    assert c[2] == pytest.approx(-0.6) and gentle.velocity(pads, low, down)[2] == 0.0
+    np.testing.assert_allclose(c[:2], [-0.4, -0.8])               # centring is the same for every variant
+
+
 def test_evaluate_runs_the_gentle_reference_as_a_baseline():
     from assist_policy.evaluate import BASELINES, make_policy
     assert 'scripted_nearest_pad_gentle' in BASELINES
