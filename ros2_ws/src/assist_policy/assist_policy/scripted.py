@@ -19,7 +19,7 @@ from .actions import DEFAULT_MAX_SPEED, unscale_action
 # (1 m/s).
 YIELD_SPEED_MPS = 0.75
 # Height over the pad (m) below which the `nearest_pad_commit` teacher pushes down again: under the
-# late_correction pilots' noticing heights (0.4-1.5 m) for most of them, and above the last ~0.35 m of
+# late_correction pilots' noticing heights (0.4-1.5 m) for most of them, and above the last ~0.4 m of
 # the descent (the vehicle's centre sits ~0.1 m over the pad top at touchdown).
 COMMIT_HEIGHT_M = 0.5
 
