@@ -55,9 +55,10 @@ class ScriptedConfig:
     # late_correction pilots from ever noticing). Measured in assist_policy README, issue 12 teachers.
     gentle_descent: bool = False
     # With gentle_descent: below this height over the pad (m) the assistant pushes down again as the
-    # reference does: the last part of the descent is committed and quick, so the vehicle spends less time
-    # in the ground-effect turbulence (a learned actor, which sees the pad only through the latent, drifts
-    # to the pad's edge in a slow final descent). 0 = gentle all the way down.
+    # reference does, so the last part of the descent is committed and quick. Meant to shorten the slow
+    # final descent, in which the gentle teacher's learned imitators land less precisely than the
+    # reference's (whether that is the cause is not settled: assist_policy README, issue 12 DAgger with
+    # the descent-sparing teachers). 0 = gentle all the way down.
     commit_height_m: float = 0.0
 
 
@@ -136,12 +137,12 @@ class ScriptedNearestPad:
         p = np.asarray(position, dtype=float)
         pads = np.asarray(pads, dtype=float)
         k = int(np.argmin(np.linalg.norm(pads[:, :2] - p[:2], axis=1)))
-        low = p[2] - pads[k, 2] < self.low_height_m
+        height = p[2] - pads[k, 2]          # over the pad below
         descending = float(np.asarray(pilot, dtype=float)[2]) < 0
-        if not (descending or low):
+        if not (descending or height < self.low_height_m):
             return np.zeros(3)
         a = self.oracle.velocity(pads[k], p, pilot)
-        committed = p[2] - pads[k, 2] < self.cfg.commit_height_m
+        committed = height < self.cfg.commit_height_m
         if self.cfg.gentle_descent and descending and a[2] < 0 and not committed:
             a[2] = 0.0
         return a
