@@ -70,6 +70,7 @@ class EnvConfig:
     max_speed: tuple[float, float, float] = DEFAULT_MAX_SPEED
     window_s: float = 1.0
     feature_lags_s: tuple[float, ...] = ()           # feature memory (observation.FeatureMemory); () = none
+    memory_displacement: bool = False                # + the displacement since each lagged feature
     latent_dim: int = 0                              # set from the encoder for the latent condition
     encoder_path: str = ''                           # CM-VAE weights (latent condition)
     pilot_family: str = 'paper'                      # assist_sim.pilots name: a family, 'mix' or 'train_mix'
@@ -97,7 +98,7 @@ class LandingAssistEnv(gym.Env):
         self.latent_fn = latent_fn
         self.world = LandingWorld(self.cfg.world)
         self.builder = ObservationBuilder(self.condition, self.cfg.latent_dim, self.cfg.window_s,
-                                          tuple(self.cfg.feature_lags_s))
+                                          tuple(self.cfg.feature_lags_s), self.cfg.memory_displacement)
         self.dt = 1.0 / self.cfg.world.control_hz
         self.pilot_cfg = self.cfg.pilot
         self.pilot_cfg.control_hz = float(self.cfg.world.control_hz)
@@ -134,7 +135,7 @@ class LandingAssistEnv(gym.Env):
         if self.condition is Condition.END_TO_END:
             vec = self.builder.build(t, np.zeros(0), st.velocity, st.position[2], self._u)
             return np.concatenate([self._feature(st.position), vec]).astype(np.float32)
-        return self.builder.build(t, self._feature(st.position), st.velocity, st.position[2], self._u)
+        return self.builder.build(t, self._feature(st.position), st.velocity, st.position[2], self._u, st.position)
 
     def _goal_dist(self, pos: np.ndarray) -> float:
         return float(np.linalg.norm(self.world.goal_position - pos))

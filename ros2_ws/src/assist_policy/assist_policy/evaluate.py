@@ -210,7 +210,7 @@ def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: fl
     cfg = EnvConfig(condition=condition, alpha=alpha, max_episode_s=max_episode_s,
                     max_speed=tuple(meta.get('max_speed', (1.0, 1.0, 0.6))),
                     latent_dim=int(meta.get('latent_dim', 0)), pilot_family=pilot, safety=safety,
-                    feature_lags_s=tuple(meta['feature_lags_s']))
+                    feature_lags_s=tuple(meta['feature_lags_s']), memory_displacement=meta['memory_displacement'])
     if condition == 'latent':
         latent_fn, dim = make_latent_fn(encoder_path or None)
         if dim != cfg.latent_dim:

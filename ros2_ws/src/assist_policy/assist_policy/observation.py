@@ -16,7 +16,10 @@ and the policy node. Times are in seconds of whatever clock the caller uses (sim
 Feature memory (issue 12, optional): an actor whose metadata lists ``feature_lags_s`` (e.g. [1, 2])
 also sees the scene feature as it was that many seconds ago (``FeatureMemory``), appended after the
 vector above, so it still knows where the pads were after they left the view. Actors without it
-(every older file) see exactly the layout above.
+(every older file) see exactly the layout above. With ``memory_displacement`` the actor also sees,
+after the lagged features, how far the vehicle has moved since each of them was seen
+(p_now - p_then in the odometry frame, metres, 3 per lag): a lagged view of the pad is relative to
+where the vehicle was then, and the displacement is what turns it into where the pad is now.
 """
 from __future__ import annotations
 
@@ -31,6 +34,7 @@ GOAL_CLIP = 6.0       # after scaling; beyond ~24 m the exact offset no longer m
 Z_SCALE = 4.0         # m; start altitude is 3-4 m
 DYNAMICS_DIM = 4      # v (3) + scaled altitude (1)
 ACTIONS_DIM = 9       # u, mean u, mean a
+DISPLACEMENT_DIM = 3  # per feature lag with memory displacement: p_now - p_then (m, odometry frame)
 IMAGE_SHAPE = (4, 64, 64)  # end-to-end: RGB (0..1) + depth (m / DEPTH_SCALE)
 DEPTH_SCALE = 5.0
 TIME_EPS = 1e-6   # s; sample times closer than this count as equal
@@ -96,45 +100,63 @@ MAX_FEATURE_LAG_S = 30.0  # s
 
 
 class FeatureMemory:
-    """Time-stamped scene features; the feature as it was `lag` seconds ago, for each of `lags_s`."""
+    """Time-stamped scene features; the feature as it was `lag` seconds ago, for each of `lags_s`.
 
-    def __init__(self, lags_s: tuple[float, ...] = ()):
+    With `displacement`, each feature is stored with the vehicle position it was seen from, and
+    `lagged` also returns the displacement since then (p_now - p_then, 3 per lag, after the features).
+    """
+
+    def __init__(self, lags_s: tuple[float, ...] = (), displacement: bool = False):
         lags = tuple(float(x) for x in lags_s)
         if len(lags) > MAX_FEATURE_LAGS or any(not (0.0 < x <= MAX_FEATURE_LAG_S) for x in lags):
             raise ValueError(f'feature lags must be at most {MAX_FEATURE_LAGS} values in (0, {MAX_FEATURE_LAG_S:g}] s, '
                              f'got {list(lags_s)}')
+        if displacement and not lags:
+            raise ValueError('memory displacement needs feature lags')
         self.lags_s = lags
-        self._items: deque[tuple[float, np.ndarray]] = deque()
+        self.displacement = bool(displacement)
+        self._items: deque[tuple[float, np.ndarray, np.ndarray]] = deque()
 
     def clear(self) -> None:
         """Forget every feature (new episode)."""
         self._items.clear()
 
-    def lagged(self, now: float, feature: np.ndarray) -> np.ndarray:
-        """Record `feature` at `now`; the features seen at now - lag (oldest known if none that old), concatenated.
+    def lagged(self, now: float, feature: np.ndarray, position: np.ndarray | None = None) -> np.ndarray:
+        """Record `feature` (seen from `position`) at `now`; the features seen at now - lag (oldest known if
+        none that old), concatenated, then (with displacement) p_now - p_then for each.
 
         Empty when no lags are configured. A clock that jumps backwards (sim reset) clears the memory.
+        ValueError for a non-finite time or position, or no position when displacement is on.
         """
         if not self.lags_s:
             return np.zeros(0)
         if not np.isfinite(now):
             raise ValueError(f'FeatureMemory.lagged: non-finite time {now!r}')
+        if self.displacement:
+            if position is None:
+                raise ValueError('FeatureMemory.lagged: memory displacement needs the vehicle position')
+            pos = np.asarray(position, dtype=float).reshape(3).copy()
+            if not np.all(np.isfinite(pos)):
+                raise ValueError('FeatureMemory.lagged: non-finite position')
+        else:
+            pos = np.zeros(3)
         if self._items and now < self._items[-1][0]:
             self.clear()
-        self._items.append((float(now), np.asarray(feature, dtype=float).reshape(-1).copy()))
+        self._items.append((float(now), np.asarray(feature, dtype=float).reshape(-1).copy(), pos))
         horizon = now - max(self.lags_s) + TIME_EPS
         while len(self._items) > 1 and self._items[1][0] <= horizon:   # keep one sample at least max lag old
             self._items.popleft()
-        out = []
+        out, moved = [], []
         for lag in self.lags_s:
             target = now - lag + TIME_EPS
-            chosen = self._items[0][1]
-            for t, f in self._items:
-                if t > target:
+            chosen = self._items[0]
+            for item in self._items:
+                if item[0] > target:
                     break
-                chosen = f
-            out.append(chosen)
-        return np.concatenate(out)
+                chosen = item
+            out.append(chosen[1])
+            moved.append(pos - chosen[2])
+        return np.concatenate(out + moved) if self.displacement else np.concatenate(out)
 
 
 def feature_dim(condition: Condition | str, latent_dim: int = 0) -> int:
@@ -149,9 +171,12 @@ def feature_dim(condition: Condition | str, latent_dim: int = 0) -> int:
     return 0
 
 
-def vector_dim(condition: Condition | str, latent_dim: int = 0, n_lags: int = 0) -> int:
-    """Length of the full vector observation for `condition` (with `n_lags` lagged copies of the feature)."""
-    return feature_dim(condition, latent_dim) * (1 + n_lags) + DYNAMICS_DIM + ACTIONS_DIM
+def vector_dim(condition: Condition | str, latent_dim: int = 0, n_lags: int = 0,
+               displacement: bool = False) -> int:
+    """Length of the full vector observation for `condition` (with `n_lags` lagged copies of the feature
+    and, with `displacement`, the vehicle's displacement since each)."""
+    return (feature_dim(condition, latent_dim) * (1 + n_lags) + DYNAMICS_DIM + ACTIONS_DIM
+            + (DISPLACEMENT_DIM * n_lags if displacement else 0))
 
 
 def oracle_feature(goal: np.ndarray, position: np.ndarray) -> np.ndarray:
@@ -194,14 +219,15 @@ class ObservationBuilder:
     latent_dim: int = 0
     window_s: float = 1.0
     feature_lags_s: tuple[float, ...] = ()
+    memory_displacement: bool = False
 
     def __post_init__(self) -> None:
         self.condition = Condition(self.condition)
         if self.feature_lags_s and self.condition is Condition.END_TO_END:
             raise ValueError('feature lags need a vector feature (latent or oracle), not end_to_end')
         self.history = ActionHistory(self.window_s)
-        self.memory = FeatureMemory(tuple(self.feature_lags_s))
-        self.dim = vector_dim(self.condition, self.latent_dim, len(self.memory.lags_s))
+        self.memory = FeatureMemory(tuple(self.feature_lags_s), bool(self.memory_displacement))
+        self.dim = vector_dim(self.condition, self.latent_dim, len(self.memory.lags_s), self.memory.displacement)
 
     def reset(self) -> None:
         """Start a new episode."""
@@ -209,8 +235,9 @@ class ObservationBuilder:
         self.memory.clear()
 
     def build(self, now: float, feature: np.ndarray, velocity: np.ndarray, altitude: float,
-              u: np.ndarray) -> np.ndarray:
-        """Observation at time `now` from the feature, dynamics and current pilot action."""
+              u: np.ndarray, position: np.ndarray | None = None) -> np.ndarray:
+        """Observation at time `now` from the feature, dynamics and current pilot action (`position`, the
+        odometry position, is needed with memory displacement only)."""
         feature = np.asarray(feature, dtype=float).reshape(-1)
         expected = feature_dim(self.condition, self.latent_dim)
         if feature.size != expected:
@@ -219,7 +246,7 @@ class ObservationBuilder:
         obs = build_vector(feature, velocity, altitude, u, mean_u, mean_a)
         if not self.memory.lags_s:
             return obs
-        return np.concatenate([obs, self.memory.lagged(now, feature).astype(np.float32)])
+        return np.concatenate([obs, self.memory.lagged(now, feature, position).astype(np.float32)])
 
     def record(self, now: float, u: np.ndarray, a: np.ndarray) -> None:
         """Remember the pilot action and agent action applied at time `now`."""

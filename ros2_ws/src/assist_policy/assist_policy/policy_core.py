@@ -119,7 +119,7 @@ class PolicyCore:
             raise ValueError(f'{actor_path}: actor was trained for {trained!r}, not mode {self.mode.value!r}')
         self.max_speed = tuple(float(v) for v in self.meta['max_speed'])
         self.builder = ObservationBuilder(self.mode, int(self.meta['latent_dim']), float(self.meta['window_s']),
-                                          tuple(self.meta['feature_lags_s']))
+                                          tuple(self.meta['feature_lags_s']), self.meta['memory_displacement'])
         if self.builder.dim != int(self.meta['vec_dim']):
             raise ValueError(f'{actor_path}: actor expects {self.meta["vec_dim"]} inputs, the {self.mode.value} '
                              f'observation has {self.builder.dim}')
@@ -312,7 +312,7 @@ class PolicyCore:
             vec = self.builder.build(now, np.zeros(0), vel, pos[2], u)
             obs = np.concatenate([feature, vec]).astype(np.float32)
         else:
-            obs = self.builder.build(now, feature, vel, pos[2], u)
+            obs = self.builder.build(now, feature, vel, pos[2], u, pos)
         with torch.no_grad():
             raw = self.actor(torch.as_tensor(obs).unsqueeze(0))[0].numpy().astype(float)
         if not np.all(np.isfinite(raw)):

@@ -318,7 +318,8 @@ def save_actor(actor: Actor, meta: dict[str, Any], path: str | Path) -> None:
 
 META_DEFAULTS = {'act_dim': 3, 'image': False, 'image_channels': [32, 32, 64, 64], 'latent_dim': 0,
                  'max_speed': [1.0, 1.0, 0.6], 'window_s': 1.0,
-                 'feature_lags_s': []}   # older actor files may lack these (no lags: the original layout)
+                 'feature_lags_s': [], 'memory_displacement': False}   # older actor files may lack these
+# (no lags, no displacement: the original layout)
 MAX_ACTION_SPEED = 20.0   # m/s; an actor file claiming faster assistant actions is not one of ours
 
 
@@ -383,7 +384,12 @@ def validate_actor_meta(meta: Any) -> dict[str, Any]:
         raise ValueError("metadata 'latent_dim' must be >= 1 for a latent actor")
     if meta['feature_lags_s'] and (cond is None or cond == 'end_to_end'):
         raise ValueError("metadata 'feature_lags_s' needs a latent or oracle actor")
-    expected = vector_dim(cond, meta['latent_dim'], len(meta['feature_lags_s'])) if cond is not None else None
+    if not isinstance(meta['memory_displacement'], bool):
+        raise ValueError(f"metadata 'memory_displacement' must be true or false, got {meta['memory_displacement']!r}")
+    if meta['memory_displacement'] and not meta['feature_lags_s']:
+        raise ValueError("metadata 'memory_displacement' needs 'feature_lags_s'")
+    expected = (vector_dim(cond, meta['latent_dim'], len(meta['feature_lags_s']), meta['memory_displacement'])
+                if cond is not None else None)
     if expected is not None and expected != meta['vec_dim']:
         raise ValueError(f"metadata 'vec_dim' {meta['vec_dim']} does not fit a {cond} actor "
                          f"(latent_dim {meta['latent_dim']}: {expected})")

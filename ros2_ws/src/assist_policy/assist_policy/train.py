@@ -33,6 +33,7 @@ from assist_sim.pilots import HELDOUT_FAMILIES, TRAIN_FAMILIES
 from .cli import add_dataclass_args, dataclass_from_args
 from .env import EnvConfig, LandingAssistEnv, RewardConfig, run_episode
 from .latent import make_latent_fn
+from .observation import DISPLACEMENT_DIM, feature_dim
 from .safety import SafetyConfig
 from .scripted import NEAREST_PAD_VARIANTS, ScriptedOracle, make_nearest_pad
 from .td3 import TD3, OUNoise, ReplayBuffer, TD3Config, load_actor, save_actor
@@ -92,6 +93,7 @@ class TrainArgs:
     safety: bool = False
     floor_descent_weight: float = 0.0
     feature_lags_s: tuple[float, ...] = ()
+    memory_displacement: bool = False
 
 
 HELP = {
@@ -138,6 +140,8 @@ HELP = {
                             'the vehicle (0 = the paper reward)',
     'feature_lags_s': 'feature memory: the actor also sees the scene feature as it was this many seconds ago '
                       '(one copy per lag, e.g. 1 2); an --init-actor with fewer lags is widened with zero weights',
+    'memory_displacement': 'with --feature-lags-s: the actor also sees how far the vehicle moved since each lagged '
+                           'feature (odometry, 3 per lag); an --init-actor without them is widened with zero weights',
     'safety': 'fly with the floor guard (assist_policy.safety) on, as policy_node does by default',
 }
 
@@ -191,7 +195,7 @@ def env_config_from(args: TrainArgs) -> EnvConfig:
     check_training_pilot(args.pilot)
     return EnvConfig(condition=args.condition, alpha=args.alpha, max_episode_s=args.max_episode_s,
                      encoder_path=args.encoder_path, pilot_family=args.pilot, paper_share=args.paper_share,
-                     feature_lags_s=tuple(args.feature_lags_s),
+                     feature_lags_s=tuple(args.feature_lags_s), memory_displacement=bool(args.memory_displacement),
                      safety=SafetyConfig() if args.safety else None,
                      reward=RewardConfig(landing_weight=args.landing_weight,
                                          progress_weight=args.progress_weight,
@@ -224,20 +228,32 @@ def evaluate_agent(env: LandingAssistEnv, agent: TD3, per_beta: int, seed: int =
             'eval_active': float(np.mean([r['active_fraction'] for r in rows]))}
 
 
-def widen_state(state: dict, src_lags: list, dst_lags: list, dst_vec_dim: int) -> dict:
-    """An actor state dict for more feature lags: the extra inputs (appended last) get zero weights.
+def widen_state(state: dict, src_lags: list, dst_lags: list, dst_vec_dim: int, feat_dim: int,
+                src_displacement: bool = False, dst_displacement: bool = False) -> dict:
+    """An actor state dict for more feature lags and/or memory displacement: new inputs get zero weights.
 
-    The widened actor acts exactly like the original until training moves the new weights.
-    ValueError unless the source's lags are a prefix of the destination's.
+    Layout (observation.py): [base vector | feature per lag | displacement per lag (if any)]. The
+    widened actor acts exactly like the original until training moves the new weights. ValueError
+    unless the source's lags are a prefix of the destination's, a source with displacement keeps it
+    with the same lags, and the sizes fit.
     """
     if list(dst_lags[:len(src_lags)]) != list(src_lags):
         raise ValueError(f'feature lags {list(src_lags)} are not a prefix of {list(dst_lags)}')
+    if src_displacement and not (dst_displacement and list(src_lags) == list(dst_lags)):
+        raise ValueError('an actor with memory displacement can only be widened to the same lags with displacement')
     state = dict(state)
     w = state['head.0.weight']
-    extra = dst_vec_dim - w.shape[1]
-    if extra < 0:
-        raise ValueError(f'actor has {w.shape[1]} inputs, more than the {dst_vec_dim} of this run')
-    state['head.0.weight'] = torch.cat([w, torch.zeros(w.shape[0], extra, dtype=w.dtype)], dim=1)
+    n_src, n_dst = len(src_lags), len(dst_lags)
+    src_disp = DISPLACEMENT_DIM * n_src if src_displacement else 0
+    dst_disp = DISPLACEMENT_DIM * n_dst if dst_displacement else 0
+    kept = w.shape[1] - src_disp                   # base vector + the source's lagged features
+    if kept + (n_dst - n_src) * feat_dim + dst_disp != dst_vec_dim:
+        raise ValueError(f'actor has {w.shape[1]} inputs, which do not widen to the {dst_vec_dim} of this run')
+    new = torch.zeros(w.shape[0], dst_vec_dim, dtype=w.dtype)
+    new[:, :kept] = w[:, :kept]
+    if src_disp:
+        new[:, dst_vec_dim - dst_disp:] = w[:, kept:]
+    state['head.0.weight'] = new
     return state
 
 
@@ -248,10 +264,13 @@ def init_actor(agent: TD3, path: str, condition: str) -> None:
         raise ValueError(f'{path}: actor was trained for {meta.get("condition")!r}, this run is {condition!r}')
     state = actor.state_dict()
     dst_lags = agent.meta.get('feature_lags_s', [])
-    if list(meta['feature_lags_s']) != list(dst_lags):
-        state = widen_state(state, meta['feature_lags_s'], dst_lags, agent.meta['vec_dim'])
-        log.info('actor widened from feature lags %s to %s (new inputs start at zero weight)',
-                 meta['feature_lags_s'], dst_lags)
+    dst_disp = bool(agent.meta.get('memory_displacement', False))
+    if list(meta['feature_lags_s']) != list(dst_lags) or meta['memory_displacement'] != dst_disp:
+        state = widen_state(state, meta['feature_lags_s'], dst_lags, agent.meta['vec_dim'],
+                            feature_dim(condition, int(agent.meta.get('latent_dim', 0))),
+                            meta['memory_displacement'], dst_disp)
+        log.info('actor widened from feature lags %s (displacement %s) to %s (displacement %s); new inputs start '
+                 'at zero weight', meta['feature_lags_s'], meta['memory_displacement'], dst_lags, dst_disp)
     try:
         agent.actor.load_state_dict(state)
     except RuntimeError as exc:
@@ -326,7 +345,8 @@ def train(args: TrainArgs) -> Path:
                 image=env.image_size > 0, seed=args.seed)
     agent.meta.update(condition=args.condition, latent_dim=int(env_cfg.latent_dim),
                       max_speed=list(env_cfg.max_speed), blend_threshold=env_cfg.blend_threshold,
-                      window_s=env_cfg.window_s, feature_lags_s=list(env_cfg.feature_lags_s))
+                      window_s=env_cfg.window_s, feature_lags_s=list(env_cfg.feature_lags_s),
+                      memory_displacement=bool(env_cfg.memory_displacement))
     obs_dtype = np.float16 if env.image_size else np.float32
     buffer = ReplayBuffer(obs_dim, 3, args.buffer_size, obs_dtype=obs_dtype)
     rng = np.random.default_rng(args.seed)

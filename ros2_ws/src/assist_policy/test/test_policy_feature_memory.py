@@ -114,12 +114,79 @@ def test_widened_actor_acts_like_the_original():
     torch.manual_seed(0)
     old = Actor(vector_dim('latent', LATENT), 3, hidden=(16, 16))
     new = Actor(vector_dim('latent', LATENT, 2), 3, hidden=(16, 16))
-    new.load_state_dict(widen_state(old.state_dict(), [], [1.0, 2.0], vector_dim('latent', LATENT, 2)))
+    new.load_state_dict(widen_state(old.state_dict(), [], [1.0, 2.0], vector_dim('latent', LATENT, 2), LATENT))
     x = torch.randn(5, vector_dim('latent', LATENT))
     x_new = torch.cat([x, torch.randn(5, 2 * LATENT)], dim=1)
     torch.testing.assert_close(new(x_new), old(x))
     with pytest.raises(ValueError, match='prefix'):
-        widen_state(old.state_dict(), [2.0], [1.0, 2.0], vector_dim('latent', LATENT, 2))
+        widen_state(old.state_dict(), [2.0], [1.0, 2.0], vector_dim('latent', LATENT, 2), LATENT)
+
+
+def test_widening_adds_displacement_inputs_last_and_keeps_old_ones_in_place():
+    torch.manual_seed(1)
+    lags, more = [1.0], [1.0, 2.0]
+    old = Actor(vector_dim('latent', LATENT, 1), 3, hidden=(16,))
+    dst = vector_dim('latent', LATENT, 2, displacement=True)
+    mid = Actor(dst, 3, hidden=(16,))
+    mid.load_state_dict(widen_state(old.state_dict(), lags, more, dst, LATENT, False, True))
+    x = torch.randn(5, vector_dim('latent', LATENT, 1))
+    torch.testing.assert_close(mid(torch.cat([x, torch.randn(5, LATENT + 6)], dim=1)), old(x))
+    # an actor with displacement widened to the same lags keeps its displacement weights at the end
+    src = Actor(vector_dim('latent', LATENT, 2, displacement=True), 3, hidden=(16,))
+    same = widen_state(src.state_dict(), more, more, dst, LATENT, True, True)
+    torch.testing.assert_close(same['head.0.weight'], src.state_dict()['head.0.weight'])
+    with pytest.raises(ValueError, match='displacement'):
+        widen_state(src.state_dict(), more, more + [3.0], vector_dim('latent', LATENT, 3, True), LATENT, True, True)
+    with pytest.raises(ValueError, match='do not widen'):
+        widen_state(old.state_dict(), lags, more, dst + 1, LATENT, False, True)
+
+
+def test_memory_displacement_is_how_far_the_vehicle_moved_since_each_lag():
+    mem = FeatureMemory((1.0, 2.0), displacement=True)
+    out = None
+    for k in range(61):                      # 20 Hz for 3 s at 0.5 m/s along x, 0.2 m/s down
+        t = k * 0.05
+        out = mem.lagged(t, np.array([t]), np.array([0.5 * t, 1.0, 3.0 - 0.2 * t]))
+    np.testing.assert_allclose(out, [2.0, 1.0, 0.5, 0.0, -0.2, 1.0, 0.0, -0.4], atol=1e-9)
+    with pytest.raises(ValueError, match='position'):
+        mem.lagged(3.05, np.array([0.0]))
+    with pytest.raises(ValueError, match='position'):
+        mem.lagged(3.05, np.array([0.0]), np.array([np.nan, 0.0, 0.0]))
+    with pytest.raises(ValueError, match='needs feature lags'):
+        FeatureMemory((), displacement=True)
+
+
+def test_policy_core_feeds_the_displacement_from_odometry(tmp_path):
+    vec = vector_dim('latent', LATENT, 1, displacement=True)
+    actor = Actor(vec, 3, hidden=(8,))
+    with torch.no_grad():                     # raw x = tanh(10 * displacement x since the lag)
+        for prm in actor.parameters():
+            prm.zero_()
+        actor.head[0].weight[0, vec - 3] = 1.0
+        actor.head[0].weight[1, vec - 3] = -1.0
+        actor.head[2].weight[0, 0] = 10.0
+        actor.head[2].weight[0, 1] = -10.0
+    path = tmp_path / 'd.pt'
+    save_actor(actor, {'vec_dim': vec, 'hidden': [8], 'condition': 'latent', 'latent_dim': LATENT,
+                       'feature_lags_s': [1.0], 'memory_displacement': True}, path)
+    core = PolicyCore(path, PolicyCoreConfig(mode='latent'))
+    assert core.builder.dim == vec
+    out = None
+    for k in range(31):                      # flying +x at 0.4 m/s: 0.4 m moved in the last second
+        t = k * 0.05
+        core.set_odom(t, [0.4 * t, 0, 2], [0.4, 0, 0])
+        core.set_pilot(t, [0, 0, 0])
+        core.set_latent(t, np.zeros(LATENT))
+        out = core.step(t)
+    assert out.agent is not None and out.agent[0] == pytest.approx(np.tanh(4.0), abs=1e-3)
+    base = {'vec_dim': vec, 'hidden': [8], 'condition': 'latent', 'latent_dim': LATENT, 'feature_lags_s': [1.0]}
+    assert validate_actor_meta(dict(base, memory_displacement=True))['memory_displacement'] is True
+    with pytest.raises(ValueError, match='vec_dim'):
+        validate_actor_meta(base)                                     # without it the size does not fit
+    with pytest.raises(ValueError, match='memory_displacement'):
+        validate_actor_meta(dict(base, memory_displacement='yes'))
+    with pytest.raises(ValueError, match='memory_displacement'):
+        validate_actor_meta(dict(base, feature_lags_s=[], memory_displacement=True))
 
 
 def test_env_and_evaluate_build_the_memory_observation(tmp_path):
@@ -150,3 +217,27 @@ def test_over_pad_uses_the_yawed_footprint():
     assert over_pad([pad], np.array([2.0, 1.45]))
     assert not over_pad([pad], np.array([2.45, 1.0]))
     assert over_pad([pad], np.array([2.3, 1.0]), margin_m=0.15)
+
+
+def test_env_and_evaluate_build_the_displacement_observation(tmp_path):
+    env = LandingAssistEnv(EnvConfig(condition='oracle', feature_lags_s=(0.5,), memory_displacement=True))
+    obs, _ = env.reset(seed=3)
+    assert obs.shape == (2 * 3 + DYNAMICS_DIM + ACTIONS_DIM + 3,)
+    positions = []
+    for _ in range(15):
+        positions.append(env.world.state.position.copy())
+        obs, *_ = env.step(np.array([1.0, 0.0, 0.0]))
+    # after 15 steps (t = 0.75 s): the displacement since t = 0.25 s (step 5)
+    moved = env.world.state.position - positions[5]
+    assert moved[0] > 0.05
+    np.testing.assert_allclose(obs[-3:], moved, atol=1e-5)
+    env.close()
+    path = tmp_path / 'od.pt'
+    vec = vector_dim('oracle', 0, 1, displacement=True)
+    save_actor(Actor(vec, 3, hidden=(8,)), {'vec_dim': vec, 'hidden': [8], 'condition': 'oracle',
+                                            'feature_lags_s': [0.5], 'memory_displacement': True}, path)
+    env, policy = make_policy('oracle', str(path), '', 5.0, 0.5)
+    assert env.observation_space.shape == (vec,)
+    obs, _ = env.reset(seed=1)
+    assert policy(obs).shape == (3,)
+    env.close()
