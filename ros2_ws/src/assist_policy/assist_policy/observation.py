@@ -35,6 +35,9 @@ Z_SCALE = 4.0         # m; start altitude is 3-4 m
 DYNAMICS_DIM = 4      # v (3) + scaled altitude (1)
 ACTIONS_DIM = 9       # u, mean u, mean a
 DISPLACEMENT_DIM = 3  # per feature lag with memory displacement: p_now - p_then (m, odometry frame)
+# m, per axis: a displacement is clipped to this. Training never sees more than ~2.2 m (2 s lag); an
+# odometry jump (EKF reset, teleport without a new goal) reaches the actor bounded.
+DISPLACEMENT_CLIP_M = 5.0
 IMAGE_SHAPE = (4, 64, 64)  # end-to-end: RGB (0..1) + depth (m / DEPTH_SCALE)
 DEPTH_SCALE = 5.0
 TIME_EPS = 1e-6   # s; sample times closer than this count as equal
@@ -103,7 +106,8 @@ class FeatureMemory:
     """Time-stamped scene features; the feature as it was `lag` seconds ago, for each of `lags_s`.
 
     With `displacement`, each feature is stored with the vehicle position it was seen from, and
-    `lagged` also returns the displacement since then (p_now - p_then, 3 per lag, after the features).
+    `lagged` also returns the displacement since then (p_now - p_then, 3 per lag, after the features;
+    each value clipped to +-DISPLACEMENT_CLIP_M).
     """
 
     def __init__(self, lags_s: tuple[float, ...] = (), displacement: bool = False):
@@ -155,7 +159,7 @@ class FeatureMemory:
                     break
                 chosen = item
             out.append(chosen[1])
-            moved.append(pos - chosen[2])
+            moved.append(np.clip(pos - chosen[2], -DISPLACEMENT_CLIP_M, DISPLACEMENT_CLIP_M))
         return np.concatenate(out + moved) if self.displacement else np.concatenate(out)
 
 

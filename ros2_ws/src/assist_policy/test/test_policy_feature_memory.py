@@ -5,8 +5,8 @@ import torch
 
 from assist_policy.env import EnvConfig, LandingAssistEnv, over_pad
 from assist_policy.evaluate import make_policy
-from assist_policy.observation import (DYNAMICS_DIM, ACTIONS_DIM, Condition, FeatureMemory, ObservationBuilder,
-                                       oracle_feature, vector_dim)
+from assist_policy.observation import (DISPLACEMENT_CLIP_M, DYNAMICS_DIM, ACTIONS_DIM, Condition, FeatureMemory,
+                                       ObservationBuilder, oracle_feature, vector_dim)
 from assist_policy.policy_core import PolicyCore, PolicyCoreConfig
 from assist_policy.td3 import Actor, load_actor, save_actor, validate_actor_meta
 from assist_policy.train import widen_state
@@ -148,8 +148,11 @@ def test_memory_displacement_is_how_far_the_vehicle_moved_since_each_lag():
         t = k * 0.05
         out = mem.lagged(t, np.array([t]), np.array([0.5 * t, 1.0, 3.0 - 0.2 * t]))
     np.testing.assert_allclose(out, [2.0, 1.0, 0.5, 0.0, -0.2, 1.0, 0.0, -0.4], atol=1e-9)
+    # an odometry jump (e.g. an EKF reset) reaches the actor bounded; z: 3.0 now against 2.59 at 2.05 s
+    jumped = mem.lagged(3.05, np.array([0.0]), np.array([100.0, -100.0, 3.0]))
+    np.testing.assert_allclose(jumped[2:5], [DISPLACEMENT_CLIP_M, -DISPLACEMENT_CLIP_M, 0.41], atol=1e-9)
     with pytest.raises(ValueError, match='position'):
-        mem.lagged(3.05, np.array([0.0]))
+        mem.lagged(3.1, np.array([0.0]))
     with pytest.raises(ValueError, match='position'):
         mem.lagged(3.05, np.array([0.0]), np.array([np.nan, 0.0, 0.0]))
     with pytest.raises(ValueError, match='needs feature lags'):
