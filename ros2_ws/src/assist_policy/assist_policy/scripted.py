@@ -98,6 +98,10 @@ NEAREST_PAD_VARIANTS = {
     'nearest_pad_yield': {'yield_speed_mps': YIELD_SPEED_MPS},        # + let a held-key correction through
     'nearest_pad_gentle': {'gentle_descent': True},                   # + add no descent to the pilot's
     'nearest_pad_commit': {'gentle_descent': True, 'commit_height_m': COMMIT_HEIGHT_M},  # gentle, then commit
+    # the commit teacher that also lets a held-key correction through (issue 12; it costs reaction-delayed
+    # pilots, whose delayed overshoot is a held key too: assist_policy README, issue 12 commit + yield)
+    'nearest_pad_commit_yield': {'gentle_descent': True, 'commit_height_m': COMMIT_HEIGHT_M,
+                                 'yield_speed_mps': YIELD_SPEED_MPS},
 }
 
 

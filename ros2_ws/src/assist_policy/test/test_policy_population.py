@@ -136,6 +136,19 @@ def test_commit_teacher_is_gentle_high_up_and_pushes_down_in_the_last_half_metre
     np.testing.assert_allclose(c[:2], [-0.4, -0.8])               # centring is the same for every variant
 
 
+def test_commit_yield_teacher_is_the_commit_teacher_until_a_held_key_then_yields():
+    from assist_policy.scripted import COMMIT_HEIGHT_M, make_nearest_pad
+    pads = np.array([[4.0, 0.0, 0.6], [8.0, 0.0, 0.8]])
+    cy, commit = make_nearest_pad('nearest_pad_commit_yield'), make_nearest_pad('nearest_pad_commit')
+    down, leaving = np.array([0.0, 0.0, -0.5]), np.array([1.0, 0.0, 0.0])
+    for h in (COMMIT_HEIGHT_M + 0.3, COMMIT_HEIGHT_M - 0.1):       # gentle high up, committed low: as commit
+        pos = np.array([4.05, 0.1, 0.6 + h])
+        np.testing.assert_allclose(cy.velocity(pads, pos, down, mean_pilot=down), commit.velocity(pads, pos, down))
+    pos = np.array([4.2, 0.1, 1.2])                                # low over pad 0; the pilot holds 'forward'
+    assert commit.velocity(pads, pos, leaving, mean_pilot=leaving)[0] < -0.5
+    np.testing.assert_array_equal(cy.velocity(pads, pos, leaving, mean_pilot=leaving), 0.0)
+
+
 def test_evaluate_runs_the_gentle_reference_as_a_baseline():
     from assist_policy.evaluate import BASELINES, make_policy
     assert 'scripted_nearest_pad_gentle' in BASELINES
