@@ -150,17 +150,19 @@ class FeatureMemory:
         horizon = now - max(self.lags_s) + TIME_EPS
         while len(self._items) > 1 and self._items[1][0] <= horizon:   # keep one sample at least max lag old
             self._items.popleft()
-        out, moved = [], []
+        chosen = []
         for lag in self.lags_s:
             target = now - lag + TIME_EPS
-            chosen = self._items[0]
-            for item in self._items:
-                if item[0] > target:
+            item = self._items[0]
+            for candidate in self._items:
+                if candidate[0] > target:
                     break
-                chosen = item
-            out.append(chosen[1])
-            moved.append(np.clip(pos - chosen[2], -DISPLACEMENT_CLIP_M, DISPLACEMENT_CLIP_M))
-        return np.concatenate(out + moved) if self.displacement else np.concatenate(out)
+                item = candidate
+            chosen.append(item)
+        out = [item[1] for item in chosen]
+        if self.displacement:
+            out += [np.clip(pos - item[2], -DISPLACEMENT_CLIP_M, DISPLACEMENT_CLIP_M) for item in chosen]
+        return np.concatenate(out)
 
 
 def feature_dim(condition: Condition | str, latent_dim: int = 0) -> int:
