@@ -1,5 +1,6 @@
 """policy_node's floor guard in a real graph: depth image in (32FC1 and 16UC1), climb out on /cmd_vel and
-/assist/agent_cmd, counted on /diagnostics, turned off at run time with the floor_guard parameter."""
+/assist/agent_cmd, counted on /diagnostics, turned off at run time with the floor_guard parameter; and its
+pilot override (a held key passes with a gentle climb; the pilot_override parameter turns it off)."""
 import importlib.util
 import threading
 import time
@@ -44,8 +45,8 @@ def depth_msg(encoding: str) -> Image:
 class Probe:
     """Publishes odom, a descending pilot, the latent and depth; records cmd_vel, agent_cmd, diagnostics."""
 
-    def __init__(self, node):
-        self.node, self.lock = node, threading.Lock()
+    def __init__(self, node, pilot=(0.0, 0.0, -0.5)):
+        self.node, self.lock, self.pilot = node, threading.Lock(), pilot
         self.cmd, self.agent, self.diag = [], [], []
         node.create_subscription(TwistStamped, '/cmd_vel', self._rec(self.cmd), RELIABLE_QOS)
         node.create_subscription(TwistStamped, '/assist/agent_cmd', self._rec(self.agent), RELIABLE_QOS)
@@ -79,7 +80,7 @@ class Probe:
             od.pose.pose.position.z = ALT
             self.pub_odom.publish(od)
             tw = TwistStamped()
-            tw.twist.linear.z = -0.5
+            tw.twist.linear.x, tw.twist.linear.y, tw.twist.linear.z = self.pilot
             self.pub_pilot.publish(tw)
             self.pub_latent.publish(Float32MultiArray(data=[0.0] * _helpers.LATENT))
             self.pub_depth.publish(depth_msg(encoding))
@@ -123,3 +124,27 @@ def test_floor_guard_blocks_descent_over_floor_and_can_be_turned_off(ros, start_
     agents = probe.since(probe.agent, t2 + 0.5)
     assert agents and all(np.allclose(a, 0, atol=1e-6) for a in agents)               # the actor's a = 0 again
     assert wait(lambda: probe.diag and probe.diag[-1].get('floor_guard') == 'off', 5)
+
+
+def test_pilot_override_passes_a_held_key_and_can_be_turned_off(ros, start_node, wait, tmp_path):
+    model = _helpers.constant_actor(tmp_path / 'down.pt', [0.0, 0.0, -0.9])        # the actor pushes down
+    probe = Probe(ros, pilot=(1.0, 0.0, 0.0))                                     # the pilot holds a key forward
+    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0,
+                                      'floor_guard': False})
+    t0 = time.monotonic()
+    while not probe.since(probe.agent, t0) and time.monotonic() - t0 < 40 and node.proc.poll() is None:
+        probe.run(0.2)
+    assert node.proc.poll() is None, node.log()
+    t1 = probe.run(2.0)
+    cmds, agents = probe.since(probe.cmd, t1 + 1.2), probe.since(probe.agent, t1 + 1.2)
+    assert cmds and agents, node.log()
+    # a' = (u_x, u_y, 2 * 0.3 - u_z): V = (1, 0, 0.3), the key passes and the vehicle rises instead of descending
+    assert all(np.allclose(v, [1.0, 0, 0.3], atol=1e-5) for v in cmds), cmds[-3:]
+    assert all(np.allclose(a, [1.0, 0, 0.6], atol=1e-5) for a in agents), agents[-3:]
+    assert wait(lambda: any(int(d.get('pilot_override_engaged', 0)) > 10 for d in probe.diag), 5), probe.diag[-1:]
+    assert probe.diag[-1].get('pilot_override') == 'on'
+    set_param(ros, 'pilot_override', False, wait)
+    t2 = probe.run(1.5)
+    cmds = probe.since(probe.cmd, t2 + 0.5)
+    assert cmds and all(np.allclose(v, [0.5, 0, -0.27], atol=1e-5) for v in cmds), cmds[-3:]   # blend(u, a)
+    assert wait(lambda: probe.diag and probe.diag[-1].get('pilot_override') == 'off', 5)

@@ -3,6 +3,8 @@
 One step = one control period of the world (1/control_hz s):
   1. the agent sees obs_t (scene feature, dynamics, pilot action u_t, 1 s means) and outputs raw
      action in [-1, 1]^3, scaled to a velocity a_t (``actions.scale_action``);
+     With ``EnvConfig.override`` the pilot override (``override.override_action``) replaces a_t
+     while the pilot holds a horizontal key; with ``EnvConfig.safety`` the floor guard acts on V_t;
   2. the vehicle flies V_t = blend(u_t, a_t) (``blending.blend``) with the world's turbulence;
   3. the pilot updates its goal estimate with the applied assistance (a_t if |a_t| > threshold,
      else 0) and produces u_{t+1}.
@@ -38,6 +40,7 @@ from assist_sim.pilots import make_pilot
 from .actions import DEFAULT_MAX_SPEED, scale_action
 from .blending import DEFAULT_THRESHOLD, blend
 from .observation import IMAGE_SHAPE, Condition, ObservationBuilder, image_feature, oracle_feature
+from .override import OverrideConfig, override_action
 from .safety import FloorGuard, SafetyConfig
 
 log = logging.getLogger(__name__)
@@ -76,6 +79,7 @@ class EnvConfig:
     pilot_family: str = 'paper'                      # assist_sim.pilots name: a family, 'mix' or 'train_mix'
     paper_share: float = 0.0                         # chance per landing of the paper pilot instead (training)
     safety: SafetyConfig | None = None               # floor guard on the blended command (None: off)
+    override: OverrideConfig | None = None           # pilot override on the agent action (None: off)
     reward: RewardConfig = field(default_factory=RewardConfig)
     pilot: PilotConfig = field(default_factory=PilotConfig)
     world: WorldConfig = field(default_factory=WorldConfig)
@@ -178,10 +182,16 @@ class LandingAssistEnv(gym.Env):
         if not np.all(np.isfinite(raw)):
             raise ValueError(f'non-finite action {raw.tolist()}')
         a = np.zeros(3) if self.unassisted else scale_action(raw, self.cfg.max_speed)
+        t = self.world.state.time - self._t0
+        overridden = False
+        if self.cfg.override is not None and not self.unassisted:
+            a_o = override_action(self.cfg.override, self._u, self.builder.history.means(t)[0],
+                                  float(self.world.state.position[2]), self.cfg.max_speed)
+            if a_o is not None:
+                a, overridden = a_o, True
         active = float(np.linalg.norm(a)) > self.cfg.blend_threshold
         v = blend(self._u, a, self.cfg.blend_threshold)
-        t = self.world.state.time - self._t0
-        self.builder.record(t, self._u, a)
+        self.builder.record(t, self._u, a)           # the action applied (the override's while it acts)
         guarded = False
         if self.guard is not None and not self.unassisted:
             a, v, guarded = self._guard(a, active, v)
@@ -199,7 +209,8 @@ class LandingAssistEnv(gym.Env):
         self._dist = d
         terminated = self.world.done
         truncated = (not terminated) and (st.time - self._t0) >= self.cfg.max_episode_s
-        info: dict[str, Any] = {'active': active, 'guard': guarded, 'goal_estimate': self.pilot.goal_estimate.copy()}
+        info: dict[str, Any] = {'active': active, 'guard': guarded, 'override': overridden,
+                                'goal_estimate': self.pilot.goal_estimate.copy()}
         if terminated:
             res = self.world.result
             res.assisted = not self.unassisted
@@ -242,17 +253,19 @@ def over_pad(pads, xy: np.ndarray, margin_m: float = 0.0) -> bool:
 def run_episode(env: LandingAssistEnv, policy, seed: int, options: dict | None = None) -> dict:
     """Roll out one landing with `policy(obs) -> raw action` (None = unassisted); returns a summary."""
     obs, info = env.reset(seed=seed, options=options)
-    steps, active, guarded = 0, 0, 0
+    steps, active, guarded, overridden = 0, 0, 0, 0
     while True:
         act = np.zeros(3) if policy is None else policy(obs)
         obs, _, term, trunc, step_info = env.step(act)
         steps += 1
         active += int(step_info['active'])
         guarded += int(step_info.get('guard', False))
+        overridden += int(step_info.get('override', False))
         if term or trunc:
             break
     res = dict(step_info['result'])
     res.update(beta=info['beta'], alpha=info['alpha'], scene_seed=info['scene_seed'], steps=steps,
                aimed_index=info['aimed_index'], pilot=info['pilot'], guard_fraction=guarded / steps,
+               override_fraction=overridden / steps,
                active_fraction=active / steps, episode_return=env.episode_return)
     return res

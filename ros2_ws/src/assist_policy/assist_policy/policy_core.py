@@ -11,7 +11,10 @@ Safety rules (ARCHITECTURE.md, "Timing and safety rules"):
 * V is clamped to max_speed_mps (horizontal norm) and max_vertical_mps;
 * floor guard (``safety.FloorGuard``, not learned): low over the floor with no pad under the legs in
   the depth image, a descending V is replaced by a small climb (agent action a' = 2 V' - u, reason key
-  ``floor_guard``); needs fresh odometry and a depth image (``set_depth``) no older than feature_timeout_s.
+  ``floor_guard``); needs fresh odometry and a depth image (``set_depth``) no older than feature_timeout_s;
+* pilot override (``override.override_action``, not learned): while the pilot holds a horizontal key and
+  does not descend, the actor's action is replaced (the pilot's correction passes, the vehicle rises
+  gently when low; reason key ``pilot_override``).
 """
 from __future__ import annotations
 
@@ -30,6 +33,7 @@ from assist_sim.shipped import shipped_model_path
 from .actions import scale_action
 from .blending import DEFAULT_THRESHOLD, blend
 from .observation import Condition, ObservationBuilder, image_feature, oracle_feature
+from .override import OverrideConfig, override_action
 from .safety import FloorGuard, SafetyConfig
 from .td3 import load_actor
 
@@ -73,6 +77,7 @@ class PolicyCoreConfig:
     max_position_m: float = 1.0e4       # odometry / goal coordinates beyond this are rejected
     max_latent_abs: float = 1.0e3       # encoder means beyond this are rejected
     safety: SafetyConfig | None = None  # floor guard settings (None: SafetyConfig() defaults)
+    override: OverrideConfig | None = None  # pilot override settings (None: OverrideConfig() defaults)
 
     def __post_init__(self) -> None:
         """Reject settings that would reverse, suppress or invent motion (ValueError, one line)."""
@@ -92,7 +97,8 @@ class PolicyOutput:
 
     `key` is a short stable reason for diagnostics: ``assisting``, ``small_action`` (the actor chose
     |a| <= threshold), ``odom_stale``, ``feature_stale``, ``goal_absent``, ``actor_nonfinite`` or
-    ``step_error``, or ``floor_guard`` (the floor guard replaced a descent); `reason` is the text.
+    ``step_error``, ``floor_guard`` (the floor guard replaced a descent) or ``pilot_override`` (the pilot
+    override replaced the actor's action); `reason` is the text.
     """
 
     agent: np.ndarray | None
@@ -133,6 +139,8 @@ class PolicyCore:
         self.guard = FloorGuard(self.cfg.safety or SafetyConfig())
         self._depth: tuple[float, np.ndarray] | None = None
         self.guard_engaged = 0                      # steps whose descent the floor guard replaced
+        self.override = self.cfg.override or OverrideConfig()
+        self.override_engaged = 0                   # steps whose actor action the pilot override replaced
 
     def configure(self, **changes) -> None:
         """Change settings at run time (e.g. speed limits); ValueError (nothing changed) if invalid."""
@@ -319,6 +327,12 @@ class PolicyCore:
             self.rejected += 1
             return self._relinquish(now, u, 'actor output not finite (rejected)', 'actor_nonfinite')
         a = scale_action(raw, self.max_speed)
+        a_o = override_action(self.override, u, self.builder.history.means(now)[0], float(pos[2]), self.max_speed)
+        if a_o is not None:
+            self.override_engaged += 1
+            v = self._clamp(blend(u, a_o, c.blend_threshold))
+            self.builder.record(now, u, a_o)            # the action applied, as in training and evaluation
+            return PolicyOutput(a_o, v, 'pilot override: the pilot\'s held correction passes', 'pilot_override')
         v = self._clamp(blend(u, a, c.blend_threshold))
         self.builder.record(now, u, a)
         if np.linalg.norm(a) > c.blend_threshold:

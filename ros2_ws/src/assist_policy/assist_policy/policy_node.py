@@ -2,12 +2,15 @@
 
 Thin rclpy shell over ``policy_core.PolicyCore`` (input range checks, staleness, blending, NaN rejection).
 Run-time parameters (``ros2 param set``): blend_threshold, the three timeouts, max_speed,
-max_vertical_speed, max_input_speed, floor_guard, floor_guard_height_m, floor_guard_climb_mps; every
-other parameter is read-only. The floor guard (assist_policy.safety) reads /camera/depth/image_raw in
-every mode; /diagnostics shows floor_guard (on/off) and floor_guard_engaged (steps it replaced a descent).
+max_vertical_speed, max_input_speed, floor_guard, floor_guard_height_m, floor_guard_climb_mps and the
+pilot_override* parameters; every other parameter is read-only. The floor guard (assist_policy.safety)
+reads /camera/depth/image_raw in every mode; /diagnostics shows floor_guard (on/off) and
+floor_guard_engaged (steps it replaced a descent), pilot_override (on/off) and pilot_override_engaged
+(steps the pilot override, assist_policy.override, replaced the actor's action).
 """
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 
@@ -26,6 +29,7 @@ from assist_sim.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagno
                                    realtime_priority_param, run_node, twist_to_array)
 
 from .blending import DEFAULT_THRESHOLD
+from .override import OverrideConfig
 from .policy_core import PolicyCore, PolicyCoreConfig, PolicyOutput, default_model_path
 from .safety import SafetyConfig
 
@@ -69,7 +73,20 @@ PARAMS = {
                                   min=0.0, max=10.0, dynamic=True),
     'floor_guard_climb_mps': Param(0.15, 'Vertical velocity the floor guard imposes instead of a descent (m/s; at '
                                          'least blend_threshold / 2 + 0.01 is used).', min=0.0, max=1.0, dynamic=True),
+    'pilot_override': Param(True, 'Pilot override (assist_policy.override, not learned): while the pilot holds a '
+                                  'horizontal key and does not descend, its correction passes (the vehicle rises '
+                                  'gently when low) instead of the actor\'s action.', dynamic=True),
+    'pilot_override_speed_mps': Param(OverrideConfig.speed_mps, 'Mean horizontal pilot speed over the last second '
+                                      '(m/s) above which a key counts as held.', min=0.0, max=10.0, dynamic=True),
+    'pilot_override_climb_mps': Param(OverrideConfig.climb_mps, 'Vertical velocity while the pilot override acts '
+                                      'low (m/s; the pilot\'s own climb if faster).', min=0.0, max=1.0, dynamic=True),
+    'pilot_override_climb_below_m': Param(OverrideConfig.climb_below_m, 'Altitude (odom z over the floor, m) below '
+                                          'which the pilot override adds the climb; above it it relinquishes.',
+                                          min=0.0, max=20.0, dynamic=True),
 }
+# node parameter -> OverrideConfig field
+OVERRIDE_FIELDS = {'pilot_override': 'enabled', 'pilot_override_speed_mps': 'speed_mps',
+                   'pilot_override_climb_mps': 'climb_mps', 'pilot_override_climb_below_m': 'climb_below_m'}
 
 # node parameter -> PolicyCoreConfig field, for the parameters applied to the core at run time
 CORE_FIELDS = {'blend_threshold': 'blend_threshold', 'pilot_timeout_s': 'pilot_timeout_s',
@@ -77,7 +94,7 @@ CORE_FIELDS = {'blend_threshold': 'blend_threshold', 'pilot_timeout_s': 'pilot_t
                'max_speed': 'max_speed_mps', 'max_vertical_speed': 'max_vertical_mps',
                'max_input_speed': 'max_input_mps'}
 # step outcomes that are normal operation (diagnostics OK); everything else is a WARN with its reason
-OK_KEYS = ('assisting', 'small_action', 'floor_guard')
+OK_KEYS = ('assisting', 'small_action', 'floor_guard', 'pilot_override')
 FAULT_KEYS = ('actor_nonfinite', 'step_error')
 
 
@@ -133,6 +150,8 @@ class PolicyNode(Node):
                                    safety=SafetyConfig(enabled=bool(self.p['floor_guard']),
                                                        guard_height_m=float(self.p['floor_guard_height_m']),
                                                        min_climb_mps=float(self.p['floor_guard_climb_mps'])),
+                                   override=OverrideConfig(**{f: (bool if f == 'enabled' else float)(self.p[k])
+                                                              for k, f in OVERRIDE_FIELDS.items()}),
                                    **{f: self.p[k] for k, f in CORE_FIELDS.items()})
             self.core = PolicyCore(path, cfg)
         except ValueError as exc:
@@ -166,6 +185,7 @@ class PolicyNode(Node):
         self.diag.set('model_path', path)
         self.diag.set('mode', mode)
         self.diag.set('floor_guard', 'on' if self.p['floor_guard'] else 'off')
+        self.diag.set('pilot_override', 'on' if self.p['pilot_override'] else 'off')
         self.diag.status(DiagnosticStatus.WARN, 'relinquished: waiting for inputs')
         self.get_logger().info(f'policy_node: {mode} actor {path} at {self.p["rate_hz"]} Hz')
 
@@ -184,6 +204,12 @@ class PolicyNode(Node):
                 g.guard_height_m = float(guard.get('floor_guard_height_m', g.guard_height_m))
                 g.min_climb_mps = float(guard.get('floor_guard_climb_mps', g.min_climb_mps))
             self.diag.set('floor_guard', 'on' if g.enabled else 'off')
+        override = {OVERRIDE_FIELDS[k]: (bool if k == 'pilot_override' else float)(v)
+                    for k, v in changed.items() if k in OVERRIDE_FIELDS}
+        if override:
+            with self._lock:
+                self.core.override = dataclasses.replace(self.core.override, **override)
+            self.diag.set('pilot_override', 'on' if self.core.override.enabled else 'off')
 
     # ------------------------------------------------------------- inputs
     def _now(self) -> float:
@@ -284,6 +310,7 @@ class PolicyNode(Node):
         self.diag.set('state', out.key)
         self.diag.set('rejected_actor_outputs', self.core.rejected)
         self.diag.set('floor_guard_engaged', self.core.guard_engaged)
+        self.diag.set('pilot_override_engaged', self.core.override_engaged)
         if out.key in FAULT_KEYS:
             self._consecutive_faults += 1
             self.diag.count(f'fault_{out.key}')
@@ -301,6 +328,8 @@ class PolicyNode(Node):
             self.diag.status(DiagnosticStatus.OK, 'assisting')
         elif out.key == 'floor_guard':
             self.diag.status(DiagnosticStatus.OK, 'floor guard: descent over bare floor blocked')
+        elif out.key == 'pilot_override':
+            self.diag.status(DiagnosticStatus.OK, 'pilot override: the pilot\'s held correction passes')
         elif out.key == 'small_action':
             self.diag.status(DiagnosticStatus.OK, 'relinquished: agent action at or below blend_threshold')
         else:

@@ -102,7 +102,7 @@ def test_oracle_needs_goal_and_mode_mismatch_is_an_error(tmp_path):
     with pytest.raises(ValueError, match='trained for'):
         PolicyCore(path, PolicyCoreConfig(mode='latent'))
     core = PolicyCore(path, PolicyCoreConfig(mode='oracle'))
-    feed(core, 1.0, latent=False)
+    feed(core, 1.0, u=(0.0, 0.5, 0.0), latent=False)     # not a held key: the pilot override stays out
     assert core.step(1.0).agent is None
     core.set_goal([5, 0, 1])
     np.testing.assert_allclose(core.step(1.0).agent, [0, 0.9, 0], atol=1e-6)

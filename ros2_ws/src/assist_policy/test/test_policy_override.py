@@ -1,0 +1,104 @@
+"""Pilot override (assist_policy.override): the rule, and where it acts (env, evaluate, policy core)."""
+import csv
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from assist_policy.blending import blend
+from assist_policy.env import EnvConfig, LandingAssistEnv
+from assist_policy.evaluate import EvalArgs, evaluate
+from assist_policy.override import OverrideConfig, override_action
+from assist_policy.policy_core import PolicyCore, PolicyCoreConfig
+
+_spec = importlib.util.spec_from_file_location('policy_core_helpers', Path(__file__).with_name('test_policy_core.py'))
+_helpers = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_helpers)
+MS = (1.0, 1.0, 0.6)
+THR = 0.25
+CFG = OverrideConfig()
+
+
+def test_a_held_key_passes_low_with_a_gentle_climb():
+    u = np.array([1.0, 0.0, 0.0])
+    a = override_action(CFG, u, np.array([0.9, 0.0, 0.0]), 1.2, MS)
+    np.testing.assert_allclose(a, [1.0, 0.0, 0.6])
+    np.testing.assert_allclose(blend(u, a, THR), [1.0, 0.0, 0.3])        # V: the pilot's key, rising 0.3 m/s
+    # a diagonal held key over the window, the key up at this instant (tapping): V still rises
+    a = override_action(CFG, np.zeros(3), np.array([0.6, 0.6, 0.0]), 0.9, MS)
+    np.testing.assert_allclose(blend(np.zeros(3), a, THR), [0.0, 0.0, 0.3])
+    # a pilot climbing faster than the climb keeps its own climb; a bang-bang key faster than max_speed is clipped
+    u = np.array([1.5, 0.0, 0.5])
+    a = override_action(CFG, u, np.array([1.5, 0.0, 0.5]), 1.0, MS)
+    np.testing.assert_allclose(a, [1.0, 0.0, 0.5])
+    assert blend(u, a, THR)[2] == pytest.approx(0.5)
+
+
+def test_high_up_it_relinquishes_and_it_never_acts_on_taps_descents_or_when_off():
+    u = np.array([1.0, 0.0, 0.0])
+    np.testing.assert_allclose(override_action(CFG, u, np.array([1.0, 0.0, 0.0]), 2.5, MS), np.zeros(3))
+    assert override_action(CFG, u, np.array([0.5, 0.5, 0.0]), 1.0, MS) is None      # 0.71 m/s: fine taps
+    assert override_action(CFG, np.array([1.0, 0.0, -0.5]), np.array([1.0, 0.0, -0.5]), 1.0, MS) is None
+    assert override_action(OverrideConfig(enabled=False), u, u, 1.0, MS) is None
+    assert override_action(CFG, u, np.array([np.nan, 0.0, 0.0]), 1.0, MS) is None   # nothing to judge by
+    with pytest.raises(ValueError, match='speed_mps'):
+        OverrideConfig(speed_mps=-1.0)
+    with pytest.raises(ValueError, match='climb_below_m'):
+        OverrideConfig(climb_below_m=float('nan'))
+
+
+def test_env_replaces_the_actors_action_while_the_pilot_holds_a_key():
+    env = LandingAssistEnv(EnvConfig(condition='oracle', override=OverrideConfig()))
+    env.reset(seed=2)
+    x = float(env.world.pad_top_centers[:, 0].min()) - 2.0
+    env.world.reset(seed=env.world.scene.seed, scene=env.world.scene, start_position=[x, 0.0, 1.0])
+    push_down = np.array([0.0, -1.0, -1.0])               # an actor pulling sideways and pushing down
+    for _ in range(20):                                   # 1 s of hovering fills the 1 s window
+        env._u = np.zeros(3)
+        assert not env.step(np.zeros(3))[4]['override']
+    seen = []
+    for _ in range(30):                                   # then 1.5 s of a held forward key
+        env._u = np.array([1.0, 0.0, 0.0])
+        _, _, term, _, info = env.step(push_down)
+        seen.append(info['override'])
+        assert not term
+    assert not any(seen[:12]) and all(seen[20:])          # engages once the 1 s mean passes 0.75 m/s
+    assert env.world.state.velocity[2] > 0.1 and env.world.state.velocity[0] > 0.7   # rising, moving on
+    _, a_mean = env.builder.history.means(env.world.state.time - env._t0)
+    assert a_mean[2] > 0.3                                 # the history holds the applied (override) action
+    env.close()
+
+
+def test_evaluate_override_rows_and_column(tmp_path):
+    actor = _helpers.constant_actor(tmp_path / 'down.pt', [0.0, 0.0, -0.9], condition='oracle', latent_dim=0)
+    args = EvalArgs(out=str(tmp_path / 'ev'), conditions=('oracle', 'scripted_nearest_pad'), betas=(0.5,),
+                    landings=1, pilot='late_correction', safety=True, override=True, oracle_model=str(actor),
+                    plot=False, max_episode_s=20.0)
+    summary = evaluate(args)
+    assert set(summary) == {'oracle+guard+override', 'scripted_nearest_pad+guard'}   # scripts stay as defined
+    rows = {r['condition']: r for r in csv.DictReader(open(tmp_path / 'ev' / 'landings.csv'))}
+    assert float(rows['oracle+guard+override']['override_fraction']) > 0.0      # the pilot's transit keys
+    assert float(rows['scripted_nearest_pad+guard']['override_fraction']) == 0.0
+
+
+def test_policy_core_override_engages_reports_and_turns_off(tmp_path):
+    path = _helpers.constant_actor(tmp_path / 'a.pt', [0.0, -0.9, -0.9])
+    core = PolicyCore(path, PolicyCoreConfig(mode='latent'))
+    outs = []
+    for k in range(50):                                   # 1 s hovering, then 1.5 s of a held key, 20 Hz, at 1.2 m
+        t = 1.0 + 0.05 * k
+        core.set_odom(t, [0, 0, 1.2], [0, 0, 0])
+        core.set_pilot(t, [1.0, 0.0, 0.0] if k >= 20 else [0.0, 0.0, 0.0])
+        core.set_latent(t, np.zeros(_helpers.LATENT))
+        outs.append(core.step(t))
+    assert all(o.key == 'assisting' for o in outs[:32]) and outs[-1].key == 'pilot_override'
+    np.testing.assert_allclose(outs[-1].velocity, [1.0, 0.0, 0.3])
+    np.testing.assert_allclose(outs[-1].agent, [1.0, 0.0, 0.6])      # what /assist/agent_cmd shows
+    assert core.override_engaged == sum(o.key == 'pilot_override' for o in outs) >= 10
+    core.override = OverrideConfig(enabled=False)
+    core.set_odom(3.0, [0, 0, 1.2], [0, 0, 0])
+    core.set_pilot(3.0, [1.0, 0.0, 0.0])
+    core.set_latent(3.0, np.zeros(_helpers.LATENT))
+    out = core.step(3.0)
+    assert out.key == 'assisting' and out.velocity[2] < 0              # the actor's descent again
