@@ -31,6 +31,18 @@ def landing(tmp_path_factory):
     return bag, row
 
 
+@pytest.fixture(scope='module')
+def override_landing(tmp_path_factory):
+    """One latent landing flown with the pilot override on (evaluate --override true): rows latent+override."""
+    out = tmp_path_factory.mktemp('eval_override')
+    code = evaluate.main(['--out', str(out), '--conditions', 'latent', '--betas', '0.3', '--landings', '1',
+                          '--pilot', 'late_correction', '--override', 'true', '--max-episode-s', '10',
+                          '--record-dir', str(out / 'bags'), '--plot', 'false'])
+    assert code == 0
+    row = evaluate.read_landings(out / 'landings.csv')['latent+override'][0]
+    return out / 'bags' / landing_bag_name('latent+override', row['beta'], row['seed']), row
+
+
 def test_landing_bag_matches_its_csv_row(landing):
     bag, row = landing
     with BagReader(bag) as r:
@@ -59,6 +71,18 @@ def test_replay_reproduces_the_recorded_commands(landing):
     # the comparison sees a change: an assistant that never blends in flies V = u, not what was flown
     off = summarize(replay(bag, ReplayConfig(latent='recorded', blend_threshold=10.0)))
     assert off['cmd_vel']['max'] > 0.1
+
+
+def test_replay_follows_the_pilot_override_the_bag_was_flown_with(landing, override_landing):
+    bag, row = override_landing
+    assert float(row['override_fraction']) > 0                 # the pilot's held keys engaged it
+    s = summarize(replay(bag, ReplayConfig()))
+    assert s['mode'] == 'latent' and s['pilot_override'] is True   # parsed from the condition latent+override
+    assert s['agent_cmd']['max'] < 1e-4 and s['cmd_vel']['max'] < 1e-4   # the bag holds the applied commands
+    assert summarize(replay(landing[0], ReplayConfig(latent='recorded')))['pilot_override'] is False
+    assert summarize(replay(bag, ReplayConfig(latent='recorded', override='off')))['pilot_override'] is False
+    with pytest.raises(ValueError, match='override must be'):
+        replay(bag, ReplayConfig(override='maybe'))
 
 
 def test_replay_cli_writes_a_bag_and_summary(landing, tmp_path):

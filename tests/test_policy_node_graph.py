@@ -83,7 +83,9 @@ def probe(ros):
 
 def test_policy_node_blends_relinquishes_when_stale_and_rejects_nan(probe, start_node, wait, tmp_path):
     model = constant_actor(tmp_path / 'actor.pt', [0.8, 0.0, 0.0])
-    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0})
+    # the probe's pilot holds a key: the pilot override (tested in test_policy_floor_guard_graph) is off here
+    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0,
+                                      'pilot_override': False})
     assert wait(lambda: len(probe.since(probe.cmd, 0)) > 0 or node.proc.poll() is not None, 30), node.log()
     assert node.proc.poll() is None, node.log()
     # all inputs fresh: agent a = (0.8, 0, 0), V = (u + a) / 2 (publish until discovery is done)

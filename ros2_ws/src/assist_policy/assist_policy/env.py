@@ -3,7 +3,7 @@
 One step = one control period of the world (1/control_hz s):
   1. the agent sees obs_t (scene feature, dynamics, pilot action u_t, 1 s means) and outputs raw
      action in [-1, 1]^3, scaled to a velocity a_t (``actions.scale_action``);
-     With ``EnvConfig.override`` the pilot override (``override.override_action``) replaces a_t
+     With ``EnvConfig.override`` the pilot override (``override.PilotOverride``) replaces a_t
      while the pilot holds a horizontal key; with ``EnvConfig.safety`` the floor guard acts on V_t;
   2. the vehicle flies V_t = blend(u_t, a_t) (``blending.blend``) with the world's turbulence;
   3. the pilot updates its goal estimate with the applied assistance (a_t if |a_t| > threshold,
@@ -40,7 +40,7 @@ from assist_sim.pilots import make_pilot
 from .actions import DEFAULT_MAX_SPEED, scale_action
 from .blending import DEFAULT_THRESHOLD, blend
 from .observation import IMAGE_SHAPE, Condition, ObservationBuilder, image_feature, oracle_feature
-from .override import OverrideConfig, override_action
+from .override import OverrideConfig, PilotOverride
 from .safety import FloorGuard, SafetyConfig
 
 log = logging.getLogger(__name__)
@@ -112,11 +112,13 @@ class LandingAssistEnv(gym.Env):
         self.action_space = spaces.Box(-1.0, 1.0, (3,), np.float32)
         self.pilot: SimulatedPilot | None = None
         self.guard = FloorGuard(self.cfg.safety) if self.cfg.safety is not None else None
+        self.override = PilotOverride(self.cfg.override) if self.cfg.override is not None else None
         self._frame = None
         self._u = np.zeros(3)
         self._t0 = 0.0
         self._dist = 0.0
         self.episode_return = 0.0
+        self.last_command: tuple[np.ndarray, np.ndarray, bool] | None = None   # (a, V, active) of the last step
 
     @property
     def pilot_action(self) -> np.ndarray:
@@ -163,6 +165,8 @@ class LandingAssistEnv(gym.Env):
         self.builder.reset()
         if self.guard is not None:
             self.guard.reset()
+        if self.override is not None:
+            self.override.reset()
         self._t0 = st.time
         self._u = self.pilot.act(st.position, None)
         self._dist = self._goal_dist(st.position)
@@ -184,9 +188,9 @@ class LandingAssistEnv(gym.Env):
         a = np.zeros(3) if self.unassisted else scale_action(raw, self.cfg.max_speed)
         t = self.world.state.time - self._t0
         overridden = False
-        if self.cfg.override is not None and not self.unassisted:
-            a_o = override_action(self.cfg.override, self._u, self.builder.history.means(t)[0],
-                                  float(self.world.state.position[2]), self.cfg.max_speed)
+        if self.override is not None and not self.unassisted:
+            a_o = self.override.apply(t, self._u, self.builder.history.means(t)[0],
+                                      float(self.world.state.position[2]), self.cfg.max_speed)
             if a_o is not None:
                 a, overridden = a_o, True
         active = float(np.linalg.norm(a)) > self.cfg.blend_threshold
@@ -196,6 +200,7 @@ class LandingAssistEnv(gym.Env):
         if self.guard is not None and not self.unassisted:
             a, v, guarded = self._guard(a, active, v)
             active = float(np.linalg.norm(a)) > self.cfg.blend_threshold
+        self.last_command = (a.copy(), np.array(v, dtype=float), active)    # what was flown (bags record it)
         st = self.world.step(v)
         self._u = self.pilot.act(st.position, a if active else None)
         r = self.cfg.reward

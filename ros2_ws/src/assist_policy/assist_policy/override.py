@@ -16,14 +16,22 @@ multirotor accelerating sideways at 1-1.5 m/s keeps sinking for a while, and low
 tall its legs then hit the pad's edge.
 
 Threshold: the paper pilot taps keys near its aim (duty <= 0.5 per axis: <= 0.71 m/s mean on a diagonal),
-so its fine corrections never engage the rule; a held key (1 m/s) does within ~0.75 s. Pilots with a
-reaction delay overshoot with a held key too; the rule then lets that overshoot through as well (the cost
-is measured in the assist_policy README, issue 12 pilot override). It uses only what the actor observes
-(u and its window mean) and odometry altitude. Pure numpy; no rclpy.
+so its fine corrections never engage the rule; a held key (1 m/s) does within ~0.75 s.
+
+Reversals: a pilot with a reaction delay overshoots its aim with a held key and comes back with another,
+held the opposite way; passing those through keeps it oscillating around the pad until time runs out
+(measured: delay pilots 74.5 -> 61.8 % success). So a held key that reverses one held within the last
+``reversal_s`` seconds (negative dot product of the window means) is an overshoot being corrected, not a
+departure, and the actor keeps helping. A pilot leaving the wrong pad has descended over it for seconds
+first, so its held key reverses nothing.
+
+It uses only what the actor observes (u and its window mean), odometry altitude and time. Pure numpy;
+no rclpy.
 """
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,28 +49,54 @@ class OverrideConfig:
     speed_mps: float = OVERRIDE_SPEED_MPS   # window-mean horizontal pilot speed that counts as a held key
     climb_mps: float = 0.3          # vertical V while yielding low (the pilot's own climb if faster)
     climb_below_m: float = 2.0      # altitude over the floor below which the yield adds the climb (pads <= 1.2 m)
+    reversal_s: float = 3.0         # a held key reversing one held within this many seconds does not engage it
 
     def __post_init__(self) -> None:
         """Reject settings that would make the rule engage on no input or descend (ValueError, one line)."""
-        for name in ('speed_mps', 'climb_mps', 'climb_below_m'):
+        for name in ('speed_mps', 'climb_mps', 'climb_below_m', 'reversal_s'):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f'OverrideConfig.{name} must be a finite number >= 0, got {v!r}')
 
 
-def override_action(cfg: OverrideConfig, u: np.ndarray, mean_u: np.ndarray, altitude_m: float,
-                    max_speed: np.ndarray | tuple[float, float, float]) -> np.ndarray | None:
-    """The agent action (m/s) that replaces the actor's while the pilot overrides, or None (rule not engaged)."""
-    if not cfg.enabled:
-        return None
-    u = np.asarray(u, dtype=float).reshape(3)
-    m = np.asarray(mean_u, dtype=float).reshape(3)
-    if not (np.all(np.isfinite(u)) and np.all(np.isfinite(m)) and math.isfinite(float(altitude_m))):
-        return None                   # nothing to judge by: the actor's action stands (the guard still acts)
-    if u[2] < 0.0 or float(np.hypot(m[0], m[1])) <= cfg.speed_mps:
-        return None
+def yield_action(cfg: OverrideConfig, u: np.ndarray, altitude_m: float,
+                 max_speed: np.ndarray | tuple[float, float, float]) -> np.ndarray:
+    """The agent action (m/s) while yielding: V = (u_xy, max(u_z, climb)) when low, V = u (a = 0) higher up."""
     if float(altitude_m) >= cfg.climb_below_m:
         return np.zeros(3)
     a = np.array([u[0], u[1], 2.0 * max(float(u[2]), cfg.climb_mps) - u[2]])
     ms = np.asarray(max_speed, dtype=float).reshape(3)
     return np.clip(a, -ms, ms)
+
+
+class PilotOverride:
+    """The rule with its memory of recent held keys (for reversals); ``reset`` at each new landing."""
+
+    def __init__(self, cfg: OverrideConfig | None = None):
+        self.cfg = cfg or OverrideConfig()
+        self._held: deque[tuple[float, np.ndarray]] = deque()    # (time, window-mean xy) of recent held keys
+
+    def reset(self) -> None:
+        """Forget the held keys seen (new landing)."""
+        self._held.clear()
+
+    def apply(self, now: float, u: np.ndarray, mean_u: np.ndarray, altitude_m: float,
+              max_speed: np.ndarray | tuple[float, float, float]) -> np.ndarray | None:
+        """The agent action (m/s) replacing the actor's at time `now`, or None (the rule does not act)."""
+        c = self.cfg
+        u = np.asarray(u, dtype=float).reshape(3)
+        m = np.asarray(mean_u, dtype=float).reshape(3)
+        if not (np.all(np.isfinite(u)) and np.all(np.isfinite(m)) and math.isfinite(float(altitude_m))
+                and math.isfinite(float(now))):
+            return None               # nothing to judge by: the actor's action stands (the guard still acts)
+        if self._held and self._held[-1][0] > now:
+            self._held.clear()        # the clock went back (a new run, a replayed bag): old keys do not count
+        while self._held and self._held[0][0] < now - c.reversal_s:
+            self._held.popleft()
+        if float(np.hypot(m[0], m[1])) <= c.speed_mps:
+            return None
+        reverses = any(float(np.dot(m[:2], h)) < 0.0 for _, h in self._held)
+        self._held.append((float(now), m[:2].copy()))
+        if not c.enabled or reverses or u[2] < 0.0:
+            return None
+        return yield_action(c, u, altitude_m, max_speed)

@@ -12,7 +12,7 @@ Safety rules (ARCHITECTURE.md, "Timing and safety rules"):
 * floor guard (``safety.FloorGuard``, not learned): low over the floor with no pad under the legs in
   the depth image, a descending V is replaced by a small climb (agent action a' = 2 V' - u, reason key
   ``floor_guard``); needs fresh odometry and a depth image (``set_depth``) no older than feature_timeout_s;
-* pilot override (``override.override_action``, not learned): while the pilot holds a horizontal key and
+* pilot override (``override.PilotOverride``, not learned): while the pilot holds a horizontal key and
   does not descend, the actor's action is replaced (the pilot's correction passes, the vehicle rises
   gently when low; reason key ``pilot_override``).
 """
@@ -33,7 +33,7 @@ from assist_sim.shipped import shipped_model_path
 from .actions import scale_action
 from .blending import DEFAULT_THRESHOLD, blend
 from .observation import Condition, ObservationBuilder, image_feature, oracle_feature
-from .override import OverrideConfig, override_action
+from .override import OverrideConfig, PilotOverride
 from .safety import FloorGuard, SafetyConfig
 from .td3 import load_actor
 
@@ -139,7 +139,7 @@ class PolicyCore:
         self.guard = FloorGuard(self.cfg.safety or SafetyConfig())
         self._depth: tuple[float, np.ndarray] | None = None
         self.guard_engaged = 0                      # steps whose descent the floor guard replaced
-        self.override = self.cfg.override or OverrideConfig()
+        self.override = PilotOverride(self.cfg.override or OverrideConfig())
         self.override_engaged = 0                   # steps whose actor action the pilot override replaced
 
     def configure(self, **changes) -> None:
@@ -236,9 +236,10 @@ class PolicyCore:
         self._depth = (t, np.where(np.isfinite(depth) & (depth >= 0) & (depth <= MAX_DEPTH_M), depth, 0.0))
 
     def reset(self) -> None:
-        """Forget the action history and the floor guard's last pad (new episode)."""
+        """Forget the action history, the floor guard's last pad and the override's held keys (new episode)."""
         self.builder.reset()
         self.guard.reset()
+        self.override.reset()
 
     # ------------------------------------------------------------- step
     def _fresh(self, stamp: float | None, now: float, timeout: float) -> bool:
@@ -327,7 +328,7 @@ class PolicyCore:
             self.rejected += 1
             return self._relinquish(now, u, 'actor output not finite (rejected)', 'actor_nonfinite')
         a = scale_action(raw, self.max_speed)
-        a_o = override_action(self.override, u, self.builder.history.means(now)[0], float(pos[2]), self.max_speed)
+        a_o = self.override.apply(now, u, self.builder.history.means(now)[0], float(pos[2]), self.max_speed)
         if a_o is not None:
             self.override_engaged += 1
             v = self._clamp(blend(u, a_o, c.blend_threshold))

@@ -83,10 +83,14 @@ PARAMS = {
     'pilot_override_climb_below_m': Param(OverrideConfig.climb_below_m, 'Altitude (odom z over the floor, m) below '
                                           'which the pilot override adds the climb; above it it relinquishes.',
                                           min=0.0, max=20.0, dynamic=True),
+    'pilot_override_reversal_s': Param(OverrideConfig.reversal_s, 'A held key reversing one held within this many '
+                                       'seconds is an overshoot being corrected: the pilot override stays out (s).',
+                                       min=0.0, max=60.0, dynamic=True),
 }
 # node parameter -> OverrideConfig field
 OVERRIDE_FIELDS = {'pilot_override': 'enabled', 'pilot_override_speed_mps': 'speed_mps',
-                   'pilot_override_climb_mps': 'climb_mps', 'pilot_override_climb_below_m': 'climb_below_m'}
+                   'pilot_override_climb_mps': 'climb_mps', 'pilot_override_climb_below_m': 'climb_below_m',
+                   'pilot_override_reversal_s': 'reversal_s'}
 
 # node parameter -> PolicyCoreConfig field, for the parameters applied to the core at run time
 CORE_FIELDS = {'blend_threshold': 'blend_threshold', 'pilot_timeout_s': 'pilot_timeout_s',
@@ -208,8 +212,8 @@ class PolicyNode(Node):
                     for k, v in changed.items() if k in OVERRIDE_FIELDS}
         if override:
             with self._lock:
-                self.core.override = dataclasses.replace(self.core.override, **override)
-            self.diag.set('pilot_override', 'on' if self.core.override.enabled else 'off')
+                self.core.override.cfg = dataclasses.replace(self.core.override.cfg, **override)
+            self.diag.set('pilot_override', 'on' if self.core.override.cfg.enabled else 'off')
 
     # ------------------------------------------------------------- inputs
     def _now(self) -> float:

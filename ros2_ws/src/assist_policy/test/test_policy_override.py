@@ -9,7 +9,7 @@ import pytest
 from assist_policy.blending import blend
 from assist_policy.env import EnvConfig, LandingAssistEnv
 from assist_policy.evaluate import EvalArgs, evaluate
-from assist_policy.override import OverrideConfig, override_action
+from assist_policy.override import OverrideConfig, PilotOverride
 from assist_policy.policy_core import PolicyCore, PolicyCoreConfig
 
 _spec = importlib.util.spec_from_file_location('policy_core_helpers', Path(__file__).with_name('test_policy_core.py'))
@@ -20,32 +20,52 @@ THR = 0.25
 CFG = OverrideConfig()
 
 
+def apply(u, mean_u, altitude, cfg=None, now=1.0):
+    """One decision of a fresh PilotOverride."""
+    return PilotOverride(cfg).apply(now, np.asarray(u, float), np.asarray(mean_u, float), altitude, MS)
+
+
 def test_a_held_key_passes_low_with_a_gentle_climb():
     u = np.array([1.0, 0.0, 0.0])
-    a = override_action(CFG, u, np.array([0.9, 0.0, 0.0]), 1.2, MS)
+    a = apply(u, [0.9, 0.0, 0.0], 1.2)
     np.testing.assert_allclose(a, [1.0, 0.0, 0.6])
     np.testing.assert_allclose(blend(u, a, THR), [1.0, 0.0, 0.3])        # V: the pilot's key, rising 0.3 m/s
     # a diagonal held key over the window, the key up at this instant (tapping): V still rises
-    a = override_action(CFG, np.zeros(3), np.array([0.6, 0.6, 0.0]), 0.9, MS)
+    a = apply(np.zeros(3), [0.6, 0.6, 0.0], 0.9)
     np.testing.assert_allclose(blend(np.zeros(3), a, THR), [0.0, 0.0, 0.3])
     # a pilot climbing faster than the climb keeps its own climb; a bang-bang key faster than max_speed is clipped
     u = np.array([1.5, 0.0, 0.5])
-    a = override_action(CFG, u, np.array([1.5, 0.0, 0.5]), 1.0, MS)
+    a = apply(u, [1.5, 0.0, 0.5], 1.0)
     np.testing.assert_allclose(a, [1.0, 0.0, 0.5])
     assert blend(u, a, THR)[2] == pytest.approx(0.5)
 
 
 def test_high_up_it_relinquishes_and_it_never_acts_on_taps_descents_or_when_off():
     u = np.array([1.0, 0.0, 0.0])
-    np.testing.assert_allclose(override_action(CFG, u, np.array([1.0, 0.0, 0.0]), 2.5, MS), np.zeros(3))
-    assert override_action(CFG, u, np.array([0.5, 0.5, 0.0]), 1.0, MS) is None      # 0.71 m/s: fine taps
-    assert override_action(CFG, np.array([1.0, 0.0, -0.5]), np.array([1.0, 0.0, -0.5]), 1.0, MS) is None
-    assert override_action(OverrideConfig(enabled=False), u, u, 1.0, MS) is None
-    assert override_action(CFG, u, np.array([np.nan, 0.0, 0.0]), 1.0, MS) is None   # nothing to judge by
+    np.testing.assert_allclose(apply(u, [1.0, 0.0, 0.0], 2.5), np.zeros(3))
+    assert apply(u, [0.5, 0.5, 0.0], 1.0) is None                      # 0.71 m/s: fine taps
+    assert apply([1.0, 0.0, -0.5], [1.0, 0.0, -0.5], 1.0) is None      # descending: not a departure
+    assert apply(u, u, 1.0, OverrideConfig(enabled=False)) is None
+    assert apply(u, [np.nan, 0.0, 0.0], 1.0) is None                  # nothing to judge by
     with pytest.raises(ValueError, match='speed_mps'):
         OverrideConfig(speed_mps=-1.0)
-    with pytest.raises(ValueError, match='climb_below_m'):
-        OverrideConfig(climb_below_m=float('nan'))
+    with pytest.raises(ValueError, match='reversal_s'):
+        OverrideConfig(reversal_s=float('nan'))
+
+
+def test_a_held_key_reversing_a_recent_one_is_an_overshoot_not_a_departure():
+    ov = PilotOverride()
+    fwd, back, left = np.array([1.0, 0.0, 0.0]), np.array([-1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
+    assert ov.apply(10.0, fwd, fwd, 1.0, MS) is not None           # held forward: passes
+    assert ov.apply(12.0, back, back, 1.0, MS) is None             # 2 s later held back: an overshoot, helped
+    assert ov.apply(12.05, left, left, 1.0, MS) is not None        # sideways reverses nothing
+    assert ov.apply(12.1, back, back, 1.0, MS) is None             # still within 3 s of the forward key
+    assert ov.apply(15.2, back, back, 1.0, MS) is not None         # the forward key is 5 s old: a departure
+    ov.reset()
+    assert ov.apply(15.3, fwd, fwd, 1.0, MS) is not None           # reset: nothing remembered
+    ov = PilotOverride()
+    ov.apply(20.0, fwd, fwd, 1.0, MS)
+    assert ov.apply(5.0, back, back, 1.0, MS) is not None          # the clock went back: old keys forgotten
 
 
 def test_env_replaces_the_actors_action_while_the_pilot_holds_a_key():
@@ -96,7 +116,7 @@ def test_policy_core_override_engages_reports_and_turns_off(tmp_path):
     np.testing.assert_allclose(outs[-1].velocity, [1.0, 0.0, 0.3])
     np.testing.assert_allclose(outs[-1].agent, [1.0, 0.0, 0.6])      # what /assist/agent_cmd shows
     assert core.override_engaged == sum(o.key == 'pilot_override' for o in outs) >= 10
-    core.override = OverrideConfig(enabled=False)
+    core.override.cfg = OverrideConfig(enabled=False)
     core.set_odom(3.0, [0, 0, 1.2], [0, 0, 0])
     core.set_pilot(3.0, [1.0, 0.0, 0.0])
     core.set_latent(3.0, np.zeros(_helpers.LATENT))

@@ -3,7 +3,8 @@
 evaluate runs without ROS, so `EpisodeRecorder` writes what the graph would have carried: camera
 frames (the ones the assistant saw; in the latent condition the depth after the simulated sensor
 noise, i.e. the encoder's input), /odom (twist in base_link, REP-105), /pilot/cmd_vel (u),
-/assist/latent, /assist/agent_cmd (a) and /cmd_vel (V) at every control step, /sim/goal and
+/assist/latent, /assist/agent_cmd (a) and /cmd_vel (V) at every control step (a and V as the env
+applied them: after the pilot override and the floor guard, as policy_node publishes), /sim/goal and
 /sim/scene at the start and the /sim/landing JSON at the end. Times are the episode's sim time
 (0 at the start pose). The bag's custom_data records that the assistant observed world-frame
 velocity (as the env does), which replay_assist honours.
@@ -18,8 +19,6 @@ import numpy as np
 
 from assist_sim.core.scene_markers import scene_markers
 
-from ..actions import scale_action
-from ..blending import blend
 from ..observation import Condition
 from . import msgs
 from .bagio import CONTRACT_TOPICS, BagWriter
@@ -48,6 +47,7 @@ class EpisodeRecorder:
             self.writer.add_topic(topic, *CONTRACT_TOPICS[topic])
         self.writer.custom_data = {VELOCITY_FRAME_KEY: 'odom', **(custom or {})}
         self._t0: float | None = None
+        self._pending: int | None = None       # bag time of the step whose applied command is not written yet
         self._latent_fn = getattr(env, 'latent_fn', None)
         self._last_mu: np.ndarray | None = None
         if self._latent_fn is not None:
@@ -63,6 +63,7 @@ class EpisodeRecorder:
 
     def policy(self, obs: np.ndarray) -> np.ndarray:
         """The wrapped policy's raw action for `obs`; records the step's inputs and outputs first."""
+        self._flush()           # the previous step's command, now that the env has flown it
         env, w = self.env, self.writer
         st = env.world.state
         if self._t0 is None:     # first step of the episode: the start pose, goal and scene
@@ -82,16 +83,22 @@ class EpisodeRecorder:
         w.write_msg('/pilot/cmd_vel', t, msgs.twist_stamped(t, u))
         if self._last_mu is not None:
             w.write_msg('/assist/latent', t, msgs.float_array(self._last_mu))
-        if not env.unassisted:
-            a = scale_action(raw, env.cfg.max_speed)
-            w.write_msg('/assist/agent_cmd', t, msgs.twist_stamped(t, a))
-        else:
-            a = np.zeros(3)
-        w.write_msg('/cmd_vel', t, msgs.twist_stamped(t, blend(u, a, env.cfg.blend_threshold)))
+        self._pending = t
         return raw
 
+    def _flush(self) -> None:
+        """Write the command the env applied in the last step (after the pilot override and the floor guard)."""
+        if self._pending is None or self.env.last_command is None:
+            return
+        t, (a, v, _) = self._pending, self.env.last_command
+        if not self.env.unassisted:
+            self.writer.write_msg('/assist/agent_cmd', t, msgs.twist_stamped(t, a))
+        self.writer.write_msg('/cmd_vel', t, msgs.twist_stamped(t, v))
+        self._pending = None
+
     def finish(self, row: dict) -> Path:
-        """Write the final pose and the /sim/landing JSON, close the bag; returns its path."""
+        """Write the last command, the final pose and the /sim/landing JSON, close the bag; returns its path."""
+        self._flush()
         st = self.env.world.state
         t = ns(st.time - (self._t0 if self._t0 is not None else st.time))
         self.writer.write_msg('/odom', t, msgs.odometry(t, st.position, st.quaternion, st.velocity))

@@ -13,6 +13,9 @@ the bag the difference is ~0 (tests/test_bag_replay.py holds evaluate's bags to 
 check that replay is faithful before a new model is tried on old flights.
 
 --latent recorded uses the bag's /assist/latent instead of re-encoding (a new actor on old latents).
+Pilot override (assist_policy.override): on as in policy_node, unless the bag was flown by evaluate
+(custom_data assist.condition, e.g. latent+guard or latent+guard+override), which says whether it was;
+--override on|off decides instead.
 Velocity: the policy node feeds /odom's twist (base_link) to the actor; evaluate's env feeds world-frame
 velocity, and its bags say so in custom_data, which --velocity-frame auto follows.
 """
@@ -52,6 +55,7 @@ class ReplayConfig:
     rate_hz: float = 20.0              # step rate when the bag has no recorded /cmd_vel
     blend_threshold: float = 0.25
     timeout_s: float = 0.5             # pilot, feature and odometry timeouts
+    override: str = 'auto'             # pilot override: on | off | auto (evaluate's bags say; else on, as policy_node)
 
 
 @dataclass
@@ -85,7 +89,12 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
     res = ReplayResult()
     with BagReader(bag) as r:
         custom = (r.metadata.get('custom_data') or {}) if r.metadata else {}
-        mode = cfg.mode if cfg.mode != 'auto' else custom.get('assist.condition', 'latent')
+        # evaluate names its rows (and bags) <condition>[+guard][+override]
+        condition, *flags = custom.get('assist.condition', '').split('+')
+        mode = cfg.mode if cfg.mode != 'auto' else (condition or 'latent')
+        if cfg.override not in ('auto', 'on', 'off'):
+            raise ValueError(f'override must be auto, on or off, got {cfg.override!r}')
+        override = cfg.override == 'on' or (cfg.override == 'auto' and (not condition or 'override' in flags))
         if mode not in ('latent', 'oracle', 'end_to_end'):
             raise ValueError(f'{bag}: cannot replay mode {mode!r} (latent, oracle or end_to_end; '
                              f'pass --mode for a bag of an unassisted flight)')
@@ -105,13 +114,15 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
         r.check_definitions(used)
         import torch  # noqa: PLC0415 - heavy: only once the bag is known to be good
 
+        from ..override import OverrideConfig  # noqa: PLC0415
         from ..policy_core import PolicyCore, PolicyCoreConfig, default_model_path  # noqa: PLC0415
         torch.set_num_threads(1)
         frame = cfg.velocity_frame if cfg.velocity_frame != 'auto' else custom.get(VELOCITY_FRAME_KEY, 'twist')
         actor = Path(cfg.actor) if cfg.actor else default_model_path(mode)
         core = PolicyCore(actor, PolicyCoreConfig(mode=mode, blend_threshold=cfg.blend_threshold,
                                                   pilot_timeout_s=cfg.timeout_s, feature_timeout_s=cfg.timeout_s,
-                                                  odom_timeout_s=cfg.timeout_s))
+                                                  odom_timeout_s=cfg.timeout_s,
+                                                  override=OverrideConfig(enabled=override)))
         encode = None
         if mode == 'latent' and use_latent == 'encode':
             from ..latent import make_latent_fn  # noqa: PLC0415
@@ -125,6 +136,7 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
         start = r.start_ns
         res.info = {'bag': str(bag), 'mode': mode, 'actor': str(actor), 'latent_source': use_latent if mode == 'latent'
                     else None, 'encoder': (cfg.encoder or 'shipped') if encode else None, 'velocity_frame': frame,
+                    'pilot_override': override,
                     'steps_at': 'recorded /cmd_vel times' if ticks_from_bag else f'{cfg.rate_hz} Hz'}
         total = sum(r.topics[t].count for t in used)
         bar = None
@@ -291,6 +303,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--rate-hz', type=float, default=d.rate_hz, help='step rate when the bag has no /cmd_vel')
     p.add_argument('--blend-threshold', type=float, default=d.blend_threshold, help='|a| above which a is blended')
     p.add_argument('--timeout-s', type=float, default=d.timeout_s, help='input staleness timeout (s)')
+    p.add_argument('--override', default=d.override, choices=('auto', 'on', 'off'),
+                   help='pilot override (auto: as evaluate flew the bag, else on as policy_node)')
     a = p.parse_args(argv)
     if not a.rate_hz > 0 or not a.timeout_s > 0 or not a.blend_threshold >= 0:
         print('error: --rate-hz and --timeout-s must be > 0, --blend-threshold >= 0', file=sys.stderr)
@@ -299,7 +313,7 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(a.out) if a.out else bag.with_name(bag.name + '_replay')
     cfg = ReplayConfig(mode=a.mode, actor=a.actor, encoder=a.encoder, latent=a.latent,
                        velocity_frame=a.velocity_frame, rate_hz=a.rate_hz, blend_threshold=a.blend_threshold,
-                       timeout_s=a.timeout_s)
+                       timeout_s=a.timeout_s, override=a.override)
     try:
         check_output(out)
         res = replay(bag, cfg, progress=True)
