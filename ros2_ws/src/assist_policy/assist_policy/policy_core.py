@@ -332,7 +332,7 @@ class PolicyCore:
         if a_o is not None:
             self.override_engaged += 1
             v = self._clamp(blend(u, a_o, c.blend_threshold))
-            self.builder.record(now, u, a_o)            # the action applied, as in training and evaluation
+            self.builder.record(now, u, a_o)            # the action applied, as evaluate's env records it
             return PolicyOutput(a_o, v, 'pilot override: the pilot\'s held correction passes', 'pilot_override')
         v = self._clamp(blend(u, a, c.blend_threshold))
         self.builder.record(now, u, a)
