@@ -77,7 +77,8 @@ PARAMS = {
                                   'horizontal key and does not descend, its correction passes (the vehicle rises '
                                   'gently when low) instead of the actor\'s action.', dynamic=True),
     'pilot_override_speed_mps': Param(OverrideConfig.speed_mps, 'Mean horizontal pilot speed over the last second '
-                                      '(m/s) above which a key counts as held.', min=0.0, max=10.0, dynamic=True),
+                                      '(m/s) above which a key counts as held; keep it below the pilot\'s key speed '
+                                      '(teleop speed, 1 m/s by default).', min=0.0, max=10.0, dynamic=True),
     'pilot_override_climb_mps': Param(OverrideConfig.climb_mps, 'Vertical velocity while the pilot override acts '
                                       'low (m/s; the pilot\'s own climb if faster).', min=0.0, max=1.0, dynamic=True),
     'pilot_override_climb_below_m': Param(OverrideConfig.climb_below_m, 'Altitude (odom z over the floor, m) below '
