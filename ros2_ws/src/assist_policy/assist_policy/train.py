@@ -34,6 +34,7 @@ from .cli import add_dataclass_args, dataclass_from_args
 from .env import EnvConfig, LandingAssistEnv, RewardConfig, run_episode
 from .latent import make_latent_fn
 from .observation import DISPLACEMENT_DIM, feature_dim
+from .override import OverrideConfig
 from .safety import SafetyConfig
 from .scripted import NEAREST_PAD_VARIANTS, ScriptedOracle, make_nearest_pad
 from .td3 import TD3, OUNoise, ReplayBuffer, TD3Config, load_actor, save_actor
@@ -91,6 +92,7 @@ class TrainArgs:
     pilot: str = 'paper'
     paper_share: float = 0.0
     safety: bool = False
+    override: bool = False
     floor_descent_weight: float = 0.0
     feature_lags_s: tuple[float, ...] = ()
     memory_displacement: bool = False
@@ -143,6 +145,9 @@ HELP = {
     'memory_displacement': 'with --feature-lags-s: the actor also sees how far the vehicle moved since each lagged '
                            'feature (odometry, 3 per lag); an --init-actor without them is widened with zero weights',
     'safety': 'fly with the floor guard (assist_policy.safety) on, as policy_node does by default',
+    'override': 'fly with the pilot override (assist_policy.override) on, as policy_node does by default; '
+                'TD3 transitions store the actor\'s action, so while the override acts the critic sees it as '
+                'part of the environment (as it sees the floor guard)',
 }
 
 
@@ -197,6 +202,7 @@ def env_config_from(args: TrainArgs) -> EnvConfig:
                      encoder_path=args.encoder_path, pilot_family=args.pilot, paper_share=args.paper_share,
                      feature_lags_s=tuple(args.feature_lags_s), memory_displacement=bool(args.memory_displacement),
                      safety=SafetyConfig() if args.safety else None,
+                     override=OverrideConfig() if args.override else None,
                      reward=RewardConfig(landing_weight=args.landing_weight,
                                          progress_weight=args.progress_weight,
                                          progress_radius_m=args.progress_radius_m,

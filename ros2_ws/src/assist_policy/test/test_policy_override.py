@@ -11,6 +11,7 @@ from assist_policy.env import EnvConfig, LandingAssistEnv
 from assist_policy.evaluate import EvalArgs, evaluate
 from assist_policy.override import OverrideConfig, PilotOverride
 from assist_policy.policy_core import PolicyCore, PolicyCoreConfig
+from assist_policy.train import TrainArgs, env_config_from
 
 _spec = importlib.util.spec_from_file_location('policy_core_helpers', Path(__file__).with_name('test_policy_core.py'))
 _helpers = importlib.util.module_from_spec(_spec)
@@ -122,3 +123,9 @@ def test_policy_core_override_engages_reports_and_turns_off(tmp_path):
     core.set_latent(3.0, np.zeros(_helpers.LATENT))
     out = core.step(3.0)
     assert out.key == 'assisting' and out.velocity[2] < 0              # the actor's descent again
+
+
+def test_train_td3_flies_with_the_override_only_when_asked():
+    assert env_config_from(TrainArgs(pilot='train_mix')).override is None
+    cfg = env_config_from(TrainArgs(pilot='train_mix', override=True))
+    assert cfg.override == OverrideConfig()
