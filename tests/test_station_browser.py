@@ -298,7 +298,9 @@ def test_a_second_browser_tab_is_view_only(station):
         d.close()
         d.switch_to.window(first)
         key(d, 'a', False)
-    assert stats(d)['role'] == 'pilot' and stats(d)['lastRelease'] == 'hidden'
+    # switching tabs fires both blur and visibilitychange (hidden), in an order the browser chooses; either
+    # releases the held key (the zero command asserted above), and the last one seen is what stats keep
+    assert stats(d)['role'] == 'pilot' and stats(d)['lastRelease'] in ('hidden', 'blur')
 
 
 def test_station_diagnostics_count_what_happened(station):
