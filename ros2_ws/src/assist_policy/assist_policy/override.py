@@ -36,9 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-# mean horizontal pilot command (m/s over the window) above which a key is held: above the paper pilot's
-# fine taps (<= 0.71 m/s on a diagonal), below a held key (1 m/s)
-OVERRIDE_SPEED_MPS = 0.75
+from .scripted import YIELD_SPEED_MPS, holds_key
 
 
 @dataclass
@@ -46,7 +44,9 @@ class OverrideConfig:
     """Settings of the pilot override (policy_node parameters pilot_override_* map onto these)."""
 
     enabled: bool = True
-    speed_mps: float = OVERRIDE_SPEED_MPS   # window-mean horizontal pilot speed that counts as a held key
+    # window-mean horizontal pilot speed that counts as a held key: the yielding teacher's test and threshold
+    # (scripted.holds_key, YIELD_SPEED_MPS: above the paper pilot's fine taps, below a held key)
+    speed_mps: float = YIELD_SPEED_MPS
     climb_mps: float = 0.3          # vertical V while yielding low (the pilot's own climb if faster)
     climb_below_m: float = 2.0      # altitude over the floor below which the yield adds the climb (pads <= 1.2 m)
     reversal_s: float = 3.0         # a held key reversing one held within this many seconds does not engage it
@@ -93,7 +93,7 @@ class PilotOverride:
             self._held.clear()        # the clock went back (a new run, a replayed bag): old keys do not count
         while self._held and self._held[0][0] < now - c.reversal_s:
             self._held.popleft()
-        if float(np.hypot(m[0], m[1])) <= c.speed_mps:
+        if not holds_key(m, c.speed_mps):
             return None
         reverses = any(float(np.dot(m[:2], h)) < 0.0 for _, h in self._held)
         self._held.append((float(now), m[:2].copy()))

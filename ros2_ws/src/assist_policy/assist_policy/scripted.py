@@ -18,6 +18,12 @@ from .actions import DEFAULT_MAX_SPEED, unscale_action
 # pilot's fine taps reach (duty <= 0.5 per axis near its aim: <= 0.71 m/s on a diagonal), below a held key
 # (1 m/s).
 YIELD_SPEED_MPS = 0.75
+
+
+def holds_key(mean_pilot: np.ndarray, speed_mps: float) -> bool:
+    """Whether the pilot's mean command over the window says a horizontal key is held (faster than `speed_mps`)."""
+    m = np.asarray(mean_pilot, dtype=float)
+    return float(np.hypot(m[0], m[1])) > speed_mps
 # Height over the pad (m) below which the `nearest_pad_commit` teacher pushes down again: under the
 # late_correction pilots' noticing heights (0.4-1.5 m) for most of them, and above the last ~0.4 m of
 # the descent (the vehicle's centre sits ~0.1 m over the pad top at touchdown).
@@ -130,8 +136,7 @@ class ScriptedNearestPad:
         c = self.cfg
         if c.yield_speed_mps <= 0 or mean_pilot is None:
             return False
-        m = np.asarray(mean_pilot, dtype=float)
-        return float(np.asarray(pilot, dtype=float)[2]) >= 0.0 and float(np.hypot(m[0], m[1])) > c.yield_speed_mps
+        return float(np.asarray(pilot, dtype=float)[2]) >= 0.0 and holds_key(mean_pilot, c.yield_speed_mps)
 
     def velocity(self, pads: np.ndarray, position: np.ndarray, pilot: np.ndarray,
                  mean_pilot: np.ndarray | None = None) -> np.ndarray:
