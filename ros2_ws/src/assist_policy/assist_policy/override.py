@@ -74,7 +74,7 @@ class PilotOverride:
 
     def __init__(self, cfg: OverrideConfig | None = None):
         self.cfg = cfg or OverrideConfig()
-        self._held: deque[tuple[float, np.ndarray]] = deque()    # (time, window-mean xy) of recent held keys
+        self._held: deque[tuple[float, float, float]] = deque()    # (time, window-mean x, y) of recent held keys
 
     def reset(self) -> None:
         """Forget the held keys seen (new landing)."""
@@ -95,8 +95,9 @@ class PilotOverride:
             self._held.popleft()
         if not holds_key(m, c.speed_mps):
             return None
-        reverses = any(float(np.dot(m[:2], h)) < 0.0 for _, h in self._held)
-        self._held.append((float(now), m[:2].copy()))
+        mx, my = float(m[0]), float(m[1])
+        reverses = any(mx * hx + my * hy < 0.0 for _, hx, hy in self._held)
+        self._held.append((float(now), mx, my))
         if not c.enabled or reverses or u[2] < 0.0:
             return None
         return yield_action(c, u, altitude_m, max_speed)
