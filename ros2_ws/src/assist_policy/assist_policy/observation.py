@@ -59,10 +59,14 @@ class ActionHistory:
             raise ValueError(f'window_s must be > 0, got {window_s}')
         self.window_s = float(window_s)
         self._items: deque[tuple[float, np.ndarray, np.ndarray]] = deque()
+        # means() of the last `now` until the next push or clear: the observation and the pilot override
+        # both ask for the same step's means
+        self._means: tuple[float, np.ndarray, np.ndarray] | None = None
 
     def clear(self) -> None:
         """Forget every sample (new episode)."""
         self._items.clear()
+        self._means = None
 
     def push(self, t: float, u: np.ndarray, a: np.ndarray) -> None:
         """Record the pilot action `u` and agent action `a` applied at time `t`."""
@@ -75,6 +79,7 @@ class ActionHistory:
         if self._items and t < self._items[-1][0]:
             self.clear()  # clock jumped backwards (sim reset): old samples are meaningless
         self._items.append((float(t), u, a))
+        self._means = None
         self._prune(t)
 
     def _prune(self, now: float) -> None:
@@ -87,12 +92,15 @@ class ActionHistory:
         """Mean pilot and mean agent action over (now - window_s, now]; zeros when empty."""
         if not np.isfinite(now):
             raise ValueError(f'ActionHistory.means: non-finite time {now!r}')
-        self._prune(now)
-        if not self._items:
-            return np.zeros(3), np.zeros(3)
-        us = np.stack([it[1] for it in self._items])
-        as_ = np.stack([it[2] for it in self._items])
-        return us.mean(axis=0), as_.mean(axis=0)
+        if self._means is None or self._means[0] != now:
+            self._prune(now)
+            if self._items:
+                mean_u = np.stack([it[1] for it in self._items]).mean(axis=0)
+                mean_a = np.stack([it[2] for it in self._items]).mean(axis=0)
+            else:
+                mean_u, mean_a = np.zeros(3), np.zeros(3)
+            self._means = (now, mean_u, mean_a)
+        return self._means[1].copy(), self._means[2].copy()
 
     def __len__(self) -> int:
         return len(self._items)
