@@ -93,6 +93,12 @@ OVERRIDE_FIELDS = {'pilot_override': 'enabled', 'pilot_override_speed_mps': 'spe
                    'pilot_override_climb_mps': 'climb_mps', 'pilot_override_climb_below_m': 'climb_below_m',
                    'pilot_override_reversal_s': 'reversal_s'}
 
+
+def override_fields(params: dict) -> dict:
+    """OverrideConfig keyword arguments from the pilot_override* entries of `params` (others ignored)."""
+    return {OVERRIDE_FIELDS[k]: (bool if k == 'pilot_override' else float)(v)
+            for k, v in params.items() if k in OVERRIDE_FIELDS}
+
 # node parameter -> PolicyCoreConfig field, for the parameters applied to the core at run time
 CORE_FIELDS = {'blend_threshold': 'blend_threshold', 'pilot_timeout_s': 'pilot_timeout_s',
                'latent_timeout_s': 'feature_timeout_s', 'odom_timeout_s': 'odom_timeout_s',
@@ -155,8 +161,7 @@ class PolicyNode(Node):
                                    safety=SafetyConfig(enabled=bool(self.p['floor_guard']),
                                                        guard_height_m=float(self.p['floor_guard_height_m']),
                                                        min_climb_mps=float(self.p['floor_guard_climb_mps'])),
-                                   override=OverrideConfig(**{f: (bool if f == 'enabled' else float)(self.p[k])
-                                                              for k, f in OVERRIDE_FIELDS.items()}),
+                                   override=OverrideConfig(**override_fields(self.p)),
                                    **{f: self.p[k] for k, f in CORE_FIELDS.items()})
             self.core = PolicyCore(path, cfg)
         except ValueError as exc:
@@ -209,8 +214,7 @@ class PolicyNode(Node):
                 g.guard_height_m = float(guard.get('floor_guard_height_m', g.guard_height_m))
                 g.min_climb_mps = float(guard.get('floor_guard_climb_mps', g.min_climb_mps))
             self.diag.set('floor_guard', 'on' if g.enabled else 'off')
-        override = {OVERRIDE_FIELDS[k]: (bool if k == 'pilot_override' else float)(v)
-                    for k, v in changed.items() if k in OVERRIDE_FIELDS}
+        override = override_fields(changed)
         if override:
             with self._lock:
                 self.core.override.cfg = dataclasses.replace(self.core.override.cfg, **override)
