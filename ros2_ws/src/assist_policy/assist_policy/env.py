@@ -118,7 +118,7 @@ class LandingAssistEnv(gym.Env):
         self._t0 = 0.0
         self._dist = 0.0
         self.episode_return = 0.0
-        self.last_command: tuple[np.ndarray, np.ndarray, bool] | None = None   # (a, V, active) of the last step
+        self.last_command: tuple[np.ndarray, np.ndarray] | None = None   # (a, V) applied in the last step
 
     @property
     def pilot_action(self) -> np.ndarray:
@@ -200,7 +200,7 @@ class LandingAssistEnv(gym.Env):
         if self.guard is not None and not self.unassisted:
             a, v, guarded = self._guard(a, active, v)
             active = float(np.linalg.norm(a)) > self.cfg.blend_threshold
-        self.last_command = (a.copy(), np.array(v, dtype=float), active)    # what was flown (bags record it)
+        self.last_command = (a.copy(), np.array(v, dtype=float))    # what was flown (bags record it)
         st = self.world.step(v)
         self._u = self.pilot.act(st.position, a if active else None)
         r = self.cfg.reward

@@ -90,7 +90,7 @@ class EpisodeRecorder:
         """Write the command the env applied in the last step (after the pilot override and the floor guard)."""
         if self._pending is None or self.env.last_command is None:
             return
-        t, (a, v, _) = self._pending, self.env.last_command
+        t, (a, v) = self._pending, self.env.last_command
         if not self.env.unassisted:
             self.writer.write_msg('/assist/agent_cmd', t, msgs.twist_stamped(t, a))
         self.writer.write_msg('/cmd_vel', t, msgs.twist_stamped(t, v))
