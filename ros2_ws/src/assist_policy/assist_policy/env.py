@@ -162,6 +162,10 @@ class LandingAssistEnv(gym.Env):
         self.pilot = make_pilot(family, alpha, beta, self.pilot_cfg,
                                 np.random.default_rng(int(rng.integers(2**31))), pads=self.world.pad_top_centers)
         self.pilot.reset(self.world.goal_position, st.position)
+        noise_seed = int(rng.integers(2**31))      # drawn after the scene and pilot: they are unchanged by it
+        latent_reset = getattr(self.latent_fn, 'reset', None)
+        if latent_reset is not None:
+            latent_reset(noise_seed)             # the camera noise of this landing depends on its seed only
         self.builder.reset()
         if self.guard is not None:
             self.guard.reset()

@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Callable
-
 import numpy as np
 
 log = logging.getLogger(__name__)
@@ -29,17 +27,55 @@ def default_encoder_path() -> Path:
     return path
 
 
-def make_latent_fn(model_path: str | Path | None = None, depth_noise: bool = True, seed: int = 0,
-                   ) -> tuple[Callable[[np.ndarray, np.ndarray], np.ndarray], int]:
-    """Load the CM-VAE; returns (fn(rgb uint8 HxWx3, depth m HxW) -> mu (latent_dim,), latent_dim).
+class LatentFn:
+    """fn(rgb uint8 HxWx3, depth m HxW) -> mu (latent_dim,) through the CM-VAE, with the sim's depth noise.
 
-    A frame the encoder rejects (e.g. no valid depth) repeats the previous mu (zeros at first) and
-    is logged. Raises ValueError with a clear message when the package or weights are unavailable.
+    `reset(episode_seed)` starts a landing: the depth noise is re-seeded from (seed, episode_seed) and the
+    repeated latent goes back to zeros, so a landing depends on its own seed only, not on the landings
+    flown before it with the same env. A frame the encoder rejects (e.g. no valid depth) repeats the
+    previous mu (zeros at first) and is logged.
+    """
+
+    def __init__(self, encoder, depth_noise: bool, seed: int):
+        from assist_perception.noise import apply_depth_noise  # noqa: PLC0415
+        self._encoder, self._noise, self._apply_noise = encoder, depth_noise, apply_depth_noise
+        self.seed = int(seed)
+        self.latent_dim = int(encoder.latent_dim)
+        self.rejected = 0
+        self.last_input: tuple[np.ndarray, np.ndarray] | None = None   # the frame as the encoder saw it
+        self.reset(None)
+
+    def reset(self, episode_seed: int | None) -> None:
+        """New landing: depth noise from (seed, episode_seed) (seed alone for None); no previous latent."""
+        key = [self.seed] if episode_seed is None else [self.seed, int(episode_seed)]
+        self._rng = np.random.default_rng(key)
+        self._mu = np.zeros(self.latent_dim)
+
+    def __call__(self, rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """The encoder mean of this frame (the previous one if the encoder rejects the frame)."""
+        from assist_perception.encoder_core import BadFrame  # noqa: PLC0415
+        d = self._apply_noise(depth, self._rng, rgb=rgb) if self._noise else depth
+        self.last_input = (rgb, d)      # evaluate --record-dir saves it
+        try:
+            self._mu = np.asarray(self._encoder.encode(rgb, d, want_xyz=False).mu, dtype=float)
+        except BadFrame as exc:
+            # expected on the pad: the camera is inside the depth sensor's minimum range
+            self.rejected += 1
+            level = logging.INFO if self.rejected == 1 else logging.DEBUG
+            log.log(level, 'encoder rejected a frame (%s); repeating the previous latent (%d so far; '
+                    'further rejections are logged at debug level)', exc, self.rejected)
+        return self._mu.copy()
+
+
+def make_latent_fn(model_path: str | Path | None = None, depth_noise: bool = True, seed: int = 0,
+                   ) -> tuple[LatentFn, int]:
+    """Load the CM-VAE; returns (LatentFn, latent_dim). `seed` is the depth noise's base seed.
+
+    Raises ValueError with a clear message when the package or weights are unavailable.
     """
     try:
-        from assist_perception.encoder_core import BadFrame, LatentEncoder  # noqa: PLC0415
+        from assist_perception.encoder_core import LatentEncoder  # noqa: PLC0415
         from assist_perception.model import ModelLoadError  # noqa: PLC0415
-        from assist_perception.noise import apply_depth_noise  # noqa: PLC0415
     except ImportError as exc:
         raise ValueError(f'latent condition needs assist_perception (CM-VAE): {exc}') from exc
     path = Path(model_path) if model_path else default_encoder_path()
@@ -47,20 +83,5 @@ def make_latent_fn(model_path: str | Path | None = None, depth_noise: bool = Tru
         encoder = LatentEncoder(path, threads=0)
     except (ModelLoadError, ValueError) as exc:
         raise ValueError(str(exc)) from exc
-    rng = np.random.default_rng(seed)
-    dim = int(encoder.latent_dim)
-    last = {'mu': np.zeros(dim), 'rejected': 0}
-
-    def encode(rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
-        d = apply_depth_noise(depth, rng, rgb=rgb) if depth_noise else depth
-        encode.last_input = (rgb, d)    # the frame as the encoder saw it (evaluate --record-dir saves it)
-        try:
-            last['mu'] = np.asarray(encoder.encode(rgb, d, want_xyz=False).mu, dtype=float)
-        except BadFrame as exc:
-            # expected on the pad: the camera is inside the depth sensor's minimum range
-            last['rejected'] += 1
-            level = logging.INFO if last["rejected"] == 1 else logging.DEBUG
-            log.log(level, 'encoder rejected a frame (%s); repeating the previous latent (%d so far; '
-                    'further rejections are logged at debug level)', exc, last['rejected'])
-        return last['mu'].copy()
-    return encode, dim
+    fn = LatentFn(encoder, depth_noise, seed)
+    return fn, fn.latent_dim

@@ -51,12 +51,18 @@ class EpisodeRecorder:
         self._latent_fn = getattr(env, 'latent_fn', None)
         self._last_mu: np.ndarray | None = None
         if self._latent_fn is not None:
-            env.latent_fn = self._capture_latent
+            env.latent_fn = self._capture_latent()
 
-    def _capture_latent(self, rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
-        mu = self._latent_fn(rgb, depth)
-        self._last_mu = np.asarray(mu, dtype=float)
-        return mu
+    def _capture_latent(self) -> Callable:
+        """env.latent_fn while recording: the wrapped fn, keeping each mu; forwards the fn's reset."""
+        inner = self._latent_fn
+
+        def capture(rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
+            mu = inner(rgb, depth)
+            self._last_mu = np.asarray(mu, dtype=float)
+            return mu
+        capture.reset = getattr(inner, 'reset', None)
+        return capture
 
     def _t(self) -> float:
         return self.env.world.state.time - self._t0
