@@ -57,6 +57,14 @@ def test_landing_bag_matches_its_csv_row(landing):
     assert result['assisted'] is True
 
 
+def test_recording_a_landing_does_not_change_it(landing, tmp_path):
+    """The same landing flown without --record-dir gives the same row (the recorder passes the noise reset on)."""
+    code = evaluate.main(['--out', str(tmp_path), '--conditions', 'latent', '--betas', '1.0', '--landings', '1',
+                          '--max-episode-s', '10', '--plot', 'false'])
+    assert code == 0
+    assert evaluate.read_landings(tmp_path / 'landings.csv')['latent'][0] == landing[1]
+
+
 def test_replay_reproduces_the_recorded_commands(landing):
     bag, _ = landing
     res = replay(bag, ReplayConfig())
