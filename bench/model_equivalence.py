@@ -187,8 +187,9 @@ def main(argv: list[str] | None = None) -> int:
     a.add_argument('--conditions', nargs='+', default=['latent', 'oracle'])
     a.add_argument('--renderers', nargs='+', default=list(RENDERERS), choices=RENDERERS)
     a.add_argument('--noise-seed', type=int, default=0,
-                   help="seed of the latent env's depth noise (make_latent_fn's default: 0); another seed "
-                        'with the same renderer shows how far landings move from noise alone')
+                   help="base seed of the latent env's depth noise (make_latent_fn's default: 0; each landing "
+                        "draws its own stream from it and the landing's seed); another base seed with the "
+                        'same renderer shows how far landings move from noise alone')
     m = sub.add_parser('compare', help='merge and compare actors outputs run per renderer')
     m.add_argument('files', nargs='+')
     for p in (c, a, m):

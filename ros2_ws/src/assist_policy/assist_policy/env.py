@@ -116,6 +116,7 @@ class LandingAssistEnv(gym.Env):
         self._frame = None
         self._u = np.zeros(3)
         self._t0 = 0.0
+        self._steps = 0                                  # control steps since reset (the episode clock)
         self._dist = 0.0
         self.episode_return = 0.0
         self.last_command: tuple[np.ndarray, np.ndarray] | None = None   # (a, V) applied in the last step
@@ -124,6 +125,16 @@ class LandingAssistEnv(gym.Env):
     def pilot_action(self) -> np.ndarray:
         """The pilot's current command u_t (what the agent observes)."""
         return self._u.copy()
+
+    @property
+    def elapsed_s(self) -> float:
+        """Episode time: control steps since reset x the control period.
+
+        Counted, not read as world time - reset time: the world's clock runs on across episodes, and
+        the rounding of that difference depends on how long it has run, so a landing's time limit
+        fell one step later or earlier depending on the landings flown before it.
+        """
+        return self._steps * self.dt
 
     # -------------------------------------------------------------- helpers
     def _feature(self, pos: np.ndarray) -> np.ndarray:
@@ -137,7 +148,7 @@ class LandingAssistEnv(gym.Env):
     def _obs(self) -> np.ndarray:
         st = self.world.state
         self._frame = None
-        t = st.time - self._t0
+        t = self.elapsed_s
         if self.condition is Condition.END_TO_END:
             vec = self.builder.build(t, np.zeros(0), st.velocity, st.position[2], self._u)
             return np.concatenate([self._feature(st.position), vec]).astype(np.float32)
@@ -172,6 +183,7 @@ class LandingAssistEnv(gym.Env):
         if self.override is not None:
             self.override.reset()
         self._t0 = st.time
+        self._steps = 0
         self._u = self.pilot.act(st.position, None)
         self._dist = self._goal_dist(st.position)
         self.episode_return = 0.0
@@ -190,7 +202,7 @@ class LandingAssistEnv(gym.Env):
         if not np.all(np.isfinite(raw)):
             raise ValueError(f'non-finite action {raw.tolist()}')
         a = np.zeros(3) if self.unassisted else scale_action(raw, self.cfg.max_speed)
-        t = self.world.state.time - self._t0
+        t = self.elapsed_s
         overridden = False
         if self.override is not None and not self.unassisted:
             a_o = self.override.apply(t, self._u, self.builder.history.means(t)[0],
@@ -206,6 +218,7 @@ class LandingAssistEnv(gym.Env):
             active = float(np.linalg.norm(a)) > self.cfg.blend_threshold
         self.last_command = (a.copy(), np.array(v, dtype=float))    # what was flown (bags record it)
         st = self.world.step(v)
+        self._steps += 1
         self._u = self.pilot.act(st.position, a if active else None)
         r = self.cfg.reward
         d = self._goal_dist(st.position)
@@ -217,7 +230,7 @@ class LandingAssistEnv(gym.Env):
             reward -= r.floor_descent_weight * float(-v[2])
         self._dist = d
         terminated = self.world.done
-        truncated = (not terminated) and (st.time - self._t0) >= self.cfg.max_episode_s
+        truncated = (not terminated) and self.elapsed_s >= self.cfg.max_episode_s - 0.5 * self.dt
         info: dict[str, Any] = {'active': active, 'guard': guarded, 'override': overridden,
                                 'goal_estimate': self.pilot.goal_estimate.copy()}
         if terminated:
@@ -234,7 +247,7 @@ class LandingAssistEnv(gym.Env):
                               'nearest_index': int(np.argmin(dists)),
                               'error_m': float(dists[self.world.goal_index]),
                               'nearest_error_m': float(dists.min()), 'success': False, 'crash': False,
-                              'duration_s': float(st.time - self._t0), 'outcome': 'timeout',
+                              'duration_s': self.elapsed_s, 'outcome': 'timeout',
                               'assisted': not self.unassisted}
             reward -= r.landing_weight * info['result']['error_m']
         self.episode_return += reward

@@ -134,6 +134,23 @@ def test_a_latent_landing_depends_on_its_seed_only():
     e.close()
 
 
+def test_time_limit_is_counted_in_steps_whatever_the_world_clock_reads():
+    """max_episode_s / control period steps, also after the world's clock has run long (float rounding)."""
+    e = LandingAssistEnv(EnvConfig(condition='oracle', max_episode_s=2.0))
+    counts = []
+    for clock in (0.0, 12345.678, 98765.4321):
+        e.world.time = clock                    # as after hours of earlier landings
+        e.reset(seed=4, options={'beta': 1.0})
+        n, trunc = 0, False
+        while not trunc:
+            _, _, term, trunc, info = e.step(np.zeros(3))
+            n += 1
+            assert not term
+        counts.append((n, info['result']['duration_s']))
+    assert counts == [(40, 2.0)] * 3
+    e.close()
+
+
 def test_aimed_index_is_the_pad_nearest_the_pilots_first_estimate(env):
     """reset reports the pad the pilot sets off for; a zero-skill pilot far off in depth aims elsewhere."""
     misaimed = 0
