@@ -160,6 +160,6 @@ class ScriptedNearestPad:
         """Raw action in [-1, 1]^3 for the env's current state (pad positions, no goal)."""
         mean_u = None
         if self.cfg.yield_speed_mps > 0:
-            mean_u, _ = env.builder.history.means(env.world.state.time - env._t0)
+            mean_u, _ = env.builder.history.means(env.elapsed_s)
         return unscale_action(self.velocity(env.world.pad_top_centers, env.world.state.position, env.pilot_action,
                                             mean_u), self.max_speed)

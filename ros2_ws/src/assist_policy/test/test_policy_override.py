@@ -86,7 +86,7 @@ def test_env_replaces_the_actors_action_while_the_pilot_holds_a_key():
         assert not term
     assert not any(seen[:12]) and all(seen[20:])          # engages once the 1 s mean passes 0.75 m/s
     assert env.world.state.velocity[2] > 0.1 and env.world.state.velocity[0] > 0.7   # rising, moving on
-    _, a_mean = env.builder.history.means(env.world.state.time - env._t0)
+    _, a_mean = env.builder.history.means(env.elapsed_s)
     assert a_mean[2] > 0.3                                 # the history holds the applied (override) action
     env.close()
 
