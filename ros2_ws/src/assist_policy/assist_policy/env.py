@@ -115,7 +115,6 @@ class LandingAssistEnv(gym.Env):
         self.override = PilotOverride(self.cfg.override) if self.cfg.override is not None else None
         self._frame = None
         self._u = np.zeros(3)
-        self._t0 = 0.0
         self._steps = 0                                  # control steps since reset (the episode clock)
         self._dist = 0.0
         self.episode_return = 0.0
@@ -182,7 +181,6 @@ class LandingAssistEnv(gym.Env):
             self.guard.reset()
         if self.override is not None:
             self.override.reset()
-        self._t0 = st.time
         self._steps = 0
         self._u = self.pilot.act(st.position, None)
         self._dist = self._goal_dist(st.position)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+
 import numpy as np
 
 log = logging.getLogger(__name__)
@@ -37,8 +38,10 @@ class LatentFn:
     """
 
     def __init__(self, encoder, depth_noise: bool, seed: int):
+        from assist_perception.encoder_core import BadFrame  # noqa: PLC0415
         from assist_perception.noise import apply_depth_noise  # noqa: PLC0415
         self._encoder, self._noise, self._apply_noise = encoder, depth_noise, apply_depth_noise
+        self._bad_frame = BadFrame
         self.seed = int(seed)
         self.latent_dim = int(encoder.latent_dim)
         self.rejected = 0
@@ -53,12 +56,11 @@ class LatentFn:
 
     def __call__(self, rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
         """The encoder mean of this frame (the previous one if the encoder rejects the frame)."""
-        from assist_perception.encoder_core import BadFrame  # noqa: PLC0415
         d = self._apply_noise(depth, self._rng, rgb=rgb) if self._noise else depth
         self.last_input = (rgb, d)      # evaluate --record-dir saves it
         try:
             self._mu = np.asarray(self._encoder.encode(rgb, d, want_xyz=False).mu, dtype=float)
-        except BadFrame as exc:
+        except self._bad_frame as exc:
             # expected on the pad: the camera is inside the depth sensor's minimum range
             self.rejected += 1
             level = logging.INFO if self.rejected == 1 else logging.DEBUG

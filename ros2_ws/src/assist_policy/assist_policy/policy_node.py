@@ -99,6 +99,7 @@ def override_fields(params: dict) -> dict:
     return {OVERRIDE_FIELDS[k]: (bool if k == 'pilot_override' else float)(v)
             for k, v in params.items() if k in OVERRIDE_FIELDS}
 
+
 # node parameter -> PolicyCoreConfig field, for the parameters applied to the core at run time
 CORE_FIELDS = {'blend_threshold': 'blend_threshold', 'pilot_timeout_s': 'pilot_timeout_s',
                'latent_timeout_s': 'feature_timeout_s', 'odom_timeout_s': 'odom_timeout_s',

@@ -18,16 +18,16 @@ from .actions import DEFAULT_MAX_SPEED, unscale_action
 # pilot's fine taps reach (duty <= 0.5 per axis near its aim: <= 0.71 m/s on a diagonal), below a held key
 # (1 m/s).
 YIELD_SPEED_MPS = 0.75
+# Height over the pad (m) below which the `nearest_pad_commit` teacher pushes down again: under the
+# late_correction pilots' noticing heights (0.4-1.5 m) for most of them, and above the last ~0.4 m of
+# the descent (the vehicle's centre sits ~0.1 m over the pad top at touchdown).
+COMMIT_HEIGHT_M = 0.5
 
 
 def holds_key(mean_pilot: np.ndarray, speed_mps: float) -> bool:
     """Whether the pilot's mean command over the window says a horizontal key is held (faster than `speed_mps`)."""
     m = np.asarray(mean_pilot, dtype=float)
     return float(np.hypot(m[0], m[1])) > speed_mps
-# Height over the pad (m) below which the `nearest_pad_commit` teacher pushes down again: under the
-# late_correction pilots' noticing heights (0.4-1.5 m) for most of them, and above the last ~0.4 m of
-# the descent (the vehicle's centre sits ~0.1 m over the pad top at touchdown).
-COMMIT_HEIGHT_M = 0.5
 
 
 @dataclass
