@@ -41,6 +41,7 @@ from .actions import DEFAULT_MAX_SPEED, scale_action
 from .blending import DEFAULT_THRESHOLD, blend
 from .observation import IMAGE_SHAPE, Condition, ObservationBuilder, image_feature, oracle_feature
 from .override import OverrideConfig, PilotOverride
+from .recall import PadRecall, RecallConfig
 from .safety import FloorGuard, SafetyConfig
 
 log = logging.getLogger(__name__)
@@ -80,6 +81,7 @@ class EnvConfig:
     paper_share: float = 0.0                         # chance per landing of the paper pilot instead (training)
     safety: SafetyConfig | None = None               # floor guard on the blended command (None: off)
     override: OverrideConfig | None = None           # pilot override on the agent action (None: off)
+    recall: RecallConfig | None = None               # pad recall on the agent action (None: off)
     reward: RewardConfig = field(default_factory=RewardConfig)
     pilot: PilotConfig = field(default_factory=PilotConfig)
     world: WorldConfig = field(default_factory=WorldConfig)
@@ -113,6 +115,7 @@ class LandingAssistEnv(gym.Env):
         self.pilot: SimulatedPilot | None = None
         self.guard = FloorGuard(self.cfg.safety) if self.cfg.safety is not None else None
         self.override = PilotOverride(self.cfg.override) if self.cfg.override is not None else None
+        self.recall = (PadRecall(self.cfg.recall, self.guard) if self.cfg.recall is not None else None)
         self._frame = None
         self._u = np.zeros(3)
         self._steps = 0                                  # control steps since reset (the episode clock)
@@ -181,6 +184,8 @@ class LandingAssistEnv(gym.Env):
             self.guard.reset()
         if self.override is not None:
             self.override.reset()
+        if self.recall is not None:
+            self.recall.reset()
         self._steps = 0
         self._u = self.pilot.act(st.position, None)
         self._dist = self._goal_dist(st.position)
@@ -207,6 +212,9 @@ class LandingAssistEnv(gym.Env):
                                       float(self.world.state.position[2]), self.cfg.max_speed)
             if a_o is not None:
                 a, overridden = a_o, True
+        recalled = False
+        if self.recall is not None and not self.unassisted:
+            a, recalled = self._recall(a, overridden)
         active = float(np.linalg.norm(a)) > self.cfg.blend_threshold
         v = blend(self._u, a, self.cfg.blend_threshold)
         self.builder.record(t, self._u, a)           # the action applied (the override's while it acts)
@@ -229,7 +237,7 @@ class LandingAssistEnv(gym.Env):
         self._dist = d
         terminated = self.world.done
         truncated = (not terminated) and self.elapsed_s >= self.cfg.max_episode_s - 0.5 * self.dt
-        info: dict[str, Any] = {'active': active, 'guard': guarded, 'override': overridden,
+        info: dict[str, Any] = {'active': active, 'guard': guarded, 'override': overridden, 'recall': recalled,
                                 'goal_estimate': self.pilot.goal_estimate.copy()}
         if terminated:
             res = self.world.result
@@ -250,6 +258,17 @@ class LandingAssistEnv(gym.Env):
             reward -= r.landing_weight * info['result']['error_m']
         self.episode_return += reward
         return self._obs(), float(reward), bool(terminated), bool(truncated), info
+
+    def _recall(self, a: np.ndarray, overridden: bool) -> tuple[np.ndarray, bool]:
+        """Pad recall (assist_policy.recall): map this step's depth frame, steer to a remembered pad if it acts."""
+        st = self.world.state
+        frame = self._frame if self._frame is not None else self.world.render()
+        self._frame = frame
+        self.recall.observe(frame.depth, st.position, st.quaternion)
+        if overridden:
+            return a, False
+        a_r = self.recall.apply(self._u, self.builder.history.means(self.elapsed_s)[0], a, frame.depth, st.position, st.quaternion, self.cfg.max_speed)
+        return (a, False) if a_r is None else (a_r, True)
 
     def _guard(self, a: np.ndarray, active: bool, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
         """The floor guard (assist_policy.safety) on this step's command, with the camera's depth."""
@@ -273,7 +292,7 @@ def over_pad(pads, xy: np.ndarray, margin_m: float = 0.0) -> bool:
 def run_episode(env: LandingAssistEnv, policy, seed: int, options: dict | None = None) -> dict:
     """Roll out one landing with `policy(obs) -> raw action` (None = unassisted); returns a summary."""
     obs, info = env.reset(seed=seed, options=options)
-    steps, active, guarded, overridden = 0, 0, 0, 0
+    steps, active, guarded, overridden, recalled = 0, 0, 0, 0, 0
     while True:
         act = np.zeros(3) if policy is None else policy(obs)
         obs, _, term, trunc, step_info = env.step(act)
@@ -281,11 +300,12 @@ def run_episode(env: LandingAssistEnv, policy, seed: int, options: dict | None =
         active += int(step_info['active'])
         guarded += int(step_info.get('guard', False))
         overridden += int(step_info.get('override', False))
+        recalled += int(step_info.get('recall', False))
         if term or trunc:
             break
     res = dict(step_info['result'])
     res.update(beta=info['beta'], alpha=info['alpha'], scene_seed=info['scene_seed'], steps=steps,
                aimed_index=info['aimed_index'], pilot=info['pilot'], guard_fraction=guarded / steps,
-               override_fraction=overridden / steps,
+               override_fraction=overridden / steps, recall_fraction=recalled / steps,
                active_fraction=active / steps, episode_return=env.episode_return)
     return res

@@ -23,7 +23,9 @@ policy_node) for every assisted condition, whose rows are then named `<condition
 and without it combine with --from-csv); `guard_fraction` is the share of steps it acted. `--override`
 turns on the pilot override (assist_policy.override, on by default in policy_node) for the learned
 assistants (not for the scripted references, which stay as defined): rows `<condition>[+guard]+override`,
-`override_fraction` the share of steps it replaced the actor's action.
+`override_fraction` the share of steps it replaced the actor's action. `--recall` turns on the pad recall
+(assist_policy.recall, on by default in policy_node) for the learned assistants: rows
+`<condition>[+guard][+override]+recall`, `recall_fraction` the share of steps it steered.
 
     evaluate --pilot bang_bang --betas 0 0.25 0.5 0.75 1 --landings 8 --out runs/eval_bang_bang
 
@@ -57,6 +59,7 @@ from .env import EnvConfig, LandingAssistEnv, run_episode
 from .latent import make_latent_fn
 from .policy_core import default_model_path
 from .override import OverrideConfig
+from .recall import RecallConfig
 from .safety import SafetyConfig
 from .scripted import NEAREST_PAD_VARIANTS, ScriptedOracle, make_nearest_pad
 from .td3 import load_actor
@@ -90,6 +93,7 @@ class EvalArgs:
     pilot: str = 'paper'
     safety: bool = False
     override: bool = False
+    recall: bool = False
     from_csv: tuple[str, ...] = ()
     record_dir: str = ''
 
@@ -109,6 +113,7 @@ HELP = {
     'safety': 'apply the floor guard (assist_policy.safety) to every assisted condition',
     'override': 'apply the pilot override (assist_policy.override) to the learned assistants (latent, oracle, '
                 'end_to_end)',
+    'recall': 'apply the pad recall (assist_policy.recall) to the learned assistants (latent, oracle, end_to_end)',
     'from_csv': 'fly nothing: combine the landings.csv files of earlier runs (e.g. one condition split '
                 'over processes by --betas; a landing in a later file replaces the same condition, beta '
                 'and seed in an earlier one) into one table, summary.csv and plot',
@@ -118,7 +123,7 @@ HELP = {
 
 LANDING_FIELDS = ['condition', 'beta', 'seed', 'scene_seed', 'goal_index', 'landed_index', 'nearest_index',
                   'aimed_index', 'error_m', 'nearest_error_m', 'outcome', 'success', 'crash', 'duration_s',
-                  'active_fraction', 'pilot', 'guard_fraction', 'override_fraction']
+                  'active_fraction', 'pilot', 'guard_fraction', 'override_fraction', 'recall_fraction']
 _BOOL = {'True': True, 'False': False}
 
 
@@ -201,8 +206,9 @@ def write_landings(path: Path, rows_by_cond: dict[str, list[dict]]) -> None:
 
 
 def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: float, alpha: float,
-                pilot: str = 'paper', safety: SafetyConfig | None = None, override: OverrideConfig | None = None):
-    """(env, policy) for one condition; policy(obs) -> raw action, None for unassisted (override: learned only)."""
+                pilot: str = 'paper', safety: SafetyConfig | None = None, override: OverrideConfig | None = None,
+                recall: RecallConfig | None = None):
+    """(env, policy) for one condition; policy(obs) -> raw action, None for unassisted (override, recall: learned only)."""
     if condition == 'unassisted':
         return LandingAssistEnv(EnvConfig(condition='none', alpha=alpha, max_episode_s=max_episode_s,
                                           pilot_family=pilot)), None
@@ -216,7 +222,7 @@ def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: fl
     actor, meta = load_actor(path)
     cfg = EnvConfig(condition=condition, alpha=alpha, max_episode_s=max_episode_s,
                     max_speed=tuple(meta.get('max_speed', (1.0, 1.0, 0.6))),
-                    latent_dim=int(meta.get('latent_dim', 0)), pilot_family=pilot, safety=safety, override=override,
+                    latent_dim=int(meta.get('latent_dim', 0)), pilot_family=pilot, safety=safety, override=override, recall=recall,
                     feature_lags_s=tuple(meta['feature_lags_s']), memory_displacement=meta['memory_displacement'])
     if condition == 'latent':
         latent_fn, dim = make_latent_fn(encoder_path or None)
@@ -242,7 +248,8 @@ def run_landing(env: LandingAssistEnv, policy, seed: int, beta: float) -> dict:
             'outcome': res['outcome'], 'success': bool(res['success']), 'crash': bool(res['crash']),
             'duration_s': round(float(res['duration_s']), 2), 'active_fraction': round(res['active_fraction'], 3),
             'pilot': res['pilot'], 'guard_fraction': round(res['guard_fraction'], 3),
-            'override_fraction': round(res['override_fraction'], 3)}
+            'override_fraction': round(res['override_fraction'], 3),
+            'recall_fraction': round(res['recall_fraction'], 3)}
 
 
 def summarize(rows: list[dict]) -> dict:
@@ -365,14 +372,16 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
             try:
                 env, policy = make_policy(cond, model, args.encoder_path, args.max_episode_s, args.alpha,
                                           args.pilot, SafetyConfig() if args.safety else None,
-                                          OverrideConfig() if args.override else None)
+                                          OverrideConfig() if args.override else None,
+                                          RecallConfig() if args.recall else None)
             except ValueError as exc:
                 log.warning('skipping %s: %s', cond, exc)
                 continue
             t0 = time.time()
             rows = []
             name = (cond + ('+guard' if args.safety and cond != 'unassisted' else '')
-                    + ('+override' if args.override and cond in CONDITIONS[1:] else ''))
+                    + ('+override' if args.override and cond in CONDITIONS[1:] else '')
+                    + ('+recall' if args.recall and cond in CONDITIONS[1:] else ''))
             for bi, beta in enumerate(args.betas):
                 for k in range(args.landings):
                     seed = args.seed + 1000 * bi + k
@@ -429,7 +438,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f'combined from {", ".join(args.from_csv)}')
     else:
         print(f'pilot {args.pilot}, floor guard {"on" if args.safety else "off"}, '
-              f'pilot override {"on" if args.override else "off"}, alpha {args.alpha}, '
+              f'pilot override {"on" if args.override else "off"}, '
+              f'pad recall {"on" if args.recall else "off"}, alpha {args.alpha}, '
               f'betas {args.betas[0]}..{args.betas[-1]} ({len(args.betas)}), '
               f'{args.landings} landings each, seed {args.seed}')
     print(format_table(summary))

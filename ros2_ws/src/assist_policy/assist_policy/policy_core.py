@@ -14,7 +14,11 @@ Safety rules (ARCHITECTURE.md, "Timing and safety rules"):
   ``floor_guard``); needs fresh odometry and a depth image (``set_depth``) no older than feature_timeout_s;
 * pilot override (``override.PilotOverride``, not learned): while the pilot holds a horizontal key and
   does not descend, the actor's action is replaced (the pilot's correction passes, the vehicle rises
-  gently when low; reason key ``pilot_override``).
+  gently when low; reason key ``pilot_override``);
+* pad recall (``recall.PadRecall``, not learned): every depth frame adds the pads in view to a map
+  (odom, with the odometry attitude); when the pilot descends (or is low) with the floor under every
+  leg, the actor's horizontal action is replaced by a push back to the nearest mapped pad (reason key
+  ``pad_recall``); needs fresh odometry and depth, like the floor guard, which still acts after it.
 """
 from __future__ import annotations
 
@@ -34,6 +38,7 @@ from .actions import scale_action
 from .blending import DEFAULT_THRESHOLD, blend
 from .observation import Condition, ObservationBuilder, image_feature, oracle_feature
 from .override import OverrideConfig, PilotOverride
+from .recall import PadRecall, RecallConfig
 from .safety import FloorGuard, SafetyConfig
 from .td3 import load_actor
 
@@ -78,6 +83,7 @@ class PolicyCoreConfig:
     max_latent_abs: float = 1.0e3       # encoder means beyond this are rejected
     safety: SafetyConfig | None = None  # floor guard settings (None: SafetyConfig() defaults)
     override: OverrideConfig | None = None  # pilot override settings (None: OverrideConfig() defaults)
+    recall: RecallConfig | None = None      # pad recall settings (None: RecallConfig() defaults)
 
     def __post_init__(self) -> None:
         """Reject settings that would reverse, suppress or invent motion (ValueError, one line)."""
@@ -97,8 +103,9 @@ class PolicyOutput:
 
     `key` is a short stable reason for diagnostics: ``assisting``, ``small_action`` (the actor chose
     |a| <= threshold), ``odom_stale``, ``feature_stale``, ``goal_absent``, ``actor_nonfinite`` or
-    ``step_error``, ``floor_guard`` (the floor guard replaced a descent) or ``pilot_override`` (the pilot
-    override replaced the actor's action); `reason` is the text.
+    ``step_error``, ``floor_guard`` (the floor guard replaced a descent), ``pilot_override`` (the pilot
+    override replaced the actor's action) or ``pad_recall`` (the pad recall steered back to a mapped pad);
+    `reason` is the text.
     """
 
     agent: np.ndarray | None
@@ -131,6 +138,7 @@ class PolicyCore:
                              f'observation has {self.builder.dim}')
         self._pilot: tuple[float, np.ndarray] | None = None
         self._odom: tuple[float, np.ndarray, np.ndarray] | None = None
+        self._attitude: np.ndarray | None = None   # odom -> base_link quaternion (x, y, z, w); None: level, heading 0
         self._feature: tuple[float, np.ndarray] | None = None
         self._goal: np.ndarray | None = None
         self.rejected = 0                      # non-finite actor outputs
@@ -141,6 +149,9 @@ class PolicyCore:
         self.guard_engaged = 0                      # steps whose descent the floor guard replaced
         self.override = PilotOverride(self.cfg.override or OverrideConfig())
         self.override_engaged = 0                   # steps whose actor action the pilot override replaced
+        self.recall = PadRecall(self.cfg.recall or RecallConfig(), self.guard)
+        self.recall_engaged = 0                     # steps whose horizontal action the pad recall replaced
+        self._mapped_depth: float | None = None     # stamp of the depth frame last added to the pad map
 
     def configure(self, **changes) -> None:
         """Change settings at run time (e.g. speed limits); ValueError (nothing changed) if invalid."""
@@ -190,12 +201,21 @@ class PolicyCore:
                                               f'max_input_speed {self.cfg.max_input_mps:g} m/s')
         self._pilot = (t, u)
 
-    def set_odom(self, t: float, position: np.ndarray, velocity: np.ndarray) -> None:
-        """Latest odometry (odom ENU); InputRejected when non-finite or implausible."""
+    def set_odom(self, t: float, position: np.ndarray, velocity: np.ndarray,
+                 orientation: np.ndarray | None = None) -> None:
+        """Latest odometry (odom ENU; orientation x, y, z, w, None or zeros = level); InputRejected when implausible."""
         t = self._stamp('odom', t)
         p = self._vector('odom_position', position, 3, self.cfg.max_position_m)
         v = self._vector('odom_velocity', velocity, 3, self.cfg.max_odom_speed_mps)
-        self._odom = (t, p, v)
+        q = None if orientation is None else self._vector('odom_orientation', orientation, 4, 2.0)
+        if q is not None and not np.any(q):
+            q = None                  # all zero: a source that fills no orientation (taken as level, heading 0)
+        if q is not None:
+            n = float(np.linalg.norm(q))
+            if not 0.9 < n < 1.1:
+                raise self._reject('odom_orientation', f'odometry orientation {q.tolist()} is not a unit quaternion')
+            q = q / n
+        self._odom, self._attitude = (t, p, v), q
 
     def set_latent(self, t: float, mu: np.ndarray) -> None:
         """Latest encoder mean (latent mode); InputRejected on wrong size, non-finite or huge values."""
@@ -236,10 +256,12 @@ class PolicyCore:
         self._depth = (t, np.where(np.isfinite(depth) & (depth >= 0) & (depth <= MAX_DEPTH_M), depth, 0.0))
 
     def reset(self) -> None:
-        """Forget the action history, the floor guard's last pad and the override's held keys (new episode)."""
+        """Forget the action history, the floor guard's last pad, the override's held keys, the pad map (new episode)."""
         self.builder.reset()
         self.guard.reset()
         self.override.reset()
+        self.recall.reset()
+        self._mapped_depth = None
 
     # ------------------------------------------------------------- step
     def _fresh(self, stamp: float | None, now: float, timeout: float) -> bool:
@@ -328,17 +350,36 @@ class PolicyCore:
             self.rejected += 1
             return self._relinquish(now, u, 'actor output not finite (rejected)', 'actor_nonfinite')
         a = scale_action(raw, self.max_speed)
-        a_o = self.override.apply(now, u, self.builder.history.means(now)[0], float(pos[2]), self.max_speed)
+        depth = self._mapped(now, pos)
+        mean_u = self.builder.history.means(now)[0]
+        a_o = self.override.apply(now, u, mean_u, float(pos[2]), self.max_speed)
         if a_o is not None:
             self.override_engaged += 1
             v = self._clamp(blend(u, a_o, c.blend_threshold))
             self.builder.record(now, u, a_o)            # the action applied, as evaluate's env records it
             return PolicyOutput(a_o, v, 'pilot override: the pilot\'s held correction passes', 'pilot_override')
+        a_r = None if depth is None else self.recall.apply(u, mean_u, a, depth, pos, self._attitude, self.max_speed)
+        if a_r is not None:
+            self.recall_engaged += 1
+            self.builder.record(now, u, a_r)
+            return PolicyOutput(a_r, self._clamp(blend(u, a_r, c.blend_threshold)),
+                                'pad recall: steering back to a pad seen', 'pad_recall')
         v = self._clamp(blend(u, a, c.blend_threshold))
         self.builder.record(now, u, a)
         if np.linalg.norm(a) > c.blend_threshold:
             return PolicyOutput(a, v, 'assisting', 'assisting')
         return PolicyOutput(a, v, 'relinquished', 'small_action')
+
+    def _mapped(self, now: float, pos: np.ndarray) -> np.ndarray | None:
+        """The fresh depth image for the pad recall, after adding it to the pad map once; None: none fresh, or off."""
+        if not self.recall.cfg.enabled or self._depth is None or not self._fresh(self._depth[0], now,
+                                                                                  self.cfg.feature_timeout_s):
+            return None
+        t_depth, depth = self._depth
+        if self._mapped_depth != t_depth:
+            self.recall.observe(depth, pos, self._attitude)
+            self._mapped_depth = t_depth
+        return depth
 
     def _relinquish(self, now: float, u: np.ndarray, reason: str, key: str) -> PolicyOutput:
         self.builder.record(now, u, np.zeros(3))

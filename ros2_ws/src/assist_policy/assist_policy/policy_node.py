@@ -3,10 +3,12 @@
 Thin rclpy shell over ``policy_core.PolicyCore`` (input range checks, staleness, blending, NaN rejection).
 Run-time parameters (``ros2 param set``): blend_threshold, the three timeouts, max_speed,
 max_vertical_speed, max_input_speed, floor_guard, floor_guard_height_m, floor_guard_climb_mps and the
-pilot_override* parameters; every other parameter is read-only. The floor guard (assist_policy.safety)
-reads /camera/depth/image_raw in every mode; /diagnostics shows floor_guard (on/off) and
+pilot_override* and pad_recall* parameters; every other parameter is read-only. The floor guard
+(assist_policy.safety) and the pad recall (assist_policy.recall, which maps pads with the /odom pose and
+orientation) read /camera/depth/image_raw in every mode; /diagnostics shows floor_guard (on/off) and
 floor_guard_engaged (steps it replaced a descent), pilot_override (on/off) and pilot_override_engaged
-(steps the pilot override, assist_policy.override, replaced the actor's action).
+(steps the pilot override, assist_policy.override, replaced the actor's action), pad_recall (on/off),
+pad_recall_engaged (steps it steered back to a mapped pad) and pad_recall_pads (pads in its map).
 """
 from __future__ import annotations
 
@@ -30,6 +32,7 @@ from assist_sim.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagno
 
 from .blending import DEFAULT_THRESHOLD
 from .override import OverrideConfig
+from .recall import RecallConfig
 from .policy_core import PolicyCore, PolicyCoreConfig, PolicyOutput, default_model_path
 from .safety import SafetyConfig
 
@@ -87,6 +90,11 @@ PARAMS = {
     'pilot_override_reversal_s': Param(OverrideConfig.reversal_s, 'A held key reversing one held within this many '
                                        'seconds is an overshoot being corrected: the pilot override stays out (s).',
                                        min=0.0, max=60.0, dynamic=True),
+    'pad_recall': Param(True, 'Pad recall (assist_policy.recall, not learned): pads seen in the depth image are '
+                              'mapped; when the pilot descends (or is low) over bare floor, the actor\'s horizontal '
+                              'action is replaced by a push back to the nearest mapped pad.', dynamic=True),
+    'pad_recall_radius_m': Param(RecallConfig.radius_m, 'The pad recall steers only to a mapped pad this close '
+                                 '(horizontal m).', min=0.0, max=50.0, dynamic=True),
 }
 # node parameter -> OverrideConfig field
 OVERRIDE_FIELDS = {'pilot_override': 'enabled', 'pilot_override_speed_mps': 'speed_mps',
@@ -106,7 +114,7 @@ CORE_FIELDS = {'blend_threshold': 'blend_threshold', 'pilot_timeout_s': 'pilot_t
                'max_speed': 'max_speed_mps', 'max_vertical_speed': 'max_vertical_mps',
                'max_input_speed': 'max_input_mps'}
 # step outcomes that are normal operation (diagnostics OK); everything else is a WARN with its reason
-OK_KEYS = ('assisting', 'small_action', 'floor_guard', 'pilot_override')
+OK_KEYS = ('assisting', 'small_action', 'floor_guard', 'pilot_override', 'pad_recall')
 FAULT_KEYS = ('actor_nonfinite', 'step_error')
 
 
@@ -163,6 +171,8 @@ class PolicyNode(Node):
                                                        guard_height_m=float(self.p['floor_guard_height_m']),
                                                        min_climb_mps=float(self.p['floor_guard_climb_mps'])),
                                    override=OverrideConfig(**override_fields(self.p)),
+                                   recall=RecallConfig(enabled=bool(self.p['pad_recall']),
+                                                       radius_m=float(self.p['pad_recall_radius_m'])),
                                    **{f: self.p[k] for k, f in CORE_FIELDS.items()})
             self.core = PolicyCore(path, cfg)
         except ValueError as exc:
@@ -197,6 +207,7 @@ class PolicyNode(Node):
         self.diag.set('mode', mode)
         self.diag.set('floor_guard', 'on' if self.p['floor_guard'] else 'off')
         self.diag.set('pilot_override', 'on' if self.p['pilot_override'] else 'off')
+        self.diag.set('pad_recall', 'on' if self.p['pad_recall'] else 'off')
         self.diag.status(DiagnosticStatus.WARN, 'relinquished: waiting for inputs')
         self.get_logger().info(f'policy_node: {mode} actor {path} at {self.p["rate_hz"]} Hz')
 
@@ -220,6 +231,12 @@ class PolicyNode(Node):
             with self._lock:
                 self.core.override.cfg = dataclasses.replace(self.core.override.cfg, **override)
             self.diag.set('pilot_override', 'on' if self.core.override.cfg.enabled else 'off')
+        if 'pad_recall' in changed or 'pad_recall_radius_m' in changed:
+            with self._lock:
+                r = self.core.recall.cfg            # shared with the map: changed in place
+                r.enabled = bool(changed.get('pad_recall', r.enabled))
+                r.radius_m = float(changed.get('pad_recall_radius_m', r.radius_m))
+            self.diag.set('pad_recall', 'on' if r.enabled else 'off')
 
     # ------------------------------------------------------------- inputs
     def _now(self) -> float:
@@ -245,9 +262,9 @@ class PolicyNode(Node):
         return guarded
 
     def _on_odom(self, msg: Odometry) -> None:
-        p, v = msg.pose.pose.position, msg.twist.twist.linear
+        p, v, q = msg.pose.pose.position, msg.twist.twist.linear, msg.pose.pose.orientation
         with self._lock:
-            self.core.set_odom(self._now(), [p.x, p.y, p.z], [v.x, v.y, v.z])
+            self.core.set_odom(self._now(), [p.x, p.y, p.z], [v.x, v.y, v.z], [q.x, q.y, q.z, q.w])
 
     def _on_pilot(self, msg: TwistStamped) -> None:
         with self._lock:
@@ -321,6 +338,8 @@ class PolicyNode(Node):
         self.diag.set('rejected_actor_outputs', self.core.rejected)
         self.diag.set('floor_guard_engaged', self.core.guard_engaged)
         self.diag.set('pilot_override_engaged', self.core.override_engaged)
+        self.diag.set('pad_recall_engaged', self.core.recall_engaged)
+        self.diag.set('pad_recall_pads', len(self.core.recall.map.pads))
         if out.key in FAULT_KEYS:
             self._consecutive_faults += 1
             self.diag.count(f'fault_{out.key}')
@@ -340,6 +359,8 @@ class PolicyNode(Node):
             self.diag.status(DiagnosticStatus.OK, 'floor guard: descent over bare floor blocked')
         elif out.key == 'pilot_override':
             self.diag.status(DiagnosticStatus.OK, 'pilot override: the pilot\'s held correction passes')
+        elif out.key == 'pad_recall':
+            self.diag.status(DiagnosticStatus.OK, 'pad recall: steering back to a pad seen')
         elif out.key == 'small_action':
             self.diag.status(DiagnosticStatus.OK, 'relinquished: agent action at or below blend_threshold')
         else:

@@ -1,0 +1,233 @@
+"""Pad recall: a non-learned memory of the pads the camera has seen, and a rule that steers to them (issue 12).
+
+Why: the learned assistant knows about a pad only while the encoder sees one (its feature memory
+covers a couple of seconds). A pilot who overshoots the last pad, or sets down between pads, descends
+over bare floor with no pad in view, and there the actor is almost inactive or points nowhere in
+particular (issue 12's first failure: "the assistant is almost inactive there"); the floor guard then
+stops the descent, and the landing times out hovering over the floor. The nearest-pad reference, which
+knows the true pad positions, pulls such a pilot back onto the pad it passed.
+
+Map (``PadMap``): every depth frame is back-projected into odom with the camera's pose (odometry
+position and attitude, camera ``camera_offset_m`` below base_link on the body z axis, optical frame as
+in ARCHITECTURE.md); pixels standing more than ``min_top_m`` over the floor (odom z = 0) are "raised"; a raised region reaching
+``max_top_m`` is a wall, not a pad (pads stand 0.4-1.2 m tall, walls 6 m). Each 4-connected
+raised region of at least ``min_pixels`` pixels is one pad sighting: its top surface (points within
+``top_band_m`` of the region's highest decile) gives the centre x, y and the top height; a "top" thinner
+than ``min_spread_m`` across is a vertical face seen edge-on (a wall at the image border), not a pad. A sighting within
+``merge_radius_m`` of a mapped pad updates it. A region cut by the image border is seen only in part: its
+centre is biased toward the image centre and, low beside a pad, most of it is the pad's side face (its
+"top" reads low). So a part view never replaces a centre seen whole, replaces another part view only
+when it is larger, and the top of a pad never seen whole is the highest read. ``reset`` forgets the map.
+
+Rule (``PadRecall.apply``): when the depth image shows the floor beneath every leg (the floor guard's
+test), the pilot commands a descent, the pilot override did not act, and a mapped pad lies within
+``radius_m`` horizontally, the agent's horizontal action is replaced by the nearest-pad reference's
+centring action toward that pad (``ScriptedOracle.velocity``: a_xy = 2 gain (pad - p)_xy - u_xy, clipped),
+its vertical action is kept. Once a leg is over the pad the actor sees it and has it again. The floor
+guard still acts after this rule (a descent over the floor below its height is never passed).
+
+Pure numpy + OpenCV; no rclpy.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from assist_sim.core.geometry import R_BODY_FROM_OPTICAL, quat_to_matrix
+
+from .safety import FloorGuard
+from .scripted import ScriptedConfig, ScriptedOracle
+
+
+@dataclass
+class RecallConfig:
+    """Settings of the pad map and the recall rule (policy_node parameters pad_recall_* map onto these)."""
+
+    enabled: bool = True
+    radius_m: float = 3.0             # steers only to a mapped pad this close (pads stand ~4 m apart)
+    gain_xy: float = ScriptedConfig.gain_xy   # 1/s, the reference's centring gain (V = gain (pad - p))
+    low_height_m: float = 1.2         # also acts without a descent this low over the pad's top (reference: 1.2)
+    clear_height_m: float = 0.35      # lower than this over the pad's top and off it: climb first (its side)
+    clear_radius_m: float = 0.4       # 'over it': nearer its centre than this (pads >= 0.8 m): the rule is off
+    climb_mps: float = 0.3            # vertical V while climbing to clear the pad's side
+    leave_speed_mps: float = 0.5      # a pilot whose command (now or 1 s mean) is this fast away from the pad leaves it
+    min_top_m: float = 0.25           # a point this high over the floor is raised (pads 0.4-1.2 m)
+    max_top_m: float = 2.0            # a raised region reaching this high is a wall (walls stand 6 m)
+    top_band_m: float = 0.1           # the top surface: raised points within this of the region's top
+    min_pixels: int = 6               # smaller raised regions are noise
+    min_spread_m: float = 0.03        # a top surface thinner than this (std across) is a vertical face, not a pad
+    merge_radius_m: float = 1.2       # a sighting this close to a mapped pad is that pad (pads <= 1.6 m)
+    min_view_m: float = 0.5           # the map is not updated with the camera nearer than this to the floor
+    camera_offset_m: float = 0.05     # optical centre below base_link (CameraConfig.offset_below_base_m)
+    vertical_fov_deg: float = 58.0    # depth camera vertical field of view (square pixels)
+
+    def __post_init__(self) -> None:
+        """Reject settings that would map nothing or steer everywhere (ValueError, one line)."""
+        for name in ('radius_m', 'gain_xy', 'low_height_m', 'clear_height_m', 'clear_radius_m', 'climb_mps', 'leave_speed_mps',
+                     'min_top_m', 'max_top_m', 'top_band_m', 'min_spread_m', 'merge_radius_m',
+                     'min_view_m', 'camera_offset_m', 'vertical_fov_deg'):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f'RecallConfig.{name} must be a finite number >= 0, got {v!r}')
+        if self.max_top_m <= self.min_top_m:
+            raise ValueError(f'RecallConfig.max_top_m ({self.max_top_m}) must exceed min_top_m ({self.min_top_m})')
+        if not 0 < self.vertical_fov_deg < 180:
+            raise ValueError(f'RecallConfig.vertical_fov_deg must be in (0, 180), got {self.vertical_fov_deg}')
+
+
+@dataclass
+class MappedPad:
+    """One pad in the map: top-surface centre in odom (x, y, top z) and whether it was ever seen whole."""
+
+    xyz: np.ndarray
+    whole: bool
+    area: int                         # pixels of the sighting the centre comes from
+    sightings: int = 1
+
+
+@dataclass
+class PadMap:
+    """Pads seen in the depth images of this landing, in odom (see module docstring)."""
+
+    cfg: RecallConfig = field(default_factory=RecallConfig)
+    pads: list[MappedPad] = field(default_factory=list)
+
+    def reset(self) -> None:
+        """Forget every pad (new landing)."""
+        self.pads.clear()
+
+    def points(self, depth: np.ndarray, position: np.ndarray, quaternion: np.ndarray | None) -> np.ndarray:
+        """HxWx3 odom points of the depth pixels (NaN where the depth is a hole)."""
+        c = self.cfg
+        depth = np.asarray(depth, dtype=np.float32)
+        if depth.ndim != 2 or depth.size == 0:
+            raise ValueError(f'depth image must be HxW, got shape {depth.shape}')
+        h, w = depth.shape
+        f = (h / 2.0) / math.tan(math.radians(c.vertical_fov_deg) / 2.0)
+        cols, rows = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+        z = np.where(np.isfinite(depth) & (depth > 0), depth, np.nan)
+        optical = np.stack([(cols - (w - 1) / 2.0) / f * z, (rows - (h - 1) / 2.0) / f * z, z], axis=-1)
+        r_wb = np.eye(3) if quaternion is None else quat_to_matrix(quaternion)
+        r_wo = r_wb @ R_BODY_FROM_OPTICAL
+        cam = np.asarray(position, dtype=float).reshape(3) + r_wb @ np.array([0.0, 0.0, -c.camera_offset_m])
+        return optical @ r_wo.T + cam
+
+    def update(self, depth: np.ndarray, position: np.ndarray, quaternion: np.ndarray | None = None) -> int:
+        """Add this frame's pad sightings to the map; returns how many regions were seen."""
+        c = self.cfg
+        if float(position[2]) - c.camera_offset_m < c.min_view_m:
+            return 0
+        pts = self.points(depth, position, quaternion)
+        zw = pts[..., 2]
+        raised = (np.isfinite(zw) & (zw > c.min_top_m)).astype(np.uint8)
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(raised, connectivity=4)
+        h, w = raised.shape
+        seen = 0
+        for k in range(1, n):
+            x0, y0, ww, hh, area = (int(v) for v in stats[k])
+            if area < c.min_pixels:
+                continue
+            region = pts[labels == k]
+            if float(region[:, 2].max()) >= c.max_top_m:
+                continue                         # reaches higher than any pad: a wall
+            top = float(np.percentile(region[:, 2], 90))
+            surface = region[region[:, 2] > top - c.top_band_m]
+            if len(surface) < c.min_pixels or _thinnest_spread(surface[:, :2]) < c.min_spread_m:
+                continue                         # no level top (a wall face seen edge-on, a side face)
+            xyz = np.array([float(np.median(surface[:, 0])), float(np.median(surface[:, 1])), top])
+            whole = x0 > 0 and y0 > 0 and x0 + ww < w and y0 + hh < h
+            self._add(xyz, whole, area)
+            seen += 1
+        return seen
+
+    def _add(self, xyz: np.ndarray, whole: bool, area: int) -> None:
+        for pad in self.pads:
+            if math.hypot(pad.xyz[0] - xyz[0], pad.xyz[1] - xyz[1]) < self.cfg.merge_radius_m:
+                pad.sightings += 1
+                if whole:                        # seen whole: its centre and top, as measured
+                    pad.xyz, pad.whole, pad.area = xyz, True, area
+                elif not pad.whole and area >= pad.area:
+                    # seen in part: the larger view has the less biased centre; a side face in view reads
+                    # lower than the top, never higher, so the top is the highest seen
+                    pad.xyz, pad.area = np.array([xyz[0], xyz[1], max(xyz[2], pad.xyz[2])]), area
+                return
+        self.pads.append(MappedPad(xyz, whole, area))
+
+    def nearest(self, xy: np.ndarray) -> MappedPad | None:
+        """The mapped pad nearest (horizontally) to `xy`, or None when the map is empty."""
+        if not self.pads:
+            return None
+        d = [math.hypot(p.xyz[0] - xy[0], p.xyz[1] - xy[1]) for p in self.pads]
+        return self.pads[int(np.argmin(d))]
+
+
+class PadRecall:
+    """The pad map and the recall rule (see module docstring); ``reset`` at each new landing."""
+
+    def __init__(self, cfg: RecallConfig | None = None, floor_guard: FloorGuard | None = None):
+        self.cfg = cfg or RecallConfig()
+        self.map = PadMap(self.cfg)
+        self.floor = floor_guard or FloorGuard()          # its floor_below test (its settings: legs, tolerance)
+        self._centre = ScriptedOracle(ScriptedConfig(gain_xy=self.cfg.gain_xy))
+
+    def reset(self) -> None:
+        """Forget the map (new landing)."""
+        self.map.reset()
+
+    def observe(self, depth: np.ndarray, position: np.ndarray, quaternion: np.ndarray | None = None) -> None:
+        """Map this frame's pads (call with every depth frame, whether or not the rule then acts)."""
+        if self.cfg.enabled:
+            self.map.update(depth, position, quaternion)
+
+    def apply(self, u: np.ndarray, mean_u: np.ndarray, agent: np.ndarray, depth: np.ndarray, position: np.ndarray,
+              quaternion: np.ndarray | None, max_speed: np.ndarray | tuple[float, float, float]) -> np.ndarray | None:
+        """The agent action (m/s, base_link) steering to the remembered pad, or None (the rule does not act)."""
+        c = self.cfg
+        u = np.asarray(u, dtype=float).reshape(3)
+        p = np.asarray(position, dtype=float).reshape(3)
+        if not c.enabled or not (np.all(np.isfinite(u)) and np.all(np.isfinite(p))):
+            return None
+        pad = self.map.nearest(p[:2])
+        if pad is None:
+            return None
+        horiz, height = math.hypot(pad.xyz[0] - p[0], pad.xyz[1] - p[1]), float(p[2] - pad.xyz[2])
+        if horiz > c.radius_m or horiz < c.clear_radius_m or not (u[2] < 0.0 or height < c.low_height_m):
+            return None                     # too far, over it already (a 'floor' there is the blind range), or idle
+        to_pad = pad.xyz[:2] - p[:2]
+        for cmd in (np.asarray(mean_u, dtype=float).reshape(3), u):
+            if (np.all(np.isfinite(cmd)) and float(np.hypot(cmd[0], cmd[1])) > c.leave_speed_mps
+                    and _odom_xy(cmd, quaternion) @ to_pad < 0.0):
+                return None                 # heading away from it (to a pad ahead not yet seen, or back to another)
+        if self.floor.floor_below(depth, float(p[2])) is not True:
+            return None
+        yaw = 0.0 if quaternion is None else _yaw(quaternion)
+        cy, sy = math.cos(yaw), math.sin(yaw)
+        u_odom = np.array([cy * u[0] - sy * u[1], sy * u[0] + cy * u[1], u[2]])
+        v = self._centre.velocity(pad.xyz, p, u_odom)          # odom; only its horizontal part is used
+        a = np.asarray(agent, dtype=float).reshape(3).copy()
+        a[0], a[1] = cy * v[0] + sy * v[1], -sy * v[0] + cy * v[1]
+        if height < c.clear_height_m and horiz > c.clear_radius_m:
+            a[2] = 2.0 * max(float(u[2]), c.climb_mps) - u[2]     # V_z = max(u_z, climb): over its side first
+        ms = np.asarray(max_speed, dtype=float).reshape(3)
+        return np.clip(a, -ms, ms)
+
+
+def _thinnest_spread(xy: np.ndarray) -> float:
+    """Standard deviation of points `xy` (Nx2) across their narrowest direction (m)."""
+    return float(math.sqrt(max(np.linalg.eigvalsh(np.cov(xy.T))[0], 0.0))) if len(xy) > 2 else 0.0
+
+
+def _odom_xy(v: np.ndarray, quaternion: np.ndarray | None) -> np.ndarray:
+    """Horizontal part of base_link vector `v` in odom (yaw only)."""
+    yaw = 0.0 if quaternion is None else _yaw(quaternion)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    return np.array([cy * v[0] - sy * v[1], sy * v[0] + cy * v[1]])
+
+
+def _yaw(q: np.ndarray) -> float:
+    """Heading (rad) of quaternion (x, y, z, w)."""
+    x, y, z, w = (float(v) for v in q)
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))

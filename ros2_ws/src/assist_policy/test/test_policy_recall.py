@@ -1,0 +1,230 @@
+"""Pad recall (assist_policy.recall): the pad map on depth images rendered in the LandingWorld, the rule, PolicyCore."""
+import csv
+import importlib.util
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from assist_policy.blending import blend
+from assist_policy.env import EnvConfig, LandingAssistEnv
+from assist_policy.evaluate import EvalArgs, evaluate
+from assist_policy.policy_core import PolicyCore, PolicyCoreConfig
+from assist_policy.recall import PadMap, PadRecall, RecallConfig
+from assist_sim.core.geometry import R_BODY_FROM_OPTICAL, quat_to_matrix
+from assist_sim.core.scene import PadSpec, SceneSpec
+from assist_sim.core.world import LandingWorld
+
+_spec = importlib.util.spec_from_file_location('policy_core_helpers', Path(__file__).with_name('test_policy_core.py'))
+_helpers = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_helpers)
+constant_actor, LATENT = _helpers.constant_actor, _helpers.LATENT
+
+PADS = (PadSpec(center=(5.0, 0.5), length=1.2, width=1.0, height=0.8, yaw=0.3, material=3),
+        PadSpec(center=(9.0, -0.5), length=1.0, width=1.4, height=0.5, yaw=-0.2, material=4))
+SCENE = SceneSpec(seed=0, pads=PADS, floor_material=1, wall_material=2, start_position=(0.0, 0.0, 3.5))
+TOPS = np.array([[5.0, 0.5, 0.8], [9.0, -0.5, 0.5]])
+MAX_SPEED = (1.0, 1.0, 0.6)
+
+
+def _quat(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """Quaternion (x, y, z, w) of roll-pitch-yaw (ZYX)."""
+    cr, sr, cp, sp = math.cos(roll / 2), math.sin(roll / 2), math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return np.array([sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
+                     cr * cp * sy - sr * sp * cy, cr * cp * cy + sr * sp * sy])
+
+
+@pytest.fixture(scope='module')
+def world():
+    w = LandingWorld()
+    w.reset(scene=SCENE)
+    yield w
+    w.close()
+
+
+def _frame(world, position, q=None):
+    """Depth image from base_link at `position` with attitude `q` (level, heading 0 when None)."""
+    q = _quat(0.0, 0.0, 0.0) if q is None else q
+    r_wb = quat_to_matrix(q)
+    cam = np.asarray(position, dtype=float) + r_wb @ np.array([0.0, 0.0, -world.cfg.camera.offset_below_base_m])
+    return world.render_pose(cam, r_wb @ R_BODY_FROM_OPTICAL).depth.copy()
+
+
+def test_map_finds_each_pad_centre_and_top_from_a_level_and_a_tilted_camera(world):
+    for q in (None, _quat(0.15, -0.12, 0.4)):          # ~9 and 7 degrees of tilt, heading 23 degrees
+        m = PadMap()
+        for pos in ([5.3, 0.3, 3.5], [9.2, -0.3, 3.4]):
+            assert m.update(_frame(world, pos, q), np.array(pos), q) >= 1
+        assert len(m.pads) == 2
+        for pad, true in zip(sorted(m.pads, key=lambda p: p.xyz[0]), TOPS):
+            assert pad.whole
+            assert np.hypot(*(pad.xyz[:2] - true[:2])) < 0.08, (q, pad.xyz, true)
+            assert abs(pad.xyz[2] - true[2]) < 0.05
+
+
+def test_floor_and_walls_are_not_pads_and_holes_are_ignored(world):
+    m = PadMap()
+    assert m.update(_frame(world, [2.0, 0.0, 3.0]), np.array([2.0, 0.0, 3.0])) == 0      # bare floor
+    assert m.update(_frame(world, [7.0, 5.0, 3.0]), np.array([7.0, 5.0, 3.0])) == 0      # a wall at y = 6 in view
+    assert m.update(np.full((64, 64), np.nan, np.float32), np.array([5.0, 0.5, 3.0])) == 0
+    assert m.pads == []
+    with pytest.raises(ValueError):
+        m.update(np.zeros((4, 4, 3)), np.array([5.0, 0.5, 3.0]))
+
+
+def test_part_views_are_kept_only_until_a_better_one_and_never_move_a_centre_seen_whole(world):
+    m = PadMap()
+    edge, nearer = [6.5, 0.5, 3.0], [6.3, 0.5, 3.0]         # the pad cut by the image border
+    m.update(_frame(world, edge), np.array(edge))
+    assert len(m.pads) == 1 and not m.pads[0].whole
+    first = m.pads[0].xyz.copy()
+    assert first[0] > 5.3                                     # biased toward the image centre
+    m.update(_frame(world, nearer), np.array(nearer))         # more of it in view: replaces
+    assert m.pads[0].xyz[0] < first[0] and m.pads[0].area > 324
+    m.update(_frame(world, edge), np.array(edge))             # less of it again: kept
+    assert m.pads[0].xyz[0] < first[0]
+    m.update(_frame(world, [5.0, 0.5, 3.5]), np.array([5.0, 0.5, 3.5]))
+    whole = m.pads[0].xyz.copy()
+    assert m.pads[0].whole and np.hypot(*(whole[:2] - TOPS[0, :2])) < 0.08
+    m.update(_frame(world, nearer), np.array(nearer))
+    assert len(m.pads) == 1 and np.allclose(m.pads[0].xyz, whole) and m.pads[0].sightings == 5
+
+
+def test_a_side_face_seen_low_beside_a_pad_is_not_a_pad(world):
+    m = PadMap()
+    beside = [6.0, 0.9, 1.6]                                  # mostly the pad's side face in view, its top a sliver
+    assert m.update(_frame(world, beside), np.array(beside)) == 0
+    assert m.pads == []
+
+
+def _mapped(world, *positions) -> PadRecall:
+    r = PadRecall()
+    for pos in positions:
+        r.observe(_frame(world, pos), np.array(pos))
+    return r
+
+
+def test_a_descent_over_the_floor_is_steered_back_to_the_pad_it_passed(world):
+    r = _mapped(world, [5.0, 0.5, 3.5])
+    pos = np.array([6.6, 0.4, 2.5])                      # 1.6 m past the pad, floor beneath
+    u = np.array([0.0, 0.0, -0.5])
+    actor = np.array([0.2, 0.1, -0.3])
+    a = r.apply(u, np.zeros(3), actor, _frame(world, pos), pos, None, MAX_SPEED)
+    assert a is not None
+    assert a[0] == pytest.approx(-1.0) and abs(a[1]) < 1.0      # toward the pad (x), clipped at max_speed
+    assert a[2] == actor[2]                                    # high over its top: the actor's vertical stays
+    v = blend(u, a)
+    assert v[0] < -0.4
+
+
+def test_the_rule_stays_out_when_idle_high_over_it_leaving_or_disabled(world):
+    r = _mapped(world, [5.0, 0.5, 3.5])
+    pos = np.array([6.6, 0.4, 2.5])
+    depth = _frame(world, pos)
+    actor = np.zeros(3)
+    assert r.apply(np.zeros(3), np.zeros(3), actor, depth, pos, None, MAX_SPEED) is None        # idle, 1.7 m over it
+    leaving = np.array([1.0, 0.0, 0.0])                        # 1 s mean command away from the pad
+    assert r.apply(np.array([1.0, 0, -0.5]), leaving, actor, depth, pos, None, MAX_SPEED) is None
+    assert r.apply(np.array([1.0, 0, -0.5]), np.zeros(3), actor, depth, pos, None, MAX_SPEED) is None  # key now
+    assert r.apply(np.array([0.0, 0, -0.5]), leaving, actor, depth, pos, None, MAX_SPEED) is None     # last second
+    toward = -leaving
+    assert r.apply(np.array([-1.0, 0, -0.5]), toward, actor, depth, pos, None, MAX_SPEED) is not None
+    assert r.apply(np.array([0.3, 0, -0.5]), np.zeros(3), actor, depth, pos, None, MAX_SPEED) is not None  # a creep
+    over = np.array([5.1, 0.5, 2.0])                           # over the pad: the actor sees it
+    assert r.apply(np.array([0, 0, -0.5]), np.zeros(3), actor, _frame(world, over), over, None, MAX_SPEED) is None
+    far = np.array([8.4, 2.5, 2.5])                            # 3.6 m from the pad seen, the other never seen
+    assert r.apply(np.array([0, 0, -0.5]), np.zeros(3), actor, _frame(world, far), far, None, MAX_SPEED) is None
+    off = PadRecall(RecallConfig(enabled=False))
+    off.observe(_frame(world, [5.0, 0.5, 3.5]), np.array([5.0, 0.5, 3.5]))
+    assert off.map.pads == []
+    assert off.apply(np.array([0, 0, -0.5]), np.zeros(3), actor, depth, pos, None, MAX_SPEED) is None
+
+
+def test_low_beside_the_pad_it_climbs_over_its_side_first(world):
+    r = _mapped(world, [5.0, 0.5, 3.5])
+    pos = np.array([6.1, 0.5, 0.9])                            # 0.1 m over the pad top, beside it
+    for u in (np.array([0.0, 0.0, -0.5]), np.zeros(3), np.array([0.0, 0.0, 0.5])):
+        a = r.apply(u, np.zeros(3), np.array([0.0, 0.0, -0.6]), _frame(world, pos), pos, None, MAX_SPEED)
+        assert a is not None and a[0] < 0
+        climb = max(u[2], RecallConfig.climb_mps)             # V_z = climb, unless a_z hits max_speed (0.6)
+        assert blend(u, a)[2] == pytest.approx((u[2] + min(2 * climb - u[2], MAX_SPEED[2])) / 2)
+        assert blend(u, a)[2] > 0.0
+
+
+def test_heading_rotates_the_steering_into_base_link(world):
+    r = _mapped(world, [5.0, 0.5, 3.5])
+    pos = np.array([6.6, 0.5, 2.5])
+    q = _quat(0.0, 0.0, math.pi / 2)                           # base_link x points along odom +y
+    a = r.apply(np.array([0, 0, -0.5]), np.zeros(3), np.zeros(3), _frame(world, pos, q), pos, q, MAX_SPEED)
+    assert a is not None and a[1] == pytest.approx(1.0) and abs(a[0]) < 0.2   # odom -x = base_link +y
+
+
+def test_config_rejects_nonsense():
+    with pytest.raises(ValueError):
+        RecallConfig(radius_m=float('nan'))
+    with pytest.raises(ValueError):
+        RecallConfig(min_top_m=2.0, max_top_m=1.0)
+
+
+def test_policy_core_applies_the_recall_and_reports_it(tmp_path, world):
+    path = constant_actor(tmp_path / 'still.pt', [0.0, 0.0, 0.0])
+    core = PolicyCore(path, PolicyCoreConfig(mode='latent'))
+    q = _quat(0.0, 0.0, 0.0)
+    t = 0.0
+    for pos in ([5.0, 0.5, 3.5], [6.6, 0.4, 2.5]):          # over the pad (mapped), then past it
+        t += 0.05
+        core.set_odom(t, pos, [0.0, 0.0, 0.0], q)
+        core.set_depth(t, _frame(world, pos))
+        core.set_latent(t, np.zeros(LATENT))
+        core.set_pilot(t, [0.0, 0.0, -0.5])
+        out = core.step(t)
+    assert out.key == 'pad_recall' and core.recall_engaged == 1
+    assert out.agent[0] == pytest.approx(-1.0) and out.velocity[0] < -0.4
+    core.reset()                                               # a new landing forgets the map
+    assert core.recall.map.pads == []
+    off = PolicyCore(path, PolicyCoreConfig(mode='latent', recall=RecallConfig(enabled=False)))
+    off.set_odom(t, [6.6, 0.4, 2.5], [0.0, 0.0, 0.0], q)
+    off.set_depth(t, _frame(world, [5.0, 0.5, 3.5]))
+    off.set_latent(t, np.zeros(LATENT))
+    off.set_pilot(t, [0.0, 0.0, -0.5])
+    assert off.step(t).key != 'pad_recall'
+    with pytest.raises(ValueError):
+        core.set_odom(t, [0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 2.0])    # not a rotation
+    assert core.rejections['odom_orientation'] == 1
+    core.set_odom(t, [0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0])        # unset: level
+    assert core._attitude is None
+
+
+def test_env_steers_a_descent_past_the_last_pad_back_and_records_it():
+    env = LandingAssistEnv(EnvConfig(condition='oracle', recall=RecallConfig()))
+    env.reset(seed=3)
+    last = env.world.pad_top_centers[int(np.argmax(env.world.pad_top_centers[:, 0]))]
+    env.world.reset(seed=env.world.scene.seed, scene=env.world.scene,
+                    start_position=[last[0], last[1], 3.5])          # over the last pad: it is mapped
+    env._u = np.zeros(3)
+    assert not env.step(np.zeros(3))[4]['recall'] and env.recall.map.pads
+    env.world.reset(seed=env.world.scene.seed, scene=env.world.scene,
+                    start_position=[last[0] + 1.8, last[1], 3.0])    # past it, no pad below
+    seen = []
+    for _ in range(20):                                             # the pilot descends, the actor idles
+        env._u = np.array([0.0, 0.0, -0.5])
+        _, _, term, _, info = env.step(np.zeros(3))
+        seen.append(info['recall'])
+        assert not term
+    assert all(seen) and env.world.state.velocity[0] < -0.3         # carried back toward the pad
+    _, a_mean = env.builder.history.means(env.elapsed_s)
+    assert a_mean[0] < -0.5                                         # the history holds the applied action
+    env.close()
+
+
+def test_evaluate_recall_rows_and_column(tmp_path):
+    actor = _helpers.constant_actor(tmp_path / 'still.pt', [0.0, 0.0, 0.0], condition='oracle', latent_dim=0)
+    args = EvalArgs(out=str(tmp_path / 'ev'), conditions=('oracle', 'scripted_nearest_pad'), betas=(0.5,),
+                    landings=1, pilot='paper', safety=True, recall=True, oracle_model=str(actor),
+                    plot=False, max_episode_s=5.0)
+    assert set(evaluate(args)) == {'oracle+guard+recall', 'scripted_nearest_pad+guard'}   # scripts stay as defined
+    rows = {r['condition']: r for r in csv.DictReader(open(tmp_path / 'ev' / 'landings.csv'))}
+    assert float(rows['scripted_nearest_pad+guard']['recall_fraction']) == 0.0
+    assert 0.0 <= float(rows['oracle+guard+recall']['recall_fraction']) <= 1.0
