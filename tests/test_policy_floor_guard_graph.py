@@ -1,6 +1,7 @@
 """policy_node's floor guard in a real graph: depth image in (32FC1 and 16UC1), climb out on /cmd_vel and
 /assist/agent_cmd, counted on /diagnostics, turned off at run time with the floor_guard parameter; and its
-pilot override (a held key passes with a gentle climb; the pilot_override parameter turns it off)."""
+pilot override (a held key passes with a gentle climb; the pilot_override parameter turns it off); and its
+pad recall (a pad seen, then a descent past it over bare floor is steered back; pad_recall turns it off)."""
 import importlib.util
 import threading
 import time
@@ -30,15 +31,16 @@ ALT = 0.8                      # odom z: low over the floor
 FLOOR_DEPTH = ALT - 0.05       # camera 5 cm below base_link
 
 
-def depth_msg(encoding: str) -> Image:
-    """A 64x64 depth image of bare floor FLOOR_DEPTH away, as the sim (32FC1 m) or a RealSense (16UC1 mm)."""
+def depth_msg(encoding: str, depth: np.ndarray | None = None) -> Image:
+    """A 64x64 depth image (default: bare floor FLOOR_DEPTH away), as the sim (32FC1 m) or a RealSense (16UC1 mm)."""
+    depth = np.full((64, 64), FLOOR_DEPTH, np.float32) if depth is None else depth.astype(np.float32)
     m = Image()
     m.height = m.width = 64
     m.encoding = encoding
     if encoding == '32FC1':
-        m.step, m.data = 64 * 4, np.full((64, 64), FLOOR_DEPTH, np.float32).tobytes()
+        m.step, m.data = 64 * 4, depth.tobytes()
     else:
-        m.step, m.data = 64 * 2, np.full((64, 64), round(FLOOR_DEPTH * 1000), np.uint16).tobytes()
+        m.step, m.data = 64 * 2, np.round(depth * 1000).astype(np.uint16).tobytes()
     return m
 
 
@@ -73,17 +75,17 @@ class Probe:
         with self.lock:
             return [v for t, v in store if t >= t0]
 
-    def run(self, seconds, encoding='32FC1'):
+    def run(self, seconds, encoding='32FC1', position=(0.0, 0.0, ALT), depth=None):
         t0 = time.monotonic()
         while time.monotonic() - t0 < seconds:
             od = Odometry()
-            od.pose.pose.position.z = ALT
+            od.pose.pose.position.x, od.pose.pose.position.y, od.pose.pose.position.z = position
             self.pub_odom.publish(od)
             tw = TwistStamped()
             tw.twist.linear.x, tw.twist.linear.y, tw.twist.linear.z = self.pilot
             self.pub_pilot.publish(tw)
             self.pub_latent.publish(Float32MultiArray(data=[0.0] * _helpers.LATENT))
-            self.pub_depth.publish(depth_msg(encoding))
+            self.pub_depth.publish(depth_msg(encoding, depth))
             time.sleep(0.05)
         return t0
 
@@ -103,7 +105,8 @@ def set_param(node, name, value: bool, wait):
 def test_floor_guard_blocks_descent_over_floor_and_can_be_turned_off(ros, start_node, wait, tmp_path):
     model = _helpers.constant_actor(tmp_path / 'relinquish.pt', [0.0, 0.0, 0.0])     # a = 0: V = u
     probe = Probe(ros)
-    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0})
+    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0,
+                                      'pad_recall': False})
     t0 = time.monotonic()
     while not probe.since(probe.agent, t0) and time.monotonic() - t0 < 40 and node.proc.poll() is None:
         probe.run(0.2)
@@ -148,3 +151,32 @@ def test_pilot_override_passes_a_held_key_and_can_be_turned_off(ros, start_node,
     cmds = probe.since(probe.cmd, t2 + 0.5)
     assert cmds and all(np.allclose(v, [0.5, 0, -0.27], atol=1e-5) for v in cmds), cmds[-3:]   # blend(u, a)
     assert wait(lambda: probe.diag and probe.diag[-1].get('pilot_override') == 'off', 5)
+
+
+def test_pad_recall_steers_a_descent_past_a_pad_back_and_can_be_turned_off(ros, start_node, wait, tmp_path):
+    model = _helpers.constant_actor(tmp_path / 'relinquish.pt', [0.0, 0.0, 0.0])     # a = 0: V = u
+    probe = Probe(ros)                                                               # the pilot descends
+    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0})
+    pad = np.full((64, 64), 3.0 - 0.05, np.float32)                  # from 3 m: floor, and a 0.8 m pad below
+    pad[22:42, 22:42] = 3.0 - 0.05 - 0.8
+    t0 = time.monotonic()
+    while not probe.since(probe.cmd, t0) and time.monotonic() - t0 < 40 and node.proc.poll() is None:
+        probe.run(0.2, position=(0.0, 0.0, 3.0), depth=pad)
+    assert node.proc.poll() is None, node.log()
+    probe.run(0.5, position=(0.0, 0.0, 3.0), depth=pad)               # over the pad: mapped at (0, 0)
+    # bare floor before moving: the first step at a new pose reads the depth image of the one before
+    probe.run(0.3, position=(0.0, 0.0, 3.0), depth=np.full((64, 64), 3.0 - 0.05, np.float32))
+    floor = np.full((64, 64), 2.5 - 0.05, np.float32)
+    t1 = probe.run(1.5, position=(1.5, 0.0, 2.5), depth=floor)        # 1.5 m past it over bare floor
+    cmds, agents = probe.since(probe.cmd, t1 + 0.5), probe.since(probe.agent, t1 + 0.5)
+    assert cmds and agents, node.log()
+    # a = (clip(2 * 4 * (0 - 1.5)), 0, 0) = (-1, 0, 0): V = (-0.5, 0, -0.25), back toward the pad, still descending
+    assert all(np.allclose(a, [-1.0, 0, 0], atol=1e-5) for a in agents), agents[-3:]
+    assert all(np.allclose(v, [-0.5, 0, -0.25], atol=1e-5) for v in cmds), cmds[-3:]
+    assert wait(lambda: any(int(d.get('pad_recall_engaged', 0)) > 10 for d in probe.diag), 5), probe.diag[-1:]
+    assert probe.diag[-1].get('pad_recall') == 'on' and probe.diag[-1].get('pad_recall_pads') == '1'
+    set_param(ros, 'pad_recall', False, wait)
+    t2 = probe.run(1.5, position=(1.5, 0.0, 2.5), depth=floor)
+    cmds = probe.since(probe.cmd, t2 + 0.5)
+    assert cmds and all(np.allclose(v, [0, 0, -0.5], atol=1e-5) for v in cmds), cmds[-3:]   # V = u again
+    assert wait(lambda: probe.diag and probe.diag[-1].get('pad_recall') == 'off', 5)
