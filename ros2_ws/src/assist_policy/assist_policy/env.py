@@ -267,7 +267,8 @@ class LandingAssistEnv(gym.Env):
         self.recall.observe(frame.depth, st.position, st.quaternion)
         if overridden:
             return a, False
-        a_r = self.recall.apply(self._u, self.builder.history.means(self.elapsed_s)[0], a, frame.depth, st.position, st.quaternion, self.cfg.max_speed)
+        mean_u = self.builder.history.means(self.elapsed_s)[0]
+        a_r = self.recall.apply(self._u, mean_u, a, frame.depth, st.position, st.quaternion, self.cfg.max_speed)
         return (a, False) if a_r is None else (a_r, True)
 
     def _guard(self, a: np.ndarray, active: bool, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:

@@ -208,7 +208,7 @@ def write_landings(path: Path, rows_by_cond: dict[str, list[dict]]) -> None:
 def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: float, alpha: float,
                 pilot: str = 'paper', safety: SafetyConfig | None = None, override: OverrideConfig | None = None,
                 recall: RecallConfig | None = None):
-    """(env, policy) for one condition; policy(obs) -> raw action, None for unassisted (override, recall: learned only)."""
+    """(env, policy) for one condition; policy(obs) -> raw action, None for unassisted (override/recall: learned)."""
     if condition == 'unassisted':
         return LandingAssistEnv(EnvConfig(condition='none', alpha=alpha, max_episode_s=max_episode_s,
                                           pilot_family=pilot)), None
@@ -222,7 +222,8 @@ def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: fl
     actor, meta = load_actor(path)
     cfg = EnvConfig(condition=condition, alpha=alpha, max_episode_s=max_episode_s,
                     max_speed=tuple(meta.get('max_speed', (1.0, 1.0, 0.6))),
-                    latent_dim=int(meta.get('latent_dim', 0)), pilot_family=pilot, safety=safety, override=override, recall=recall,
+                    latent_dim=int(meta.get('latent_dim', 0)), pilot_family=pilot, safety=safety, override=override,
+                    recall=recall,
                     feature_lags_s=tuple(meta['feature_lags_s']), memory_displacement=meta['memory_displacement'])
     if condition == 'latent':
         latent_fn, dim = make_latent_fn(encoder_path or None)

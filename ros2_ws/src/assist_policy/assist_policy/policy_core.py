@@ -256,7 +256,7 @@ class PolicyCore:
         self._depth = (t, np.where(np.isfinite(depth) & (depth >= 0) & (depth <= MAX_DEPTH_M), depth, 0.0))
 
     def reset(self) -> None:
-        """Forget the action history, the floor guard's last pad, the override's held keys, the pad map (new episode)."""
+        """Forget the action history, the guard's last pad, the override's held keys and the pad map (new episode)."""
         self.builder.reset()
         self.guard.reset()
         self.override.reset()

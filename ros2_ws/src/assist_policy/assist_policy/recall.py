@@ -9,22 +9,28 @@ knows the true pad positions, pulls such a pilot back onto the pad it passed.
 
 Map (``PadMap``): every depth frame is back-projected into odom with the camera's pose (odometry
 position and attitude, camera ``camera_offset_m`` below base_link on the body z axis, optical frame as
-in ARCHITECTURE.md); pixels standing more than ``min_top_m`` over the floor (odom z = 0) are "raised"; a raised region reaching
-``max_top_m`` is a wall, not a pad (pads stand 0.4-1.2 m tall, walls 6 m). Each 4-connected
-raised region of at least ``min_pixels`` pixels is one pad sighting: its top surface (points within
-``top_band_m`` of the region's highest decile) gives the centre x, y and the top height; a "top" thinner
-than ``min_spread_m`` across is a vertical face seen edge-on (a wall at the image border), not a pad. A sighting within
-``merge_radius_m`` of a mapped pad updates it. A region cut by the image border is seen only in part: its
-centre is biased toward the image centre and, low beside a pad, most of it is the pad's side face (its
-"top" reads low). So a part view never replaces a centre seen whole, replaces another part view only
-when it is larger, and the top of a pad never seen whole is the highest read. ``reset`` forgets the map.
+in ARCHITECTURE.md); pixels standing more than ``min_top_m`` over the floor (odom z = 0) are "raised".
+Each 4-connected raised region of at least ``min_pixels`` pixels is one pad sighting: its top surface
+(points within ``top_band_m`` of the region's highest decile) gives the centre x, y and the top height.
+Not pads: a region reaching ``max_top_m`` (a wall: pads stand 0.4-1.2 m, walls 6 m) and a "top" thinner
+than ``min_spread_m`` across (a vertical face seen edge-on: a wall at the image border, a pad's side).
+A sighting within ``merge_radius_m`` of a mapped pad updates it. A region cut by the image border is
+seen only in part: its centre is biased toward the image centre and, low beside a pad, most of it is
+the pad's side face (its "top" reads low). So a part view never replaces a centre seen whole, replaces
+another part view only when it is larger, and the top of a pad never seen whole is the highest read.
+``reset`` forgets the map.
 
-Rule (``PadRecall.apply``): when the depth image shows the floor beneath every leg (the floor guard's
-test), the pilot commands a descent, the pilot override did not act, and a mapped pad lies within
-``radius_m`` horizontally, the agent's horizontal action is replaced by the nearest-pad reference's
-centring action toward that pad (``ScriptedOracle.velocity``: a_xy = 2 gain (pad - p)_xy - u_xy, clipped),
-its vertical action is kept. Once a leg is over the pad the actor sees it and has it again. The floor
-guard still acts after this rule (a descent over the floor below its height is never passed).
+Rule (``PadRecall.apply``): it acts when the depth image shows the floor beneath every leg (the floor
+guard's test), the nearest mapped pad is between ``clear_radius_m`` and ``radius_m`` away horizontally,
+and the pilot commands a descent or is lower than ``low_height_m`` over that pad's top (the reference's
+trigger). It stays out while the pilot's command, now or its 1 s mean, is faster than
+``leave_speed_mps`` away from the pad (a pilot on its way to a pad ahead not yet seen, or back to one
+behind), and the caller skips it while the pilot override acts. Acting, the agent's horizontal action
+is replaced by the nearest-pad reference's centring action toward the pad (``ScriptedOracle.velocity``:
+a_xy = 2 gain (pad - p)_xy - u_xy, clipped); its vertical action is kept, except lower than
+``clear_height_m`` over the pad's top, where V_z = max(u_z, climb_mps) takes it over the pad's side
+rather than into it. Nearer the centre than ``clear_radius_m`` the actor sees the pad (and a "floor"
+there is the camera's blind range). The floor guard still acts after this rule.
 
 Pure numpy + OpenCV; no rclpy.
 """
@@ -53,12 +59,12 @@ class RecallConfig:
     clear_height_m: float = 0.35      # lower than this over the pad's top and off it: climb first (its side)
     clear_radius_m: float = 0.4       # 'over it': nearer its centre than this (pads >= 0.8 m): the rule is off
     climb_mps: float = 0.3            # vertical V while climbing to clear the pad's side
-    leave_speed_mps: float = 0.5      # a pilot whose command (now or 1 s mean) is this fast away from the pad leaves it
+    leave_speed_mps: float = 0.5      # a command (now or 1 s mean) this fast away from the pad: leaving it
     min_top_m: float = 0.25           # a point this high over the floor is raised (pads 0.4-1.2 m)
     max_top_m: float = 2.0            # a raised region reaching this high is a wall (walls stand 6 m)
     top_band_m: float = 0.1           # the top surface: raised points within this of the region's top
     min_pixels: int = 6               # smaller raised regions are noise
-    min_spread_m: float = 0.03        # a top surface thinner than this (std across) is a vertical face, not a pad
+    min_spread_m: float = 0.03        # a top thinner than this (std across) is a vertical face, not a pad
     merge_radius_m: float = 1.2       # a sighting this close to a mapped pad is that pad (pads <= 1.6 m)
     min_view_m: float = 0.5           # the map is not updated with the camera nearer than this to the floor
     camera_offset_m: float = 0.05     # optical centre below base_link (CameraConfig.offset_below_base_m)
@@ -66,8 +72,8 @@ class RecallConfig:
 
     def __post_init__(self) -> None:
         """Reject settings that would map nothing or steer everywhere (ValueError, one line)."""
-        for name in ('radius_m', 'gain_xy', 'low_height_m', 'clear_height_m', 'clear_radius_m', 'climb_mps', 'leave_speed_mps',
-                     'min_top_m', 'max_top_m', 'top_band_m', 'min_spread_m', 'merge_radius_m',
+        for name in ('radius_m', 'gain_xy', 'low_height_m', 'clear_height_m', 'clear_radius_m', 'climb_mps',
+                     'leave_speed_mps', 'min_top_m', 'max_top_m', 'top_band_m', 'min_spread_m', 'merge_radius_m',
                      'min_view_m', 'camera_offset_m', 'vertical_fov_deg'):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
@@ -196,19 +202,18 @@ class PadRecall:
         horiz, height = math.hypot(pad.xyz[0] - p[0], pad.xyz[1] - p[1]), float(p[2] - pad.xyz[2])
         if horiz > c.radius_m or horiz < c.clear_radius_m or not (u[2] < 0.0 or height < c.low_height_m):
             return None                     # too far, over it already (a 'floor' there is the blind range), or idle
+        yaw = 0.0 if quaternion is None else _yaw(quaternion)
         to_pad = pad.xyz[:2] - p[:2]
         for cmd in (np.asarray(mean_u, dtype=float).reshape(3), u):
             if (np.all(np.isfinite(cmd)) and float(np.hypot(cmd[0], cmd[1])) > c.leave_speed_mps
-                    and _odom_xy(cmd, quaternion) @ to_pad < 0.0):
+                    and _rotate(cmd[:2], yaw) @ to_pad < 0.0):
                 return None                 # heading away from it (to a pad ahead not yet seen, or back to another)
         if self.floor.floor_below(depth, float(p[2])) is not True:
             return None
-        yaw = 0.0 if quaternion is None else _yaw(quaternion)
-        cy, sy = math.cos(yaw), math.sin(yaw)
-        u_odom = np.array([cy * u[0] - sy * u[1], sy * u[0] + cy * u[1], u[2]])
+        u_odom = np.array([*_rotate(u[:2], yaw), u[2]])
         v = self._centre.velocity(pad.xyz, p, u_odom)          # odom; only its horizontal part is used
         a = np.asarray(agent, dtype=float).reshape(3).copy()
-        a[0], a[1] = cy * v[0] + sy * v[1], -sy * v[0] + cy * v[1]
+        a[:2] = _rotate(v[:2], -yaw)                            # back into base_link
         if height < c.clear_height_m and horiz > c.clear_radius_m:
             a[2] = 2.0 * max(float(u[2]), c.climb_mps) - u[2]     # V_z = max(u_z, climb): over its side first
         ms = np.asarray(max_speed, dtype=float).reshape(3)
@@ -220,11 +225,10 @@ def _thinnest_spread(xy: np.ndarray) -> float:
     return float(math.sqrt(max(np.linalg.eigvalsh(np.cov(xy.T))[0], 0.0))) if len(xy) > 2 else 0.0
 
 
-def _odom_xy(v: np.ndarray, quaternion: np.ndarray | None) -> np.ndarray:
-    """Horizontal part of base_link vector `v` in odom (yaw only)."""
-    yaw = 0.0 if quaternion is None else _yaw(quaternion)
-    cy, sy = math.cos(yaw), math.sin(yaw)
-    return np.array([cy * v[0] - sy * v[1], sy * v[0] + cy * v[1]])
+def _rotate(xy: np.ndarray, yaw: float) -> np.ndarray:
+    """Horizontal vector `xy` rotated by `yaw` (rad): base_link -> odom for the vehicle's heading, -yaw back."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([c * xy[0] - s * xy[1], s * xy[0] + c * xy[1]])
 
 
 def _yaw(q: np.ndarray) -> float:
