@@ -2,8 +2,8 @@
 
 Thin rclpy shell over ``policy_core.PolicyCore`` (input range checks, staleness, blending, NaN rejection).
 Run-time parameters (``ros2 param set``): blend_threshold, the three timeouts, max_speed,
-max_vertical_speed, max_input_speed, floor_guard, floor_guard_height_m, floor_guard_climb_mps and the
-pilot_override* and pad_recall* parameters; every other parameter is read-only. The floor guard
+max_vertical_speed, max_input_speed, the floor_guard* parameters and the pilot_override* and
+pad_recall* parameters; every other parameter is read-only. The floor guard
 (assist_policy.safety) and the pad recall (assist_policy.recall, which maps pads with the /odom pose and
 orientation) read /camera/depth/image_raw in every mode; /diagnostics shows floor_guard (on/off) and
 floor_guard_engaged (steps it replaced a descent), pilot_override (on/off) and pilot_override_engaged
@@ -74,6 +74,9 @@ PARAMS = {
                          dynamic=True),
     'floor_guard_height_m': Param(1.0, 'Altitude (odom z over the floor, m) below which the floor guard acts.',
                                   min=0.0, max=10.0, dynamic=True),
+    'floor_guard_edge_height_m': Param(SafetyConfig.edge_height_m, 'Floor guard edge rule: a descent is held while '
+                                       'the legs straddle a pad edge with the camera nearer than this to the pad '
+                                       '(m; 0 = off).', min=0.0, max=5.0, dynamic=True),
     'floor_guard_climb_mps': Param(0.15, 'Vertical velocity the floor guard imposes instead of a descent (m/s; at '
                                          'least blend_threshold / 2 + 0.01 is used).', min=0.0, max=1.0, dynamic=True),
     'pilot_override': Param(True, 'Pilot override (assist_policy.override, not learned): while the pilot holds a '
@@ -169,7 +172,8 @@ class PolicyNode(Node):
             cfg = PolicyCoreConfig(mode=mode, body_frame=self.p['frame_id'],
                                    safety=SafetyConfig(enabled=bool(self.p['floor_guard']),
                                                        guard_height_m=float(self.p['floor_guard_height_m']),
-                                                       min_climb_mps=float(self.p['floor_guard_climb_mps'])),
+                                                       min_climb_mps=float(self.p['floor_guard_climb_mps']),
+                                                       edge_height_m=float(self.p['floor_guard_edge_height_m'])),
                                    override=OverrideConfig(**override_fields(self.p)),
                                    recall=RecallConfig(enabled=bool(self.p['pad_recall']),
                                                        radius_m=float(self.p['pad_recall_radius_m'])),
@@ -218,13 +222,15 @@ class PolicyNode(Node):
         if core_changes:
             with self._lock:
                 self.core.configure(**core_changes)
-        guard = {k: changed[k] for k in ('floor_guard', 'floor_guard_height_m', 'floor_guard_climb_mps') if k in changed}
+        guard = {k: changed[k] for k in ('floor_guard', 'floor_guard_height_m', 'floor_guard_climb_mps',
+                                         'floor_guard_edge_height_m') if k in changed}
         if guard:
             with self._lock:
                 g = self.core.guard.cfg
                 g.enabled = bool(guard.get('floor_guard', g.enabled))
                 g.guard_height_m = float(guard.get('floor_guard_height_m', g.guard_height_m))
                 g.min_climb_mps = float(guard.get('floor_guard_climb_mps', g.min_climb_mps))
+                g.edge_height_m = float(guard.get('floor_guard_edge_height_m', g.edge_height_m))
             self.diag.set('floor_guard', 'on' if g.enabled else 'off')
         override = override_fields(changed)
         if override:

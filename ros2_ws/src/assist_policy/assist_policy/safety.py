@@ -25,10 +25,14 @@ plane and shows the floor behind it). So the guard remembers the last pad it saw
 ``pad_memory_radius_m`` of that spot and low enough for the camera to be inside ``blind_range_m`` of
 that pad top: a vehicle touching down on a pad is never pushed back up. ``reset`` forgets it.
 
-Edge rule (``edge_height_m`` > 0): a descent is also held while the legs straddle a pad edge (some
-legs over the floor, some over a pad) with the camera nearer than ``edge_height_m`` to that pad: a
-touchdown there tips the vehicle over (the crashes left with the floor rule alone). It watches up to
-``edge_watch_m`` of altitude (pads stand up to 1.2 m tall).
+Edge rule (``edge_height_m`` > 0, 0.6 m by default): a descent is also held while the legs straddle a
+pad edge (some legs over the floor, some over a pad) with the camera nearer than ``edge_height_m`` to
+that pad: a touchdown there tips the vehicle over (the crashes left with the floor rule alone). It
+watches up to ``edge_watch_m`` of altitude (pads stand up to 1.2 m tall). On by default since the pad
+recall (assist_policy.recall) brings vehicles back to pads from beside them: with both, it turned the
+two tip-overs of 810 held-out landings into a success and an edge landing and changed nothing for the
+worse on the paper pilot (840 landings; assist_policy README, "Issue 12, pad recall"). With the actor
+alone (0.5 m, an earlier session) it avoided three crashes and caused three others.
 
 ``guard_height_m`` = 1.0 m: from a 1 m/s descent the velocity controller (kp_z 4 /s, 2.5 m/s^2)
 stops within ~0.3 m, well above the judge's crash height (0.2 m), while pilots landing on a pad
@@ -58,7 +62,7 @@ class SafetyConfig:
     vertical_fov_deg: float = 58.0    # depth camera vertical field of view (square pixels)
     blind_range_m: float = 0.3        # camera minimum range (D435i ~0.2-0.3 m; sim near plane 0.1 m) + margin
     pad_memory_radius_m: float = 0.6  # a pad seen beneath the legs is assumed still there within this (x, y)
-    edge_height_m: float = 0.0        # hold a descent straddling a pad edge nearer than this to the pad (0: off)
+    edge_height_m: float = 0.6        # hold a descent straddling a pad edge nearer than this to the pad (0: off)
     edge_watch_m: float = 2.0         # the edge rule watches below this altitude
 
 

@@ -170,3 +170,19 @@ def test_edge_rule_holds_a_descent_straddling_a_pad_edge_only(depth_at):
     assert FloorGuard(on).straddle_depth(depth_at(5.0, 0.0, 1.0), 1.0) is None
     assert not FloorGuard(on).apply(u, None, u.copy(), depth_at(5.0, 0.0, 1.0), [5.0, 0.0, 1.0], THR).engaged
     assert FloorGuard(on).watch_height_m == 2.0 and FloorGuard(off).watch_height_m == pytest.approx(1.3)
+
+
+def test_edge_rule_is_on_by_default_and_tunable_in_policy_core(tmp_path, depth_at):
+    assert SafetyConfig().edge_height_m == pytest.approx(0.6)
+    u = np.array([0.0, 0.0, -0.4])
+    d = depth_at(5.55, 0.0, 1.0)                       # straddling the edge, camera 0.35 m from the pad top
+    assert FloorGuard().apply(u, None, u.copy(), d, [5.55, 0.0, 1.0], THR).engaged
+    path = constant_actor(tmp_path / 'down.pt', [0.0, 0.0, -0.9])
+    for edge, held in ((0.6, True), (0.0, False)):
+        core = PolicyCore(path, PolicyCoreConfig(mode='latent', safety=SafetyConfig(edge_height_m=edge)))
+        core.set_odom(0.0, [5.55, 0.0, 1.0], [0.0, 0.0, 0.0])
+        core.set_depth(0.0, d)
+        core.set_latent(0.0, np.zeros(LATENT))
+        core.set_pilot(0.0, u)
+        out = core.step(0.0)
+        assert (out.key == 'floor_guard') is held and bool(out.velocity[2] > 0) is held
