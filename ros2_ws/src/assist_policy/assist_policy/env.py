@@ -115,7 +115,7 @@ class LandingAssistEnv(gym.Env):
         self.pilot: SimulatedPilot | None = None
         self.guard = FloorGuard(self.cfg.safety) if self.cfg.safety is not None else None
         self.override = PilotOverride(self.cfg.override) if self.cfg.override is not None else None
-        self.recall = (PadRecall(self.cfg.recall, self.guard) if self.cfg.recall is not None else None)
+        self.recall = PadRecall(self.cfg.recall, self.guard) if self.cfg.recall is not None else None
         self._frame = None
         self._u = np.zeros(3)
         self._steps = 0                                  # control steps since reset (the episode clock)

@@ -32,8 +32,8 @@ from assist_sim.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagno
 
 from .blending import DEFAULT_THRESHOLD
 from .override import OverrideConfig
-from .recall import RecallConfig
 from .policy_core import PolicyCore, PolicyCoreConfig, PolicyOutput, default_model_path
+from .recall import RecallConfig
 from .safety import SafetyConfig
 
 PARAMS = {
