@@ -92,6 +92,20 @@ def test_part_views_are_kept_only_until_a_better_one_and_never_move_a_centre_see
     assert len(m.pads) == 1 and np.allclose(m.pads[0].xyz, whole) and m.pads[0].sightings == 5
 
 
+def test_a_full_resolution_frame_is_subsampled_and_maps_the_same_pad():
+    for h, w in ((64, 64), (480, 848)):                       # the sim's frame and a RealSense D435i's
+        f = (h / 2) / math.tan(math.radians(29.0))
+        depth = np.full((h, w), 2.95, np.float32)              # floor from 3 m
+        top = 2.15                                             # a 0.8 m pad, 1 m square, 0.5 m ahead (body +x)
+        r0, c0, half = (h - 1) / 2 - f * 0.5 / top, (w - 1) / 2, f * 0.5 / top
+        depth[int(round(r0 - half)):int(round(r0 + half)), int(round(c0 - half)):int(round(c0 + half))] = top
+        m = PadMap()
+        assert m.update(depth, np.array([0.0, 0.0, 3.0])) == 1
+        assert np.hypot(m.pads[0].xyz[0] - 0.5, m.pads[0].xyz[1]) < 0.06 and m.pads[0].xyz[2] == pytest.approx(0.8)
+    with pytest.raises(ValueError):
+        RecallConfig(max_image_px=4)
+
+
 def test_a_side_face_seen_low_beside_a_pad_is_not_a_pad(world):
     m = PadMap()
     beside = [6.0, 0.9, 1.6]                                  # mostly the pad's side face in view, its top a sliver
