@@ -43,9 +43,9 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from assist_sim.core.geometry import R_BODY_FROM_OPTICAL, quat_to_matrix
+from assist_sim.core.geometry import R_BODY_FROM_OPTICAL, quat_to_matrix, yaw_rotation
 
-from .safety import FloorGuard
+from .safety import FloorGuard, SafetyConfig
 from .scripted import ScriptedConfig, ScriptedOracle
 
 
@@ -68,8 +68,8 @@ class RecallConfig:
     min_spread_m: float = 0.03        # a top thinner than this (std across) is a vertical face, not a pad
     merge_radius_m: float = 1.2       # a sighting this close to a mapped pad is that pad (pads <= 1.6 m)
     min_view_m: float = 0.5           # the map is not updated with the camera nearer than this to the floor
-    camera_offset_m: float = 0.05     # optical centre below base_link (CameraConfig.offset_below_base_m)
-    vertical_fov_deg: float = 58.0    # depth camera vertical field of view (square pixels)
+    camera_offset_m: float = SafetyConfig.camera_offset_m    # optical centre below base_link (as the guard's)
+    vertical_fov_deg: float = SafetyConfig.vertical_fov_deg  # depth camera vertical field of view (square pixels)
     max_image_px: int = 128           # a larger depth image is subsampled to this many pixels on its long side
 
     def __post_init__(self) -> None:
@@ -235,8 +235,7 @@ def _thinnest_spread(xy: np.ndarray) -> float:
 
 def _rotate(xy: np.ndarray, yaw: float) -> np.ndarray:
     """Horizontal vector `xy` rotated by `yaw` (rad): base_link -> odom for the vehicle's heading, -yaw back."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([c * xy[0] - s * xy[1], s * xy[0] + c * xy[1]])
+    return yaw_rotation(yaw)[:2, :2] @ np.asarray(xy, dtype=float)[:2]
 
 
 def _yaw(q: np.ndarray) -> float:
