@@ -1,7 +1,8 @@
 """policy_node's floor guard in a real graph: depth image in (32FC1 and 16UC1), climb out on /cmd_vel and
 /assist/agent_cmd, counted on /diagnostics, turned off at run time with the floor_guard parameter; and its
 pilot override (a held key passes with a gentle climb; the pilot_override parameter turns it off); and its
-pad recall (a pad seen, then a descent past it over bare floor is steered back; pad_recall turns it off)."""
+pad recall (a pad seen, then a descent past it over bare floor is steered back, and low over it centred on
+it; pad_recall turns it off)."""
 import importlib.util
 import threading
 import time
@@ -175,6 +176,15 @@ def test_pad_recall_steers_a_descent_past_a_pad_back_and_can_be_turned_off(ros, 
     assert all(np.allclose(v, [-0.5, 0, -0.25], atol=1e-5) for v in cmds), cmds[-3:]
     assert wait(lambda: any(int(d.get('pad_recall_engaged', 0)) > 10 for d in probe.diag), 5), probe.diag[-1:]
     assert probe.diag[-1].get('pad_recall') == 'on' and probe.diag[-1].get('pad_recall_pads') == '1'
+    # low over the pad (0.55 m over its top: it fills the view), 0.1 m off its centre: touchdown centring
+    low = np.full((64, 64), 1.4 - 0.05 - 0.8, np.float32)
+    probe.run(0.3, position=(0.1, 0.0, 1.4), depth=low)
+    t3 = probe.run(1.5, position=(0.1, 0.0, 1.4), depth=low)
+    cmds, agents = probe.since(probe.cmd, t3 + 0.5), probe.since(probe.agent, t3 + 0.5)
+    # a = (2 * 4 * (0 - 0.1), 0, 0) = (-0.8, 0, 0): V = (-0.4, 0, -0.25), toward the centre seen from 3 m
+    assert agents and all(np.allclose(a, [-0.8, 0, 0], atol=1e-5) for a in agents), agents[-3:]
+    assert cmds and all(np.allclose(v, [-0.4, 0, -0.25], atol=1e-5) for v in cmds), cmds[-3:]
+    assert wait(lambda: any(int(d.get('pad_recall_touchdown', 0)) > 10 for d in probe.diag), 5), probe.diag[-1:]
     set_param(ros, 'pad_recall', False, wait)
     t2 = probe.run(1.5, position=(1.5, 0.0, 2.5), depth=floor)
     cmds = probe.since(probe.cmd, t2 + 0.5)

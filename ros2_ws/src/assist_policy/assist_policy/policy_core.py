@@ -17,8 +17,9 @@ Safety rules (ARCHITECTURE.md, "Timing and safety rules"):
   gently when low; reason key ``pilot_override``);
 * pad recall (``recall.PadRecall``, not learned): every depth frame adds the pads in view to a map
   (odom, with the odometry attitude); when the pilot descends (or is low) with the floor under every
-  leg, the actor's horizontal action is replaced by a push back to the nearest mapped pad (reason key
-  ``pad_recall``); needs fresh odometry and depth, like the floor guard, which still acts after it.
+  leg, the actor's horizontal action is replaced by a push back to the nearest mapped pad; low over a
+  pad seen whole during a descent, by centring on it (touchdown; reason key ``pad_recall`` for both);
+  needs fresh odometry and depth, like the floor guard, which still acts after it.
 """
 from __future__ import annotations
 
@@ -151,6 +152,7 @@ class PolicyCore:
         self.override_engaged = 0                   # steps whose actor action the pilot override replaced
         self.recall = PadRecall(self.cfg.recall or RecallConfig(), self.guard)
         self.recall_engaged = 0                     # steps whose horizontal action the pad recall replaced
+        self.touchdown_engaged = 0                  # ... of which centring on the pad below (recall.mode 'touchdown')
         self._mapped_depth: float | None = None     # stamp of the depth frame last added to the pad map
 
     def configure(self, **changes) -> None:
@@ -361,9 +363,12 @@ class PolicyCore:
         a_r = None if depth is None else self.recall.apply(u, mean_u, a, depth, pos, self._attitude, self.max_speed)
         if a_r is not None:
             self.recall_engaged += 1
+            touchdown = self.recall.mode == 'touchdown'
+            self.touchdown_engaged += int(touchdown)
             self.builder.record(now, u, a_r)
             return PolicyOutput(a_r, self._clamp(blend(u, a_r, c.blend_threshold)),
-                                'pad recall: steering back to a pad seen', 'pad_recall')
+                                'pad recall: centring on the pad below for touchdown' if touchdown
+                                else 'pad recall: steering back to a pad seen', 'pad_recall')
         v = self._clamp(blend(u, a, c.blend_threshold))
         self.builder.record(now, u, a)
         if np.linalg.norm(a) > c.blend_threshold:

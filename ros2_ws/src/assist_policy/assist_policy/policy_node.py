@@ -8,7 +8,8 @@ pad_recall* parameters; every other parameter is read-only. The floor guard
 orientation) read /camera/depth/image_raw in every mode; /diagnostics shows floor_guard (on/off) and
 floor_guard_engaged (steps it replaced a descent), pilot_override (on/off) and pilot_override_engaged
 (steps the pilot override, assist_policy.override, replaced the actor's action), pad_recall (on/off),
-pad_recall_engaged (steps it steered back to a mapped pad) and pad_recall_pads (pads in its map).
+pad_recall_engaged (steps it steered to a mapped pad), pad_recall_touchdown (of those, steps it centred
+on the pad below for touchdown) and pad_recall_pads (pads in its map).
 """
 from __future__ import annotations
 
@@ -98,6 +99,10 @@ PARAMS = {
                               'action is replaced by a push back to the nearest mapped pad.', dynamic=True),
     'pad_recall_radius_m': Param(RecallConfig.radius_m, 'The pad recall steers only to a mapped pad this close '
                                  '(horizontal m).', min=0.0, max=50.0, dynamic=True),
+    'pad_recall_touchdown_height_m': Param(RecallConfig.touchdown_height_m, 'Lower than this over the top of a '
+                                           'mapped pad seen whole (and over it) during a descent, the pad recall '
+                                           'centres on it instead of the actor (m; 0: off).',
+                                           min=0.0, max=5.0, dynamic=True),
 }
 # node parameter -> OverrideConfig field
 OVERRIDE_FIELDS = {'pilot_override': 'enabled', 'pilot_override_speed_mps': 'speed_mps',
@@ -175,8 +180,9 @@ class PolicyNode(Node):
                                                        min_climb_mps=float(self.p['floor_guard_climb_mps']),
                                                        edge_height_m=float(self.p['floor_guard_edge_height_m'])),
                                    override=OverrideConfig(**override_fields(self.p)),
-                                   recall=RecallConfig(enabled=bool(self.p['pad_recall']),
-                                                       radius_m=float(self.p['pad_recall_radius_m'])),
+                                   recall=RecallConfig(
+                                       enabled=bool(self.p['pad_recall']), radius_m=float(self.p['pad_recall_radius_m']),
+                                       touchdown_height_m=float(self.p['pad_recall_touchdown_height_m'])),
                                    **{f: self.p[k] for k, f in CORE_FIELDS.items()})
             self.core = PolicyCore(path, cfg)
         except ValueError as exc:
@@ -237,11 +243,12 @@ class PolicyNode(Node):
             with self._lock:
                 self.core.override.cfg = dataclasses.replace(self.core.override.cfg, **override)
             self.diag.set('pilot_override', 'on' if self.core.override.cfg.enabled else 'off')
-        if 'pad_recall' in changed or 'pad_recall_radius_m' in changed:
+        if {'pad_recall', 'pad_recall_radius_m', 'pad_recall_touchdown_height_m'} & set(changed):
             with self._lock:
                 r = self.core.recall.cfg            # shared with the map: changed in place
                 r.enabled = bool(changed.get('pad_recall', r.enabled))
                 r.radius_m = float(changed.get('pad_recall_radius_m', r.radius_m))
+                r.touchdown_height_m = float(changed.get('pad_recall_touchdown_height_m', r.touchdown_height_m))
             self.diag.set('pad_recall', 'on' if r.enabled else 'off')
 
     # ------------------------------------------------------------- inputs
@@ -345,6 +352,7 @@ class PolicyNode(Node):
         self.diag.set('floor_guard_engaged', self.core.guard_engaged)
         self.diag.set('pilot_override_engaged', self.core.override_engaged)
         self.diag.set('pad_recall_engaged', self.core.recall_engaged)
+        self.diag.set('pad_recall_touchdown', self.core.touchdown_engaged)
         self.diag.set('pad_recall_pads', len(self.core.recall.map.pads))
         if out.key in FAULT_KEYS:
             self._consecutive_faults += 1

@@ -33,6 +33,16 @@ a_xy = 2 gain (pad - p)_xy - u_xy, clipped); its vertical action is kept, except
 rather than into it. Nearer the centre than ``clear_radius_m`` the actor sees the pad (and a "floor"
 there is the camera's blind range). The floor guard still acts after this rule.
 
+Touchdown (``mode`` 'touchdown', ``touchdown_height_m`` > 0): nearer a mapped pad's centre than
+``clear_radius_m``, lower than ``touchdown_height_m`` over its top, with the pad seen whole at least once
+and a descent under way (u_z + a_z < 0: the blended V descends while the actor acts), the actor's
+horizontal action is replaced by the same centring action toward the mapped centre; the vertical action
+stays the actor's. Why: below about 1 m over its top a 0.8-1.6 m pad fills the camera's 58 degree view,
+so the encoder sees no edge to place the pad by, and the actor's horizontal action there is noise (traced:
+0.6-1 m/s sideways pushes in the last 0.3 m, sliding key-confused pilots off the edge, 2 of 4 legs on).
+The map's centre comes from the pad seen whole from higher up (within 8 cm in the tests). The leaving
+test above applies (a pilot moving off the pad at > ``leave_speed_mps`` is let go).
+
 Pure numpy + OpenCV; no rclpy.
 """
 from __future__ import annotations
@@ -61,6 +71,8 @@ class RecallConfig:
     clear_radius_m: float = 0.4       # 'over it': nearer its centre than this (pads >= 0.8 m): the rule is off
     climb_mps: float = 0.3            # vertical V while climbing to clear the pad's side
     leave_speed_mps: float = 0.5      # a command (now or 1 s mean) this fast away from the pad: leaving it
+    touchdown_height_m: float = 1.0   # lower than this over a pad seen whole and over it: centre on it (0: off)
+    defer_speed_mps: float = 0.5      # an actor pushing this fast away from the mapped pad sees another (0: off)
     min_top_m: float = 0.25           # a point this high over the floor is raised (pads 0.4-1.2 m)
     max_top_m: float = 2.0            # a raised region reaching this high is a wall (walls stand 6 m)
     top_band_m: float = 0.1           # the top surface: raised points within this of the region's top
@@ -75,7 +87,7 @@ class RecallConfig:
     def __post_init__(self) -> None:
         """Reject settings that would map nothing or steer everywhere (ValueError, one line)."""
         for name in ('radius_m', 'gain_xy', 'low_height_m', 'clear_height_m', 'clear_radius_m', 'climb_mps',
-                     'leave_speed_mps', 'min_top_m', 'max_top_m', 'top_band_m', 'min_spread_m', 'merge_radius_m',
+                     'leave_speed_mps', 'touchdown_height_m', 'defer_speed_mps', 'min_top_m', 'max_top_m', 'top_band_m', 'min_spread_m', 'merge_radius_m',
                      'min_view_m', 'camera_offset_m', 'vertical_fov_deg'):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
@@ -186,6 +198,7 @@ class PadRecall:
         self.map = PadMap(self.cfg)
         self.floor = floor_guard or FloorGuard()          # its floor_below test (its settings: legs, tolerance)
         self._centre = ScriptedOracle(ScriptedConfig(gain_xy=self.cfg.gain_xy))
+        self.mode: str | None = None                       # the rule that acted in the last apply (or None)
 
     def reset(self) -> None:
         """Forget the map (new landing)."""
@@ -198,33 +211,48 @@ class PadRecall:
 
     def apply(self, u: np.ndarray, mean_u: np.ndarray, agent: np.ndarray, depth: np.ndarray, position: np.ndarray,
               quaternion: np.ndarray | None, max_speed: np.ndarray | tuple[float, float, float]) -> np.ndarray | None:
-        """The agent action (m/s, base_link) steering to the remembered pad, or None (the rule does not act)."""
+        """The agent action (m/s, base_link) steering to the remembered pad, or None (neither rule acts).
+
+        ``mode`` tells which rule acted: 'recall' (back to a pad from beside it) or 'touchdown' (centring
+        on the pad below during the last of a descent); None when neither did.
+        """
         c = self.cfg
+        self.mode = None
         u = np.asarray(u, dtype=float).reshape(3)
         p = np.asarray(position, dtype=float).reshape(3)
+        a = np.asarray(agent, dtype=float).reshape(3).copy()
         if not c.enabled or not (np.all(np.isfinite(u)) and np.all(np.isfinite(p))):
             return None
         pad = self.map.nearest(p[:2])
         if pad is None:
             return None
         horiz, height = math.hypot(pad.xyz[0] - p[0], pad.xyz[1] - p[1]), float(p[2] - pad.xyz[2])
-        if horiz > c.radius_m or horiz < c.clear_radius_m or not (u[2] < 0.0 or height < c.low_height_m):
-            return None                     # too far, over it already (a 'floor' there is the blind range), or idle
+        if horiz < c.clear_radius_m:        # over it: only the touchdown rule (a 'floor' here is the blind range)
+            if not (pad.whole and height < c.touchdown_height_m and u[2] + a[2] < 0.0):
+                return None
+            mode = 'touchdown'
+        elif horiz > c.radius_m or not (u[2] < 0.0 or height < c.low_height_m):
+            return None                     # too far, or idle
+        else:
+            mode = 'recall'
         yaw = 0.0 if quaternion is None else _yaw(quaternion)
         to_pad = pad.xyz[:2] - p[:2]
         for cmd in (np.asarray(mean_u, dtype=float).reshape(3), u):
             if (np.all(np.isfinite(cmd)) and float(np.hypot(cmd[0], cmd[1])) > c.leave_speed_mps
                     and _rotate(cmd[:2], yaw) @ to_pad < 0.0):
                 return None                 # heading away from it (to a pad ahead not yet seen, or back to another)
-        if self.floor.floor_below(depth, float(p[2])) is not True:
+        if mode == 'recall' and c.defer_speed_mps > 0 and float(np.hypot(a[0], a[1])) > c.defer_speed_mps \
+                and _rotate(a[:2], yaw) @ to_pad < 0.0:
+            return None                     # the actor steers away from it, to a pad it sees and the map lacks
+        if mode == 'recall' and self.floor.floor_below(depth, float(p[2])) is not True:
             return None
         u_odom = np.array([*_rotate(u[:2], yaw), u[2]])
         v = self._centre.velocity(pad.xyz, p, u_odom)          # odom; only its horizontal part is used
-        a = np.asarray(agent, dtype=float).reshape(3).copy()
         a[:2] = _rotate(v[:2], -yaw)                            # back into base_link
-        if height < c.clear_height_m and horiz > c.clear_radius_m:
+        if mode == 'recall' and height < c.clear_height_m:
             a[2] = 2.0 * max(float(u[2]), c.climb_mps) - u[2]     # V_z = max(u_z, climb): over its side first
         ms = np.asarray(max_speed, dtype=float).reshape(3)
+        self.mode = mode
         return np.clip(a, -ms, ms)
 
 

@@ -156,6 +156,18 @@ def test_the_rule_stays_out_when_idle_high_over_it_leaving_or_disabled(world):
     assert off.apply(np.array([0, 0, -0.5]), np.zeros(3), actor, depth, pos, None, MAX_SPEED) is None
 
 
+def test_the_recall_defers_to_an_actor_steering_hard_away_from_the_mapped_pad(world):
+    r = _mapped(world, [5.0, 0.5, 3.5])
+    pos = np.array([6.6, 0.4, 2.5])                            # 1.6 m past the pad seen, floor beneath
+    depth, u = _frame(world, pos), np.array([0.0, 0.0, -0.5])
+    assert r.apply(u, np.zeros(3), np.array([0.8, 0.3, 0.0]), depth, pos, None, MAX_SPEED) is None  # sees one ahead
+    assert r.apply(u, np.zeros(3), np.array([0.3, 0.2, 0.0]), depth, pos, None, MAX_SPEED) is not None   # weak
+    assert r.apply(u, np.zeros(3), np.array([-0.8, 0.3, 0.0]), depth, pos, None, MAX_SPEED) is not None  # toward it
+    off = PadRecall(RecallConfig(defer_speed_mps=0.0))
+    off.observe(_frame(world, [5.0, 0.5, 3.5]), np.array([5.0, 0.5, 3.5]))
+    assert off.apply(u, np.zeros(3), np.array([0.8, 0.3, 0.0]), depth, pos, None, MAX_SPEED) is not None
+
+
 def test_low_beside_the_pad_it_climbs_over_its_side_first(world):
     r = _mapped(world, [5.0, 0.5, 3.5])
     pos = np.array([6.1, 0.5, 0.9])                            # 0.1 m over the pad top, beside it
@@ -165,6 +177,37 @@ def test_low_beside_the_pad_it_climbs_over_its_side_first(world):
         climb = max(u[2], RecallConfig.climb_mps)             # V_z = climb, unless a_z hits max_speed (0.6)
         assert blend(u, a)[2] == pytest.approx((u[2] + min(2 * climb - u[2], MAX_SPEED[2])) / 2)
         assert blend(u, a)[2] > 0.0
+
+
+def test_low_over_a_pad_seen_whole_a_descent_is_centred_on_it(world):
+    r = _mapped(world, [5.0, 0.5, 3.5])                        # pad 0 seen whole from above
+    pos = np.array([5.08, 0.54, 1.5])                          # 0.7 m over its top, 0.09 m off its centre
+    depth = _frame(world, pos)
+    u, actor = np.array([0.0, 0.0, -0.5]), np.array([0.1, 0.8, -0.6])     # the actor pushes it off the side
+    a = r.apply(u, np.zeros(3), actor, depth, pos, None, MAX_SPEED)
+    assert a is not None and r.mode == 'touchdown'
+    pad = r.map.pads[0].xyz
+    v = blend(u, a)
+    assert v[:2] == pytest.approx(RecallConfig.gain_xy * (pad[:2] - pos[:2]))    # V_xy = gain (centre - p)
+    assert v[0] < 0 and v[1] < 0 and a[2] == actor[2]          # toward the centre; the descent is the actor's
+    # a pilot tapping a key across the pad is centred too (V_xy does not depend on u_xy)
+    assert blend(np.array([0.3, 0.0, -0.5]), r.apply(np.array([0.3, 0.0, -0.5]), np.zeros(3), actor, depth, pos,
+                                                    None, MAX_SPEED))[:2] == pytest.approx(v[:2])
+    # it stays out: nobody descending, higher than touchdown_height_m over the top, the pilot leaving
+    assert r.apply(np.zeros(3), np.zeros(3), np.array([0.1, 0.8, 0.0]), depth, pos, None, MAX_SPEED) is None
+    assert r.mode is None
+    high = np.array([5.08, 0.54, 1.9])
+    assert r.apply(u, np.zeros(3), actor, _frame(world, high), high, None, MAX_SPEED) is None
+    assert r.apply(np.array([1.0, 0.0, -0.5]), np.zeros(3), actor, depth, pos, None, MAX_SPEED) is None
+    # off, and never for a pad only part seen (its centre is biased toward where the camera looked)
+    off = PadRecall(RecallConfig(touchdown_height_m=0.0))
+    off.observe(_frame(world, [5.0, 0.5, 3.5]), np.array([5.0, 0.5, 3.5]))
+    assert off.apply(u, np.zeros(3), actor, depth, pos, None, MAX_SPEED) is None
+    part = PadRecall()
+    part.observe(_frame(world, [6.5, 0.5, 3.0]), np.array([6.5, 0.5, 3.0]))
+    assert len(part.map.pads) == 1 and not part.map.pads[0].whole
+    near_part = part.map.pads[0].xyz + np.array([0.1, 0.0, 0.7])
+    assert part.apply(u, np.zeros(3), actor, _frame(world, near_part), near_part, None, MAX_SPEED) is None
 
 
 def test_heading_rotates_the_steering_into_base_link(world):
