@@ -181,7 +181,8 @@ class PolicyNode(Node):
                                                        edge_height_m=float(self.p['floor_guard_edge_height_m'])),
                                    override=OverrideConfig(**override_fields(self.p)),
                                    recall=RecallConfig(
-                                       enabled=bool(self.p['pad_recall']), radius_m=float(self.p['pad_recall_radius_m']),
+                                       enabled=bool(self.p['pad_recall']),
+                                       radius_m=float(self.p['pad_recall_radius_m']),
                                        touchdown_height_m=float(self.p['pad_recall_touchdown_height_m'])),
                                    **{f: self.p[k] for k, f in CORE_FIELDS.items()})
             self.core = PolicyCore(path, cfg)

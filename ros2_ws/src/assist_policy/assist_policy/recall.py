@@ -72,7 +72,6 @@ class RecallConfig:
     climb_mps: float = 0.3            # vertical V while climbing to clear the pad's side
     leave_speed_mps: float = 0.5      # a command (now or 1 s mean) this fast away from the pad: leaving it
     touchdown_height_m: float = 1.0   # lower than this over a pad seen whole and over it: centre on it (0: off)
-    defer_speed_mps: float = 0.5      # an actor pushing this fast away from the mapped pad sees another (0: off)
     min_top_m: float = 0.25           # a point this high over the floor is raised (pads 0.4-1.2 m)
     max_top_m: float = 2.0            # a raised region reaching this high is a wall (walls stand 6 m)
     top_band_m: float = 0.1           # the top surface: raised points within this of the region's top
@@ -87,8 +86,9 @@ class RecallConfig:
     def __post_init__(self) -> None:
         """Reject settings that would map nothing or steer everywhere (ValueError, one line)."""
         for name in ('radius_m', 'gain_xy', 'low_height_m', 'clear_height_m', 'clear_radius_m', 'climb_mps',
-                     'leave_speed_mps', 'touchdown_height_m', 'defer_speed_mps', 'min_top_m', 'max_top_m', 'top_band_m', 'min_spread_m', 'merge_radius_m',
-                     'min_view_m', 'camera_offset_m', 'vertical_fov_deg'):
+                     'leave_speed_mps', 'touchdown_height_m', 'min_top_m', 'max_top_m',
+                     'top_band_m', 'min_spread_m', 'merge_radius_m', 'min_view_m', 'camera_offset_m',
+                     'vertical_fov_deg'):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f'RecallConfig.{name} must be a finite number >= 0, got {v!r}')
@@ -241,9 +241,6 @@ class PadRecall:
             if (np.all(np.isfinite(cmd)) and float(np.hypot(cmd[0], cmd[1])) > c.leave_speed_mps
                     and _rotate(cmd[:2], yaw) @ to_pad < 0.0):
                 return None                 # heading away from it (to a pad ahead not yet seen, or back to another)
-        if mode == 'recall' and c.defer_speed_mps > 0 and float(np.hypot(a[0], a[1])) > c.defer_speed_mps \
-                and _rotate(a[:2], yaw) @ to_pad < 0.0:
-            return None                     # the actor steers away from it, to a pad it sees and the map lacks
         if mode == 'recall' and self.floor.floor_below(depth, float(p[2])) is not True:
             return None
         u_odom = np.array([*_rotate(u[:2], yaw), u[2]])

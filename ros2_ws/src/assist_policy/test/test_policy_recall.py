@@ -156,18 +156,6 @@ def test_the_rule_stays_out_when_idle_high_over_it_leaving_or_disabled(world):
     assert off.apply(np.array([0, 0, -0.5]), np.zeros(3), actor, depth, pos, None, MAX_SPEED) is None
 
 
-def test_the_recall_defers_to_an_actor_steering_hard_away_from_the_mapped_pad(world):
-    r = _mapped(world, [5.0, 0.5, 3.5])
-    pos = np.array([6.6, 0.4, 2.5])                            # 1.6 m past the pad seen, floor beneath
-    depth, u = _frame(world, pos), np.array([0.0, 0.0, -0.5])
-    assert r.apply(u, np.zeros(3), np.array([0.8, 0.3, 0.0]), depth, pos, None, MAX_SPEED) is None  # sees one ahead
-    assert r.apply(u, np.zeros(3), np.array([0.3, 0.2, 0.0]), depth, pos, None, MAX_SPEED) is not None   # weak
-    assert r.apply(u, np.zeros(3), np.array([-0.8, 0.3, 0.0]), depth, pos, None, MAX_SPEED) is not None  # toward it
-    off = PadRecall(RecallConfig(defer_speed_mps=0.0))
-    off.observe(_frame(world, [5.0, 0.5, 3.5]), np.array([5.0, 0.5, 3.5]))
-    assert off.apply(u, np.zeros(3), np.array([0.8, 0.3, 0.0]), depth, pos, None, MAX_SPEED) is not None
-
-
 def test_low_beside_the_pad_it_climbs_over_its_side_first(world):
     r = _mapped(world, [5.0, 0.5, 3.5])
     pos = np.array([6.1, 0.5, 0.9])                            # 0.1 m over the pad top, beside it
