@@ -259,11 +259,16 @@ class LandingAssistEnv(gym.Env):
         self.episode_return += reward
         return self._obs(), float(reward), bool(terminated), bool(truncated), info
 
+    def _camera_frame(self):
+        """This step's camera frame: the encoder's, else rendered on first use (once per step; _obs forgets it)."""
+        if self._frame is None:
+            self._frame = self.world.render()
+        return self._frame
+
     def _recall(self, a: np.ndarray, overridden: bool) -> tuple[np.ndarray, bool]:
         """Pad recall (assist_policy.recall): map this step's depth frame, steer to a remembered pad if it acts."""
         st = self.world.state
-        frame = self._frame if self._frame is not None else self.world.render()
-        self._frame = frame
+        frame = self._camera_frame()
         self.recall.observe(frame.depth, st.position, st.quaternion)
         if overridden:
             return a, False
@@ -275,7 +280,7 @@ class LandingAssistEnv(gym.Env):
         """The floor guard (assist_policy.safety) on this step's command, with the camera's depth."""
         if float(self.world.state.position[2]) >= self.guard.watch_height_m:
             return a, v, False                     # too high to watch: skip the render
-        frame = self._frame if self._frame is not None else self.world.render()
+        frame = self._camera_frame()
         g = self.guard.apply(self._u, a if active else None, v, frame.depth, self.world.state.position,
                              self.cfg.blend_threshold)
         return (g.agent, g.velocity, True) if g.engaged else (a, v, False)

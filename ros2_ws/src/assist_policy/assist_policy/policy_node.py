@@ -372,10 +372,8 @@ class PolicyNode(Node):
             self.diag.status(DiagnosticStatus.OK, 'assisting')
         elif out.key == 'floor_guard':
             self.diag.status(DiagnosticStatus.OK, 'floor guard: descent over bare floor blocked')
-        elif out.key == 'pilot_override':
-            self.diag.status(DiagnosticStatus.OK, 'pilot override: the pilot\'s held correction passes')
-        elif out.key == 'pad_recall':
-            self.diag.status(DiagnosticStatus.OK, 'pad recall: steering back to a pad seen')
+        elif out.key in ('pilot_override', 'pad_recall'):
+            self.diag.status(DiagnosticStatus.OK, out.reason)      # the core's text (recall: which mode acted)
         elif out.key == 'small_action':
             self.diag.status(DiagnosticStatus.OK, 'relinquished: agent action at or below blend_threshold')
         else:
