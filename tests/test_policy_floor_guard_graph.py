@@ -2,7 +2,8 @@
 /assist/agent_cmd, counted on /diagnostics, turned off at run time with the floor_guard parameter; and its
 pilot override (a held key passes with a gentle climb; the pilot_override parameter turns it off); and its
 pad recall (a pad seen, then a descent past it over bare floor is steered back, and low over it centred on
-it; pad_recall turns it off)."""
+it; pad_recall turns it off); and its oscillation damper (a pilot swinging back and forth is slowed;
+oscillation_damper turns it off)."""
 import importlib.util
 import threading
 import time
@@ -50,6 +51,7 @@ class Probe:
 
     def __init__(self, node, pilot=(0.0, 0.0, -0.5)):
         self.node, self.lock, self.pilot = node, threading.Lock(), pilot
+        self.velocity = (0.0, 0.0, 0.0)                  # odometry twist (base_link)
         self.cmd, self.agent, self.diag = [], [], []
         node.create_subscription(TwistStamped, '/cmd_vel', self._rec(self.cmd), RELIABLE_QOS)
         node.create_subscription(TwistStamped, '/assist/agent_cmd', self._rec(self.agent), RELIABLE_QOS)
@@ -81,6 +83,7 @@ class Probe:
         while time.monotonic() - t0 < seconds:
             od = Odometry()
             od.pose.pose.position.x, od.pose.pose.position.y, od.pose.pose.position.z = position
+            od.twist.twist.linear.x, od.twist.twist.linear.y, od.twist.twist.linear.z = self.velocity
             self.pub_odom.publish(od)
             tw = TwistStamped()
             tw.twist.linear.x, tw.twist.linear.y, tw.twist.linear.z = self.pilot
@@ -190,3 +193,40 @@ def test_pad_recall_steers_a_descent_past_a_pad_back_and_can_be_turned_off(ros, 
     cmds = probe.since(probe.cmd, t2 + 0.5)
     assert cmds and all(np.allclose(v, [0, 0, -0.5], atol=1e-5) for v in cmds), cmds[-3:]   # V = u again
     assert wait(lambda: probe.diag and probe.diag[-1].get('pad_recall') == 'off', 5)
+
+
+def test_oscillation_damper_slows_a_pilot_swinging_back_and_forth_and_can_be_turned_off(ros, start_node, wait,
+                                                                                       tmp_path):
+    model = _helpers.constant_actor(tmp_path / 'relinquish.pt', [0.0, 0.0, 0.0])     # a = 0: V = u
+    probe = Probe(ros, pilot=(1.0, 0.0, 0.0))
+    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0,
+                                      'floor_guard': False, 'pad_recall': False, 'pilot_override': False})
+    t0 = time.monotonic()
+    while not probe.since(probe.cmd, t0) and time.monotonic() - t0 < 40 and node.proc.poll() is None:
+        probe.run(0.2)
+    assert node.proc.poll() is None, node.log()
+
+    def swing(seconds):
+        """The pilot holds +x then -x keys, 1.5 s each, the vehicle moving 0.4 m/s with it."""
+        t = time.monotonic()
+        while time.monotonic() - t < seconds:
+            sign = 1.0 if int((time.monotonic() - t) / 1.5) % 2 == 0 else -1.0
+            probe.pilot, probe.velocity = (sign, 0.0, 0.0), (0.4 * sign, 0.0, 0.0)
+            probe.run(0.05)
+        return t
+    t1 = swing(7.0)
+    agents = probe.since(probe.agent, t1 + 5.0)             # engaged since the second reversal (~3.4 s)
+    assert agents, node.log()
+    # a_xy = -2 v_xy = -0.8 sign: V_x = (u + a) / 2 = 0.1 sign instead of the held key's 1 m/s
+    assert any(np.allclose(a, [-0.8, 0, 0], atol=1e-5) for a in agents), agents[-3:]
+    assert all(abs(abs(a[0]) - 0.8) < 1e-5 and a[1] == 0 for a in agents), agents[-3:]
+    cmds = probe.since(probe.cmd, t1 + 5.0)
+    assert sum(abs(abs(v[0]) - 0.1) < 1e-5 for v in cmds) > 0.7 * len(cmds), cmds[-5:]
+    assert wait(lambda: any(int(d.get('oscillation_damper_engaged', 0)) > 10 for d in probe.diag), 5), \
+        probe.diag[-1:]
+    assert probe.diag[-1].get('oscillation_damper') == 'on'
+    set_param(ros, 'oscillation_damper', False, wait)
+    t2 = swing(3.0)
+    cmds = probe.since(probe.cmd, t2 + 0.5)
+    assert cmds and sum(abs(abs(v[0]) - 1.0) < 1e-5 for v in cmds) > 0.7 * len(cmds), cmds[-5:]   # V = u again
+    assert wait(lambda: probe.diag and probe.diag[-1].get('oscillation_damper') == 'off', 5)

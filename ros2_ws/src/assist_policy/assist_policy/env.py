@@ -3,7 +3,8 @@
 One step = one control period of the world (1/control_hz s):
   1. the agent sees obs_t (scene feature, dynamics, pilot action u_t, 1 s means) and outputs raw
      action in [-1, 1]^3, scaled to a velocity a_t (``actions.scale_action``);
-     With ``EnvConfig.override`` the pilot override (``override.PilotOverride``) replaces a_t
+     With ``EnvConfig.damper`` the oscillation damper (``damper.OscillationDamper``) replaces a_t's
+     horizontal part while the pilot oscillates; with ``EnvConfig.override`` the pilot override (``override.PilotOverride``) replaces a_t
      while the pilot holds a horizontal key; with ``EnvConfig.safety`` the floor guard acts on V_t;
   2. the vehicle flies V_t = blend(u_t, a_t) (``blending.blend``) with the world's turbulence;
   3. the pilot updates its goal estimate with the applied assistance (a_t if |a_t| > threshold,
@@ -33,12 +34,14 @@ import numpy as np
 from gymnasium import spaces
 
 from assist_sim.core.config import WorldConfig
+from assist_sim.core.geometry import quat_to_matrix
 from assist_sim.core.world import LandingWorld
 from assist_sim.pilot import PilotConfig, SimulatedPilot
 from assist_sim.pilots import make_pilot
 
 from .actions import DEFAULT_MAX_SPEED, scale_action
 from .blending import DEFAULT_THRESHOLD, blend
+from .damper import DamperConfig, OscillationDamper
 from .observation import IMAGE_SHAPE, Condition, ObservationBuilder, image_feature, oracle_feature
 from .override import OverrideConfig, PilotOverride
 from .recall import PadRecall, RecallConfig
@@ -82,6 +85,7 @@ class EnvConfig:
     safety: SafetyConfig | None = None               # floor guard on the blended command (None: off)
     override: OverrideConfig | None = None           # pilot override on the agent action (None: off)
     recall: RecallConfig | None = None               # pad recall on the agent action (None: off)
+    damper: DamperConfig | None = None               # oscillation damper on the agent action (None: off)
     reward: RewardConfig = field(default_factory=RewardConfig)
     pilot: PilotConfig = field(default_factory=PilotConfig)
     world: WorldConfig = field(default_factory=WorldConfig)
@@ -116,6 +120,7 @@ class LandingAssistEnv(gym.Env):
         self.guard = FloorGuard(self.cfg.safety) if self.cfg.safety is not None else None
         self.override = PilotOverride(self.cfg.override) if self.cfg.override is not None else None
         self.recall = PadRecall(self.cfg.recall, self.guard) if self.cfg.recall is not None else None
+        self.damper = OscillationDamper(self.cfg.damper) if self.cfg.damper is not None else None
         self._frame = None
         self._u = np.zeros(3)
         self._steps = 0                                  # control steps since reset (the episode clock)
@@ -184,6 +189,8 @@ class LandingAssistEnv(gym.Env):
             self.guard.reset()
         if self.override is not None:
             self.override.reset()
+        if self.damper is not None:
+            self.damper.reset()
         if self.recall is not None:
             self.recall.reset()
         self._steps = 0
@@ -206,6 +213,12 @@ class LandingAssistEnv(gym.Env):
             raise ValueError(f'non-finite action {raw.tolist()}')
         a = np.zeros(3) if self.unassisted else scale_action(raw, self.cfg.max_speed)
         t = self.elapsed_s
+        damped = False
+        if self.damper is not None and not self.unassisted:
+            st = self.world.state                    # odometry twist in base_link (REP-105), as policy_node gets it
+            a_d = self.damper.apply(t, self._u, a, quat_to_matrix(st.quaternion).T @ st.velocity, self.cfg.max_speed)
+            if a_d is not None:
+                a, damped = a_d, True
         overridden = False
         if self.override is not None and not self.unassisted:
             a_o = self.override.apply(t, self._u, self.builder.history.means(t)[0],
@@ -238,6 +251,7 @@ class LandingAssistEnv(gym.Env):
         terminated = self.world.done
         truncated = (not terminated) and self.elapsed_s >= self.cfg.max_episode_s - 0.5 * self.dt
         info: dict[str, Any] = {'active': active, 'guard': guarded, 'override': overridden, 'recall': recalled,
+                                'damper': damped and not (overridden or recalled),
                                 'goal_estimate': self.pilot.goal_estimate.copy()}
         if terminated:
             res = self.world.result
@@ -298,7 +312,7 @@ def over_pad(pads, xy: np.ndarray, margin_m: float = 0.0) -> bool:
 def run_episode(env: LandingAssistEnv, policy, seed: int, options: dict | None = None) -> dict:
     """Roll out one landing with `policy(obs) -> raw action` (None = unassisted); returns a summary."""
     obs, info = env.reset(seed=seed, options=options)
-    steps, active, guarded, overridden, recalled = 0, 0, 0, 0, 0
+    steps, active, guarded, overridden, recalled, damped = 0, 0, 0, 0, 0, 0
     while True:
         act = np.zeros(3) if policy is None else policy(obs)
         obs, _, term, trunc, step_info = env.step(act)
@@ -307,11 +321,12 @@ def run_episode(env: LandingAssistEnv, policy, seed: int, options: dict | None =
         guarded += int(step_info.get('guard', False))
         overridden += int(step_info.get('override', False))
         recalled += int(step_info.get('recall', False))
+        damped += int(step_info.get('damper', False))
         if term or trunc:
             break
     res = dict(step_info['result'])
     res.update(beta=info['beta'], alpha=info['alpha'], scene_seed=info['scene_seed'], steps=steps,
                aimed_index=info['aimed_index'], pilot=info['pilot'], guard_fraction=guarded / steps,
-               override_fraction=overridden / steps, recall_fraction=recalled / steps,
+               override_fraction=overridden / steps, recall_fraction=recalled / steps, damper_fraction=damped / steps,
                active_fraction=active / steps, episode_return=env.episode_return)
     return res

@@ -25,7 +25,9 @@ turns on the pilot override (assist_policy.override, on by default in policy_nod
 assistants (not for the scripted references, which stay as defined): rows `<condition>[+guard]+override`,
 `override_fraction` the share of steps it replaced the actor's action. `--recall` turns on the pad recall
 (assist_policy.recall, on by default in policy_node) for the learned assistants: rows
-`<condition>[+guard][+override]+recall`, `recall_fraction` the share of steps it steered.
+`<condition>[+guard][+override]+recall`, `recall_fraction` the share of steps it steered. `--damper` turns
+on the oscillation damper (assist_policy.damper, on by default in policy_node) for the learned assistants:
+rows `<condition>[+guard][+override][+recall]+damper`, `damper_fraction` the share of steps it damped.
 
     evaluate --pilot bang_bang --betas 0 0.25 0.5 0.75 1 --landings 8 --out runs/eval_bang_bang
 
@@ -55,6 +57,7 @@ from assist_sim.pilots import PILOT_NAMES
 from .bags.bagio import BagError
 from .bags.episode import record_landing
 from .cli import add_dataclass_args, dataclass_from_args
+from .damper import DamperConfig
 from .env import EnvConfig, LandingAssistEnv, run_episode
 from .latent import make_latent_fn
 from .policy_core import default_model_path
@@ -94,6 +97,7 @@ class EvalArgs:
     safety: bool = False
     override: bool = False
     recall: bool = False
+    damper: bool = False
     from_csv: tuple[str, ...] = ()
     record_dir: str = ''
 
@@ -114,6 +118,8 @@ HELP = {
     'override': 'apply the pilot override (assist_policy.override) to the learned assistants (latent, oracle, '
                 'end_to_end)',
     'recall': 'apply the pad recall (assist_policy.recall) to the learned assistants (latent, oracle, end_to_end)',
+    'damper': 'apply the oscillation damper (assist_policy.damper) to the learned assistants (latent, oracle, '
+              'end_to_end)',
     'from_csv': 'fly nothing: combine the landings.csv files of earlier runs (e.g. one condition split '
                 'over processes by --betas; a landing in a later file replaces the same condition, beta '
                 'and seed in an earlier one) into one table, summary.csv and plot',
@@ -123,7 +129,8 @@ HELP = {
 
 LANDING_FIELDS = ['condition', 'beta', 'seed', 'scene_seed', 'goal_index', 'landed_index', 'nearest_index',
                   'aimed_index', 'error_m', 'nearest_error_m', 'outcome', 'success', 'crash', 'duration_s',
-                  'active_fraction', 'pilot', 'guard_fraction', 'override_fraction', 'recall_fraction']
+                  'active_fraction', 'pilot', 'guard_fraction', 'override_fraction', 'recall_fraction',
+                  'damper_fraction']
 _BOOL = {'True': True, 'False': False}
 
 
@@ -207,8 +214,8 @@ def write_landings(path: Path, rows_by_cond: dict[str, list[dict]]) -> None:
 
 def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: float, alpha: float,
                 pilot: str = 'paper', safety: SafetyConfig | None = None, override: OverrideConfig | None = None,
-                recall: RecallConfig | None = None):
-    """(env, policy) for one condition; policy(obs) -> raw action, None for unassisted (override/recall: learned)."""
+                recall: RecallConfig | None = None, damper: DamperConfig | None = None):
+    """(env, policy) for one condition; policy(obs) -> raw action, None for unassisted (override/recall/damper: learned)."""
     if condition == 'unassisted':
         return LandingAssistEnv(EnvConfig(condition='none', alpha=alpha, max_episode_s=max_episode_s,
                                           pilot_family=pilot)), None
@@ -223,7 +230,7 @@ def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: fl
     cfg = EnvConfig(condition=condition, alpha=alpha, max_episode_s=max_episode_s,
                     max_speed=tuple(meta.get('max_speed', (1.0, 1.0, 0.6))),
                     latent_dim=int(meta.get('latent_dim', 0)), pilot_family=pilot, safety=safety, override=override,
-                    recall=recall,
+                    recall=recall, damper=damper,
                     feature_lags_s=tuple(meta['feature_lags_s']), memory_displacement=meta['memory_displacement'])
     if condition == 'latent':
         latent_fn, dim = make_latent_fn(encoder_path or None)
@@ -250,7 +257,8 @@ def run_landing(env: LandingAssistEnv, policy, seed: int, beta: float) -> dict:
             'duration_s': round(float(res['duration_s']), 2), 'active_fraction': round(res['active_fraction'], 3),
             'pilot': res['pilot'], 'guard_fraction': round(res['guard_fraction'], 3),
             'override_fraction': round(res['override_fraction'], 3),
-            'recall_fraction': round(res['recall_fraction'], 3)}
+            'recall_fraction': round(res['recall_fraction'], 3),
+            'damper_fraction': round(res['damper_fraction'], 3)}
 
 
 def summarize(rows: list[dict]) -> dict:
@@ -374,7 +382,8 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
                 env, policy = make_policy(cond, model, args.encoder_path, args.max_episode_s, args.alpha,
                                           args.pilot, SafetyConfig() if args.safety else None,
                                           OverrideConfig() if args.override else None,
-                                          RecallConfig() if args.recall else None)
+                                          RecallConfig() if args.recall else None,
+                                          DamperConfig() if args.damper else None)
             except ValueError as exc:
                 log.warning('skipping %s: %s', cond, exc)
                 continue
@@ -382,7 +391,8 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
             rows = []
             name = (cond + ('+guard' if args.safety and cond != 'unassisted' else '')
                     + ('+override' if args.override and cond in CONDITIONS[1:] else '')
-                    + ('+recall' if args.recall and cond in CONDITIONS[1:] else ''))
+                    + ('+recall' if args.recall and cond in CONDITIONS[1:] else '')
+                    + ('+damper' if args.damper and cond in CONDITIONS[1:] else ''))
             for bi, beta in enumerate(args.betas):
                 for k in range(args.landings):
                     seed = args.seed + 1000 * bi + k
@@ -440,7 +450,8 @@ def main(argv: list[str] | None = None) -> int:
     else:
         print(f'pilot {args.pilot}, floor guard {"on" if args.safety else "off"}, '
               f'pilot override {"on" if args.override else "off"}, '
-              f'pad recall {"on" if args.recall else "off"}, alpha {args.alpha}, '
+              f'pad recall {"on" if args.recall else "off"}, oscillation damper {"on" if args.damper else "off"}, '
+              f'alpha {args.alpha}, '
               f'betas {args.betas[0]}..{args.betas[-1]} ({len(args.betas)}), '
               f'{args.landings} landings each, seed {args.seed}')
     print(format_table(summary))

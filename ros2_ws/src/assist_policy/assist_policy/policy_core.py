@@ -19,7 +19,11 @@ Safety rules (ARCHITECTURE.md, "Timing and safety rules"):
   (odom, with the odometry attitude); when the pilot descends (or is low) with the floor under every
   leg, the actor's horizontal action is replaced by a push back to the nearest mapped pad; low over a
   pad seen whole during a descent, by centring on it (touchdown; reason key ``pad_recall`` for both);
-  needs fresh odometry and depth, like the floor guard, which still acts after it.
+  needs fresh odometry and depth, like the floor guard, which still acts after it;
+* oscillation damper (``damper.OscillationDamper``, not learned): while the pilot's held keys keep
+  reversing (a pilot-induced oscillation), the actor's horizontal action is replaced by a_xy = -gain v_xy
+  (the odometry twist, base_link); before the override and the recall, which replace it when they act
+  (reason key ``oscillation_damper``).
 """
 from __future__ import annotations
 
@@ -37,6 +41,7 @@ from assist_sim.shipped import shipped_model_path
 
 from .actions import scale_action
 from .blending import DEFAULT_THRESHOLD, blend
+from .damper import DamperConfig, OscillationDamper
 from .observation import Condition, ObservationBuilder, image_feature, oracle_feature
 from .override import OverrideConfig, PilotOverride
 from .recall import PadRecall, RecallConfig
@@ -85,6 +90,7 @@ class PolicyCoreConfig:
     safety: SafetyConfig | None = None  # floor guard settings (None: SafetyConfig() defaults)
     override: OverrideConfig | None = None  # pilot override settings (None: OverrideConfig() defaults)
     recall: RecallConfig | None = None      # pad recall settings (None: RecallConfig() defaults)
+    damper: DamperConfig | None = None      # oscillation damper settings (None: DamperConfig() defaults)
 
     def __post_init__(self) -> None:
         """Reject settings that would reverse, suppress or invent motion (ValueError, one line)."""
@@ -105,7 +111,8 @@ class PolicyOutput:
     `key` is a short stable reason for diagnostics: ``assisting``, ``small_action`` (the actor chose
     |a| <= threshold), ``odom_stale``, ``feature_stale``, ``goal_absent``, ``actor_nonfinite`` or
     ``step_error``, ``floor_guard`` (the floor guard replaced a descent), ``pilot_override`` (the pilot
-    override replaced the actor's action) or ``pad_recall`` (the pad recall steered back to a mapped pad);
+    override replaced the actor's action), ``pad_recall`` (the pad recall steered back to a mapped pad) or
+    ``oscillation_damper`` (the oscillation damper replaced the actor's horizontal action);
     `reason` is the text.
     """
 
@@ -153,6 +160,8 @@ class PolicyCore:
         self.recall = PadRecall(self.cfg.recall or RecallConfig(), self.guard)
         self.recall_engaged = 0                     # steps whose horizontal action the pad recall replaced
         self.touchdown_engaged = 0                  # ... of which centring on the pad below (recall.mode 'touchdown')
+        self.damper = OscillationDamper(self.cfg.damper or DamperConfig())
+        self.damper_engaged = 0                     # steps whose horizontal action the oscillation damper replaced
         self._mapped_depth: float | None = None     # stamp of the depth frame last added to the pad map
 
     def configure(self, **changes) -> None:
@@ -258,11 +267,13 @@ class PolicyCore:
         self._depth = (t, np.where(np.isfinite(depth) & (depth >= 0) & (depth <= MAX_DEPTH_M), depth, 0.0))
 
     def reset(self) -> None:
-        """Forget the action history, the guard's last pad, the override's held keys and the pad map (new episode)."""
+        """Forget the action history, the guard's last pad, the override's held keys, the pad map and the damper's
+        reversals (new episode)."""
         self.builder.reset()
         self.guard.reset()
         self.override.reset()
         self.recall.reset()
+        self.damper.reset()
         self._mapped_depth = None
 
     # ------------------------------------------------------------- step
@@ -352,6 +363,10 @@ class PolicyCore:
             self.rejected += 1
             return self._relinquish(now, u, 'actor output not finite (rejected)', 'actor_nonfinite')
         a = scale_action(raw, self.max_speed)
+        a_d = self.damper.apply(now, u, a, vel, self.max_speed)
+        damped = a_d is not None
+        if damped:
+            a = a_d
         depth = self._mapped(now, pos)
         mean_u = self.builder.history.means(now)[0]
         a_o = self.override.apply(now, u, mean_u, float(pos[2]), self.max_speed)
@@ -371,6 +386,9 @@ class PolicyCore:
                                 else 'pad recall: steering back to a pad seen', 'pad_recall')
         v = self._clamp(blend(u, a, c.blend_threshold))
         self.builder.record(now, u, a)
+        if damped:
+            self.damper_engaged += 1
+            return PolicyOutput(a, v, 'oscillation damper: damping the pilot\'s oscillation', 'oscillation_damper')
         if np.linalg.norm(a) > c.blend_threshold:
             return PolicyOutput(a, v, 'assisting', 'assisting')
         return PolicyOutput(a, v, 'relinquished', 'small_action')

@@ -2,14 +2,16 @@
 
 Thin rclpy shell over ``policy_core.PolicyCore`` (input range checks, staleness, blending, NaN rejection).
 Run-time parameters (``ros2 param set``): blend_threshold, the three timeouts, max_speed,
-max_vertical_speed, max_input_speed, the floor_guard* parameters and the pilot_override* and
-pad_recall* parameters; every other parameter is read-only. The floor guard
+max_vertical_speed, max_input_speed, the floor_guard*, pilot_override*, pad_recall* and
+oscillation_damper* parameters; every other parameter is read-only. The floor guard
 (assist_policy.safety) and the pad recall (assist_policy.recall, which maps pads with the /odom pose and
 orientation) read /camera/depth/image_raw in every mode; /diagnostics shows floor_guard (on/off) and
 floor_guard_engaged (steps it replaced a descent), pilot_override (on/off) and pilot_override_engaged
 (steps the pilot override, assist_policy.override, replaced the actor's action), pad_recall (on/off),
 pad_recall_engaged (steps it steered to a mapped pad), pad_recall_touchdown (of those, steps it centred
-on the pad below for touchdown) and pad_recall_pads (pads in its map).
+on the pad below for touchdown), pad_recall_pads (pads in its map), oscillation_damper (on/off) and
+oscillation_damper_engaged (steps the oscillation damper, assist_policy.damper, replaced the actor's
+horizontal action).
 """
 from __future__ import annotations
 
@@ -32,6 +34,7 @@ from assist_sim.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagno
                                    realtime_priority_param, run_node, twist_to_array)
 
 from .blending import DEFAULT_THRESHOLD
+from .damper import DamperConfig
 from .override import OverrideConfig
 from .policy_core import PolicyCore, PolicyCoreConfig, PolicyOutput, default_model_path
 from .recall import RecallConfig
@@ -103,7 +106,27 @@ PARAMS = {
                                            'mapped pad seen whole (and over it) during a descent, the pad recall '
                                            'centres on it instead of the actor (m; 0: off).',
                                            min=0.0, max=5.0, dynamic=True),
+    'oscillation_damper': Param(True, 'Oscillation damper (assist_policy.damper, not learned): while the pilot\'s '
+                                      'held keys keep reversing (a pilot-induced oscillation), the actor\'s horizontal '
+                                      'action is replaced by a velocity damper, a_xy = -gain v_xy.', dynamic=True),
+    'oscillation_damper_gain': Param(DamperConfig.gain, 'Gain of the oscillation damper (1/s): a_xy = -gain v_xy.',
+                                     min=0.0, max=10.0, dynamic=True),
+    'oscillation_damper_window_s': Param(DamperConfig.window_s, 'The oscillation damper counts reversals of the '
+                                         'pilot\'s held keys over this window (s).', min=0.5, max=60.0, dynamic=True),
+    'oscillation_damper_reversals': Param(DamperConfig.min_reversals, 'This many reversals within the window '
+                                          'engage the oscillation damper.', min=1, max=20, dynamic=True),
 }
+# node parameter -> DamperConfig field
+DAMPER_FIELDS = {'oscillation_damper': ('enabled', bool), 'oscillation_damper_gain': ('gain', float),
+                 'oscillation_damper_window_s': ('window_s', float),
+                 'oscillation_damper_reversals': ('min_reversals', int)}
+
+
+def damper_fields(params: dict) -> dict:
+    """DamperConfig keyword arguments from the oscillation_damper* entries of `params` (others ignored)."""
+    return {DAMPER_FIELDS[k][0]: DAMPER_FIELDS[k][1](v) for k, v in params.items() if k in DAMPER_FIELDS}
+
+
 # node parameter -> OverrideConfig field
 OVERRIDE_FIELDS = {'pilot_override': 'enabled', 'pilot_override_speed_mps': 'speed_mps',
                    'pilot_override_climb_mps': 'climb_mps', 'pilot_override_climb_below_m': 'climb_below_m',
@@ -122,7 +145,7 @@ CORE_FIELDS = {'blend_threshold': 'blend_threshold', 'pilot_timeout_s': 'pilot_t
                'max_speed': 'max_speed_mps', 'max_vertical_speed': 'max_vertical_mps',
                'max_input_speed': 'max_input_mps'}
 # step outcomes that are normal operation (diagnostics OK); everything else is a WARN with its reason
-OK_KEYS = ('assisting', 'small_action', 'floor_guard', 'pilot_override', 'pad_recall')
+OK_KEYS = ('assisting', 'small_action', 'floor_guard', 'pilot_override', 'pad_recall', 'oscillation_damper')
 FAULT_KEYS = ('actor_nonfinite', 'step_error')
 
 
@@ -184,6 +207,7 @@ class PolicyNode(Node):
                                        enabled=bool(self.p['pad_recall']),
                                        radius_m=float(self.p['pad_recall_radius_m']),
                                        touchdown_height_m=float(self.p['pad_recall_touchdown_height_m'])),
+                                   damper=DamperConfig(**damper_fields(self.p)),
                                    **{f: self.p[k] for k, f in CORE_FIELDS.items()})
             self.core = PolicyCore(path, cfg)
         except ValueError as exc:
@@ -219,6 +243,7 @@ class PolicyNode(Node):
         self.diag.set('floor_guard', 'on' if self.p['floor_guard'] else 'off')
         self.diag.set('pilot_override', 'on' if self.p['pilot_override'] else 'off')
         self.diag.set('pad_recall', 'on' if self.p['pad_recall'] else 'off')
+        self.diag.set('oscillation_damper', 'on' if self.p['oscillation_damper'] else 'off')
         self.diag.status(DiagnosticStatus.WARN, 'relinquished: waiting for inputs')
         self.get_logger().info(f'policy_node: {mode} actor {path} at {self.p["rate_hz"]} Hz')
 
@@ -251,6 +276,11 @@ class PolicyNode(Node):
                 r.radius_m = float(changed.get('pad_recall_radius_m', r.radius_m))
                 r.touchdown_height_m = float(changed.get('pad_recall_touchdown_height_m', r.touchdown_height_m))
             self.diag.set('pad_recall', 'on' if r.enabled else 'off')
+        damper = damper_fields(changed)
+        if damper:
+            with self._lock:
+                self.core.damper.cfg = dataclasses.replace(self.core.damper.cfg, **damper)
+            self.diag.set('oscillation_damper', 'on' if self.core.damper.cfg.enabled else 'off')
 
     # ------------------------------------------------------------- inputs
     def _now(self) -> float:
@@ -355,6 +385,7 @@ class PolicyNode(Node):
         self.diag.set('pad_recall_engaged', self.core.recall_engaged)
         self.diag.set('pad_recall_touchdown', self.core.touchdown_engaged)
         self.diag.set('pad_recall_pads', len(self.core.recall.map.pads))
+        self.diag.set('oscillation_damper_engaged', self.core.damper_engaged)
         if out.key in FAULT_KEYS:
             self._consecutive_faults += 1
             self.diag.count(f'fault_{out.key}')
@@ -372,7 +403,7 @@ class PolicyNode(Node):
             self.diag.status(DiagnosticStatus.OK, 'assisting')
         elif out.key == 'floor_guard':
             self.diag.status(DiagnosticStatus.OK, 'floor guard: descent over bare floor blocked')
-        elif out.key in ('pilot_override', 'pad_recall'):
+        elif out.key in ('pilot_override', 'pad_recall', 'oscillation_damper'):
             self.diag.status(DiagnosticStatus.OK, out.reason)      # the core's text (recall: which mode acted)
         elif out.key == 'small_action':
             self.diag.status(DiagnosticStatus.OK, 'relinquished: agent action at or below blend_threshold')

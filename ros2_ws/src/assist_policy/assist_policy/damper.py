@@ -1,0 +1,122 @@
+"""Oscillation damper: a non-learned rule that damps a pilot-induced oscillation (issue 12).
+
+Why: a pilot who reacts late (choice reaction 0.35-0.6 s plus a video link's latency) and flies keys at a
+fixed speed overshoots its aim, reverses, and overshoots again the other way: a pilot-induced oscillation
+(PIO), the classic failure of a delayed human closing a fast loop. It circles its aim 0.5-1 m either side
+and never stays inside its own "I am above it" radius long enough to descend. Traced (the delay family,
+beta 1, landing 10014): 60 s of +-0.9 m swings over the goal pad with the learned actor inactive
+(|a| under the blending threshold, so V = u), then a timeout; unassisted, the same pilots time out as
+often. The cure for a PIO is a lower loop gain: while one is detected, the agent's horizontal action
+becomes a velocity damper, a_xy = -gain v_xy (base_link, clipped to the actor's range), so the blended
+V_xy = (u_xy - gain v_xy) / 2 and a held key moves the vehicle at about u / (2 + gain): each overshoot
+is that much shorter and the pilot settles over its aim and descends.
+
+Detection, from what the actor observes (the pilot's command) and odometry: a reversal is the pilot's
+mean horizontal command over the last ``mean_s`` pointing against (negative dot product) its mean over
+the same span ``gap_s`` earlier, both faster than ``speed_mps`` (held keys, not fine taps); it is counted
+once, when that test turns true (it stays true for about ``gap_s`` after each reversal).
+``min_reversals`` reversals within ``window_s`` is an oscillation. The rule stays out while the pilot commands a descent (the pad recall's touchdown centring
+and the actor handle the last metre) and when the damper action is under the blending threshold (the
+vehicle nearly still: the assistant relinquishes as before). A deliberate departure (one held key, or a
+single switch to another pad) reverses at most once and never engages it.
+
+Pure numpy; no rclpy.
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class DamperConfig:
+    """Settings of the oscillation damper (policy_node parameters oscillation_damper_* map onto these)."""
+
+    enabled: bool = True
+    gain: float = 2.0               # 1/s: a_xy = -gain v_xy while an oscillation is detected
+    speed_mps: float = 0.5          # mean horizontal pilot speed over mean_s that counts as a held key
+    mean_s: float = 0.5             # span of each mean compared
+    gap_s: float = 1.0              # the earlier mean is taken this long before the latest
+    window_s: float = 8.0           # reversals are counted over this window
+    min_reversals: int = 2          # this many reversals within window_s: an oscillation
+
+    def __post_init__(self) -> None:
+        """Reject settings that would never engage or engage on no input (ValueError, one line)."""
+        for name in ('gain', 'speed_mps', 'mean_s', 'gap_s', 'window_s'):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f'DamperConfig.{name} must be a finite number >= 0, got {v!r}')
+        if self.mean_s <= 0 or self.gap_s <= 0:
+            raise ValueError(f'DamperConfig.mean_s and gap_s must be > 0, got {self.mean_s}, {self.gap_s}')
+        if not (isinstance(self.min_reversals, int) and self.min_reversals >= 1):
+            raise ValueError(f'DamperConfig.min_reversals must be an integer >= 1, got {self.min_reversals!r}')
+
+
+class OscillationDamper:
+    """The reversal detector and the damping rule (see module docstring); ``reset`` at each new landing."""
+
+    def __init__(self, cfg: DamperConfig | None = None):
+        self.cfg = cfg or DamperConfig()
+        self._u: deque[tuple[float, np.ndarray]] = deque()      # (t, u_xy) over the last gap_s + mean_s
+        self._reversals: deque[float] = deque()                  # times of the reversals within window_s
+        self._start: float | None = None                         # time of the first command of this landing
+        self._reversing = False                                  # the reversal test held at the last command
+
+    def reset(self) -> None:
+        """Forget the pilot's commands and the reversals (new landing)."""
+        self._u.clear()
+        self._reversals.clear()
+        self._start = None
+        self._reversing = False
+
+    def _mean(self, t0: float, t1: float) -> np.ndarray | None:
+        """Mean pilot u_xy over samples with t0 < t <= t1 (None: none)."""
+        xs = [u for t, u in self._u if t0 < t <= t1]
+        return np.mean(xs, axis=0) if xs else None
+
+    def oscillating(self, t: float, u: np.ndarray) -> bool:
+        """Record the pilot's command `u` (base_link) at time `t` (s); whether an oscillation is under way."""
+        c = self.cfg
+        u = np.asarray(u, dtype=float).reshape(3)
+        if not (math.isfinite(t) and np.all(np.isfinite(u))):
+            return False
+        if self._u and t < self._u[-1][0]:
+            self.reset()                                # the clock went back: a new landing or a replay
+        if self._start is None:
+            self._start = t
+        self._u.append((t, u[:2].copy()))
+        while self._u and self._u[0][0] <= t - c.gap_s - c.mean_s:
+            self._u.popleft()
+        while self._reversals and self._reversals[0] < t - c.window_s:
+            self._reversals.popleft()
+        now, before = self._mean(t - c.mean_s, t), self._mean(t - c.gap_s - c.mean_s, t - c.gap_s)
+        reversing = (now is not None and before is not None and t - self._start >= c.gap_s
+                     and float(np.hypot(*now)) > c.speed_mps and float(np.hypot(*before)) > c.speed_mps
+                     and float(now @ before) < 0.0)
+        if reversing and not self._reversing:
+            self._reversals.append(t)
+        self._reversing = reversing
+        return len(self._reversals) >= c.min_reversals
+
+    def apply(self, t: float, u: np.ndarray, agent: np.ndarray, velocity: np.ndarray,
+              max_speed: np.ndarray | tuple[float, float, float]) -> np.ndarray | None:
+        """The agent action (m/s, base_link) with its horizontal part damping `velocity` (base_link), or None.
+
+        Call every control step (it records the pilot's command); None when no oscillation is under way,
+        the pilot commands a descent, or the rule is off.
+        """
+        if not self.cfg.enabled:
+            return None
+        u = np.asarray(u, dtype=float).reshape(3)
+        if not self.oscillating(t, u) or u[2] < 0.0:
+            return None
+        v = np.asarray(velocity, dtype=float).reshape(3)
+        if not np.all(np.isfinite(v)):
+            return None
+        a = np.asarray(agent, dtype=float).reshape(3).copy()
+        ms = np.asarray(max_speed, dtype=float).reshape(3)
+        a[:2] = np.clip(-self.cfg.gain * v[:2], -ms[:2], ms[:2])
+        return a
