@@ -195,38 +195,44 @@ def test_pad_recall_steers_a_descent_past_a_pad_back_and_can_be_turned_off(ros, 
     assert wait(lambda: probe.diag and probe.diag[-1].get('pad_recall') == 'off', 5)
 
 
-def test_oscillation_damper_slows_a_pilot_swinging_back_and_forth_and_can_be_turned_off(ros, start_node, wait,
-                                                                                       tmp_path):
+def test_oscillation_damper_slows_a_pilot_swinging_across_a_pad_and_can_be_turned_off(ros, start_node, wait,
+                                                                                      tmp_path):
     model = _helpers.constant_actor(tmp_path / 'relinquish.pt', [0.0, 0.0, 0.0])     # a = 0: V = u
     probe = Probe(ros, pilot=(1.0, 0.0, 0.0))
     node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0,
-                                      'floor_guard': False, 'pad_recall': False, 'pilot_override': False})
+                                      'floor_guard': False, 'pilot_override': False})
+    floor = np.full((64, 64), 3.0 - 0.05, np.float32)
+    pad = floor.copy()
+    pad[22:42, 22:42] = 3.0 - 0.05 - 0.8                              # a 0.8 m pad right below, seen whole
     t0 = time.monotonic()
     while not probe.since(probe.cmd, t0) and time.monotonic() - t0 < 40 and node.proc.poll() is None:
-        probe.run(0.2)
+        probe.run(0.2, position=(0.0, 0.0, 3.0), depth=floor)
     assert node.proc.poll() is None, node.log()
 
-    def swing(seconds):
-        """The pilot holds +x then -x keys, 1.5 s each, the vehicle moving 0.4 m/s with it."""
+    def swing(seconds, depth):
+        """The pilot holds +x then -x keys, 1.5 s each, the vehicle moving 0.4 m/s with it (odometry at 0, 0)."""
         t = time.monotonic()
         while time.monotonic() - t < seconds:
             sign = 1.0 if int((time.monotonic() - t) / 1.5) % 2 == 0 else -1.0
             probe.pilot, probe.velocity = (sign, 0.0, 0.0), (0.4 * sign, 0.0, 0.0)
-            probe.run(0.05)
+            probe.run(0.05, position=(0.0, 0.0, 3.0), depth=depth)
         return t
-    t1 = swing(7.0)
-    agents = probe.since(probe.agent, t1 + 5.0)             # engaged since the second reversal (~3.4 s)
+    t1 = swing(6.0, floor)                  # swinging over bare floor: no pad in the map, not damped
+    cmds = probe.since(probe.cmd, t1 + 0.5)
+    assert cmds and all(abs(abs(v[0]) - 1.0) < 1e-5 for v in cmds), cmds[-5:]
+    t2 = swing(6.0, pad)                    # the same swings across a pad
+    agents = probe.since(probe.agent, t2 + 1.0)
     assert agents, node.log()
     # a_xy = -2 v_xy = -0.8 sign: V_x = (u + a) / 2 = 0.1 sign instead of the held key's 1 m/s
     assert any(np.allclose(a, [-0.8, 0, 0], atol=1e-5) for a in agents), agents[-3:]
     assert all(abs(abs(a[0]) - 0.8) < 1e-5 and a[1] == 0 for a in agents), agents[-3:]
-    cmds = probe.since(probe.cmd, t1 + 5.0)
+    cmds = probe.since(probe.cmd, t2 + 1.0)
     assert sum(abs(abs(v[0]) - 0.1) < 1e-5 for v in cmds) > 0.7 * len(cmds), cmds[-5:]
     assert wait(lambda: any(int(d.get('oscillation_damper_engaged', 0)) > 10 for d in probe.diag), 5), \
         probe.diag[-1:]
-    assert probe.diag[-1].get('oscillation_damper') == 'on'
+    assert probe.diag[-1].get('oscillation_damper') == 'on' and probe.diag[-1].get('pad_recall_pads') == '1'
     set_param(ros, 'oscillation_damper', False, wait)
-    t2 = swing(3.0)
-    cmds = probe.since(probe.cmd, t2 + 0.5)
+    t3 = swing(3.0, pad)
+    cmds = probe.since(probe.cmd, t3 + 0.5)
     assert cmds and sum(abs(abs(v[0]) - 1.0) < 1e-5 for v in cmds) > 0.7 * len(cmds), cmds[-5:]   # V = u again
     assert wait(lambda: probe.diag and probe.diag[-1].get('oscillation_damper') == 'off', 5)

@@ -15,10 +15,16 @@ Detection, from what the actor observes (the pilot's command) and odometry: a re
 mean horizontal command over the last ``mean_s`` pointing against (negative dot product) its mean over
 the same span ``gap_s`` earlier, both faster than ``speed_mps`` (held keys, not fine taps); it is counted
 once, when that test turns true (it stays true for about ``gap_s`` after each reversal).
-``min_reversals`` reversals within ``window_s`` is an oscillation. The rule stays out while the pilot commands a descent (the pad recall's touchdown centring
-and the actor handle the last metre) and when the damper action is under the blending threshold (the
-vehicle nearly still: the assistant relinquishes as before). A deliberate departure (one held key, or a
-single switch to another pad) reverses at most once and never engages it.
+``min_reversals`` reversals within ``window_s`` is an oscillation, and it is damped only where it swings
+across a pad: the vehicle's path between the last two reversals passes within ``cross_radius_m`` of a
+mapped pad's centre (the pad recall's map) and the vehicle is still within ``near_m`` of it. Why the pad:
+a damper's action points against the motion, and a pilot reads an assistant's push as a hint where the
+goal is (the paper's conformance); traced, key-confused pilots mid-transit (a spell of a flipped key
+and its end are two reversals) were slowed and talked back onto the pad behind them (held-out seed 99
+landing 2112: goal estimate 12.0 -> 10.3 m, a wrong-pad landing). Swinging across a pad, the pilot is
+trying to settle over it. The rule stays out while the pilot commands a descent (the pad recall's
+touchdown centring and the actor handle the last metre) and when the damper action is under the blending
+threshold (the vehicle nearly still: the assistant relinquishes as before).
 
 Pure numpy; no rclpy.
 """
@@ -42,10 +48,12 @@ class DamperConfig:
     gap_s: float = 1.0              # the earlier mean is taken this long before the latest
     window_s: float = 8.0           # reversals are counted over this window
     min_reversals: int = 2          # this many reversals within window_s: an oscillation
+    cross_radius_m: float = 0.5     # damped only if the last swing passed this close to a mapped pad's centre
+    near_m: float = 1.5             # ... and the vehicle is still this close to that pad (horizontal m)
 
     def __post_init__(self) -> None:
         """Reject settings that would never engage or engage on no input (ValueError, one line)."""
-        for name in ('gain', 'speed_mps', 'mean_s', 'gap_s', 'window_s'):
+        for name in ('gain', 'speed_mps', 'mean_s', 'gap_s', 'window_s', 'cross_radius_m', 'near_m'):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f'DamperConfig.{name} must be a finite number >= 0, got {v!r}')
@@ -61,7 +69,7 @@ class OscillationDamper:
     def __init__(self, cfg: DamperConfig | None = None):
         self.cfg = cfg or DamperConfig()
         self._u: deque[tuple[float, np.ndarray]] = deque()      # (t, u_xy) over the last gap_s + mean_s
-        self._reversals: deque[float] = deque()                  # times of the reversals within window_s
+        self._reversals: deque[tuple[float, np.ndarray]] = deque()   # (t, vehicle x, y) of the reversals in window_s
         self._start: float | None = None                         # time of the first command of this landing
         self._reversing = False                                  # the reversal test held at the last command
 
@@ -77,11 +85,12 @@ class OscillationDamper:
         xs = [u for t, u in self._u if t0 < t <= t1]
         return np.mean(xs, axis=0) if xs else None
 
-    def oscillating(self, t: float, u: np.ndarray) -> bool:
-        """Record the pilot's command `u` (base_link) at time `t` (s); whether an oscillation is under way."""
+    def oscillating(self, t: float, u: np.ndarray, position: np.ndarray) -> bool:
+        """Record the pilot's command `u` (base_link) at time `t` (s) and `position` (odom); whether it oscillates."""
         c = self.cfg
         u = np.asarray(u, dtype=float).reshape(3)
-        if not (math.isfinite(t) and np.all(np.isfinite(u))):
+        p = np.asarray(position, dtype=float).reshape(3)
+        if not (math.isfinite(t) and np.all(np.isfinite(u)) and np.all(np.isfinite(p))):
             return False
         if self._u and t < self._u[-1][0]:
             self.reset()                                # the clock went back: a new landing or a replay
@@ -90,28 +99,43 @@ class OscillationDamper:
         self._u.append((t, u[:2].copy()))
         while self._u and self._u[0][0] <= t - c.gap_s - c.mean_s:
             self._u.popleft()
-        while self._reversals and self._reversals[0] < t - c.window_s:
+        while self._reversals and self._reversals[0][0] < t - c.window_s:
             self._reversals.popleft()
         now, before = self._mean(t - c.mean_s, t), self._mean(t - c.gap_s - c.mean_s, t - c.gap_s)
         reversing = (now is not None and before is not None and t - self._start >= c.gap_s
                      and float(np.hypot(*now)) > c.speed_mps and float(np.hypot(*before)) > c.speed_mps
                      and float(now @ before) < 0.0)
         if reversing and not self._reversing:
-            self._reversals.append(t)
+            self._reversals.append((t, p[:2].copy()))
         self._reversing = reversing
         return len(self._reversals) >= c.min_reversals
 
-    def apply(self, t: float, u: np.ndarray, agent: np.ndarray, velocity: np.ndarray,
-              max_speed: np.ndarray | tuple[float, float, float]) -> np.ndarray | None:
+    def across_pad(self, position: np.ndarray, pads: np.ndarray) -> bool:
+        """Whether the swing between the last two reversals passed near a pad centre (`pads`, Nx2+ odom) still near."""
+        c = self.cfg
+        pads = np.asarray(pads, dtype=float)
+        if len(self._reversals) < 2 or pads.size == 0:
+            return False
+        pads = pads.reshape(len(pads), -1)[:, :2]
+        a, b = self._reversals[-2][1], self._reversals[-1][1]
+        ab = b - a
+        s = np.clip(((pads - a) @ ab) / max(float(ab @ ab), 1e-9), 0.0, 1.0)
+        seg = np.linalg.norm(pads - (a + s[:, None] * ab), axis=1)          # pad centre to the swing
+        here = np.linalg.norm(pads - np.asarray(position, dtype=float).reshape(3)[:2], axis=1)
+        return bool(np.any((seg < c.cross_radius_m) & (here < c.near_m)))
+
+    def apply(self, t: float, u: np.ndarray, agent: np.ndarray, velocity: np.ndarray, position: np.ndarray,
+              pads: np.ndarray, max_speed: np.ndarray | tuple[float, float, float]) -> np.ndarray | None:
         """The agent action (m/s, base_link) with its horizontal part damping `velocity` (base_link), or None.
 
-        Call every control step (it records the pilot's command); None when no oscillation is under way,
+        Call every control step (it records the pilot's command and the vehicle's odom `position`); `pads`
+        are the mapped pad centres (odom, Nx2 or Nx3). None when no oscillation across a pad is under way,
         the pilot commands a descent, or the rule is off.
         """
         if not self.cfg.enabled:
             return None
         u = np.asarray(u, dtype=float).reshape(3)
-        if not self.oscillating(t, u) or u[2] < 0.0:
+        if not self.oscillating(t, u, position) or u[2] < 0.0 or not self.across_pad(position, pads):
             return None
         v = np.asarray(velocity, dtype=float).reshape(3)
         if not np.all(np.isfinite(v)):

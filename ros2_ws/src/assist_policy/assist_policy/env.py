@@ -216,7 +216,9 @@ class LandingAssistEnv(gym.Env):
         damped = False
         if self.damper is not None and not self.unassisted:
             st = self.world.state                    # odometry twist in base_link (REP-105), as policy_node gets it
-            a_d = self.damper.apply(t, self._u, a, quat_to_matrix(st.quaternion).T @ st.velocity, self.cfg.max_speed)
+            pads = [m.xyz for m in self.recall.map.pads] if self.recall is not None else []
+            a_d = self.damper.apply(t, self._u, a, quat_to_matrix(st.quaternion).T @ st.velocity, st.position,
+                                    pads, self.cfg.max_speed)
             if a_d is not None:
                 a, damped = a_d, True
         overridden = False

@@ -363,7 +363,7 @@ class PolicyCore:
             self.rejected += 1
             return self._relinquish(now, u, 'actor output not finite (rejected)', 'actor_nonfinite')
         a = scale_action(raw, self.max_speed)
-        a_d = self.damper.apply(now, u, a, vel, self.max_speed)
+        a_d = self.damper.apply(now, u, a, vel, pos, [m.xyz for m in self.recall.map.pads], self.max_speed)
         damped = a_d is not None
         if damped:
             a = a_d

@@ -18,6 +18,8 @@ constant_actor, LATENT = _helpers.constant_actor, _helpers.LATENT
 
 DT = 0.05
 MAX_SPEED = (1.0, 1.0, 0.6)
+HERE = np.array([5.0, 0.0, 3.0])            # the vehicle's odom position in the tests that do not move it
+PADS = np.array([[5.1, 0.1, 0.8]])          # a mapped pad right below it
 
 
 def swings(half_period_s: float, total_s: float, speed: float = 1.0, z: float = 0.0):
@@ -28,10 +30,16 @@ def swings(half_period_s: float, total_s: float, speed: float = 1.0, z: float = 
         yield k * DT, np.array([sign * speed, 0.0, z])
 
 
+def act(d: OscillationDamper, t: float, u, agent=np.zeros(3), velocity=(0.5, 0.0, 0.0), position=HERE,
+        pads=PADS):
+    """One damper step (default: at HERE over PADS, moving 0.5 m/s along +x)."""
+    return d.apply(t, np.asarray(u, dtype=float), agent, np.asarray(velocity, dtype=float), position, pads, MAX_SPEED)
+
+
 def first_engaged(d: OscillationDamper, commands) -> float | None:
-    """Time of the first step the damper acts on (velocity 0.5 m/s along +x), None if never."""
+    """Time of the first step the damper acts on, None if never."""
     for t, u in commands:
-        if d.apply(t, u, np.zeros(3), np.array([0.5, 0.0, 0.0]), MAX_SPEED) is not None:
+        if act(d, t, u) is not None:
             return t
     return None
 
@@ -43,10 +51,10 @@ def test_a_pilot_swinging_back_and_forth_is_damped_after_two_reversals():
     # reverses at 1.5 s (seen ~2.0 s), the second at 3.0 s (seen ~3.5 s)
     assert t is not None and 3.0 < t < 4.0
     agent = np.array([0.2, -0.1, -0.3])
-    a = d.apply(t + DT, np.array([1.0, 0.0, 0.0]), agent, np.array([0.8, -0.7, 0.1]), MAX_SPEED)
+    a = act(d, t + DT, [1.0, 0.0, 0.0], agent, (0.8, -0.7, 0.1))
     assert a[:2] == pytest.approx([-1.0, 1.0])                # -gain v_xy = (-1.6, 1.4), clipped to the range
     assert a[2] == agent[2]                                    # the vertical action stays the actor's
-    a = d.apply(t + 2 * DT, np.array([1.0, 0.0, 0.0]), agent, np.array([0.3, 0.1, 0.0]), MAX_SPEED)
+    a = act(d, t + 2 * DT, [1.0, 0.0, 0.0], agent, (0.3, 0.1, 0.0))
     assert a[:2] == pytest.approx([-0.6, -0.2])
     v = blend(np.array([1.0, 0.0, 0.0]), a)
     assert v[0] == pytest.approx(0.2)                          # V_x = (u - gain v) / 2: the held key slowed
@@ -66,15 +74,31 @@ def test_a_held_key_a_single_switch_and_fine_taps_are_not_an_oscillation():
 def test_it_stays_out_during_a_descent_and_lets_go_once_the_swings_stop():
     d = OscillationDamper()
     cmds = list(swings(1.5, 6.0))
-    assert [d.oscillating(t, u) for t, u in cmds].count(True) > 0
-    assert list(d._reversals) == pytest.approx([1.85, 3.35, 4.85])  # each reversal counted once, ~0.35 s after it
+    assert [d.oscillating(t, u, HERE) for t, u in cmds].count(True) > 0
+    assert [r[0] for r in d._reversals] == pytest.approx([1.85, 3.35, 4.85])   # each counted once, ~0.35 s after it
     t = cmds[-1][0] + DT
-    assert d.apply(t, np.array([1.0, 0.0, -0.5]), np.zeros(3), np.array([0.5, 0, 0]), MAX_SPEED) is None
-    assert d.apply(t + DT, np.array([1.0, 0.0, 0.0]), np.zeros(3), np.array([0.5, 0, 0]), MAX_SPEED) is not None
+    assert act(d, t, [1.0, 0.0, -0.5]) is None
+    assert act(d, t + DT, [1.0, 0.0, 0.0]) is not None
     # hovering still: two reversals stay within the 8 s window until the one at 3.35 s leaves it
     still = [(t + 2 * DT + k * DT, np.zeros(3)) for k in range(200)]
-    acted = [s for s, u in still if d.apply(s, u, np.zeros(3), np.array([0.5, 0, 0]), MAX_SPEED) is not None]
+    acted = [s for s, u in still if act(d, s, u) is not None]
     assert acted and acted[-1] == pytest.approx(3.35 + 8.0, abs=0.06)
+
+
+def test_only_swings_across_a_mapped_pad_are_damped():
+    """The path between the last two reversals must pass near a mapped pad that the vehicle is still near."""
+    def flown(pads):
+        d, x, acted = OscillationDamper(), 4.55, []
+        for t, u in swings(1.5, 10.0):                         # 0.6 m/s: the vehicle swings over 4.55..5.45 m in x
+            x += 0.6 * u[0] * DT
+            if act(d, t, u, velocity=(0.6 * u[0], 0, 0), position=np.array([x, 0.0, 3.0]), pads=pads) is not None:
+                acted.append(t)
+        return acted
+    assert flown(PADS)                                         # swinging across the pad at x 5.1
+    assert flown(np.array([[5.0, 0.45, 0.8], [9.0, 0.0, 0.5]]))   # 0.45 m beside the swing: still across it
+    assert not flown(np.array([[5.0, 0.8, 0.8]]))              # 0.8 m to the side: beside it, not across
+    assert not flown(np.zeros((0, 3)))                         # no pad mapped
+    assert not flown(np.array([[6.5, 0.0, 0.8]]))              # 1 m beyond the swing's end
 
 
 def test_reset_off_bad_input_and_config():
@@ -82,36 +106,41 @@ def test_reset_off_bad_input_and_config():
     cmds = list(swings(1.5, 6.0))
     assert first_engaged(d, cmds) is not None
     d.reset()
-    assert d.apply(6.0, np.array([1.0, 0, 0]), np.zeros(3), np.array([0.5, 0, 0]), MAX_SPEED) is None
+    assert act(d, 6.0, [1.0, 0, 0]) is None
     assert first_engaged(d, cmds) is not None                  # the clock went back (new landing): starts over
     off = OscillationDamper(DamperConfig(enabled=False))
     assert first_engaged(off, swings(1.5, 10.0)) is None
-    assert d.apply(7.0, np.array([np.nan, 0, 0]), np.zeros(3), np.zeros(3), MAX_SPEED) is None
-    assert d.apply(7.05, np.array([1.0, 0, 0]), np.zeros(3), np.array([np.inf, 0, 0]), MAX_SPEED) is None
-    for bad in ({'gain': float('nan')}, {'window_s': -1.0}, {'mean_s': 0.0}, {'min_reversals': 0}):
+    assert act(d, 7.0, [np.nan, 0, 0]) is None
+    assert act(d, 7.05, [1.0, 0, 0], velocity=(np.inf, 0, 0)) is None
+    assert act(d, 7.1, [1.0, 0, 0], position=np.array([np.nan, 0, 3.0])) is None
+    for bad in ({'gain': float('nan')}, {'window_s': -1.0}, {'mean_s': 0.0}, {'min_reversals': 0},
+                {'cross_radius_m': -0.1}):
         with pytest.raises(ValueError):
             DamperConfig(**bad)
 
 
 def test_policy_core_damps_an_oscillating_pilot_and_reports_it(tmp_path):
     path = constant_actor(tmp_path / 'nudge.pt', [0.1, 0.0, 0.0])
+    depth = np.full((64, 64), 3.0 - 0.05, np.float32)          # from 3 m: floor, and a 0.8 m pad right below
+    depth[22:42, 22:42] = 3.0 - 0.05 - 0.8
     for enabled in (True, False):
         core = PolicyCore(path, PolicyCoreConfig(mode='latent', damper=DamperConfig(enabled=enabled)))
         keys = []
         for t, u in swings(1.5, 6.0):
             core.set_odom(t, [0.0, 0.0, 3.0], [0.4 * np.sign(u[0]), 0.0, 0.0])
+            core.set_depth(t, depth)
             core.set_latent(t, np.zeros(LATENT))
             core.set_pilot(t, u)
             out = core.step(t)
             keys.append(out.key)
         if enabled:
-            assert out.key == 'oscillation_damper' and core.damper_engaged > 0
+            assert out.key == 'oscillation_damper' and core.damper_engaged > 0 and len(core.recall.map.pads) == 1
             assert out.agent[:2] == pytest.approx([-2.0 * 0.4 * np.sign(u[0]), 0.0])
             assert keys.count('oscillation_damper') == core.damper_engaged
         else:
             assert 'oscillation_damper' not in keys and core.damper_engaged == 0
     core.reset()
-    assert core.damper.apply(0.0, np.array([1.0, 0, 0]), np.zeros(3), np.zeros(3), MAX_SPEED) is None
+    assert act(core.damper, 0.0, [1.0, 0, 0]) is None
 
 
 def test_evaluate_damper_rows_and_column(tmp_path):
