@@ -72,9 +72,6 @@ class RecallConfig:
     climb_mps: float = 0.3            # vertical V while climbing to clear the pad's side
     leave_speed_mps: float = 0.5      # a command (now or 1 s mean) this fast away from the pad: leaving it
     touchdown_height_m: float = 1.0   # lower than this over a pad seen whole and over it: centre on it (0: off)
-    descend_height_m: float = 0.0     # lower than this over a pad seen whole, over it, nobody descending: descend (0: off)
-    descend_mps: float = ScriptedConfig.descend_mps   # the agent's descent then (V_z = (u_z - descend_mps) / 2)
-    descend_margin_m: float = 0.3     # ... only with a pad top under all of (+-this)^2 around base_link (legs +-0.15)
     min_top_m: float = 0.25           # a point this high over the floor is raised (pads 0.4-1.2 m)
     max_top_m: float = 2.0            # a raised region reaching this high is a wall (walls stand 6 m)
     top_band_m: float = 0.1           # the top surface: raised points within this of the region's top
@@ -90,8 +87,7 @@ class RecallConfig:
     def __post_init__(self) -> None:
         """Reject settings that would map nothing or steer everywhere (ValueError, one line)."""
         for name in ('radius_m', 'gain_xy', 'low_height_m', 'clear_height_m', 'clear_radius_m', 'climb_mps',
-                     'leave_speed_mps', 'touchdown_height_m', 'descend_height_m', 'descend_mps', 'descend_margin_m',
-                     'min_top_m', 'max_top_m',
+                     'leave_speed_mps', 'touchdown_height_m', 'min_top_m', 'max_top_m',
                      'top_band_m', 'min_spread_m', 'merge_radius_m', 'part_size_m', 'min_view_m', 'camera_offset_m',
                      'vertical_fov_deg'):
             v = getattr(self, name)
@@ -237,12 +233,10 @@ class PadRecall:
         self.floor = floor_guard or FloorGuard()          # its floor_below test (its settings: legs, tolerance)
         self._centre = ScriptedOracle(ScriptedConfig(gain_xy=self.cfg.gain_xy))
         self.mode: str | None = None                       # the rule that acted in the last apply (or None)
-        self._top_spot: tuple[float, float, float] | None = None   # x, y, top z where a pad top was last below
 
     def reset(self) -> None:
-        """Forget the map and the pad top last below (new landing)."""
+        """Forget the map (new landing)."""
         self.map.reset()
-        self._top_spot = None
 
     def observe(self, depth: np.ndarray, position: np.ndarray, quaternion: np.ndarray | None = None) -> None:
         """Map this frame's pads (call with every depth frame, whether or not the rule then acts)."""
@@ -251,11 +245,10 @@ class PadRecall:
 
     def apply(self, u: np.ndarray, mean_u: np.ndarray, agent: np.ndarray, depth: np.ndarray, position: np.ndarray,
               quaternion: np.ndarray | None, max_speed: np.ndarray | tuple[float, float, float]) -> np.ndarray | None:
-        """The agent action (m/s, base_link) steering to the remembered pad, or None (no rule acts).
+        """The agent action (m/s, base_link) steering to the remembered pad, or None (neither rule acts).
 
-        ``mode`` tells which rule acted: 'recall' (back to a pad from beside it), 'touchdown' (centring on
-        the pad below during the last of a descent) or 'descend' (descending onto the pad top below a
-        hovering pilot); None when none did.
+        ``mode`` tells which rule acted: 'recall' (back to a pad from beside it) or 'touchdown' (centring
+        on the pad below during the last of a descent); None when neither did.
         """
         c = self.cfg
         self.mode = None
@@ -268,53 +261,30 @@ class PadRecall:
         if pad is None:
             return None
         horiz, height = math.hypot(pad.xyz[0] - p[0], pad.xyz[1] - p[1]), float(p[2] - pad.xyz[2])
-        over = horiz < c.clear_radius_m     # over it: a 'floor' here is the camera's blind range
-        if over and pad.whole and height < c.touchdown_height_m and u[2] + a[2] < 0.0:
+        if horiz < c.clear_radius_m:        # over it: only the touchdown rule (a 'floor' here is the blind range)
+            if not (pad.whole and height < c.touchdown_height_m and u[2] + a[2] < 0.0):
+                return None
             mode = 'touchdown'
-        elif (not over and horiz <= c.radius_m and (u[2] < 0.0 or height < c.low_height_m)
-              and self.floor.floor_below(depth, float(p[2])) is True):
-            mode = 'recall'
-        elif c.descend_height_m > 0 and u[2] <= 0.0 and u[2] + a[2] >= 0.0 and self._low_over_top(depth, p):
-            mode = 'descend'                # a pilot hovering low over a pad top, neither climbing nor descending
+        elif horiz > c.radius_m or not (u[2] < 0.0 or height < c.low_height_m):
+            return None                     # too far, or idle
         else:
-            return None
+            mode = 'recall'
         yaw = 0.0 if quaternion is None else _yaw(quaternion)
         to_pad = pad.xyz[:2] - p[:2]
         for cmd in (np.asarray(mean_u, dtype=float).reshape(3), u):
             if (np.all(np.isfinite(cmd)) and float(np.hypot(cmd[0], cmd[1])) > c.leave_speed_mps
                     and _rotate(cmd[:2], yaw) @ to_pad < 0.0):
                 return None                 # heading away from it (to a pad ahead not yet seen, or back to another)
-        if mode != 'descend' or (over and pad.whole):             # centre on the mapped centre when it is known
-            u_odom = np.array([*_rotate(u[:2], yaw), u[2]])
-            v = self._centre.velocity(pad.xyz, p, u_odom)          # odom; only its horizontal part is used
-            a[:2] = _rotate(v[:2], -yaw)                            # back into base_link
+        if mode == 'recall' and self.floor.floor_below(depth, float(p[2])) is not True:
+            return None
+        u_odom = np.array([*_rotate(u[:2], yaw), u[2]])
+        v = self._centre.velocity(pad.xyz, p, u_odom)          # odom; only its horizontal part is used
+        a[:2] = _rotate(v[:2], -yaw)                            # back into base_link
         if mode == 'recall' and height < c.clear_height_m:
             a[2] = 2.0 * max(float(u[2]), c.climb_mps) - u[2]     # V_z = max(u_z, climb): over its side first
-        elif mode == 'descend':
-            a[2] = -c.descend_mps
         ms = np.asarray(max_speed, dtype=float).reshape(3)
         self.mode = mode
         return np.clip(a, -ms, ms)
-
-    def _low_over_top(self, depth: np.ndarray, p: np.ndarray) -> bool:
-        """Whether base_link is lower than descend_height_m over a level pad top under the whole footprint.
-
-        Where the depth image cannot tell (the camera inside its blind range of the top) the last spot it
-        did is remembered: within descend_margin_m of it, the vehicle is still over that top.
-        """
-        c, g = self.cfg, self.floor.cfg
-        top_depth = self.floor.raised_below(depth, float(p[2]), c.descend_margin_m)
-        if top_depth is not None:
-            over_top = top_depth + g.camera_offset_m
-            if over_top >= c.descend_height_m:
-                return False
-            self._top_spot = (float(p[0]), float(p[1]), float(p[2]) - over_top)
-            return True
-        if self._top_spot is None:
-            return False
-        x, y, top = self._top_spot
-        return (math.hypot(p[0] - x, p[1] - y) < c.descend_margin_m
-                and float(p[2]) - g.camera_offset_m - top < g.blind_range_m)
 
 
 def _thinnest_spread(xy: np.ndarray) -> float:

@@ -108,13 +108,9 @@ class FloorGuard:
             self._pad = (float(position[0]), float(position[1]),
                          float(position[2]) - self.cfg.camera_offset_m - min(tops))
 
-    def _leg_depths(self, depth: np.ndarray, altitude_m: float, offset_m: float | None = None) -> list[float | None]:
-        """Median valid depth around each leg's floor point (None: no valid pixel), [] if not checkable.
-
-        ``offset_m`` puts the four points at (+-, +-) that instead of the legs (a wider footprint).
-        """
+    def _leg_depths(self, depth: np.ndarray, altitude_m: float) -> list[float | None]:
+        """Median valid depth around each leg's floor point (None: no valid pixel), [] if not checkable."""
         c = self.cfg
-        off = c.leg_offset_m if offset_m is None else float(offset_m)
         depth = np.asarray(depth, dtype=np.float32)
         if depth.ndim != 2 or depth.size == 0:
             raise ValueError(f'depth image must be HxW, got shape {depth.shape}')
@@ -126,8 +122,8 @@ class FloorGuard:
         cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
         half = max(1, int(round(f * c.window_m / d_floor)))
         out: list[float | None] = []
-        for bx in (off, -off):
-            for by in (off, -off):
+        for bx in (c.leg_offset_m, -c.leg_offset_m):
+            for by in (c.leg_offset_m, -c.leg_offset_m):
                 col = int(round(min(max(cx + f * (-by) / d_floor, 0), w - 1)))
                 row = int(round(min(max(cy + f * (-bx) / d_floor, 0), h - 1)))
                 patch = depth[max(0, row - half):row + half + 1, max(0, col - half):col + half + 1]
@@ -145,25 +141,6 @@ class FloorGuard:
             return None
         d_floor = float(altitude_m) - self.cfg.camera_offset_m
         return all(d >= d_floor - self.cfg.floor_tolerance_m for d in legs)
-
-    def raised_below(self, depth: np.ndarray, altitude_m: float, half_m: float) -> float | None:
-        """Depth (m) of one raised level surface under all four corners of a (+-half_m)^2 footprint, else None.
-
-        None when a corner shows the floor or no valid depth (a hole, the camera's blind range), or the
-        corners disagree by more than the floor tolerance (a pad edge, a step).
-        """
-        d_floor = float(altitude_m) - self.cfg.camera_offset_m
-        top = self._level_raised(self._leg_depths(depth, altitude_m, half_m), d_floor)
-        if top is None:                 # the corners were placed on the floor plane: on a raised top they fall
-            return None                 # nearer the centre, so look again with them scaled out onto that top
-        return self._level_raised(self._leg_depths(depth, altitude_m, half_m * d_floor / top), d_floor)
-
-    def _level_raised(self, legs: list[float | None], d_floor: float) -> float | None:
-        """Median of depths `legs` when all are valid, nearer than the floor and level (within tolerance)."""
-        tol = self.cfg.floor_tolerance_m
-        if not legs or any(d is None for d in legs) or max(legs) >= d_floor - tol or max(legs) - min(legs) > tol:
-            return None
-        return float(np.median(legs))
 
     def straddle_depth(self, depth: np.ndarray, altitude_m: float) -> float | None:
         """Depth of the nearest pad under a leg when other legs are over the floor (a pad edge), else None."""

@@ -198,41 +198,6 @@ def test_low_over_a_pad_seen_whole_a_descent_is_centred_on_it(world):
     assert part.apply(u, np.zeros(3), actor, _frame(world, near_part), near_part, None, MAX_SPEED) is None
 
 
-def test_a_pilot_hovering_low_over_a_pad_top_is_descended_onto_it(world):
-    """descend_height_m: neither climbing nor descending, low over a level pad top under the whole footprint."""
-    r = PadRecall(RecallConfig(descend_height_m=1.2))
-    r.observe(_frame(world, [5.0, 0.5, 3.5]), np.array([5.0, 0.5, 3.5]))      # pad 0 (top 0.8) seen whole
-    pos = np.array([5.1, 0.45, 1.8])                           # 1.0 m over its top, 0.11 m off its centre
-    depth = _frame(world, pos)
-    actor = np.array([0.3, 0.0, 0.0])
-    a = r.apply(np.zeros(3), np.zeros(3), actor, depth, pos, None, MAX_SPEED)
-    assert a is not None and r.mode == 'descend'
-    assert a[2] == pytest.approx(-MAX_SPEED[2])                # descend_mps 1.0, clipped to the actor's 0.6
-    v = blend(np.zeros(3), a)
-    assert v[2] == pytest.approx(-0.3)
-    assert v[:2] == pytest.approx(RecallConfig.gain_xy * (r.map.pads[0].xyz[:2] - pos[:2]))   # centred (seen whole)
-    # out: the pilot climbing, a descent already under way, too high, over the floor, turned off
-    assert r.apply(np.array([0.0, 0.0, 0.5]), np.zeros(3), actor, depth, pos, None, MAX_SPEED) is None
-    assert r.apply(np.zeros(3), np.zeros(3), np.array([0.3, 0.0, -0.4]), depth, pos, None, MAX_SPEED) is None
-    high = np.array([5.1, 0.45, 2.2])
-    assert r.apply(np.zeros(3), np.zeros(3), actor, _frame(world, high), high, None, MAX_SPEED) is None
-    edge = np.array([5.6, 0.45, 1.8])                          # footprint (+-0.3 m) reaches past the pad's edge
-    assert r.floor.raised_below(_frame(world, edge), edge[2], 0.3) is None
-    assert PadRecall(RecallConfig()).apply(np.zeros(3), np.zeros(3), actor, depth, pos, None, MAX_SPEED) is None
-    # inside the camera's blind range of the top (no valid depth) it keeps going where it last saw the top
-    blind = np.array([5.12, 0.45, 0.95])
-    hole = np.full_like(depth, np.nan)
-    assert r.apply(np.zeros(3), np.zeros(3), actor, hole, blind, None, MAX_SPEED) is not None and r.mode == 'descend'
-    away = np.array([5.6, 0.45, 0.95])
-    assert r.apply(np.zeros(3), np.zeros(3), actor, hole, away, None, MAX_SPEED) is None
-    # a pad only part seen: it still descends (the top is under the footprint) but keeps the actor's horizontal
-    part = PadRecall(RecallConfig(descend_height_m=1.2))
-    part.observe(_frame(world, [6.5, 0.5, 3.0]), np.array([6.5, 0.5, 3.0]))
-    assert len(part.map.pads) == 1 and not part.map.pads[0].whole
-    a = part.apply(np.zeros(3), np.zeros(3), actor, depth, pos, None, MAX_SPEED)
-    assert a is not None and part.mode == 'descend' and a[:2] == pytest.approx(actor[:2]) and a[2] < 0
-
-
 def test_a_pad_cut_by_the_image_border_is_placed_beyond_the_part_in_view(world):
     """part_size_m: across a border cut, the centre is at least part_size_m / 2 past the edge seen."""
     for pos in ([5.9, 0.5, 2.0], [4.1, 0.5, 2.0], [5.0, 1.3, 2.0], [5.7, -0.2, 1.9]):
