@@ -22,7 +22,10 @@ a damper's action points against the motion, and a pilot reads an assistant's pu
 goal is (the paper's conformance); traced, key-confused pilots mid-transit (a spell of a flipped key
 and its end are two reversals) were slowed and talked back onto the pad behind them (held-out seed 99
 landing 2112: goal estimate 12.0 -> 10.3 m, a wrong-pad landing). Swinging across a pad, the pilot is
-trying to settle over it. The rule stays out while the pilot commands a descent (the pad recall's
+trying to settle over it. A pilot who leaves that pad is let go once the vehicle has been getting farther
+from it for ``leave_s`` (an overshoot moves away for about a quarter of a swing, ~1 s; traced, a keyboard
+pilot's late correction off the wrong pad was damped for 4 s, read as "go back", and landed there: seed
+555 landing 2574). The rule stays out while the pilot commands a descent (the pad recall's
 touchdown centring and the actor handle the last metre) and when the damper action is under the blending
 threshold (the vehicle nearly still: the assistant relinquishes as before).
 
@@ -50,10 +53,11 @@ class DamperConfig:
     min_reversals: int = 2          # this many reversals within window_s: an oscillation
     cross_radius_m: float = 0.5     # damped only if the last swing passed this close to a mapped pad's centre
     near_m: float = 1.5             # ... and the vehicle is still this close to that pad (horizontal m)
+    leave_s: float = 1.5            # getting farther from that pad for this long: leaving it, let go
 
     def __post_init__(self) -> None:
         """Reject settings that would never engage or engage on no input (ValueError, one line)."""
-        for name in ('gain', 'speed_mps', 'mean_s', 'gap_s', 'window_s', 'cross_radius_m', 'near_m'):
+        for name in ('gain', 'speed_mps', 'mean_s', 'gap_s', 'window_s', 'cross_radius_m', 'near_m', 'leave_s'):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f'DamperConfig.{name} must be a finite number >= 0, got {v!r}')
@@ -69,6 +73,7 @@ class OscillationDamper:
     def __init__(self, cfg: DamperConfig | None = None):
         self.cfg = cfg or DamperConfig()
         self._u: deque[tuple[float, np.ndarray]] = deque()      # (t, u_xy) over the last gap_s + mean_s
+        self._p: deque[tuple[float, np.ndarray]] = deque()      # (t, vehicle x, y) over the last leave_s
         self._reversals: deque[tuple[float, np.ndarray]] = deque()   # (t, vehicle x, y) of the reversals in window_s
         self._start: float | None = None                         # time of the first command of this landing
         self._reversing = False                                  # the reversal test held at the last command
@@ -76,6 +81,7 @@ class OscillationDamper:
     def reset(self) -> None:
         """Forget the pilot's commands and the reversals (new landing)."""
         self._u.clear()
+        self._p.clear()
         self._reversals.clear()
         self._start = None
         self._reversing = False
@@ -99,6 +105,9 @@ class OscillationDamper:
         self._u.append((t, u[:2].copy()))
         while self._u and self._u[0][0] <= t - c.gap_s - c.mean_s:
             self._u.popleft()
+        self._p.append((t, p[:2].copy()))
+        while len(self._p) > 1 and self._p[1][0] <= t - c.leave_s:
+            self._p.popleft()
         while self._reversals and self._reversals[0][0] < t - c.window_s:
             self._reversals.popleft()
         now, before = self._mean(t - c.mean_s, t), self._mean(t - c.gap_s - c.mean_s, t - c.gap_s)
@@ -111,7 +120,8 @@ class OscillationDamper:
         return len(self._reversals) >= c.min_reversals
 
     def across_pad(self, position: np.ndarray, pads: np.ndarray) -> bool:
-        """Whether the swing between the last two reversals passed near a pad centre (`pads`, Nx2+ odom) still near."""
+        """Whether the swing between the last two reversals passed near a pad centre (`pads`, Nx2+ odom) that the
+        vehicle is still near and has not been leaving for leave_s."""
         c = self.cfg
         pads = np.asarray(pads, dtype=float)
         if len(self._reversals) < 2 or pads.size == 0:
@@ -122,7 +132,14 @@ class OscillationDamper:
         s = np.clip(((pads - a) @ ab) / max(float(ab @ ab), 1e-9), 0.0, 1.0)
         seg = np.linalg.norm(pads - (a + s[:, None] * ab), axis=1)          # pad centre to the swing
         here = np.linalg.norm(pads - np.asarray(position, dtype=float).reshape(3)[:2], axis=1)
-        return bool(np.any((seg < c.cross_radius_m) & (here < c.near_m)))
+        return any(not self._leaving(pad) for pad in pads[(seg < c.cross_radius_m) & (here < c.near_m)])
+
+    def _leaving(self, pad: np.ndarray) -> bool:
+        """Whether the vehicle got farther from `pad` over the last leave_s: by 0.3 m, never nearer by over 1 cm a step."""
+        if not self._p or self._p[-1][0] - self._p[0][0] < self.cfg.leave_s - 1e-6:
+            return False
+        d = np.linalg.norm(np.array([xy for _, xy in self._p]) - pad, axis=1)
+        return bool(d[-1] - d[0] > 0.3 and np.all(np.diff(d) > -0.01))
 
     def apply(self, t: float, u: np.ndarray, agent: np.ndarray, velocity: np.ndarray, position: np.ndarray,
               pads: np.ndarray, max_speed: np.ndarray | tuple[float, float, float]) -> np.ndarray | None:

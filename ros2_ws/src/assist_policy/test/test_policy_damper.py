@@ -101,6 +101,22 @@ def test_only_swings_across_a_mapped_pad_are_damped():
     assert not flown(np.array([[6.5, 0.0, 0.8]]))              # 1 m beyond the swing's end
 
 
+def test_a_pilot_leaving_the_pad_after_swinging_across_it_is_let_go():
+    """Getting farther from the pad for leave_s (1.5 s) is a departure: the damper stops though the swings are recent."""
+    d, x = OscillationDamper(), 4.55
+    for t, u in swings(1.5, 6.0):
+        x += 0.6 * u[0] * DT
+        act(d, t, u, velocity=(0.6 * u[0], 0, 0), position=np.array([x, 0.0, 3.0]))
+    acted = []
+    for k in range(80):                                        # then holds +x: over the pad (x 5.1) at ~6.9 s, off
+        t, x = 6.0 + k * DT, x + 0.6 * DT
+        if act(d, t, [1.0, 0, 0], velocity=(0.6, 0, 0), position=np.array([x, 0.0, 3.0])) is not None:
+            acted.append(t)
+    # damped while it comes back over the pad, let go 1.5 s after it starts getting farther from it
+    assert acted and acted[0] == pytest.approx(6.0) and 8.0 < acted[-1] + DT < 8.5, acted[-1]
+    assert acted == pytest.approx([6.0 + k * DT for k in range(len(acted))])
+
+
 def test_reset_off_bad_input_and_config():
     d = OscillationDamper()
     cmds = list(swings(1.5, 6.0))
