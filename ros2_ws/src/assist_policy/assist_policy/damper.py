@@ -135,7 +135,7 @@ class OscillationDamper:
         return any(not self._leaving(pad) for pad in pads[(seg < c.cross_radius_m) & (here < c.near_m)])
 
     def _leaving(self, pad: np.ndarray) -> bool:
-        """Whether the vehicle got farther from `pad` over the last leave_s: by 0.3 m, never nearer by over 1 cm a step."""
+        """Whether the vehicle got farther from `pad` over the last leave_s (by 0.3 m, never 1 cm nearer a step)."""
         if not self._p or self._p[-1][0] - self._p[0][0] < self.cfg.leave_s - 1e-6:
             return False
         d = np.linalg.norm(np.array([xy for _, xy in self._p]) - pad, axis=1)

@@ -4,7 +4,8 @@ One step = one control period of the world (1/control_hz s):
   1. the agent sees obs_t (scene feature, dynamics, pilot action u_t, 1 s means) and outputs raw
      action in [-1, 1]^3, scaled to a velocity a_t (``actions.scale_action``);
      With ``EnvConfig.damper`` the oscillation damper (``damper.OscillationDamper``) replaces a_t's
-     horizontal part while the pilot oscillates; with ``EnvConfig.override`` the pilot override (``override.PilotOverride``) replaces a_t
+     horizontal part while the pilot oscillates across a mapped pad (it needs ``EnvConfig.recall``'s
+     map); with ``EnvConfig.override`` the pilot override (``override.PilotOverride``) replaces a_t
      while the pilot holds a horizontal key; with ``EnvConfig.safety`` the floor guard acts on V_t;
   2. the vehicle flies V_t = blend(u_t, a_t) (``blending.blend``) with the world's turbulence;
   3. the pilot updates its goal estimate with the applied assistance (a_t if |a_t| > threshold,

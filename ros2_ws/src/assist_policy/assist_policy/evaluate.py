@@ -215,7 +215,7 @@ def write_landings(path: Path, rows_by_cond: dict[str, list[dict]]) -> None:
 def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: float, alpha: float,
                 pilot: str = 'paper', safety: SafetyConfig | None = None, override: OverrideConfig | None = None,
                 recall: RecallConfig | None = None, damper: DamperConfig | None = None):
-    """(env, policy) for one condition; policy(obs) -> raw action, None for unassisted (override/recall/damper: learned)."""
+    """(env, policy) for one condition; policy(obs) -> raw action, None for unassisted (override etc.: learned only)."""
     if condition == 'unassisted':
         return LandingAssistEnv(EnvConfig(condition='none', alpha=alpha, max_episode_s=max_episode_s,
                                           pilot_family=pilot)), None

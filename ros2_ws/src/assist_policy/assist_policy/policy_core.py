@@ -21,9 +21,9 @@ Safety rules (ARCHITECTURE.md, "Timing and safety rules"):
   pad seen whole during a descent, by centring on it (touchdown; reason key ``pad_recall`` for both);
   needs fresh odometry and depth, like the floor guard, which still acts after it;
 * oscillation damper (``damper.OscillationDamper``, not learned): while the pilot's held keys keep
-  reversing (a pilot-induced oscillation), the actor's horizontal action is replaced by a_xy = -gain v_xy
-  (the odometry twist, base_link); before the override and the recall, which replace it when they act
-  (reason key ``oscillation_damper``).
+  reversing across a pad of the recall's map (a pilot-induced oscillation), the actor's horizontal
+  action is replaced by a_xy = -gain v_xy (the odometry twist, base_link); before the override and the
+  recall, which replace it when they act (reason key ``oscillation_damper``).
 """
 from __future__ import annotations
 

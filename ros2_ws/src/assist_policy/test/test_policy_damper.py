@@ -102,7 +102,7 @@ def test_only_swings_across_a_mapped_pad_are_damped():
 
 
 def test_a_pilot_leaving_the_pad_after_swinging_across_it_is_let_go():
-    """Getting farther from the pad for leave_s (1.5 s) is a departure: the damper stops though the swings are recent."""
+    """Getting farther from the pad for leave_s (1.5 s) is a departure: the damper stops, the swings recent or not."""
     d, x = OscillationDamper(), 4.55
     for t, u in swings(1.5, 6.0):
         x += 0.6 * u[0] * DT
