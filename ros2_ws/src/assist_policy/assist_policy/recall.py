@@ -78,7 +78,6 @@ class RecallConfig:
     min_pixels: int = 6               # smaller raised regions are noise
     min_spread_m: float = 0.03        # a top thinner than this (std across) is a vertical face, not a pad
     merge_radius_m: float = 1.2       # a sighting this close to a mapped pad is that pad (pads <= 1.6 m)
-    part_size_m: float = 0.0          # a pad cut by the image border is taken to be at least this long across (0: off)
     min_view_m: float = 0.5           # the map is not updated with the camera nearer than this to the floor
     camera_offset_m: float = SafetyConfig.camera_offset_m    # optical centre below base_link (as the guard's)
     vertical_fov_deg: float = SafetyConfig.vertical_fov_deg  # depth camera vertical field of view (square pixels)
@@ -88,7 +87,7 @@ class RecallConfig:
         """Reject settings that would map nothing or steer everywhere (ValueError, one line)."""
         for name in ('radius_m', 'gain_xy', 'low_height_m', 'clear_height_m', 'clear_radius_m', 'climb_mps',
                      'leave_speed_mps', 'touchdown_height_m', 'min_top_m', 'max_top_m',
-                     'top_band_m', 'min_spread_m', 'merge_radius_m', 'part_size_m', 'min_view_m', 'camera_offset_m',
+                     'top_band_m', 'min_spread_m', 'merge_radius_m', 'min_view_m', 'camera_offset_m',
                      'vertical_fov_deg'):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
@@ -138,35 +137,6 @@ class PadMap:
         cam = np.asarray(position, dtype=float).reshape(3) + r_wb @ np.array([0.0, 0.0, -c.camera_offset_m])
         return optical @ r_wo.T + cam
 
-    def _border_normals(self, quaternion: np.ndarray | None) -> dict[str, np.ndarray | None]:
-        """Outward horizontal odom direction of each image border (left, right, top, bottom); None if vertical."""
-        r_wo = (np.eye(3) if quaternion is None else quat_to_matrix(quaternion)) @ R_BODY_FROM_OPTICAL
-        out: dict[str, np.ndarray | None] = {}
-        for name, axis, sign in (('left', 0, -1.0), ('right', 0, 1.0), ('top', 1, -1.0), ('bottom', 1, 1.0)):
-            v = sign * r_wo[:2, axis]
-            n = float(np.hypot(v[0], v[1]))
-            out[name] = v / n if n > 1e-3 else None
-        return out
-
-    def _part_centre(self, xy: np.ndarray, surface: np.ndarray, cut: dict[str, bool],
-                     normals: dict[str, np.ndarray | None]) -> np.ndarray:
-        """Centre of a pad cut by the image border: across each cut, at least part_size_m / 2 beyond its inner edge.
-
-        The visible part's centre lies toward the image centre by half of what the border hides; pads are
-        0.8-1.6 m, so without its far edge its centre is placed part_size_m / 2 from the edge that is seen
-        (or in the middle of what is seen, if more is seen). Cut on both opposite sides: left as seen.
-        """
-        xy = xy.copy()
-        for side, opposite in (('left', 'right'), ('right', 'left'), ('top', 'bottom'), ('bottom', 'top')):
-            n = normals[side]
-            if not cut[side] or cut[opposite] or n is None:
-                continue
-            proj = surface[:, :2] @ n
-            inner, outer = float(np.percentile(proj, 2)), float(np.percentile(proj, 98))
-            centre = inner + max(outer - inner, self.cfg.part_size_m) / 2.0
-            xy += n * (centre - float(xy @ n))
-        return xy
-
     def update(self, depth: np.ndarray, position: np.ndarray, quaternion: np.ndarray | None = None) -> int:
         """Add this frame's pad sightings to the map; returns how many regions were seen."""
         c = self.cfg
@@ -181,7 +151,6 @@ class PadMap:
         raised = (np.isfinite(zw) & (zw > c.min_top_m)).astype(np.uint8)
         n, labels, stats, _ = cv2.connectedComponentsWithStats(raised, connectivity=4)
         h, w = raised.shape
-        normals = self._border_normals(quaternion) if c.part_size_m > 0 else {}
         seen = 0
         for k in range(1, n):
             x0, y0, ww, hh, area = (int(v) for v in stats[k])
@@ -195,10 +164,7 @@ class PadMap:
             if len(surface) < c.min_pixels or _thinnest_spread(surface[:, :2]) < c.min_spread_m:
                 continue                         # no level top (a wall face seen edge-on, a side face)
             xyz = np.array([float(np.median(surface[:, 0])), float(np.median(surface[:, 1])), top])
-            cut = {'left': x0 == 0, 'top': y0 == 0, 'right': x0 + ww >= w, 'bottom': y0 + hh >= h}
-            whole = not any(cut.values())
-            if not whole and c.part_size_m > 0:
-                xyz[:2] = self._part_centre(xyz[:2], surface, cut, normals)
+            whole = x0 > 0 and y0 > 0 and x0 + ww < w and y0 + hh < h
             self._add(xyz, whole, area)
             seen += 1
         return seen

@@ -198,23 +198,6 @@ def test_low_over_a_pad_seen_whole_a_descent_is_centred_on_it(world):
     assert part.apply(u, np.zeros(3), actor, _frame(world, near_part), near_part, None, MAX_SPEED) is None
 
 
-def test_a_pad_cut_by_the_image_border_is_placed_beyond_the_part_in_view(world):
-    """part_size_m: across a border cut, the centre is at least part_size_m / 2 past the edge seen."""
-    for pos in ([5.9, 0.5, 2.0], [4.1, 0.5, 2.0], [5.0, 1.3, 2.0], [5.7, -0.2, 1.9]):
-        errors = []
-        for size in (0.0, 1.2):
-            m = PadMap(RecallConfig(part_size_m=size))
-            m.update(_frame(world, pos), np.array(pos))
-            assert len(m.pads) == 1 and not m.pads[0].whole
-            errors.append(float(np.linalg.norm(m.pads[0].xyz[:2] - TOPS[0, :2])))
-        assert errors[0] > 0.3 and errors[1] < 0.25 and errors[1] < errors[0] - 0.15, (pos, errors)
-    # seen whole: unchanged by the setting
-    whole = [PadMap(RecallConfig(part_size_m=s)) for s in (0.0, 1.2)]
-    for m in whole:
-        m.update(_frame(world, [5.0, 0.5, 3.5]), np.array([5.0, 0.5, 3.5]))
-    assert whole[0].pads[0].whole and np.array_equal(whole[0].pads[0].xyz, whole[1].pads[0].xyz)
-
-
 def test_heading_rotates_the_steering_into_base_link(world):
     r = _mapped(world, [5.0, 0.5, 3.5])
     pos = np.array([6.6, 0.5, 2.5])
