@@ -54,10 +54,13 @@ class DamperConfig:
     cross_radius_m: float = 0.5     # damped only if the last swing passed this close to a mapped pad's centre
     near_m: float = 1.5             # ... and the vehicle is still this close to that pad (horizontal m)
     leave_s: float = 1.5            # getting farther from that pad for this long: leaving it, let go
+    leave_gain_m: float = 0.3       # ... by at least this much over leave_s
+    leave_jitter_m: float = 0.01    # ... never nearer by more than this in one step (turbulence, not a turn)
 
     def __post_init__(self) -> None:
         """Reject settings that would never engage or engage on no input (ValueError, one line)."""
-        for name in ('gain', 'speed_mps', 'mean_s', 'gap_s', 'window_s', 'cross_radius_m', 'near_m', 'leave_s'):
+        for name in ('gain', 'speed_mps', 'mean_s', 'gap_s', 'window_s', 'cross_radius_m', 'near_m', 'leave_s',
+                     'leave_gain_m', 'leave_jitter_m'):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f'DamperConfig.{name} must be a finite number >= 0, got {v!r}')
@@ -135,11 +138,12 @@ class OscillationDamper:
         return any(not self._leaving(pad) for pad in pads[(seg < c.cross_radius_m) & (here < c.near_m)])
 
     def _leaving(self, pad: np.ndarray) -> bool:
-        """Whether the vehicle got farther from `pad` over the last leave_s (by 0.3 m, never 1 cm nearer a step)."""
-        if not self._p or self._p[-1][0] - self._p[0][0] < self.cfg.leave_s - 1e-6:
+        """Whether the vehicle got farther from `pad` over leave_s (by leave_gain_m, no step leave_jitter_m nearer)."""
+        c = self.cfg
+        if not self._p or self._p[-1][0] - self._p[0][0] < c.leave_s - 1e-6:
             return False
         d = np.linalg.norm(np.array([xy for _, xy in self._p]) - pad, axis=1)
-        return bool(d[-1] - d[0] > 0.3 and np.all(np.diff(d) > -0.01))
+        return bool(d[-1] - d[0] > c.leave_gain_m and np.all(np.diff(d) > -c.leave_jitter_m))
 
     def apply(self, t: float, u: np.ndarray, agent: np.ndarray, velocity: np.ndarray, position: np.ndarray,
               pads: np.ndarray, max_speed: np.ndarray | tuple[float, float, float]) -> np.ndarray | None:
