@@ -224,8 +224,12 @@ class LandingAssistEnv(gym.Env):
                 a, damped = a_d, True
         overridden = False
         if self.override is not None and not self.unassisted:
-            a_o = self.override.apply(t, self._u, self.builder.history.means(t)[0],
-                                      float(self.world.state.position[2]), self.cfg.max_speed)
+            st = self.world.state
+            over_floor, height = ((None, None) if self.guard is None
+                                  else self.guard.surface_below(self._camera_frame().depth, float(st.position[2])))
+            a_o = self.override.apply(t, self._u, self.builder.history.means(t)[0], float(st.position[2]),
+                                      self.cfg.max_speed, quat_to_matrix(st.quaternion).T @ st.velocity,
+                                      over_floor, height)
             if a_o is not None:
                 a, overridden = a_o, True
         recalled = False

@@ -113,7 +113,8 @@ HELP = {
     'end_to_end_model': 'actor file (default: models/td3_end_to_end_actor.pt)',
     'encoder_path': 'CM-VAE weights for the latent condition (default: the shipped model)',
     'pilot': 'simulated pilot: paper (the reference), a family of assist_sim.pilots, mix (a held-out family '
-             'per landing) or train_mix (a training family per landing)',
+             'per landing), approach_mix (glide or low_flyer per landing) or train_mix (a training family per '
+             'landing)',
     'safety': 'apply the floor guard (assist_policy.safety) to every assisted condition',
     'override': 'apply the pilot override (assist_policy.override) to the learned assistants (latent, oracle, '
                 'end_to_end)',

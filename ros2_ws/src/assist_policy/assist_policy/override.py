@@ -25,8 +25,23 @@ held the opposite way; passing those through keeps it oscillating around the pad
 departure, and the actor keeps helping. A pilot leaving the wrong pad has descended over it for seconds
 first, so its held key reverses nothing.
 
-It uses only what the actor observes (u and its window mean), odometry altitude and time. Pure numpy;
-no rclpy.
+Persistent push (``persist_s`` > 0, 2 s by default): the same yield also engages, descending or not, when
+for the last ``persist_s`` the pilot's horizontal command has pointed one way (no sample against its
+mean, no held key the other way within ``reversal_s``), its mean is at least ``persist_speed_mps`` (0.6;
+``persist_floor_speed_mps``, 0.4, when the depth image shows bare floor under every leg: no pad there to
+hold the pilot on), and the vehicle made less than ``held_back_fraction`` (half) of that speed along it:
+the assistant has been holding the vehicle back against a pilot who keeps asking to go somewhere. Why
+(found with pilots written outside the project, not its families): every family descends only once it
+believes it is over its aim, so the actor learned "a descent means this pad" and "a descent over bare
+floor means the pad is behind". A pilot who descends along a glide path toward a farther pad, or gets
+low first and flies on over the nearer pads (ordinary for people), was held over the first pad it
+crossed, pushed back from the start, and the paper's conformance then dragged its own aim onto that pad:
+20 % and 47 % goal-pad success, worse than unassisted. What it leaves alone: fine positioning (keyboard
+taps near the aim: <= 0.5 m/s per axis, and they reverse), an overshoot (the bang-bang family holds its
+key past the aim for <= 0.9 s, then reverses), and a pilot the assistant is not holding back.
+
+It uses only what the actor observes (u and its window mean), odometry altitude and velocity, the depth
+image's floor test (assist_policy.safety) and time. Pure numpy; no rclpy.
 """
 from __future__ import annotations
 
@@ -50,13 +65,23 @@ class OverrideConfig:
     climb_mps: float = 0.3          # vertical V while yielding low (the pilot's own climb if faster)
     climb_below_m: float = 2.0      # altitude over the floor below which the yield adds the climb (pads <= 1.2 m)
     reversal_s: float = 3.0         # a held key reversing one held within this many seconds does not engage it
+    # persistent push (module docstring): a command held against the assistant for persist_s (0 = off)
+    persist_s: float = 2.0
+    persist_speed_mps: float = 0.6          # its mean along one axis over a pad (fine positioning: <= 0.5 per axis)
+    persist_floor_speed_mps: float = 0.4    # ... over bare floor under every leg (no pad to hold the pilot on)
+    held_back_fraction: float = 0.5        # held back: the vehicle made less than this share of the push's speed
+    persist_min_height_m: float = 1.0      # not lower than this over the surface below (the last metre: landing)
 
     def __post_init__(self) -> None:
         """Reject settings that would make the rule engage on no input or descend (ValueError, one line)."""
-        for name in ('speed_mps', 'climb_mps', 'climb_below_m', 'reversal_s'):
+        for name in ('speed_mps', 'climb_mps', 'climb_below_m', 'reversal_s', 'persist_s', 'persist_speed_mps',
+                     'persist_floor_speed_mps', 'held_back_fraction', 'persist_min_height_m'):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f'OverrideConfig.{name} must be a finite number >= 0, got {v!r}')
+        if self.persist_s > 0 and min(self.persist_speed_mps, self.persist_floor_speed_mps) <= 0:
+            raise ValueError('OverrideConfig.persist_speed_mps and persist_floor_speed_mps must be > 0 '
+                             'while persist_s > 0 (else a pilot pressing nothing would engage it)')
 
 
 def yield_action(cfg: OverrideConfig, u: np.ndarray, altitude_m: float,
@@ -70,20 +95,58 @@ def yield_action(cfg: OverrideConfig, u: np.ndarray, altitude_m: float,
 
 
 class PilotOverride:
-    """The rule with its memory of recent held keys (for reversals); ``reset`` at each new landing."""
+    """The rule with its memory of recent held keys (for reversals) and commands (for a persistent push).
+
+    ``reset`` at each new landing. ``mode`` says which test engaged on the last ``apply``: 'held_key',
+    'persistent' or None.
+    """
 
     def __init__(self, cfg: OverrideConfig | None = None):
         self.cfg = cfg or OverrideConfig()
         self._held: deque[tuple[float, float, float]] = deque()    # (time, window-mean x, y) of recent held keys
+        self._recent: deque[tuple[float, float, float, float, float]] = deque()   # (time, u_x, u_y, v_x, v_y)
+        self.mode: str | None = None
 
     def reset(self) -> None:
-        """Forget the held keys seen (new landing)."""
+        """Forget the held keys and commands seen (new landing)."""
         self._held.clear()
+        self._recent.clear()
+        self.mode = None
+
+    def persistent_push(self, over_floor: bool | None = None, height_m: float = math.inf) -> bool:
+        """Whether the pilot has pushed one way for persist_s, held back by the assistant (module docstring).
+
+        `height_m`: the vehicle's height over the surface below (pad top or floor); lower than
+        persist_min_height_m it is landing, and a push there is positioning.
+        """
+        c = self.cfg
+        r = self._recent
+        if (c.persist_s <= 0 or len(r) < 2 or r[-1][0] - r[0][0] < c.persist_s - 1e-6
+                or not height_m >= c.persist_min_height_m):
+            return False
+        arr = np.array(r)[:, 1:]
+        m = arr[:, :2].mean(axis=0)
+        speed = float(np.hypot(m[0], m[1]))
+        # per axis: keyboard fine positioning taps each axis at <= 0.5 m/s mean (<= 0.71 on a diagonal)
+        if float(np.abs(m).max()) < (c.persist_floor_speed_mps if over_floor is True else c.persist_speed_mps):
+            return False
+        d = m / speed
+        if float((arr[:, :2] @ d).min()) < 0.0 or any(hx * d[0] + hy * d[1] < 0.0 for _, hx, hy in self._held):
+            return False              # pushed the other way lately: correcting an overshoot, not going somewhere
+        return float(arr[:, 2:].mean(axis=0) @ d) < c.held_back_fraction * speed
 
     def apply(self, now: float, u: np.ndarray, mean_u: np.ndarray, altitude_m: float,
-              max_speed: np.ndarray | tuple[float, float, float]) -> np.ndarray | None:
-        """The agent action (m/s) replacing the actor's at time `now`, or None (the rule does not act)."""
+              max_speed: np.ndarray | tuple[float, float, float], velocity: np.ndarray | None = None,
+              over_floor: bool | None = None, height_m: float | None = None) -> np.ndarray | None:
+        """The agent action (m/s) replacing the actor's at time `now`, or None (the rule does not act).
+
+        `velocity`: the vehicle's (base_link, m/s; None: the persistent-push test is off this step);
+        `over_floor`: whether the depth image shows bare floor under every leg (None: unknown);
+        `height_m`: its height over the surface below from the depth image (None: unknown, the altitude
+        over the floor stands in for it).
+        """
         c = self.cfg
+        self.mode = None
         u = np.asarray(u, dtype=float).reshape(3)
         m = np.asarray(mean_u, dtype=float).reshape(3)
         if not (np.all(np.isfinite(u)) and np.all(np.isfinite(m)) and math.isfinite(float(altitude_m))
@@ -91,13 +154,29 @@ class PilotOverride:
             return None               # nothing to judge by: the actor's action stands (the guard still acts)
         if self._held and self._held[-1][0] > now:
             self._held.clear()        # the clock went back (a new run, a replayed bag): old keys do not count
+        if self._recent and self._recent[-1][0] > now:
+            self._recent.clear()
         while self._held and self._held[0][0] < now - c.reversal_s:
             self._held.popleft()
-        if not holds_key(m, c.speed_mps):
+        v = None if velocity is None else np.asarray(velocity, dtype=float).reshape(-1)
+        if v is None or v.size < 2 or not np.all(np.isfinite(v[:2])):
+            self._recent.clear()      # a gap in what it judges by: the push is timed afresh
+        else:
+            self._recent.append((float(now), float(u[0]), float(u[1]), float(v[0]), float(v[1])))
+            while self._recent and self._recent[0][0] < now - c.persist_s - 1e-6:
+                self._recent.popleft()
+        held = holds_key(m, c.speed_mps)
+        if held:
+            mx, my = float(m[0]), float(m[1])
+            reverses = any(mx * hx + my * hy < 0.0 for _, hx, hy in self._held)
+            self._held.append((float(now), mx, my))
+            if not c.enabled or reverses:
+                return None
+            if u[2] >= 0.0:
+                self.mode = 'held_key'
+                return yield_action(c, u, altitude_m, max_speed)
+        height = float(altitude_m) if height_m is None or not math.isfinite(float(height_m)) else float(height_m)
+        if not c.enabled or not self.persistent_push(over_floor, height):
             return None
-        mx, my = float(m[0]), float(m[1])
-        reverses = any(mx * hx + my * hy < 0.0 for _, hx, hy in self._held)
-        self._held.append((float(now), mx, my))
-        if not c.enabled or reverses or u[2] < 0.0:
-            return None
+        self.mode = 'persistent'
         return yield_action(c, u, altitude_m, max_speed)

@@ -157,6 +157,7 @@ class PolicyCore:
         self.guard_engaged = 0                      # steps whose descent the floor guard replaced
         self.override = PilotOverride(self.cfg.override or OverrideConfig())
         self.override_engaged = 0                   # steps whose actor action the pilot override replaced
+        self.persist_engaged = 0                    # ... of which for a persistent push (override.mode 'persistent')
         self.recall = PadRecall(self.cfg.recall or RecallConfig(), self.guard)
         self.recall_engaged = 0                     # steps whose horizontal action the pad recall replaced
         self.touchdown_engaged = 0                  # ... of which centring on the pad below (recall.mode 'touchdown')
@@ -369,12 +370,18 @@ class PolicyCore:
             a = a_d
         depth = self._mapped(now, pos)
         mean_u = self.builder.history.means(now)[0]
-        a_o = self.override.apply(now, u, mean_u, float(pos[2]), self.max_speed)
+        over_floor, height = ((None, None) if self._depth is None
+                              or not self._fresh(self._depth[0], now, c.feature_timeout_s)
+                              else self.guard.surface_below(self._depth[1], float(pos[2])))
+        a_o = self.override.apply(now, u, mean_u, float(pos[2]), self.max_speed, vel, over_floor, height)
         if a_o is not None:
             self.override_engaged += 1
+            persistent = self.override.mode == 'persistent'
+            self.persist_engaged += int(persistent)
             v = self._clamp(blend(u, a_o, c.blend_threshold))
             self.builder.record(now, u, a_o)            # the action applied, as evaluate's env records it
-            return PolicyOutput(a_o, v, 'pilot override: the pilot\'s held correction passes', 'pilot_override')
+            return PolicyOutput(a_o, v, 'pilot override: the pilot\'s persistent push passes' if persistent
+                                else 'pilot override: the pilot\'s held correction passes', 'pilot_override')
         a_r = None if depth is None else self.recall.apply(u, mean_u, a, depth, pos, self._attitude, self.max_speed)
         if a_r is not None:
             self.recall_engaged += 1

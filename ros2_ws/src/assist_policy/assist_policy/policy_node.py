@@ -7,7 +7,8 @@ oscillation_damper* parameters; every other parameter is read-only. The floor gu
 (assist_policy.safety) and the pad recall (assist_policy.recall, which maps pads with the /odom pose and
 orientation) read /camera/depth/image_raw in every mode; /diagnostics shows floor_guard (on/off) and
 floor_guard_engaged (steps it replaced a descent), pilot_override (on/off) and pilot_override_engaged
-(steps the pilot override, assist_policy.override, replaced the actor's action), pad_recall (on/off),
+(steps the pilot override, assist_policy.override, replaced the actor's action) and
+pilot_override_persistent_engaged (of those, steps for a persistent push), pad_recall (on/off),
 pad_recall_engaged (steps it steered to a mapped pad), pad_recall_touchdown (of those, steps it centred
 on the pad below for touchdown), pad_recall_pads (pads in its map), oscillation_damper (on/off) and
 oscillation_damper_engaged (steps the oscillation damper, assist_policy.damper, replaced the actor's
@@ -97,6 +98,15 @@ PARAMS = {
     'pilot_override_reversal_s': Param(OverrideConfig.reversal_s, 'A held key reversing one held within this many '
                                        'seconds is an overshoot being corrected: the pilot override stays out (s).',
                                        min=0.0, max=60.0, dynamic=True),
+    'pilot_override_persist_s': Param(OverrideConfig.persist_s, 'Persistent push: a horizontal command held one way '
+                                      'this long (s) while the assistant held the vehicle back passes as a held key '
+                                      'does, descending or not; 0 = off.', min=0.0, max=60.0, dynamic=True),
+    'pilot_override_persist_speed_mps': Param(OverrideConfig.persist_speed_mps, 'Mean horizontal pilot speed over '
+                                              'pilot_override_persist_s (m/s) that counts as a persistent push over '
+                                              'a pad (above fine positioning).', min=0.01, max=10.0, dynamic=True),
+    'pilot_override_persist_floor_speed_mps': Param(OverrideConfig.persist_floor_speed_mps, 'The same over bare '
+                                                    'floor under every leg in the depth image (m/s).', min=0.01,
+                                                    max=10.0, dynamic=True),
     'pad_recall': Param(True, 'Pad recall (assist_policy.recall, not learned): pads seen in the depth image are '
                               'mapped; when the pilot descends (or is low) over bare floor, the actor\'s horizontal '
                               'action is replaced by a push back to the nearest mapped pad.', dynamic=True),
@@ -130,7 +140,9 @@ def damper_fields(params: dict) -> dict:
 # node parameter -> OverrideConfig field
 OVERRIDE_FIELDS = {'pilot_override': 'enabled', 'pilot_override_speed_mps': 'speed_mps',
                    'pilot_override_climb_mps': 'climb_mps', 'pilot_override_climb_below_m': 'climb_below_m',
-                   'pilot_override_reversal_s': 'reversal_s'}
+                   'pilot_override_reversal_s': 'reversal_s', 'pilot_override_persist_s': 'persist_s',
+                   'pilot_override_persist_speed_mps': 'persist_speed_mps',
+                   'pilot_override_persist_floor_speed_mps': 'persist_floor_speed_mps'}
 
 
 def override_fields(params: dict) -> dict:
@@ -382,6 +394,7 @@ class PolicyNode(Node):
         self.diag.set('rejected_actor_outputs', self.core.rejected)
         self.diag.set('floor_guard_engaged', self.core.guard_engaged)
         self.diag.set('pilot_override_engaged', self.core.override_engaged)
+        self.diag.set('pilot_override_persistent_engaged', self.core.persist_engaged)
         self.diag.set('pad_recall_engaged', self.core.recall_engaged)
         self.diag.set('pad_recall_touchdown', self.core.touchdown_engaged)
         self.diag.set('pad_recall_pads', len(self.core.recall.map.pads))

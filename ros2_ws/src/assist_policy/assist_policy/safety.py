@@ -135,6 +135,12 @@ class FloorGuard:
         """True when every leg's floor point shows the floor, False when any shows something nearer."""
         return self._floor_from(self._leg_depths(depth, altitude_m), altitude_m)
 
+    def surface_below(self, depth: np.ndarray, altitude_m: float) -> tuple[bool | None, float | None]:
+        """(floor_below, base_link's height over the nearest surface under a leg in m; None where unknown)."""
+        legs = self._leg_depths(depth, altitude_m)
+        seen = [d for d in legs if d is not None]
+        return self._floor_from(legs, altitude_m), (min(seen) + self.cfg.camera_offset_m if seen else None)
+
     def _floor_from(self, legs: list[float | None], altitude_m: float) -> bool | None:
         """floor_below from the leg depths `legs` (_leg_depths)."""
         if not legs or any(d is None for d in legs):

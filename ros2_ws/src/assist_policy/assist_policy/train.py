@@ -192,7 +192,8 @@ def check_training_pilot(name: str) -> None:
     """ValueError unless `name` is a pilot training may use (never a held-out family or the held-out mix)."""
     if name not in TRAIN_FAMILIES + ('train_mix',):
         raise ValueError(f'pilot {name!r} is not for training: use one of {", ".join(TRAIN_FAMILIES)} or '
-                         f'train_mix (held out for evaluation only: {", ".join(HELDOUT_FAMILIES)}, mix)')
+                         f'train_mix (held out for evaluation only: {", ".join(HELDOUT_FAMILIES)}, mix, '
+                         'approach_mix)')
 
 
 def env_config_from(args: TrainArgs) -> EnvConfig:

@@ -1,11 +1,13 @@
 """Pilot override (assist_policy.override): the rule, and where it acts (env, evaluate, policy core)."""
 import csv
+import functools
 import importlib.util
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+import assist_policy.evaluate as evaluate_module
 from assist_policy.blending import blend
 from assist_policy.env import EnvConfig, LandingAssistEnv
 from assist_policy.evaluate import EvalArgs, evaluate
@@ -129,3 +131,113 @@ def test_train_td3_flies_with_the_override_only_when_asked():
     assert env_config_from(TrainArgs(pilot='train_mix')).override is None
     cfg = env_config_from(TrainArgs(pilot='train_mix', override=True))
     assert cfg.override == OverrideConfig()
+
+
+def push(ov, t0, seconds, u, v, altitude=3.0, over_floor=None, dt=0.05):
+    """Feed `seconds` of the pilot command `u` while the vehicle moves at `v`; the decisions."""
+    u, v = np.asarray(u, float), np.asarray(v, float)
+    return [ov.apply(t0 + k * dt, u, u, altitude, MS, v, over_floor) for k in range(int(round(seconds / dt)) + 1)]
+
+
+def test_a_persistent_push_held_back_passes_even_while_descending():
+    ov = PilotOverride()
+    glide = [0.7, 0.0, -0.3]                              # an analog stick: 0.7 m/s on, descending, held still
+    out = push(ov, 10.0, 2.5, glide, [0.0, 0.0, -0.3])
+    assert all(a is None for a in out[:40])               # under 2 s: the actor's action stands
+    assert all(a is not None for a in out[41:]) and ov.mode == 'persistent'
+    np.testing.assert_allclose(out[-1], np.zeros(3))      # 3 m up: relinquish, V = u
+    low = push(PilotOverride(), 10.0, 2.0, glide, [0.0, 0.0, 0.0], altitude=1.2)[-1]
+    np.testing.assert_allclose(low, [0.7, 0.0, 0.6])     # low: the held key's yield (a_z 0.9 clipped to 0.6)
+    np.testing.assert_allclose(blend(np.array(glide), low, THR), [0.7, 0.0, 0.15])   # passes, rising
+    # a held key while descending is no departure (bang-bang overshoot) until it has lasted persist_s
+    assert PilotOverride().apply(1.0, np.array([1.0, 0, -0.5]), np.array([1.0, 0, -0.5]), 1.0, MS,
+                                 np.zeros(3)) is None
+
+
+def test_a_push_is_not_persistent_when_the_vehicle_goes_along_it_is_slow_or_it_reverses():
+    assert push(PilotOverride(), 0.0, 3.0, [0.7, 0, -0.3], [0.4, 0, -0.3])[-1] is None   # moving at > half of it
+    assert push(PilotOverride(), 0.0, 3.0, [0.55, 0, -0.3], [0.0, 0, 0])[-1] is None     # fine positioning speed
+    ov = PilotOverride()                                   # taps around the aim: samples against the mean
+    for k in range(61):
+        u = np.array([1.0 if k % 8 < 6 else -0.3, 0.0, -0.3])
+        a = ov.apply(k * 0.05, u, u, 3.0, MS, np.zeros(3))
+    assert a is None and ov.mode is None
+    ov = PilotOverride()                                   # a held key the other way 2 s before: an overshoot
+    push(ov, 0.0, 0.5, [-1.0, 0, 0], [-1.0, 0, 0])
+    assert push(ov, 0.55, 2.5, [0.8, 0, -0.3], [0.0, 0, 0])[-1] is None
+    assert push(ov, 3.1, 0.5, [0.8, 0, -0.3], [0.0, 0, 0])[-1] is not None   # the old key is > 3 s away
+    assert push(PilotOverride(OverrideConfig(persist_s=0.0)), 0.0, 3.0, [1.0, 0, -0.3], [0, 0, 0])[-1] is None
+    assert push(PilotOverride(OverrideConfig(enabled=False)), 0.0, 3.0, [1.0, 0, -0.3], [0, 0, 0])[-1] is None
+    ov = PilotOverride()                                   # no velocity for a step: the push is timed afresh
+    push(ov, 0.0, 1.5, [0.7, 0, -0.3], [0, 0, 0])
+    assert ov.apply(1.55, np.array([0.7, 0, -0.3]), np.array([0.7, 0, -0.3]), 3.0, MS, None) is None
+    assert push(ov, 1.6, 1.5, [0.7, 0, -0.3], [0, 0, 0])[-1] is None
+    with pytest.raises(ValueError, match='persist_speed_mps'):
+        OverrideConfig(persist_floor_speed_mps=0.0)
+
+
+def test_no_persistent_push_in_the_last_metre_over_what_is_below():
+    glide = [0.8, 0.0, -0.3]
+    assert push(PilotOverride(), 0.0, 3.0, glide, [0, 0, -0.3], altitude=0.9)[-1] is None        # 0.9 m up
+    ov = PilotOverride()
+    out = [ov.apply(k * 0.05, np.array(glide), np.array(glide), 2.5, MS, np.zeros(3), False, 0.7)
+           for k in range(61)]
+    assert out[-1] is None                                 # 2.5 m up, but 0.7 m over a pad top: positioning
+    out = [ov.apply(3.05 + k * 0.05, np.array(glide), np.array(glide), 2.5, MS, np.zeros(3), False, 1.4)
+           for k in range(41)]
+    assert out[-1] is not None and ov.mode == 'persistent'   # 1.4 m over it
+    assert ov.apply(5.2, np.array(glide), np.array(glide), 1.4, MS, np.zeros(3), False, float('nan')) is not None
+
+
+def test_over_bare_floor_a_slower_push_passes():
+    taps = [0.45, 0.0, -0.5]                               # a novice's tapped transit while getting lower
+    assert push(PilotOverride(), 0.0, 2.5, taps, [-0.1, 0, -0.5], over_floor=True)[-1] is not None
+    assert push(PilotOverride(), 0.0, 2.5, taps, [-0.1, 0, -0.5], over_floor=False)[-1] is None   # over a pad
+    assert push(PilotOverride(), 0.0, 2.5, taps, [-0.1, 0, -0.5], over_floor=None)[-1] is None    # unknown
+
+
+def test_policy_core_passes_a_persistent_push_and_says_so(tmp_path):
+    path = _helpers.constant_actor(tmp_path / 'back.pt', [-0.9, 0.0, 0.0])   # an actor holding the pilot back
+    core = PolicyCore(path, PolicyCoreConfig(mode='latent'))
+    outs = []
+    for k in range(60):                                    # 3 s of a 0.7 m/s push while descending, 3 m up
+        t = 1.0 + 0.05 * k
+        core.set_odom(t, [0, 0, 3.0], [0, 0, -0.3])
+        core.set_pilot(t, [0.7, 0.0, -0.3])
+        core.set_latent(t, np.zeros(_helpers.LATENT))
+        outs.append(core.step(t))
+    assert all(o.key == 'assisting' for o in outs[:40])
+    assert outs[-1].key == 'pilot_override' and 'persistent push' in outs[-1].reason
+    np.testing.assert_allclose(outs[-1].velocity, [0.7, 0.0, -0.3])   # relinquished up there: V = u
+    assert core.persist_engaged == core.override_engaged == sum(o.key == 'pilot_override' for o in outs) >= 15
+
+
+@pytest.mark.parametrize('surface, engages', [('floor', True), ('pad', False)])
+def test_policy_core_reads_bare_floor_from_the_depth_image(tmp_path, surface, engages):
+    from assist_policy.safety import SafetyConfig
+    path = _helpers.constant_actor(tmp_path / 'back.pt', [-0.9, 0.0, 0.0])
+    core = PolicyCore(path, PolicyCoreConfig(mode='latent'))
+    depth = np.full((64, 64), 3.0 - SafetyConfig().camera_offset_m - (0.0 if surface == 'floor' else 1.0))
+    for k in range(60):                                    # 3 s of a 0.45 m/s push (novice taps), 3 m up
+        t = 1.0 + 0.05 * k
+        core.set_odom(t, [0, 0, 3.0], [0, 0, -0.3])
+        core.set_pilot(t, [0.45, 0.0, -0.3])
+        core.set_latent(t, np.zeros(_helpers.LATENT))
+        core.set_depth(t, depth)
+        out = core.step(t)
+    assert (out.key == 'pilot_override') is engages and (core.persist_engaged > 0) is engages
+
+
+def test_evaluate_a_glide_pilot_passes_the_nearer_pad_with_the_persistent_push(tmp_path, monkeypatch):
+    """glide beta 1, landing 4007: held over pad 3 and landed there without the push rule; with it, the goal."""
+    runs = {}
+    for persist in (0.0, OverrideConfig.persist_s):
+        monkeypatch.setattr(evaluate_module, 'OverrideConfig', functools.partial(OverrideConfig, persist_s=persist))
+        out = tmp_path / f'ev{persist}'
+        evaluate(EvalArgs(out=str(out), conditions=('latent',), betas=(1.0,), landings=1, seed=4007, pilot='glide',
+                          safety=True, override=True, recall=True, damper=True, plot=False))
+        runs[persist] = list(csv.DictReader(open(out / 'landings.csv')))[0]
+    off, on = runs[0.0], runs[OverrideConfig.persist_s]
+    assert off['outcome'] == 'wrong_pad' and off['landed_index'] == '3' and off['goal_index'] == '4'
+    assert on['outcome'] == 'success' and float(on['error_m']) < 0.15
+    assert float(on['override_fraction']) > float(off['override_fraction'])

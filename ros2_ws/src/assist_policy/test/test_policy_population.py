@@ -67,7 +67,7 @@ def test_env_floor_guard_turns_a_floor_descent_into_a_climb():
 def test_training_refuses_held_out_pilots():
     for name in TRAIN_FAMILIES + ('train_mix',):
         check_training_pilot(name)
-    for name in HELDOUT_FAMILIES + ('mix',):
+    for name in HELDOUT_FAMILIES + ('mix', 'approach_mix'):
         with pytest.raises(ValueError, match='not for training'):
             env_config_from(TrainArgs(pilot=name))
     cfg = env_config_from(TrainArgs(pilot='train_mix', safety=True))

@@ -45,6 +45,15 @@ def test_floor_seen_under_every_leg_only_over_the_floor(depth_at):
     assert g.floor_below(d, 0.9) is True
 
 
+def test_surface_below_gives_the_height_over_the_pad_or_floor_under_the_legs(depth_at):
+    g = FloorGuard()
+    floor, h = g.surface_below(depth_at(0.0, 0.0, 2.5), 2.5)
+    assert floor is True and h == pytest.approx(2.5, abs=0.03)           # over the floor: the altitude
+    floor, h = g.surface_below(depth_at(5.0, 0.0, 2.5), 2.5)
+    assert floor is False and h == pytest.approx(2.5 - 0.6, abs=0.03)    # over the 0.6 m pad: 1.9 m over its top
+    assert g.surface_below(np.full((64, 64), np.nan, np.float32), 2.5) == (None, None)
+
+
 def test_invalid_depth_is_unknown_and_never_blocks(depth_at):
     g = FloorGuard()
     holes = np.full((64, 64), np.nan, dtype=np.float32)

@@ -6,7 +6,8 @@ its parameters are drawn per episode (every ``reset``) from the ranges in its co
 generator spawned off the pilot's own (``Generator.spawn``: the paper model's random stream is left
 untouched, so a family and the paper pilot with the same seed differ only by the family's behaviour;
 every run is deterministic per seed). Keyboard pilots command discrete speeds: every family's
-horizontal command per axis is 0 or +-key speed, the vertical one 0, +up or -down speed.
+horizontal command per axis is 0 or +-key speed, the vertical one 0, +up or -down speed (all but
+``glide``, an analog stick).
 
 Families (``FAMILIES``; the reasoning is in each class's docstring):
 
@@ -24,13 +25,19 @@ Families (``FAMILIES``; the reasoning is in each class's docstring):
 ``ignorer``        alpha ~ U(0, 0.1): barely follows the assistant (fights it back to its own aim)
 ``follower``       alpha ~ U(0.9, 1): follows the assistant almost completely
 ``keyboard``       composite: delay + bang-bang + tapping + late correction + depth bias
+``glide``          analog stick, proportional and trembling, descends along a glide path toward its
+                   aim (over the nearer pads), straight down over it
+``low_flyer``      gets low first, cruises just over the pad tops, descends over its aim
 =================  ===========================================================================
 
 Split (``TRAIN_FAMILIES`` / ``HELDOUT_FAMILIES``): training may use ``paper``, ``delay``, ``tapper``,
-``depth_bias`` and ``follower``; ``bang_bang``, ``late_correction``, ``key_confusion``, ``ignorer``
-and ``keyboard`` are for evaluation only. Population names (``POPULATIONS``): ``mix`` = one held-out
-family drawn uniformly per episode (the held-out evaluation), ``train_mix`` = one training family
-drawn per episode (domain randomisation for training).
+``depth_bias`` and ``follower``; ``bang_bang``, ``late_correction``, ``key_confusion``, ``ignorer``,
+``keyboard``, ``glide`` and ``low_flyer`` are for evaluation only. Population names (``POPULATIONS``):
+``mix`` = one of the first five held-out families (``MIX_FAMILIES``) drawn uniformly per episode (the
+held-out evaluation the issue-12 tables report), ``approach_mix`` = ``glide`` or ``low_flyer``
+(``APPROACH_FAMILIES``: added later, after they broke an assistant that had learned from keyboard
+families that a descent starts over the aim; kept out of ``mix`` so earlier tables stay comparable),
+``train_mix`` = one training family drawn per episode (domain randomisation for training).
 
 ``make_pilot(name, alpha, beta, cfg, rng, pads)`` builds a pilot by name; ``pads`` (the pad top
 centres, known to the env and to sim_pilot_node from /sim/scene) lets ``late_correction`` pick a real
@@ -139,6 +146,40 @@ class AlphaConfig:
 
 
 @dataclass
+class GlideConfig:
+    """Analog-stick pilot that descends along a glide path."""
+
+    # Many people fly a multirotor with an analog stick (gamepad, RC transmitter) and land it the way they
+    # would approach with any vehicle: moving toward the aim and descending at once, the lower the nearer,
+    # then straight down once over it. The stick is deflected in proportion to the offset they see
+    # (saturating), with a small hand tremor, and reacts after a short delay. This breaks the assumption
+    # every keyboard family shares (a descent starts only over the aim): the glide passes over the nearer
+    # pads while descending.
+    gain_per_s: Range = (0.6, 1.5)      # horizontal command per metre of offset (1/s)
+    max_speed_mps: Range = (0.7, 1.2)   # stick saturation
+    slope: Range = (0.3, 0.9)           # glide path: metres of height over the aim per metre of offset
+    final_radius_m: Range = (0.15, 0.35)   # straight down inside this offset
+    tremor_mps: Range = (0.03, 0.2)     # hand tremor (Ornstein-Uhlenbeck, tremor_tau_s correlation)
+    tremor_tau_s: float = 0.3
+    delay_s: Range = (0.1, 0.4)         # reaction delay (visual reaction + video latency)
+    path_gain_per_s: float = 1.0        # vertical command per metre off the glide path (1/s)
+    path_offset_m: float = 0.3          # glide path height over the aim at final_radius_m
+    final_descent_mps: float = 0.4
+
+
+@dataclass
+class LowFlyerConfig:
+    """Keyboard pilot that gets low first, then flies over the pads."""
+
+    # Novices descend early to see the pads better and to feel in control, then fly the rest of the way
+    # low over the pads at a constant height (a little over the tallest pad top they see) and descend the
+    # last bit over their aim as the paper pilot does. Low, the camera sees one pad at a time.
+    cruise_over_top_m: Range = (0.3, 0.9)   # cruise height over the tallest pad top
+    band_m: float = 0.1                     # dead band around the cruise height
+    fallback_top_m: float = 1.2             # tallest pad top when the pads are unknown
+
+
+@dataclass
 class FamilyConfig:
     """All family constants in one place (config is data)."""
 
@@ -149,6 +190,8 @@ class FamilyConfig:
     depth_bias: DepthBiasConfig = field(default_factory=DepthBiasConfig)
     key_confusion: KeyConfusionConfig = field(default_factory=KeyConfusionConfig)
     alpha: AlphaConfig = field(default_factory=AlphaConfig)
+    glide: GlideConfig = field(default_factory=GlideConfig)
+    low_flyer: LowFlyerConfig = field(default_factory=LowFlyerConfig)
 
 
 # --------------------------------------------------------------------------- base with hooks
@@ -518,12 +561,90 @@ class KeyboardPilot(DelayMixin, TapperMixin, LateCorrectionMixin, DepthBiasMixin
     name = 'keyboard'
 
 
+class GlidePilot(FamilyPilot):
+    """Analog stick, glide-path descent (GlideConfig): the paper's goal estimate and perception, another hand.
+
+    Horizontal: gain x perceived offset to its aim, saturated at max_speed, plus tremor. Vertical: down
+    toward the glide path when above it (path_offset + slope x (offset - final_radius) over its aim's
+    height, at most speed_down), holding its height under it (climbing, as the paper pilot, only when
+    lower than clearance_m over its aim), straight down at final_descent_mps inside final_radius. The
+    whole command comes delay_s late. Commands are continuous: this family is not a keyboard.
+    """
+
+    name = 'glide'
+
+    def _draw_params(self) -> None:
+        super()._draw_params()
+        g, r = self.fcfg.glide, self.family_rng
+        self.params.update(gain_per_s=_draw(r, g.gain_per_s), max_speed_mps=_draw(r, g.max_speed_mps),
+                           slope=_draw(r, g.slope), final_radius_m=_draw(r, g.final_radius_m),
+                           tremor_mps=_draw(r, g.tremor_mps), delay_s=_draw(r, g.delay_s))
+        self.delay_steps = max(1, int(round(float(self.params['delay_s']) * self.cfg.control_hz)))
+        self._queue: deque[np.ndarray] = deque()
+        self._tremor = np.zeros(2)
+
+    def command(self, position: np.ndarray) -> np.ndarray:
+        """Stick command (3,) m/s toward the current estimate along the glide path (delayed)."""
+        g, c, prm = self.fcfg.glide, self.cfg, self.params
+        p = np.asarray(position, dtype=float).reshape(3)
+        self._update_perception()
+        d = self.goal_estimate - self._perceived(p)
+        dist = float(np.hypot(d[0], d[1]))
+        v = float(prm['gain_per_s']) * d[:2]
+        speed = float(np.hypot(v[0], v[1]))
+        if speed > float(prm['max_speed_mps']):
+            v *= float(prm['max_speed_mps']) / speed
+        final = float(prm['final_radius_m'])
+        if dist < final:
+            vz = -g.final_descent_mps
+        else:
+            path_z = self.goal_estimate[2] + g.path_offset_m + float(prm['slope']) * (dist - final)
+            vz = float(np.clip(g.path_gain_per_s * (path_z - p[2]), -c.speed_down_mps, 0.0))
+            if p[2] - self.goal_estimate[2] < c.clearance_m:
+                vz = c.speed_up_mps         # under the glide path it holds its height, climbing only when low
+        rho = float(np.exp(-self.dt / g.tremor_tau_s))
+        self._tremor = (rho * self._tremor + np.sqrt(1.0 - rho * rho) * float(prm['tremor_mps'])
+                        * self.family_rng.standard_normal(2))
+        self._queue.append(np.array([*(v + self._tremor), vz]))
+        self._step += 1
+        self.t += self.dt
+        if len(self._queue) > self.delay_steps:
+            return self._queue.popleft()
+        return np.zeros(3)
+
+
+class LowFlyerPilot(FamilyPilot):
+    """Gets low, then flies over the pads (LowFlyerConfig): the paper pilot with a cruise height."""
+
+    name = 'low_flyer'
+
+    def _draw_params(self) -> None:
+        super()._draw_params()
+        lf = self.fcfg.low_flyer
+        top = float(self.pads[:, 2].max()) if self.pads is not None and len(self.pads) else lf.fallback_top_m
+        self.params['cruise_z_m'] = top + _draw(self.family_rng, lf.cruise_over_top_m)
+
+    def _vertical(self, p: np.ndarray, dist: float) -> float:
+        v = super()._vertical(p, dist)
+        if self._descending:
+            return v
+        z, band = float(self.params['cruise_z_m']), self.fcfg.low_flyer.band_m
+        if p[2] > z + band:
+            return -self.cfg.speed_down_mps
+        if p[2] < z - band:
+            return self.cfg.speed_up_mps
+        return 0.0
+
+
 FAMILIES: dict[str, type[FamilyPilot]] = {cls.name: cls for cls in (
     PaperPilot, DelayPilot, BangBangPilot, TapperPilot, LateCorrectionPilot, DepthBiasPilot,
-    KeyConfusionPilot, IgnorerPilot, FollowerPilot, KeyboardPilot)}
+    KeyConfusionPilot, IgnorerPilot, FollowerPilot, KeyboardPilot, GlidePilot, LowFlyerPilot)}
 TRAIN_FAMILIES: tuple[str, ...] = ('paper', 'delay', 'tapper', 'depth_bias', 'follower')
-HELDOUT_FAMILIES: tuple[str, ...] = ('bang_bang', 'late_correction', 'key_confusion', 'ignorer', 'keyboard')
-POPULATIONS: dict[str, tuple[str, ...]] = {'mix': HELDOUT_FAMILIES, 'train_mix': TRAIN_FAMILIES}
+MIX_FAMILIES: tuple[str, ...] = ('bang_bang', 'late_correction', 'key_confusion', 'ignorer', 'keyboard')
+APPROACH_FAMILIES: tuple[str, ...] = ('glide', 'low_flyer')
+HELDOUT_FAMILIES: tuple[str, ...] = MIX_FAMILIES + APPROACH_FAMILIES
+POPULATIONS: dict[str, tuple[str, ...]] = {'mix': MIX_FAMILIES, 'approach_mix': APPROACH_FAMILIES,
+                                           'train_mix': TRAIN_FAMILIES}
 PILOT_NAMES: tuple[str, ...] = tuple(FAMILIES) + tuple(POPULATIONS)
 
 
@@ -539,5 +660,5 @@ def make_pilot(name: str, alpha: float = 0.5, beta: float = 0.5, cfg: PilotConfi
     return FAMILIES[name](alpha, beta, cfg, rng, pads=pads, family_cfg=family_cfg)
 
 
-__all__ = ['FAMILIES', 'TRAIN_FAMILIES', 'HELDOUT_FAMILIES', 'POPULATIONS', 'PILOT_NAMES', 'FamilyConfig',
-           'FamilyPilot', 'make_pilot', 'confuse']
+__all__ = ['FAMILIES', 'TRAIN_FAMILIES', 'MIX_FAMILIES', 'APPROACH_FAMILIES', 'HELDOUT_FAMILIES', 'POPULATIONS',
+           'PILOT_NAMES', 'FamilyConfig', 'FamilyPilot', 'make_pilot', 'confuse']

@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from assist_sim.pilot import PilotConfig, SimulatedPilot
-from assist_sim.pilots import (FAMILIES, HELDOUT_FAMILIES, PILOT_NAMES, POPULATIONS, TRAIN_FAMILIES, confuse,
+from assist_sim.pilots import (APPROACH_FAMILIES, FAMILIES, HELDOUT_FAMILIES, MIX_FAMILIES, PILOT_NAMES, POPULATIONS,
+                               TRAIN_FAMILIES, confuse,
                                make_pilot)
 
 GOAL = np.array([12.0, 0.5, 0.8])
@@ -39,11 +40,14 @@ def test_registry_split_and_populations():
     assert set(TRAIN_FAMILIES).isdisjoint(HELDOUT_FAMILIES)
     assert set(TRAIN_FAMILIES) | set(HELDOUT_FAMILIES) == set(FAMILIES)
     assert 'paper' in TRAIN_FAMILIES
-    assert POPULATIONS['mix'] == HELDOUT_FAMILIES and POPULATIONS['train_mix'] == TRAIN_FAMILIES
+    assert POPULATIONS['mix'] == MIX_FAMILIES and POPULATIONS['train_mix'] == TRAIN_FAMILIES
+    assert POPULATIONS['approach_mix'] == APPROACH_FAMILIES == ('glide', 'low_flyer')
+    assert set(MIX_FAMILIES) | set(APPROACH_FAMILIES) == set(HELDOUT_FAMILIES)
     with pytest.raises(ValueError, match='unknown pilot'):
         make_pilot('nobody')
     seen = {make_pilot('mix', rng=s).name for s in range(60)}
-    assert seen == set(HELDOUT_FAMILIES)
+    assert seen == set(MIX_FAMILIES)                    # the issue-12 mix is unchanged by the later families
+    assert {make_pilot('approach_mix', rng=s).name for s in range(20)} == set(APPROACH_FAMILIES)
 
 
 def test_paper_family_is_the_reference_pilot_bit_for_bit():
@@ -75,7 +79,7 @@ def test_deterministic_per_seed_and_params_drawn_per_episode(name):
         assert draws[0] != draws[1] != draws[2]       # a new episode draws new parameters
 
 
-@pytest.mark.parametrize('name', [n for n in FAMILIES if n != 'key_confusion'])
+@pytest.mark.parametrize('name', [n for n in FAMILIES if n not in ('key_confusion', 'glide')])
 def test_keyboard_commands_are_discrete(name):
     pl = make_pilot(name, 0.5, 0.5, rng=3, pads=PADS)
     pl.reset(GOAL, START)
@@ -249,3 +253,43 @@ def test_keyboard_composite_has_every_component():
         assert key in pl.params
     p, _ = fly(pl)
     assert p[2] <= GOAL[2] + 0.05
+
+
+def test_glide_descends_on_its_way_over_the_nearer_pads_with_a_trembling_stick():
+    cfg = PilotConfig(perception_sigma_m=(0.0, 0.0))
+    pl = make_pilot('glide', 0.5, 1.0, cfg, rng=4, pads=PADS)
+    goal = PADS[2]
+    pl.reset(goal, START, goal_estimate=goal.copy())
+    p, cmds, ps = START.copy(), [], []
+    for _ in range(600):
+        u = pl.act(p)
+        p = p + u * DT
+        cmds.append(u)
+        ps.append(p.copy())
+    cmds, ps = np.array(cmds), np.array(ps)
+    n = pl.delay_steps
+    np.testing.assert_array_equal(cmds[:n], 0.0)              # reacts delay_s late
+    moving_down = (cmds[:, 2] < 0) & (np.hypot(*(goal[:2] - ps[:, :2]).T) > 1.5)
+    assert moving_down.sum() > 20 and np.all(cmds[moving_down, 0] > 0.3)   # descends while still flying on
+    speeds = np.hypot(cmds[n:, 0], cmds[n:, 1])
+    assert speeds.max() <= pl.params['max_speed_mps'] + 4 * pl.params['tremor_mps']
+    assert len(np.unique(cmds[n:, 0].round(6))) > 100          # analog, not keys
+    assert np.hypot(*(ps[-1, :2] - goal[:2])) < 0.4 and ps[-1, 2] < goal[2] + 0.2   # down at its aim
+
+
+def test_low_flyer_cruises_just_over_the_pad_tops_then_descends_over_its_aim():
+    cfg = PilotConfig(perception_sigma_m=(0.0, 0.0))
+    pl = make_pilot('low_flyer', 0.5, 1.0, cfg, rng=2, pads=PADS)
+    goal = PADS[2]
+    pl.reset(goal, START, goal_estimate=goal.copy())
+    z = pl.params['cruise_z_m']
+    assert PADS[:, 2].max() + 0.3 <= z <= PADS[:, 2].max() + 0.9
+    p, ps = START.copy(), []
+    for _ in range(600):
+        p = p + pl.act(p) * DT
+        ps.append(p.copy())
+    ps = np.array(ps)
+    transit = np.hypot(*(goal[:2] - ps[:, :2]).T) > 1.0
+    late = transit & (np.arange(len(ps)) > 120)               # after its first descent to the cruise height
+    assert late.sum() > 20 and np.all(np.abs(ps[late, 2] - z) < 0.15)
+    assert np.hypot(*(ps[-1, :2] - goal[:2])) < 0.3 and ps[-1, 2] < z - 0.3
