@@ -1,6 +1,7 @@
 """policy_node's floor guard in a real graph: depth image in (32FC1 and 16UC1), climb out on /cmd_vel and
 /assist/agent_cmd, counted on /diagnostics, turned off at run time with the floor_guard parameter; and its
-pilot override (a held key passes with a gentle climb; the pilot_override parameter turns it off); and its
+pilot override (a held key passes with a gentle climb; the pilot_override parameter turns it off; a persistent
+push passes while descending, pilot_override_persist_s 0 turns that off); and its
 pad recall (a pad seen, then a descent past it over bare floor is steered back, and low over it centred on
 it; pad_recall turns it off); and its oscillation damper (a pilot swinging back and forth is slowed;
 oscillation_damper turns it off)."""
@@ -94,12 +95,13 @@ class Probe:
         return t0
 
 
-def set_param(node, name, value: bool, wait):
+def set_param(node, name, value: bool | float, wait):
     cli = node.create_client(SetParameters, '/policy_node/set_parameters')
     assert cli.wait_for_service(timeout_sec=20)
     req = SetParameters.Request()
-    req.parameters = [ParameterMsg(name=name, value=ParameterValue(type=ParameterType.PARAMETER_BOOL,
-                                                                   bool_value=value))]
+    pv = (ParameterValue(type=ParameterType.PARAMETER_BOOL, bool_value=value) if isinstance(value, bool)
+          else ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=float(value)))
+    req.parameters = [ParameterMsg(name=name, value=pv)]
     fut = cli.call_async(req)
     assert wait(lambda: fut.done(), 20)
     assert fut.result().results[0].successful
@@ -155,6 +157,31 @@ def test_pilot_override_passes_a_held_key_and_can_be_turned_off(ros, start_node,
     cmds = probe.since(probe.cmd, t2 + 0.5)
     assert cmds and all(np.allclose(v, [0.5, 0, -0.27], atol=1e-5) for v in cmds), cmds[-3:]   # blend(u, a)
     assert wait(lambda: probe.diag and probe.diag[-1].get('pilot_override') == 'off', 5)
+
+
+def test_pilot_override_passes_a_persistent_push_while_descending_and_can_be_turned_off(ros, start_node, wait,
+                                                                                       tmp_path):
+    model = _helpers.constant_actor(tmp_path / 'back.pt', [-0.9, 0.0, 0.0])        # the actor holds the pilot back
+    probe = Probe(ros, pilot=(0.7, 0.0, -0.3))               # an analog stick: on and down along a glide path
+    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0})
+    high = (0.0, 0.0, 3.0)
+    floor = np.full((64, 64), 3.0 - 0.05, np.float32)       # bare floor 3 m below
+    t0 = time.monotonic()
+    while not probe.since(probe.agent, t0) and time.monotonic() - t0 < 40 and node.proc.poll() is None:
+        probe.run(0.2, position=high, depth=floor)
+    assert node.proc.poll() is None, node.log()
+    t1 = probe.run(3.5, position=high, depth=floor)
+    cmds, agents = probe.since(probe.cmd, t1 + 2.6), probe.since(probe.agent, t1 + 2.6)
+    assert cmds and agents, node.log()
+    # 3 m up the yield relinquishes: a' = 0, V = u (the actor alone gave V = (-0.1, 0, -0.15))
+    assert all(np.allclose(v, [0.7, 0, -0.3], atol=1e-5) for v in cmds), cmds[-3:]
+    assert all(np.allclose(a, 0.0, atol=1e-6) for a in agents), agents[-3:]
+    assert wait(lambda: any(int(d.get('pilot_override_persistent_engaged', 0)) > 10 for d in probe.diag), 5), \
+        probe.diag[-1:]
+    set_param(ros, 'pilot_override_persist_s', 0.0, wait)
+    t2 = probe.run(1.5, position=high, depth=floor)
+    cmds = probe.since(probe.cmd, t2 + 0.5)
+    assert cmds and all(np.allclose(v, [-0.1, 0, -0.15], atol=1e-5) for v in cmds), cmds[-3:]   # blend(u, a)
 
 
 def test_pad_recall_steers_a_descent_past_a_pad_back_and_can_be_turned_off(ros, start_node, wait, tmp_path):

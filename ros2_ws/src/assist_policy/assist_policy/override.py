@@ -163,8 +163,8 @@ class PilotOverride:
             self._recent.clear()      # a gap in what it judges by: the push is timed afresh
         else:
             self._recent.append((float(now), float(u[0]), float(u[1]), float(v[0]), float(v[1])))
-            while self._recent and self._recent[0][0] < now - c.persist_s - 1e-6:
-                self._recent.popleft()
+            while len(self._recent) > 1 and self._recent[1][0] <= now - c.persist_s:
+                self._recent.popleft()      # keep one sample at or before the window's start: it spans persist_s
         held = holds_key(m, c.speed_mps)
         if held:
             mx, my = float(m[0]), float(m[1])
