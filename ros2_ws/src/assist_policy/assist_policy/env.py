@@ -226,7 +226,7 @@ class LandingAssistEnv(gym.Env):
         if self.override is not None and not self.unassisted:
             st = self.world.state
             over_floor, height = ((None, None) if self.guard is None
-                                  else self.guard.surface_below(self._camera_frame().depth, float(st.position[2])))
+                                  else self.guard.surface_below(self._camera_frame().depth, st.position))
             a_o = self.override.apply(t, self._u, self.builder.history.means(t)[0], float(st.position[2]),
                                       self.cfg.max_speed, quat_to_matrix(st.quaternion).T @ st.velocity,
                                       over_floor, height)

@@ -135,11 +135,18 @@ class FloorGuard:
         """True when every leg's floor point shows the floor, False when any shows something nearer."""
         return self._floor_from(self._leg_depths(depth, altitude_m), altitude_m)
 
-    def surface_below(self, depth: np.ndarray, altitude_m: float) -> tuple[bool | None, float | None]:
-        """(floor_below, base_link's height over the nearest surface under a leg in m; None where unknown)."""
-        legs = self._leg_depths(depth, altitude_m)
+    def surface_below(self, depth: np.ndarray, position: np.ndarray) -> tuple[bool | None, float | None]:
+        """(floor_below, base_link's height over the nearest surface under a leg in m; None where unknown).
+
+        Inside the camera's blind range over the pad it last saw beneath the legs (see the module
+        docstring) the depth image shows the floor behind that pad: the remembered pad top counts then.
+        """
+        p = np.asarray(position, dtype=float).reshape(3)
+        if self._near_remembered_pad(p):
+            return False, float(p[2]) - self._pad[2]
+        legs = self._leg_depths(depth, float(p[2]))
         seen = [d for d in legs if d is not None]
-        return self._floor_from(legs, altitude_m), (min(seen) + self.cfg.camera_offset_m if seen else None)
+        return self._floor_from(legs, float(p[2])), (min(seen) + self.cfg.camera_offset_m if seen else None)
 
     def _floor_from(self, legs: list[float | None], altitude_m: float) -> bool | None:
         """floor_below from the leg depths `legs` (_leg_depths)."""

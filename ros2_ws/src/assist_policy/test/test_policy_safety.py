@@ -47,11 +47,17 @@ def test_floor_seen_under_every_leg_only_over_the_floor(depth_at):
 
 def test_surface_below_gives_the_height_over_the_pad_or_floor_under_the_legs(depth_at):
     g = FloorGuard()
-    floor, h = g.surface_below(depth_at(0.0, 0.0, 2.5), 2.5)
+    floor, h = g.surface_below(depth_at(0.0, 0.0, 2.5), [0.0, 0.0, 2.5])
     assert floor is True and h == pytest.approx(2.5, abs=0.03)           # over the floor: the altitude
-    floor, h = g.surface_below(depth_at(5.0, 0.0, 2.5), 2.5)
+    floor, h = g.surface_below(depth_at(5.0, 0.0, 2.5), [5.0, 0.0, 2.5])
     assert floor is False and h == pytest.approx(2.5 - 0.6, abs=0.03)    # over the 0.6 m pad: 1.9 m over its top
-    assert g.surface_below(np.full((64, 64), np.nan, np.float32), 2.5) == (None, None)
+    assert g.surface_below(np.full((64, 64), np.nan, np.float32), [0.0, 0.0, 2.5]) == (None, None)
+    # settling on the pad, the camera inside its blind range sees the floor behind the pad top: the
+    # guard's remembered pad counts (it saw it beneath the legs on the way down)
+    g.apply(np.zeros(3), None, np.zeros(3), depth_at(5.0, 0.0, 1.1), [5.0, 0.0, 1.1], THR)
+    blind = np.full((64, 64), 0.72 - 0.05, np.float32)                   # what the clipped render shows
+    assert g.surface_below(blind, [5.0, 0.05, 0.72]) == (False, pytest.approx(0.12))
+    assert g.surface_below(blind, [6.0, 0.05, 0.72])[0] is True          # beside it: the floor is real
 
 
 def test_invalid_depth_is_unknown_and_never_blocks(depth_at):
