@@ -1,0 +1,166 @@
+"""compare_landings: two evaluate runs of the same landings, landing by landing (old vs new, same seeds).
+
+evaluate writes one row per landing (condition, beta, seed, outcome, error, pilot...). Two runs of the
+same landings (same --pilot, --seed, --betas, --landings; e.g. the shipped assistant before and after a
+change, or two actors) are paired on (beta, seed). The report: each side's error mean (median) /
+goal-pad success / crash, the paired error difference with its standard error and a Wilcoxon
+signed-rank test, success and crash flips with an exact McNemar test (binomial on the discordant
+pairs), the same per pilot family when the rows name one, and every landing whose outcome changed or
+whose error moved more than --worse-m. ``--out`` writes the pairs as CSV.
+
+    compare_landings --a runs/old/m7 runs/old/m99 --b runs/new/m7 runs/new/m99
+    compare_landings --a runs/ev/landings.csv --condition-a unassisted --b runs/ev/landings.csv \\
+        --condition-b latent+guard+override+recall+damper
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import logging
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy import stats
+
+from .evaluate import read_landings
+
+log = logging.getLogger(__name__)
+PAIR_FIELDS = ('beta', 'seed', 'pilot', 'outcome_a', 'outcome_b', 'error_a', 'error_b', 'delta_error')
+
+
+@dataclass
+class Side:
+    """One side of the comparison: landing rows keyed by (beta, seed), and the condition they came from."""
+
+    rows: dict[tuple[float, int | None], dict]
+    condition: str
+
+
+def load_side(paths: list[str], condition: str | None) -> Side:
+    """Rows of `condition` from landings.csv files (or folders holding one); ValueError when ambiguous or absent."""
+    rows: dict[tuple[float, int | None], dict] = {}
+    chosen = condition
+    for p in paths:
+        path = Path(p)
+        if path.is_dir():
+            path = path / 'landings.csv'
+        if not path.is_file():
+            raise ValueError(f'{p}: no landings.csv there')
+        by_cond = read_landings(path)
+        if chosen is None:
+            assisted = [c for c in by_cond if c != 'unassisted']
+            if len(assisted) != 1:
+                raise ValueError(f'{path}: conditions {sorted(by_cond)}; name one with --condition-a/-b')
+            chosen = assisted[0]
+        if chosen not in by_cond:
+            raise ValueError(f'{path}: no condition {chosen!r} (has {sorted(by_cond)})')
+        for r in by_cond[chosen]:
+            key = (float(r['beta']), r.get('seed'))
+            if key in rows:
+                raise ValueError(f'{path}: landing beta {key[0]} seed {key[1]} appears twice on one side')
+            rows[key] = r
+    if chosen is None:
+        raise ValueError('no landings.csv given')
+    return Side(rows, chosen)
+
+
+def _fmt(rows: list[dict]) -> str:
+    """error mean (median) / success / crash of `rows`."""
+    e = np.array([r['error_m'] for r in rows], dtype=float)
+    return (f'{e.mean():.3f} ({np.median(e):.3f}) m / {100 * np.mean([r["success"] for r in rows]):.1f} % / '
+            f'{100 * np.mean([r["crash"] for r in rows]):.1f} %')
+
+
+def paired_stats(pairs: list[tuple[dict, dict]]) -> dict:
+    """Paired statistics of (a, b) landing rows: error difference b - a, success and crash flips, tests."""
+    d = np.array([b['error_m'] - a['error_m'] for a, b in pairs], dtype=float)
+    n = len(d)
+    out = {'n': n, 'delta_error': float(d.mean()),
+           'delta_se': float(d.std(ddof=1) / math.sqrt(n)) if n > 1 else float('nan')}
+    nonzero = d[np.abs(d) > 1e-9]
+    out['wilcoxon_p'] = float(stats.wilcoxon(nonzero).pvalue) if len(nonzero) >= 1 else 1.0
+    for key in ('success', 'crash'):
+        gained = sum(1 for a, b in pairs if b[key] and not a[key])
+        lost = sum(1 for a, b in pairs if a[key] and not b[key])
+        out[f'{key}_gained'], out[f'{key}_lost'] = gained, lost
+        out[f'{key}_mcnemar_p'] = (float(stats.binomtest(gained, gained + lost, 0.5).pvalue)
+                                   if gained + lost else 1.0)
+    return out
+
+
+def changed(pairs: list[tuple[dict, dict]], worse_m: float) -> list[tuple[dict, dict]]:
+    """The pairs whose outcome differs or whose error moved more than `worse_m`."""
+    return [(a, b) for a, b in pairs
+            if a['outcome'] != b['outcome'] or abs(b['error_m'] - a['error_m']) > worse_m]
+
+
+def report(a: Side, b: Side, worse_m: float = 0.25) -> tuple[str, list[tuple[dict, dict]]]:
+    """Text report of B against A on their common landings, and the pairs (in beta, seed order)."""
+    keys = sorted(set(a.rows) & set(b.rows), key=lambda k: (k[0], -1 if k[1] is None else k[1]))
+    if not keys:
+        raise ValueError('the two sides share no landing (same --pilot, --seed, --betas, --landings?)')
+    pairs = [(a.rows[k], b.rows[k]) for k in keys]
+    lines = [f'A: {a.condition}', f'B: {b.condition}', f'{len(pairs)} landings in both'
+             + (f' ({len(a.rows) - len(pairs)} only in A, {len(b.rows) - len(pairs)} only in B)'
+                if len(a.rows) != len(pairs) or len(b.rows) != len(pairs) else '')]
+    groups = {'all': pairs}
+    pilots = sorted({str(x.get('pilot') or '') for x, _ in pairs} - {''})
+    if len(pilots) > 1:
+        groups.update({p: [(x, y) for x, y in pairs if x.get('pilot') == p] for p in pilots})
+    lines.append(f'{"landings":<18} {"n":>4}  {"A error mean (median) / success / crash":<40}  '
+                 f'{"B":<40}  {"d error (+- se)":>17}  {"Wilcoxon p":>10}  {"success +/-":>11}  {"p":>6}  '
+                 f'{"crash +/-":>9}')
+    for name, ps in groups.items():
+        s = paired_stats(ps)
+        lines.append(f'{name:<18} {s["n"]:>4}  {_fmt([x for x, _ in ps]):<40}  {_fmt([y for _, y in ps]):<40}  '
+                     f'{s["delta_error"]:>+8.3f} +- {s["delta_se"]:<5.3f}  {s["wilcoxon_p"]:>10.3g}  '
+                     f'{s["success_gained"]:>5}/{s["success_lost"]:<5}  {s["success_mcnemar_p"]:>6.3g}  '
+                     f'{s["crash_gained"]:>4}/{s["crash_lost"]:<4}')
+    moved = changed(pairs, worse_m)
+    lines.append(f'changed (outcome, or error moved > {worse_m:g} m): {len(moved)}')
+    for x, y in moved:
+        lines.append(f'  beta {x["beta"]:<5g} seed {x.get("seed")!s:<6} {str(x.get("pilot") or ""):<16} '
+                     f'{x["outcome"]} {x["error_m"]:.3f} -> {y["outcome"]} {y["error_m"]:.3f}')
+    return '\n'.join(lines), pairs
+
+
+def write_pairs(path: Path, pairs: list[tuple[dict, dict]]) -> None:
+    """The pairs as CSV (PAIR_FIELDS)."""
+    with open(path, 'w', newline='', encoding='utf-8') as fh:
+        w = csv.writer(fh)
+        w.writerow(PAIR_FIELDS)
+        for a, b in pairs:
+            w.writerow([a['beta'], a.get('seed'), a.get('pilot') or '', a['outcome'], b['outcome'], a['error_m'],
+                        b['error_m'], round(b['error_m'] - a['error_m'], 4)])
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console entry point: compare_landings --a ... --b ... (exit 2 with one line on bad input)."""
+    logging.basicConfig(level=logging.INFO, format='%(levelname)s %(name)s: %(message)s')
+    ap = argparse.ArgumentParser(prog='compare_landings', description=__doc__.split('\n\n')[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument('--a', nargs='+', required=True, help='landings.csv files or run folders: the baseline')
+    ap.add_argument('--b', nargs='+', required=True, help='landings.csv files or run folders: the change')
+    ap.add_argument('--condition-a', default=None, help='condition of A (default: its only assisted one)')
+    ap.add_argument('--condition-b', default=None, help='condition of B (default: its only assisted one)')
+    ap.add_argument('--worse-m', type=float, default=0.25, help='list landings whose error moved more than this')
+    ap.add_argument('--out', default='', help='write the pairs to this CSV')
+    args = ap.parse_args(argv)
+    try:
+        a, b = load_side(args.a, args.condition_a), load_side(args.b, args.condition_b)
+        text, pairs = report(a, b, args.worse_m)
+    except (OSError, ValueError) as exc:
+        print(f'compare_landings: {exc}', file=sys.stderr)
+        return 2
+    print(text)
+    if args.out:
+        write_pairs(Path(args.out), pairs)
+        log.info('pairs written to %s', args.out)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
