@@ -27,21 +27,25 @@ first, so its held key reverses nothing.
 
 Persistent push (``persist_s`` > 0, 2 s by default): the same yield also engages, descending or not, when
 for the last ``persist_s`` the pilot's horizontal command has pointed one way (no sample against its
-mean, no held key the other way within ``reversal_s``), its mean is at least ``persist_speed_mps`` (0.6;
-``persist_floor_speed_mps``, 0.4, when the depth image shows bare floor under every leg: no pad there to
-hold the pilot on), and the vehicle made less than ``held_back_fraction`` (half) of that speed along it:
-the assistant has been holding the vehicle back against a pilot who keeps asking to go somewhere. Why
-(found with pilots written outside the project, not its families): every family descends only once it
-believes it is over its aim, so the actor learned "a descent means this pad" and "a descent over bare
-floor means the pad is behind". A pilot who descends along a glide path toward a farther pad, or gets
+mean, no held key the other way within ``reversal_s``), its mean along one axis is at least
+``persist_speed_mps`` (0.6; ``persist_floor_speed_mps``, 0.4, when the depth image shows bare floor under
+every leg: no pad there to hold the pilot on), and the vehicle made less than ``held_back_fraction``
+(half) of that speed along it: the assistant has been holding the vehicle back against a pilot who keeps
+asking to go somewhere. Not lower than ``persist_min_height_m`` (1 m) over the surface below (pad top or
+floor, from the depth under the legs; inside the camera's blind range, the floor guard's remembered pad):
+the last metre is landing, and a push there is positioning. Why (found with pilots written outside the
+project, now the held-out families glide and low_flyer): every earlier family descends only once it
+believes it is over its aim, and the actor behaves as if a descent meant "this pad" and a descent over
+bare floor "the pad is behind". A pilot who descends along a glide path toward a farther pad, or gets
 low first and flies on over the nearer pads (ordinary for people), was held over the first pad it
-crossed, pushed back from the start, and the paper's conformance then dragged its own aim onto that pad:
-20 % and 47 % goal-pad success, worse than unassisted. What it leaves alone: fine positioning (keyboard
-taps near the aim: <= 0.5 m/s per axis, and they reverse), an overshoot (the bang-bang family holds its
-key past the aim for <= 0.9 s, then reverses), and a pilot the assistant is not holding back.
+crossed, or pushed back from the start, and the paper's conformance then dragged its own aim onto that
+pad (30 % and 49 % goal-pad success, worse than unassisted on error; 74.5 % each with the rule). What it leaves
+alone: fine positioning (keyboard taps near the aim: <= 0.5 m/s per axis, and they reverse), an
+overshoot (the bang-bang family holds its key past the aim for <= 0.9 s, then reverses), the last metre,
+and a pilot the assistant is not holding back.
 
 It uses only what the actor observes (u and its window mean), odometry altitude and velocity, the depth
-image's floor test (assist_policy.safety) and time. Pure numpy; no rclpy.
+image's surface test (assist_policy.safety) and time. Pure numpy; no rclpy.
 """
 from __future__ import annotations
 
