@@ -286,3 +286,26 @@ def test_nan_max_speed_model_exits_with_one_line(start_node, wait, tmp_path):
     assert wait(lambda: node.proc.poll() is not None, 60), node.log()
     log = node.log()
     assert node.proc.returncode == 1 and 'max_speed' in log and str(path) in log and 'Traceback' not in log, log
+
+
+def test_a_step_during_shutdown_publishes_nothing_and_reports_no_fault(make):
+    """Ctrl-C: rclpy invalidates the context while a step may still run; that is no publish error to warn of."""
+    n = make()
+    n.inputs(u=(0.0, 1.0, 0.0))
+    n.tick()
+    sent = len(n.cmds)
+
+    def invalid(_msg):
+        raise RuntimeError("Failed to publish: publisher's context is invalid")
+    n.node.pub_cmd.publish = invalid
+    n.node._tick()                                             # context still valid: a real publish error
+    assert n.node.diag.get('publish_errors') == 1
+    ok = n.node.context.ok
+    going = iter([True, False])                                # valid at the start of the step, gone by its end
+    n.node.context.ok = lambda: next(going)
+    n.node._tick()
+    assert n.node.diag.get('publish_errors') == 1 and len(n.cmds) == sent
+    n.node.context.ok = lambda: False                          # already gone: the step does not run
+    n.node.core.step = lambda now: pytest.fail('stepped after shutdown')
+    n.node._tick()
+    n.node.context.ok = ok

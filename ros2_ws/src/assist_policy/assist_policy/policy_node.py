@@ -370,6 +370,8 @@ class PolicyNode(Node):
 
     def _tick(self) -> None:
         """One control step; any exception relinquishes (V = u, clamped), is counted and logged."""
+        if not self.context.ok():
+            return                              # shutting down (Ctrl-C): no context left to publish in
         try:
             with self._lock:
                 out = self.core.step(self._now())
@@ -378,6 +380,9 @@ class PolicyNode(Node):
                     out.reason = 'blended velocity not finite: relinquished'
             self._publish(out)
         except Exception as exc:  # noqa: BLE001 - contract: no exception kills a control step
+            if not self.context.ok():           # the context went away during this step: shutdown, not a fault
+                self.get_logger().debug(f'control step at shutdown: {type(exc).__name__}: {exc}')
+                return
             out = self.core.fallback(self._now())
             out.reason = f'control step failed ({type(exc).__name__}: {exc}): relinquished'
             out.fault = type(exc).__name__
