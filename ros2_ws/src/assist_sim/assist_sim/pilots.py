@@ -221,6 +221,18 @@ class FamilyPilot(SimulatedPilot):
         """Control period (s)."""
         return 1.0 / self.cfg.control_hz
 
+    def _start_delay(self, delay_s: float) -> None:
+        """Empty the transport delay line of `delay_s` (at least one control step) for a new landing."""
+        self.delay_steps = max(1, int(round(delay_s * self.cfg.control_hz)))
+        self._queue: deque[np.ndarray] = deque()
+
+    def _delayed(self, u: np.ndarray) -> np.ndarray:
+        """`u` into the delay line; what comes out delay_steps later (nothing pressed before the first)."""
+        self._queue.append(np.array(u, dtype=float))
+        if len(self._queue) > self.delay_steps:
+            return self._queue.popleft()
+        return np.zeros(3)
+
     def reset(self, goal: np.ndarray, position: np.ndarray, goal_estimate: np.ndarray | None = None) -> None:
         """New landing: draw this episode's family parameters, then the paper's reset."""
         self.alpha = self.base_alpha
@@ -294,15 +306,10 @@ class DelayMixin(FamilyPilot):
         super()._draw_params()
         delay = _draw(self.family_rng, self.fcfg.delay.delay_s)
         self.params['delay_s'] = delay
-        self.delay_steps = max(1, int(round(delay * self.cfg.control_hz)))
-        self._queue: deque[np.ndarray] = deque()
+        self._start_delay(delay)
 
     def _output(self, u: np.ndarray, dist: float) -> np.ndarray:
-        u = super()._output(u, dist)
-        self._queue.append(u.copy())
-        if len(self._queue) > self.delay_steps:
-            return self._queue.popleft()
-        return np.zeros(3)
+        return self._delayed(super()._output(u, dist))
 
 
 class BangBangMixin(FamilyPilot):
@@ -579,8 +586,7 @@ class GlidePilot(FamilyPilot):
         self.params.update(gain_per_s=_draw(r, g.gain_per_s), max_speed_mps=_draw(r, g.max_speed_mps),
                            slope=_draw(r, g.slope), final_radius_m=_draw(r, g.final_radius_m),
                            tremor_mps=_draw(r, g.tremor_mps), delay_s=_draw(r, g.delay_s))
-        self.delay_steps = max(1, int(round(float(self.params['delay_s']) * self.cfg.control_hz)))
-        self._queue: deque[np.ndarray] = deque()
+        self._start_delay(float(self.params['delay_s']))
         self._tremor = np.zeros(2)
 
     def command(self, position: np.ndarray) -> np.ndarray:
@@ -605,12 +611,9 @@ class GlidePilot(FamilyPilot):
         rho = float(np.exp(-self.dt / g.tremor_tau_s))
         self._tremor = (rho * self._tremor + np.sqrt(1.0 - rho * rho) * float(prm['tremor_mps'])
                         * self.family_rng.standard_normal(2))
-        self._queue.append(np.array([*(v + self._tremor), vz]))
         self._step += 1
         self.t += self.dt
-        if len(self._queue) > self.delay_steps:
-            return self._queue.popleft()
-        return np.zeros(3)
+        return self._delayed(np.array([*(v + self._tremor), vz]))
 
 
 class LowFlyerPilot(FamilyPilot):
