@@ -214,22 +214,20 @@ class LandingAssistEnv(gym.Env):
             raise ValueError(f'non-finite action {raw.tolist()}')
         a = np.zeros(3) if self.unassisted else scale_action(raw, self.cfg.max_speed)
         t = self.elapsed_s
+        st = self.world.state
+        v_body = quat_to_matrix(st.quaternion).T @ st.velocity   # odometry twist, base_link (REP-105): policy_node's
         damped = False
         if self.damper is not None and not self.unassisted:
-            st = self.world.state                    # odometry twist in base_link (REP-105), as policy_node gets it
             pads = [m.xyz for m in self.recall.map.pads] if self.recall is not None else []
-            a_d = self.damper.apply(t, self._u, a, quat_to_matrix(st.quaternion).T @ st.velocity, st.position,
-                                    pads, self.cfg.max_speed)
+            a_d = self.damper.apply(t, self._u, a, v_body, st.position, pads, self.cfg.max_speed)
             if a_d is not None:
                 a, damped = a_d, True
         overridden = False
         if self.override is not None and not self.unassisted:
-            st = self.world.state
-            over_floor, height = ((None, None) if self.guard is None
-                                  else self.guard.surface_below(self._camera_frame().depth, st.position))
+            surface = (None if self.guard is None
+                       else lambda: self.guard.surface_below(self._camera_frame().depth, st.position))
             a_o = self.override.apply(t, self._u, self.builder.history.means(t)[0], float(st.position[2]),
-                                      self.cfg.max_speed, quat_to_matrix(st.quaternion).T @ st.velocity,
-                                      over_floor, height)
+                                      self.cfg.max_speed, v_body, surface)
             if a_o is not None:
                 a, overridden = a_o, True
         recalled = False

@@ -51,11 +51,16 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from .scripted import YIELD_SPEED_MPS, holds_key
+
+# what the depth image shows below the vehicle, on demand: (bare floor under every leg, height over the
+# surface below in m), None where unknown (safety.FloorGuard.surface_below)
+Surface = Callable[[], tuple[bool | None, float | None]]
 
 
 @dataclass
@@ -117,37 +122,45 @@ class PilotOverride:
         self._recent.clear()
         self.mode = None
 
-    def persistent_push(self, over_floor: bool | None = None, height_m: float = math.inf) -> bool:
+    def persistent_push(self, surface: Surface | None = None, altitude_m: float = math.inf) -> bool:
         """Whether the pilot has pushed one way for persist_s, held back by the assistant (module docstring).
 
-        `height_m`: the vehicle's height over the surface below (pad top or floor); lower than
-        persist_min_height_m it is landing, and a push there is positioning.
+        `surface()` gives (bare floor under every leg, height over the surface below in m; None where
+        unknown, the altitude `altitude_m` then stands in for the height); it is read only when every other
+        test passes (the env renders a camera frame for it). Lower than persist_min_height_m the vehicle
+        is landing, and a push there is positioning.
         """
         c = self.cfg
         r = self._recent
-        if (c.persist_s <= 0 or len(r) < 2 or r[-1][0] - r[0][0] < c.persist_s - 1e-6
-                or not height_m >= c.persist_min_height_m):
+        if c.persist_s <= 0 or len(r) < 2 or r[-1][0] - r[0][0] < c.persist_s - 1e-6:
             return False
         arr = np.array(r)[:, 1:]
         m = arr[:, :2].mean(axis=0)
-        speed = float(np.hypot(m[0], m[1]))
         # per axis: keyboard fine positioning taps each axis at <= 0.5 m/s mean (<= 0.71 on a diagonal)
-        if float(np.abs(m).max()) < (c.persist_floor_speed_mps if over_floor is True else c.persist_speed_mps):
+        along = float(np.abs(m).max())
+        if along < min(c.persist_floor_speed_mps, c.persist_speed_mps):
             return False
+        speed = float(np.hypot(m[0], m[1]))
         d = m / speed
         if float((arr[:, :2] @ d).min()) < 0.0 or any(hx * d[0] + hy * d[1] < 0.0 for _, hx, hy in self._held):
             return False              # pushed the other way lately: correcting an overshoot, not going somewhere
-        return float(arr[:, 2:].mean(axis=0) @ d) < c.held_back_fraction * speed
+        if float(arr[:, 2:].mean(axis=0) @ d) >= c.held_back_fraction * speed:
+            return False              # the vehicle goes along: nothing holds the pilot back
+        over_floor, height = (None, None) if surface is None else surface()
+        if height is None or not math.isfinite(float(height)):
+            height = altitude_m
+        if not height >= c.persist_min_height_m:
+            return False
+        return along >= (c.persist_floor_speed_mps if over_floor is True else c.persist_speed_mps)
 
     def apply(self, now: float, u: np.ndarray, mean_u: np.ndarray, altitude_m: float,
               max_speed: np.ndarray | tuple[float, float, float], velocity: np.ndarray | None = None,
-              over_floor: bool | None = None, height_m: float | None = None) -> np.ndarray | None:
+              surface: Surface | None = None) -> np.ndarray | None:
         """The agent action (m/s) replacing the actor's at time `now`, or None (the rule does not act).
 
         `velocity`: the vehicle's (base_link, m/s; None: the persistent-push test is off this step);
-        `over_floor`: whether the depth image shows bare floor under every leg (None: unknown);
-        `height_m`: its height over the surface below from the depth image (None: unknown, the altitude
-        over the floor stands in for it).
+        `surface`: what the depth image shows below, read only if needed (``persistent_push``; None:
+        unknown, the altitude over the floor stands in for the height).
         """
         c = self.cfg
         self.mode = None
@@ -179,8 +192,7 @@ class PilotOverride:
             if u[2] >= 0.0:
                 self.mode = 'held_key'
                 return yield_action(c, u, altitude_m, max_speed)
-        height = float(altitude_m) if height_m is None or not math.isfinite(float(height_m)) else float(height_m)
-        if not c.enabled or not self.persistent_push(over_floor, height):
+        if not c.enabled or not self.persistent_push(surface, float(altitude_m)):
             return None
         self.mode = 'persistent'
         return yield_action(c, u, altitude_m, max_speed)

@@ -370,10 +370,9 @@ class PolicyCore:
             a = a_d
         depth = self._mapped(now, pos)
         mean_u = self.builder.history.means(now)[0]
-        over_floor, height = ((None, None) if self._depth is None
-                              or not self._fresh(self._depth[0], now, c.feature_timeout_s)
-                              else self.guard.surface_below(self._depth[1], pos))
-        a_o = self.override.apply(now, u, mean_u, float(pos[2]), self.max_speed, vel, over_floor, height)
+        surface = (None if self._depth is None or not self._fresh(self._depth[0], now, c.feature_timeout_s)
+                   else lambda: self.guard.surface_below(self._depth[1], pos))
+        a_o = self.override.apply(now, u, mean_u, float(pos[2]), self.max_speed, vel, surface)
         if a_o is not None:
             self.override_engaged += 1
             persistent = self.override.mode == 'persistent'

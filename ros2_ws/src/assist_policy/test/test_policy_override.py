@@ -136,7 +136,8 @@ def test_train_td3_flies_with_the_override_only_when_asked():
 def push(ov, t0, seconds, u, v, altitude=3.0, over_floor=None, dt=0.05):
     """Feed `seconds` of the pilot command `u` while the vehicle moves at `v`; the decisions."""
     u, v = np.asarray(u, float), np.asarray(v, float)
-    return [ov.apply(t0 + k * dt, u, u, altitude, MS, v, over_floor) for k in range(int(round(seconds / dt)) + 1)]
+    return [ov.apply(t0 + k * dt, u, u, altitude, MS, v, lambda: (over_floor, None))
+            for k in range(int(round(seconds / dt)) + 1)]
 
 
 def test_a_persistent_push_held_back_passes_even_while_descending():
@@ -180,13 +181,21 @@ def test_no_persistent_push_in_the_last_metre_over_what_is_below():
     glide = [0.8, 0.0, -0.3]
     assert push(PilotOverride(), 0.0, 3.0, glide, [0, 0, -0.3], altitude=0.9)[-1] is None        # 0.9 m up
     ov = PilotOverride()
-    out = [ov.apply(k * 0.05, np.array(glide), np.array(glide), 2.5, MS, np.zeros(3), False, 0.7)
+    out = [ov.apply(k * 0.05, np.array(glide), np.array(glide), 2.5, MS, np.zeros(3), lambda: (False, 0.7))
            for k in range(61)]
     assert out[-1] is None                                 # 2.5 m up, but 0.7 m over a pad top: positioning
-    out = [ov.apply(3.05 + k * 0.05, np.array(glide), np.array(glide), 2.5, MS, np.zeros(3), False, 1.4)
+    out = [ov.apply(3.05 + k * 0.05, np.array(glide), np.array(glide), 2.5, MS, np.zeros(3), lambda: (False, 1.4))
            for k in range(41)]
     assert out[-1] is not None and ov.mode == 'persistent'   # 1.4 m over it
-    assert ov.apply(5.2, np.array(glide), np.array(glide), 1.4, MS, np.zeros(3), False, float('nan')) is not None
+    unknown = ov.apply(5.2, np.array(glide), np.array(glide), 1.4, MS, np.zeros(3), lambda: (False, float('nan')))
+    assert unknown is not None                             # height unknown: the 1.4 m altitude stands in
+
+    def never():
+        raise AssertionError('the depth image was read for a push that cannot engage')
+    ov = PilotOverride()
+    slow = [ov.apply(k * 0.05, np.array([0.3, 0, 0]), np.array([0.3, 0, 0]), 2.5, MS, np.zeros(3), never)
+            for k in range(61)]
+    assert slow[-1] is None                                # under every speed threshold: the surface is not read
 
 
 def test_over_bare_floor_a_slower_push_passes():
