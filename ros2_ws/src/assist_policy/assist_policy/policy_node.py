@@ -126,29 +126,22 @@ PARAMS = {
     'oscillation_damper_reversals': Param(DamperConfig.min_reversals, 'This many reversals within the window '
                                           'engage the oscillation damper.', min=1, max=20, dynamic=True),
 }
-# node parameter -> DamperConfig field
+# node parameter -> (DamperConfig field, type)
 DAMPER_FIELDS = {'oscillation_damper': ('enabled', bool), 'oscillation_damper_gain': ('gain', float),
                  'oscillation_damper_window_s': ('window_s', float),
                  'oscillation_damper_reversals': ('min_reversals', int)}
+# node parameter -> (OverrideConfig field, type)
+OVERRIDE_FIELDS = {'pilot_override': ('enabled', bool), 'pilot_override_speed_mps': ('speed_mps', float),
+                   'pilot_override_climb_mps': ('climb_mps', float),
+                   'pilot_override_climb_below_m': ('climb_below_m', float),
+                   'pilot_override_reversal_s': ('reversal_s', float), 'pilot_override_persist_s': ('persist_s', float),
+                   'pilot_override_persist_speed_mps': ('persist_speed_mps', float),
+                   'pilot_override_persist_floor_speed_mps': ('persist_floor_speed_mps', float)}
 
 
-def damper_fields(params: dict) -> dict:
-    """DamperConfig keyword arguments from the oscillation_damper* entries of `params` (others ignored)."""
-    return {DAMPER_FIELDS[k][0]: DAMPER_FIELDS[k][1](v) for k, v in params.items() if k in DAMPER_FIELDS}
-
-
-# node parameter -> OverrideConfig field
-OVERRIDE_FIELDS = {'pilot_override': 'enabled', 'pilot_override_speed_mps': 'speed_mps',
-                   'pilot_override_climb_mps': 'climb_mps', 'pilot_override_climb_below_m': 'climb_below_m',
-                   'pilot_override_reversal_s': 'reversal_s', 'pilot_override_persist_s': 'persist_s',
-                   'pilot_override_persist_speed_mps': 'persist_speed_mps',
-                   'pilot_override_persist_floor_speed_mps': 'persist_floor_speed_mps'}
-
-
-def override_fields(params: dict) -> dict:
-    """OverrideConfig keyword arguments from the pilot_override* entries of `params` (others ignored)."""
-    return {OVERRIDE_FIELDS[k]: (bool if k == 'pilot_override' else float)(v)
-            for k, v in params.items() if k in OVERRIDE_FIELDS}
+def config_fields(params: dict, table: dict[str, tuple[str, type]]) -> dict:
+    """Config keyword arguments from the entries of `params` named in `table` (others ignored), typed."""
+    return {table[k][0]: table[k][1](v) for k, v in params.items() if k in table}
 
 
 # node parameter -> PolicyCoreConfig field, for the parameters applied to the core at run time
@@ -214,12 +207,12 @@ class PolicyNode(Node):
                                                        guard_height_m=float(self.p['floor_guard_height_m']),
                                                        min_climb_mps=float(self.p['floor_guard_climb_mps']),
                                                        edge_height_m=float(self.p['floor_guard_edge_height_m'])),
-                                   override=OverrideConfig(**override_fields(self.p)),
+                                   override=OverrideConfig(**config_fields(self.p, OVERRIDE_FIELDS)),
                                    recall=RecallConfig(
                                        enabled=bool(self.p['pad_recall']),
                                        radius_m=float(self.p['pad_recall_radius_m']),
                                        touchdown_height_m=float(self.p['pad_recall_touchdown_height_m'])),
-                                   damper=DamperConfig(**damper_fields(self.p)),
+                                   damper=DamperConfig(**config_fields(self.p, DAMPER_FIELDS)),
                                    **{f: self.p[k] for k, f in CORE_FIELDS.items()})
             self.core = PolicyCore(path, cfg)
         except ValueError as exc:
@@ -276,7 +269,7 @@ class PolicyNode(Node):
                 g.min_climb_mps = float(guard.get('floor_guard_climb_mps', g.min_climb_mps))
                 g.edge_height_m = float(guard.get('floor_guard_edge_height_m', g.edge_height_m))
             self.diag.set('floor_guard', 'on' if g.enabled else 'off')
-        override = override_fields(changed)
+        override = config_fields(changed, OVERRIDE_FIELDS)
         if override:
             with self._lock:
                 self.core.override.cfg = dataclasses.replace(self.core.override.cfg, **override)
@@ -288,7 +281,7 @@ class PolicyNode(Node):
                 r.radius_m = float(changed.get('pad_recall_radius_m', r.radius_m))
                 r.touchdown_height_m = float(changed.get('pad_recall_touchdown_height_m', r.touchdown_height_m))
             self.diag.set('pad_recall', 'on' if r.enabled else 'off')
-        damper = damper_fields(changed)
+        damper = config_fields(changed, DAMPER_FIELDS)
         if damper:
             with self._lock:
                 self.core.damper.cfg = dataclasses.replace(self.core.damper.cfg, **damper)
