@@ -25,6 +25,8 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
+from assist_sim.atomic import atomic_path
+
 from .evaluate import read_landings
 
 log = logging.getLogger(__name__)
@@ -128,8 +130,8 @@ def report(a: Side, b: Side, worse_m: float = 0.25) -> tuple[str, list[tuple[dic
 
 
 def write_pairs(path: Path, pairs: list[tuple[dict, dict]]) -> None:
-    """The pairs as CSV (PAIR_FIELDS)."""
-    with open(path, 'w', newline='', encoding='utf-8') as fh:
+    """The pairs as CSV (PAIR_FIELDS), written in one atomic step as evaluate writes its tables."""
+    with atomic_path(path) as tmp, open(tmp, 'w', newline='', encoding='utf-8') as fh:
         w = csv.writer(fh)
         w.writerow(PAIR_FIELDS)
         for a, b in pairs:
