@@ -3,7 +3,7 @@
 pilot override (a held key passes with a gentle climb; the pilot_override parameter turns it off; a persistent
 push passes while descending, pilot_override_persist_s 0 turns that off); and its
 pad recall (a pad seen, then a descent past it over bare floor is steered back, and low over it centred on
-it; pad_recall turns it off); and its oscillation damper (a pilot swinging back and forth is slowed;
+it; farther past it, it first looks beyond, pad_recall_scout_max_m 0 turns that off; pad_recall turns it off); and its oscillation damper (a pilot swinging back and forth is slowed;
 oscillation_damper turns it off)."""
 import importlib.util
 import threading
@@ -215,6 +215,20 @@ def test_pad_recall_steers_a_descent_past_a_pad_back_and_can_be_turned_off(ros, 
     assert agents and all(np.allclose(a, [-0.8, 0, 0], atol=1e-5) for a in agents), agents[-3:]
     assert cmds and all(np.allclose(v, [-0.4, 0, -0.25], atol=1e-5) for v in cmds), cmds[-3:]
     assert wait(lambda: any(int(d.get('pad_recall_touchdown', 0)) > 10 for d in probe.diag), 5), probe.diag[-1:]
+    # 2.4 m past it, 1.9 m up: the camera sees ~1 m on, a nearer pad could lie beyond: it looks (scout) first,
+    # holding the height: a_x = 1 (clipped), V = (0.5, ., 0); pad_recall_scout_max_m 0: straight back
+    beyond = np.full((64, 64), 1.9 - 0.05, np.float32)
+    probe.run(0.3, position=(0.1, 0.0, 1.4), depth=beyond)          # (as above: read here, it shows no pad)
+    probe.run(0.3, position=(2.4, 0.0, 1.9), depth=beyond)
+    t4 = probe.run(1.5, position=(2.4, 0.0, 1.9), depth=beyond)
+    cmds, agents = probe.since(probe.cmd, t4 + 0.5), probe.since(probe.agent, t4 + 0.5)
+    assert agents and all(np.isclose(a[0], 1.0, atol=1e-5) for a in agents), agents[-3:]
+    assert cmds and all(np.isclose(v[0], 0.5, atol=1e-5) and np.isclose(v[2], 0.0, atol=1e-5) for v in cmds), cmds[-3:]
+    assert wait(lambda: any(int(d.get('pad_recall_scout', 0)) > 10 for d in probe.diag), 5), probe.diag[-1:]
+    set_param(ros, 'pad_recall_scout_max_m', 0.0, wait)
+    t5 = probe.run(1.5, position=(2.4, 0.0, 1.9), depth=beyond)
+    cmds = probe.since(probe.cmd, t5 + 0.5)
+    assert cmds and all(np.allclose(v, [-0.5, 0, -0.25], atol=1e-5) for v in cmds), cmds[-3:]
     set_param(ros, 'pad_recall', False, wait)
     t2 = probe.run(1.5, position=(1.5, 0.0, 2.5), depth=floor)
     cmds = probe.since(probe.cmd, t2 + 0.5)

@@ -80,11 +80,13 @@ class OverrideConfig:
     persist_floor_speed_mps: float = 0.4    # ... over bare floor under every leg (no pad to hold the pilot on)
     held_back_fraction: float = 0.5        # held back: the vehicle made less than this share of the push's speed
     persist_min_height_m: float = 1.0      # not lower than this over the surface below (the last metre: landing)
+    # held climb (module docstring): a climb commanded for persist_s that the vehicle does not make (0 = off)
+    persist_climb_mps: float = 0.3         # mean climb command over persist_s that counts (keys climb at 0.5)
 
     def __post_init__(self) -> None:
         """Reject settings that would make the rule engage on no input or descend (ValueError, one line)."""
         for name in ('speed_mps', 'climb_mps', 'climb_below_m', 'reversal_s', 'persist_s', 'persist_speed_mps',
-                     'persist_floor_speed_mps', 'held_back_fraction', 'persist_min_height_m'):
+                     'persist_floor_speed_mps', 'held_back_fraction', 'persist_min_height_m', 'persist_climb_mps'):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f'OverrideConfig.{name} must be a finite number >= 0, got {v!r}')
@@ -113,13 +115,16 @@ class PilotOverride:
     def __init__(self, cfg: OverrideConfig | None = None):
         self.cfg = cfg or OverrideConfig()
         self._held: deque[tuple[float, float, float]] = deque()    # (time, window-mean x, y) of recent held keys
-        self._recent: deque[tuple[float, float, float, float, float]] = deque()   # (time, u_x, u_y, v_x, v_y)
+        # (time, u_x, u_y, v_x, v_y, u_z, v_z)
+        self._recent: deque[tuple[float, float, float, float, float, float, float]] = deque()
+        self._climbing = False        # a held climb engaged the yield and the pilot still commands a climb
         self.mode: str | None = None
 
     def reset(self) -> None:
         """Forget the held keys and commands seen (new landing)."""
         self._held.clear()
         self._recent.clear()
+        self._climbing = False
         self.mode = None
 
     def persistent_push(self, surface: Surface | None = None, altitude_m: float = math.inf) -> bool:
@@ -134,7 +139,7 @@ class PilotOverride:
         r = self._recent
         if c.persist_s <= 0 or len(r) < 2 or r[-1][0] - r[0][0] < c.persist_s - 1e-6:
             return False
-        arr = np.array(r)[:, 1:]
+        arr = np.array(r)[:, 1:5]
         m = arr[:, :2].mean(axis=0)
         # per axis: keyboard fine positioning taps each axis at <= 0.5 m/s mean (<= 0.71 on a diagonal)
         along = float(np.abs(m).max())
@@ -152,6 +157,17 @@ class PilotOverride:
         if not height >= c.persist_min_height_m:
             return False
         return along >= (c.persist_floor_speed_mps if over_floor is True else c.persist_speed_mps)
+
+    def held_climb(self) -> bool:
+        """Whether the pilot has commanded a climb for persist_s that the vehicle did not make (module docstring)."""
+        c = self.cfg
+        r = self._recent
+        if c.persist_s <= 0 or c.persist_climb_mps <= 0 or len(r) < 2 or r[-1][0] - r[0][0] < c.persist_s - 1e-6:
+            return False
+        uz, vz = np.array(r)[:, 5], np.array(r)[:, 6]
+        if float(uz.min()) <= 0.0 or float(uz.mean()) < c.persist_climb_mps:
+            return False              # not a climb held the whole time
+        return float(vz.mean()) < c.held_back_fraction * float(uz.mean())
 
     def apply(self, now: float, u: np.ndarray, mean_u: np.ndarray, altitude_m: float,
               max_speed: np.ndarray | tuple[float, float, float], velocity: np.ndarray | None = None,
@@ -176,10 +192,12 @@ class PilotOverride:
         while self._held and self._held[0][0] < now - c.reversal_s:
             self._held.popleft()
         v = None if velocity is None else np.asarray(velocity, dtype=float).reshape(-1)
-        if v is None or v.size < 2 or not np.all(np.isfinite(v[:2])):
+        if v is None or v.size < 3 or not np.all(np.isfinite(v[:3])):
             self._recent.clear()      # a gap in what it judges by: the push is timed afresh
+            self._climbing = False
         else:
-            self._recent.append((float(now), float(u[0]), float(u[1]), float(v[0]), float(v[1])))
+            self._recent.append((float(now), float(u[0]), float(u[1]), float(v[0]), float(v[1]),
+                                 float(u[2]), float(v[2])))
             while len(self._recent) > 1 and self._recent[1][0] <= now - c.persist_s:
                 self._recent.popleft()      # keep one sample at or before the window's start: it spans persist_s
         held = holds_key(m, c.speed_mps)
@@ -192,7 +210,13 @@ class PilotOverride:
             if u[2] >= 0.0:
                 self.mode = 'held_key'
                 return yield_action(c, u, altitude_m, max_speed)
-        if not c.enabled or not self.persistent_push(surface, float(altitude_m)):
+        if not c.enabled:
+            return None
+        self._climbing = u[2] > 0.0 and (self._climbing or self.held_climb())
+        if self._climbing:
+            self.mode = 'climb'       # held until the pilot stops commanding the climb
+            return yield_action(c, u, altitude_m, max_speed)
+        if not self.persistent_push(surface, float(altitude_m)):
             return None
         self.mode = 'persistent'
         return yield_action(c, u, altitude_m, max_speed)

@@ -13,11 +13,13 @@ Safety rules (ARCHITECTURE.md, "Timing and safety rules"):
   the depth image, a descending V is replaced by a small climb (agent action a' = 2 V' - u, reason key
   ``floor_guard``); needs fresh odometry and a depth image (``set_depth``) no older than feature_timeout_s;
 * pilot override (``override.PilotOverride``, not learned): while the pilot holds a horizontal key and
-  does not descend, the actor's action is replaced (the pilot's correction passes, the vehicle rises
-  gently when low; reason key ``pilot_override``);
+  does not descend, pushes one way for 2 s held back, or commands a climb for 2 s that the vehicle does
+  not make, the actor's action is replaced (the pilot's command passes, the vehicle rises gently when
+  low; reason key ``pilot_override``);
 * pad recall (``recall.PadRecall``, not learned): every depth frame adds the pads in view to a map
   (odom, with the odometry attitude); when the pilot descends (or is low) with the floor under every
-  leg, the actor's horizontal action is replaced by a push back to the nearest mapped pad; low over a
+  leg, the actor's horizontal action is replaced by a push back to the nearest mapped pad (first, for a
+  pad behind, a look at the ground beyond not yet seen, where a nearer pad may be: scout); low over a
   pad seen whole during a descent, by centring on it (touchdown; reason key ``pad_recall`` for both);
   needs fresh odometry and depth, like the floor guard, which still acts after it;
 * oscillation damper (``damper.OscillationDamper``, not learned): while the pilot's held keys keep
@@ -51,6 +53,15 @@ from .td3 import load_actor
 log = logging.getLogger(__name__)
 
 MAX_DEPTH_M = 100.0   # depth beyond this (or negative / non-finite) is a hole (0), as the sim and drivers mark them
+
+
+# /diagnostics reason of each rule's mode (override.PilotOverride.mode, recall.PadRecall.mode)
+_OVERRIDE_REASONS = {'held_key': 'pilot override: the pilot\'s held correction passes',
+                     'persistent': 'pilot override: the pilot\'s persistent push passes',
+                     'climb': 'pilot override: the pilot\'s held climb passes'}
+_RECALL_REASONS = {'recall': 'pad recall: steering back to a pad seen',
+                   'touchdown': 'pad recall: centring on the pad below for touchdown',
+                   'scout': 'pad recall: looking beyond for a nearer pad before steering back'}
 
 
 def default_model_path(mode: str) -> Path:
@@ -158,9 +169,11 @@ class PolicyCore:
         self.override = PilotOverride(self.cfg.override or OverrideConfig())
         self.override_engaged = 0                   # steps whose actor action the pilot override replaced
         self.persist_engaged = 0                    # ... of which for a persistent push (override.mode 'persistent')
+        self.climb_engaged = 0                      # ... of which for a held climb (override.mode 'climb')
         self.recall = PadRecall(self.cfg.recall or RecallConfig(), self.guard)
         self.recall_engaged = 0                     # steps whose horizontal action the pad recall replaced
         self.touchdown_engaged = 0                  # ... of which centring on the pad below (recall.mode 'touchdown')
+        self.scout_engaged = 0                      # ... of which looking beyond before going back (recall.mode 'scout')
         self.damper = OscillationDamper(self.cfg.damper or DamperConfig())
         self.damper_engaged = 0                     # steps whose horizontal action the oscillation damper replaced
         self._mapped_depth: float | None = None     # stamp of the depth frame last added to the pad map
@@ -375,21 +388,20 @@ class PolicyCore:
         a_o = self.override.apply(now, u, mean_u, float(pos[2]), self.max_speed, vel, surface)
         if a_o is not None:
             self.override_engaged += 1
-            persistent = self.override.mode == 'persistent'
-            self.persist_engaged += int(persistent)
+            self.persist_engaged += int(self.override.mode == 'persistent')
+            self.climb_engaged += int(self.override.mode == 'climb')
             v = self._clamp(blend(u, a_o, c.blend_threshold))
             self.builder.record(now, u, a_o)            # the action applied, as evaluate's env records it
-            return PolicyOutput(a_o, v, 'pilot override: the pilot\'s persistent push passes' if persistent
-                                else 'pilot override: the pilot\'s held correction passes', 'pilot_override')
+            return PolicyOutput(a_o, v, _OVERRIDE_REASONS.get(self.override.mode, _OVERRIDE_REASONS['held_key']),
+                                'pilot_override')
         a_r = None if depth is None else self.recall.apply(u, mean_u, a, depth, pos, self._attitude, self.max_speed)
         if a_r is not None:
             self.recall_engaged += 1
-            touchdown = self.recall.mode == 'touchdown'
-            self.touchdown_engaged += int(touchdown)
+            self.touchdown_engaged += int(self.recall.mode == 'touchdown')
+            self.scout_engaged += int(self.recall.mode == 'scout')
             self.builder.record(now, u, a_r)
             return PolicyOutput(a_r, self._clamp(blend(u, a_r, c.blend_threshold)),
-                                'pad recall: centring on the pad below for touchdown' if touchdown
-                                else 'pad recall: steering back to a pad seen', 'pad_recall')
+                                _RECALL_REASONS.get(self.recall.mode, _RECALL_REASONS['recall']), 'pad_recall')
         v = self._clamp(blend(u, a, c.blend_threshold))
         self.builder.record(now, u, a)
         if damped:

@@ -8,9 +8,10 @@ oscillation_damper* parameters; every other parameter is read-only. The floor gu
 orientation) read /camera/depth/image_raw in every mode; /diagnostics shows floor_guard (on/off) and
 floor_guard_engaged (steps it replaced a descent), pilot_override (on/off) and pilot_override_engaged
 (steps the pilot override, assist_policy.override, replaced the actor's action) and
-pilot_override_persistent_engaged (of those, steps for a persistent push), pad_recall (on/off),
-pad_recall_engaged (steps it steered to a mapped pad), pad_recall_touchdown (of those, steps it centred
-on the pad below for touchdown), pad_recall_pads (pads in its map), oscillation_damper (on/off) and
+pilot_override_persistent_engaged and pilot_override_climb_engaged (of those, steps for a persistent
+push, for a held climb), pad_recall (on/off), pad_recall_engaged (steps it steered to a mapped pad),
+pad_recall_touchdown and pad_recall_scout (of those, steps it centred on the pad below for touchdown, it
+looked beyond for a nearer pad before steering back to one behind), pad_recall_pads (pads in its map), oscillation_damper (on/off) and
 oscillation_damper_engaged (steps the oscillation damper, assist_policy.damper, replaced the actor's
 horizontal action).
 """
@@ -107,6 +108,10 @@ PARAMS = {
     'pilot_override_persist_floor_speed_mps': Param(OverrideConfig.persist_floor_speed_mps, 'The same over bare '
                                                     'floor under every leg in the depth image (m/s).', min=0.01,
                                                     max=10.0, dynamic=True),
+    'pilot_override_persist_climb_mps': Param(OverrideConfig.persist_climb_mps, 'Held climb: a climb commanded for '
+                                              'pilot_override_persist_s at at least this mean (m/s) that the vehicle '
+                                              'did not make passes until the pilot stops climbing; 0 = off.',
+                                              min=0.0, max=10.0, dynamic=True),
     'pad_recall': Param(True, 'Pad recall (assist_policy.recall, not learned): pads seen in the depth image are '
                               'mapped; when the pilot descends (or is low) over bare floor, the actor\'s horizontal '
                               'action is replaced by a push back to the nearest mapped pad.', dynamic=True),
@@ -116,6 +121,9 @@ PARAMS = {
                                            'mapped pad seen whole (and over it) during a descent, the pad recall '
                                            'centres on it instead of the actor (m; 0: off).',
                                            min=0.0, max=5.0, dynamic=True),
+    'pad_recall_scout_max_m': Param(RecallConfig.scout_max_m, 'Before steering back to a mapped pad behind, the '
+                                    'pad recall looks at the ground beyond not yet seen, where a nearer pad may be, '
+                                    'at most this far (horizontal m; 0: off).', min=0.0, max=10.0, dynamic=True),
     'oscillation_damper': Param(True, 'Oscillation damper (assist_policy.damper, not learned): while the pilot\'s '
                                       'held keys keep reversing (a pilot-induced oscillation), the actor\'s horizontal '
                                       'action is replaced by a velocity damper, a_xy = -gain v_xy.', dynamic=True),
@@ -136,7 +144,12 @@ OVERRIDE_FIELDS = {'pilot_override': ('enabled', bool), 'pilot_override_speed_mp
                    'pilot_override_climb_below_m': ('climb_below_m', float),
                    'pilot_override_reversal_s': ('reversal_s', float), 'pilot_override_persist_s': ('persist_s', float),
                    'pilot_override_persist_speed_mps': ('persist_speed_mps', float),
-                   'pilot_override_persist_floor_speed_mps': ('persist_floor_speed_mps', float)}
+                   'pilot_override_persist_floor_speed_mps': ('persist_floor_speed_mps', float),
+                   'pilot_override_persist_climb_mps': ('persist_climb_mps', float)}
+# node parameter -> (RecallConfig field, type)
+RECALL_FIELDS = {'pad_recall': ('enabled', bool), 'pad_recall_radius_m': ('radius_m', float),
+                 'pad_recall_touchdown_height_m': ('touchdown_height_m', float),
+                 'pad_recall_scout_max_m': ('scout_max_m', float)}
 
 
 def config_fields(params: dict, table: dict[str, tuple[str, type]]) -> dict:
@@ -208,10 +221,7 @@ class PolicyNode(Node):
                                                        min_climb_mps=float(self.p['floor_guard_climb_mps']),
                                                        edge_height_m=float(self.p['floor_guard_edge_height_m'])),
                                    override=OverrideConfig(**config_fields(self.p, OVERRIDE_FIELDS)),
-                                   recall=RecallConfig(
-                                       enabled=bool(self.p['pad_recall']),
-                                       radius_m=float(self.p['pad_recall_radius_m']),
-                                       touchdown_height_m=float(self.p['pad_recall_touchdown_height_m'])),
+                                   recall=RecallConfig(**config_fields(self.p, RECALL_FIELDS)),
                                    damper=DamperConfig(**config_fields(self.p, DAMPER_FIELDS)),
                                    **{f: self.p[k] for k, f in CORE_FIELDS.items()})
             self.core = PolicyCore(path, cfg)
@@ -274,12 +284,13 @@ class PolicyNode(Node):
             with self._lock:
                 self.core.override.cfg = dataclasses.replace(self.core.override.cfg, **override)
             self.diag.set('pilot_override', 'on' if self.core.override.cfg.enabled else 'off')
-        if {'pad_recall', 'pad_recall_radius_m', 'pad_recall_touchdown_height_m'} & set(changed):
+        recall = config_fields(changed, RECALL_FIELDS)
+        if recall:
             with self._lock:
-                r = self.core.recall.cfg            # shared with the map: changed in place
-                r.enabled = bool(changed.get('pad_recall', r.enabled))
-                r.radius_m = float(changed.get('pad_recall_radius_m', r.radius_m))
-                r.touchdown_height_m = float(changed.get('pad_recall_touchdown_height_m', r.touchdown_height_m))
+                r = self.core.recall.cfg            # shared with the map: changed in place, once validated
+                dataclasses.replace(r, **recall)
+                for name, value in recall.items():
+                    setattr(r, name, value)
             self.diag.set('pad_recall', 'on' if r.enabled else 'off')
         damper = config_fields(changed, DAMPER_FIELDS)
         if damper:
@@ -393,8 +404,10 @@ class PolicyNode(Node):
         self.diag.set('floor_guard_engaged', self.core.guard_engaged)
         self.diag.set('pilot_override_engaged', self.core.override_engaged)
         self.diag.set('pilot_override_persistent_engaged', self.core.persist_engaged)
+        self.diag.set('pilot_override_climb_engaged', self.core.climb_engaged)
         self.diag.set('pad_recall_engaged', self.core.recall_engaged)
         self.diag.set('pad_recall_touchdown', self.core.touchdown_engaged)
+        self.diag.set('pad_recall_scout', self.core.scout_engaged)
         self.diag.set('pad_recall_pads', len(self.core.recall.map.pads))
         self.diag.set('oscillation_damper_engaged', self.core.damper_engaged)
         if out.key in FAULT_KEYS:

@@ -82,13 +82,18 @@ class RecallConfig:
     camera_offset_m: float = SafetyConfig.camera_offset_m    # optical centre below base_link (as the guard's)
     vertical_fov_deg: float = SafetyConfig.vertical_fov_deg  # depth camera vertical field of view (square pixels)
     max_image_px: int = 128           # a larger depth image is subsampled to this many pixels on its long side
+    # scout (module docstring): look beyond before steering back to a pad behind (scout_max_m 0: off)
+    scout_max_m: float = 1.5          # at most this far from where the scout began (then back to the pad)
+    scout_margin_m: float = 0.4       # a pad nearer than the mapped one has its centre this much nearer still
+    scout_back_mps: float = 0.25      # a command this fast toward the pad behind: the pilot is coming back (no scout)
+    cell_m: float = 0.25              # ground seen: cells of this size (m) with a depth pixel on them
 
     def __post_init__(self) -> None:
         """Reject settings that would map nothing or steer everywhere (ValueError, one line)."""
         for name in ('radius_m', 'gain_xy', 'low_height_m', 'clear_height_m', 'clear_radius_m', 'climb_mps',
                      'leave_speed_mps', 'touchdown_height_m', 'min_top_m', 'max_top_m',
                      'top_band_m', 'min_spread_m', 'merge_radius_m', 'min_view_m', 'camera_offset_m',
-                     'vertical_fov_deg'):
+                     'vertical_fov_deg', 'scout_max_m', 'scout_margin_m', 'scout_back_mps'):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f'RecallConfig.{name} must be a finite number >= 0, got {v!r}')
@@ -96,6 +101,8 @@ class RecallConfig:
             raise ValueError(f'RecallConfig.max_top_m ({self.max_top_m}) must exceed min_top_m ({self.min_top_m})')
         if not (isinstance(self.max_image_px, int) and self.max_image_px >= 8):
             raise ValueError(f'RecallConfig.max_image_px must be an integer >= 8, got {self.max_image_px!r}')
+        if not (math.isfinite(self.cell_m) and self.cell_m > 0):
+            raise ValueError(f'RecallConfig.cell_m must be a finite number > 0, got {self.cell_m!r}')
         if not 0 < self.vertical_fov_deg < 180:
             raise ValueError(f'RecallConfig.vertical_fov_deg must be in (0, 180), got {self.vertical_fov_deg}')
 
@@ -116,10 +123,36 @@ class PadMap:
 
     cfg: RecallConfig = field(default_factory=RecallConfig)
     pads: list[MappedPad] = field(default_factory=list)
+    seen: set[tuple[int, int]] = field(default_factory=set)    # ground cells (cell_m) a depth pixel fell on
 
     def reset(self) -> None:
-        """Forget every pad (new landing)."""
+        """Forget every pad and the ground seen (new landing)."""
         self.pads.clear()
+        self.seen.clear()
+
+    def unseen_near(self, xy: np.ndarray, radius_m: float, away_from: np.ndarray,
+                    nearest_to: np.ndarray | None = None) -> np.ndarray | None:
+        """Centre of a cell not yet seen within `radius_m` of `xy` on its far side from `away_from`, or None.
+
+        The far side: within 45 degrees of the line from `away_from` (a pad behind) through `xy`. Of those
+        cells, the one nearest to `nearest_to` (default `xy`). None: all of them seen.
+        """
+        c = self.cfg.cell_m
+        xy = np.asarray(xy, dtype=float)[:2]
+        near = xy if nearest_to is None else np.asarray(nearest_to, dtype=float)[:2]
+        d = xy - np.asarray(away_from, dtype=float)[:2]
+        d = d / max(float(np.hypot(d[0], d[1])), 1e-9)
+        n = int(math.ceil(radius_m / c))
+        i0, j0 = int(math.floor(xy[0] / c)), int(math.floor(xy[1] / c))
+        ij = np.stack(np.meshgrid(np.arange(i0 - n, i0 + n + 1), np.arange(j0 - n, j0 + n + 1)), -1).reshape(-1, 2)
+        off = (ij + 0.5) * c - xy
+        r = np.hypot(off[:, 0], off[:, 1])
+        keep = (r < radius_m) & (off @ d > _COS_45 * r)
+        keep &= np.array([(int(i), int(j)) not in self.seen for i, j in ij])
+        if not keep.any():
+            return None
+        cand = xy + off[keep]
+        return cand[int(np.argmin(np.hypot(*(cand - near).T)))]
 
     def points(self, depth: np.ndarray, position: np.ndarray, quaternion: np.ndarray | None) -> np.ndarray:
         """HxWx3 odom points of the depth pixels (NaN where the depth is a hole)."""
@@ -147,6 +180,11 @@ class PadMap:
         if stride > 1:
             depth = depth[::stride, ::stride]     # a RealSense frame (848x480): ~14 ms -> ~1 ms, same pads
         pts = self.points(depth, position, quaternion)
+        xy = pts[..., :2].reshape(-1, 2)
+        xy = xy[np.all(np.isfinite(xy), axis=1)]
+        if len(xy):
+            cells = np.unique(np.floor(xy / c.cell_m).astype(np.int64), axis=0)
+            self.seen.update(map(tuple, cells.tolist()))
         zw = pts[..., 2]
         raised = (np.isfinite(zw) & (zw > c.min_top_m)).astype(np.uint8)
         n, labels, stats, _ = cv2.connectedComponentsWithStats(raised, connectivity=4)
@@ -199,10 +237,15 @@ class PadRecall:
         self.floor = floor_guard or FloorGuard()          # its floor_below test (its settings: legs, tolerance)
         self._centre = ScriptedOracle(ScriptedConfig(gain_xy=self.cfg.gain_xy))
         self.mode: str | None = None                       # the rule that acted in the last apply (or None)
+        # the pad scouted beyond, where the scout began and how far from there a nearer pad's centre would be
+        self._scout: tuple[MappedPad, np.ndarray, float] | None = None
+        self._scouted: list[MappedPad] = []                # pads whose far side was looked at (or given up on)
 
     def reset(self) -> None:
-        """Forget the map (new landing)."""
+        """Forget the map and the scouting (new landing)."""
         self.map.reset()
+        self._scout = None
+        self._scouted.clear()
 
     def observe(self, depth: np.ndarray, position: np.ndarray, quaternion: np.ndarray | None = None) -> None:
         """Map this frame's pads (call with every depth frame, whether or not the rule then acts)."""
@@ -217,6 +260,8 @@ class PadRecall:
         on the pad below during the last of a descent); None when neither did.
         """
         c = self.cfg
+        if self.mode != 'scout':
+            self._scout = None        # a scout goes on only from one step to the next (a pause starts a new one)
         self.mode = None
         u = np.asarray(u, dtype=float).reshape(3)
         p = np.asarray(position, dtype=float).reshape(3)
@@ -227,11 +272,14 @@ class PadRecall:
         if pad is None:
             return None
         horiz, height = math.hypot(pad.xyz[0] - p[0], pad.xyz[1] - p[1]), float(p[2] - pad.xyz[2])
+        scouted = any(q is pad for q in self._scouted)
+        scouting = scouted or (self._scout is not None and self._scout[0] is pad)
+        radius = c.radius_m + (c.scout_max_m if scouting else 0.0)    # a scout takes it this much farther
         if horiz < c.clear_radius_m:        # over it: only the touchdown rule (a 'floor' here is the blind range)
             if not (pad.whole and height < c.touchdown_height_m and u[2] + a[2] < 0.0):
                 return None
             mode = 'touchdown'
-        elif horiz > c.radius_m or not (u[2] < 0.0 or height < c.low_height_m):
+        elif horiz > radius or not (u[2] < 0.0 or height < c.low_height_m):
             return None                     # too far, or idle
         else:
             mode = 'recall'
@@ -244,13 +292,46 @@ class PadRecall:
         if mode == 'recall' and self.floor.floor_below(depth, float(p[2])) is not True:
             return None
         u_odom = np.array([*_rotate(u[:2], yaw), u[2]])
-        v = self._centre.velocity(pad.xyz, p, u_odom)          # odom; only its horizontal part is used
+        target = pad.xyz
+        if mode == 'recall' and not scouted:
+            spot = self._scout_spot(pad, p, horiz, to_pad, (u_odom, _rotate(np.asarray(mean_u, dtype=float)[:2], yaw)))
+            if spot is not None:
+                target, mode = np.array([spot[0], spot[1], pad.xyz[2]]), 'scout'
+        v = self._centre.velocity(target, p, u_odom)           # odom; only its horizontal part is used
         a[:2] = _rotate(v[:2], -yaw)                            # back into base_link
-        if mode == 'recall' and height < c.clear_height_m:
+        if mode != 'touchdown' and height < c.clear_height_m:
             a[2] = 2.0 * max(float(u[2]), c.climb_mps) - u[2]     # V_z = max(u_z, climb): over its side first
+        elif mode == 'scout':
+            a[2] = 2.0 * max(float(u[2]), 0.0) - u[2]            # V_z = max(u_z, 0): the camera sees farther higher
         ms = np.asarray(max_speed, dtype=float).reshape(3)
         self.mode = mode
         return np.clip(a, -ms, ms)
+
+
+    def _scout_spot(self, pad: MappedPad, p: np.ndarray, horiz: float, to_pad: np.ndarray,
+                    commands: tuple[np.ndarray, np.ndarray]) -> np.ndarray | None:
+        """Where to look before steering back to `pad` (ground not yet seen beyond), or None: go back now."""
+        c = self.cfg
+        if c.scout_max_m <= 0:
+            return None
+        unit = to_pad / max(horiz, 1e-9)
+        if any(np.all(np.isfinite(cmd[:2])) and float(cmd[:2] @ unit) > c.scout_back_mps for cmd in commands):
+            return None                 # the pilot is coming back to it: it knows the pad is behind
+        going = self._scout is not None and self._scout[0] is pad
+        if not going:
+            self._scout = (pad, p[:2].copy(), horiz - c.scout_margin_m)
+        _, start, reach = self._scout
+        spot = None
+        if float(np.hypot(*(p[:2] - start))) < c.scout_max_m:
+            spot = self.map.unseen_near(start, reach, pad.xyz[:2], nearest_to=p[:2])
+        if spot is None:
+            if going:
+                self._scouted.append(pad)   # looked (or went as far as it may): back to the pad from now on
+            self._scout = None
+        return spot
+
+
+_COS_45 = math.cos(math.radians(45.0))
 
 
 def _thinnest_spread(xy: np.ndarray) -> float:

@@ -221,6 +221,42 @@ def test_policy_core_passes_a_persistent_push_and_says_so(tmp_path):
     assert core.persist_engaged == core.override_engaged == sum(o.key == 'pilot_override' for o in outs) >= 15
 
 
+def test_a_held_climb_the_vehicle_does_not_make_passes_until_the_pilot_stops_climbing():
+    ov = PilotOverride()
+    up = [0.5, 0.0, 0.5]                                  # low over a pad: on and up; the actor pushes it down
+    out = push(ov, 0.0, 2.5, up, [0.0, 0.0, -0.05], altitude=1.7)
+    assert all(a is None for a in out[:40])               # under 2 s: the actor's action stands
+    assert all(a is not None for a in out[41:]) and ov.mode == 'climb'
+    np.testing.assert_allclose(out[-1], [0.5, 0.0, 0.5])  # the held key's yield low: V = u (the pilot's climb)
+    # it holds while the climb goes on, though the vehicle now rises (no re-timing against the actor)
+    assert all(a is not None for a in push(ov, 2.55, 2.0, up, [0.0, 0.0, 0.5], altitude=1.9))
+    assert push(ov, 4.6, 0.0, [0.5, 0.0, 0.0], [0.0, 0.0, 0.5], altitude=2.1)[-1] is None   # stopped climbing
+    assert ov.mode is None
+    # not: a climb the vehicle makes, one under persist_climb_mps, one interrupted by a descent, off
+    assert push(PilotOverride(), 0.0, 3.0, up, [0.0, 0.0, 0.3], altitude=1.7)[-1] is None
+    assert push(PilotOverride(), 0.0, 3.0, [0, 0, 0.2], [0.0, 0.0, -0.1], altitude=1.7)[-1] is None
+    ov = PilotOverride()
+    push(ov, 0.0, 1.0, up, [0.0, 0.0, -0.05], altitude=1.7)
+    push(ov, 1.05, 0.0, [0.5, 0.0, -0.5], [0.0, 0.0, -0.05], altitude=1.7)
+    assert push(ov, 1.1, 1.5, up, [0.0, 0.0, -0.05], altitude=1.7)[-1] is None
+    for cfg in (OverrideConfig(persist_climb_mps=0.0), OverrideConfig(persist_s=0.0), OverrideConfig(enabled=False)):
+        assert push(PilotOverride(cfg), 0.0, 3.0, up, [0.0, 0.0, -0.05], altitude=1.7)[-1] is None
+
+
+def test_policy_core_passes_a_held_climb_and_says_so(tmp_path):
+    path = _helpers.constant_actor(tmp_path / 'down.pt', [0.0, 0.0, -0.99])   # an actor landing it where it is
+    core = PolicyCore(path, PolicyCoreConfig(mode='latent'))
+    for k in range(60):                                    # 3 s of climb asked, 1.5 m up, the vehicle sinking
+        t = 1.0 + 0.05 * k
+        core.set_odom(t, [0, 0, 1.5], [0, 0, -0.05])
+        core.set_pilot(t, [0.0, 0.0, 0.5])
+        core.set_latent(t, np.zeros(_helpers.LATENT))
+        out = core.step(t)
+    assert out.key == 'pilot_override' and 'held climb' in out.reason
+    assert out.velocity[2] == pytest.approx(0.5)           # the pilot's climb
+    assert core.climb_engaged == core.override_engaged >= 15 and core.persist_engaged == 0
+
+
 @pytest.mark.parametrize('surface, engages', [('floor', True), ('pad', False)])
 def test_policy_core_reads_bare_floor_from_the_depth_image(tmp_path, surface, engages):
     from assist_policy.safety import SafetyConfig

@@ -121,8 +121,8 @@ def _mapped(world, *positions) -> PadRecall:
 
 
 def test_a_descent_over_the_floor_is_steered_back_to_the_pad_it_passed(world):
-    r = _mapped(world, [5.0, 0.5, 3.5])
     pos = np.array([6.6, 0.4, 2.5])                      # 1.6 m past the pad, floor beneath
+    r = _mapped(world, [5.0, 0.5, 3.5], pos)             # (in view from here: the ground 1.2 m beyond, no pad)
     u = np.array([0.0, 0.0, -0.5])
     actor = np.array([0.2, 0.1, -0.3])
     a = r.apply(u, np.zeros(3), actor, _frame(world, pos), pos, None, MAX_SPEED)
@@ -154,6 +154,58 @@ def test_the_rule_stays_out_when_idle_high_over_it_leaving_or_disabled(world):
     off.observe(_frame(world, [5.0, 0.5, 3.5]), np.array([5.0, 0.5, 3.5]))
     assert off.map.pads == []
     assert off.apply(np.array([0, 0, -0.5]), np.zeros(3), actor, depth, pos, None, MAX_SPEED) is None
+
+
+def test_a_pad_behind_is_gone_back_to_only_after_a_look_beyond_where_a_nearer_one_may_be(world):
+    # a glide pilot passed pad 0 and descends 2 m on, short of pad 1 (out of view: the camera sees ~1 m ahead)
+    start = np.array([7.3, -0.2, 1.9])                         # 2.3 m past pad 0's centre, 1.7 m short of pad 1's
+    r = _mapped(world, [5.0, 0.5, 3.5], [6.0, 0.3, 2.4], start)
+    assert len(r.map.pads) == 1
+    u = np.array([0.0, 0.0, -0.4])
+    a = r.apply(u, np.zeros(3), np.array([-0.8, 0.0, -0.6]), _frame(world, start), start, None, MAX_SPEED)
+    assert r.mode == 'scout' and a[0] > 0.5                   # on, not back (the actor pushed back)
+    assert blend(u, a)[2] == pytest.approx(0.0)                # no descent while it looks: the camera sees farther
+    pos = start.copy()
+    for _ in range(40):                                        # fly what it asks (20 Hz), mapping as it goes
+        if r.mode != 'scout':
+            break
+        pos[:2] += 0.05 * blend(u, a)[:2]
+        r.observe(_frame(world, pos), pos)
+        a = r.apply(u, np.zeros(3), np.zeros(3), _frame(world, pos), pos, None, MAX_SPEED)
+    assert r.mode == 'recall' and len(r.map.pads) == 2         # pad 1 found, nearer: steered to it
+    assert pos[0] - start[0] < 1.2 and a[0] > 0.0                # found before scout_max_m
+    # a pilot coming back toward the pad behind knows it is there: straight back
+    back = _mapped(world, [5.0, 0.5, 3.5], start)
+    a = back.apply(np.array([-0.5, 0.0, -0.4]), np.zeros(3), np.zeros(3), _frame(world, start), start, None, MAX_SPEED)
+    assert back.mode == 'recall' and a[0] < 0
+    off = PadRecall(RecallConfig(scout_max_m=0.0))
+    for p in ([5.0, 0.5, 3.5], start):
+        off.observe(_frame(world, p), np.array(p))
+    assert off.apply(u, np.zeros(3), np.zeros(3), _frame(world, start), start, None, MAX_SPEED)[0] < 0
+    assert off.mode == 'recall'
+
+
+def test_nothing_beyond_the_scout_goes_back_to_the_pad_as_far_as_it_went(world):
+    start = np.array([11.0, -0.5, 1.9])                        # 2 m past the last pad (pad 1), nothing beyond
+    r = _mapped(world, [9.0, -0.5, 3.0], start)
+    u = np.array([0.0, 0.0, -0.4])
+    pos, modes = start.copy(), []
+    for _ in range(200):
+        a = r.apply(u, np.zeros(3), np.zeros(3), _frame(world, pos), pos, None, MAX_SPEED)
+        modes.append(r.mode)
+        if r.mode != 'scout':
+            break
+        pos[:2] += 0.05 * blend(u, a)[:2]
+        r.observe(_frame(world, pos), pos)
+    assert modes[0] == 'scout' and modes[-1] == 'recall' and len(r.map.pads) == 1
+    assert 0.1 < pos[0] - start[0] <= RecallConfig.scout_max_m     # looked ahead until it saw 1.6 m beyond
+    assert a[0] < 0                                            # then back to pad 1
+    far = pos + np.array([1.0, 0.0, 0.0])                      # the pad now 3.x m off: still in reach once scouted
+    r.observe(_frame(world, far), far)
+    assert r.apply(u, np.zeros(3), np.zeros(3), _frame(world, far), far, None, MAX_SPEED) is not None
+    assert r.mode == 'recall'
+    r.reset()
+    assert r.map.seen == set() and r.map.pads == []
 
 
 def test_low_beside_the_pad_it_climbs_over_its_side_first(world):
@@ -202,6 +254,7 @@ def test_heading_rotates_the_steering_into_base_link(world):
     r = _mapped(world, [5.0, 0.5, 3.5])
     pos = np.array([6.6, 0.5, 2.5])
     q = _quat(0.0, 0.0, math.pi / 2)                           # base_link x points along odom +y
+    r.observe(_frame(world, pos, q), pos, q)                   # (the ground beyond in view: no pad nearer)
     a = r.apply(np.array([0, 0, -0.5]), np.zeros(3), np.zeros(3), _frame(world, pos, q), pos, q, MAX_SPEED)
     assert a is not None and a[1] == pytest.approx(1.0) and abs(a[0]) < 0.2   # odom -x = base_link +y
 
@@ -240,6 +293,22 @@ def test_policy_core_applies_the_recall_and_reports_it(tmp_path, world):
     assert core.rejections['odom_orientation'] == 1
     core.set_odom(t, [0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0])        # unset: level
     assert core._attitude is None
+
+
+def test_policy_core_scouts_beyond_before_going_back_and_says_so(tmp_path, world):
+    path = constant_actor(tmp_path / 'still.pt', [0.0, 0.0, 0.0])
+    core = PolicyCore(path, PolicyCoreConfig(mode='latent'))
+    q = _quat(0.0, 0.0, 0.0)
+    for k, pos in enumerate(([5.0, 0.5, 3.5], [7.3, -0.2, 1.9])):   # over pad 0 (mapped), then 2.3 m past it
+        t = 0.05 * (k + 1)
+        core.set_odom(t, pos, [0.0, 0.0, 0.0], q)
+        core.set_depth(t, _frame(world, pos))
+        core.set_latent(t, np.zeros(LATENT))
+        core.set_pilot(t, [0.0, 0.0, -0.4])
+        out = core.step(t)
+    assert out.key == 'pad_recall' and 'looking beyond' in out.reason
+    assert out.velocity[0] > 0.3 and out.velocity[2] == pytest.approx(0.0)   # on, holding its height
+    assert core.scout_engaged == core.recall_engaged == 1
 
 
 def test_env_steers_a_descent_past_the_last_pad_back_and_records_it():
