@@ -44,6 +44,16 @@ alone: fine positioning (keyboard taps near the aim: <= 0.5 m/s per axis, and th
 overshoot (the bang-bang family holds its key past the aim for <= 0.9 s, then reverses), the last metre,
 and a pilot the assistant is not holding back.
 
+Held climb (``persist_climb_mps`` > 0, 0.3 m/s by default; timed by ``persist_s``): when for the last
+``persist_s`` the pilot has commanded a climb (every sample up, the mean at least ``persist_climb_mps``)
+and the vehicle rose at less than ``held_back_fraction`` of it, the same yield engages and holds for as
+long as the pilot keeps commanding the climb (no re-timing once the vehicle rises). No height limit: a
+climb is never landing. Why (traced with the held-out low_flyer family): the actor behaves as if being low
+over a pad meant "land here"; a pilot cruising low over the nearer pads who climbed back to its height
+was pushed down onto the first pad against its climb (actor a_z -0.6 against u_z +0.5: the vehicle sank
+for 8 s and landed there). What it leaves alone: a short climb (a keyboard pilot over its aim taps up
+for < 2 s), one the vehicle makes, a pilot who also commands down in the window.
+
 It uses only what the actor observes (u and its window mean), odometry altitude and velocity, the depth
 image's surface test (assist_policy.safety) and time. Pure numpy; no rclpy.
 """
@@ -109,7 +119,7 @@ class PilotOverride:
     """The rule with its memory of recent held keys (for reversals) and commands (for a persistent push).
 
     ``reset`` at each new landing. ``mode`` says which test engaged on the last ``apply``: 'held_key',
-    'persistent' or None.
+    'persistent', 'climb' or None.
     """
 
     def __init__(self, cfg: OverrideConfig | None = None):

@@ -33,6 +33,25 @@ a_xy = 2 gain (pad - p)_xy - u_xy, clipped); its vertical action is kept, except
 rather than into it. Nearer the centre than ``clear_radius_m`` the actor sees the pad (and a "floor"
 there is the camera's blind range). The floor guard still acts after this rule.
 
+Scout (``mode`` 'scout', ``scout_max_m`` > 0): the camera looks straight down and sees only about its
+height x 0.55 to each side, so the map holds the pads the vehicle flew over, and a pad ahead may be
+nearer than the one behind without ever having been in view. When the recall would steer back to a pad
+and some cells (``cell_m``) of ground were never seen (no depth pixel of any frame fell on them) within
+45 degrees of the line from that pad through the vehicle and within D - ``scout_margin_m`` of the spot
+where the scout began, D being that spot's distance to the pad (a pad there would be the nearer), it
+first steers toward the nearest such cell, holding the height (V_z = max(u_z, 0): the lower, the less
+the camera sees), until a nearer pad is mapped (the nearest-pad rule then steers to it), every such cell
+was seen, or it went ``scout_max_m`` from that spot; then back to the pad, which from then on is
+recalled from up to ``radius_m`` + ``scout_max_m``. Not when the pilot commands (now or its 1 s mean) at
+more than ``scout_back_mps`` toward the pad behind (it knows the pad is there); a step in which the
+recall is consulted and does not act (the pilot stops descending, leaves) ends a scout, and a new one
+starts from where the vehicle is then. Why (traced with the held-out glide family): a pilot who passed
+the first pad at transit speed and descended short of the second (its aim misjudged in depth, as the
+paper's novices do) was taken 2.4 m back to the first pad, 1.9 m from the second; the reference, which
+knows where every pad is, takes it on to the second. The same signature (a descent past a pad, the floor
+below) is a pilot who overshot the last pad (the case the recall exists for): the scout costs that pilot
+a look of up to ``scout_max_m`` before it goes back.
+
 Touchdown (``mode`` 'touchdown', ``touchdown_height_m`` > 0): nearer a mapped pad's centre than
 ``clear_radius_m``, lower than ``touchdown_height_m`` over its top, with the pad seen whole at least once
 and a descent under way (u_z + a_z < 0: the blended V descends while the actor acts), the actor's
