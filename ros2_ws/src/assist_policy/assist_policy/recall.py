@@ -66,6 +66,7 @@ Pure numpy + OpenCV; no rclpy.
 """
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field
 
@@ -76,6 +77,8 @@ from assist_sim.core.geometry import R_BODY_FROM_OPTICAL, quat_to_matrix, yaw_ro
 
 from .safety import FloorGuard, SafetyConfig
 from .scripted import ScriptedConfig, ScriptedOracle
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -106,13 +109,15 @@ class RecallConfig:
     scout_margin_m: float = 0.4       # a pad nearer than the mapped one has its centre this much nearer still
     scout_back_mps: float = 0.25      # a command this fast toward the pad behind: the pilot is coming back (no scout)
     cell_m: float = 0.25              # ground seen: cells of this size (m) with a depth pixel on them
+    max_seen_cells: int = 100_000     # more cells seen (a long flight): those farther than keep_seen_m are forgotten
+    keep_seen_m: float = 20.0         # ... (a landing covers ~2000 cells; a scout looks < 5 m away)
 
     def __post_init__(self) -> None:
         """Reject settings that would map nothing or steer everywhere (ValueError, one line)."""
         for name in ('radius_m', 'gain_xy', 'low_height_m', 'clear_height_m', 'clear_radius_m', 'climb_mps',
                      'leave_speed_mps', 'touchdown_height_m', 'min_top_m', 'max_top_m',
                      'top_band_m', 'min_spread_m', 'merge_radius_m', 'min_view_m', 'camera_offset_m',
-                     'vertical_fov_deg', 'scout_max_m', 'scout_margin_m', 'scout_back_mps'):
+                     'vertical_fov_deg', 'scout_max_m', 'scout_margin_m', 'scout_back_mps', 'keep_seen_m'):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f'RecallConfig.{name} must be a finite number >= 0, got {v!r}')
@@ -122,6 +127,8 @@ class RecallConfig:
             raise ValueError(f'RecallConfig.max_image_px must be an integer >= 8, got {self.max_image_px!r}')
         if not (math.isfinite(self.cell_m) and self.cell_m > 0):
             raise ValueError(f'RecallConfig.cell_m must be a finite number > 0, got {self.cell_m!r}')
+        if not (isinstance(self.max_seen_cells, int) and self.max_seen_cells >= 1000):
+            raise ValueError(f'RecallConfig.max_seen_cells must be an integer >= 1000, got {self.max_seen_cells!r}')
         if not 0 < self.vertical_fov_deg < 180:
             raise ValueError(f'RecallConfig.vertical_fov_deg must be in (0, 180), got {self.vertical_fov_deg}')
 
@@ -204,6 +211,8 @@ class PadMap:
         if len(xy):
             cells = np.unique(np.floor(xy / c.cell_m).astype(np.int64), axis=0)
             self.seen.update(map(tuple, cells.tolist()))
+            if len(self.seen) > c.max_seen_cells:
+                self._forget_far(np.asarray(position, dtype=float)[:2])
         zw = pts[..., 2]
         raised = (np.isfinite(zw) & (zw > c.min_top_m)).astype(np.uint8)
         n, labels, stats, _ = cv2.connectedComponentsWithStats(raised, connectivity=4)
@@ -225,6 +234,15 @@ class PadMap:
             self._add(xyz, whole, area)
             seen += 1
         return seen
+
+    def _forget_far(self, xy: np.ndarray) -> None:
+        """Forget the ground seen farther than keep_seen_m from `xy` (bounds the memory of a long flight)."""
+        c = self.cfg
+        keep = (c.keep_seen_m / c.cell_m) ** 2
+        i0, j0 = xy[0] / c.cell_m - 0.5, xy[1] / c.cell_m - 0.5
+        self.seen = {(i, j) for i, j in self.seen if (i - i0) ** 2 + (j - j0) ** 2 <= keep}
+        log.info('pad map: %d ground cells seen within %.0f m kept, farther ones forgotten', len(self.seen),
+                 c.keep_seen_m)
 
     def _add(self, xyz: np.ndarray, whole: bool, area: int) -> None:
         for pad in self.pads:
@@ -321,7 +339,7 @@ class PadRecall:
         if mode != 'touchdown' and height < c.clear_height_m:
             a[2] = 2.0 * max(float(u[2]), c.climb_mps) - u[2]     # V_z = max(u_z, climb): over its side first
         elif mode == 'scout':
-            a[2] = 2.0 * max(float(u[2]), 0.0) - u[2]            # V_z = max(u_z, 0): the camera sees farther higher
+            a[2] = 2.0 * max(float(u[2]), 0.0) - u[2]            # V_z = max(u_z, 0): no lower while it looks
         ms = np.asarray(max_speed, dtype=float).reshape(3)
         self.mode = mode
         return np.clip(a, -ms, ms)

@@ -259,6 +259,19 @@ def test_heading_rotates_the_steering_into_base_link(world):
     assert a is not None and a[1] == pytest.approx(1.0) and abs(a[0]) < 0.2   # odom -x = base_link +y
 
 
+def test_the_ground_seen_is_bounded_on_a_long_flight():
+    m = PadMap(RecallConfig(max_seen_cells=1000, keep_seen_m=5.0))
+    floor = np.full((64, 64), 2.95, np.float32)
+    for x in np.arange(0.0, 40.0, 1.0):                      # 40 m of bare floor from 3 m (~190 cells a frame)
+        m.update(floor, np.array([x, 0.0, 3.0]))
+        assert len(m.seen) <= 1000 + 200
+    xs = [i * 0.25 for i, _ in m.seen]
+    assert min(xs) >= 39.0 - 5.0 - 0.25 and max(xs) > 40.0   # only what lies within 5 m of the last pose is kept
+    assert m.unseen_near(np.array([39.0, 0.0]), 1.0, np.array([30.0, 0.0])) is None   # around it: still seen
+    with pytest.raises(ValueError):
+        RecallConfig(max_seen_cells=10)
+
+
 def test_config_rejects_nonsense():
     with pytest.raises(ValueError):
         RecallConfig(radius_m=float('nan'))
