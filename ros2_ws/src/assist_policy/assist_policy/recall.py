@@ -43,14 +43,14 @@ first steers toward the nearest such cell, holding the height (V_z = max(u_z, 0)
 the camera sees), until a nearer pad is mapped (the nearest-pad rule then steers to it), every such cell
 was seen, or it went ``scout_max_m`` from that spot; then back to the pad, which from then on is
 recalled from up to ``radius_m`` + ``scout_max_m``. Not when the pilot commands (now or its 1 s mean) at
-more than ``scout_back_mps`` toward the pad behind (it knows the pad is there); a step in which the
-recall is consulted and does not act (the pilot stops descending, leaves) ends a scout, and a new one
-starts from where the vehicle is then. Why (traced with the held-out glide family): a pilot who passed
-the first pad at transit speed and descended short of the second (its aim misjudged in depth, as the
-paper's novices do) was taken 2.4 m back to the first pad, 1.9 m from the second; the reference, which
-knows where every pad is, takes it on to the second. The same signature (a descent past a pad, the floor
-below) is a pilot who overshot the last pad (the case the recall exists for): the scout costs that pilot
-a look of up to ``scout_max_m`` before it goes back.
+more than ``scout_back_mps`` toward the pad behind (it knows the pad is there); a scout interrupted (the
+pilot stops descending or leaves, another rule acts) goes on when the rule acts again, from the same
+spot within the same distance: one look per pad. Why (traced with the held-out glide family): a pilot
+who passed the first pad at transit speed and descended short of the second (its aim misjudged in depth,
+as the paper's novices do) was taken 2.4 m back to the first pad, 1.9 m from the second; the reference,
+which knows where every pad is, takes it on to the second. The same signature (a descent past a pad, the
+floor below) is a pilot who overshot the last pad (the case the recall exists for): the scout costs that
+pilot a look of up to ``scout_max_m`` before it goes back.
 
 Touchdown (``mode`` 'touchdown', ``touchdown_height_m`` > 0): nearer a mapped pad's centre than
 ``clear_radius_m``, lower than ``touchdown_height_m`` over its top, with the pad seen whole at least once
@@ -274,15 +274,12 @@ class PadRecall:
         self.floor = floor_guard or FloorGuard()          # its floor_below test (its settings: legs, tolerance)
         self._centre = ScriptedOracle(ScriptedConfig(gain_xy=self.cfg.gain_xy))
         self.mode: str | None = None                       # the rule that acted in the last apply (or None)
-        # the pad scouted beyond, where the scout began and how far from there a nearer pad's centre would be
-        self._scout: tuple[MappedPad, np.ndarray, float] | None = None
-        self._scouted: list[MappedPad] = []                # pads whose far side was looked at (or given up on)
+        self._scouts: list[Scout] = []                     # one per pad scouted beyond (this landing)
 
     def reset(self) -> None:
         """Forget the map and the scouting (new landing)."""
         self.map.reset()
-        self._scout = None
-        self._scouted.clear()
+        self._scouts.clear()
 
     def observe(self, depth: np.ndarray, position: np.ndarray, quaternion: np.ndarray | None = None) -> None:
         """Map this frame's pads (call with every depth frame, whether or not the rule then acts)."""
@@ -297,8 +294,6 @@ class PadRecall:
         on the pad below during the last of a descent); None when neither did.
         """
         c = self.cfg
-        if self.mode != 'scout':
-            self._scout = None        # a scout goes on only from one step to the next (a pause starts a new one)
         self.mode = None
         u = np.asarray(u, dtype=float).reshape(3)
         p = np.asarray(position, dtype=float).reshape(3)
@@ -309,9 +304,11 @@ class PadRecall:
         if pad is None:
             return None
         horiz, height = math.hypot(pad.xyz[0] - p[0], pad.xyz[1] - p[1]), float(p[2] - pad.xyz[2])
-        scouted = any(q is pad for q in self._scouted)
-        scouting = scouted or (self._scout is not None and self._scout[0] is pad)
-        radius = c.radius_m + (c.scout_max_m if scouting else 0.0)    # a scout takes it this much farther
+        scout = next((s for s in self._scouts if s.pad is pad), None)
+        if scout is not None and (scout.done or math.hypot(*(p[:2] - scout.start)) < c.scout_max_m):
+            radius = c.radius_m + c.scout_max_m         # the scout takes it (took it) this much farther
+        else:
+            radius = c.radius_m
         if horiz < c.clear_radius_m:        # over it: only the touchdown rule (a 'floor' here is the blind range)
             if not (pad.whole and height < c.touchdown_height_m and u[2] + a[2] < 0.0):
                 return None
@@ -330,8 +327,9 @@ class PadRecall:
             return None
         u_odom = np.array([*_rotate(u[:2], yaw), u[2]])
         target = pad.xyz
-        if mode == 'recall' and not scouted:
-            spot = self._scout_spot(pad, p, horiz, to_pad, (u_odom, _rotate(np.asarray(mean_u, dtype=float)[:2], yaw)))
+        if mode == 'recall' and not (scout is not None and scout.done):
+            spot = self._scout_spot(pad, scout, p, horiz, to_pad,
+                                    (u_odom, _rotate(np.asarray(mean_u, dtype=float)[:2], yaw)))
             if spot is not None:
                 target, mode = np.array([spot[0], spot[1], pad.xyz[2]]), 'scout'
         v = self._centre.velocity(target, p, u_odom)           # odom; only its horizontal part is used
@@ -345,7 +343,7 @@ class PadRecall:
         return np.clip(a, -ms, ms)
 
 
-    def _scout_spot(self, pad: MappedPad, p: np.ndarray, horiz: float, to_pad: np.ndarray,
+    def _scout_spot(self, pad: MappedPad, scout: Scout | None, p: np.ndarray, horiz: float, to_pad: np.ndarray,
                     commands: tuple[np.ndarray, np.ndarray]) -> np.ndarray | None:
         """Where to look before steering back to `pad` (ground not yet seen beyond), or None: go back now."""
         c = self.cfg
@@ -354,18 +352,27 @@ class PadRecall:
         unit = to_pad / max(horiz, 1e-9)
         if any(np.all(np.isfinite(cmd[:2])) and float(cmd[:2] @ unit) > c.scout_back_mps for cmd in commands):
             return None                 # the pilot is coming back to it: it knows the pad is behind
-        going = self._scout is not None and self._scout[0] is pad
-        if not going:
-            self._scout = (pad, p[:2].copy(), horiz - c.scout_margin_m)
-        _, start, reach = self._scout
+        new = scout is None
+        if new:
+            scout = Scout(pad, p[:2].copy(), horiz - c.scout_margin_m)
         spot = None
-        if float(np.hypot(*(p[:2] - start))) < c.scout_max_m:
-            spot = self.map.unseen_near(start, reach, pad.xyz[:2], nearest_to=p[:2])
-        if spot is None:
-            if going:
-                self._scouted.append(pad)   # looked (or went as far as it may): back to the pad from now on
-            self._scout = None
+        if math.hypot(*(p[:2] - scout.start)) < c.scout_max_m:
+            spot = self.map.unseen_near(scout.start, scout.reach, pad.xyz[:2], nearest_to=p[:2])
+        if new and spot is not None:
+            self._scouts.append(scout)
+        elif not new and spot is None:
+            scout.done = True           # looked (or went as far as it may): back to the pad from now on
         return spot
+
+
+@dataclass
+class Scout:
+    """A look beyond a pad: from where it began, how far a nearer pad's centre would be, whether it is over."""
+
+    pad: MappedPad
+    start: np.ndarray
+    reach: float
+    done: bool = False
 
 
 _COS_45 = math.cos(math.radians(45.0))
