@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import csv
 import logging
-import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,7 +26,7 @@ from scipy import stats
 
 from assist_sim.atomic import atomic_path
 
-from .evaluate import read_landings
+from .evaluate import mean_se, read_landings
 
 log = logging.getLogger(__name__)
 PAIR_FIELDS = ('beta', 'seed', 'pilot', 'outcome_a', 'outcome_b', 'error_a', 'error_b', 'delta_error')
@@ -79,9 +78,8 @@ def _fmt(rows: list[dict]) -> str:
 def paired_stats(pairs: list[tuple[dict, dict]]) -> dict:
     """Paired statistics of (a, b) landing rows: error difference b - a, success and crash flips, tests."""
     d = np.array([b['error_m'] - a['error_m'] for a, b in pairs], dtype=float)
-    n = len(d)
-    out = {'n': n, 'delta_error': float(d.mean()),
-           'delta_se': float(d.std(ddof=1) / math.sqrt(n)) if n > 1 else float('nan')}
+    delta, se = mean_se(d)
+    out = {'n': len(d), 'delta_error': delta, 'delta_se': se}
     nonzero = d[np.abs(d) > 1e-9]
     out['wilcoxon_p'] = float(stats.wilcoxon(nonzero).pvalue) if len(nonzero) >= 1 else 1.0
     for key in ('success', 'crash'):

@@ -284,6 +284,12 @@ def summarize(rows: list[dict]) -> dict:
                                  if any(misaimed) else float('nan'))}
 
 
+def mean_se(d: np.ndarray) -> tuple[float, float]:
+    """Mean of paired differences `d` and its standard error (nan for fewer than two)."""
+    d = np.asarray(d, dtype=float)
+    return float(d.mean()), float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float('nan')
+
+
 def paired_vs_unassisted(rows_by_cond: dict[str, list[dict]], worse_m: float = 0.25) -> dict[str, dict]:
     """Per condition, against unassisted on the same landings (beta, seed): error and crash differences.
 
@@ -300,8 +306,8 @@ def paired_vs_unassisted(rows_by_cond: dict[str, list[dict]], worse_m: float = 0
             continue
         d = np.array([r['error_m'] - b['error_m'] for r, b in pairs])
         new_crash = np.array([r['crash'] and not b['crash'] for r, b in pairs])
-        out[cond] = {'n': len(pairs), 'delta_error': float(d.mean()),
-                     'delta_se': float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float('nan'),
+        delta, se = mean_se(d)
+        out[cond] = {'n': len(pairs), 'delta_error': delta, 'delta_se': se,
                      'worse': float(np.mean((d > worse_m) | new_crash)), 'new_crash': float(new_crash.mean())}
     return out
 

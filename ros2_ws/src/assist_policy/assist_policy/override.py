@@ -137,6 +137,13 @@ class PilotOverride:
         self._climbing = False
         self.mode = None
 
+    def _window(self) -> np.ndarray | None:
+        """The recent samples as rows (time, u_x, u_y, v_x, v_y, u_z, v_z) once they span persist_s, else None."""
+        r = self._recent
+        if self.cfg.persist_s <= 0 or len(r) < 2 or r[-1][0] - r[0][0] < self.cfg.persist_s - 1e-6:
+            return None
+        return np.array(r)
+
     def persistent_push(self, surface: Surface | None = None, altitude_m: float = math.inf) -> bool:
         """Whether the pilot has pushed one way for persist_s, held back by the assistant (module docstring).
 
@@ -146,10 +153,10 @@ class PilotOverride:
         is landing, and a push there is positioning.
         """
         c = self.cfg
-        r = self._recent
-        if c.persist_s <= 0 or len(r) < 2 or r[-1][0] - r[0][0] < c.persist_s - 1e-6:
+        window = self._window()
+        if window is None:
             return False
-        arr = np.array(r)[:, 1:5]
+        arr = window[:, 1:5]
         m = arr[:, :2].mean(axis=0)
         # per axis: keyboard fine positioning taps each axis at <= 0.5 m/s mean (<= 0.71 on a diagonal)
         along = float(np.abs(m).max())
@@ -171,10 +178,10 @@ class PilotOverride:
     def held_climb(self) -> bool:
         """Whether the pilot has commanded a climb for persist_s that the vehicle did not make (module docstring)."""
         c = self.cfg
-        r = self._recent
-        if c.persist_s <= 0 or c.persist_climb_mps <= 0 or len(r) < 2 or r[-1][0] - r[0][0] < c.persist_s - 1e-6:
+        window = None if c.persist_climb_mps <= 0 else self._window()
+        if window is None:
             return False
-        uz, vz = np.array(r)[:, 5], np.array(r)[:, 6]
+        uz, vz = window[:, 5], window[:, 6]
         if float(uz.min()) <= 0.0 or float(uz.mean()) < c.persist_climb_mps:
             return False              # not a climb held the whole time
         return float(vz.mean()) < c.held_back_fraction * float(uz.mean())
