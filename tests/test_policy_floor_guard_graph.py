@@ -1,7 +1,8 @@
 """policy_node's floor guard in a real graph: depth image in (32FC1 and 16UC1), climb out on /cmd_vel and
 /assist/agent_cmd, counted on /diagnostics, turned off at run time with the floor_guard parameter; and its
 pilot override (a held key passes with a gentle climb; the pilot_override parameter turns it off; a persistent
-push passes while descending, pilot_override_persist_s 0 turns that off); and its
+push passes while descending, pilot_override_persist_s 0 turns that off; a slower long push passes over
+a pad, pilot_override_long_push_s 0 turns that off); and its
 pad recall (a pad seen, then a descent past it over bare floor is steered back, and low over it centred on
 it; farther past it, it first looks beyond, pad_recall_scout_max_m 0 turns that off; pad_recall turns it off); and its oscillation damper (a pilot swinging back and forth is slowed;
 oscillation_damper turns it off)."""
@@ -182,6 +183,32 @@ def test_pilot_override_passes_a_persistent_push_while_descending_and_can_be_tur
     t2 = probe.run(1.5, position=high, depth=floor)
     cmds = probe.since(probe.cmd, t2 + 0.5)
     assert cmds and all(np.allclose(v, [-0.1, 0, -0.15], atol=1e-5) for v in cmds), cmds[-3:]   # blend(u, a)
+
+
+def test_pilot_override_passes_a_long_push_over_a_pad_and_can_be_turned_off(ros, start_node, wait, tmp_path):
+    model = _helpers.constant_actor(tmp_path / 'back.pt', [-0.9, 0.0, 0.0])        # the actor holds the pilot back
+    probe = Probe(ros, pilot=(0.45, 0.0, 0.0))              # a slow push on, level, 1 m over a pad's top
+    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0})
+    low = (0.0, 0.0, 1.8)
+    pad = np.full((64, 64), 1.0 - 0.05, np.float32)          # a 0.8 m pad top under the whole view
+    t0 = time.monotonic()
+    while not probe.since(probe.agent, t0) and time.monotonic() - t0 < 40 and node.proc.poll() is None:
+        probe.run(0.2, position=low, depth=pad)
+    assert node.proc.poll() is None, node.log()
+    t1 = probe.run(7.0, position=low, depth=pad)
+    early, late = probe.since(probe.cmd, t1 + 1.0), probe.since(probe.cmd, t1 + 6.0)
+    assert early and late, node.log()
+    # under 5 s (and slower than the persistent push's 0.6 m/s over a pad): the actor's V = (-0.225, 0, 0)
+    assert np.allclose(early[0], [-0.225, 0, 0], atol=1e-5), early[:3]
+    # then the long push: a' = (0.45, 0, 0.6), V = (0.45, 0, 0.3), on and rising gently
+    assert all(np.allclose(v, [0.45, 0, 0.3], atol=1e-5) for v in late), late[-3:]
+    assert wait(lambda: any(int(d.get('pilot_override_long_engaged', 0)) > 10 for d in probe.diag), 5), \
+        probe.diag[-1:]
+    assert int(probe.diag[-1].get('pilot_override_persistent_engaged', -1)) == 0
+    set_param(ros, 'pilot_override_long_push_s', 0.0, wait)
+    t2 = probe.run(1.5, position=low, depth=pad)
+    cmds = probe.since(probe.cmd, t2 + 0.5)
+    assert cmds and all(np.allclose(v, [-0.225, 0, 0], atol=1e-5) for v in cmds), cmds[-3:]   # blend(u, a)
 
 
 def test_pad_recall_steers_a_descent_past_a_pad_back_and_can_be_turned_off(ros, start_node, wait, tmp_path):

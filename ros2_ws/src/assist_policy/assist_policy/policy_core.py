@@ -13,8 +13,8 @@ Safety rules (ARCHITECTURE.md, "Timing and safety rules"):
   the depth image, a descending V is replaced by a small climb (agent action a' = 2 V' - u, reason key
   ``floor_guard``); needs fresh odometry and a depth image (``set_depth``) no older than feature_timeout_s;
 * pilot override (``override.PilotOverride``, not learned): while the pilot holds a horizontal key and
-  does not descend, pushes one way for 2 s held back, or commands a climb for 2 s that the vehicle does
-  not make, the actor's action is replaced (the pilot's command passes, the vehicle rises gently when
+  does not descend, pushes one way for 2 s held back (or more slowly for 5 s, not descending), or
+  commands a climb for 2 s that the vehicle does not make, the actor's action is replaced (the pilot's command passes, the vehicle rises gently when
   low; reason key ``pilot_override``);
 * pad recall (``recall.PadRecall``, not learned): every depth frame adds the pads in view to a map
   (odom, with the odometry attitude); when the pilot descends (or is low) with the floor under every
@@ -58,7 +58,8 @@ MAX_DEPTH_M = 100.0   # depth beyond this (or negative / non-finite) is a hole (
 # /diagnostics reason of each rule's mode (override.PilotOverride.mode, recall.PadRecall.mode)
 _OVERRIDE_REASONS = {'held_key': 'pilot override: the pilot\'s held correction passes',
                      'persistent': 'pilot override: the pilot\'s persistent push passes',
-                     'climb': 'pilot override: the pilot\'s held climb passes'}
+                     'climb': 'pilot override: the pilot\'s held climb passes',
+                     'long': 'pilot override: the pilot\'s long push passes'}
 _RECALL_REASONS = {'recall': 'pad recall: steering back to a pad seen',
                    'touchdown': 'pad recall: centring on the pad below for touchdown',
                    'scout': 'pad recall: looking beyond for a nearer pad before steering back'}
@@ -170,6 +171,7 @@ class PolicyCore:
         self.override_engaged = 0                   # steps whose actor action the pilot override replaced
         self.persist_engaged = 0                    # ... of which for a persistent push (override.mode 'persistent')
         self.climb_engaged = 0                      # ... of which for a held climb (override.mode 'climb')
+        self.long_engaged = 0                       # ... of which for a long push (override.mode 'long')
         self.recall = PadRecall(self.cfg.recall or RecallConfig(), self.guard)
         self.recall_engaged = 0                     # steps whose horizontal action the pad recall replaced
         self.touchdown_engaged = 0                  # ... of which centring on the pad below (recall.mode 'touchdown')
@@ -390,6 +392,7 @@ class PolicyCore:
             self.override_engaged += 1
             self.persist_engaged += int(self.override.mode == 'persistent')
             self.climb_engaged += int(self.override.mode == 'climb')
+            self.long_engaged += int(self.override.mode == 'long')
             v = self._clamp(blend(u, a_o, c.blend_threshold))
             self.builder.record(now, u, a_o)            # the action applied, as evaluate's env records it
             return PolicyOutput(a_o, v, _OVERRIDE_REASONS.get(self.override.mode, _OVERRIDE_REASONS['held_key']),

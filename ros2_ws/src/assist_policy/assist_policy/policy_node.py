@@ -8,8 +8,8 @@ oscillation_damper* parameters; every other parameter is read-only. The floor gu
 orientation) read /camera/depth/image_raw in every mode; /diagnostics shows floor_guard (on/off) and
 floor_guard_engaged (steps it replaced a descent), pilot_override (on/off) and pilot_override_engaged
 (steps the pilot override, assist_policy.override, replaced the actor's action) and
-pilot_override_persistent_engaged and pilot_override_climb_engaged (of those, steps for a persistent
-push, for a held climb), pad_recall (on/off), pad_recall_engaged (steps it steered to a mapped pad),
+pilot_override_persistent_engaged, pilot_override_climb_engaged and pilot_override_long_engaged (of
+those, steps for a persistent push, a held climb, a long push), pad_recall (on/off), pad_recall_engaged (steps it steered to a mapped pad),
 pad_recall_touchdown and pad_recall_scout (of those, steps it centred on the pad below for touchdown, it
 looked beyond for a nearer pad before steering back to one behind), pad_recall_pads (pads in its map), oscillation_damper (on/off) and
 oscillation_damper_engaged (steps the oscillation damper, assist_policy.damper, replaced the actor's
@@ -112,6 +112,13 @@ PARAMS = {
                                               'pilot_override_persist_s at at least this mean (m/s) that the vehicle '
                                               'did not make passes until the pilot stops climbing; 0 = off.',
                                               min=0.0, max=10.0, dynamic=True),
+    'pilot_override_long_push_s': Param(OverrideConfig.long_push_s, 'Long push: a slower horizontal command held '
+                                        'one way this long (s), with no descent, while the assistant held the '
+                                        'vehicle back passes as a held key does until the pilot stops pushing that '
+                                        'way or descends; 0 = off.', min=0.0, max=60.0, dynamic=True),
+    'pilot_override_long_push_speed_mps': Param(OverrideConfig.long_push_speed_mps, 'Mean horizontal pilot speed '
+                                                'along one axis over pilot_override_long_push_s (m/s) that counts as '
+                                                'a long push.', min=0.01, max=10.0, dynamic=True),
     'pad_recall': Param(True, 'Pad recall (assist_policy.recall, not learned): pads seen in the depth image are '
                               'mapped; when the pilot descends (or is low) over bare floor, the actor\'s horizontal '
                               'action is replaced by a push back to the nearest mapped pad.', dynamic=True),
@@ -145,7 +152,9 @@ OVERRIDE_FIELDS = {'pilot_override': ('enabled', bool), 'pilot_override_speed_mp
                    'pilot_override_reversal_s': ('reversal_s', float), 'pilot_override_persist_s': ('persist_s', float),
                    'pilot_override_persist_speed_mps': ('persist_speed_mps', float),
                    'pilot_override_persist_floor_speed_mps': ('persist_floor_speed_mps', float),
-                   'pilot_override_persist_climb_mps': ('persist_climb_mps', float)}
+                   'pilot_override_persist_climb_mps': ('persist_climb_mps', float),
+                   'pilot_override_long_push_s': ('long_push_s', float),
+                   'pilot_override_long_push_speed_mps': ('long_push_speed_mps', float)}
 # node parameter -> (RecallConfig field, type)
 RECALL_FIELDS = {'pad_recall': ('enabled', bool), 'pad_recall_radius_m': ('radius_m', float),
                  'pad_recall_touchdown_height_m': ('touchdown_height_m', float),
@@ -405,6 +414,7 @@ class PolicyNode(Node):
         self.diag.set('pilot_override_engaged', self.core.override_engaged)
         self.diag.set('pilot_override_persistent_engaged', self.core.persist_engaged)
         self.diag.set('pilot_override_climb_engaged', self.core.climb_engaged)
+        self.diag.set('pilot_override_long_engaged', self.core.long_engaged)
         self.diag.set('pad_recall_engaged', self.core.recall_engaged)
         self.diag.set('pad_recall_touchdown', self.core.touchdown_engaged)
         self.diag.set('pad_recall_scout', self.core.scout_engaged)

@@ -45,7 +45,14 @@ was seen, or it went ``scout_max_m`` from that spot; then back to the pad, which
 recalled from up to ``radius_m`` + ``scout_max_m``. Not when the pilot commands (now or its 1 s mean) at
 more than ``scout_back_mps`` toward the pad behind (it knows the pad is there); a scout interrupted (the
 pilot stops descending or leaves, another rule acts) goes on when the rule acts again, from the same
-spot within the same distance: one look per pad. Why (traced with the held-out glide family): a pilot
+spot within the same distance: one look per pad. Two exceptions, both the pilot's doing, never the
+scout's: while the pilot still commands (now or its 1 s mean) more than ``scout_back_mps`` away from the
+pad (creeping on below ``leave_speed_mps``), the look begins from where the vehicle is (its spot and
+distance move with it); and a recall farther from the pad than the scout ever steered it by more than
+``scout_margin_m`` (the pilot took the vehicle on, e.g. under the pilot override) starts a new look
+from there. Why (traced with low_flyer beta 0): a pilot tapping on toward its aim while already
+descending started the look 0.5 m short of where it stopped; from there the pad behind was the nearer,
+so it went back, though from where the pilot stopped the pad ahead was. Why (traced with the held-out glide family): a pilot
 who passed the first pad at transit speed and descended short of the second (its aim misjudged in depth,
 as the paper's novices do) was taken 2.4 m back to the first pad, 1.9 m from the second; the reference,
 which knows where every pad is, takes it on to the second. The same signature (a descent past a pad, the
@@ -319,6 +326,11 @@ class PadRecall:
             mode = 'recall'
         yaw = 0.0 if quaternion is None else _yaw(quaternion)
         to_pad = pad.xyz[:2] - p[:2]
+        if mode == 'recall' and scout is not None and not scout.done and any(
+                np.all(np.isfinite(cmd[:2])) and float(_rotate(cmd[:2], yaw) @ to_pad) < -c.scout_back_mps * horiz
+                for cmd in (np.asarray(mean_u, dtype=float).reshape(3), u)):
+            # the pilot still takes it on, away from the pad: the look begins from where it stops
+            scout.start, scout.reach, scout.far = p[:2].copy(), horiz - c.scout_margin_m, max(scout.far, horiz)
         for cmd in (np.asarray(mean_u, dtype=float).reshape(3), u):
             if (np.all(np.isfinite(cmd)) and float(np.hypot(cmd[0], cmd[1])) > c.leave_speed_mps
                     and _rotate(cmd[:2], yaw) @ to_pad < 0.0):
@@ -327,11 +339,17 @@ class PadRecall:
             return None
         u_odom = np.array([*_rotate(u[:2], yaw), u[2]])
         target = pad.xyz
+        if mode == 'recall' and scout is not None and horiz > scout.far + c.scout_margin_m:
+            # the pilot took it on beyond the last look: a look from here
+            self._scouts = [s for s in self._scouts if s is not scout]
+            scout = None
         if mode == 'recall' and not (scout is not None and scout.done):
             spot = self._scout_spot(pad, scout, p, horiz, to_pad,
                                     (u_odom, _rotate(np.asarray(mean_u, dtype=float)[:2], yaw)))
             if spot is not None:
                 target, mode = np.array([spot[0], spot[1], pad.xyz[2]]), 'scout'
+                scout = next(s for s in self._scouts if s.pad is pad)
+                scout.far = max(scout.far, horiz)
         v = self._centre.velocity(target, p, u_odom)           # odom; only its horizontal part is used
         a[:2] = _rotate(v[:2], -yaw)                            # back into base_link
         if mode != 'touchdown' and height < c.clear_height_m:
@@ -354,7 +372,7 @@ class PadRecall:
             return None                 # the pilot is coming back to it: it knows the pad is behind
         new = scout is None
         if new:
-            scout = Scout(pad, p[:2].copy(), horiz - c.scout_margin_m)
+            scout = Scout(pad, p[:2].copy(), horiz - c.scout_margin_m, horiz)
         spot = None
         if math.hypot(*(p[:2] - scout.start)) < c.scout_max_m:
             spot = self.map.unseen_near(scout.start, scout.reach, pad.xyz[:2], nearest_to=p[:2])
@@ -365,13 +383,18 @@ class PadRecall:
         return spot
 
 
-@dataclass
+@dataclass(eq=False)
 class Scout:
-    """A look beyond a pad: from where it began, how far a nearer pad's centre would be, whether it is over."""
+    """A look beyond a pad: from where it began, how far a nearer pad's centre would be, whether it is over.
+
+    ``far``: the farthest from the pad it has steered the vehicle (m); a recall farther still than that
+    by ``scout_margin_m`` (the pilot took the vehicle on) starts a new look from there.
+    """
 
     pad: MappedPad
     start: np.ndarray
     reach: float
+    far: float
     done: bool = False
 
 

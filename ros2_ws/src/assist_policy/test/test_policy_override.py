@@ -243,6 +243,55 @@ def test_a_held_climb_the_vehicle_does_not_make_passes_until_the_pilot_stops_cli
         assert push(PilotOverride(cfg), 0.0, 3.0, up, [0.0, 0.0, -0.05], altitude=1.7)[-1] is None
 
 
+def taps(ov, t0, seconds, key, v, uz=0.0, height=0.7, dt=0.05, period=2.0):
+    """A novice tapping `key` (duty 0.5, `period` s) while the vehicle moves at `v`; the decisions (mean_u: 1 s)."""
+    out = []
+    for k in range(int(round(seconds / dt)) + 1):
+        t = t0 + k * dt
+        on = (t % period) < period / 2
+        u = np.array([*(np.asarray(key, float) * on), uz])
+        out.append(ov.apply(t, u, np.array([*(0.5 * np.asarray(key, float)), uz]), 1.8, MS,
+                            np.asarray(v, float), lambda: (False, height)))
+    return out
+
+
+def test_a_long_slow_push_with_no_descent_lets_a_low_flyer_on_and_holds_until_it_descends():
+    ov = PilotOverride()
+    # low_flyer beta 0: cruising 0.7 m over a pad's top, tapping on (0.5 m/s mean) while the actor holds it there
+    out = taps(ov, 0.0, 6.0, [1.0, 0.0], [0.0, 0.0, 0.0])
+    assert all(a is None for a in out[:100])                   # under long_push_s (and too slow for persist)
+    assert all(a is not None for a in out[100:]) and ov.mode == 'long'
+    np.testing.assert_allclose(out[101], [0.0, 0.0, 0.6])       # key up, low: V = (0, 0, 0.3), a gentle climb
+    np.testing.assert_allclose(out[-1], [1.0, 0.0, 0.6])        # key down: V = (1, 0, 0.3), the pilot's key
+    # latched: it holds while the pilot taps on, though the vehicle now goes along
+    out = taps(ov, 6.05, 4.0, [1.0, 0.0], [0.5, 0.0, 0.3])
+    assert all(a is not None for a in out) and ov.mode == 'long'
+    # a descent tapped on the way is the actor's that step; a held descent (over its aim) releases it
+    out = taps(ov, 10.1, 5.0, [1.0, 0.0], [0.5, 0.0, 0.0], uz=-0.5)
+    assert all(a is None for a in out)
+    out = taps(ov, 15.15, 1.0, [1.0, 0.0], [0.0, 0.0, 0.0])
+    assert all(a is None for a in out)                          # released: timed afresh, the descent in the window
+
+
+def test_no_long_push_when_descending_going_along_reversing_touching_down_or_off():
+    key, held = [1.0, 0.0], [0.0, 0.0, 0.0]
+    assert taps(PilotOverride(), 0.0, 6.0, key, held, uz=-0.5)[-1] is None          # landing, not flying on
+    assert taps(PilotOverride(), 0.0, 6.0, key, [0.3, 0.0, 0.0])[-1] is None        # the vehicle goes along
+    assert taps(PilotOverride(), 0.0, 6.0, key, held, height=0.2)[-1] is None       # 0.2 m over the top
+    assert taps(PilotOverride(), 0.0, 6.0, [0.5, 0.0], held)[-1] is None            # 0.25 m/s: too slow
+    ov = PilotOverride()
+    out = []
+    for k in range(121):
+        t = k * 0.05
+        u = np.array([1.0 if (t % 2.0) < 1.0 else -0.2, 0.0, 0.0])
+        out.append(ov.apply(t, u, np.array([0.4, 0.0, 0.0]), 1.8, MS, np.zeros(3), lambda: (False, 0.7)))
+    assert all(a is None for a in out)                          # a sample against the mean: not one way
+    for cfg in (OverrideConfig(long_push_s=0.0), OverrideConfig(enabled=False)):
+        assert taps(PilotOverride(cfg), 0.0, 6.0, key, held)[-1] is None
+    with pytest.raises(ValueError, match='long_push_speed_mps'):
+        OverrideConfig(long_push_speed_mps=0.0)
+
+
 def test_policy_core_passes_a_held_climb_and_says_so(tmp_path):
     path = _helpers.constant_actor(tmp_path / 'down.pt', [0.0, 0.0, -0.99])   # an actor landing it where it is
     core = PolicyCore(path, PolicyCoreConfig(mode='latent'))
@@ -255,6 +304,22 @@ def test_policy_core_passes_a_held_climb_and_says_so(tmp_path):
     assert out.key == 'pilot_override' and 'held climb' in out.reason
     assert out.velocity[2] == pytest.approx(0.5)           # the pilot's climb
     assert core.climb_engaged == core.override_engaged >= 15 and core.persist_engaged == 0
+
+
+def test_policy_core_passes_a_long_push_and_says_so(tmp_path):
+    path = _helpers.constant_actor(tmp_path / 'back.pt', [-0.9, 0.0, 0.0])   # an actor holding the pilot back
+    core = PolicyCore(path, PolicyCoreConfig(mode='latent'))
+    outs = []
+    for k in range(140):                                   # 7 s of novice taps (0.2 s on, 0.2 off), 1.8 m up, held
+        t = 1.0 + 0.05 * k
+        core.set_odom(t, [0, 0, 1.8], [0, 0, 0])
+        core.set_pilot(t, [1.0 if (0.05 * k) % 0.4 >= 0.2 else 0.0, 0.0, 0.0])
+        core.set_latent(t, np.zeros(_helpers.LATENT))
+        outs.append(core.step(t))
+    assert all(o.key == 'assisting' for o in outs[:95])   # under 5 s
+    assert outs[-1].key == 'pilot_override' and 'long push' in outs[-1].reason
+    assert outs[-1].velocity[0] >= 0.0 and outs[-1].velocity[2] == pytest.approx(0.3)   # on, rising gently
+    assert core.long_engaged == core.override_engaged >= 30 and core.persist_engaged == 0
 
 
 @pytest.mark.parametrize('surface, engages', [('floor', True), ('pad', False)])
