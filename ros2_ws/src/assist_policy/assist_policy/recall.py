@@ -45,19 +45,21 @@ was seen, or it went ``scout_max_m`` from that spot; then back to the pad, which
 recalled from up to ``radius_m`` + ``scout_max_m``. Not when the pilot commands (now or its 1 s mean) at
 more than ``scout_back_mps`` toward the pad behind (it knows the pad is there); a scout interrupted (the
 pilot stops descending or leaves, another rule acts) goes on when the rule acts again, from the same
-spot within the same distance: one look per pad. Two exceptions, both the pilot's doing, never the
-scout's: while the pilot still commands (now or its 1 s mean) more than ``scout_back_mps`` away from the
-pad (creeping on below ``leave_speed_mps``), the look begins from where the vehicle is (its spot and
-distance move with it); and a recall farther from the pad than the scout ever steered it by more than
-``scout_margin_m`` (the pilot took the vehicle on, e.g. under the pilot override) starts a new look
-from there. Why (traced with low_flyer beta 0): a pilot tapping on toward its aim while already
-descending started the look 0.5 m short of where it stopped; from there the pad behind was the nearer,
-so it went back, though from where the pilot stopped the pad ahead was. Why (traced with the held-out glide family): a pilot
-who passed the first pad at transit speed and descended short of the second (its aim misjudged in depth,
-as the paper's novices do) was taken 2.4 m back to the first pad, 1.9 m from the second; the reference,
-which knows where every pad is, takes it on to the second. The same signature (a descent past a pad, the
-floor below) is a pilot who overshot the last pad (the case the recall exists for): the scout costs that
-pilot a look of up to ``scout_max_m`` before it goes back.
+spot within the same distance: one look per pad, except that a recall farther from the pad than the
+scout ever steered it by more than ``scout_margin_m`` (the pilot took the vehicle on, e.g. under the
+pilot override's long push) starts a new look from there. Why (traced with the held-out glide family):
+a pilot who passed the first pad at transit speed and descended short of the second (its aim misjudged
+in depth, as the paper's novices do) was taken 2.4 m back to the first pad, 1.9 m from the second; the
+reference, which knows where every pad is, takes it on to the second. The same signature (a descent past
+a pad, the floor below) is a pilot who overshot the last pad (the case the recall exists for): the scout
+costs that pilot a look of up to ``scout_max_m`` before it goes back. Why the new look (traced with
+low_flyer beta 0, landing 8): a look began as the pilot first descended 2 m past a pad, the long push
+then let the pilot fly on 1.1 m toward its aim, and when it descended there the look was over (the
+ground within reach of where it began had been seen), so it went back 3.1 m to that pad, 1.7 m from the
+goal pad; with a new look from there it finds the goal pad (success, 0.19 m off). Moving the look's
+start along while the pilot creeps on away from the pad was tried and dropped: the scout's own motion
+drags a novice's aim on (the paper's conformance), the pilot creeps after it, and the look chased it
+(low_flyer: 2 landings gained, 4 lost to edges and a wrong pad).
 
 Touchdown (``mode`` 'touchdown', ``touchdown_height_m`` > 0): nearer a mapped pad's centre than
 ``clear_radius_m``, lower than ``touchdown_height_m`` over its top, with the pad seen whole at least once
@@ -326,11 +328,6 @@ class PadRecall:
             mode = 'recall'
         yaw = 0.0 if quaternion is None else _yaw(quaternion)
         to_pad = pad.xyz[:2] - p[:2]
-        if mode == 'recall' and scout is not None and not scout.done and any(
-                np.all(np.isfinite(cmd[:2])) and float(_rotate(cmd[:2], yaw) @ to_pad) < -c.scout_back_mps * horiz
-                for cmd in (np.asarray(mean_u, dtype=float).reshape(3), u)):
-            # the pilot still takes it on, away from the pad: the look begins from where it stops
-            scout.start, scout.reach, scout.far = p[:2].copy(), horiz - c.scout_margin_m, max(scout.far, horiz)
         for cmd in (np.asarray(mean_u, dtype=float).reshape(3), u):
             if (np.all(np.isfinite(cmd)) and float(np.hypot(cmd[0], cmd[1])) > c.leave_speed_mps
                     and _rotate(cmd[:2], yaw) @ to_pad < 0.0):

@@ -185,28 +185,6 @@ def test_a_pad_behind_is_gone_back_to_only_after_a_look_beyond_where_a_nearer_on
     assert off.mode == 'recall'
 
 
-def test_a_pilot_still_creeping_on_moves_where_the_look_begins(world):
-    # the look begins where the pilot stops: creeping on (0.4 m/s, under leave_speed_mps) 0.8 m past a scout
-    # allowed 0.5 m from where it began, it is not steered back before pad 1 comes into view
-    start = np.array([7.0, -0.2, 1.9])
-    r = PadRecall(RecallConfig(scout_max_m=0.5))
-    for p in ([5.0, 0.5, 3.5], [6.0, 0.3, 2.4], start):
-        r.observe(_frame(world, p), np.array(p))
-    u = np.array([0.4, 0.0, -0.4])
-    pos, xs = start.copy(), []
-    for _ in range(40):
-        a = r.apply(u, u, np.array([-0.8, 0.0, -0.6]), _frame(world, pos), pos, None, MAX_SPEED)
-        xs.append(blend(u, a)[0])
-        if len(r.map.pads) == 2:
-            break
-        pos[:2] += 0.05 * blend(u, a)[:2]
-        r.observe(_frame(world, pos), pos)
-    assert len(r.map.pads) == 2 and pos[0] - start[0] > 0.5   # pad 1 seen, beyond the first spot's budget
-    assert min(xs) > 0.0                                       # never steered back against the creeping pilot
-    a = r.apply(np.array([0.0, 0.0, -0.4]), np.zeros(3), np.zeros(3), _frame(world, pos), pos, None, MAX_SPEED)
-    assert r.mode == 'recall' and a[0] > 0                     # pad 1, the nearer: steered on to it
-
-
 def test_nothing_beyond_the_scout_goes_back_to_the_pad_as_far_as_it_went(world):
     start = np.array([11.0, -0.5, 1.9])                        # 2 m past the last pad (pad 1), nothing beyond
     r = _mapped(world, [9.0, -0.5, 3.0], start)
