@@ -4,8 +4,9 @@ pilot override (a held key passes with a gentle climb; the pilot_override parame
 push passes while descending, pilot_override_persist_s 0 turns that off; a slower long push passes over
 a pad, pilot_override_long_push_s 0 turns that off); and its
 pad recall (a pad seen, then a descent past it over bare floor is steered back, and low over it centred on
-it; farther past it, it first looks beyond, pad_recall_scout_max_m 0 turns that off; pad_recall turns it off); and its oscillation damper (a pilot swinging back and forth is slowed;
-oscillation_damper turns it off)."""
+it; farther past it, it first looks beyond, pad_recall_scout_max_m 0 turns that off; pad_recall turns it
+off); and its oscillation damper (a pilot swinging back and forth is slowed; oscillation_damper turns it
+off)."""
 import importlib.util
 import threading
 import time
@@ -80,6 +81,13 @@ class Probe:
         with self.lock:
             return [v for t, v in store if t >= t0]
 
+    def until_first(self, store, node, limit_s=40.0, **inputs):
+        """Publish the inputs (`run`'s keywords) until `store` records a message, the node exits or limit_s; it runs."""
+        t0 = time.monotonic()
+        while not self.since(store, t0) and time.monotonic() - t0 < limit_s and node.proc.poll() is None:
+            self.run(0.2, **inputs)
+        assert node.proc.poll() is None, node.log()
+
     def run(self, seconds, encoding='32FC1', position=(0.0, 0.0, ALT), depth=None):
         t0 = time.monotonic()
         while time.monotonic() - t0 < seconds:
@@ -114,10 +122,7 @@ def test_floor_guard_blocks_descent_over_floor_and_can_be_turned_off(ros, start_
     probe = Probe(ros)
     node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0,
                                       'pad_recall': False})
-    t0 = time.monotonic()
-    while not probe.since(probe.agent, t0) and time.monotonic() - t0 < 40 and node.proc.poll() is None:
-        probe.run(0.2)
-    assert node.proc.poll() is None, node.log()
+    probe.until_first(probe.agent, node)
     for enc in ('32FC1', '16UC1'):
         t1 = probe.run(1.5, enc)
         cmds, agents = probe.since(probe.cmd, t1 + 0.7), probe.since(probe.agent, t1 + 0.7)
@@ -141,10 +146,7 @@ def test_pilot_override_passes_a_held_key_and_can_be_turned_off(ros, start_node,
     probe = Probe(ros, pilot=(1.0, 0.0, 0.0))                                     # the pilot holds a key forward
     node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0,
                                       'floor_guard': False})
-    t0 = time.monotonic()
-    while not probe.since(probe.agent, t0) and time.monotonic() - t0 < 40 and node.proc.poll() is None:
-        probe.run(0.2)
-    assert node.proc.poll() is None, node.log()
+    probe.until_first(probe.agent, node)
     t1 = probe.run(2.0)
     cmds, agents = probe.since(probe.cmd, t1 + 1.2), probe.since(probe.agent, t1 + 1.2)
     assert cmds and agents, node.log()
@@ -167,10 +169,7 @@ def test_pilot_override_passes_a_persistent_push_while_descending_and_can_be_tur
     node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0})
     high = (0.0, 0.0, 3.0)
     floor = np.full((64, 64), 3.0 - 0.05, np.float32)       # bare floor 3 m below
-    t0 = time.monotonic()
-    while not probe.since(probe.agent, t0) and time.monotonic() - t0 < 40 and node.proc.poll() is None:
-        probe.run(0.2, position=high, depth=floor)
-    assert node.proc.poll() is None, node.log()
+    probe.until_first(probe.agent, node, position=high, depth=floor)
     t1 = probe.run(3.5, position=high, depth=floor)
     cmds, agents = probe.since(probe.cmd, t1 + 2.6), probe.since(probe.agent, t1 + 2.6)
     assert cmds and agents, node.log()
@@ -191,10 +190,7 @@ def test_pilot_override_passes_a_long_push_over_a_pad_and_can_be_turned_off(ros,
     node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0})
     low = (0.0, 0.0, 1.8)
     pad = np.full((64, 64), 1.0 - 0.05, np.float32)          # a 0.8 m pad top under the whole view
-    t0 = time.monotonic()
-    while not probe.since(probe.agent, t0) and time.monotonic() - t0 < 40 and node.proc.poll() is None:
-        probe.run(0.2, position=low, depth=pad)
-    assert node.proc.poll() is None, node.log()
+    probe.until_first(probe.agent, node, position=low, depth=pad)
     t1 = probe.run(7.0, position=low, depth=pad)
     early, late = probe.since(probe.cmd, t1 + 1.0), probe.since(probe.cmd, t1 + 6.0)
     assert early and late, node.log()
@@ -217,10 +213,7 @@ def test_pad_recall_steers_a_descent_past_a_pad_back_and_can_be_turned_off(ros, 
     node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0})
     pad = np.full((64, 64), 3.0 - 0.05, np.float32)                  # from 3 m: floor, and a 0.8 m pad below
     pad[22:42, 22:42] = 3.0 - 0.05 - 0.8
-    t0 = time.monotonic()
-    while not probe.since(probe.cmd, t0) and time.monotonic() - t0 < 40 and node.proc.poll() is None:
-        probe.run(0.2, position=(0.0, 0.0, 3.0), depth=pad)
-    assert node.proc.poll() is None, node.log()
+    probe.until_first(probe.cmd, node, position=(0.0, 0.0, 3.0), depth=pad)
     probe.run(0.5, position=(0.0, 0.0, 3.0), depth=pad)               # over the pad: mapped at (0, 0)
     # bare floor before moving: the first step at a new pose reads the depth image of the one before
     probe.run(0.3, position=(0.0, 0.0, 3.0), depth=np.full((64, 64), 3.0 - 0.05, np.float32))
@@ -272,10 +265,7 @@ def test_oscillation_damper_slows_a_pilot_swinging_across_a_pad_and_can_be_turne
     floor = np.full((64, 64), 3.0 - 0.05, np.float32)
     pad = floor.copy()
     pad[22:42, 22:42] = 3.0 - 0.05 - 0.8                              # a 0.8 m pad right below, seen whole
-    t0 = time.monotonic()
-    while not probe.since(probe.cmd, t0) and time.monotonic() - t0 < 40 and node.proc.poll() is None:
-        probe.run(0.2, position=(0.0, 0.0, 3.0), depth=floor)
-    assert node.proc.poll() is None, node.log()
+    probe.until_first(probe.cmd, node, position=(0.0, 0.0, 3.0), depth=floor)
 
     def swing(seconds, depth):
         """The pilot holds +x then -x keys, 1.5 s each, the vehicle moving 0.4 m/s with it (odometry at 0, 0)."""

@@ -75,6 +75,7 @@ image's surface test (assist_policy.safety) and time. Pure numpy; no rclpy.
 """
 from __future__ import annotations
 
+import functools
 import math
 from collections import deque
 from collections.abc import Callable
@@ -140,6 +141,15 @@ def yield_action(cfg: OverrideConfig, u: np.ndarray, altitude_m: float,
     return np.clip(a, -ms, ms)
 
 
+def _surface_below(surface: Surface | None, altitude_m: float) -> tuple[bool | None, float]:
+    """(bare floor under every leg or None, height over the surface below in m): `surface()`, the altitude
+    `altitude_m` standing in for a height it does not know."""
+    over_floor, height = (None, None) if surface is None else surface()
+    if height is None or not math.isfinite(float(height)):
+        return over_floor, float(altitude_m)
+    return over_floor, float(height)
+
+
 class PilotOverride:
     """The rule with its memory of recent held keys (for reversals) and commands (for a persistent push).
 
@@ -193,24 +203,29 @@ class PilotOverride:
         window = self._window()
         if window is None:
             return False
-        arr = window[:, 1:5]
-        m = arr[:, :2].mean(axis=0)
+        m = window[:, 1:3].mean(axis=0)
         # per axis: keyboard fine positioning taps each axis at <= 0.5 m/s mean (<= 0.71 on a diagonal)
         along = float(np.abs(m).max())
         if along < min(c.persist_floor_speed_mps, c.persist_speed_mps):
             return False
         speed = float(np.hypot(m[0], m[1]))
-        d = m / speed
-        if float((arr[:, :2] @ d).min()) < 0.0 or any(hx * d[0] + hy * d[1] < 0.0 for _, hx, hy in self._held):
-            return False              # pushed the other way lately: correcting an overshoot, not going somewhere
-        if float(arr[:, 2:].mean(axis=0) @ d) >= c.held_back_fraction * speed:
-            return False              # the vehicle goes along: nothing holds the pilot back
-        over_floor, height = (None, None) if surface is None else surface()
-        if height is None or not math.isfinite(float(height)):
-            height = altitude_m
+        if not self._held_back(window, m / speed, speed):
+            return False
+        over_floor, height = _surface_below(surface, altitude_m)
         if not height >= c.persist_min_height_m:
             return False
         return along >= (c.persist_floor_speed_mps if over_floor is True else c.persist_speed_mps)
+
+    def _held_back(self, window: np.ndarray, d: np.ndarray, speed: float) -> bool:
+        """Whether a push along unit `d` at `speed` over `window` went one way and the vehicle did not go along.
+
+        One way: no sample of the window and no held key within reversal_s against it (else it corrects an
+        overshoot or positions). Not going along: the vehicle's mean velocity along `d` over the window is
+        under held_back_fraction of `speed`.
+        """
+        if float((window[:, 1:3] @ d).min()) < 0.0 or any(hx * d[0] + hy * d[1] < 0.0 for _, hx, hy in self._held):
+            return False
+        return float(window[:, 3:5].mean(axis=0) @ d) < self.cfg.held_back_fraction * speed
 
     def held_climb(self) -> bool:
         """Whether the pilot has commanded a climb for persist_s that the vehicle did not make (module docstring)."""
@@ -234,8 +249,7 @@ class PilotOverride:
         if window is None:
             self._long = None
             return False
-        uxy, uz = window[:, 1:3], window[:, 5]
-        m = uxy.mean(axis=0)
+        m, uz = window[:, 1:3].mean(axis=0), window[:, 5]
         speed = float(np.hypot(m[0], m[1]))
         if float(np.abs(m).max()) < c.long_push_speed_mps or speed <= 0.0:
             self._long = None
@@ -249,14 +263,9 @@ class PilotOverride:
             return False
         if float(uz.min()) < 0.0:
             return False              # a descent commanded in the window: landing, not flying on
-        if float((uxy @ d).min()) < 0.0 or any(hx * d[0] + hy * d[1] < 0.0 for _, hx, hy in self._held):
-            return False              # pushed the other way lately: positioning or an overshoot
-        if float(window[:, 3:5].mean(axis=0) @ d) >= c.held_back_fraction * speed:
-            return False              # the vehicle goes along: nothing holds the pilot back
-        _, height = (None, None) if surface is None else surface()
-        if height is None or not math.isfinite(float(height)):
-            height = altitude_m
-        if not height >= c.long_push_min_height_m:
+        if not self._held_back(window, d, speed):
+            return False
+        if not _surface_below(surface, altitude_m)[1] >= c.long_push_min_height_m:
             return False
         self._long = d
         return True
@@ -267,11 +276,13 @@ class PilotOverride:
         """The agent action (m/s) replacing the actor's at time `now`, or None (the rule does not act).
 
         `velocity`: the vehicle's (base_link, m/s; None: the persistent-push test is off this step);
-        `surface`: what the depth image shows below, read only if needed (``persistent_push``; None:
-        unknown, the altitude over the floor stands in for the height).
+        `surface`: what the depth image shows below, read only if needed and at most once (``persistent_push``,
+        ``long_push``; None: unknown, the altitude over the floor stands in for the height).
         """
         c = self.cfg
         self.mode = None
+        if surface is not None:
+            surface = functools.cache(surface)    # both pushes may ask: the depth image is read once a step
         u = np.asarray(u, dtype=float).reshape(3)
         m = np.asarray(mean_u, dtype=float).reshape(3)
         if not (np.all(np.isfinite(u)) and np.all(np.isfinite(m)) and math.isfinite(float(altitude_m))

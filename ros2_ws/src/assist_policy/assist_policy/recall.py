@@ -345,8 +345,6 @@ class PadRecall:
                                     (u_odom, _rotate(np.asarray(mean_u, dtype=float)[:2], yaw)))
             if spot is not None:
                 target, mode = np.array([spot[0], spot[1], pad.xyz[2]]), 'scout'
-                scout = next(s for s in self._scouts if s.pad is pad)
-                scout.far = max(scout.far, horiz)
         v = self._centre.velocity(target, p, u_odom)           # odom; only its horizontal part is used
         a[:2] = _rotate(v[:2], -yaw)                            # back into base_link
         if mode != 'touchdown' and height < c.clear_height_m:
@@ -373,9 +371,11 @@ class PadRecall:
         spot = None
         if math.hypot(*(p[:2] - scout.start)) < c.scout_max_m:
             spot = self.map.unseen_near(scout.start, scout.reach, pad.xyz[:2], nearest_to=p[:2])
-        if new and spot is not None:
-            self._scouts.append(scout)
-        elif not new and spot is None:
+        if spot is not None:
+            scout.far = max(scout.far, horiz)    # how far from the pad the look has steered it
+            if new:
+                self._scouts.append(scout)
+        elif not new:
             scout.done = True           # looked (or went as far as it may): back to the pad from now on
         return spot
 
