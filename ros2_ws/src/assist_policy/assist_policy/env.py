@@ -227,7 +227,7 @@ class LandingAssistEnv(gym.Env):
             surface = (None if self.guard is None
                        else lambda: self.guard.surface_below(self._camera_frame().depth, st.position))
             a_o = self.override.apply(t, self._u, self.builder.history.means(t)[0], float(st.position[2]),
-                                      self.cfg.max_speed, v_body, surface)
+                                      self.cfg.max_speed, v_body, surface, st.position)
             if a_o is not None:
                 a, overridden = a_o, True
         recalled = False

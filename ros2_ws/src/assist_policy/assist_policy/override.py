@@ -70,8 +70,24 @@ there for 40-50 s, until the paper's conformance dragged the pilot's aim onto th
 is: the paper pilot and every keyboard family descend over their aim), positioning that goes both ways,
 a pilot the vehicle follows, and the last 0.3 m.
 
-It uses only what the actor observes (u and its window mean), odometry altitude and velocity, the depth
-image's surface test (assist_policy.safety) and time. Pure numpy; no rclpy.
+Landing spots (``spot_memory_s`` > 0, 20 s by default): where the pilot commanded a descent while not
+going anywhere (its 1 s mean horizontal command under ``spot_speed_mps``, 0.4), the odometry position is
+remembered for ``spot_memory_s``. A persistent or long push heading back to such a spot (one within
+``spot_radius_m``, 1.2 m, lies ``spot_ahead_m``, 0.2 m, or more ahead along the push), and a held climb
+within ``spot_radius_m`` of one, do not engage: the actor keeps its action. The held key is unchanged (a
+late correction, a key held at 1 m/s, still passes at once). Why (traced with the held-out ignorer
+family, stop 28 -> 29): a pilot who ignores the assistant (alpha ~ 0) and misjudges its aim by 0.5-1.3 m
+off the pad hovers near that aim, descends whenever it believes it is over it, and, taken back over the
+pad by the actor, taps its way back there for 2-5 s with no descent and climbs when low: each of those
+passed as a persistent push, a long push or a held climb, so the vehicle went back to the pilot's aim
+(off the pad), the actor took it back, and the landing timed out (pool seed 2027, beta 0: seven yields
+in 30 s, 0.25 m off the goal's centre at 60 s). The nearest-pad reference, which never yields but to a
+held key, lands such pilots. What it leaves alone: a pilot leaving a pad it tried (the push points away
+from the spot: late_correction), a glide path (it descends while going somewhere, no spot), the first
+push of a low flyer (no descent before it), anything more than ``spot_memory_s`` after the descent.
+
+It uses only what the actor observes (u and its window mean), odometry position, altitude and velocity,
+the depth image's surface test (assist_policy.safety) and time. Pure numpy; no rclpy.
 """
 from __future__ import annotations
 
@@ -114,12 +130,18 @@ class OverrideConfig:
     long_push_speed_mps: float = 0.35      # its mean along one axis (a novice taps at 0.5 m/s)
     long_push_min_height_m: float = 0.3    # not lower than this over the surface below (touching down)
     long_push_release_mps: float = 0.15    # latched: released once the mean command over long_push_s descends faster
+    # landing spots (module docstring): where the pilot commanded a descent while not going anywhere (0 = off)
+    spot_memory_s: float = 20.0            # such a descent is remembered this long
+    spot_speed_mps: float = 0.4            # ... commanded with a 1 s mean horizontal command slower than this
+    spot_radius_m: float = 1.2             # a push toward a spot this close, or a climb this close to one, stays
+    spot_ahead_m: float = 0.2              # ... with the actor: 'toward' = the spot this far ahead along the push
 
     def __post_init__(self) -> None:
         """Reject settings that would make the rule engage on no input or descend (ValueError, one line)."""
         for name in ('speed_mps', 'climb_mps', 'climb_below_m', 'reversal_s', 'persist_s', 'persist_speed_mps',
                      'persist_floor_speed_mps', 'held_back_fraction', 'persist_min_height_m', 'persist_climb_mps',
-                     'long_push_s', 'long_push_speed_mps', 'long_push_min_height_m', 'long_push_release_mps'):
+                     'long_push_s', 'long_push_speed_mps', 'long_push_min_height_m', 'long_push_release_mps',
+                     'spot_memory_s', 'spot_speed_mps', 'spot_radius_m', 'spot_ahead_m'):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f'OverrideConfig.{name} must be a finite number >= 0, got {v!r}')
@@ -164,6 +186,9 @@ class PilotOverride:
         self._recent: deque[tuple[float, float, float, float, float, float, float]] = deque()
         self._climbing = False        # a held climb engaged the yield and the pilot still commands a climb
         self._long: np.ndarray | None = None    # a long push engaged: its direction (unit, horizontal)
+        self._spots: deque[tuple[float, float, float]] = deque()    # (time, x, y) of landing spots (odom)
+        self._xy: np.ndarray | None = None     # the vehicle's odom x, y this step (None: unknown)
+        self.spot_kept = 0            # tests a landing spot turned down since reset (a push back to it, a climb off it)
         self.mode: str | None = None
 
     def reset(self) -> None:
@@ -172,6 +197,9 @@ class PilotOverride:
         self._recent.clear()
         self._climbing = False
         self._long = None
+        self._spots.clear()
+        self._xy = None
+        self.spot_kept = 0
         self.mode = None
 
     def _span_s(self) -> float:
@@ -209,12 +237,26 @@ class PilotOverride:
         if along < min(c.persist_floor_speed_mps, c.persist_speed_mps):
             return False
         speed = float(np.hypot(m[0], m[1]))
-        if not self._held_back(window, m / speed, speed):
+        if self.toward_spot(m / speed) or not self._held_back(window, m / speed, speed):
             return False
         over_floor, height = _surface_below(surface, altitude_m)
         if not height >= c.persist_min_height_m:
             return False
         return along >= (c.persist_floor_speed_mps if over_floor is True else c.persist_speed_mps)
+
+    def _spot_offsets(self) -> np.ndarray:
+        """Horizontal offsets (n, 2) from the vehicle to the remembered landing spots within spot_radius_m."""
+        if self._xy is None or not self._spots:
+            return np.zeros((0, 2))
+        rel = np.array([(x, y) for _, x, y in self._spots]) - self._xy
+        return rel[np.hypot(rel[:, 0], rel[:, 1]) <= self.cfg.spot_radius_m]
+
+    def toward_spot(self, d: np.ndarray) -> bool:
+        """Whether a push along unit `d` heads back to a landing spot nearby (one spot_ahead_m ahead along it)."""
+        rel = self._spot_offsets()
+        toward = bool(rel.size) and float((rel @ np.asarray(d, dtype=float)).max()) >= self.cfg.spot_ahead_m
+        self.spot_kept += int(toward)
+        return toward
 
     def _held_back(self, window: np.ndarray, d: np.ndarray, speed: float) -> bool:
         """Whether a push along unit `d` at `speed` over `window` went one way and the vehicle did not go along.
@@ -236,6 +278,9 @@ class PilotOverride:
         uz, vz = window[:, 5], window[:, 6]
         if float(uz.min()) <= 0.0 or float(uz.mean()) < c.persist_climb_mps:
             return False              # not a climb held the whole time
+        if len(self._spot_offsets()):
+            self.spot_kept += 1
+            return False              # rising off a spot it tried to land on: positioning, the actor's
         return float(vz.mean()) < c.held_back_fraction * float(uz.mean())
 
     def long_push(self, surface: Surface | None = None, altitude_m: float = math.inf) -> bool:
@@ -263,7 +308,7 @@ class PilotOverride:
             return False
         if float(uz.min()) < 0.0:
             return False              # a descent commanded in the window: landing, not flying on
-        if not self._held_back(window, d, speed):
+        if self.toward_spot(d) or not self._held_back(window, d, speed):
             return False
         if not _surface_below(surface, altitude_m)[1] >= c.long_push_min_height_m:
             return False
@@ -272,10 +317,11 @@ class PilotOverride:
 
     def apply(self, now: float, u: np.ndarray, mean_u: np.ndarray, altitude_m: float,
               max_speed: np.ndarray | tuple[float, float, float], velocity: np.ndarray | None = None,
-              surface: Surface | None = None) -> np.ndarray | None:
+              surface: Surface | None = None, position: np.ndarray | None = None) -> np.ndarray | None:
         """The agent action (m/s) replacing the actor's at time `now`, or None (the rule does not act).
 
         `velocity`: the vehicle's (base_link, m/s; None: the persistent-push test is off this step);
+        `position`: the vehicle's in odom (m; None: no landing spot is remembered or consulted this step);
         `surface`: what the depth image shows below, read only if needed and at most once (``persistent_push``,
         ``long_push``; None: unknown, the altitude over the floor stands in for the height).
         """
@@ -292,6 +338,15 @@ class PilotOverride:
             self._held.clear()        # the clock went back (a new run, a replayed bag): old keys do not count
         if self._recent and self._recent[-1][0] > now:
             self._recent.clear()
+        if self._spots and self._spots[-1][0] > now:
+            self._spots.clear()
+        while self._spots and self._spots[0][0] < now - c.spot_memory_s:
+            self._spots.popleft()
+        xy = None if position is None else np.asarray(position, dtype=float).reshape(-1)[:2]
+        self._xy = xy if xy is not None and xy.size == 2 and np.all(np.isfinite(xy)) else None
+        if (self._xy is not None and c.spot_memory_s > 0 and u[2] < 0.0
+                and float(np.hypot(m[0], m[1])) < c.spot_speed_mps):
+            self._spots.append((float(now), float(self._xy[0]), float(self._xy[1])))
         while self._held and self._held[0][0] < now - c.reversal_s:
             self._held.popleft()
         v = None if velocity is None else np.asarray(velocity, dtype=float).reshape(-1)

@@ -9,7 +9,8 @@ orientation) read /camera/depth/image_raw in every mode; /diagnostics shows floo
 floor_guard_engaged (steps it replaced a descent), pilot_override (on/off) and pilot_override_engaged
 (steps the pilot override, assist_policy.override, replaced the actor's action) and
 pilot_override_persistent_engaged, pilot_override_climb_engaged and pilot_override_long_engaged (of
-those, steps for a persistent push, a held climb, a long push), pad_recall (on/off), pad_recall_engaged (steps it steered to a mapped pad),
+those, steps for a persistent push, a held climb, a long push), pilot_override_spot_kept (pushes back to,
+and climbs off, a spot the pilot tried to land on that stayed with the actor), pad_recall (on/off), pad_recall_engaged (steps it steered to a mapped pad),
 pad_recall_touchdown and pad_recall_scout (of those, steps it centred on the pad below for touchdown, it
 looked beyond for a nearer pad before steering back to one behind), pad_recall_pads (pads in its map), oscillation_damper (on/off) and
 oscillation_damper_engaged (steps the oscillation damper, assist_policy.damper, replaced the actor's
@@ -119,6 +120,14 @@ PARAMS = {
     'pilot_override_long_push_speed_mps': Param(OverrideConfig.long_push_speed_mps, 'Mean horizontal pilot speed '
                                                 'along one axis over pilot_override_long_push_s (m/s) that counts as '
                                                 'a long push.', min=0.01, max=10.0, dynamic=True),
+    'pilot_override_spot_memory_s': Param(OverrideConfig.spot_memory_s, 'Landing spots: where the pilot '
+                                          'commanded a descent while not going anywhere is remembered this long '
+                                          '(s); a persistent or long push back to such a spot, or a held climb '
+                                          'near one, stays with the actor (positioning, not leaving); 0 = off.',
+                                          min=0.0, max=600.0, dynamic=True),
+    'pilot_override_spot_radius_m': Param(OverrideConfig.spot_radius_m, 'A landing spot this close (horizontal '
+                                          'm) counts for pilot_override_spot_memory_s.', min=0.0, max=10.0,
+                                          dynamic=True),
     'pad_recall': Param(True, 'Pad recall (assist_policy.recall, not learned): pads seen in the depth image are '
                               'mapped; when the pilot descends (or is low) over bare floor, the actor\'s horizontal '
                               'action is replaced by a push back to the nearest mapped pad.', dynamic=True),
@@ -154,7 +163,9 @@ OVERRIDE_FIELDS = {'pilot_override': ('enabled', bool), 'pilot_override_speed_mp
                    'pilot_override_persist_floor_speed_mps': ('persist_floor_speed_mps', float),
                    'pilot_override_persist_climb_mps': ('persist_climb_mps', float),
                    'pilot_override_long_push_s': ('long_push_s', float),
-                   'pilot_override_long_push_speed_mps': ('long_push_speed_mps', float)}
+                   'pilot_override_long_push_speed_mps': ('long_push_speed_mps', float),
+                   'pilot_override_spot_memory_s': ('spot_memory_s', float),
+                   'pilot_override_spot_radius_m': ('spot_radius_m', float)}
 # node parameter -> (RecallConfig field, type)
 RECALL_FIELDS = {'pad_recall': ('enabled', bool), 'pad_recall_radius_m': ('radius_m', float),
                  'pad_recall_touchdown_height_m': ('touchdown_height_m', float),
@@ -415,6 +426,7 @@ class PolicyNode(Node):
         self.diag.set('pilot_override_persistent_engaged', self.core.persist_engaged)
         self.diag.set('pilot_override_climb_engaged', self.core.climb_engaged)
         self.diag.set('pilot_override_long_engaged', self.core.long_engaged)
+        self.diag.set('pilot_override_spot_kept', self.core.spot_kept)
         self.diag.set('pad_recall_engaged', self.core.recall_engaged)
         self.diag.set('pad_recall_touchdown', self.core.touchdown_engaged)
         self.diag.set('pad_recall_scout', self.core.scout_engaged)

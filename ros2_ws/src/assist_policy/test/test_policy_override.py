@@ -133,10 +133,10 @@ def test_train_td3_flies_with_the_override_only_when_asked():
     assert cfg.override == OverrideConfig()
 
 
-def push(ov, t0, seconds, u, v, altitude=3.0, over_floor=None, dt=0.05):
-    """Feed `seconds` of the pilot command `u` while the vehicle moves at `v`; the decisions."""
+def push(ov, t0, seconds, u, v, altitude=3.0, over_floor=None, dt=0.05, pos=None):
+    """Feed `seconds` of the pilot command `u` while the vehicle moves at `v` (at odom `pos`); the decisions."""
     u, v = np.asarray(u, float), np.asarray(v, float)
-    return [ov.apply(t0 + k * dt, u, u, altitude, MS, v, lambda: (over_floor, None))
+    return [ov.apply(t0 + k * dt, u, u, altitude, MS, v, lambda: (over_floor, None), pos)
             for k in range(int(round(seconds / dt)) + 1)]
 
 
@@ -243,15 +243,16 @@ def test_a_held_climb_the_vehicle_does_not_make_passes_until_the_pilot_stops_cli
         assert push(PilotOverride(cfg), 0.0, 3.0, up, [0.0, 0.0, -0.05], altitude=1.7)[-1] is None
 
 
-def taps(ov, t0, seconds, key, v, uz=0.0, height=0.7, dt=0.05, period=2.0):
-    """A novice tapping `key` (duty 0.5, `period` s) while the vehicle moves at `v`; the decisions (mean_u: 1 s)."""
+def taps(ov, t0, seconds, key, v, uz=0.0, height=0.7, dt=0.05, period=2.0, pos=None):
+    """A novice tapping `key` (duty 0.5, `period` s) while the vehicle moves at `v` (at odom `pos`); the decisions
+    (mean_u: 1 s)."""
     out = []
     for k in range(int(round(seconds / dt)) + 1):
         t = t0 + k * dt
         on = (t % period) < period / 2
         u = np.array([*(np.asarray(key, float) * on), uz])
         out.append(ov.apply(t, u, np.array([*(0.5 * np.asarray(key, float)), uz]), 1.8, MS,
-                            np.asarray(v, float), lambda: (False, height)))
+                            np.asarray(v, float), lambda: (False, height), pos))
     return out
 
 
@@ -292,6 +293,52 @@ def test_no_long_push_when_descending_going_along_reversing_touching_down_or_off
         OverrideConfig(long_push_speed_mps=0.0)
 
 
+def tried_to_land(ov, t0, spot, seconds=1.0):
+    """The pilot descends for `seconds` at odom `spot`, not going anywhere (an ignorer over its own aim)."""
+    u = np.array([0.0, 0.0, -0.5])
+    for k in range(int(round(seconds / 0.05)) + 1):
+        ov.apply(t0 + 0.05 * k, u, u, 1.8, MS, np.zeros(3), lambda: (False, 0.7), np.array([*spot, 1.8]))
+
+
+def test_pushes_and_climbs_back_to_where_the_pilot_tried_to_land_stay_with_the_actor():
+    here, held = np.array([0.0, 0.0, 1.8]), [0.0, 0.0, 0.0]
+    # an ignorer tried to land 0.6 m ahead (its aim, off the pad), the actor took it back over the pad: its
+    # long push back there is positioning, not flying on
+    ov = PilotOverride()
+    tried_to_land(ov, 0.0, (0.6, 0.0))
+    assert all(a is None for a in taps(ov, 1.05, 7.0, [1.0, 0.0], held, pos=here))
+    # pushed away from the spot (a pilot leaving the pad it tried), it passes as before
+    ov = PilotOverride()
+    tried_to_land(ov, 0.0, (0.6, 0.0))
+    out = taps(ov, 1.05, 7.0, [-1.0, 0.0], held, pos=here)
+    assert out[-1] is not None and ov.mode == 'long'
+    # not when the spot is farther than spot_radius_m, forgotten after spot_memory_s, or with the test off
+    for cfg, spot, t1 in ((CFG, (1.5, 0.0), 1.05), (CFG, (0.6, 0.0), 21.05),
+                          (OverrideConfig(spot_memory_s=0.0), (0.6, 0.0), 1.05)):
+        ov = PilotOverride(cfg)
+        tried_to_land(ov, 0.0, spot)
+        assert taps(ov, t1, 7.0, [1.0, 0.0], held, pos=here)[-1] is not None and ov.mode == 'long'
+    # a descent while going somewhere (a glide path, 0.7 m/s on) marks no spot
+    ov = PilotOverride()
+    push(ov, 0.0, 1.0, [0.7, 0.0, -0.3], [0.7, 0.0, -0.3], pos=np.array([0.6, 0.0, 3.0]))
+    assert taps(ov, 1.05, 7.0, [1.0, 0.0], held, pos=here)[-1] is not None
+    # the persistent push back to the spot, and a held climb off it, stay with the actor too
+    ov = PilotOverride()
+    tried_to_land(ov, 0.0, (0.6, 0.0))
+    assert push(ov, 1.05, 3.0, [0.8, 0.0, -0.3], [0.0, 0.0, 0.0], pos=here)[-1] is None
+    assert push(ov, 4.1, 3.0, [0.0, 0.0, 0.5], [0.0, 0.0, -0.05], altitude=1.7, pos=here)[-1] is None
+    ov = PilotOverride()
+    tried_to_land(ov, 0.0, (2.0, 0.0))                     # a spot 2 m away: the climb passes
+    assert push(ov, 1.05, 3.0, [0.0, 0.0, 0.5], [0.0, 0.0, -0.05], altitude=1.7, pos=here)[-1] is not None
+    assert ov.mode == 'climb'
+    # no position (a caller without odometry): no spot is remembered, the rules act as before
+    ov = PilotOverride()
+    tried_to_land(ov, 0.0, (np.nan, 0.0))
+    assert taps(ov, 1.05, 7.0, [1.0, 0.0], held, pos=here)[-1] is not None
+    with pytest.raises(ValueError, match='spot_radius_m'):
+        OverrideConfig(spot_radius_m=-1.0)
+
+
 def test_policy_core_passes_a_held_climb_and_says_so(tmp_path):
     path = _helpers.constant_actor(tmp_path / 'down.pt', [0.0, 0.0, -0.99])   # an actor landing it where it is
     core = PolicyCore(path, PolicyCoreConfig(mode='latent'))
@@ -320,6 +367,21 @@ def test_policy_core_passes_a_long_push_and_says_so(tmp_path):
     assert outs[-1].key == 'pilot_override' and 'long push' in outs[-1].reason
     assert outs[-1].velocity[0] >= 0.0 and outs[-1].velocity[2] == pytest.approx(0.3)   # on, rising gently
     assert core.long_engaged == core.override_engaged >= 30 and core.persist_engaged == 0
+
+
+def test_policy_core_keeps_a_push_back_to_where_the_pilot_tried_to_land_with_the_actor(tmp_path):
+    path = _helpers.constant_actor(tmp_path / 'back.pt', [-0.9, 0.0, 0.0])   # an actor holding the pilot back
+    core = PolicyCore(path, PolicyCoreConfig(mode='latent'))
+    outs = []
+    for k in range(160):      # 1 s descending 0.6 m ahead (odometry), then 7 s of taps back toward it, held
+        t = 1.0 + 0.05 * k
+        descending = k < 20
+        core.set_odom(t, [0.6 if descending else 0.0, 0, 1.8], [0, 0, 0])
+        core.set_pilot(t, [0.0, 0.0, -0.5] if descending else [1.0 if (0.05 * k) % 0.4 >= 0.2 else 0.0, 0.0, 0.0])
+        core.set_latent(t, np.zeros(_helpers.LATENT))
+        outs.append(core.step(t))
+    assert all(o.key == 'assisting' for o in outs[20:])   # no long push back to the spot (positioning)
+    assert core.override_engaged == core.long_engaged == 0 and core.spot_kept >= 30
 
 
 @pytest.mark.parametrize('surface, engages', [('floor', True), ('pad', False)])
