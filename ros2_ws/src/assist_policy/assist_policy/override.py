@@ -176,7 +176,7 @@ class PilotOverride:
     """The rule with its memory of recent held keys (for reversals) and commands (for a persistent push).
 
     ``reset`` at each new landing. ``mode`` says which test engaged on the last ``apply``: 'held_key',
-    'persistent', 'climb', 'long' or None.
+    'persistent', 'climb', 'long' or None; ``kept`` whether a landing spot turned a push or climb down.
     """
 
     def __init__(self, cfg: OverrideConfig | None = None):
@@ -188,7 +188,8 @@ class PilotOverride:
         self._long: np.ndarray | None = None    # a long push engaged: its direction (unit, horizontal)
         self._spots: deque[tuple[float, float, float]] = deque()    # (time, x, y) of landing spots (odom)
         self._xy: np.ndarray | None = None     # the vehicle's odom x, y this step (None: unknown)
-        self.spot_kept = 0            # tests a landing spot turned down since reset (a push back to it, a climb off it)
+        self._near: np.ndarray | None = None   # offsets to the spots within spot_radius_m, this step (on demand)
+        self.kept = False             # a landing spot kept the actor's action on the last apply (a push back, a climb)
         self.mode: str | None = None
 
     def reset(self) -> None:
@@ -199,7 +200,8 @@ class PilotOverride:
         self._long = None
         self._spots.clear()
         self._xy = None
-        self.spot_kept = 0
+        self._near = None
+        self.kept = False
         self.mode = None
 
     def _span_s(self) -> float:
@@ -245,17 +247,22 @@ class PilotOverride:
         return along >= (c.persist_floor_speed_mps if over_floor is True else c.persist_speed_mps)
 
     def _spot_offsets(self) -> np.ndarray:
-        """Horizontal offsets (n, 2) from the vehicle to the remembered landing spots within spot_radius_m."""
-        if self._xy is None or not self._spots:
-            return np.zeros((0, 2))
-        rel = np.array([(x, y) for _, x, y in self._spots]) - self._xy
-        return rel[np.hypot(rel[:, 0], rel[:, 1]) <= self.cfg.spot_radius_m]
+        """Horizontal offsets (n, 2) from the vehicle to the remembered landing spots within spot_radius_m.
+
+        Computed once per ``apply`` (the pushes and the climb may all ask); ``apply`` forgets it each step.
+        """
+        if self._near is None:
+            self._near = np.zeros((0, 2))
+            if self._xy is not None and self._spots:
+                rel = np.array([(x, y) for _, x, y in self._spots]) - self._xy
+                self._near = rel[np.hypot(rel[:, 0], rel[:, 1]) <= self.cfg.spot_radius_m]
+        return self._near
 
     def toward_spot(self, d: np.ndarray) -> bool:
         """Whether a push along unit `d` heads back to a landing spot nearby (one spot_ahead_m ahead along it)."""
         rel = self._spot_offsets()
         toward = bool(rel.size) and float((rel @ np.asarray(d, dtype=float)).max()) >= self.cfg.spot_ahead_m
-        self.spot_kept += int(toward)
+        self.kept = self.kept or toward
         return toward
 
     def _held_back(self, window: np.ndarray, d: np.ndarray, speed: float) -> bool:
@@ -279,7 +286,7 @@ class PilotOverride:
         if float(uz.min()) <= 0.0 or float(uz.mean()) < c.persist_climb_mps:
             return False              # not a climb held the whole time
         if len(self._spot_offsets()):
-            self.spot_kept += 1
+            self.kept = True
             return False              # rising off a spot it tried to land on: positioning, the actor's
         return float(vz.mean()) < c.held_back_fraction * float(uz.mean())
 
@@ -327,6 +334,8 @@ class PilotOverride:
         """
         c = self.cfg
         self.mode = None
+        self.kept = False
+        self._near = None
         if surface is not None:
             surface = functools.cache(surface)    # both pushes may ask: the depth image is read once a step
         u = np.asarray(u, dtype=float).reshape(3)

@@ -172,7 +172,7 @@ class PolicyCore:
         self.persist_engaged = 0                    # ... of which for a persistent push (override.mode 'persistent')
         self.climb_engaged = 0                      # ... of which for a held climb (override.mode 'climb')
         self.long_engaged = 0                       # ... of which for a long push (override.mode 'long')
-        self.spot_kept = 0                          # pushes / climbs a landing spot kept with the actor (override)
+        self.spot_kept = 0                          # steps a landing spot kept the actor's action (override.kept)
         self.recall = PadRecall(self.cfg.recall or RecallConfig(), self.guard)
         self.recall_engaged = 0                     # steps whose horizontal action the pad recall replaced
         self.touchdown_engaged = 0                  # ... of which centring on the pad below (recall.mode 'touchdown')
@@ -388,9 +388,8 @@ class PolicyCore:
         mean_u = self.builder.history.means(now)[0]
         surface = (None if self._depth is None or not self._fresh(self._depth[0], now, c.feature_timeout_s)
                    else lambda: self.guard.surface_below(self._depth[1], pos))
-        kept = self.override.spot_kept
         a_o = self.override.apply(now, u, mean_u, float(pos[2]), self.max_speed, vel, surface, pos)
-        self.spot_kept += self.override.spot_kept - kept
+        self.spot_kept += int(self.override.kept)
         if a_o is not None:
             self.override_engaged += 1
             self.persist_engaged += int(self.override.mode == 'persistent')
