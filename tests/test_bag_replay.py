@@ -12,8 +12,8 @@ import pytest
 from assist_policy import evaluate
 from assist_policy.bags import plot
 from assist_policy.bags.bagio import BagReader, BagWriter
-from assist_policy.bags.episode import landing_bag_name
-from assist_policy.bags.replay import ReplayConfig, replay, summarize, write_outputs
+from assist_policy.bags.episode import DEPTH_NOISE_KEY, landing_bag_name
+from assist_policy.bags.replay import ReplayConfig, replay, rules_on, summarize, write_outputs
 
 BIN = Path(sys.executable).parent
 
@@ -41,6 +41,20 @@ def override_landing(tmp_path_factory):
     assert code == 0
     row = evaluate.read_landings(out / 'landings.csv')['latent+override'][0]
     return out / 'bags' / landing_bag_name('latent+override', row['beta'], row['seed']), row
+
+
+@pytest.fixture(scope='module')
+def rules_landing(tmp_path_factory):
+    """One latent landing flown with every non-learned rule on, each of which acts in it (low_flyer, beta 0.5)."""
+    out = tmp_path_factory.mktemp('eval_rules')
+    code = evaluate.main(['--out', str(out), '--conditions', 'latent', '--betas', '0.5', '--landings', '1',
+                          '--seed', '3025', '--pilot', 'low_flyer', '--safety', 'true', '--override', 'true',
+                          '--recall', 'true', '--damper', 'true', '--max-episode-s', '25',
+                          '--record-dir', str(out / 'bags'), '--plot', 'false'])
+    assert code == 0
+    cond = 'latent+guard+override+recall+damper'
+    row = evaluate.read_landings(out / 'landings.csv')[cond][0]
+    return out / 'bags' / landing_bag_name(cond, row['beta'], row['seed']), row
 
 
 def test_landing_bag_matches_its_csv_row(landing):
@@ -144,3 +158,27 @@ def test_plot_flight_without_scene_marks_the_goal_from_sim_goal(landing, tmp_pat
     assert 'pads not recorded' in plot.describe(f, 'x', 0)
     assert plot.main([str(stripped), '--out', str(tmp_path / 'p')]) == 0
     assert (tmp_path / 'p' / 'no_scene_landing0.png').stat().st_size > 10_000
+
+
+def test_replay_runs_the_rules_the_bag_was_flown_with(rules_landing, landing):
+    """Depth frames and attitude reach the core, so the floor guard, override, recall and damper act as they flew."""
+    bag, row = rules_landing
+    for rule in ('guard', 'override', 'recall', 'damper'):
+        assert float(row[f'{rule}_fraction']) > 0, rule          # each rule acted in this landing
+    with BagReader(bag) as r:
+        assert DEPTH_NOISE_KEY in r.metadata['custom_data']      # the encoder's noise seeds, the depth as rendered
+    s = summarize(replay(bag, ReplayConfig()))
+    assert s['rules'] == {'floor_guard': True, 'override': True, 'recall': True, 'damper': True}
+    assert s['depth_noise'] is not None and s['velocity_frame'] == 'odom'
+    assert s['latent']['max'] < 1e-5                             # the same noise re-applied to the same frames
+    assert s['agent_cmd']['max'] < 1e-4 and s['cmd_vel']['max'] < 1e-4
+    assert s['agent_cmd']['only_new'] == s['agent_cmd']['only_recorded'] == 0
+    for rule in ('floor_guard', 'override', 'recall', 'damper'):    # each one's commands are in the bag
+        off = summarize(replay(bag, ReplayConfig(latent='recorded', **{rule: 'off'})))
+        assert off['rules'][rule] is False and off['cmd_vel']['max'] > 0.05, rule
+    # a bag evaluate flew without rules replays without them; a graph's bag (no condition) with all, as policy_node
+    assert summarize(replay(landing[0], ReplayConfig(latent='recorded')))['rules'] == dict.fromkeys(
+        ('floor_guard', 'override', 'recall', 'damper'), False)
+    assert rules_on(ReplayConfig(), '', []) == dict.fromkeys(('floor_guard', 'override', 'recall', 'damper'), True)
+    with pytest.raises(ValueError, match='recall must be'):
+        replay(bag, ReplayConfig(recall='sometimes'))

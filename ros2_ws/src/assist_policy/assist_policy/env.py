@@ -225,7 +225,7 @@ class LandingAssistEnv(gym.Env):
         overridden = False
         if self.override is not None and not self.unassisted:
             surface = (None if self.guard is None
-                       else lambda: self.guard.surface_below(self._camera_frame().depth, st.position))
+                       else lambda: self.guard.surface_below(self.camera_frame().depth, st.position))
             a_o = self.override.apply(t, self._u, self.builder.history.means(t)[0], float(st.position[2]),
                                       self.cfg.max_speed, v_body, surface, st.position)
             if a_o is not None:
@@ -278,8 +278,8 @@ class LandingAssistEnv(gym.Env):
         self.episode_return += reward
         return self._obs(), float(reward), bool(terminated), bool(truncated), info
 
-    def _camera_frame(self):
-        """This step's camera frame: the encoder's, else rendered on first use (once per step; _obs forgets it)."""
+    def camera_frame(self):
+        """This step's camera frame as rendered (clean depth): the encoder's, else rendered on first use (once a step)."""
         if self._frame is None:
             self._frame = self.world.render()
         return self._frame
@@ -287,7 +287,7 @@ class LandingAssistEnv(gym.Env):
     def _recall(self, a: np.ndarray, overridden: bool) -> tuple[np.ndarray, bool]:
         """Pad recall (assist_policy.recall): map this step's depth frame, steer to a remembered pad if it acts."""
         st = self.world.state
-        frame = self._camera_frame()
+        frame = self.camera_frame()
         self.recall.observe(frame.depth, st.position, st.quaternion)
         if overridden:
             return a, False
@@ -299,7 +299,7 @@ class LandingAssistEnv(gym.Env):
         """The floor guard (assist_policy.safety) on this step's command, with the camera's depth."""
         if float(self.world.state.position[2]) >= self.guard.watch_height_m:
             return a, v, False                     # too high to watch: skip the render
-        frame = self._camera_frame()
+        frame = self.camera_frame()
         g = self.guard.apply(self._u, a if active else None, v, frame.depth, self.world.state.position,
                              self.cfg.blend_threshold)
         return (g.agent, g.velocity, True) if g.engaged else (a, v, False)

@@ -40,9 +40,11 @@ class LatentFn:
     def __init__(self, encoder, depth_noise: bool, seed: int):
         from assist_perception.encoder_core import BadFrame  # noqa: PLC0415
         from assist_perception.noise import apply_depth_noise  # noqa: PLC0415
-        self._encoder, self._noise, self._apply_noise = encoder, depth_noise, apply_depth_noise
+        self._encoder, self._apply_noise = encoder, apply_depth_noise
         self._bad_frame = BadFrame
+        self.depth_noise = bool(depth_noise)
         self.seed = int(seed)
+        self.episode_seed: int | None = None      # the landing's noise seed (reset); bags record it
         self.latent_dim = int(encoder.latent_dim)
         self.rejected = 0
         self.last_input: tuple[np.ndarray, np.ndarray] | None = None   # the frame as the encoder saw it
@@ -50,13 +52,14 @@ class LatentFn:
 
     def reset(self, episode_seed: int | None) -> None:
         """New landing: depth noise from (seed, episode_seed) (seed alone for None); no previous latent."""
-        key = [self.seed] if episode_seed is None else [self.seed, int(episode_seed)]
+        self.episode_seed = None if episode_seed is None else int(episode_seed)
+        key = [self.seed] if episode_seed is None else [self.seed, self.episode_seed]
         self._rng = np.random.default_rng(key)
         self._mu = np.zeros(self.latent_dim)
 
     def __call__(self, rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
         """The encoder mean of this frame (the previous one if the encoder rejects the frame)."""
-        d = self._apply_noise(depth, self._rng, rgb=rgb) if self._noise else depth
+        d = self._apply_noise(depth, self._rng, rgb=rgb) if self.depth_noise else depth
         self.last_input = (rgb, d)      # evaluate --record-dir saves it
         try:
             self._mu = np.asarray(self._encoder.encode(rgb, d, want_xyz=False).mu, dtype=float)

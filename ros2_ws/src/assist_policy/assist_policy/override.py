@@ -87,7 +87,8 @@ from the spot: late_correction), a glide path (it descends while going somewhere
 push of a low flyer (no descent before it), anything more than ``spot_memory_s`` after the descent.
 
 It uses only what the actor observes (u and its window mean), odometry position, altitude and velocity,
-the depth image's surface test (assist_policy.safety) and time. Pure numpy; no rclpy.
+the depth image's surface test (assist_policy.safety; the caller passes none with the floor guard off,
+the altitude standing in, as evaluate's env and policy_core both do) and time. Pure numpy; no rclpy.
 """
 from __future__ import annotations
 

@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from assist_sim.core.geometry import quat_to_matrix
 from assist_sim.shipped import shipped_model_path
 
 from .actions import scale_action
@@ -103,6 +104,10 @@ class PolicyCoreConfig:
     override: OverrideConfig | None = None  # pilot override settings (None: OverrideConfig() defaults)
     recall: RecallConfig | None = None      # pad recall settings (None: RecallConfig() defaults)
     damper: DamperConfig | None = None      # oscillation damper settings (None: DamperConfig() defaults)
+    # velocity the actor sees: the odometry twist as given (base_link, policy_node) or rotated to odom with the
+    # odometry attitude (as evaluate's env trains and flies it; replay_assist for evaluate's bags); the rules
+    # (floor guard, override, damper) always read the twist
+    actor_velocity: str = 'twist'
 
     def __post_init__(self) -> None:
         """Reject settings that would reverse, suppress or invent motion (ValueError, one line)."""
@@ -114,6 +119,8 @@ class PolicyCoreConfig:
                      'max_vertical_mps', 'max_input_mps', 'max_odom_speed_mps', 'max_position_m',
                      'max_latent_abs'):
             _positive(name, getattr(self, name))
+        if self.actor_velocity not in ('twist', 'odom'):
+            raise ValueError(f"PolicyCoreConfig.actor_velocity must be 'twist' or 'odom', got {self.actor_velocity!r}")
 
 
 @dataclass
@@ -361,6 +368,8 @@ class PolicyCore:
         if not odom_ok:
             return self._relinquish(now, u, 'odometry stale or absent', 'odom_stale')
         _, pos, vel = self._odom
+        vel_actor = (quat_to_matrix(self._attitude) @ vel
+                     if c.actor_velocity == 'odom' and self._attitude is not None else vel)
         if self.mode is Condition.ORACLE:
             if self._goal is None:
                 return self._relinquish(now, u, 'goal absent', 'goal_absent')
@@ -370,10 +379,10 @@ class PolicyCore:
                 return self._relinquish(now, u, f'{self.mode.value} input stale or absent', 'feature_stale')
             feature = self._feature[1]
         if self.mode is Condition.END_TO_END:
-            vec = self.builder.build(now, np.zeros(0), vel, pos[2], u)
+            vec = self.builder.build(now, np.zeros(0), vel_actor, pos[2], u)
             obs = np.concatenate([feature, vec]).astype(np.float32)
         else:
-            obs = self.builder.build(now, feature, vel, pos[2], u, pos)
+            obs = self.builder.build(now, feature, vel_actor, pos[2], u, pos)
         with torch.no_grad():
             raw = self.actor(torch.as_tensor(obs).unsqueeze(0))[0].numpy().astype(float)
         if not np.all(np.isfinite(raw)):
@@ -386,7 +395,10 @@ class PolicyCore:
             a = a_d
         depth = self._mapped(now, pos)
         mean_u = self.builder.history.means(now)[0]
-        surface = (None if self._depth is None or not self._fresh(self._depth[0], now, c.feature_timeout_s)
+        # the override reads the depth image through the floor guard's surface test (none with the guard off,
+        # as evaluate's env flies it: its altitude stands in)
+        surface = (None if not self.guard.cfg.enabled or self._depth is None
+                   or not self._fresh(self._depth[0], now, c.feature_timeout_s)
                    else lambda: self.guard.surface_below(self._depth[1], pos))
         a_o = self.override.apply(now, u, mean_u, float(pos[2]), self.max_speed, vel, surface, pos)
         self.spot_kept += int(self.override.kept)

@@ -120,3 +120,26 @@ def test_end_to_end_core_needs_fresh_images(tmp_path):
     out = core.step(1.05)
     assert out.agent is not None and np.all(np.isfinite(out.velocity))
     assert core.step(2.0).agent is None                      # image stale after 0.5 s
+
+
+def test_actor_velocity_odom_rotates_the_twist_with_the_attitude(tmp_path, monkeypatch):
+    """actor_velocity 'odom' (evaluate's env, replay of its bags): the actor sees R(q) twist; 'twist' (policy_node): as given."""
+    seen = {}
+    yaw90 = [0.0, 0.0, math.sin(math.pi / 4), math.cos(math.pi / 4)]
+    for frame in ('twist', 'odom'):
+        core = PolicyCore(constant_actor(tmp_path / f'{frame}.pt', [0.8, 0.0, 0.0]),
+                          PolicyCoreConfig(mode='latent', actor_velocity=frame))
+        build = core.builder.build
+
+        def spy(now, feature, vel, *rest, frame=frame, build=build):
+            seen[frame] = np.array(vel, dtype=float)
+            return build(now, feature, vel, *rest)
+        monkeypatch.setattr(core.builder, 'build', spy)
+        core.set_odom(10.0, [1, 0, 2], [1.0, 0.0, 0.2], yaw90)
+        core.set_pilot(10.0, [0, 0, 0])
+        core.set_latent(10.0, np.zeros(LATENT))
+        assert core.step(10.05).agent is not None
+    np.testing.assert_allclose(seen['twist'], [1.0, 0.0, 0.2], atol=1e-12)
+    np.testing.assert_allclose(seen['odom'], [0.0, 1.0, 0.2], atol=1e-12)     # base_link x is odom y at yaw 90
+    with pytest.raises(ValueError, match='actor_velocity'):
+        PolicyCoreConfig(actor_velocity='world')

@@ -1,13 +1,16 @@
 """Record one simulated landing of the training/evaluation env as a bag with the graph's topics and types.
 
 evaluate runs without ROS, so `EpisodeRecorder` writes what the graph would have carried: camera
-frames (the ones the assistant saw; in the latent condition the depth after the simulated sensor
-noise, i.e. the encoder's input), /odom (twist in base_link, REP-105), /pilot/cmd_vel (u),
+frames as rendered (clean depth, as sim_node publishes it and as the floor guard, pad recall and pilot
+override read it), /odom (twist in base_link, REP-105), /pilot/cmd_vel (u),
 /assist/latent, /assist/agent_cmd (a) and /cmd_vel (V) at every control step (a and V as the env
 applied them: after the pilot override and the floor guard, as policy_node publishes), /sim/goal and
 /sim/scene at the start and the /sim/landing JSON at the end. Times are the episode's sim time
 (0 at the start pose). The bag's custom_data records that the assistant observed world-frame
-velocity (as the env does), which replay_assist honours.
+velocity (as the env does) and, in the latent condition with the simulated depth sensor noise, the
+noise's seeds (``DEPTH_NOISE_KEY``: base seed, landing seed), so replay_assist re-encodes each frame with
+the same noise the encoder saw; replay_assist honours both. (Bags recorded before November 2026 hold
+the noisy depth instead and no seeds: replay encodes them as they are.)
 """
 from __future__ import annotations
 
@@ -26,6 +29,7 @@ from .bagio import CONTRACT_TOPICS, BagWriter
 EPISODE_TOPICS = ('/camera/color/image_raw', '/camera/depth/image_raw', '/odom', '/pilot/cmd_vel', '/assist/latent',
                   '/assist/agent_cmd', '/cmd_vel', '/sim/goal', '/sim/scene', '/sim/landing')
 VELOCITY_FRAME_KEY = 'assist.velocity_frame'   # custom_data: 'odom' when the assistant saw world-frame velocity
+DEPTH_NOISE_KEY = 'assist.depth_noise_seed'     # custom_data: '<base>,<landing>' seeds of the encoder's depth noise
 
 
 def ns(t: float) -> int:
@@ -54,14 +58,23 @@ class EpisodeRecorder:
             env.latent_fn = self._capture_latent()
 
     def _capture_latent(self) -> Callable:
-        """env.latent_fn while recording: the wrapped fn, keeping each mu; forwards the fn's reset."""
+        """env.latent_fn while recording: the wrapped fn, keeping each mu; forwards the fn's reset and records the
+        landing's depth noise seeds (custom_data ``DEPTH_NOISE_KEY``) when the fn adds noise."""
         inner = self._latent_fn
 
         def capture(rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
             mu = inner(rgb, depth)
             self._last_mu = np.asarray(mu, dtype=float)
             return mu
-        capture.reset = getattr(inner, 'reset', None)
+        inner_reset = getattr(inner, 'reset', None)
+        if inner_reset is not None:
+            def reset(episode_seed: int | None) -> None:
+                inner_reset(episode_seed)
+                if getattr(inner, 'depth_noise', False) and episode_seed is not None:
+                    self.writer.custom_data[DEPTH_NOISE_KEY] = f'{int(inner.seed)},{int(episode_seed)}'
+            capture.reset = reset
+        else:
+            capture.reset = None
         return capture
 
     def _t(self) -> float:
@@ -78,12 +91,9 @@ class EpisodeRecorder:
             w.write_msg('/sim/scene', 0, msgs.scene_markers(0, scene_markers(env.world.scene, env.world.goal_index)))
         t = ns(st.time - self._t0)
         raw = np.zeros(3) if self._policy is None else np.asarray(self._policy(obs), dtype=float)
-        frame = getattr(self._latent_fn, 'last_input', None) if self._latent_fn is not None else None
-        if frame is None:
-            f = env.world.render()
-            frame = (f.rgb, f.depth)
-        w.write_msg('/camera/color/image_raw', t, msgs.image(t, frame[0]))
-        w.write_msg('/camera/depth/image_raw', t, msgs.image(t, frame[1]))
+        frame = env.camera_frame()        # the encoder's frame before its noise (the env's rules read it too)
+        w.write_msg('/camera/color/image_raw', t, msgs.image(t, frame.rgb))
+        w.write_msg('/camera/depth/image_raw', t, msgs.image(t, frame.depth))
         w.write_msg('/odom', t, msgs.odometry(t, st.position, st.quaternion, st.velocity))
         u = env.pilot_action
         w.write_msg('/pilot/cmd_vel', t, msgs.twist_stamped(t, u))

@@ -13,11 +13,16 @@ the bag the difference is ~0 (tests/test_bag_replay.py holds evaluate's bags to 
 check that replay is faithful before a new model is tried on old flights.
 
 --latent recorded uses the bag's /assist/latent instead of re-encoding (a new actor on old latents).
-Pilot override (assist_policy.override): on as in policy_node, unless the bag was flown by evaluate
-(custom_data assist.condition, e.g. latent+guard or latent+guard+override), which says whether it was;
---override on|off decides instead.
+The non-learned rules (floor guard, pilot override, pad recall, oscillation damper) run as in policy_node:
+every depth frame reaches the core (the guard and the recall read it; /odom's orientation goes with the
+position, as the recall's map needs), and each rule is on as policy_node's default, unless the bag was
+flown by evaluate (custom_data assist.condition, e.g. latent+guard+override+recall+damper), which says
+which were; --floor-guard / --override / --recall / --damper on|off decide instead.
 Velocity: the policy node feeds /odom's twist (base_link) to the actor; evaluate's env feeds world-frame
-velocity, and its bags say so in custom_data, which --velocity-frame auto follows.
+velocity, and its bags say so in custom_data, which --velocity-frame auto follows (the rules read the
+twist either way, as both do). Depth noise: evaluate's bags hold the rendered depth and, when the
+encoder saw it through the simulated sensor noise, the noise's seeds (custom_data
+assist.depth_noise_seed), with which the frames are re-encoded through the same noise.
 """
 from __future__ import annotations
 
@@ -35,7 +40,7 @@ import numpy as np
 
 from . import msgs
 from .bagio import CONTRACT_TOPICS, BagError, BagReader, BagWriter, check_output
-from .episode import VELOCITY_FRAME_KEY
+from .episode import DEPTH_NOISE_KEY, VELOCITY_FRAME_KEY
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +61,24 @@ class ReplayConfig:
     blend_threshold: float = 0.25
     timeout_s: float = 0.5             # pilot, feature and odometry timeouts
     override: str = 'auto'             # pilot override: on | off | auto (evaluate's bags say; else on, as policy_node)
+    floor_guard: str = 'auto'          # floor guard: on | off | auto (as override)
+    recall: str = 'auto'               # pad recall: on | off | auto (as override)
+    damper: str = 'auto'               # oscillation damper: on | off | auto (as override)
+
+
+# rule -> the flag evaluate adds to a condition's name when the rule flew (latent+guard+override+recall+damper)
+RULE_FLAGS = {'floor_guard': 'guard', 'override': 'override', 'recall': 'recall', 'damper': 'damper'}
+
+
+def rules_on(cfg: ReplayConfig, condition: str, flags: list[str]) -> dict[str, bool]:
+    """Which rules the re-run applies: each on|off as asked, else as evaluate flew the bag, else on (policy_node)."""
+    out = {}
+    for rule, flag in RULE_FLAGS.items():
+        v = getattr(cfg, rule)
+        if v not in ('auto', 'on', 'off'):
+            raise ValueError(f"{rule.replace('_', '-')} must be auto, on or off, got {v!r}")
+        out[rule] = v == 'on' or (v == 'auto' and (not condition or flag in flags))
+    return out
 
 
 @dataclass
@@ -84,6 +107,17 @@ def _groups(it: Iterator[tuple[str, int, bytes]]) -> Iterator[list[tuple[str, in
         yield group
 
 
+def _noise_seeds(value: str | None) -> tuple[int, int] | None:
+    """custom_data assist.depth_noise_seed '<base>,<landing>' -> (base, landing); None when absent."""
+    if not value:
+        return None
+    try:
+        base, landing = (int(v) for v in str(value).split(','))
+    except ValueError:
+        raise BagError(f'custom_data {DEPTH_NOISE_KEY} {value!r} is not "<base seed>,<landing seed>"') from None
+    return base, landing
+
+
 def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> ReplayResult:
     """Re-run encoder + policy on the bag's inputs; BagError/ValueError with one line on bad input."""
     res = ReplayResult()
@@ -92,9 +126,7 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
         # evaluate names its rows (and bags) <condition>[+guard][+override]
         condition, *flags = custom.get('assist.condition', '').split('+')
         mode = cfg.mode if cfg.mode != 'auto' else (condition or 'latent')
-        if cfg.override not in ('auto', 'on', 'off'):
-            raise ValueError(f'override must be auto, on or off, got {cfg.override!r}')
-        override = cfg.override == 'on' or (cfg.override == 'auto' and (not condition or 'override' in flags))
+        rules = rules_on(cfg, condition, flags)
         if mode not in ('latent', 'oracle', 'end_to_end'):
             raise ValueError(f'{bag}: cannot replay mode {mode!r} (latent, oracle or end_to_end; '
                              f'pass --mode for a bag of an unassisted flight)')
@@ -114,19 +146,31 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
         r.check_definitions(used)
         import torch  # noqa: PLC0415 - heavy: only once the bag is known to be good
 
+        from ..damper import DamperConfig  # noqa: PLC0415
         from ..override import OverrideConfig  # noqa: PLC0415
         from ..policy_core import PolicyCore, PolicyCoreConfig, default_model_path  # noqa: PLC0415
+        from ..recall import RecallConfig  # noqa: PLC0415
+        from ..safety import SafetyConfig  # noqa: PLC0415
         torch.set_num_threads(1)
         frame = cfg.velocity_frame if cfg.velocity_frame != 'auto' else custom.get(VELOCITY_FRAME_KEY, 'twist')
+        if frame not in ('twist', 'odom'):
+            raise ValueError(f'velocity frame must be twist or odom, got {frame!r}')
         actor = Path(cfg.actor) if cfg.actor else default_model_path(mode)
         core = PolicyCore(actor, PolicyCoreConfig(mode=mode, blend_threshold=cfg.blend_threshold,
                                                   pilot_timeout_s=cfg.timeout_s, feature_timeout_s=cfg.timeout_s,
-                                                  odom_timeout_s=cfg.timeout_s,
-                                                  override=OverrideConfig(enabled=override)))
+                                                  odom_timeout_s=cfg.timeout_s, actor_velocity=frame,
+                                                  safety=SafetyConfig(enabled=rules['floor_guard']),
+                                                  override=OverrideConfig(enabled=rules['override']),
+                                                  recall=RecallConfig(enabled=rules['recall']),
+                                                  damper=DamperConfig(enabled=rules['damper'])))
         encode = None
+        noise_seeds = _noise_seeds(custom.get(DEPTH_NOISE_KEY))
         if mode == 'latent' and use_latent == 'encode':
             from ..latent import make_latent_fn  # noqa: PLC0415
-            encode, dim = make_latent_fn(cfg.encoder or None, depth_noise=False)
+            encode, dim = make_latent_fn(cfg.encoder or None, depth_noise=noise_seeds is not None,
+                                         seed=noise_seeds[0] if noise_seeds else 0)
+            if noise_seeds is not None:
+                encode.reset(noise_seeds[1])
             if dim != core.builder.latent_dim:
                 raise ValueError(f'{actor}: expects a {core.builder.latent_dim}-d latent, the encoder gives {dim}')
         ticks_from_bag = CMD in r.topics and r.topics[CMD].count > 0
@@ -136,7 +180,8 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
         start = r.start_ns
         res.info = {'bag': str(bag), 'mode': mode, 'actor': str(actor), 'latent_source': use_latent if mode == 'latent'
                     else None, 'encoder': (cfg.encoder or 'shipped') if encode else None, 'velocity_frame': frame,
-                    'pilot_override': override,
+                    'pilot_override': rules['override'], 'rules': rules,
+                    'depth_noise': None if encode is None or noise_seeds is None else list(noise_seeds),
                     'steps_at': 'recorded /cmd_vel times' if ticks_from_bag else f'{cfg.rate_hz} Hz'}
         total = sum(r.topics[t].count for t in used)
         bar = None
@@ -166,8 +211,7 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
                 try:
                     if topic == ODOM:
                         pos, quat, twist = msgs.odom_arrays(msg)
-                        vel = msgs.quat_matrix(quat) @ twist if frame == 'odom' else twist
-                        core.set_odom(now, pos, vel)
+                        core.set_odom(now, pos, twist, quat)
                     elif topic == PILOT:
                         core.set_pilot(now, msgs.twist_linear(msg), msg.header.frame_id)
                     elif topic == GOAL and mode == 'oracle':
@@ -176,9 +220,10 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
                     elif topic == RGB:
                         rgb_by_stamp = {msgs.stamp_ns(msg.header.stamp): msgs.image_array(msg)}
                     elif topic == DEPTH:
+                        depth = msgs.image_array(msg)
+                        core.set_depth(now, depth)          # every mode: the rules read it (policy_node)
                         rgb = rgb_by_stamp.get(msgs.stamp_ns(msg.header.stamp))
                         if rgb is not None:
-                            depth = msgs.image_array(msg)
                             if encode is not None:
                                 mu = np.asarray(encode(rgb, depth), dtype=float)
                                 res.latents[t] = mu
@@ -268,8 +313,10 @@ def write_outputs(res: ReplayResult, out: Path, storage: str = 'mcap') -> Path:
 
 def format_summary(s: dict) -> str:
     """Human-readable lines of a summary."""
+    on = [k for k, v in s.get('rules', {}).items() if v]
     lines = [f"replayed {s['steps']} steps of {s['bag']} ({s['mode']}, actor {s['actor']}, "
-             f"latent {s['latent_source']}, velocity {s['velocity_frame']}, steps at {s['steps_at']})"]
+             f"latent {s['latent_source']}, velocity {s['velocity_frame']}, steps at {s['steps_at']}, "
+             f"rules {', '.join(on) or 'none'})"]
     for key in ('cmd_vel', 'agent_cmd', 'latent'):
         d = s.get(key)
         if not d:
@@ -305,6 +352,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--timeout-s', type=float, default=d.timeout_s, help='input staleness timeout (s)')
     p.add_argument('--override', default=d.override, choices=('auto', 'on', 'off'),
                    help='pilot override (auto: as evaluate flew the bag, else on as policy_node)')
+    p.add_argument('--floor-guard', default=d.floor_guard, choices=('auto', 'on', 'off'),
+                   help='floor guard (auto: as evaluate flew the bag, else on as policy_node)')
+    p.add_argument('--recall', default=d.recall, choices=('auto', 'on', 'off'),
+                   help='pad recall (auto: as evaluate flew the bag, else on as policy_node)')
+    p.add_argument('--damper', default=d.damper, choices=('auto', 'on', 'off'),
+                   help='oscillation damper (auto: as evaluate flew the bag, else on as policy_node)')
     a = p.parse_args(argv)
     if not a.rate_hz > 0 or not a.timeout_s > 0 or not a.blend_threshold >= 0:
         print('error: --rate-hz and --timeout-s must be > 0, --blend-threshold >= 0', file=sys.stderr)
@@ -313,7 +366,8 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(a.out) if a.out else bag.with_name(bag.name + '_replay')
     cfg = ReplayConfig(mode=a.mode, actor=a.actor, encoder=a.encoder, latent=a.latent,
                        velocity_frame=a.velocity_frame, rate_hz=a.rate_hz, blend_threshold=a.blend_threshold,
-                       timeout_s=a.timeout_s, override=a.override)
+                       timeout_s=a.timeout_s, override=a.override, floor_guard=a.floor_guard, recall=a.recall,
+                       damper=a.damper)
     try:
         check_output(out)
         res = replay(bag, cfg, progress=True)
