@@ -16,6 +16,7 @@ from assist_policy.bags.episode import DEPTH_NOISE_KEY, landing_bag_name
 from assist_policy.bags.replay import ReplayConfig, replay, rules_on, summarize, write_outputs
 
 BIN = Path(sys.executable).parent
+BARE = ['--safety', 'false', '--override', 'false', '--recall', 'false', '--damper', 'false']   # the actor alone
 
 
 @pytest.fixture(scope='module')
@@ -23,7 +24,7 @@ def landing(tmp_path_factory):
     """One latent-assisted landing flown by evaluate with --record-dir (shipped CM-VAE and actor)."""
     out = tmp_path_factory.mktemp('eval')
     code = evaluate.main(['--out', str(out), '--conditions', 'latent', '--betas', '1.0', '--landings', '1',
-                          '--max-episode-s', '10', '--record-dir', str(out / 'bags'), '--plot', 'false'])
+                          '--max-episode-s', '10', '--record-dir', str(out / 'bags'), '--plot', 'false', *BARE])
     assert code == 0
     row = evaluate.read_landings(out / 'landings.csv')['latent'][0]
     bag = out / 'bags' / landing_bag_name('latent', row['beta'], row['seed'])
@@ -36,8 +37,8 @@ def override_landing(tmp_path_factory):
     """One latent landing flown with the pilot override on (evaluate --override true): rows latent+override."""
     out = tmp_path_factory.mktemp('eval_override')
     code = evaluate.main(['--out', str(out), '--conditions', 'latent', '--betas', '0.3', '--landings', '1',
-                          '--pilot', 'late_correction', '--override', 'true', '--max-episode-s', '10',
-                          '--record-dir', str(out / 'bags'), '--plot', 'false'])
+                          '--pilot', 'late_correction', '--max-episode-s', '10',
+                          '--record-dir', str(out / 'bags'), '--plot', 'false', *BARE, '--override', 'true'])
     assert code == 0
     row = evaluate.read_landings(out / 'landings.csv')['latent+override'][0]
     return out / 'bags' / landing_bag_name('latent+override', row['beta'], row['seed']), row
@@ -74,7 +75,7 @@ def test_landing_bag_matches_its_csv_row(landing):
 def test_recording_a_landing_does_not_change_it(landing, tmp_path):
     """The same landing flown without --record-dir gives the same row (the recorder passes the noise reset on)."""
     code = evaluate.main(['--out', str(tmp_path), '--conditions', 'latent', '--betas', '1.0', '--landings', '1',
-                          '--max-episode-s', '10', '--plot', 'false'])
+                          '--max-episode-s', '10', '--plot', 'false', *BARE])
     assert code == 0
     assert evaluate.read_landings(tmp_path / 'landings.csv')['latent'][0] == landing[1]
 

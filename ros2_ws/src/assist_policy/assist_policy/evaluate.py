@@ -4,7 +4,8 @@ Simulated pilots at alpha = 0.5 and beta = 0, 0.05, ..., 1 land `--landings` tim
 paper) unassisted and with each assistant (latent, oracle, end_to_end). Landing k at beta index b uses
 the same scene, goal and pilot randomness in every condition (paired comparison; seeded).
 
-    evaluate --out runs/eval_full                       # full experiment, shipped models
+    evaluate --out runs/eval_full                       # full experiment, shipped models, as policy_node flies them
+    evaluate --out runs/eval_bare --safety false --override false --recall false --damper false   # bare actors
     evaluate --landings 4 --betas 0 0.5 1 --conditions unassisted oracle   # quick look
     evaluate --from-csv runs/eval_a/landings.csv runs/eval_b/landings.csv --out runs/eval_ab   # combine
 
@@ -18,16 +19,20 @@ goal-agnostic assistant can only get these right by reading the pilot's correcti
 
 Pilots other than the paper's (issue 12): `--pilot <family|mix|train_mix>` flies every landing with a
 pilot of that assist_sim.pilots family (`mix`: a held-out family drawn per landing); the column `pilot`
-names the family flown. `--safety` turns on the floor guard (assist_policy.safety, on by default in
-policy_node) for every assisted condition, whose rows are then named `<condition>+guard` (so runs with
-and without it combine with --from-csv); `guard_fraction` is the share of steps it acted. `--override`
-turns on the pilot override (assist_policy.override, on by default in policy_node) for the learned
-assistants (not for the scripted references, which stay as defined): rows `<condition>[+guard]+override`,
-`override_fraction` the share of steps it replaced the actor's action. `--recall` turns on the pad recall
-(assist_policy.recall, on by default in policy_node) for the learned assistants: rows
-`<condition>[+guard][+override]+recall`, `recall_fraction` the share of steps it steered. `--damper` turns
-on the oscillation damper (assist_policy.damper, on by default in policy_node) for the learned assistants:
-rows `<condition>[+guard][+override][+recall]+damper`, `damper_fraction` the share of steps it damped.
+names the family flown.
+
+The non-learned rules policy_node runs are on by default here too (since session 30; before, they were
+off unless asked for), so `evaluate` measures the assistant as it is deployed. Each can be turned off:
+`--safety false --override false --recall false --damper false` flies the bare learned actor, as the
+paper did. `--safety`: the floor guard (assist_policy.safety) for every assisted condition, rows named
+`<condition>+guard` (so runs with and without it combine with --from-csv); `guard_fraction` is the share
+of steps it acted. `--override`: the pilot override (assist_policy.override) for the learned assistants
+(not for the scripted references, which stay as defined): rows `<condition>[+guard]+override`,
+`override_fraction` the share of steps it replaced the actor's action. `--recall`: the pad recall
+(assist_policy.recall) for the learned assistants: rows `<condition>[+guard][+override]+recall`,
+`recall_fraction` the share of steps it steered. `--damper`: the oscillation damper (assist_policy.damper)
+for the learned assistants: rows `<condition>[+guard][+override][+recall]+damper`, `damper_fraction` the
+share of steps it damped.
 
     evaluate --pilot bang_bang --betas 0 0.25 0.5 0.75 1 --landings 8 --out runs/eval_bang_bang
 
@@ -94,10 +99,11 @@ class EvalArgs:
     max_episode_s: float = 60.0
     plot: bool = True
     pilot: str = 'paper'
-    safety: bool = False
-    override: bool = False
-    recall: bool = False
-    damper: bool = False
+    # the non-learned rules, on by default as policy_node flies the assistant (false: the bare actor)
+    safety: bool = True
+    override: bool = True
+    recall: bool = True
+    damper: bool = True
     from_csv: tuple[str, ...] = ()
     record_dir: str = ''
 
@@ -115,12 +121,14 @@ HELP = {
     'pilot': 'simulated pilot: paper (the reference), a family of assist_sim.pilots, mix (a held-out family '
              'per landing), approach_mix (glide or low_flyer per landing) or train_mix (a training family per '
              'landing)',
-    'safety': 'apply the floor guard (assist_policy.safety) to every assisted condition',
+    'safety': 'apply the floor guard (assist_policy.safety) to every assisted condition (on by default, as '
+              'policy_node; false with the other three: the bare actor, as the paper flew it)',
     'override': 'apply the pilot override (assist_policy.override) to the learned assistants (latent, oracle, '
-                'end_to_end)',
-    'recall': 'apply the pad recall (assist_policy.recall) to the learned assistants (latent, oracle, end_to_end)',
+                'end_to_end; on by default, as policy_node)',
+    'recall': 'apply the pad recall (assist_policy.recall) to the learned assistants (latent, oracle, end_to_end; '
+              'on by default, as policy_node)',
     'damper': 'apply the oscillation damper (assist_policy.damper) to the learned assistants (latent, oracle, '
-              'end_to_end)',
+              'end_to_end; on by default, as policy_node)',
     'from_csv': 'fly nothing: combine the landings.csv files of earlier runs (e.g. one condition split '
                 'over processes by --betas; a landing in a later file replaces the same condition, beta '
                 'and seed in an earlier one) into one table, summary.csv and plot',

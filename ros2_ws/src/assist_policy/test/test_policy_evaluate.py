@@ -10,16 +10,16 @@ def test_tiny_evaluation_writes_everything(tmp_path):
     args = EvalArgs(out=str(tmp_path), conditions=('unassisted', 'scripted_oracle', 'latent'),
                     betas=(0.0, 1.0), landings=2, latent_model=str(tmp_path / 'missing.pt'))
     summary = evaluate(args)
-    assert set(summary) == {'unassisted', 'scripted_oracle'}      # latent skipped: no model
+    assert set(summary) == {'unassisted', 'scripted_oracle+guard'}   # latent skipped: no model; the guard by default
     rows = list(csv.DictReader(open(tmp_path / 'landings.csv')))
     assert len(rows) == 8
     # paired: the same seeds and scenes in every condition
     by = {}
     for r in rows:
         by.setdefault(r['condition'], []).append((r['seed'], r['scene_seed'], r['goal_index']))
-    assert by['unassisted'] == by['scripted_oracle']
+    assert by['unassisted'] == by['scripted_oracle+guard']
     assert (tmp_path / 'error_vs_beta.png').stat().st_size > 1000
-    assert summary['scripted_oracle']['error_mean'] < summary['unassisted']['error_mean']
+    assert summary['scripted_oracle+guard']['error_mean'] < summary['unassisted']['error_mean']
     assert 'unassisted' in format_table(summary)
     # aimed_index: the pad nearest the pilot's first estimate, a real pad index
     assert all(0 <= int(r['aimed_index']) <= 4 for r in rows)
@@ -36,9 +36,23 @@ def test_tiny_evaluation_writes_everything(tmp_path):
                            seed=EvalArgs.seed + 1000))
     both = evaluate(EvalArgs(out=str(tmp_path / 'both'), from_csv=(str(tmp_path / 'lo' / 'landings.csv'),
                                                                    str(tmp_path / 'hi' / 'landings.csv'))))
-    assert lo['scripted_oracle']['n'] == hi['scripted_oracle']['n'] == 2
+    assert lo['scripted_oracle+guard']['n'] == hi['scripted_oracle+guard']['n'] == 2
     for key in ('n', 'error_mean', 'specified_success', 'nearest_success', 'landed_on_goal'):
-        assert both['scripted_oracle'][key] == pytest.approx(summary['scripted_oracle'][key], abs=1e-3), key
+        assert both['scripted_oracle+guard'][key] == pytest.approx(summary['scripted_oracle+guard'][key], abs=1e-3), key
+
+
+def test_evaluate_flies_the_assistant_as_policy_node_does_by_default(tmp_path):
+    """Every non-learned rule policy_node runs is on unless turned off; all four off is the bare actor."""
+    run = dict(conditions=('unassisted', 'latent', 'scripted_nearest_pad'), betas=(0.5,), landings=1,
+               max_episode_s=1.0, plot=False)
+    assert set(evaluate(EvalArgs(out=str(tmp_path / 'default'), **run))) == {
+        'unassisted', 'latent+guard+override+recall+damper', 'scripted_nearest_pad+guard'}
+    assert set(evaluate(EvalArgs(out=str(tmp_path / 'bare'), safety=False, override=False, recall=False,
+                                 damper=False, **run))) == {'unassisted', 'latent', 'scripted_nearest_pad'}
+    assert main(['--out', str(tmp_path / 'cli'), '--conditions', 'latent', '--betas', '0.5', '--landings', '1',
+                 '--max-episode-s', '1', '--plot', 'false', '--recall', 'false']) == 0
+    assert {r['condition'] for r in csv.DictReader(open(tmp_path / 'cli' / 'landings.csv'))} == {
+        'latent+guard+override+damper'}
 
 
 def test_from_csv_rejects_a_file_that_is_not_a_landings_csv(tmp_path):

@@ -96,7 +96,8 @@ def test_env_replaces_the_actors_action_while_the_pilot_holds_a_key():
 def test_evaluate_override_rows_and_column(tmp_path):
     actor = _helpers.constant_actor(tmp_path / 'down.pt', [0.0, 0.0, -0.9], condition='oracle', latent_dim=0)
     args = EvalArgs(out=str(tmp_path / 'ev'), conditions=('oracle', 'scripted_nearest_pad'), betas=(0.5,),
-                    landings=1, pilot='late_correction', safety=True, override=True, oracle_model=str(actor),
+                    landings=1, pilot='late_correction', safety=True, override=True, recall=False, damper=False,
+                    oracle_model=str(actor),
                     plot=False, max_episode_s=20.0)
     summary = evaluate(args)
     assert set(summary) == {'oracle+guard+override', 'scripted_nearest_pad+guard'}   # scripts stay as defined
