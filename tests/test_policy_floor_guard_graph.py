@@ -88,10 +88,15 @@ class Probe:
             self.run(0.2, **inputs)
         assert node.proc.poll() is None, node.log()
 
-    def run(self, seconds, encoding='32FC1', position=(0.0, 0.0, ALT), depth=None):
+    def run(self, seconds, encoding='32FC1', position=(0.0, 0.0, ALT), depth=None, stamps=None):
+        """Publish for `seconds`; `stamps(now_ns)` -> (odom, depth) header stamps in ns (default: none set)."""
         t0 = time.monotonic()
         while time.monotonic() - t0 < seconds:
             od = Odometry()
+            dm = depth_msg(encoding, depth)
+            if stamps is not None:
+                for msg, ns in zip((od, dm), stamps(self.node.get_clock().now().nanoseconds)):
+                    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(ns), 1_000_000_000)
             od.pose.pose.position.x, od.pose.pose.position.y, od.pose.pose.position.z = position
             od.twist.twist.linear.x, od.twist.twist.linear.y, od.twist.twist.linear.z = self.velocity
             self.pub_odom.publish(od)
@@ -99,7 +104,7 @@ class Probe:
             tw.twist.linear.x, tw.twist.linear.y, tw.twist.linear.z = self.pilot
             self.pub_pilot.publish(tw)
             self.pub_latent.publish(Float32MultiArray(data=[0.0] * _helpers.LATENT))
-            self.pub_depth.publish(depth_msg(encoding, depth))
+            self.pub_depth.publish(dm)
             time.sleep(0.05)
         return t0
 
@@ -294,3 +299,25 @@ def test_oscillation_damper_slows_a_pilot_swinging_across_a_pad_and_can_be_turne
     cmds = probe.since(probe.cmd, t3 + 0.5)
     assert cmds and sum(abs(abs(v[0]) - 1.0) < 1e-5 for v in cmds) > 0.7 * len(cmds), cmds[-5:]   # V = u again
     assert wait(lambda: probe.diag and probe.diag[-1].get('oscillation_damper') == 'off', 5)
+
+
+def test_depth_frames_are_posed_by_their_header_stamps(ros, start_node, wait, tmp_path):
+    """Stamped /odom and depth on one clock (the frame 25 ms old, odometry every >= 50 ms): every frame finds its
+    pose (interpolated between the two around it); a depth stamp of
+    another clock finds none and is counted (mapped from the latest odometry); depth_pose_match_s at run time."""
+    model = _helpers.constant_actor(tmp_path / 'still.pt', [0.0, 0.0, 0.0])
+    probe = Probe(ros)
+    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0})
+    pad = np.full((64, 64), 3.0 - 0.05, np.float32)
+    pad[22:42, 22:42] = 3.0 - 0.05 - 0.8
+    same_clock = lambda now: (now, now - 25_000_000)          # noqa: E731
+    probe.until_first(probe.cmd, node, position=(0.0, 0.0, 3.0), depth=pad, stamps=same_clock)
+    probe.run(1.0, position=(0.0, 0.0, 3.0), depth=pad, stamps=same_clock)
+    assert wait(lambda: probe.diag and probe.diag[-1].get('pad_recall_pads') == '1', 5), probe.diag[-1:]
+    assert probe.diag[-1].get('depth_pose_unmatched') == '0'
+    probe.run(1.0, position=(0.0, 0.0, 3.0), depth=pad, stamps=lambda now: (now, 5_000_000_000))
+    assert wait(lambda: int(probe.diag[-1].get('depth_pose_unmatched', 0)) >= 5, 5), probe.diag[-1:]
+    set_param(ros, 'depth_pose_match_s', 0.01, wait)        # >= 25 ms from either sample: counted too
+    seen = int(probe.diag[-1]['depth_pose_unmatched'])
+    probe.run(1.0, position=(0.0, 0.0, 3.0), depth=pad, stamps=same_clock)
+    assert wait(lambda: int(probe.diag[-1].get('depth_pose_unmatched', 0)) >= seen + 5, 5), probe.diag[-1:]

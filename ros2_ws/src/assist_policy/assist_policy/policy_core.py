@@ -47,12 +47,14 @@ from .blending import DEFAULT_THRESHOLD, blend
 from .damper import DamperConfig, OscillationDamper
 from .observation import Condition, ObservationBuilder, image_feature, oracle_feature
 from .override import OverrideConfig, PilotOverride
+from .poses import PoseHistory
 from .recall import PadRecall, RecallConfig
 from .safety import FloorGuard, SafetyConfig
 from .td3 import load_actor
 
 log = logging.getLogger(__name__)
 
+POSE_HISTORY_S = 1.0  # odometry poses kept for pairing depth frames by stamp (s)
 MAX_DEPTH_M = 100.0   # depth beyond this (or negative / non-finite) is a hole (0), as the sim and drivers mark them
 
 
@@ -108,6 +110,9 @@ class PolicyCoreConfig:
     # odometry attitude (as evaluate's env trains and flies it; replay_assist for evaluate's bags); the rules
     # (floor guard, override, damper) always read the twist
     actor_velocity: str = 'twist'
+    # the pad recall maps a depth frame from the odometry pose at the frame's sensor stamp (interpolated) when
+    # odometry stamps lie within this of it (s); else from the latest odometry (counted: depth_pose_unmatched)
+    depth_pose_match_s: float = 0.1
 
     def __post_init__(self) -> None:
         """Reject settings that would reverse, suppress or invent motion (ValueError, one line)."""
@@ -119,6 +124,9 @@ class PolicyCoreConfig:
                      'max_vertical_mps', 'max_input_mps', 'max_odom_speed_mps', 'max_position_m',
                      'max_latent_abs'):
             _positive(name, getattr(self, name))
+        m = self.depth_pose_match_s
+        if not (isinstance(m, (int, float)) and math.isfinite(m) and m >= 0):
+            raise ValueError(f'PolicyCoreConfig.depth_pose_match_s must be a finite number >= 0, got {m!r}')
         if self.actor_velocity not in ('twist', 'odom'):
             raise ValueError(f"PolicyCoreConfig.actor_velocity must be 'twist' or 'odom', got {self.actor_velocity!r}")
 
@@ -173,6 +181,9 @@ class PolicyCore:
         self.faults: Counter[str] = Counter()       # exceptions inside step(), per exception type
         self.guard = FloorGuard(self.cfg.safety or SafetyConfig())
         self._depth: tuple[float, np.ndarray] | None = None
+        self._depth_stamp = 0.0                     # sensor stamp of the latest depth frame (s)
+        self._poses = PoseHistory(POSE_HISTORY_S, self.cfg.depth_pose_match_s)   # odometry by sensor stamp
+        self.depth_pose_unmatched = 0               # depth frames mapped from the latest odometry (no pose at their stamp)
         self.guard_engaged = 0                      # steps whose descent the floor guard replaced
         self.override = PilotOverride(self.cfg.override or OverrideConfig())
         self.override_engaged = 0                   # steps whose actor action the pilot override replaced
@@ -194,6 +205,7 @@ class PolicyCore:
         if cfg.mode != self.cfg.mode:
             raise ValueError('the mode of a running policy core cannot change')
         self.cfg = cfg
+        self._poses.match_s = cfg.depth_pose_match_s
 
     # ------------------------------------------------------------- inputs
     def _reject(self, reason: str, detail: str) -> InputRejected:
@@ -237,9 +249,14 @@ class PolicyCore:
         self._pilot = (t, u)
 
     def set_odom(self, t: float, position: np.ndarray, velocity: np.ndarray,
-                 orientation: np.ndarray | None = None) -> None:
-        """Latest odometry (odom ENU; orientation x, y, z, w, None or zeros = level); InputRejected when implausible."""
+                 orientation: np.ndarray | None = None, stamp: float | None = None) -> None:
+        """Latest odometry (odom ENU; orientation x, y, z, w, None or zeros = level); InputRejected when implausible.
+
+        `t` is when it arrived (the clock of `step`); `stamp` when it was measured (header stamp, s; None: `t`),
+        by which a depth frame's pose is looked up.
+        """
         t = self._stamp('odom', t)
+        stamp = t if stamp is None else self._stamp('odom', stamp)
         p = self._vector('odom_position', position, 3, self.cfg.max_position_m)
         v = self._vector('odom_velocity', velocity, 3, self.cfg.max_odom_speed_mps)
         q = None if orientation is None else self._vector('odom_orientation', orientation, 4, 2.0)
@@ -251,6 +268,7 @@ class PolicyCore:
                 raise self._reject('odom_orientation', f'odometry orientation {q.tolist()} is not a unit quaternion')
             q = q / n
         self._odom, self._attitude = (t, p, v), q
+        self._poses.add(stamp, p, q)
 
     def set_latent(self, t: float, mu: np.ndarray) -> None:
         """Latest encoder mean (latent mode); InputRejected on wrong size, non-finite or huge values."""
@@ -280,15 +298,21 @@ class PolicyCore:
                                               f'{self.actor.trunk.img_size}')
         self._feature = (t, feature)
 
-    def set_depth(self, t: float, depth: np.ndarray) -> None:
-        """Latest depth image for the floor guard: metres HxW (holes: 0, NaN, negative); InputRejected if not 2-D."""
+    def set_depth(self, t: float, depth: np.ndarray, stamp: float | None = None) -> None:
+        """Latest depth image for the floor guard: metres HxW (holes: 0, NaN, negative); InputRejected if not 2-D.
+
+        `t` is when it arrived; `stamp` when it was taken (header stamp, s; None: `t`): the pad recall maps it
+        from the odometry pose at that stamp.
+        """
         t = self._stamp('depth', t)
+        stamp = t if stamp is None else self._stamp('depth', stamp)
         depth = np.asarray(depth)
         if depth.ndim != 2 or depth.size == 0 or not np.issubdtype(depth.dtype, np.number):
             raise self._reject('depth_image', f'depth image must be a numeric HxW array, got {depth.dtype} '
                                               f'{depth.shape}')
         depth = depth.astype(np.float32)
         self._depth = (t, np.where(np.isfinite(depth) & (depth >= 0) & (depth <= MAX_DEPTH_M), depth, 0.0))
+        self._depth_stamp = stamp
 
     def reset(self) -> None:
         """Forget the action history, the guard's last pad, the override's held keys, the pad map and the damper's
@@ -435,7 +459,11 @@ class PolicyCore:
             return None
         t_depth, depth = self._depth
         if self._mapped_depth != t_depth:
-            self.recall.observe(depth, pos, self._attitude)
+            pose = self._poses.at(self._depth_stamp)
+            if pose is None:
+                self.depth_pose_unmatched += 1
+                pose = (pos, self._attitude)
+            self.recall.observe(depth, *pose)
             self._mapped_depth = t_depth
         return depth
 

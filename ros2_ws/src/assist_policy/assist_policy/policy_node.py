@@ -1,7 +1,7 @@
 """policy_node: runs the TD3 actor at a fixed rate and publishes /assist/agent_cmd and blended /cmd_vel.
 
 Thin rclpy shell over ``policy_core.PolicyCore`` (input range checks, staleness, blending, NaN rejection).
-Run-time parameters (``ros2 param set``): blend_threshold, the three timeouts, max_speed,
+Run-time parameters (``ros2 param set``): blend_threshold, the three timeouts, depth_pose_match_s, max_speed,
 max_vertical_speed, max_input_speed, the floor_guard*, pilot_override*, pad_recall* and
 oscillation_damper* parameters; every other parameter is read-only. The floor guard
 (assist_policy.safety) and the pad recall (assist_policy.recall, which maps pads with the /odom pose and
@@ -12,7 +12,9 @@ pilot_override_persistent_engaged, pilot_override_climb_engaged and pilot_overri
 those, steps for a persistent push, a held climb, a long push), pilot_override_spot_kept (steps a push back to,
 or a climb off, a spot the pilot tried to land on stayed with the actor), pad_recall (on/off), pad_recall_engaged (steps it steered to a mapped pad),
 pad_recall_touchdown and pad_recall_scout (of those, steps it centred on the pad below for touchdown, it
-looked beyond for a nearer pad before steering back to one behind), pad_recall_pads (pads in its map), oscillation_damper (on/off) and
+looked beyond for a nearer pad before steering back to one behind), pad_recall_pads (pads in its map),
+depth_pose_unmatched (depth frames mapped from the latest odometry because no /odom header stamp lay within
+depth_pose_match_s of theirs; the recall maps each frame from the pose at its header stamp), oscillation_damper (on/off) and
 oscillation_damper_engaged (steps the oscillation damper, assist_policy.damper, replaced the actor's
 horizontal action).
 """
@@ -40,6 +42,7 @@ from .blending import DEFAULT_THRESHOLD
 from .damper import DamperConfig
 from .override import OverrideConfig
 from .policy_core import PolicyCore, PolicyCoreConfig, PolicyOutput, default_model_path
+from .poses import header_seconds
 from .recall import RecallConfig
 from .safety import SafetyConfig
 
@@ -57,6 +60,10 @@ PARAMS = {
                               min=0.0, max=10.0, min_exclusive=True, dynamic=True),
     'odom_timeout_s': Param(0.5, 'Odometry older than this: the assistant relinquishes (V = u).', min=0.0, max=10.0,
                             min_exclusive=True, dynamic=True),
+    'depth_pose_match_s': Param(0.1, 'The pad recall maps a depth frame from the odometry pose at the frame\'s '
+                                'header stamp (interpolated) when /odom header stamps lie within this of it (s); '
+                                'else from the latest odometry (counted in /diagnostics depth_pose_unmatched: '
+                                'stamps never set, another clock).', min=0.0, max=1.0, dynamic=True),
     'max_speed': Param(1.5, 'Horizontal speed limit of the published /cmd_vel (m/s).', min=0.0, max=20.0,
                        min_exclusive=True, dynamic=True),
     'max_vertical_speed': Param(1.0, 'Vertical speed limit of the published /cmd_vel (m/s).', min=0.0, max=10.0,
@@ -181,7 +188,7 @@ def config_fields(params: dict, table: dict[str, tuple[str, type]]) -> dict:
 CORE_FIELDS = {'blend_threshold': 'blend_threshold', 'pilot_timeout_s': 'pilot_timeout_s',
                'latent_timeout_s': 'feature_timeout_s', 'odom_timeout_s': 'odom_timeout_s',
                'max_speed': 'max_speed_mps', 'max_vertical_speed': 'max_vertical_mps',
-               'max_input_speed': 'max_input_mps'}
+               'max_input_speed': 'max_input_mps', 'depth_pose_match_s': 'depth_pose_match_s'}
 # step outcomes that are normal operation (diagnostics OK); everything else is a WARN with its reason
 OK_KEYS = ('assisting', 'small_action', 'floor_guard', 'pilot_override', 'pad_recall', 'oscillation_damper')
 FAULT_KEYS = ('actor_nonfinite', 'step_error')
@@ -344,7 +351,8 @@ class PolicyNode(Node):
     def _on_odom(self, msg: Odometry) -> None:
         p, v, q = msg.pose.pose.position, msg.twist.twist.linear, msg.pose.pose.orientation
         with self._lock:
-            self.core.set_odom(self._now(), [p.x, p.y, p.z], [v.x, v.y, v.z], [q.x, q.y, q.z, q.w])
+            self.core.set_odom(self._now(), [p.x, p.y, p.z], [v.x, v.y, v.z], [q.x, q.y, q.z, q.w],
+                               header_seconds(msg))
 
     def _on_pilot(self, msg: TwistStamped) -> None:
         with self._lock:
@@ -375,7 +383,7 @@ class PolicyNode(Node):
         if depth.ndim != 2:
             raise ValueError(f'depth image must be 32FC1 or 16UC1, got {msg.encoding!r}')
         with self._lock:
-            self.core.set_depth(self._now(), depth)
+            self.core.set_depth(self._now(), depth, header_seconds(msg))
             if self.core.mode.value == 'end_to_end' and self._rgb is not None:
                 self.core.set_image(self._now(), self._rgb, depth)
 
@@ -431,6 +439,7 @@ class PolicyNode(Node):
         self.diag.set('pad_recall_touchdown', self.core.touchdown_engaged)
         self.diag.set('pad_recall_scout', self.core.scout_engaged)
         self.diag.set('pad_recall_pads', len(self.core.recall.map.pads))
+        self.diag.set('depth_pose_unmatched', self.core.depth_pose_unmatched)
         self.diag.set('oscillation_damper_engaged', self.core.damper_engaged)
         if out.key in FAULT_KEYS:
             self._consecutive_faults += 1

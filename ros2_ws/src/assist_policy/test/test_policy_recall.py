@@ -359,3 +359,32 @@ def test_evaluate_recall_rows_and_column(tmp_path):
     rows = {r['condition']: r for r in csv.DictReader(open(tmp_path / 'ev' / 'landings.csv'))}
     assert float(rows['scripted_nearest_pad+guard']['recall_fraction']) == 0.0
     assert 0.0 <= float(rows['oracle+guard+recall']['recall_fraction']) <= 1.0
+
+
+def test_policy_core_maps_a_late_depth_frame_from_the_pose_it_was_taken_at(tmp_path, world):
+    """A frame 100 ms old on arrival at 1.5 m/s: posed at its header stamp the pad is mapped where it is; posed
+    with the latest odometry (no stamps) 0.15 m off; stamps of another clock fall back to the latest, counted."""
+    path = constant_actor(tmp_path / 'still.pt', [0.0, 0.0, 0.0])
+    q = _quat(0.0, 0.0, 0.0)
+    shot = np.array([4.6, 0.5, 3.4])            # where the camera was when it took the frame (pad 0 below)
+    errors = {}
+    for case in ('stamped', 'unstamped', 'other_clock'):
+        core = PolicyCore(path, PolicyCoreConfig(mode='latent'))
+        t = 100.0
+        for k in range(6):                      # odometry at 50 Hz, 1.5 m/s along x, arriving 5 ms after its stamp
+            stamp = t + 0.02 * k
+            pos = shot + [1.5 * (stamp - t), 0.0, 0.0]
+            core.set_odom(stamp + 0.005, pos, [1.5, 0.0, 0.0], q, None if case == 'unstamped' else stamp)
+        arrive = t + 0.1                        # the frame arrives 100 ms after it was taken
+        stamp = {'stamped': t, 'unstamped': None, 'other_clock': 5.0}[case]
+        core.set_depth(arrive, _frame(world, shot), stamp)
+        core.set_latent(arrive, np.zeros(LATENT))
+        core.set_pilot(arrive, [0.0, 0.0, 0.0])
+        core.step(arrive)
+        pad = min(core.recall.map.pads, key=lambda m: np.hypot(*(m.xyz[:2] - TOPS[0, :2])))
+        errors[case] = float(np.hypot(*(pad.xyz[:2] - TOPS[0, :2])))
+        assert core.depth_pose_unmatched == (1 if case == 'other_clock' else 0), case
+    assert errors['stamped'] < 0.05
+    assert 0.1 < errors['unstamped'] < 0.2 and 0.1 < errors['other_clock'] < 0.2    # 1.5 m/s x ~0.1 s
+    with pytest.raises(ValueError, match='depth_pose_match_s'):
+        PolicyCoreConfig(depth_pose_match_s=-1.0)

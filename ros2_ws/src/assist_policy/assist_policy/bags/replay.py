@@ -40,6 +40,7 @@ import numpy as np
 
 from . import msgs
 from .bagio import CONTRACT_TOPICS, BagError, BagReader, BagWriter, check_output
+from ..poses import header_seconds
 from .episode import DEPTH_NOISE_KEY, VELOCITY_FRAME_KEY
 
 log = logging.getLogger(__name__)
@@ -211,7 +212,7 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
                 try:
                     if topic == ODOM:
                         pos, quat, twist = msgs.odom_arrays(msg)
-                        core.set_odom(now, pos, twist, quat)
+                        core.set_odom(now, pos, twist, quat, header_seconds(msg))
                     elif topic == PILOT:
                         core.set_pilot(now, msgs.twist_linear(msg), msg.header.frame_id)
                     elif topic == GOAL and mode == 'oracle':
@@ -221,7 +222,7 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
                         rgb_by_stamp = {msgs.stamp_ns(msg.header.stamp): msgs.image_array(msg)}
                     elif topic == DEPTH:
                         depth = msgs.image_array(msg)
-                        core.set_depth(now, depth)          # every mode: the rules read it (policy_node)
+                        core.set_depth(now, depth, header_seconds(msg))    # every mode: the rules read it (policy_node)
                         rgb = rgb_by_stamp.get(msgs.stamp_ns(msg.header.stamp))
                         if rgb is not None:
                             if encode is not None:
