@@ -118,3 +118,32 @@ def test_policy_node_missing_model_exits_with_one_line(start_node, wait, tmp_pat
     assert wait(lambda: node.proc.poll() is not None, 30)
     assert node.proc.returncode == 1
     assert 'actor file not found' in node.log() and 'Traceback' not in node.log()
+
+
+def _params(ros, names):
+    """policy_node's values of `names` (bools) over /policy_node/get_parameters."""
+    from rcl_interfaces.srv import GetParameters
+    cli = ros.create_client(GetParameters, '/policy_node/get_parameters')
+    assert cli.wait_for_service(timeout_sec=30)
+    done = threading.Event()
+    fut = cli.call_async(GetParameters.Request(names=list(names)))
+    fut.add_done_callback(lambda f: done.set())
+    assert done.wait(30)
+    ros.destroy_client(cli)
+    return dict(zip(names, (v.bool_value for v in fut.result().values)))
+
+
+def test_goal_agnostic_rules_default_off_in_oracle_mode_only(ros, start_node, tmp_path):
+    """Mode oracle knows the goal: its pilot override, pad recall and damper default off (settable); latent: on."""
+    names = ('floor_guard', 'pilot_override', 'pad_recall', 'oscillation_damper')
+    oracle = constant_actor(tmp_path / 'oracle.pt', [0.0, 0.0, 0.0], condition='oracle', latent_dim=0)
+    node = start_node('policy_node', {'mode': 'oracle', 'model_path': str(oracle)})
+    assert _params(ros, names) == {'floor_guard': True, 'pilot_override': False, 'pad_recall': False,
+                                   'oscillation_damper': False}, node.log()
+    node.stop()
+    node = start_node('policy_node', {'mode': 'oracle', 'model_path': str(oracle), 'pilot_override': True})
+    assert _params(ros, names)['pilot_override'] is True, node.log()
+    node.stop()
+    latent = constant_actor(tmp_path / 'latent.pt', [0.0, 0.0, 0.0])
+    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(latent)})
+    assert _params(ros, names) == dict.fromkeys(names, True), node.log()

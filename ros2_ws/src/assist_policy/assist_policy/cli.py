@@ -24,7 +24,7 @@ def add_dataclass_args(parser: argparse.ArgumentParser, cls: type, help_text: di
         flag = '--' + f.name.replace('_', '-')
         doc = help_text.get(f.name, '') + f' (default: {default})'
         origin = typing.get_origin(hint)
-        if hint is bool:
+        if hint is bool or hint == (bool | None):       # an optional bool: left unset, None
             parser.add_argument(flag, type=_parse_bool, default=default, help=doc)
         elif origin in (tuple, list):
             inner = typing.get_args(hint)[0]

@@ -21,10 +21,13 @@ Pilots other than the paper's (issue 12): `--pilot <family|mix|train_mix>` flies
 pilot of that assist_sim.pilots family (`mix`: a held-out family drawn per landing); the column `pilot`
 names the family flown.
 
-The non-learned rules policy_node runs are on by default here too (since session 30; before, they were
-off unless asked for), so `evaluate` measures the assistant as it is deployed. Each can be turned off:
-`--safety false --override false --recall false --damper false` flies the bare learned actor, as the
-paper did. `--safety`: the floor guard (assist_policy.safety) for every assisted condition, rows named
+The non-learned rules policy_node runs are on by default here too, as policy_node's defaults for each
+mode (since session 30; before, they were off unless asked for), so `evaluate` measures the assistant as
+it is deployed: the floor guard for every assisted condition, the pilot override, pad recall and
+oscillation damper for latent and end_to_end but not for the oracle (it knows the goal: yielding to the
+pilot or steering to the nearest pad only costs it). `--override/--recall/--damper true|false` set them
+for every learned assistant; `--safety false --override false --recall false --damper false` flies the
+bare learned actor, as the paper did. `--safety`: the floor guard (assist_policy.safety) for every assisted condition, rows named
 `<condition>+guard` (so runs with and without it combine with --from-csv); `guard_fraction` is the share
 of steps it acted. `--override`: the pilot override (assist_policy.override) for the learned assistants
 (not for the scripted references, which stay as defined): rows `<condition>[+guard]+override`,
@@ -99,11 +102,12 @@ class EvalArgs:
     max_episode_s: float = 60.0
     plot: bool = True
     pilot: str = 'paper'
-    # the non-learned rules, on by default as policy_node flies the assistant (false: the bare actor)
+    # the non-learned rules, by default as policy_node flies each mode (false: the bare actor): the floor guard on;
+    # the goal-agnostic three (None) on for latent and end_to_end, off for the oracle, which knows the goal
     safety: bool = True
-    override: bool = True
-    recall: bool = True
-    damper: bool = True
+    override: bool | None = None
+    recall: bool | None = None
+    damper: bool | None = None
     from_csv: tuple[str, ...] = ()
     record_dir: str = ''
 
@@ -124,11 +128,11 @@ HELP = {
     'safety': 'apply the floor guard (assist_policy.safety) to every assisted condition (on by default, as '
               'policy_node; false with the other three: the bare actor, as the paper flew it)',
     'override': 'apply the pilot override (assist_policy.override) to the learned assistants (latent, oracle, '
-                'end_to_end; on by default, as policy_node)',
-    'recall': 'apply the pad recall (assist_policy.recall) to the learned assistants (latent, oracle, end_to_end; '
-              'on by default, as policy_node)',
+                'end_to_end); unset: as policy_node, on for latent and end_to_end, off for the oracle',
+    'recall': 'apply the pad recall (assist_policy.recall) to the learned assistants (latent, oracle, end_to_end); '
+              'unset: as policy_node, on for latent and end_to_end, off for the oracle',
     'damper': 'apply the oscillation damper (assist_policy.damper) to the learned assistants (latent, oracle, '
-              'end_to_end; on by default, as policy_node)',
+              'end_to_end); unset: as policy_node, on for latent and end_to_end, off for the oracle',
     'from_csv': 'fly nothing: combine the landings.csv files of earlier runs (e.g. one condition split '
                 'over processes by --betas; a landing in a later file replaces the same condition, beta '
                 'and seed in an earlier one) into one table, summary.csv and plot',
@@ -336,17 +340,18 @@ def _pct(x: float) -> str:
 
 
 def format_table(summary: dict[str, dict]) -> str:
-    """Fixed-width text table of per-condition summaries."""
-    head = (f'{"condition":<20} {"n":>4} {"error m (mean+-std)":>20} {"median":>7} {"spec.succ":>9} '
+    """Fixed-width text table of per-condition summaries (paper: the paper's value for the assistant, rules aside)."""
+    w = max([20, *map(len, summary)])
+    head = (f'{"condition":<{w}} {"n":>4} {"error m (mean+-std)":>20} {"median":>7} {"spec.succ":>9} '
             f'{"near.succ":>9} {"crash":>6} {"on goal":>7} {"assist%":>7} {"misaim":>6} {"->goal":>6}  paper')
     lines = [head, '-' * len(head)]
     for cond, s in summary.items():
-        lines.append(f'{cond:<20} {s["n"]:>4} {s["error_mean"]:>11.3f} +- {s["error_std"]:<5.3f} '
+        lines.append(f'{cond:<{w}} {s["n"]:>4} {s["error_mean"]:>11.3f} +- {s["error_std"]:<5.3f} '
                      f'{s["error_median"]:>7.3f} {100 * s["specified_success"]:>8.1f}% '
                      f'{100 * s["nearest_success"]:>8.1f}% {100 * s["crash_rate"]:>5.1f}% '
                      f'{100 * s["landed_on_goal"]:>6.1f}% {100 * s["active_fraction"]:>6.1f}% '
                      f'{_pct(s["misaimed"])} {_pct(s["misaimed_success"])}  '
-                     f'{PAPER.get(cond, "")}')
+                     f'{PAPER.get(cond.split("+")[0], "")}')
     return '\n'.join(lines)
 
 
@@ -396,18 +401,18 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
             try:
                 env, policy = make_policy(cond, model, args.encoder_path, args.max_episode_s, args.alpha,
                                           args.pilot, SafetyConfig() if args.safety else None,
-                                          OverrideConfig() if args.override else None,
-                                          RecallConfig() if args.recall else None,
-                                          DamperConfig() if args.damper else None)
+                                          OverrideConfig() if rule_on(args.override, cond) else None,
+                                          RecallConfig() if rule_on(args.recall, cond) else None,
+                                          DamperConfig() if rule_on(args.damper, cond) else None)
             except ValueError as exc:
                 log.warning('skipping %s: %s', cond, exc)
                 continue
             t0 = time.time()
             rows = []
             name = (cond + ('+guard' if args.safety and cond != 'unassisted' else '')
-                    + ('+override' if args.override and cond in CONDITIONS[1:] else '')
-                    + ('+recall' if args.recall and cond in CONDITIONS[1:] else '')
-                    + ('+damper' if args.damper and cond in CONDITIONS[1:] else ''))
+                    + ('+override' if rule_on(args.override, cond) else '')
+                    + ('+recall' if rule_on(args.recall, cond) else '')
+                    + ('+damper' if rule_on(args.damper, cond) else ''))
             for bi, beta in enumerate(args.betas):
                 for k in range(args.landings):
                     seed = args.seed + 1000 * bi + k
@@ -445,6 +450,14 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
     return summary
 
 
+def rule_on(flag: bool | None, cond: str) -> bool:
+    """Whether a goal-agnostic rule (override, recall, damper) flies with `cond`: as asked for every learned assistant,
+    else (None) as policy_node's default for its mode: on for latent and end_to_end, off for the oracle."""
+    if cond not in CONDITIONS[1:]:
+        return False
+    return flag if flag is not None else cond != 'oracle'
+
+
 def main(argv: list[str] | None = None) -> int:
     """Console entry point: run, print the table."""
     logging.basicConfig(level=logging.INFO, format='%(levelname)s %(name)s: %(message)s')
@@ -463,9 +476,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.from_csv:
         print(f'combined from {", ".join(args.from_csv)}')
     else:
+        state = {True: 'on', False: 'off', None: 'on (oracle: off)'}
         print(f'pilot {args.pilot}, floor guard {"on" if args.safety else "off"}, '
-              f'pilot override {"on" if args.override else "off"}, '
-              f'pad recall {"on" if args.recall else "off"}, oscillation damper {"on" if args.damper else "off"}, '
+              f'pilot override {state[args.override]}, '
+              f'pad recall {state[args.recall]}, oscillation damper {state[args.damper]}, '
               f'alpha {args.alpha}, '
               f'betas {args.betas[0]}..{args.betas[-1]} ({len(args.betas)}), '
               f'{args.landings} landings each, seed {args.seed}')

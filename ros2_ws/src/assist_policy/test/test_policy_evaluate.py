@@ -42,17 +42,23 @@ def test_tiny_evaluation_writes_everything(tmp_path):
 
 
 def test_evaluate_flies_the_assistant_as_policy_node_does_by_default(tmp_path):
-    """Every non-learned rule policy_node runs is on unless turned off; all four off is the bare actor."""
-    run = dict(conditions=('unassisted', 'latent', 'scripted_nearest_pad'), betas=(0.5,), landings=1,
+    """The rules policy_node runs in each mode are on unless set: the floor guard for every assisted condition,
+    the override, recall and damper for latent (not the oracle, which knows the goal); all four off: the bare actor."""
+    run = dict(conditions=('unassisted', 'latent', 'oracle', 'scripted_nearest_pad'), betas=(0.5,), landings=1,
                max_episode_s=1.0, plot=False)
-    assert set(evaluate(EvalArgs(out=str(tmp_path / 'default'), **run))) == {
-        'unassisted', 'latent+guard+override+recall+damper', 'scripted_nearest_pad+guard'}
+    default = evaluate(EvalArgs(out=str(tmp_path / 'default'), **run))
+    assert set(default) == {'unassisted', 'latent+guard+override+recall+damper', 'oracle+guard',
+                            'scripted_nearest_pad+guard'}
+    table = format_table(default).splitlines()
+    assert len({line.index(' 1 ') for line in table[2:]}) == 1        # the long names keep the columns aligned
+    assert table[3].startswith('latent+guard+override+recall+damper') and table[3].endswith('0.25 +- 0.15')
     assert set(evaluate(EvalArgs(out=str(tmp_path / 'bare'), safety=False, override=False, recall=False,
-                                 damper=False, **run))) == {'unassisted', 'latent', 'scripted_nearest_pad'}
-    assert main(['--out', str(tmp_path / 'cli'), '--conditions', 'latent', '--betas', '0.5', '--landings', '1',
-                 '--max-episode-s', '1', '--plot', 'false', '--recall', 'false']) == 0
+                                 damper=False, **run))) == {'unassisted', 'latent', 'oracle', 'scripted_nearest_pad'}
+    assert main(['--out', str(tmp_path / 'cli'), '--conditions', 'latent', 'oracle', '--betas', '0.5',
+                 '--landings', '1', '--max-episode-s', '1', '--plot', 'false', '--recall', 'false',
+                 '--override', 'true']) == 0
     assert {r['condition'] for r in csv.DictReader(open(tmp_path / 'cli' / 'landings.csv'))} == {
-        'latent+guard+override+damper'}
+        'latent+guard+override+damper', 'oracle+guard+override'}
 
 
 def test_from_csv_rejects_a_file_that_is_not_a_landings_csv(tmp_path):
