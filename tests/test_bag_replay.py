@@ -181,5 +181,7 @@ def test_replay_runs_the_rules_the_bag_was_flown_with(rules_landing, landing):
     assert summarize(replay(landing[0], ReplayConfig(latent='recorded')))['rules'] == dict.fromkeys(
         ('floor_guard', 'override', 'recall', 'damper'), False)
     assert rules_on(ReplayConfig(), '', []) == dict.fromkeys(('floor_guard', 'override', 'recall', 'damper'), True)
+    assert rules_on(ReplayConfig(), '', [], 'oracle') == {'floor_guard': True, 'override': False, 'recall': False,
+                                                          'damper': False}
     with pytest.raises(ValueError, match='recall must be'):
         replay(bag, ReplayConfig(recall='sometimes'))

@@ -17,7 +17,8 @@ The non-learned rules (floor guard, pilot override, pad recall, oscillation damp
 every depth frame reaches the core (the guard and the recall read it; /odom's orientation goes with the
 position, as the recall's map needs), and each rule is on as policy_node's default, unless the bag was
 flown by evaluate (custom_data assist.condition, e.g. latent+guard+override+recall+damper), which says
-which were; --floor-guard / --override / --recall / --damper on|off decide instead.
+which were (a graph's bag in mode oracle: the floor guard only, as policy_node's defaults there);
+--floor-guard / --override / --recall / --damper on|off decide instead.
 Velocity: the policy node feeds /odom's twist (base_link) to the actor; evaluate's env feeds world-frame
 velocity, and its bags say so in custom_data, which --velocity-frame auto follows (the rules read the
 twist either way, as both do). Depth noise: evaluate's bags hold the rendered depth and, when the
@@ -71,14 +72,16 @@ class ReplayConfig:
 RULE_FLAGS = {'floor_guard': 'guard', 'override': 'override', 'recall': 'recall', 'damper': 'damper'}
 
 
-def rules_on(cfg: ReplayConfig, condition: str, flags: list[str]) -> dict[str, bool]:
-    """Which rules the re-run applies: each on|off as asked, else as evaluate flew the bag, else on (policy_node)."""
+def rules_on(cfg: ReplayConfig, condition: str, flags: list[str], mode: str = 'latent') -> dict[str, bool]:
+    """Which rules the re-run applies: each on|off as asked, else as evaluate flew the bag, else as policy_node's
+    defaults for `mode` (all on; in mode oracle only the floor guard)."""
     out = {}
     for rule, flag in RULE_FLAGS.items():
         v = getattr(cfg, rule)
         if v not in ('auto', 'on', 'off'):
             raise ValueError(f"{rule.replace('_', '-')} must be auto, on or off, got {v!r}")
-        out[rule] = v == 'on' or (v == 'auto' and (not condition or flag in flags))
+        default = flag in flags if condition else (rule == 'floor_guard' or mode != 'oracle')
+        out[rule] = v == 'on' or (v == 'auto' and default)
     return out
 
 
@@ -127,7 +130,7 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
         # evaluate names its rows (and bags) <condition>[+guard][+override]
         condition, *flags = custom.get('assist.condition', '').split('+')
         mode = cfg.mode if cfg.mode != 'auto' else (condition or 'latent')
-        rules = rules_on(cfg, condition, flags)
+        rules = rules_on(cfg, condition, flags, mode)
         if mode not in ('latent', 'oracle', 'end_to_end'):
             raise ValueError(f'{bag}: cannot replay mode {mode!r} (latent, oracle or end_to_end; '
                              f'pass --mode for a bag of an unassisted flight)')
