@@ -163,8 +163,8 @@ PARAMS = {
                                           'engage the oscillation damper.', min=1, max=20, dynamic=True),
 }
 # The goal-agnostic rules: on by default, off by default in mode oracle, where the assistant knows the goal: letting
-# the pilot's keys through, steering to the nearest pad or damping the pilot only cost it (evaluate, 12 landings:
-# oracle + floor guard 100 % on the goal pad, + pilot override 83 %, with all three 67 % and a crash).
+# the pilot's keys through, steering to the nearest pad or damping the pilot only cost it (evaluate, 110 paper-pilot
+# landings: oracle + floor guard 99.1 % on the goal pad / 0 % crashes, with all three rules too 76.4 % / 8.2 %).
 GOAL_AGNOSTIC_RULES = ('pilot_override', 'pad_recall', 'oscillation_damper')
 
 
