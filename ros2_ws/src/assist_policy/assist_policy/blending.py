@@ -1,9 +1,25 @@
-"""The paper's blending rule, V = (u + a) / 2 if |a| > threshold else u (one definition, used everywhere)."""
+"""The paper's blending rule, V = (u + a) / 2 if |a| > threshold else u, and policy_node's speed limits on V
+(one definition each, used everywhere)."""
 from __future__ import annotations
 
 import numpy as np
 
 DEFAULT_THRESHOLD = 0.25  # m/s; paper, "TD3 implementation": small assistant actions are ignored
+
+
+MAX_SPEED_MPS = 1.5      # policy_node max_speed: horizontal speed limit of the published /cmd_vel
+MAX_VERTICAL_MPS = 1.0   # policy_node max_vertical_speed
+
+
+def clamp_velocity(v: np.ndarray, max_speed_mps: float = MAX_SPEED_MPS,
+                   max_vertical_mps: float = MAX_VERTICAL_MPS) -> np.ndarray:
+    """The commanded V within policy_node's limits: horizontal norm scaled down to max_speed_mps, vertical clipped."""
+    v = np.array(v, dtype=float).reshape(3)
+    sp = float(np.hypot(v[0], v[1]))
+    if sp > max_speed_mps:
+        v[:2] *= max_speed_mps / sp
+    v[2] = float(np.clip(v[2], -max_vertical_mps, max_vertical_mps))
+    return v
 
 
 def blend(u: np.ndarray, a: np.ndarray, threshold: float = DEFAULT_THRESHOLD) -> np.ndarray:

@@ -7,7 +7,8 @@ One step = one control period of the world (1/control_hz s):
      horizontal part while the pilot oscillates across a mapped pad (it needs ``EnvConfig.recall``'s
      map); with ``EnvConfig.override`` the pilot override (``override.PilotOverride``) replaces a_t
      while the pilot holds a horizontal key; with ``EnvConfig.safety`` the floor guard acts on V_t;
-  2. the vehicle flies V_t = blend(u_t, a_t) (``blending.blend``) with the world's turbulence;
+  2. the vehicle flies V_t = blend(u_t, a_t) (``blending.blend``), within policy_node's speed limits when
+     assisted (``blending.clamp_velocity``: 1.5 m/s horizontal, 1 m/s vertical), with the world's turbulence;
   3. the pilot updates its goal estimate with the applied assistance (a_t if |a_t| > threshold,
      else 0) and produces u_{t+1}.
 
@@ -41,7 +42,7 @@ from assist_sim.pilot import PilotConfig, SimulatedPilot
 from assist_sim.pilots import make_pilot
 
 from .actions import DEFAULT_MAX_SPEED, scale_action
-from .blending import DEFAULT_THRESHOLD, blend
+from .blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS, blend, clamp_velocity
 from .damper import DamperConfig, OscillationDamper
 from .observation import IMAGE_SHAPE, Condition, ObservationBuilder, image_feature, oracle_feature
 from .override import OverrideConfig, PilotOverride
@@ -76,6 +77,10 @@ class EnvConfig:
     max_episode_s: float = 60.0                      # truncation (the world's own timeout is longer)
     blend_threshold: float = DEFAULT_THRESHOLD
     max_speed: tuple[float, float, float] = DEFAULT_MAX_SPEED
+    # an assisted V is flown within policy_node's limits (max_speed, max_vertical_speed), as deployed (since
+    # session 30; before, only the world's own 3 m/s clamp); the unassisted pilot is not limited
+    max_cmd_speed_mps: float = MAX_SPEED_MPS
+    max_cmd_vertical_mps: float = MAX_VERTICAL_MPS
     window_s: float = 1.0
     feature_lags_s: tuple[float, ...] = ()           # feature memory (observation.FeatureMemory); () = none
     memory_displacement: bool = False                # + the displacement since each lagged feature
@@ -240,6 +245,8 @@ class LandingAssistEnv(gym.Env):
         if self.guard is not None and not self.unassisted:
             a, v, guarded = self._guard(a, active, v)
             active = float(np.linalg.norm(a)) > self.cfg.blend_threshold
+        if not self.unassisted:
+            v = clamp_velocity(v, self.cfg.max_cmd_speed_mps, self.cfg.max_cmd_vertical_mps)
         self.last_command = (a.copy(), np.array(v, dtype=float))    # what was flown (bags record it)
         st = self.world.step(v)
         self._steps += 1

@@ -43,7 +43,7 @@ from assist_sim.core.geometry import quat_to_matrix
 from assist_sim.shipped import shipped_model_path
 
 from .actions import scale_action
-from .blending import DEFAULT_THRESHOLD, blend
+from .blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS, blend, clamp_velocity
 from .damper import DamperConfig, OscillationDamper
 from .observation import Condition, ObservationBuilder, image_feature, oracle_feature
 from .override import OverrideConfig, PilotOverride
@@ -95,8 +95,8 @@ class PolicyCoreConfig:
     pilot_timeout_s: float = 0.5
     feature_timeout_s: float = 0.5
     odom_timeout_s: float = 0.5
-    max_speed_mps: float = 1.5
-    max_vertical_mps: float = 1.0
+    max_speed_mps: float = MAX_SPEED_MPS
+    max_vertical_mps: float = MAX_VERTICAL_MPS
     max_input_mps: float = 5.0          # pilot commands faster than this (norm) are rejected
     body_frame: str = 'base_link'       # pilot commands must be in this frame (or carry no frame)
     max_odom_speed_mps: float = 50.0    # odometry faster than this is not a multirotor: rejected
@@ -329,12 +329,7 @@ class PolicyCore:
         return stamp is not None and abs(now - stamp) <= timeout
 
     def _clamp(self, v: np.ndarray) -> np.ndarray:
-        v = np.array(v, dtype=float).reshape(3)
-        sp = float(np.hypot(v[0], v[1]))
-        if sp > self.cfg.max_speed_mps:
-            v[:2] *= self.cfg.max_speed_mps / sp
-        v[2] = float(np.clip(v[2], -self.cfg.max_vertical_mps, self.cfg.max_vertical_mps))
-        return v
+        return clamp_velocity(v, self.cfg.max_speed_mps, self.cfg.max_vertical_mps)
 
     def pilot_command(self, now: float) -> np.ndarray:
         """The pilot's u at `now`: the latest accepted command if fresh, else zero (never raises)."""

@@ -194,3 +194,23 @@ def test_paper_share_swaps_in_the_paper_pilot_unless_a_pilot_is_asked_for():
     env = LandingAssistEnv(EnvConfig(condition='oracle', pilot_family='delay'))
     assert env.reset(seed=1)[1]['pilot'] == 'delay'
     env.close()
+
+
+def test_an_assisted_command_is_flown_within_policy_node_limits_and_the_pilot_alone_is_not():
+    """A bang-bang pilot's diagonal keys (1.5 m/s per axis) pass the override as V = u: clamped to 1.5 m/s as
+    policy_node publishes it; unassisted the same keys fly 2.1 m/s (the world's own 3 m/s limit)."""
+    from assist_policy.blending import clamp_velocity
+    from assist_policy.override import OverrideConfig
+    np.testing.assert_allclose(clamp_velocity([1.5, 1.5, -1.4]), [1.5 / 2 ** 0.5, 1.5 / 2 ** 0.5, -1.0])
+    np.testing.assert_allclose(clamp_velocity([0.3, -0.4, 0.2]), [0.3, -0.4, 0.2])
+    flown = {}
+    for cond in ('oracle', 'none'):
+        e = LandingAssistEnv(EnvConfig(condition=cond, max_episode_s=5.0, override=OverrideConfig()))
+        e.reset(seed=3, options={'beta': 0.5})
+        e.pilot.act = lambda position, agent_action: np.array([1.5, 1.5, 0.0])   # held diagonal keys
+        e._u = np.array([1.5, 1.5, 0.0])
+        for _ in range(30):
+            e.step(np.zeros(3))
+        flown[cond] = float(np.hypot(*e.last_command[1][:2]))
+        e.close()
+    assert flown['oracle'] == pytest.approx(1.5) and flown['none'] == pytest.approx(1.5 * 2 ** 0.5)
