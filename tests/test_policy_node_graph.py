@@ -120,10 +120,10 @@ def test_policy_node_missing_model_exits_with_one_line(start_node, wait, tmp_pat
     assert 'actor file not found' in node.log() and 'Traceback' not in node.log()
 
 
-def _params(ros, names):
-    """policy_node's values of `names` (bools) over /policy_node/get_parameters."""
+def _params(ros, node_name, names):
+    """The values of `names` (bools) of the node `node_name` over its get_parameters service."""
     from rcl_interfaces.srv import GetParameters
-    cli = ros.create_client(GetParameters, '/policy_node/get_parameters')
+    cli = ros.create_client(GetParameters, f'/{node_name}/get_parameters')
     assert cli.wait_for_service(timeout_sec=30)
     done = threading.Event()
     fut = cli.call_async(GetParameters.Request(names=list(names)))
@@ -134,16 +134,20 @@ def _params(ros, names):
 
 
 def test_goal_agnostic_rules_default_off_in_oracle_mode_only(ros, start_node, tmp_path):
-    """Mode oracle knows the goal: its pilot override, pad recall and damper default off (settable); latent: on."""
+    """Mode oracle knows the goal: its pilot override, pad recall and damper default off (settable); latent: on.
+
+    Each start gets its own node name: a service of a node just stopped can linger in the graph and swallow a
+    request meant for its successor of the same name."""
     names = ('floor_guard', 'pilot_override', 'pad_recall', 'oscillation_damper')
     oracle = constant_actor(tmp_path / 'oracle.pt', [0.0, 0.0, 0.0], condition='oracle', latent_dim=0)
-    node = start_node('policy_node', {'mode': 'oracle', 'model_path': str(oracle)})
-    assert _params(ros, names) == {'floor_guard': True, 'pilot_override': False, 'pad_recall': False,
-                                   'oscillation_damper': False}, node.log()
+    node = start_node('policy_node', {'mode': 'oracle', 'model_path': str(oracle)}, {'__node': 'policy_oracle'})
+    assert _params(ros, 'policy_oracle', names) == {'floor_guard': True, 'pilot_override': False,
+                                                    'pad_recall': False, 'oscillation_damper': False}, node.log()
     node.stop()
-    node = start_node('policy_node', {'mode': 'oracle', 'model_path': str(oracle), 'pilot_override': True})
-    assert _params(ros, names)['pilot_override'] is True, node.log()
+    node = start_node('policy_node', {'mode': 'oracle', 'model_path': str(oracle), 'pilot_override': True},
+                      {'__node': 'policy_oracle_set'})
+    assert _params(ros, 'policy_oracle_set', names)['pilot_override'] is True, node.log()
     node.stop()
     latent = constant_actor(tmp_path / 'latent.pt', [0.0, 0.0, 0.0])
-    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(latent)})
-    assert _params(ros, names) == dict.fromkeys(names, True), node.log()
+    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(latent)}, {'__node': 'policy_latent'})
+    assert _params(ros, 'policy_latent', names) == dict.fromkeys(names, True), node.log()
