@@ -27,8 +27,8 @@ it is deployed: the floor guard for every assisted condition, the pilot override
 oscillation damper for latent and end_to_end but not for the oracle (it knows the goal: yielding to the
 pilot or steering to the nearest pad only costs it). `--override/--recall/--damper true|false` set them
 for every learned assistant; `--safety false --override false --recall false --damper false` flies the
-bare learned actor, as the paper did. `--safety`: the floor guard (assist_policy.safety) for every assisted condition, rows named
-`<condition>+guard` (so runs with and without it combine with --from-csv); `guard_fraction` is the share
+bare learned actor, as the paper did. `--safety`: the floor guard (assist_policy.safety) for every
+assisted condition, rows named `<condition>+guard` (so runs with and without it combine with --from-csv); `guard_fraction` is the share
 of steps it acted. `--override`: the pilot override (assist_policy.override) for the learned assistants
 (not for the scripted references, which stay as defined): rows `<condition>[+guard]+override`,
 `override_fraction` the share of steps it replaced the actor's action. `--recall`: the pad recall
@@ -68,6 +68,7 @@ from .cli import add_dataclass_args, dataclass_from_args
 from .damper import DamperConfig
 from .env import EnvConfig, LandingAssistEnv, run_episode
 from .latent import make_latent_fn
+from .observation import Condition
 from .policy_core import default_model_path
 from .override import OverrideConfig
 from .recall import RecallConfig
@@ -398,21 +399,20 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
     try:
         for cond in () if args.from_csv else args.conditions:
             model = getattr(args, f'{cond}_model', '') if cond in CONDITIONS[1:] else ''
+            on = {rule: rule_on(getattr(args, rule), cond) for rule in ('override', 'recall', 'damper')}
             try:
                 env, policy = make_policy(cond, model, args.encoder_path, args.max_episode_s, args.alpha,
                                           args.pilot, SafetyConfig() if args.safety else None,
-                                          OverrideConfig() if rule_on(args.override, cond) else None,
-                                          RecallConfig() if rule_on(args.recall, cond) else None,
-                                          DamperConfig() if rule_on(args.damper, cond) else None)
+                                          OverrideConfig() if on['override'] else None,
+                                          RecallConfig() if on['recall'] else None,
+                                          DamperConfig() if on['damper'] else None)
             except ValueError as exc:
                 log.warning('skipping %s: %s', cond, exc)
                 continue
             t0 = time.time()
             rows = []
             name = (cond + ('+guard' if args.safety and cond != 'unassisted' else '')
-                    + ('+override' if rule_on(args.override, cond) else '')
-                    + ('+recall' if rule_on(args.recall, cond) else '')
-                    + ('+damper' if rule_on(args.damper, cond) else ''))
+                    + ''.join(f'+{rule}' for rule, flies in on.items() if flies))
             for bi, beta in enumerate(args.betas):
                 for k in range(args.landings):
                     seed = args.seed + 1000 * bi + k
@@ -455,7 +455,7 @@ def rule_on(flag: bool | None, cond: str) -> bool:
     else (None) as policy_node's default for its mode: on for latent and end_to_end, off for the oracle."""
     if cond not in CONDITIONS[1:]:
         return False
-    return flag if flag is not None else cond != 'oracle'
+    return flag if flag is not None else not Condition(cond).knows_goal
 
 
 def main(argv: list[str] | None = None) -> int:

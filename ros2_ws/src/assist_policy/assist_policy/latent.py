@@ -44,7 +44,6 @@ class LatentFn:
         self._bad_frame = BadFrame
         self.depth_noise = bool(depth_noise)
         self.seed = int(seed)
-        self.episode_seed: int | None = None      # the landing's noise seed (reset); bags record it
         self.latent_dim = int(encoder.latent_dim)
         self.rejected = 0
         self.last_input: tuple[np.ndarray, np.ndarray] | None = None   # the frame as the encoder saw it
@@ -52,8 +51,7 @@ class LatentFn:
 
     def reset(self, episode_seed: int | None) -> None:
         """New landing: depth noise from (seed, episode_seed) (seed alone for None); no previous latent."""
-        self.episode_seed = None if episode_seed is None else int(episode_seed)
-        key = [self.seed] if episode_seed is None else [self.seed, self.episode_seed]
+        key = [self.seed] if episode_seed is None else [self.seed, int(episode_seed)]
         self._rng = np.random.default_rng(key)
         self._mu = np.zeros(self.latent_dim)
 

@@ -50,6 +50,12 @@ class Condition(str, Enum):
     ORACLE = 'oracle'
     END_TO_END = 'end_to_end'
 
+    @property
+    def knows_goal(self) -> bool:
+        """Told the goal (oracle, simulation only): the goal-agnostic rules (pilot override, pad recall,
+        oscillation damper) only cost it, so policy_node, evaluate and replay_assist leave them off by default."""
+        return self is Condition.ORACLE
+
 
 class ActionHistory:
     """Time-stamped pilot and agent actions; means over the trailing window (default 1 s)."""

@@ -42,6 +42,7 @@ from assist_sim.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagno
 
 from .blending import DEFAULT_THRESHOLD
 from .damper import DamperConfig
+from .observation import Condition
 from .override import OverrideConfig
 from .policy_core import PolicyCore, PolicyCoreConfig, PolicyOutput, default_model_path
 from .poses import header_seconds
@@ -170,7 +171,7 @@ GOAL_AGNOSTIC_RULES = ('pilot_override', 'pad_recall', 'oscillation_damper')
 
 def params_for_mode(mode: str) -> dict[str, Param]:
     """PARAMS with the defaults of `mode` (oracle: the goal-agnostic rules off unless set)."""
-    if mode != 'oracle':
+    if not Condition(mode).knows_goal:
         return dict(PARAMS)
     return {**PARAMS, **{k: dataclasses.replace(PARAMS[k], default=False) for k in GOAL_AGNOSTIC_RULES}}
 

@@ -41,6 +41,7 @@ import numpy as np
 
 from . import msgs
 from .bagio import CONTRACT_TOPICS, BagError, BagReader, BagWriter, check_output
+from ..observation import Condition
 from ..poses import header_seconds
 from .episode import DEPTH_NOISE_KEY, VELOCITY_FRAME_KEY
 
@@ -80,7 +81,7 @@ def rules_on(cfg: ReplayConfig, condition: str, flags: list[str], mode: str = 'l
         v = getattr(cfg, rule)
         if v not in ('auto', 'on', 'off'):
             raise ValueError(f"{rule.replace('_', '-')} must be auto, on or off, got {v!r}")
-        default = flag in flags if condition else (rule == 'floor_guard' or mode != 'oracle')
+        default = flag in flags if condition else (rule == 'floor_guard' or not Condition(mode).knows_goal)
         out[rule] = v == 'on' or (v == 'auto' and default)
     return out
 
@@ -130,10 +131,10 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
         # evaluate names its rows (and bags) <condition>[+guard][+override]
         condition, *flags = custom.get('assist.condition', '').split('+')
         mode = cfg.mode if cfg.mode != 'auto' else (condition or 'latent')
-        rules = rules_on(cfg, condition, flags, mode)
         if mode not in ('latent', 'oracle', 'end_to_end'):
             raise ValueError(f'{bag}: cannot replay mode {mode!r} (latent, oracle or end_to_end; '
                              f'pass --mode for a bag of an unassisted flight)')
+        rules = rules_on(cfg, condition, flags, mode)
         has_camera = RGB in r.topics and DEPTH in r.topics
         use_latent = cfg.latent if cfg.latent != 'auto' else ('encode' if has_camera else 'recorded')
         need = [ODOM, PILOT]
