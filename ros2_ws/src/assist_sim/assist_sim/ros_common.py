@@ -21,6 +21,7 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
 
@@ -474,26 +475,41 @@ def _context_going_down(grace_s: float) -> bool:
 
 
 SPIN_STOP_TIMEOUT_S = 5.0
+STOP_POLL_S = 0.1
 
 
-def spin_off_main_thread(spinner, teardown: Callable[[], None] | None = None) -> None:
-    """Spin `spinner` on a worker thread while the main thread only waits for it; returns when spin does.
+def spin_until_stopped(spinner, stop: threading.Event, context=None, poll_s: float = STOP_POLL_S) -> None:
+    """Dispatch `spinner`'s callbacks (spin_once) until `stop` is set or `context` (default: rclpy's
+    default context) shuts down; returns after the callback in progress has finished."""
+    context = context or rclpy.get_default_context()
+    while not stop.is_set() and context.ok():
+        spinner.spin_once(timeout_sec=poll_s)
+
+
+def spin_off_main_thread(spinner, teardown: Callable[[], None] | None = None, context=None) -> None:
+    """Spin `spinner` on a worker thread while the main thread only waits for it; returns when it stops.
 
     Python runs signal handlers on the main thread, between two bytecodes of whatever it is doing:
     spun there, a Ctrl-C raised KeyboardInterrupt inside a callback halfway through its work (seen
     in CI: policy_node's history push, which the events executor then logged as FATAL). Here it is
-    raised in this wait; the context is shut down (rclpy's own handler has usually done so), the
-    executor finishes its current callbacks and is shut down. `teardown` (run_node: the node's
-    close()) then runs on the worker too, the thread its callbacks ran on (sqlite connections, for
-    one, refuse any other), before the caller goes on. An exception that ends spin or teardown on
-    the worker is re-raised here.
+    raised in this wait, and the shutdown is ordered: the worker is told to stop dispatching, the
+    callback it is in finishes, the executor is shut down and `teardown` (run_node: the node's
+    close()) runs on the worker, the thread its callbacks ran on (sqlite connections, for one, refuse
+    any other); all of it while the context is still valid, so a callback or close() that logs or
+    publishes then still reaches /rosout (rclpy's own SIGINT handler shut the context down at once,
+    under a running callback: CI saw "Failed to publish log message to rosout: publisher's context
+    is invalid" from a timer's log line). The caller shuts the context down afterwards. Should the
+    worker not come back within SPIN_STOP_TIMEOUT_S (a callback blocked on something that never
+    comes), the context is shut down to release it. An exception that ends spin or teardown on the
+    worker is re-raised here.
     """
     failure: list[BaseException] = []
     finished = threading.Event()
+    stop = threading.Event()
 
     def spin() -> None:
         try:
-            spinner.spin()
+            spin_until_stopped(spinner, stop, context)
         except ExternalShutdownException:
             pass
         except BaseException as exc:  # noqa: BLE001 - handed to the main thread, re-raised below
@@ -515,14 +531,22 @@ def spin_off_main_thread(spinner, teardown: Callable[[], None] | None = None) ->
         # Not worker.join()/is_alive(): a join interrupted by Ctrl-C marks the running thread as
         # stopped (CPython's bpo-45274 fix releases its lock), and the node was then closed twice,
         # under a live executor (CI: pybullet "Not connected to physics server").
-        if not finished.is_set():       # interrupted: stop the executor, let its callbacks finish
-            _ignore_sigint()            # a second Ctrl-C must not cut this short
-            rclpy.try_shutdown()
+        if not finished.is_set():       # interrupted: stop dispatching, let the running callback finish
+            _ignore_stop_signals()      # a second Ctrl-C must not cut this short
+            stop.set()
             if not finished.wait(SPIN_STOP_TIMEOUT_S):
                 logging.getLogger(__name__).warning(
-                    'executor still in a callback %.0f s after shutdown; cleaning up anyway', SPIN_STOP_TIMEOUT_S)
+                    'executor still in a callback %.0f s after Ctrl-C; shutting the context down', SPIN_STOP_TIMEOUT_S)
+                rclpy.try_shutdown(context=context)
+                if not finished.wait(SPIN_STOP_TIMEOUT_S):
+                    logging.getLogger(__name__).warning('executor still in a callback; cleaning up anyway')
     if failure:
         raise failure[0]
+
+
+def _interrupt(signum, frame) -> None:
+    """SIGTERM handler: stop the node as a Ctrl-C does (rclpy's own handler is not installed)."""
+    raise KeyboardInterrupt(f'signal {signum}')
 
 
 def run_node(factory: Callable[[], Node], args: list[str] | None = None,
@@ -538,12 +562,19 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
     the node is built, its threads get the SCHED_FIFO priority of its `realtime_priority` parameter
     (if declared and > 0) and the start-up heap is frozen out of the garbage collector's way. The
     executor spins off the main thread (spin_off_main_thread), so a Ctrl-C never lands inside a
-    callback, and the node's close() (if it has one) runs on the thread its callbacks ran on. A
+    callback, and the node's close() (if it has one) runs on the thread its callbacks ran on.
+    SIGINT and SIGTERM stop the executor first and shut the context down last (rclpy's own signal
+    handlers are not installed), so what a callback or close() logs meanwhile still reaches /rosout. A
     StartupError raised by `factory` (nodes wrap bad parameters, missing models and unreachable
     endpoints in it) is reported as one clear line on stderr and gives exit code 1, no traceback.
     Python `logging` records go to the node's logger (/rosout).
     """
-    rclpy.init(args=args)
+    # rclpy's SIGINT/SIGTERM handler would shut the context down at once, under a running callback;
+    # spin_off_main_thread stops the executor first and the context goes down last (below).
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGTERM, _interrupt)
     handler = forward_logging(None)
     node = None
     code = 0
@@ -580,9 +611,9 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
         if not _context_going_down(SHUTDOWN_GRACE_S):
             raise
     finally:
-        # Going down: another Ctrl-C (a second key press, or launch's SIGINT to a node that is
+        # Going down: another Ctrl-C (a second key press, or launch's SIGINT/SIGTERM to a node that is
         # already exiting) must not interrupt the clean-up with a KeyboardInterrupt traceback.
-        _ignore_sigint()
+        _ignore_stop_signals()
         if node is not None:
             if not closed.is_set():     # never spun (start-up failed), or the executor never came back
                 close_node()
@@ -590,7 +621,7 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
             node.destroy_node()
         if rclpy.ok():
             rclpy.try_shutdown()
-        _ignore_sigint()      # rclpy's shutdown restored the interrupting handler
+        _ignore_stop_signals()
     return code
 
 
@@ -610,6 +641,7 @@ def exit_process(code: int) -> None:
     os._exit(code)
 
 
-def _ignore_sigint() -> None:
+def _ignore_stop_signals() -> None:
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
