@@ -124,7 +124,8 @@ def measure(frames: int = FRAMES, startup_timeout_s: float = 90.0, node_params: 
     from sensor_msgs.msg import Image
     from std_msgs.msg import Float32MultiArray
 
-    from assist_sim.ros_common import RELIABLE_QOS, SENSOR_QOS, make_executor, set_realtime_priority
+    from assist_sim.ros_common import (RELIABLE_QOS, SENSOR_QOS, make_executor, set_realtime_priority,
+                                       spin_until_stopped)
 
     domain = random.Random(os.getpid() ^ time.monotonic_ns()).randint(150, 199)
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED='1')
@@ -189,13 +190,9 @@ def measure(frames: int = FRAMES, startup_timeout_s: float = 90.0, node_params: 
     ex.add_node(node)
     stop_spin = threading.Event()
 
-    def _spin() -> None:
-        # spin_once in a loop that the main thread can end: destroying the node or shutting the
-        # executor down while this thread is inside the events executor crashes the process
-        while not stop_spin.is_set() and ctx.ok():
-            ex.spin_once(timeout_sec=0.05)
-
-    spin = threading.Thread(target=_spin, daemon=True)
+    # spin_once in a loop that the main thread can end: destroying the node or shutting the
+    # executor down while this thread is inside the events executor crashes the process
+    spin = threading.Thread(target=spin_until_stopped, args=(ex, stop_spin, ctx, 0.05), daemon=True)
     spin.start()
     fifo = recorder_priority > 0 and _may_use_fifo()
     if fifo:                 # after the nodes started: they must not inherit it

@@ -337,9 +337,9 @@ EXECUTOR_PARAM = 'executor'
 
 class EventsExecutorLoop:
     """rclpy.experimental.EventsExecutor (C++ event queue: no Python wait-set rebuild per wake-up),
-    spun with spin_once: in the rclpy 7.1.6 wheel its spin() dispatches nothing and busy-loops (a
-    10 Hz timer never fired in 2 s at ~60 % of a core), while spin_once delivers timers (steady and
-    sim time), subscriptions and services."""
+    spun with spin_once (spin_until_stopped): in the rclpy 7.1.6 wheel its spin() dispatches nothing
+    and busy-loops (a 10 Hz timer never fired in 2 s at ~60 % of a core), while spin_once delivers
+    timers (steady and sim time), subscriptions and services."""
 
     def __init__(self, context=None) -> None:
         from rclpy.experimental import EventsExecutor
@@ -353,14 +353,6 @@ class EventsExecutorLoop:
     def spin_once(self, timeout_sec: float | None = None) -> None:
         """Dispatch what is ready, waiting up to `timeout_sec` for something."""
         self._executor.spin_once(timeout_sec=timeout_sec)
-
-    def spin(self) -> None:
-        """Dispatch callbacks until the context shuts down, then return."""
-        try:
-            while self._context.ok():
-                self._executor.spin_once(timeout_sec=0.5)
-        except ExternalShutdownException:
-            pass
 
     def shutdown(self) -> None:
         """Stop serving; spin returns after its current callback."""

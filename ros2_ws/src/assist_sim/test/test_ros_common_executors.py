@@ -18,7 +18,7 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from std_msgs.msg import String
 
 from assist_sim.ros_common import (EXECUTORS, EventsExecutorLoop, freeze_startup_heap, make_executor,
-                                   sec_to_stamp)
+                                   sec_to_stamp, spin_until_stopped)
 
 
 def test_executor_kinds_by_name():
@@ -55,7 +55,7 @@ def test_events_loop_serves_steady_and_sim_time_timers_and_subscriptions_and_sto
     clock_pub = node.create_publisher(ClockMsg, '/clock', 10)
     loop = EventsExecutorLoop(context=ctx)
     loop.add_node(node)
-    spin = threading.Thread(target=loop.spin, daemon=True)
+    spin = threading.Thread(target=spin_until_stopped, args=(loop, threading.Event(), ctx), daemon=True)
     spin.start()
     try:
         assert _wait_for(lambda: len(steady) >= 5), 'steady timer did not fire'
