@@ -4,8 +4,7 @@ import pytest
 
 from assist_sim.pilot import PilotConfig, SimulatedPilot
 from assist_sim.pilots import (APPROACH_FAMILIES, FAMILIES, HELDOUT_FAMILIES, MIX_FAMILIES, PILOT_NAMES, POPULATIONS,
-                               TRAIN_FAMILIES, confuse,
-                               make_pilot)
+                               TRAIN_FAMILIES, UNTUNED_FAMILIES, CautiousConfig, FamilyConfig, confuse, make_pilot)
 
 GOAL = np.array([12.0, 0.5, 0.8])
 START = np.array([0.0, 0.0, 3.5])
@@ -42,7 +41,8 @@ def test_registry_split_and_populations():
     assert 'paper' in TRAIN_FAMILIES
     assert POPULATIONS['mix'] == MIX_FAMILIES and POPULATIONS['train_mix'] == TRAIN_FAMILIES
     assert POPULATIONS['approach_mix'] == APPROACH_FAMILIES == ('glide', 'low_flyer')
-    assert set(MIX_FAMILIES) | set(APPROACH_FAMILIES) == set(HELDOUT_FAMILIES)
+    assert set(MIX_FAMILIES) | set(APPROACH_FAMILIES) | set(UNTUNED_FAMILIES) == set(HELDOUT_FAMILIES)
+    assert not set(UNTUNED_FAMILIES) & (set(MIX_FAMILIES) | set(APPROACH_FAMILIES))   # in no population
     with pytest.raises(ValueError, match='unknown pilot'):
         make_pilot('nobody')
     seen = {make_pilot('mix', rng=s).name for s in range(60)}
@@ -293,3 +293,59 @@ def test_low_flyer_cruises_just_over_the_pad_tops_then_descends_over_its_aim():
     late = transit & (np.arange(len(ps)) > 120)               # after its first descent to the cruise height
     assert late.sum() > 20 and np.all(np.abs(ps[late, 2] - z) < 0.15)
     assert np.hypot(*(ps[-1, :2] - goal[:2])) < 0.3 and ps[-1, 2] < z - 0.3
+
+
+def _fly_cautious(side_probability: float, rng: int):
+    fcfg = FamilyConfig(cautious=CautiousConfig(side_probability=side_probability))
+    pl = make_pilot('cautious', 0.5, 1.0, PilotConfig(perception_sigma_m=(0.0, 0.0)), rng=rng, pads=PADS,
+                    family_cfg=fcfg)
+    pl.reset(GOAL, START, goal_estimate=GOAL.copy())
+    p, ps, us = START.copy(), [], []
+    for _ in range(1600):
+        u = pl.act(p)
+        p = p + u * DT
+        ps.append(p.copy())
+        us.append(u)
+        if p[2] <= GOAL[2]:
+            break
+    return pl, np.array(ps), np.array(us)
+
+
+def test_cautious_climbs_to_look_flies_beside_the_row_and_descends_in_stages():
+    pl, ps, us = _fly_cautious(1.0, rng=4)
+    prm = pl.params
+    # climbs first, straight up, by its look climb, before any horizontal key
+    first_move = int(np.argmax(np.any(us[:, :2] != 0, axis=1)))
+    assert first_move > 0 and np.all(us[:first_move, 2] == pl.cfg.speed_up_mps)
+    assert abs(ps[first_move - 1, 2] - (START[2] + prm['look_climb_m'])) < 0.15
+    # beside the row: while still farther than slide_in along x, it flies toward the side line, so it
+    # spends most of the transit more than 1 m to the side of the pad row
+    side = float(prm['side_m'])
+    assert 1.2 <= abs(side) <= 2.5
+    far = np.abs(ps[:, 0] - GOAL[0]) > prm['slide_in_m'] + 0.3
+    assert np.mean(np.abs(ps[far & (np.arange(len(ps)) > first_move + 60), 1] - GOAL[1]) > 1.0) > 0.8
+    # then slides in and lands on the aim, in stages: every stage of continuous descent loses at most
+    # step_m (one step's rounding), separated by hovers of check_s
+    assert np.hypot(*(ps[-1, :2] - GOAL[:2])) < 0.3
+    down = us[:, 2] < 0
+    runs, n = [], 0
+    for d in down:
+        if d:
+            n += 1
+        elif n:
+            runs.append(n)
+            n = 0
+    if n:
+        runs.append(n)
+    drop = np.array(runs) * pl.cfg.speed_down_mps * DT
+    assert len(runs) >= 3 and np.all(drop <= prm['step_m'] + pl.cfg.speed_down_mps * DT + 1e-9)
+    gaps = np.flatnonzero(np.diff(down.astype(int)) == -1)       # a stage ends: a hover of check_s follows
+    hover = np.array([np.argmax(down[g + 1:]) for g in gaps[:-1]]) * DT
+    assert np.all(np.abs(hover - prm['check_s']) <= 2 * DT)
+
+
+def test_cautious_without_the_side_approach_flies_straight_to_its_aim():
+    pl, ps, _ = _fly_cautious(0.0, rng=4)
+    assert pl.params['side_m'] == 0.0
+    assert np.max(np.abs(ps[:, 1] - np.linspace(START[1], GOAL[1], len(ps)))) < 0.8
+    assert np.hypot(*(ps[-1, :2] - GOAL[:2])) < 0.3
