@@ -6,7 +6,8 @@ One step = one control period of the world (1/control_hz s):
      With ``EnvConfig.damper`` the oscillation damper (``damper.OscillationDamper``) replaces a_t's
      horizontal part while the pilot oscillates across a mapped pad (it needs ``EnvConfig.recall``'s
      map); with ``EnvConfig.override`` the pilot override (``override.PilotOverride``) replaces a_t
-     while the pilot holds a horizontal key; with ``EnvConfig.safety`` the floor guard acts on V_t;
+     while the pilot holds a horizontal key; with ``EnvConfig.safety`` the floor guard acts on V_t, and
+     its wall rule (``walls.WallGuard``) keeps V_t off the walls the camera has seen;
   2. the vehicle flies V_t = blend(u_t, a_t) (``blending.blend``), within policy_node's speed limits when
      assisted (``blending.clamp_velocity``: 1.5 m/s horizontal, 1 m/s vertical), with the world's turbulence;
   3. the pilot updates its goal estimate with the applied assistance (a_t if |a_t| > threshold,
@@ -48,6 +49,7 @@ from .observation import IMAGE_SHAPE, Condition, ObservationBuilder, image_featu
 from .override import OverrideConfig, PilotOverride
 from .recall import PadRecall, RecallConfig
 from .safety import FloorGuard, SafetyConfig
+from .walls import WallGuard
 
 log = logging.getLogger(__name__)
 
@@ -124,6 +126,7 @@ class LandingAssistEnv(gym.Env):
         self.action_space = spaces.Box(-1.0, 1.0, (3,), np.float32)
         self.pilot: SimulatedPilot | None = None
         self.guard = FloorGuard(self.cfg.safety) if self.cfg.safety is not None else None
+        self.walls = WallGuard(self.cfg.safety) if self.cfg.safety is not None else None
         self.override = PilotOverride(self.cfg.override) if self.cfg.override is not None else None
         self.recall = PadRecall(self.cfg.recall, self.guard) if self.cfg.recall is not None else None
         self.damper = OscillationDamper(self.cfg.damper) if self.cfg.damper is not None else None
@@ -193,6 +196,7 @@ class LandingAssistEnv(gym.Env):
         self.builder.reset()
         if self.guard is not None:
             self.guard.reset()
+            self.walls.reset()
         if self.override is not None:
             self.override.reset()
         if self.damper is not None:
@@ -241,9 +245,10 @@ class LandingAssistEnv(gym.Env):
         active = float(np.linalg.norm(a)) > self.cfg.blend_threshold
         v = blend(self._u, a, self.cfg.blend_threshold)
         self.builder.record(t, self._u, a)           # the action applied (the override's while it acts)
-        guarded = False
+        guarded = walled = False
         if self.guard is not None and not self.unassisted:
             a, v, guarded = self._guard(a, active, v)
+            a, v, walled = self._walls(a, float(np.linalg.norm(a)) > self.cfg.blend_threshold, v)
             active = float(np.linalg.norm(a)) > self.cfg.blend_threshold
         if not self.unassisted:
             v = clamp_velocity(v, self.cfg.max_cmd_speed_mps, self.cfg.max_cmd_vertical_mps)
@@ -262,7 +267,8 @@ class LandingAssistEnv(gym.Env):
         self._dist = d
         terminated = self.world.done
         truncated = (not terminated) and self.elapsed_s >= self.cfg.max_episode_s - 0.5 * self.dt
-        info: dict[str, Any] = {'active': active, 'guard': guarded, 'override': overridden, 'recall': recalled,
+        info: dict[str, Any] = {'active': active, 'guard': guarded, 'walls': walled, 'override': overridden,
+                                'recall': recalled,
                                 'damper': damped and not (overridden or recalled),
                                 'goal_estimate': self.pilot.goal_estimate.copy()}
         if terminated:
@@ -311,6 +317,15 @@ class LandingAssistEnv(gym.Env):
                              self.cfg.blend_threshold)
         return (g.agent, g.velocity, True) if g.engaged else (a, v, False)
 
+    def _walls(self, a: np.ndarray, active: bool, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+        """The floor guard's wall rule (assist_policy.walls): mark this step's walls, keep V off them."""
+        if not self.walls.active:
+            return a, v, False
+        st = self.world.state
+        self.walls.observe(self.camera_frame().depth, st.position, st.quaternion)
+        g = self.walls.apply(self._u, a if active else None, v, st.position, st.quaternion)
+        return (g.agent, g.velocity, True) if g.engaged else (a, v, False)
+
     def close(self) -> None:
         """Release the pybullet client."""
         self.world.close()
@@ -324,13 +339,14 @@ def over_pad(pads, xy: np.ndarray, margin_m: float = 0.0) -> bool:
 def run_episode(env: LandingAssistEnv, policy, seed: int, options: dict | None = None) -> dict:
     """Roll out one landing with `policy(obs) -> raw action` (None = unassisted); returns a summary."""
     obs, info = env.reset(seed=seed, options=options)
-    steps, active, guarded, overridden, recalled, damped = 0, 0, 0, 0, 0, 0
+    steps, active, guarded, walled, overridden, recalled, damped = 0, 0, 0, 0, 0, 0, 0
     while True:
         act = np.zeros(3) if policy is None else policy(obs)
         obs, _, term, trunc, step_info = env.step(act)
         steps += 1
         active += int(step_info['active'])
         guarded += int(step_info.get('guard', False))
+        walled += int(step_info.get('walls', False))
         overridden += int(step_info.get('override', False))
         recalled += int(step_info.get('recall', False))
         damped += int(step_info.get('damper', False))
@@ -339,6 +355,6 @@ def run_episode(env: LandingAssistEnv, policy, seed: int, options: dict | None =
     res = dict(step_info['result'])
     res.update(beta=info['beta'], alpha=info['alpha'], scene_seed=info['scene_seed'], steps=steps,
                aimed_index=info['aimed_index'], pilot=info['pilot'], guard_fraction=guarded / steps,
-               override_fraction=overridden / steps, recall_fraction=recalled / steps, damper_fraction=damped / steps,
-               active_fraction=active / steps, episode_return=env.episode_return)
+               wall_fraction=walled / steps, override_fraction=overridden / steps, recall_fraction=recalled / steps,
+               damper_fraction=damped / steps, active_fraction=active / steps, episode_return=env.episode_return)
     return res

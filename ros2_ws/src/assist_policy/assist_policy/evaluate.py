@@ -29,7 +29,7 @@ pilot or steering to the nearest pad only costs it). `--override/--recall/--damp
 for every learned assistant; `--safety false --override false --recall false --damper false` flies the
 bare learned actor, as the paper did. `--safety`: the floor guard (assist_policy.safety) for every
 assisted condition, rows named `<condition>+guard` (so runs with and without it combine with --from-csv); `guard_fraction` is the share
-of steps it acted. `--override`: the pilot override (assist_policy.override) for the learned assistants
+of steps it acted, `wall_fraction` the share its wall rule (assist_policy.walls) stopped an approach to a wall. `--override`: the pilot override (assist_policy.override) for the learned assistants
 (not for the scripted references, which stay as defined): rows `<condition>[+guard]+override`,
 `override_fraction` the share of steps it replaced the actor's action. `--recall`: the pad recall
 (assist_policy.recall) for the learned assistants: rows `<condition>[+guard][+override]+recall`,
@@ -144,7 +144,7 @@ HELP = {
 LANDING_FIELDS = ['condition', 'beta', 'seed', 'scene_seed', 'goal_index', 'landed_index', 'nearest_index',
                   'aimed_index', 'error_m', 'nearest_error_m', 'outcome', 'success', 'crash', 'duration_s',
                   'active_fraction', 'pilot', 'guard_fraction', 'override_fraction', 'recall_fraction',
-                  'damper_fraction']
+                  'damper_fraction', 'wall_fraction']
 _BOOL = {'True': True, 'False': False}
 
 
@@ -272,7 +272,7 @@ def run_landing(env: LandingAssistEnv, policy, seed: int, beta: float) -> dict:
             'pilot': res['pilot'], 'guard_fraction': round(res['guard_fraction'], 3),
             'override_fraction': round(res['override_fraction'], 3),
             'recall_fraction': round(res['recall_fraction'], 3),
-            'damper_fraction': round(res['damper_fraction'], 3)}
+            'damper_fraction': round(res['damper_fraction'], 3), 'wall_fraction': round(res['wall_fraction'], 3)}
 
 
 def summarize(rows: list[dict]) -> dict:

@@ -12,6 +12,8 @@ Safety rules (ARCHITECTURE.md, "Timing and safety rules"):
 * floor guard (``safety.FloorGuard``, not learned): low over the floor with no pad under the legs in
   the depth image, a descending V is replaced by a small climb (agent action a' = 2 V' - u, reason key
   ``floor_guard``); needs fresh odometry and a depth image (``set_depth``) no older than feature_timeout_s;
+  its wall rule (``walls.WallGuard``) then removes the part of V heading for a wall seen within
+  ``SafetyConfig.wall_radius_m`` (walls: surfaces higher than any pad; reason key ``wall_guard``);
 * pilot override (``override.PilotOverride``, not learned): while the pilot holds a horizontal key and
   does not descend, pushes one way for 2 s held back (or more slowly for 5 s, not descending), or
   commands a climb for 2 s that the vehicle does not make, the actor's action is replaced (the pilot's command passes, the vehicle rises gently when
@@ -51,6 +53,7 @@ from .poses import PoseHistory
 from .recall import PadRecall, RecallConfig
 from .safety import FloorGuard, SafetyConfig
 from .td3 import load_actor
+from .walls import WallGuard
 
 log = logging.getLogger(__name__)
 
@@ -185,6 +188,9 @@ class PolicyCore:
         self._poses = PoseHistory(POSE_HISTORY_S, self.cfg.depth_pose_match_s)   # odometry by sensor stamp
         self.depth_pose_unmatched = 0               # depth frames mapped from the latest odometry (no pose at their stamp)
         self.guard_engaged = 0                      # steps whose descent the floor guard replaced
+        self.walls = WallGuard(self.guard.cfg)      # the floor guard's wall rule (same settings object)
+        self.wall_engaged = 0                       # steps whose approach to a wall the wall rule stopped
+        self._depth_pose: tuple[float, tuple] | None = None   # (arrival of the depth frame, its odometry pose)
         self.override = PilotOverride(self.cfg.override or OverrideConfig())
         self.override_engaged = 0                   # steps whose actor action the pilot override replaced
         self.persist_engaged = 0                    # ... of which for a persistent push (override.mode 'persistent')
@@ -198,6 +204,7 @@ class PolicyCore:
         self.damper = OscillationDamper(self.cfg.damper or DamperConfig())
         self.damper_engaged = 0                     # steps whose horizontal action the oscillation damper replaced
         self._mapped_depth: float | None = None     # stamp of the depth frame last added to the pad map
+        self._walls_depth: float | None = None      # ... and to the wall map
 
     def configure(self, **changes) -> None:
         """Change settings at run time (e.g. speed limits); ValueError (nothing changed) if invalid."""
@@ -319,10 +326,12 @@ class PolicyCore:
         reversals (new episode)."""
         self.builder.reset()
         self.guard.reset()
+        self.walls.reset()
         self.override.reset()
         self.recall.reset()
         self.damper.reset()
         self._mapped_depth = None
+        self._walls_depth = None
 
     # ------------------------------------------------------------- step
     def _fresh(self, stamp: float | None, now: float, timeout: float) -> bool:
@@ -373,12 +382,33 @@ class PolicyCore:
         if not (self.guard.cfg.enabled and self._odom is not None and self._fresh(self._odom[0], now, c.odom_timeout_s)
                 and self._depth is not None and self._fresh(self._depth[0], now, c.feature_timeout_s)):
             return out
-        g = self.guard.apply(self.pilot_command(now), out.agent, out.velocity, self._depth[1], self._odom[1],
-                             c.blend_threshold)
-        if not g.engaged:
+        u = self.pilot_command(now)
+        g = self.guard.apply(u, out.agent, out.velocity, self._depth[1], self._odom[1], c.blend_threshold)
+        if g.engaged:
+            self.guard_engaged += 1
+            out = PolicyOutput(g.agent, self._clamp(g.velocity), 'floor guard: descent blocked', 'floor_guard')
+        if not self.walls.active:
             return out
-        self.guard_engaged += 1
-        return PolicyOutput(g.agent, self._clamp(g.velocity), 'floor guard: descent blocked', 'floor_guard')
+        if self._walls_depth != self._depth[0]:
+            self.walls.observe(self._depth[1], *self._pose_of_depth(self._odom[1]))
+            self._walls_depth = self._depth[0]
+        w = self.walls.apply(u, out.agent, out.velocity, self._odom[1], self._attitude)
+        if not w.engaged:
+            return out
+        self.wall_engaged += 1
+        return PolicyOutput(w.agent, self._clamp(w.velocity), 'floor guard: approach to a wall stopped', 'wall_guard')
+
+    def _pose_of_depth(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """Odometry pose (position, attitude) at the latest depth frame's stamp, looked up once per frame; with no
+        pose within depth_pose_match_s of it, the latest (counted in depth_pose_unmatched)."""
+        t_depth = self._depth[0]
+        if self._depth_pose is None or self._depth_pose[0] != t_depth:
+            pose = self._poses.at(self._depth_stamp)
+            if pose is None:
+                self.depth_pose_unmatched += 1
+                pose = (pos, self._attitude)
+            self._depth_pose = (t_depth, pose)
+        return self._depth_pose[1]
 
     def _step(self, now: float) -> PolicyOutput:
         c = self.cfg
@@ -454,11 +484,7 @@ class PolicyCore:
             return None
         t_depth, depth = self._depth
         if self._mapped_depth != t_depth:
-            pose = self._poses.at(self._depth_stamp)
-            if pose is None:
-                self.depth_pose_unmatched += 1
-                pose = (pos, self._attitude)
-            self.recall.observe(depth, *pose)
+            self.recall.observe(depth, *self._pose_of_depth(pos))
             self._mapped_depth = t_depth
         return depth
 

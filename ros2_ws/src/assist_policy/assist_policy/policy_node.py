@@ -8,7 +8,8 @@ max_vertical_speed, max_input_speed, the floor_guard*, pilot_override*, pad_reca
 oscillation_damper* parameters; every other parameter is read-only. The floor guard
 (assist_policy.safety) and the pad recall (assist_policy.recall, which maps pads with the /odom pose and
 orientation) read /camera/depth/image_raw in every mode; /diagnostics shows floor_guard (on/off) and
-floor_guard_engaged (steps it replaced a descent), pilot_override (on/off) and pilot_override_engaged
+floor_guard_engaged (steps it replaced a descent), wall_guard_engaged (steps its wall rule, assist_policy.walls,
+removed a command's approach to a wall), pilot_override (on/off) and pilot_override_engaged
 (steps the pilot override, assist_policy.override, replaced the actor's action) and
 pilot_override_persistent_engaged, pilot_override_climb_engaged and pilot_override_long_engaged (of
 those, steps for a persistent push, a held climb, a long push), pilot_override_spot_kept (steps a push back to,
@@ -96,6 +97,13 @@ PARAMS = {
                                        '(m; 0 = off).', min=0.0, max=5.0, dynamic=True),
     'floor_guard_climb_mps': Param(0.15, 'Vertical velocity the floor guard imposes instead of a descent (m/s; at '
                                          'least blend_threshold / 2 + 0.01 is used).', min=0.0, max=1.0, dynamic=True),
+    'floor_guard_wall_radius_m': Param(SafetyConfig.wall_radius_m, 'Floor guard wall rule (assist_policy.walls): the '
+                                       'part of /cmd_vel heading for a wall seen within this horizontal distance is '
+                                       'removed, the pilot\'s as well as the actor\'s (m; 0 = off).',
+                                       min=0.0, max=10.0, dynamic=True),
+    'floor_guard_wall_height_m': Param(SafetyConfig.wall_height_m, 'Floor guard wall rule: a surface seen this high '
+                                       'over the floor (odom z) is a wall (m; landing pads must stand lower).',
+                                       min=0.1, max=50.0, dynamic=True),
     'pilot_override': Param(True, 'Pilot override (assist_policy.override, not learned): while the pilot holds a '
                                   'horizontal key and does not descend, its correction passes (the vehicle rises '
                                   'gently when low) instead of the actor\'s action. Default false in mode oracle.',
@@ -209,7 +217,8 @@ CORE_FIELDS = {'blend_threshold': 'blend_threshold', 'pilot_timeout_s': 'pilot_t
                'max_speed': 'max_speed_mps', 'max_vertical_speed': 'max_vertical_mps',
                'max_input_speed': 'max_input_mps', 'depth_pose_match_s': 'depth_pose_match_s'}
 # step outcomes that are normal operation (diagnostics OK); everything else is a WARN with its reason
-OK_KEYS = ('assisting', 'small_action', 'floor_guard', 'pilot_override', 'pad_recall', 'oscillation_damper')
+OK_KEYS = ('assisting', 'small_action', 'floor_guard', 'wall_guard', 'pilot_override', 'pad_recall',
+           'oscillation_damper')
 FAULT_KEYS = ('actor_nonfinite', 'step_error')
 
 
@@ -268,7 +277,9 @@ class PolicyNode(Node):
                                    safety=SafetyConfig(enabled=bool(self.p['floor_guard']),
                                                        guard_height_m=float(self.p['floor_guard_height_m']),
                                                        min_climb_mps=float(self.p['floor_guard_climb_mps']),
-                                                       edge_height_m=float(self.p['floor_guard_edge_height_m'])),
+                                                       edge_height_m=float(self.p['floor_guard_edge_height_m']),
+                                                       wall_radius_m=float(self.p['floor_guard_wall_radius_m']),
+                                                       wall_height_m=float(self.p['floor_guard_wall_height_m'])),
                                    override=OverrideConfig(**config_fields(self.p, OVERRIDE_FIELDS)),
                                    recall=RecallConfig(**config_fields(self.p, RECALL_FIELDS)),
                                    damper=DamperConfig(**config_fields(self.p, DAMPER_FIELDS)),
@@ -319,14 +330,17 @@ class PolicyNode(Node):
             with self._lock:
                 self.core.configure(**core_changes)
         guard = {k: changed[k] for k in ('floor_guard', 'floor_guard_height_m', 'floor_guard_climb_mps',
-                                         'floor_guard_edge_height_m') if k in changed}
+                                         'floor_guard_edge_height_m', 'floor_guard_wall_radius_m',
+                                         'floor_guard_wall_height_m') if k in changed}
         if guard:
             with self._lock:
-                g = self.core.guard.cfg
+                g = self.core.guard.cfg           # the wall rule reads the same settings object
                 g.enabled = bool(guard.get('floor_guard', g.enabled))
                 g.guard_height_m = float(guard.get('floor_guard_height_m', g.guard_height_m))
                 g.min_climb_mps = float(guard.get('floor_guard_climb_mps', g.min_climb_mps))
                 g.edge_height_m = float(guard.get('floor_guard_edge_height_m', g.edge_height_m))
+                g.wall_radius_m = float(guard.get('floor_guard_wall_radius_m', g.wall_radius_m))
+                g.wall_height_m = float(guard.get('floor_guard_wall_height_m', g.wall_height_m))
             self.diag.set('floor_guard', 'on' if g.enabled else 'off')
         override = config_fields(changed, OVERRIDE_FIELDS)
         if override:
@@ -452,6 +466,7 @@ class PolicyNode(Node):
         self.diag.set('state', out.key)
         self.diag.set('rejected_actor_outputs', self.core.rejected)
         self.diag.set('floor_guard_engaged', self.core.guard_engaged)
+        self.diag.set('wall_guard_engaged', self.core.wall_engaged)
         self.diag.set('pilot_override_engaged', self.core.override_engaged)
         self.diag.set('pilot_override_persistent_engaged', self.core.persist_engaged)
         self.diag.set('pilot_override_climb_engaged', self.core.climb_engaged)
@@ -480,7 +495,7 @@ class PolicyNode(Node):
             self.diag.status(DiagnosticStatus.OK, 'assisting')
         elif out.key == 'floor_guard':
             self.diag.status(DiagnosticStatus.OK, 'floor guard: descent over bare floor blocked')
-        elif out.key in ('pilot_override', 'pad_recall', 'oscillation_damper'):
+        elif out.key in ('wall_guard', 'pilot_override', 'pad_recall', 'oscillation_damper'):
             self.diag.status(DiagnosticStatus.OK, out.reason)      # the core's text (recall: which mode acted)
         elif out.key == 'small_action':
             self.diag.status(DiagnosticStatus.OK, 'relinquished: agent action at or below blend_threshold')

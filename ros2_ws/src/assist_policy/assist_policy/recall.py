@@ -191,19 +191,7 @@ class PadMap:
 
     def points(self, depth: np.ndarray, position: np.ndarray, quaternion: np.ndarray | None) -> np.ndarray:
         """HxWx3 odom points of the depth pixels (NaN where the depth is a hole)."""
-        c = self.cfg
-        depth = np.asarray(depth, dtype=np.float32)
-        if depth.ndim != 2 or depth.size == 0:
-            raise ValueError(f'depth image must be HxW, got shape {depth.shape}')
-        h, w = depth.shape
-        f = (h / 2.0) / math.tan(math.radians(c.vertical_fov_deg) / 2.0)
-        cols, rows = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
-        z = np.where(np.isfinite(depth) & (depth > 0), depth, np.nan)
-        optical = np.stack([(cols - (w - 1) / 2.0) / f * z, (rows - (h - 1) / 2.0) / f * z, z], axis=-1)
-        r_wb = np.eye(3) if quaternion is None else quat_to_matrix(quaternion)
-        r_wo = r_wb @ R_BODY_FROM_OPTICAL
-        cam = np.asarray(position, dtype=float).reshape(3) + r_wb @ np.array([0.0, 0.0, -c.camera_offset_m])
-        return optical @ r_wo.T + cam
+        return depth_points(depth, position, quaternion, self.cfg.camera_offset_m, self.cfg.vertical_fov_deg)
 
     def update(self, depth: np.ndarray, position: np.ndarray, quaternion: np.ndarray | None = None) -> int:
         """Add this frame's pad sightings to the map; returns how many regions were seen."""
@@ -326,15 +314,15 @@ class PadRecall:
             return None                     # too far, or idle
         else:
             mode = 'recall'
-        yaw = 0.0 if quaternion is None else _yaw(quaternion)
+        yaw = 0.0 if quaternion is None else heading(quaternion)
         to_pad = pad.xyz[:2] - p[:2]
         for cmd in (np.asarray(mean_u, dtype=float).reshape(3), u):
             if (np.all(np.isfinite(cmd)) and float(np.hypot(cmd[0], cmd[1])) > c.leave_speed_mps
-                    and _rotate(cmd[:2], yaw) @ to_pad < 0.0):
+                    and rotate_xy(cmd[:2], yaw) @ to_pad < 0.0):
                 return None                 # heading away from it (to a pad ahead not yet seen, or back to another)
         if mode == 'recall' and self.floor.floor_below(depth, float(p[2])) is not True:
             return None
-        u_odom = np.array([*_rotate(u[:2], yaw), u[2]])
+        u_odom = np.array([*rotate_xy(u[:2], yaw), u[2]])
         target = pad.xyz
         if mode == 'recall' and scout is not None and horiz > scout.far + c.scout_margin_m:
             # the pilot took it on beyond the last look: a look from here
@@ -342,11 +330,11 @@ class PadRecall:
             scout = None
         if mode == 'recall' and not (scout is not None and scout.done):
             spot = self._scout_spot(pad, scout, p, horiz, to_pad,
-                                    (u_odom, _rotate(np.asarray(mean_u, dtype=float)[:2], yaw)))
+                                    (u_odom, rotate_xy(np.asarray(mean_u, dtype=float)[:2], yaw)))
             if spot is not None:
                 target, mode = np.array([spot[0], spot[1], pad.xyz[2]]), 'scout'
         v = self._centre.velocity(target, p, u_odom)           # odom; only its horizontal part is used
-        a[:2] = _rotate(v[:2], -yaw)                            # back into base_link
+        a[:2] = rotate_xy(v[:2], -yaw)                            # back into base_link
         if mode != 'touchdown' and height < c.clear_height_m:
             a[2] = 2.0 * max(float(u[2]), c.climb_mps) - u[2]     # V_z = max(u_z, climb): over its side first
         elif mode == 'scout':
@@ -398,17 +386,38 @@ class Scout:
 _COS_45 = math.cos(math.radians(45.0))
 
 
+def depth_points(depth: np.ndarray, position: np.ndarray, quaternion: np.ndarray | None, camera_offset_m: float,
+                 vertical_fov_deg: float) -> np.ndarray:
+    """HxWx3 odom points of a downward depth image's pixels (NaN where the depth is a hole); ValueError if not HxW.
+
+    The camera's optical centre is `camera_offset_m` below base_link on the body z axis, the optical frame as
+    in ARCHITECTURE.md, square pixels with `vertical_fov_deg`; the pose is odometry's (no quaternion: level).
+    """
+    depth = np.asarray(depth, dtype=np.float32)
+    if depth.ndim != 2 or depth.size == 0:
+        raise ValueError(f'depth image must be HxW, got shape {depth.shape}')
+    h, w = depth.shape
+    f = (h / 2.0) / math.tan(math.radians(vertical_fov_deg) / 2.0)
+    cols, rows = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    z = np.where(np.isfinite(depth) & (depth > 0), depth, np.nan)
+    optical = np.stack([(cols - (w - 1) / 2.0) / f * z, (rows - (h - 1) / 2.0) / f * z, z], axis=-1)
+    r_wb = np.eye(3) if quaternion is None else quat_to_matrix(quaternion)
+    r_wo = r_wb @ R_BODY_FROM_OPTICAL
+    cam = np.asarray(position, dtype=float).reshape(3) + r_wb @ np.array([0.0, 0.0, -camera_offset_m])
+    return optical @ r_wo.T + cam
+
+
 def _thinnest_spread(xy: np.ndarray) -> float:
     """Standard deviation of points `xy` (Nx2) across their narrowest direction (m)."""
     return float(math.sqrt(max(np.linalg.eigvalsh(np.cov(xy.T))[0], 0.0))) if len(xy) > 2 else 0.0
 
 
-def _rotate(xy: np.ndarray, yaw: float) -> np.ndarray:
+def rotate_xy(xy: np.ndarray, yaw: float) -> np.ndarray:
     """Horizontal vector `xy` rotated by `yaw` (rad): base_link -> odom for the vehicle's heading, -yaw back."""
     return yaw_rotation(yaw)[:2, :2] @ np.asarray(xy, dtype=float)[:2]
 
 
-def _yaw(q: np.ndarray) -> float:
+def heading(q: np.ndarray) -> float:
     """Heading (rad) of quaternion (x, y, z, w)."""
     x, y, z, w = (float(v) for v in q)
     return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))

@@ -34,6 +34,10 @@ two tip-overs of 810 held-out landings into a success and an edge landing and ch
 worse on the paper pilot (840 landings; assist_policy README, "Issue 12, pad recall"). With the actor
 alone (0.5 m, an earlier session) it avoided three crashes and caused three others.
 
+Wall rule (``wall_radius_m`` > 0, 1.5 m by default; ``assist_policy.walls``, since session 31): no
+horizontal command toward a wall the camera has seen within that distance (surfaces higher than
+``wall_height_m``, remembered for the landing).
+
 ``guard_height_m`` = 1.0 m: from a 1 m/s descent the velocity controller (kp_z 4 /s, 2.5 m/s^2)
 stops within ~0.3 m, well above the judge's crash height (0.2 m), while pilots landing on a pad
 are over the pad (not the floor) when they come this low. Pure numpy; no rclpy.
@@ -64,6 +68,11 @@ class SafetyConfig:
     pad_memory_radius_m: float = 0.6  # a pad seen beneath the legs is assumed still there within this (x, y)
     edge_height_m: float = 0.6        # hold a descent straddling a pad edge nearer than this to the pad (0: off)
     edge_watch_m: float = 2.0         # the edge rule watches below this altitude
+    # wall rule (assist_policy.walls): no V toward a wall seen within wall_radius_m (0: off)
+    wall_radius_m: float = 1.5        # a wall this close horizontally stops the approach to it
+    wall_height_m: float = 2.0        # a surface this high over the floor is a wall (pads stand 0.4-1.2 m)
+    wall_min_points: int = 4          # fewer such pixels in a frame: noise
+    wall_cell_m: float = 0.25         # walls are remembered in cells of this size (m)
 
 
 @dataclass
