@@ -6,6 +6,7 @@ a pad, pilot_override_long_push_s 0 turns that off); and its
 pad recall (a pad seen, then a descent past it over bare floor is steered back, and low over it centred on
 it; farther past it, it first looks beyond, pad_recall_scout_max_m 0 turns that off; pad_recall turns it
 off); and its oscillation damper (a pilot swinging back and forth is slowed; oscillation_damper turns it
+off); and the floor guard's wall rule (no command toward a wall in view; floor_guard_wall_radius_m 0 turns it
 off)."""
 import importlib.util
 import threading
@@ -321,3 +322,33 @@ def test_depth_frames_are_posed_by_their_header_stamps(ros, start_node, wait, tm
     seen = int(probe.diag[-1]['depth_pose_unmatched'])
     probe.run(1.0, position=(0.0, 0.0, 3.0), depth=pad, stamps=same_clock)
     assert wait(lambda: int(probe.diag[-1].get('depth_pose_unmatched', 0)) >= seen + 5, 5), probe.diag[-1:]
+
+
+def test_wall_rule_stops_an_approach_to_a_wall_in_view_and_can_be_turned_off(ros, start_node, wait, tmp_path):
+    """A rendered frame 1.2 m from the room's end wall at 4.5 m: pilot and actor both head for the wall."""
+    from assist_sim.core.scene import PadSpec, SceneSpec
+    from assist_sim.core.world import LandingWorld
+    pad = PadSpec(center=(5.0, 0.0), length=1.0, width=1.0, height=0.6, yaw=0.0, material=3)
+    scene = SceneSpec(seed=0, pads=(pad,), floor_material=1, wall_material=2, start_position=(0.0, 0.0, 3.0))
+    position = (scene.room_max[0] - 1.2, 0.0, 4.5)
+    world = LandingWorld()
+    try:
+        world.reset(scene=scene)
+        wall = world.render_from(list(position)).depth.copy()
+    finally:
+        world.close()
+    assert wall.shape == (64, 64)
+    model = _helpers.constant_actor(tmp_path / 'east.pt', [0.9, 0.0, 0.0])         # the actor pushes +x
+    probe = Probe(ros, pilot=(1.0, 0.0, 0.0))
+    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0})
+    probe.until_first(probe.cmd, node, position=position, depth=wall)
+    t1 = probe.run(1.5, position=position, depth=wall)
+    cmds, agents = probe.since(probe.cmd, t1 + 0.7), probe.since(probe.agent, t1 + 0.7)
+    assert cmds and agents, node.log()
+    assert all(v[0] <= 1e-6 for v in cmds), cmds[-3:]                  # no longer toward the wall (was 0.95 m/s)
+    assert all(a[0] < -0.9 for a in agents), agents[-3:]                # a' = 2 V' - u shows it
+    assert wait(lambda: any(int(d.get('wall_guard_engaged', 0)) > 10 for d in probe.diag), 5), probe.diag[-1:]
+    set_param(ros, 'floor_guard_wall_radius_m', 0.0, wait)
+    t2 = probe.run(1.5, position=position, depth=wall)
+    cmds = probe.since(probe.cmd, t2 + 0.5)
+    assert cmds and all(v[0] > 0.9 for v in cmds), cmds[-3:]           # radius 0: the wall rule is off
