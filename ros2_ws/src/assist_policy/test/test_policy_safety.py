@@ -9,7 +9,6 @@ from assist_policy.blending import blend
 from assist_policy.policy_core import PolicyCore, PolicyCoreConfig
 from assist_policy.safety import FloorGuard, SafetyConfig
 from assist_sim.core.scene import PadSpec, SceneSpec
-from assist_sim.core.world import LandingWorld
 
 _spec = importlib.util.spec_from_file_location('policy_core_helpers', Path(__file__).with_name('test_policy_core.py'))
 _helpers = importlib.util.module_from_spec(_spec)
@@ -19,20 +18,6 @@ constant_actor, LATENT = _helpers.constant_actor, _helpers.LATENT
 PAD = PadSpec(center=(5.0, 0.0), length=1.0, width=1.0, height=0.6, yaw=0.0, material=3)
 SCENE = SceneSpec(seed=0, pads=(PAD,), floor_material=1, wall_material=2, start_position=(0.0, 0.0, 3.0))
 THR = 0.25
-
-
-@pytest.fixture(scope='module')
-def depth_at():
-    world = LandingWorld()
-    world.reset(scene=SCENE)
-    cache = {}
-
-    def render(x, y, z):
-        if (x, y, z) not in cache:
-            cache[(x, y, z)] = world.render_from([x, y, z]).depth.copy()
-        return cache[(x, y, z)]
-    yield render
-    world.close()
 
 
 def test_floor_seen_under_every_leg_only_over_the_floor(depth_at):

@@ -11,7 +11,6 @@ from assist_policy.policy_core import PolicyCore, PolicyCoreConfig
 from assist_policy.safety import SafetyConfig
 from assist_policy.walls import WallGuard
 from assist_sim.core.scene import PadSpec, SceneSpec
-from assist_sim.core.world import LandingWorld
 
 _spec = importlib.util.spec_from_file_location('policy_core_helpers', Path(__file__).with_name('test_policy_core.py'))
 _helpers = importlib.util.module_from_spec(_spec)
@@ -22,20 +21,6 @@ constant_actor, LATENT = _helpers.constant_actor, _helpers.LATENT
 PAD = PadSpec(center=(5.0, 0.0), length=1.0, width=1.0, height=1.2, yaw=0.0, material=3)
 SCENE = SceneSpec(seed=0, pads=(PAD,), floor_material=1, wall_material=2, start_position=(0.0, 0.0, 3.0))
 WALL_X = SCENE.room_max[0]
-
-
-@pytest.fixture(scope='module')
-def depth_at():
-    world = LandingWorld()
-    world.reset(scene=SCENE)
-    cache = {}
-
-    def render(x, y, z):
-        if (x, y, z) not in cache:
-            cache[(x, y, z)] = world.render_from([x, y, z]).depth.copy()
-        return cache[(x, y, z)]
-    yield render
-    world.close()
 
 
 def _yaw_quat(yaw):
