@@ -198,10 +198,7 @@ class PadMap:
         c = self.cfg
         if float(position[2]) - c.camera_offset_m < c.min_view_m:
             return 0
-        depth = np.asarray(depth)
-        stride = math.ceil(max(depth.shape) / c.max_image_px) if depth.ndim == 2 else 1
-        if stride > 1:
-            depth = depth[::stride, ::stride]     # a RealSense frame (848x480): ~14 ms -> ~1 ms, same pads
+        depth = subsample(depth, c.max_image_px)   # a RealSense frame (848x480): ~14 ms -> ~1 ms, same pads
         pts = self.points(depth, position, quaternion)
         xy = pts[..., :2].reshape(-1, 2)
         xy = xy[np.all(np.isfinite(xy), axis=1)]
@@ -235,9 +232,7 @@ class PadMap:
     def _forget_far(self, xy: np.ndarray) -> None:
         """Forget the ground seen farther than keep_seen_m from `xy` (bounds the memory of a long flight)."""
         c = self.cfg
-        keep = (c.keep_seen_m / c.cell_m) ** 2
-        i0, j0 = xy[0] / c.cell_m - 0.5, xy[1] / c.cell_m - 0.5
-        self.seen = {(i, j) for i, j in self.seen if (i - i0) ** 2 + (j - j0) ** 2 <= keep}
+        self.seen = cells_within(self.seen, xy, c.cell_m, c.keep_seen_m)
         log.info('pad map: %d ground cells seen within %.0f m kept, farther ones forgotten', len(self.seen),
                  c.keep_seen_m)
 
@@ -384,6 +379,20 @@ class Scout:
 
 
 _COS_45 = math.cos(math.radians(45.0))
+
+
+def subsample(depth: np.ndarray, max_px: int) -> np.ndarray:
+    """`depth` (as an array) taking every k-th pixel so that its long side has at most `max_px` pixels."""
+    depth = np.asarray(depth)
+    stride = math.ceil(max(depth.shape) / max_px) if depth.ndim == 2 else 1
+    return depth[::stride, ::stride] if stride > 1 else depth
+
+
+def cells_within(cells: set[tuple[int, int]], xy: np.ndarray, cell_m: float, keep_m: float) -> set[tuple[int, int]]:
+    """The grid cells (size `cell_m`) of `cells` whose centres lie within `keep_m` of `xy`."""
+    keep = (keep_m / cell_m) ** 2
+    i0, j0 = xy[0] / cell_m - 0.5, xy[1] / cell_m - 0.5
+    return {(i, j) for i, j in cells if (i - i0) ** 2 + (j - j0) ** 2 <= keep}
 
 
 def depth_points(depth: np.ndarray, position: np.ndarray, quaternion: np.ndarray | None, camera_offset_m: float,

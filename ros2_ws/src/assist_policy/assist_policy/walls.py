@@ -35,7 +35,7 @@ import numpy as np
 
 from assist_sim.core.geometry import yaw_rotation
 
-from .recall import depth_points, heading
+from .recall import cells_within, depth_points, heading, subsample
 from .safety import GuardResult, SafetyConfig
 
 WALL_IMAGE_PX = 48          # frames larger than this on their long side are subsampled (walls span many pixels)
@@ -64,19 +64,15 @@ class WallGuard:
         c = self.cfg
         if not self.active:
             return 0
-        depth = np.asarray(depth)
-        stride = math.ceil(max(depth.shape) / WALL_IMAGE_PX) if depth.ndim == 2 and depth.size else 1
-        pts = depth_points(depth[::stride, ::stride] if stride > 1 else depth, position, quaternion,
-                           c.camera_offset_m, c.vertical_fov_deg).reshape(-1, 3)
+        pts = depth_points(subsample(depth, WALL_IMAGE_PX), position, quaternion, c.camera_offset_m,
+                           c.vertical_fov_deg).reshape(-1, 3)
         high = pts[np.isfinite(pts[:, 2]) & (pts[:, 2] >= c.wall_height_m)]
         if len(high) < c.wall_min_points:
             return 0
         cells = np.unique(np.floor(high[:, :2] / c.wall_cell_m).astype(np.int64), axis=0)
         self.cells.update(map(tuple, cells.tolist()))
         if len(self.cells) > WALL_MAX_CELLS:
-            i0, j0 = (np.asarray(position, dtype=float)[:2] / c.wall_cell_m - 0.5)
-            keep = (WALL_KEEP_M / c.wall_cell_m) ** 2
-            self.cells = {(i, j) for i, j in self.cells if (i - i0) ** 2 + (j - j0) ** 2 <= keep}
+            self.cells = cells_within(self.cells, np.asarray(position, dtype=float)[:2], c.wall_cell_m, WALL_KEEP_M)
         return len(high)
 
     def near(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
