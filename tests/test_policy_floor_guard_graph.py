@@ -172,7 +172,9 @@ def test_pilot_override_passes_a_persistent_push_while_descending_and_can_be_tur
                                                                                        tmp_path):
     model = _helpers.constant_actor(tmp_path / 'back.pt', [-0.9, 0.0, 0.0])        # the actor holds the pilot back
     probe = Probe(ros, pilot=(0.7, 0.0, -0.3))               # an analog stick: on and down along a glide path
-    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0})
+    # the probe's vehicle stands still under a descending command: flight boundaries off, or it counts as landed
+    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0,
+                                      'flight_boundaries': False})
     high = (0.0, 0.0, 3.0)
     floor = np.full((64, 64), 3.0 - 0.05, np.float32)       # bare floor 3 m below
     probe.until_first(probe.agent, node, position=high, depth=floor)
@@ -216,7 +218,9 @@ def test_pilot_override_passes_a_long_push_over_a_pad_and_can_be_turned_off(ros,
 def test_pad_recall_steers_a_descent_past_a_pad_back_and_can_be_turned_off(ros, start_node, wait, tmp_path):
     model = _helpers.constant_actor(tmp_path / 'relinquish.pt', [0.0, 0.0, 0.0])     # a = 0: V = u
     probe = Probe(ros)                                                               # the pilot descends
-    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0})
+    # the probe moves its vehicle by jumps (and holds it still under a descent): flight boundaries off
+    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0,
+                                      'flight_boundaries': False})
     pad = np.full((64, 64), 3.0 - 0.05, np.float32)                  # from 3 m: floor, and a 0.8 m pad below
     pad[22:42, 22:42] = 3.0 - 0.05 - 0.8
     probe.until_first(probe.cmd, node, position=(0.0, 0.0, 3.0), depth=pad)

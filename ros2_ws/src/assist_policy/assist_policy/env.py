@@ -3,13 +3,12 @@
 One step = one control period of the world (1/control_hz s):
   1. the agent sees obs_t (scene feature, dynamics, pilot action u_t, 1 s means) and outputs raw
      action in [-1, 1]^3, scaled to a velocity a_t (``actions.scale_action``);
-     With ``EnvConfig.damper`` the oscillation damper (``damper.OscillationDamper``) replaces a_t's
-     horizontal part while the pilot oscillates across a mapped pad (it needs ``EnvConfig.recall``'s
-     map); with ``EnvConfig.override`` the pilot override (``override.PilotOverride``) replaces a_t
-     while the pilot holds a horizontal key; with ``EnvConfig.safety`` the floor guard acts on V_t, and
-     its wall rule (``walls.WallGuard``) keeps V_t off the walls the camera has seen;
-  2. the vehicle flies V_t = blend(u_t, a_t) (``blending.blend``), within policy_node's speed limits when
-     assisted (``blending.clamp_velocity``: 1.5 m/s horizontal, 1 m/s vertical), with the world's turbulence;
+     the assistant's non-learned stages then act on it in their one order, the chain policy_node runs
+     (``assistant.Assistant``: oscillation damper, pilot override, pad recall, blending, floor guard, wall
+     rule, speed clamp); a rule left None in EnvConfig (``safety``, ``override``, ``recall``, ``damper``) is
+     off; the flight monitor (``flight.FlightMonitor``) applies policy_node's flight boundaries;
+  2. the vehicle flies V_t, the chain's command (within policy_node's speed limits when assisted; the
+     unassisted pilot flies u_t as it is), with the world's turbulence;
   3. the pilot updates its goal estimate with the applied assistance (a_t if |a_t| > threshold,
      else 0) and produces u_{t+1}.
 
@@ -28,6 +27,7 @@ landing never pays); trainers treat it as terminal.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -43,13 +43,14 @@ from assist_sim.pilot import PilotConfig, SimulatedPilot
 from assist_sim.pilots import make_pilot
 
 from .actions import DEFAULT_MAX_SPEED, scale_action
-from .blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS, blend, clamp_velocity
-from .damper import DamperConfig, OscillationDamper
+from .assistant import Assistant, AssistantConfig, DepthFrame, StepContext
+from .blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS
+from .damper import DamperConfig
+from .flight import FlightConfig, FlightMonitor
 from .observation import IMAGE_SHAPE, Condition, ObservationBuilder, image_feature, oracle_feature
-from .override import OverrideConfig, PilotOverride
-from .recall import PadRecall, RecallConfig
-from .safety import FloorGuard, SafetyConfig
-from .walls import WallGuard
+from .override import OverrideConfig
+from .recall import RecallConfig
+from .safety import SafetyConfig
 
 log = logging.getLogger(__name__)
 
@@ -94,6 +95,7 @@ class EnvConfig:
     override: OverrideConfig | None = None           # pilot override on the agent action (None: off)
     recall: RecallConfig | None = None               # pad recall on the agent action (None: off)
     damper: DamperConfig | None = None               # oscillation damper on the agent action (None: off)
+    flight: FlightConfig = field(default_factory=FlightConfig)   # flight boundaries (flight.FlightMonitor)
     reward: RewardConfig = field(default_factory=RewardConfig)
     pilot: PilotConfig = field(default_factory=PilotConfig)
     world: WorldConfig = field(default_factory=WorldConfig)
@@ -125,11 +127,9 @@ class LandingAssistEnv(gym.Env):
         self.observation_space = spaces.Box(-np.inf, np.inf, (self.image_size + vec,), np.float32)
         self.action_space = spaces.Box(-1.0, 1.0, (3,), np.float32)
         self.pilot: SimulatedPilot | None = None
-        self.guard = FloorGuard(self.cfg.safety) if self.cfg.safety is not None else None
-        self.walls = WallGuard(self.cfg.safety) if self.cfg.safety is not None else None
-        self.override = PilotOverride(self.cfg.override) if self.cfg.override is not None else None
-        self.recall = PadRecall(self.cfg.recall, self.guard) if self.cfg.recall is not None else None
-        self.damper = OscillationDamper(self.cfg.damper) if self.cfg.damper is not None else None
+        self.assistant = Assistant(assistant_config(self.cfg))     # the chain policy_node runs
+        self.flight = FlightMonitor(self.cfg.flight)
+        self.flight_resets = 0                           # flight boundaries seen inside episodes (flight.FlightMonitor)
         self._frame = None
         self._u = np.zeros(3)
         self._steps = 0                                  # control steps since reset (the episode clock)
@@ -193,16 +193,10 @@ class LandingAssistEnv(gym.Env):
         latent_reset = getattr(self.latent_fn, 'reset', None)
         if latent_reset is not None:
             latent_reset(noise_seed)             # the camera noise of this landing depends on its seed only
-        self.builder.reset()
-        if self.guard is not None:
-            self.guard.reset()
-            self.walls.reset()
-        if self.override is not None:
-            self.override.reset()
-        if self.damper is not None:
-            self.damper.reset()
-        if self.recall is not None:
-            self.recall.reset()
+        self.builder.reset()                       # a new episode is a new flight (the world teleports the vehicle)
+        self.assistant.reset()
+        self.flight.reset()
+        self.last_command = None
         self._steps = 0
         self._u = self.pilot.act(st.position, None)
         self._dist = self._goal_dist(st.position)
@@ -224,34 +218,25 @@ class LandingAssistEnv(gym.Env):
         a = np.zeros(3) if self.unassisted else scale_action(raw, self.cfg.max_speed)
         t = self.elapsed_s
         st = self.world.state
-        v_body = quat_to_matrix(st.quaternion).T @ st.velocity   # odometry twist, base_link (REP-105): policy_node's
-        damped = False
-        if self.damper is not None and not self.unassisted:
-            pads = [m.xyz for m in self.recall.map.pads] if self.recall is not None else []
-            a_d = self.damper.apply(t, self._u, a, v_body, st.position, pads, self.cfg.max_speed)
-            if a_d is not None:
-                a, damped = a_d, True
-        overridden = False
-        if self.override is not None and not self.unassisted:
-            surface = (None if self.guard is None
-                       else lambda: self.guard.surface_below(self.camera_frame().depth, st.position))
-            a_o = self.override.apply(t, self._u, self.builder.history.means(t)[0], float(st.position[2]),
-                                      self.cfg.max_speed, v_body, surface, st.position)
-            if a_o is not None:
-                a, overridden = a_o, True
-        recalled = False
-        if self.recall is not None and not self.unassisted:
-            a, recalled = self._recall(a, overridden)
+        acted: tuple[str, ...] = ()
+        if self.unassisted:
+            v = self._u.copy()
+            self.builder.record(t, self._u, a)
+        else:
+            # the flight monitor policy_node's core runs (a landing, an odometry jump): the same rule here
+            vz = 0.0 if self.last_command is None else float(self.last_command[1][2])
+            if self.flight.update(t, st.position, st.velocity, vz) is not None:
+                self.flight_resets += 1
+                self.builder.reset()
+                self.assistant.reset()
+            v_body = quat_to_matrix(st.quaternion).T @ st.velocity   # odometry twist, base_link (REP-105)
+            frame = DepthFrame(self._steps, lambda: self.camera_frame().depth, lambda: (st.position, st.quaternion))
+            ctx = StepContext(t, self._u, self.builder.history.means(t)[0], st.position, v_body, st.quaternion,
+                              frame, self.cfg.max_speed)
+            res = self.assistant.step(ctx, a)
+            a, v, acted = res.agent, res.velocity, res.acted
+            self.builder.record(t, self._u, res.applied)
         active = float(np.linalg.norm(a)) > self.cfg.blend_threshold
-        v = blend(self._u, a, self.cfg.blend_threshold)
-        self.builder.record(t, self._u, a)           # the action applied (the override's while it acts)
-        guarded = walled = False
-        if self.guard is not None and not self.unassisted:
-            a, v, guarded = self._guard(a, active, v)
-            a, v, walled = self._walls(a, float(np.linalg.norm(a)) > self.cfg.blend_threshold, v)
-            active = float(np.linalg.norm(a)) > self.cfg.blend_threshold
-        if not self.unassisted:
-            v = clamp_velocity(v, self.cfg.max_cmd_speed_mps, self.cfg.max_cmd_vertical_mps)
         self.last_command = (a.copy(), np.array(v, dtype=float))    # what was flown (bags record it)
         st = self.world.step(v)
         self._steps += 1
@@ -267,9 +252,10 @@ class LandingAssistEnv(gym.Env):
         self._dist = d
         terminated = self.world.done
         truncated = (not terminated) and self.elapsed_s >= self.cfg.max_episode_s - 0.5 * self.dt
-        info: dict[str, Any] = {'active': active, 'guard': guarded, 'walls': walled, 'override': overridden,
-                                'recall': recalled,
-                                'damper': damped and not (overridden or recalled),
+        overridden, recalled = 'pilot_override' in acted, 'pad_recall' in acted
+        info: dict[str, Any] = {'active': active, 'guard': 'floor_guard' in acted, 'walls': 'wall_guard' in acted,
+                                'override': overridden, 'recall': recalled,
+                                'damper': 'oscillation_damper' in acted and not (overridden or recalled),
                                 'goal_estimate': self.pilot.goal_estimate.copy()}
         if terminated:
             res = self.world.result
@@ -297,38 +283,18 @@ class LandingAssistEnv(gym.Env):
             self._frame = self.world.render()
         return self._frame
 
-    def _recall(self, a: np.ndarray, overridden: bool) -> tuple[np.ndarray, bool]:
-        """Pad recall (assist_policy.recall): map this step's depth frame, steer to a remembered pad if it acts."""
-        st = self.world.state
-        frame = self.camera_frame()
-        self.recall.observe(frame.depth, st.position, st.quaternion)
-        if overridden:
-            return a, False
-        mean_u = self.builder.history.means(self.elapsed_s)[0]
-        a_r = self.recall.apply(self._u, mean_u, a, frame.depth, st.position, st.quaternion, self.cfg.max_speed)
-        return (a, False) if a_r is None else (a_r, True)
-
-    def _guard(self, a: np.ndarray, active: bool, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
-        """The floor guard (assist_policy.safety) on this step's command, with the camera's depth."""
-        if float(self.world.state.position[2]) >= self.guard.watch_height_m:
-            return a, v, False                     # too high to watch: skip the render
-        frame = self.camera_frame()
-        g = self.guard.apply(self._u, a if active else None, v, frame.depth, self.world.state.position,
-                             self.cfg.blend_threshold)
-        return (g.agent, g.velocity, True) if g.engaged else (a, v, False)
-
-    def _walls(self, a: np.ndarray, active: bool, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
-        """The floor guard's wall rule (assist_policy.walls): mark this step's walls, keep V off them."""
-        if not self.walls.active:
-            return a, v, False
-        st = self.world.state
-        self.walls.observe(self.camera_frame().depth, st.position, st.quaternion)
-        g = self.walls.apply(self._u, a if active else None, v, st.position, st.quaternion)
-        return (g.agent, g.velocity, True) if g.engaged else (a, v, False)
-
     def close(self) -> None:
         """Release the pybullet client."""
         self.world.close()
+
+
+def assistant_config(cfg: EnvConfig) -> AssistantConfig:
+    """The assistant's settings for an env: a rule left None in `cfg` is off (its defaults, switched off)."""
+    def off(rule, default):
+        return rule if rule is not None else dataclasses.replace(default, enabled=False)
+    return AssistantConfig(cfg.blend_threshold, cfg.max_cmd_speed_mps, cfg.max_cmd_vertical_mps,
+                           off(cfg.safety, SafetyConfig()), off(cfg.override, OverrideConfig()),
+                           off(cfg.recall, RecallConfig()), off(cfg.damper, DamperConfig()))
 
 
 def over_pad(pads, xy: np.ndarray, margin_m: float = 0.0) -> bool:

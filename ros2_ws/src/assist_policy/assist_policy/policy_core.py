@@ -8,26 +8,13 @@ Safety rules (ARCHITECTURE.md, "Timing and safety rules"):
 * scene feature (latent / goal / image) or odometry stale or absent -> relinquish: no a, V = u;
 * non-finite actor output is rejected (counted, V = u), never reaches V;
 * any exception inside a step relinquishes (V = u, reason key ``step_error``), never escapes;
-* V is clamped to max_speed_mps (horizontal norm) and max_vertical_mps;
-* floor guard (``safety.FloorGuard``, not learned): low over the floor with no pad under the legs in
-  the depth image, a descending V is replaced by a small climb (agent action a' = 2 V' - u, reason key
-  ``floor_guard``); needs fresh odometry and a depth image (``set_depth``) no older than feature_timeout_s;
-  its wall rule (``walls.WallGuard``) then removes the part of V heading for a wall seen within
-  ``SafetyConfig.wall_radius_m`` (walls: surfaces higher than any pad; reason key ``wall_guard``);
-* pilot override (``override.PilotOverride``, not learned): while the pilot holds a horizontal key and
-  does not descend, pushes one way for 2 s held back (or more slowly for 5 s, not descending), or
-  commands a climb for 2 s that the vehicle does not make, the actor's action is replaced (the pilot's command passes, the vehicle rises gently when
-  low; reason key ``pilot_override``);
-* pad recall (``recall.PadRecall``, not learned): every depth frame adds the pads in view to a map
-  (odom, with the odometry attitude); when the pilot descends (or is low) with the floor under every
-  leg, the actor's horizontal action is replaced by a push back to the nearest mapped pad (first, for a
-  pad behind, a look at the ground beyond not yet seen, where a nearer pad may be: scout); low over a
-  pad seen whole during a descent, by centring on it (touchdown; reason key ``pad_recall`` for both);
-  needs fresh odometry and depth, like the floor guard, which still acts after it;
-* oscillation damper (``damper.OscillationDamper``, not learned): while the pilot's held keys keep
-  reversing across a pad of the recall's map (a pilot-induced oscillation), the actor's horizontal
-  action is replaced by a_xy = -gain v_xy (the odometry twist, base_link); before the override and the
-  recall, which replace it when they act (reason key ``oscillation_damper``).
+* the actor's action goes through the assistant's non-learned stages in their one order (``assistant.Assistant``:
+  oscillation damper, pilot override, pad recall, blending, floor guard, wall rule, speed clamp; the env and
+  replay_assist run the same chain); the depth-reading stages need a depth image (``set_depth``) no older
+  than feature_timeout_s; the guards also act when the actor did not run (V = u);
+* flights (``flight.FlightMonitor``): an odometry jump, a landing (at rest while the command descends) or a
+  take-off after one ends the flight, and ``reset`` does explicitly: the action history, every stage's
+  memory and the odometry poses are dropped (counted in ``flight_resets`` by reason).
 """
 from __future__ import annotations
 
@@ -45,30 +32,21 @@ from assist_sim.core.geometry import quat_to_matrix
 from assist_sim.shipped import shipped_model_path
 
 from .actions import scale_action
-from .blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS, blend, clamp_velocity
-from .damper import DamperConfig, OscillationDamper
+from .assistant import Assistant, AssistantConfig, DepthFrame, StepContext
+from .blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS, clamp_velocity
+from .damper import DamperConfig
+from .flight import FlightConfig, FlightMonitor
 from .observation import Condition, ObservationBuilder, image_feature, oracle_feature
-from .override import OverrideConfig, PilotOverride
+from .override import OverrideConfig
 from .poses import PoseHistory
-from .recall import PadRecall, RecallConfig
-from .safety import FloorGuard, SafetyConfig
+from .recall import RecallConfig
+from .safety import SafetyConfig
 from .td3 import load_actor
-from .walls import WallGuard
 
 log = logging.getLogger(__name__)
 
 POSE_HISTORY_S = 1.0  # odometry poses kept for pairing depth frames by stamp (s)
 MAX_DEPTH_M = 100.0   # depth beyond this (or negative / non-finite) is a hole (0), as the sim and drivers mark them
-
-
-# /diagnostics reason of each rule's mode (override.PilotOverride.mode, recall.PadRecall.mode)
-_OVERRIDE_REASONS = {'held_key': 'pilot override: the pilot\'s held correction passes',
-                     'persistent': 'pilot override: the pilot\'s persistent push passes',
-                     'climb': 'pilot override: the pilot\'s held climb passes',
-                     'long': 'pilot override: the pilot\'s long push passes'}
-_RECALL_REASONS = {'recall': 'pad recall: steering back to a pad seen',
-                   'touchdown': 'pad recall: centring on the pad below for touchdown',
-                   'scout': 'pad recall: looking beyond for a nearer pad before steering back'}
 
 
 def default_model_path(mode: str) -> Path:
@@ -109,6 +87,7 @@ class PolicyCoreConfig:
     override: OverrideConfig | None = None  # pilot override settings (None: OverrideConfig() defaults)
     recall: RecallConfig | None = None      # pad recall settings (None: RecallConfig() defaults)
     damper: DamperConfig | None = None      # oscillation damper settings (None: DamperConfig() defaults)
+    flight: FlightConfig | None = None      # flight boundaries (None: FlightConfig() defaults)
     # velocity the actor sees: the odometry twist as given (base_link, policy_node) or rotated to odom with the
     # odometry attitude (as evaluate's env trains and flies it; replay_assist for evaluate's bags); the rules
     # (floor guard, override, damper) always read the twist
@@ -182,35 +161,35 @@ class PolicyCore:
         self.rejected = 0                      # non-finite actor outputs
         self.rejections: Counter[str] = Counter()   # refused inputs, per reason key
         self.faults: Counter[str] = Counter()       # exceptions inside step(), per exception type
-        self.guard = FloorGuard(self.cfg.safety or SafetyConfig())
+        c = self.cfg
+        self.assistant = Assistant(AssistantConfig(c.blend_threshold, c.max_speed_mps, c.max_vertical_mps,
+                                                   c.safety or SafetyConfig(), c.override or OverrideConfig(),
+                                                   c.recall or RecallConfig(), c.damper or DamperConfig()))
+        # the stages' rules, by name (their settings objects are the ones policy_node changes at run time)
+        self.guard, self.walls = self.assistant.guard, self.assistant.walls
+        self.override, self.recall, self.damper = self.assistant.override, self.assistant.recall, self.assistant.damper
+        self.flight = FlightMonitor(c.flight or FlightConfig())
+        self.flight_resets: Counter[str] = Counter()    # flight boundaries seen, per reason (flight.REASONS)
+        self.last_reset: tuple[float, str] | None = None   # (odometry time, reason) of the latest
+        self._last_vz = 0.0                         # vertical command flown in the last step (flight monitor)
         self._depth: tuple[float, np.ndarray] | None = None
         self._depth_stamp = 0.0                     # sensor stamp of the latest depth frame (s)
+        self._frame: DepthFrame | None = None       # the latest depth frame as the stages read it (pose looked up once)
         self._poses = PoseHistory(POSE_HISTORY_S, self.cfg.depth_pose_match_s)   # odometry by sensor stamp
         self.depth_pose_unmatched = 0               # depth frames mapped from the latest odometry (no pose at their stamp)
-        self.guard_engaged = 0                      # steps whose descent the floor guard replaced
-        self.walls = WallGuard(self.guard.cfg)      # the floor guard's wall rule (same settings object)
-        self.wall_engaged = 0                       # steps whose approach to a wall the wall rule stopped
-        self._depth_pose: tuple[float, tuple] | None = None   # (arrival of the depth frame, its odometry pose)
-        self.override = PilotOverride(self.cfg.override or OverrideConfig())
-        self.override_engaged = 0                   # steps whose actor action the pilot override replaced
-        self.persist_engaged = 0                    # ... of which for a persistent push (override.mode 'persistent')
-        self.climb_engaged = 0                      # ... of which for a held climb (override.mode 'climb')
-        self.long_engaged = 0                       # ... of which for a long push (override.mode 'long')
-        self.spot_kept = 0                          # steps a landing spot kept the actor's action (override.kept)
-        self.recall = PadRecall(self.cfg.recall or RecallConfig(), self.guard)
-        self.recall_engaged = 0                     # steps whose horizontal action the pad recall replaced
-        self.touchdown_engaged = 0                  # ... of which centring on the pad below (recall.mode 'touchdown')
-        self.scout_engaged = 0                      # ... of which looking beyond before going back (recall.mode 'scout')
-        self.damper = OscillationDamper(self.cfg.damper or DamperConfig())
-        self.damper_engaged = 0                     # steps whose horizontal action the oscillation damper replaced
-        self._mapped_depth: float | None = None     # stamp of the depth frame last added to the pad map
-        self._walls_depth: float | None = None      # ... and to the wall map
+
+    @property
+    def engaged(self) -> Counter[str]:
+        """Steps each stage of the assistant acted, by stage key (assistant.Assistant.engaged)."""
+        return self.assistant.engaged
 
     def configure(self, **changes) -> None:
         """Change settings at run time (e.g. speed limits); ValueError (nothing changed) if invalid."""
         cfg = dataclasses.replace(self.cfg, **changes)
         if cfg.mode != self.cfg.mode:
             raise ValueError('the mode of a running policy core cannot change')
+        self.assistant.configure(blend_threshold=cfg.blend_threshold, max_speed_mps=cfg.max_speed_mps,
+                                 max_vertical_mps=cfg.max_vertical_mps)
         self.cfg = cfg
         self._poses.match_s = cfg.depth_pose_match_s
 
@@ -274,6 +253,9 @@ class PolicyCore:
             if not 0.9 < n < 1.1:
                 raise self._reject('odom_orientation', f'odometry orientation {q.tolist()} is not a unit quaternion')
             q = q / n
+        boundary = self.flight.update(stamp, p, v, self._last_vz)
+        if boundary is not None:
+            self._forget(stamp, boundary)
         self._odom, self._attitude = (t, p, v), q
         self._poses.add(stamp, p, q)
 
@@ -321,17 +303,21 @@ class PolicyCore:
         self._depth = (t, np.where(np.isfinite(depth) & (depth >= 0) & (depth <= MAX_DEPTH_M), depth, 0.0))
         self._depth_stamp = stamp
 
-    def reset(self) -> None:
-        """Forget the action history, the guard's last pad, the override's held keys, the pad map and the damper's
-        reversals (new episode)."""
+    def reset(self, reason: str = 'service') -> None:
+        """Forget the flight (an explicit boundary: policy_node's ~/reset): action history, the stages' memories,
+        the odometry poses; counted in `flight_resets` under `reason`."""
+        self.flight.reset()
+        self._forget(self._odom[0] if self._odom else 0.0, reason)
+
+    def _forget(self, t: float, reason: str) -> None:
+        """Drop everything that belongs to the current flight (flight boundary `reason` at odometry time `t`)."""
         self.builder.reset()
-        self.guard.reset()
-        self.walls.reset()
-        self.override.reset()
-        self.recall.reset()
-        self.damper.reset()
-        self._mapped_depth = None
-        self._walls_depth = None
+        self.assistant.reset()
+        self._poses.clear()
+        self._frame = None
+        self.flight_resets[reason] += 1
+        self.last_reset = (float(t), reason)
+        log.info('assistant reset: %s', reason)
 
     # ------------------------------------------------------------- step
     def _fresh(self, stamp: float | None, now: float, timeout: float) -> bool:
@@ -367,7 +353,9 @@ class PolicyCore:
             now = float(now)
             if not math.isfinite(now):
                 raise ValueError(f'clock reads {now!r}')
-            return self._guarded(now, self._step(now))
+            out = self._step(now)
+            self._last_vz = float(out.velocity[2])
+            return out
         except Exception as exc:  # noqa: BLE001 - contract: no exception leaves a control step
             self.faults[type(exc).__name__] += 1
             log.debug('policy step failed (%s: %s): relinquishing', type(exc).__name__, exc)
@@ -376,118 +364,59 @@ class PolicyCore:
             out.fault = type(exc).__name__
             return out
 
-    def _guarded(self, now: float, out: PolicyOutput) -> PolicyOutput:
-        """The floor guard on this step's output (needs fresh odometry and depth; else unchanged)."""
-        c = self.cfg
-        if not (self.guard.cfg.enabled and self._odom is not None and self._fresh(self._odom[0], now, c.odom_timeout_s)
-                and self._depth is not None and self._fresh(self._depth[0], now, c.feature_timeout_s)):
-            return out
-        u = self.pilot_command(now)
-        g = self.guard.apply(u, out.agent, out.velocity, self._depth[1], self._odom[1], c.blend_threshold)
-        if g.engaged:
-            self.guard_engaged += 1
-            out = PolicyOutput(g.agent, self._clamp(g.velocity), 'floor guard: descent blocked', 'floor_guard')
-        if not self.walls.active:
-            return out
-        if self._walls_depth != self._depth[0]:
-            self.walls.observe(self._depth[1], *self._pose_of_depth(self._odom[1]))
-            self._walls_depth = self._depth[0]
-        w = self.walls.apply(u, out.agent, out.velocity, self._odom[1], self._attitude)
-        if not w.engaged:
-            return out
-        self.wall_engaged += 1
-        return PolicyOutput(w.agent, self._clamp(w.velocity), 'floor guard: approach to a wall stopped', 'wall_guard')
+    def _frame_now(self, now: float) -> DepthFrame | None:
+        """The latest depth frame if fresh (one DepthFrame per frame: its pose is looked up once), else None."""
+        if self._depth is None or not self._fresh(self._depth[0], now, self.cfg.feature_timeout_s):
+            return None
+        t_depth, depth = self._depth
+        if self._frame is None or self._frame.key != t_depth:
+            self._frame = DepthFrame(t_depth, lambda: depth, self._pose_of_depth)
+        return self._frame
 
-    def _pose_of_depth(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-        """Odometry pose (position, attitude) at the latest depth frame's stamp, looked up once per frame; with no
-        pose within depth_pose_match_s of it, the latest (counted in depth_pose_unmatched)."""
-        t_depth = self._depth[0]
-        if self._depth_pose is None or self._depth_pose[0] != t_depth:
-            pose = self._poses.at(self._depth_stamp)
-            if pose is None:
-                self.depth_pose_unmatched += 1
-                pose = (pos, self._attitude)
-            self._depth_pose = (t_depth, pose)
-        return self._depth_pose[1]
+    def _pose_of_depth(self) -> tuple[np.ndarray, np.ndarray | None]:
+        """Odometry pose (position, attitude) at the latest depth frame's stamp; with no pose within
+        depth_pose_match_s of it, the latest (counted in depth_pose_unmatched)."""
+        pose = self._poses.at(self._depth_stamp)
+        if pose is None:
+            self.depth_pose_unmatched += 1
+            pose = (self._odom[1], self._attitude)
+        return pose
 
     def _step(self, now: float) -> PolicyOutput:
         c = self.cfg
         u = self.pilot_command(now)
         odom_ok = self._odom is not None and self._fresh(self._odom[0], now, c.odom_timeout_s)
-        if not odom_ok:
-            return self._relinquish(now, u, 'odometry stale or absent', 'odom_stale')
+        if not odom_ok:                          # nothing to place the vehicle by: V = u, no stage runs
+            self.builder.record(now, u, np.zeros(3))
+            return PolicyOutput(None, self._clamp(u), 'odometry stale or absent', 'odom_stale')
         _, pos, vel = self._odom
         vel_actor = (quat_to_matrix(self._attitude) @ vel
                      if c.actor_velocity == 'odom' and self._attitude is not None else vel)
+        ctx = StepContext(now, u, self.builder.history.means(now)[0], pos, vel, self._attitude, self._frame_now(now),
+                          self.max_speed)
+        a, key, reason = self._actor(now, u, pos, vel_actor)
+        res = self.assistant.step(ctx, a, key, reason)
+        self.builder.record(now, u, res.applied)
+        return PolicyOutput(res.agent, res.velocity, res.reason, res.key)
+
+    def _actor(self, now: float, u: np.ndarray, pos: np.ndarray, vel: np.ndarray) -> tuple[np.ndarray | None, str, str]:
+        """The actor's action a (m/s), or (None, key, reason) when it cannot run."""
         if self.mode is Condition.ORACLE:
             if self._goal is None:
-                return self._relinquish(now, u, 'goal absent', 'goal_absent')
+                return None, 'goal_absent', 'goal absent'
             feature = oracle_feature(self._goal, pos)
         else:
-            if self._feature is None or not self._fresh(self._feature[0], now, c.feature_timeout_s):
-                return self._relinquish(now, u, f'{self.mode.value} input stale or absent', 'feature_stale')
+            if self._feature is None or not self._fresh(self._feature[0], now, self.cfg.feature_timeout_s):
+                return None, 'feature_stale', f'{self.mode.value} input stale or absent'
             feature = self._feature[1]
         if self.mode is Condition.END_TO_END:
-            vec = self.builder.build(now, np.zeros(0), vel_actor, pos[2], u)
+            vec = self.builder.build(now, np.zeros(0), vel, pos[2], u)
             obs = np.concatenate([feature, vec]).astype(np.float32)
         else:
-            obs = self.builder.build(now, feature, vel_actor, pos[2], u, pos)
+            obs = self.builder.build(now, feature, vel, pos[2], u, pos)
         with torch.no_grad():
             raw = self.actor(torch.as_tensor(obs).unsqueeze(0))[0].numpy().astype(float)
         if not np.all(np.isfinite(raw)):
             self.rejected += 1
-            return self._relinquish(now, u, 'actor output not finite (rejected)', 'actor_nonfinite')
-        a = scale_action(raw, self.max_speed)
-        a_d = self.damper.apply(now, u, a, vel, pos, [m.xyz for m in self.recall.map.pads], self.max_speed)
-        damped = a_d is not None
-        if damped:
-            a = a_d
-        depth = self._mapped(now, pos)
-        mean_u = self.builder.history.means(now)[0]
-        # the override reads the depth image through the floor guard's surface test (none with the guard off,
-        # as evaluate's env flies it: its altitude stands in)
-        surface = (None if not self.guard.cfg.enabled or self._depth is None
-                   or not self._fresh(self._depth[0], now, c.feature_timeout_s)
-                   else lambda: self.guard.surface_below(self._depth[1], pos))
-        a_o = self.override.apply(now, u, mean_u, float(pos[2]), self.max_speed, vel, surface, pos)
-        self.spot_kept += int(self.override.kept)
-        if a_o is not None:
-            self.override_engaged += 1
-            self.persist_engaged += int(self.override.mode == 'persistent')
-            self.climb_engaged += int(self.override.mode == 'climb')
-            self.long_engaged += int(self.override.mode == 'long')
-            v = self._clamp(blend(u, a_o, c.blend_threshold))
-            self.builder.record(now, u, a_o)            # the action applied, as evaluate's env records it
-            return PolicyOutput(a_o, v, _OVERRIDE_REASONS.get(self.override.mode, _OVERRIDE_REASONS['held_key']),
-                                'pilot_override')
-        a_r = None if depth is None else self.recall.apply(u, mean_u, a, depth, pos, self._attitude, self.max_speed)
-        if a_r is not None:
-            self.recall_engaged += 1
-            self.touchdown_engaged += int(self.recall.mode == 'touchdown')
-            self.scout_engaged += int(self.recall.mode == 'scout')
-            self.builder.record(now, u, a_r)
-            return PolicyOutput(a_r, self._clamp(blend(u, a_r, c.blend_threshold)),
-                                _RECALL_REASONS.get(self.recall.mode, _RECALL_REASONS['recall']), 'pad_recall')
-        v = self._clamp(blend(u, a, c.blend_threshold))
-        self.builder.record(now, u, a)
-        if damped:
-            self.damper_engaged += 1
-            return PolicyOutput(a, v, 'oscillation damper: damping the pilot\'s oscillation', 'oscillation_damper')
-        if np.linalg.norm(a) > c.blend_threshold:
-            return PolicyOutput(a, v, 'assisting', 'assisting')
-        return PolicyOutput(a, v, 'relinquished', 'small_action')
-
-    def _mapped(self, now: float, pos: np.ndarray) -> np.ndarray | None:
-        """The fresh depth image for the pad recall, after adding it to the pad map once; None: none fresh, or off."""
-        if not self.recall.cfg.enabled or self._depth is None or not self._fresh(self._depth[0], now,
-                                                                                  self.cfg.feature_timeout_s):
-            return None
-        t_depth, depth = self._depth
-        if self._mapped_depth != t_depth:
-            self.recall.observe(depth, *self._pose_of_depth(pos))
-            self._mapped_depth = t_depth
-        return depth
-
-    def _relinquish(self, now: float, u: np.ndarray, reason: str, key: str) -> PolicyOutput:
-        self.builder.record(now, u, np.zeros(3))
-        return PolicyOutput(None, self._clamp(u), reason, key)
+            return None, 'actor_nonfinite', 'actor output not finite (rejected)'
+        return scale_action(raw, self.max_speed), '', ''

@@ -36,6 +36,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float32MultiArray
+from std_srvs.srv import Trigger
 
 from assist_sim.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError,
                                    declare_parameters, executor_param, exit_process, fill_twist,
@@ -43,6 +44,8 @@ from assist_sim.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagno
 
 from .blending import DEFAULT_THRESHOLD
 from .damper import DamperConfig
+from .flight import REASONS as FLIGHT_REASONS
+from .flight import FlightConfig
 from .observation import Condition
 from .override import OverrideConfig
 from .policy_core import PolicyCore, PolicyCoreConfig, PolicyOutput, default_model_path
@@ -170,6 +173,20 @@ PARAMS = {
                                          'pilot\'s held keys over this window (s).', min=0.5, max=60.0, dynamic=True),
     'oscillation_damper_reversals': Param(DamperConfig.min_reversals, 'This many reversals within the window '
                                           'engage the oscillation damper.', min=1, max=20, dynamic=True),
+    'flight_boundaries': Param(FlightConfig.enabled, 'Forget the flight (action history, pad and wall maps, landing '
+                               'spots, override and damper state) at an odometry jump, a landing and a take-off '
+                               '(assist_policy.flight); false: only at ~/reset.', dynamic=True),
+    'flight_jump_m': Param(FlightConfig.jump_m, 'Odometry moving this much farther between two samples than its '
+                           'speed explains is a jump (reset, teleport, EKF reset): a new flight (m).',
+                           min=0.0, max=100.0, min_exclusive=True, dynamic=True),
+    'flight_rest_speed_mps': Param(FlightConfig.rest_speed_mps, 'Slower than this (odometry twist norm, m/s) counts '
+                                   'as at rest.', min=0.0, max=1.0, min_exclusive=True, dynamic=True),
+    'flight_rest_s': Param(FlightConfig.rest_s, 'At rest this long while /cmd_vel descends at flight_rest_descent_mps '
+                           'or more: landed, the flight ends (s).', min=0.0, max=60.0, min_exclusive=True, dynamic=True),
+    'flight_rest_descent_mps': Param(FlightConfig.rest_descent_mps, 'Descent of the command flown that makes a rest '
+                                     'a landing (m/s).', min=0.0, max=5.0, min_exclusive=True, dynamic=True),
+    'flight_takeoff_climb_m': Param(FlightConfig.takeoff_climb_m, 'After a landing, rising this far above it is a '
+                                    'take-off: a new flight (m).', min=0.0, max=10.0, min_exclusive=True, dynamic=True),
 }
 # The goal-agnostic rules: on by default, off by default in mode oracle, where the assistant knows the goal: letting
 # the pilot's keys through, steering to the nearest pad or damping the pilot only cost it (evaluate, 110 paper-pilot
@@ -200,6 +217,11 @@ OVERRIDE_FIELDS = {'pilot_override': ('enabled', bool), 'pilot_override_speed_mp
                    'pilot_override_long_push_speed_mps': ('long_push_speed_mps', float),
                    'pilot_override_spot_memory_s': ('spot_memory_s', float),
                    'pilot_override_spot_radius_m': ('spot_radius_m', float)}
+# node parameter -> (FlightConfig field, type)
+FLIGHT_FIELDS = {'flight_boundaries': ('enabled', bool), 'flight_jump_m': ('jump_m', float),
+                 'flight_rest_speed_mps': ('rest_speed_mps', float), 'flight_rest_s': ('rest_s', float),
+                 'flight_rest_descent_mps': ('rest_descent_mps', float),
+                 'flight_takeoff_climb_m': ('takeoff_climb_m', float)}
 # node parameter -> (RecallConfig field, type)
 RECALL_FIELDS = {'pad_recall': ('enabled', bool), 'pad_recall_radius_m': ('radius_m', float),
                  'pad_recall_touchdown_height_m': ('touchdown_height_m', float),
@@ -283,12 +305,14 @@ class PolicyNode(Node):
                                    override=OverrideConfig(**config_fields(self.p, OVERRIDE_FIELDS)),
                                    recall=RecallConfig(**config_fields(self.p, RECALL_FIELDS)),
                                    damper=DamperConfig(**config_fields(self.p, DAMPER_FIELDS)),
+                                   flight=FlightConfig(**config_fields(self.p, FLIGHT_FIELDS)),
                                    **{f: self.p[k] for k, f in CORE_FIELDS.items()})
             self.core = PolicyCore(path, cfg)
         except ValueError as exc:
             raise StartupError(f'policy_node: {exc}') from None
         self._lock = threading.Lock()
         self._consecutive_faults = 0
+        self._reported_reset: tuple[float, str] | None = None
         inputs = MutuallyExclusiveCallbackGroup()
         self.pub_agent = self.create_publisher(TwistStamped, '/assist/agent_cmd', RELIABLE_QOS)
         self.pub_cmd = self.create_publisher(TwistStamped, '/cmd_vel', RELIABLE_QOS)
@@ -309,6 +333,7 @@ class PolicyNode(Node):
         # every mode: the floor guard reads the depth image (end_to_end also feeds it to the actor)
         self.create_subscription(Image, '/camera/depth/image_raw', self._guard('depth', self._on_depth),
                                  SENSOR_QOS, callback_group=inputs)
+        self.create_service(Trigger, '~/reset', self._on_reset, callback_group=inputs)
         self._on_latent_steps = mode == 'latent' and bool(self.p['step_on_latent'])
         self._last_latent_step = -1e9           # node-clock time of the last latent-driven step
         self.create_timer(1.0 / float(self.p['rate_hz']), self._on_timer,
@@ -355,6 +380,10 @@ class PolicyNode(Node):
                 for name, value in recall.items():
                     setattr(r, name, value)
             self.diag.set('pad_recall', 'on' if r.enabled else 'off')
+        flight = config_fields(changed, FLIGHT_FIELDS)
+        if flight:
+            with self._lock:
+                self.core.flight.cfg = dataclasses.replace(self.core.flight.cfg, **flight)
         damper = config_fields(changed, DAMPER_FIELDS)
         if damper:
             with self._lock:
@@ -408,8 +437,14 @@ class PolicyNode(Node):
 
     def _on_goal(self, msg: PointStamped) -> None:
         with self._lock:
-            self.core.set_goal([msg.point.x, msg.point.y, msg.point.z])
-            self.core.reset()
+            self.core.set_goal([msg.point.x, msg.point.y, msg.point.z])   # not a flight boundary
+
+    def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """~/reset: forget the current flight (counted in /diagnostics flight_reset_service)."""
+        with self._lock:
+            self.core.reset('service')
+        response.success, response.message = True, 'assistant reset: the flight\'s memories are forgotten'
+        return response
 
     def _on_rgb(self, msg: Image) -> None:
         self._rgb = _image_to_array(msg)
@@ -465,19 +500,24 @@ class PolicyNode(Node):
         """Counters, throttled warnings and the diagnostic level/message for this step's outcome."""
         self.diag.set('state', out.key)
         self.diag.set('rejected_actor_outputs', self.core.rejected)
-        self.diag.set('floor_guard_engaged', self.core.guard_engaged)
-        self.diag.set('wall_guard_engaged', self.core.wall_engaged)
-        self.diag.set('pilot_override_engaged', self.core.override_engaged)
-        self.diag.set('pilot_override_persistent_engaged', self.core.persist_engaged)
-        self.diag.set('pilot_override_climb_engaged', self.core.climb_engaged)
-        self.diag.set('pilot_override_long_engaged', self.core.long_engaged)
-        self.diag.set('pilot_override_spot_kept', self.core.spot_kept)
-        self.diag.set('pad_recall_engaged', self.core.recall_engaged)
-        self.diag.set('pad_recall_touchdown', self.core.touchdown_engaged)
-        self.diag.set('pad_recall_scout', self.core.scout_engaged)
+        engaged, modes = self.core.engaged, self.core.assistant.modes
+        for key in ('floor_guard', 'wall_guard', 'pilot_override', 'pad_recall', 'oscillation_damper'):
+            self.diag.set(f'{key}_engaged', engaged[key])
+        for name, mode in (('pilot_override_persistent_engaged', 'pilot_override:persistent'),
+                           ('pilot_override_climb_engaged', 'pilot_override:climb'),
+                           ('pilot_override_long_engaged', 'pilot_override:long'),
+                           ('pilot_override_spot_kept', 'pilot_override:spot_kept'),
+                           ('pad_recall_touchdown', 'pad_recall:touchdown'), ('pad_recall_scout', 'pad_recall:scout')):
+            self.diag.set(name, modes[mode])
         self.diag.set('pad_recall_pads', len(self.core.recall.map.pads))
         self.diag.set('depth_pose_unmatched', self.core.depth_pose_unmatched)
-        self.diag.set('oscillation_damper_engaged', self.core.damper_engaged)
+        for reason in FLIGHT_REASONS:
+            self.diag.set(f'flight_reset_{reason}', self.core.flight_resets[reason])
+        last = self.core.last_reset
+        self.diag.set('last_flight_reset', 'none' if last is None else f'{last[1]} at {last[0]:.2f} s')
+        if last is not None and last != self._reported_reset:
+            self._reported_reset = last
+            self.get_logger().info(f'assistant reset ({last[1]}): the flight\'s memories are forgotten')
         if out.key in FAULT_KEYS:
             self._consecutive_faults += 1
             self.diag.count(f'fault_{out.key}')

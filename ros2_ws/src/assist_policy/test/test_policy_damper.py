@@ -150,11 +150,11 @@ def test_policy_core_damps_an_oscillating_pilot_and_reports_it(tmp_path):
             out = core.step(t)
             keys.append(out.key)
         if enabled:
-            assert out.key == 'oscillation_damper' and core.damper_engaged > 0 and len(core.recall.map.pads) == 1
+            assert out.key == 'oscillation_damper' and core.engaged['oscillation_damper'] > 0 and len(core.recall.map.pads) == 1
             assert out.agent[:2] == pytest.approx([-2.0 * 0.4 * np.sign(u[0]), 0.0])
-            assert keys.count('oscillation_damper') == core.damper_engaged
+            assert keys.count('oscillation_damper') == core.engaged['oscillation_damper']
         else:
-            assert 'oscillation_damper' not in keys and core.damper_engaged == 0
+            assert 'oscillation_damper' not in keys and core.engaged['oscillation_damper'] == 0
     core.reset()
     assert act(core.damper, 0.0, [1.0, 0, 0]) is None
 

@@ -11,6 +11,7 @@ import assist_policy.evaluate as evaluate_module
 from assist_policy.blending import blend
 from assist_policy.env import EnvConfig, LandingAssistEnv
 from assist_policy.evaluate import EvalArgs, evaluate
+from assist_policy.flight import FlightConfig
 from assist_policy.override import OverrideConfig, PilotOverride
 from assist_policy.policy_core import PolicyCore, PolicyCoreConfig
 from assist_policy.train import TrainArgs, env_config_from
@@ -108,7 +109,8 @@ def test_evaluate_override_rows_and_column(tmp_path):
 
 def test_policy_core_override_engages_reports_and_turns_off(tmp_path):
     path = _helpers.constant_actor(tmp_path / 'a.pt', [0.0, -0.9, -0.9])
-    core = PolicyCore(path, PolicyCoreConfig(mode='latent'))
+    # synthetic odometry: the vehicle stays put under a descending command (the flight monitor would call it landed)
+    core = PolicyCore(path, PolicyCoreConfig(mode='latent', flight=FlightConfig(enabled=False)))
     outs = []
     for k in range(50):                                   # 1 s hovering, then 1.5 s of a held key, 20 Hz, at 1.2 m
         t = 1.0 + 0.05 * k
@@ -119,7 +121,7 @@ def test_policy_core_override_engages_reports_and_turns_off(tmp_path):
     assert all(o.key == 'assisting' for o in outs[:32]) and outs[-1].key == 'pilot_override'
     np.testing.assert_allclose(outs[-1].velocity, [1.0, 0.0, 0.3])
     np.testing.assert_allclose(outs[-1].agent, [1.0, 0.0, 0.6])      # what /assist/agent_cmd shows
-    assert core.override_engaged == sum(o.key == 'pilot_override' for o in outs) >= 10
+    assert core.engaged['pilot_override'] == sum(o.key == 'pilot_override' for o in outs) >= 10
     core.override.cfg = OverrideConfig(enabled=False)
     core.set_odom(3.0, [0, 0, 1.2], [0, 0, 0])
     core.set_pilot(3.0, [1.0, 0.0, 0.0])
@@ -219,7 +221,7 @@ def test_policy_core_passes_a_persistent_push_and_says_so(tmp_path):
     assert all(o.key == 'assisting' for o in outs[:40])
     assert outs[-1].key == 'pilot_override' and 'persistent push' in outs[-1].reason
     np.testing.assert_allclose(outs[-1].velocity, [0.7, 0.0, -0.3])   # relinquished up there: V = u
-    assert core.persist_engaged == core.override_engaged == sum(o.key == 'pilot_override' for o in outs) >= 15
+    assert core.assistant.modes['pilot_override:persistent'] == core.engaged['pilot_override'] == sum(o.key == 'pilot_override' for o in outs) >= 15
 
 
 def test_a_held_climb_the_vehicle_does_not_make_passes_until_the_pilot_stops_climbing():
@@ -351,7 +353,7 @@ def test_policy_core_passes_a_held_climb_and_says_so(tmp_path):
         out = core.step(t)
     assert out.key == 'pilot_override' and 'held climb' in out.reason
     assert out.velocity[2] == pytest.approx(0.5)           # the pilot's climb
-    assert core.climb_engaged == core.override_engaged >= 15 and core.persist_engaged == 0
+    assert core.assistant.modes['pilot_override:climb'] == core.engaged['pilot_override'] >= 15 and core.assistant.modes['pilot_override:persistent'] == 0
 
 
 def test_policy_core_passes_a_long_push_and_says_so(tmp_path):
@@ -367,7 +369,7 @@ def test_policy_core_passes_a_long_push_and_says_so(tmp_path):
     assert all(o.key == 'assisting' for o in outs[:95])   # under 5 s
     assert outs[-1].key == 'pilot_override' and 'long push' in outs[-1].reason
     assert outs[-1].velocity[0] >= 0.0 and outs[-1].velocity[2] == pytest.approx(0.3)   # on, rising gently
-    assert core.long_engaged == core.override_engaged >= 30 and core.persist_engaged == 0
+    assert core.assistant.modes['pilot_override:long'] == core.engaged['pilot_override'] >= 30 and core.assistant.modes['pilot_override:persistent'] == 0
 
 
 def test_policy_core_keeps_a_push_back_to_where_the_pilot_tried_to_land_with_the_actor(tmp_path):
@@ -382,7 +384,7 @@ def test_policy_core_keeps_a_push_back_to_where_the_pilot_tried_to_land_with_the
         core.set_latent(t, np.zeros(_helpers.LATENT))
         outs.append(core.step(t))
     assert all(o.key == 'assisting' for o in outs[20:])   # no long push back to the spot (positioning)
-    assert core.override_engaged == core.long_engaged == 0 and core.spot_kept >= 30
+    assert core.engaged['pilot_override'] == core.assistant.modes['pilot_override:long'] == 0 and core.assistant.modes['pilot_override:spot_kept'] >= 30
 
 
 @pytest.mark.parametrize('surface, engages', [('floor', True), ('pad', False)])
@@ -398,7 +400,7 @@ def test_policy_core_reads_bare_floor_from_the_depth_image(tmp_path, surface, en
         core.set_latent(t, np.zeros(_helpers.LATENT))
         core.set_depth(t, depth)
         out = core.step(t)
-    assert (out.key == 'pilot_override') is engages and (core.persist_engaged > 0) is engages
+    assert (out.key == 'pilot_override') is engages and (core.assistant.modes['pilot_override:persistent'] > 0) is engages
 
 
 def test_evaluate_a_glide_pilot_passes_the_nearer_pad_with_the_persistent_push(tmp_path, monkeypatch):

@@ -11,6 +11,7 @@ from assist_policy.blending import blend
 from assist_policy.env import EnvConfig, LandingAssistEnv
 from assist_policy.evaluate import EvalArgs, evaluate
 from assist_policy.policy_core import PolicyCore, PolicyCoreConfig
+from assist_policy.flight import FlightConfig
 from assist_policy.recall import PadMap, PadRecall, RecallConfig
 from assist_sim.core.geometry import R_BODY_FROM_OPTICAL, quat_to_matrix
 from assist_sim.core.scene import PadSpec, SceneSpec
@@ -26,6 +27,9 @@ PADS = (PadSpec(center=(5.0, 0.5), length=1.2, width=1.0, height=0.8, yaw=0.3, m
 SCENE = SceneSpec(seed=0, pads=PADS, floor_material=1, wall_material=2, start_position=(0.0, 0.0, 3.5))
 TOPS = np.array([[5.0, 0.5, 0.8], [9.0, -0.5, 0.5]])
 MAX_SPEED = (1.0, 1.0, 0.6)
+
+# the tests place the vehicle where they need it (odometry jumps): the flight monitor stays out of them
+TELEPORTS = FlightConfig(enabled=False)
 
 
 def _quat(roll: float, pitch: float, yaw: float) -> np.ndarray:
@@ -285,7 +289,7 @@ def test_config_rejects_nonsense():
 
 def test_policy_core_applies_the_recall_and_reports_it(tmp_path, world):
     path = constant_actor(tmp_path / 'still.pt', [0.0, 0.0, 0.0])
-    core = PolicyCore(path, PolicyCoreConfig(mode='latent'))
+    core = PolicyCore(path, PolicyCoreConfig(mode='latent', flight=TELEPORTS))
     q = _quat(0.0, 0.0, 0.0)
     t = 0.0
     for pos in ([5.0, 0.5, 3.5], [6.6, 0.4, 2.5]):          # over the pad (mapped), then past it
@@ -295,7 +299,7 @@ def test_policy_core_applies_the_recall_and_reports_it(tmp_path, world):
         core.set_latent(t, np.zeros(LATENT))
         core.set_pilot(t, [0.0, 0.0, -0.5])
         out = core.step(t)
-    assert out.key == 'pad_recall' and core.recall_engaged == 1
+    assert out.key == 'pad_recall' and core.engaged['pad_recall'] == 1
     assert out.agent[0] == pytest.approx(-1.0) and out.velocity[0] < -0.4
     core.reset()                                               # a new landing forgets the map
     assert core.recall.map.pads == []
@@ -314,7 +318,7 @@ def test_policy_core_applies_the_recall_and_reports_it(tmp_path, world):
 
 def test_policy_core_scouts_beyond_before_going_back_and_says_so(tmp_path, world):
     path = constant_actor(tmp_path / 'still.pt', [0.0, 0.0, 0.0])
-    core = PolicyCore(path, PolicyCoreConfig(mode='latent'))
+    core = PolicyCore(path, PolicyCoreConfig(mode='latent', flight=TELEPORTS))
     q = _quat(0.0, 0.0, 0.0)
     for k, pos in enumerate(([5.0, 0.5, 3.5], [7.3, -0.2, 1.9])):   # over pad 0 (mapped), then 2.3 m past it
         t = 0.05 * (k + 1)
@@ -325,7 +329,7 @@ def test_policy_core_scouts_beyond_before_going_back_and_says_so(tmp_path, world
         out = core.step(t)
     assert out.key == 'pad_recall' and 'looking beyond' in out.reason
     assert out.velocity[0] > 0.3 and out.velocity[2] == pytest.approx(0.0)   # on, holding its height
-    assert core.scout_engaged == core.recall_engaged == 1
+    assert core.assistant.modes['pad_recall:scout'] == core.engaged['pad_recall'] == 1
 
 
 def test_env_steers_a_descent_past_the_last_pad_back_and_records_it():
@@ -335,7 +339,7 @@ def test_env_steers_a_descent_past_the_last_pad_back_and_records_it():
     env.world.reset(seed=env.world.scene.seed, scene=env.world.scene,
                     start_position=[last[0], last[1], 3.5])          # over the last pad: it is mapped
     env._u = np.zeros(3)
-    assert not env.step(np.zeros(3))[4]['recall'] and env.recall.map.pads
+    assert not env.step(np.zeros(3))[4]['recall'] and env.assistant.recall.map.pads
     env.world.reset(seed=env.world.scene.seed, scene=env.world.scene,
                     start_position=[last[0] + 1.8, last[1], 3.0])    # past it, no pad below
     seen = []

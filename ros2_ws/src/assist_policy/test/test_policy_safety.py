@@ -120,7 +120,7 @@ def test_policy_core_applies_the_guard_with_fresh_depth_only(tmp_path, depth_at)
 
     feed(1.0, 0.8)
     out = core.step(1.0)
-    assert out.reason.startswith('floor guard') and core.guard_engaged == 1
+    assert out.reason.startswith('floor guard') and core.engaged['floor_guard'] == 1
     assert out.velocity[2] > 0 and out.agent[2] > 0
     feed(2.0, 0.8, depth=None)                       # depth now 1 s old: the guard cannot see
     out = core.step(2.0)

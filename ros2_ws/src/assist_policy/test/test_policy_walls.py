@@ -78,7 +78,7 @@ def test_policy_core_stops_the_actor_flying_into_a_wall(tmp_path, depth_at):
     core.set_latent(1.0, np.zeros(LATENT))
     core.set_depth(1.0, depth_at(x, 0.0, z))
     out = core.step(1.0)
-    assert out.key == 'wall_guard' and core.wall_engaged == 1
+    assert out.key == 'wall_guard' and core.engaged['wall_guard'] == 1
     assert out.velocity[0] == pytest.approx(0.0, abs=0.05) and out.agent[0] < 0.1
     core.guard.cfg.wall_radius_m = 0.0                                   # policy_node's parameter
     core.set_odom(1.05, [x, 0, z], [0, 0, 0])

@@ -1,0 +1,355 @@
+"""The deployed assistant: the actor's action through the non-learned stages to the command V, in one order.
+
+policy_node (through ``policy_core.PolicyCore``), the training/evaluation env (``env.LandingAssistEnv``) and
+``replay_assist`` all run this chain; nothing else chains the stages. Each stage sees the same
+``StepContext`` and the ``Decision`` so far, and returns a new ``Decision`` when it acts (None when it
+does not). The order, and so who wins:
+
+1. ``oscillation_damper`` (``damper.OscillationDamper``): while the pilot's held keys keep reversing across
+   a mapped pad, a_xy = -gain v_xy. A later action stage replaces its result.
+2. ``pilot_override`` (``override.PilotOverride``): a held key, a persistent or long push, a held climb
+   passes instead of a. Wins over the damper and the recall (the recall does not run after it).
+3. ``pad_recall`` (``recall.PadRecall``): maps every depth frame (also when it then does not act); steers a
+   descent over bare floor back to a mapped pad (recall, scout) or centres on the pad below (touchdown).
+4. blending (``blending.blend``): V = (u + a) / 2 if |a| > threshold else u. The action history the
+   actor observes records a as it stands here (zero when the actor did not run).
+5. ``floor_guard`` (``safety.FloorGuard``): low over bare floor (or straddling a pad edge), a descent in V is
+   replaced by a small climb (a' = (a_xy, 2 climb - u_z)). Acts on whatever the stages above produced.
+6. ``wall_guard`` (``walls.WallGuard``, same settings and switch as the floor guard): the part of V heading
+   for a wall seen within reach is removed, the pilot's too (a' = 2 V' - u).
+7. speed clamp (``blending.clamp_velocity``): V within max_speed (horizontal) and max_vertical_speed.
+
+When the actor did not run (stale inputs, a non-finite action: ``agent`` None), the action stages 1-3 are
+skipped and V = u goes through 5-7: the guards protect an unassisted pilot as well.
+
+Everything a stage remembers (pad and wall maps, landing spots, held keys, reversals, the last pad under the
+legs) belongs to one flight: ``Assistant.reset`` forgets it (``flight.FlightMonitor`` decides when).
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Callable, Hashable, Protocol
+
+import numpy as np
+
+from .blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS, blend, clamp_velocity
+from .damper import DamperConfig, OscillationDamper
+from .override import OverrideConfig, PilotOverride
+from .recall import PadRecall, RecallConfig
+from .safety import FloorGuard, SafetyConfig
+from .walls import WallGuard
+
+Pose = tuple[np.ndarray, 'np.ndarray | None']     # odom position, attitude quaternion (x, y, z, w) or None
+
+
+class DepthFrame:
+    """One depth image (metres, HxW) with the odometry pose it was taken from; both read at most once, when asked.
+
+    `key` identifies the frame: the stages that map what the camera sees (pad map, wall map) add a frame once.
+    """
+
+    def __init__(self, key: Hashable, image: Callable[[], np.ndarray], pose: Callable[[], Pose]):
+        self.key = key
+        self._image = image
+        self._pose = pose
+
+    @functools.cached_property
+    def image(self) -> np.ndarray:
+        """The depth image (rendered or decoded on first use)."""
+        return self._image()
+
+    @functools.cached_property
+    def pose(self) -> Pose:
+        """(position, attitude) of the vehicle when the frame was taken."""
+        return self._pose()
+
+
+@dataclass
+class StepContext:
+    """What every stage sees in one control step (odom ENU positions, base_link velocities and commands)."""
+
+    t: float                            # flight clock (s)
+    u: np.ndarray                       # pilot command
+    mean_u: np.ndarray                  # its mean over the observation window (the actor's input)
+    position: np.ndarray                # vehicle position (odom)
+    velocity: np.ndarray                # odometry twist (base_link)
+    quaternion: np.ndarray | None       # attitude (None: level, heading 0)
+    frame: DepthFrame | None            # a fresh depth frame, or None (the depth-reading stages then skip)
+    max_speed: tuple[float, float, float]   # the actor's action limits (m/s per axis)
+
+
+@dataclass
+class Decision:
+    """The step's result so far: agent action a (None: the actor did not run), command V (None before blending)."""
+
+    agent: np.ndarray | None
+    velocity: np.ndarray | None = None
+    key: str = ''                       # which stage decided last ('' before any)
+    reason: str = ''
+
+
+class Stage(Protocol):
+    """One non-learned stage: ``apply`` returns the new Decision when the stage acts, None when it does not."""
+
+    key: str
+
+    def reset(self) -> None:
+        """Forget this flight."""
+
+    def apply(self, ctx: StepContext, d: Decision) -> Decision | None:
+        """Act on the decision so far, or return None."""
+
+
+@dataclass
+class AssistantConfig:
+    """Settings of the chain (blending and speed limits here; each stage's in its own config)."""
+
+    blend_threshold: float = DEFAULT_THRESHOLD
+    max_speed_mps: float = MAX_SPEED_MPS            # horizontal limit of V
+    max_vertical_mps: float = MAX_VERTICAL_MPS      # vertical limit of V
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
+    override: OverrideConfig = field(default_factory=OverrideConfig)
+    recall: RecallConfig = field(default_factory=RecallConfig)
+    damper: DamperConfig = field(default_factory=DamperConfig)
+
+    def __post_init__(self) -> None:
+        """Reject a threshold or limits that would suppress or invent motion (ValueError, one line)."""
+        t = self.blend_threshold
+        if not (isinstance(t, (int, float)) and math.isfinite(t) and t >= 0):
+            raise ValueError(f'blend_threshold must be a finite number >= 0, got {t!r}')
+        for name in ('max_speed_mps', 'max_vertical_mps'):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f'{name} must be a finite number > 0, got {v!r}')
+
+
+def rules_off(cfg: AssistantConfig | None = None) -> AssistantConfig:
+    """A copy of `cfg` (default settings: None) with every non-learned rule switched off: the bare actor."""
+    cfg = cfg or AssistantConfig()
+    return dataclasses.replace(cfg, safety=dataclasses.replace(cfg.safety, enabled=False),
+                               override=dataclasses.replace(cfg.override, enabled=False),
+                               recall=dataclasses.replace(cfg.recall, enabled=False),
+                               damper=dataclasses.replace(cfg.damper, enabled=False))
+
+
+# ----------------------------------------------------------------------------------------------- stages
+class DamperStage:
+    """1. The oscillation damper on the actor's horizontal action (reads the recall's pad map)."""
+
+    key = 'oscillation_damper'
+
+    def __init__(self, damper: OscillationDamper, recall: PadRecall):
+        self.damper, self._recall = damper, recall
+
+    def reset(self) -> None:
+        """Forget the reversals and positions."""
+        self.damper.reset()
+
+    def apply(self, ctx: StepContext, d: Decision) -> Decision | None:
+        """a_xy = -gain v_xy while the pilot oscillates across a mapped pad."""
+        a = self.damper.apply(ctx.t, ctx.u, d.agent, ctx.velocity, ctx.position,
+                              [m.xyz for m in self._recall.map.pads], ctx.max_speed)
+        return None if a is None else Decision(a, None, self.key, 'oscillation damper: damping the pilot\'s '
+                                                                  'oscillation')
+
+
+_OVERRIDE_REASONS = {'held_key': 'pilot override: the pilot\'s held correction passes',
+                     'persistent': 'pilot override: the pilot\'s persistent push passes',
+                     'climb': 'pilot override: the pilot\'s held climb passes',
+                     'long': 'pilot override: the pilot\'s long push passes'}
+
+
+class OverrideStage:
+    """2. The pilot override: a deliberate correction passes instead of the actor's action."""
+
+    key = 'pilot_override'
+
+    def __init__(self, override: PilotOverride, guard: FloorGuard):
+        self.override, self._guard = override, guard
+
+    def reset(self) -> None:
+        """Forget held keys, pushes and landing spots."""
+        self.override.reset()
+
+    def apply(self, ctx: StepContext, d: Decision) -> Decision | None:
+        """The pilot's correction (with a gentle climb when low), or None."""
+        # the depth image's surface under the legs, through the floor guard's test (off with the guard: the
+        # altitude stands in)
+        surface = (None if not self._guard.cfg.enabled or ctx.frame is None
+                   else lambda: self._guard.surface_below(ctx.frame.image, ctx.position))
+        a = self.override.apply(ctx.t, ctx.u, ctx.mean_u, float(ctx.position[2]), ctx.max_speed, ctx.velocity,
+                                surface, ctx.position)
+        if a is None:
+            return None
+        return Decision(a, None, self.key, _OVERRIDE_REASONS.get(self.override.mode, _OVERRIDE_REASONS['held_key']))
+
+
+_RECALL_REASONS = {'recall': 'pad recall: steering back to a pad seen',
+                   'touchdown': 'pad recall: centring on the pad below for touchdown',
+                   'scout': 'pad recall: looking beyond for a nearer pad before steering back'}
+
+
+class RecallStage:
+    """3. The pad recall: maps every depth frame; steers back to a mapped pad (not after the override)."""
+
+    key = 'pad_recall'
+
+    def __init__(self, recall: PadRecall):
+        self.recall = recall
+        self._mapped: Hashable = None         # key of the depth frame last added to the map
+
+    def reset(self) -> None:
+        """Forget the map and the scouting."""
+        self.recall.reset()
+        self._mapped = None
+
+    def apply(self, ctx: StepContext, d: Decision) -> Decision | None:
+        """The push back to a mapped pad, or None."""
+        if ctx.frame is None or not self.recall.cfg.enabled:
+            return None
+        if self._mapped != ctx.frame.key:
+            self.recall.observe(ctx.frame.image, *ctx.frame.pose)
+            self._mapped = ctx.frame.key
+        if d.key == OverrideStage.key:
+            return None                       # the pilot's correction wins
+        a = self.recall.apply(ctx.u, ctx.mean_u, d.agent, ctx.frame.image, ctx.position, ctx.quaternion,
+                              ctx.max_speed)
+        if a is None:
+            return None
+        return Decision(a, None, self.key, _RECALL_REASONS.get(self.recall.mode, _RECALL_REASONS['recall']))
+
+
+class GuardStage:
+    """5. The floor guard on the blended command."""
+
+    key = 'floor_guard'
+
+    def __init__(self, guard: FloorGuard, threshold: Callable[[], float]):
+        self.guard, self._threshold = guard, threshold
+
+    def reset(self) -> None:
+        """Forget the last pad seen under the legs."""
+        self.guard.reset()
+
+    def apply(self, ctx: StepContext, d: Decision) -> Decision | None:
+        """A small climb instead of a descent over bare floor, or None."""
+        if (ctx.frame is None or not self.guard.cfg.enabled
+                or float(ctx.position[2]) >= self.guard.watch_height_m):
+            return None                       # too high to watch: the image is not read
+        thr = self._threshold()
+        active = d.agent is not None and float(np.linalg.norm(d.agent)) > thr
+        g = self.guard.apply(ctx.u, d.agent if active else None, d.velocity, ctx.frame.image, ctx.position, thr)
+        return Decision(g.agent, g.velocity, self.key, 'floor guard: descent blocked') if g.engaged else None
+
+
+class WallStage:
+    """6. The wall rule: no command toward a wall seen within reach (the floor guard's switch and settings)."""
+
+    key = 'wall_guard'
+
+    def __init__(self, walls: WallGuard, threshold: Callable[[], float]):
+        self.walls, self._threshold = walls, threshold
+        self._mapped: Hashable = None
+
+    def reset(self) -> None:
+        """Forget the wall map."""
+        self.walls.reset()
+        self._mapped = None
+
+    def apply(self, ctx: StepContext, d: Decision) -> Decision | None:
+        """V without its part toward the nearest walls, or None."""
+        if ctx.frame is None or not self.walls.active:
+            return None
+        if self._mapped != ctx.frame.key:
+            self.walls.observe(ctx.frame.image, *ctx.frame.pose)
+            self._mapped = ctx.frame.key
+        active = d.agent is not None and float(np.linalg.norm(d.agent)) > self._threshold()
+        w = self.walls.apply(ctx.u, d.agent if active else None, d.velocity, ctx.position, ctx.quaternion)
+        return Decision(w.agent, w.velocity, self.key, 'floor guard: approach to a wall stopped') if w.engaged else None
+
+
+# ----------------------------------------------------------------------------------------------- chain
+@dataclass
+class StepResult:
+    """One step of the chain: the command to fly and what decided it."""
+
+    agent: np.ndarray | None            # a as flown (None: the actor did not run and no stage acted)
+    velocity: np.ndarray                # V, within the speed limits
+    applied: np.ndarray                 # a as it stood at blending (the action history records it)
+    key: str                            # the last stage that acted, else assisting / small_action / the input's
+    reason: str
+    acted: tuple[str, ...] = ()         # every stage that acted this step, in order
+
+
+class Assistant:
+    """The ordered stages around the actor (see the module docstring); one per flight memory."""
+
+    def __init__(self, cfg: AssistantConfig | None = None):
+        self.cfg = cfg or AssistantConfig()
+        c = self.cfg
+        self.guard = FloorGuard(c.safety)
+        self.walls = WallGuard(c.safety)                 # the same settings object: one switch for both
+        self.override = PilotOverride(c.override)
+        self.recall = PadRecall(c.recall, self.guard)
+        self.damper = OscillationDamper(c.damper)
+        threshold = lambda: self.cfg.blend_threshold    # noqa: E731 - read at each step (changeable at run time)
+        self.action_stages: tuple[Stage, ...] = (DamperStage(self.damper, self.recall),
+                                                 OverrideStage(self.override, self.guard),
+                                                 RecallStage(self.recall))
+        self.command_stages: tuple[Stage, ...] = (GuardStage(self.guard, threshold),
+                                                  WallStage(self.walls, threshold))
+        self.engaged: Counter[str] = Counter()           # steps each stage acted (stage key)
+        self.modes: Counter[str] = Counter()             # ... of those, per mode (e.g. 'pilot_override:climb')
+
+    @property
+    def stages(self) -> tuple[Stage, ...]:
+        """Every stage, in order."""
+        return self.action_stages + self.command_stages
+
+    def reset(self) -> None:
+        """Forget the flight: every stage's memory."""
+        for s in self.stages:
+            s.reset()
+
+    def configure(self, **changes) -> None:
+        """Change blend_threshold / max_speed_mps / max_vertical_mps at run time (ValueError: nothing changed)."""
+        new = dataclasses.replace(self.cfg, **changes)
+        for name in changes:
+            setattr(self.cfg, name, getattr(new, name))
+
+    def step(self, ctx: StepContext, agent: np.ndarray | None, key: str = '', reason: str = '') -> StepResult:
+        """The command for this step from the actor's action `agent` (m/s, base_link; None: it did not run, then
+        `key`/`reason` say why)."""
+        c = self.cfg
+        d = Decision(None if agent is None else np.asarray(agent, dtype=float).reshape(3), None, key, reason)
+        acted: list[str] = []
+        if d.agent is not None:
+            for stage in self.action_stages:
+                new = stage.apply(ctx, d)
+                if new is not None:
+                    d = new
+                    acted.append(stage.key)
+        applied = np.zeros(3) if d.agent is None else d.agent
+        d.velocity = blend(ctx.u, applied, c.blend_threshold)
+        if d.agent is not None and not d.key:
+            big = float(np.linalg.norm(d.agent)) > c.blend_threshold
+            d.key, d.reason = ('assisting', 'assisting') if big else ('small_action', 'relinquished')
+        for stage in self.command_stages:
+            new = stage.apply(ctx, d)
+            if new is not None:
+                d = new
+                acted.append(stage.key)
+        for k in acted:
+            self.engaged[k] += 1
+        if OverrideStage.key in acted and self.override.mode:
+            self.modes[f'{OverrideStage.key}:{self.override.mode}'] += 1
+        elif RecallStage.key in acted and self.recall.mode:
+            self.modes[f'{RecallStage.key}:{self.recall.mode}'] += 1
+        if agent is not None and self.override.kept:      # a landing spot kept the actor's action
+            self.modes[f'{OverrideStage.key}:spot_kept'] += 1
+        v = clamp_velocity(d.velocity, c.max_speed_mps, c.max_vertical_mps)
+        return StepResult(d.agent, v, applied, d.key, d.reason, tuple(acted))

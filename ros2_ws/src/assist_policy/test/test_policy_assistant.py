@@ -1,0 +1,145 @@
+"""The one assistant chain (assistant.Assistant) and the flight boundaries (flight.FlightMonitor)."""
+from __future__ import annotations
+
+import csv
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from assist_policy.assistant import Assistant, AssistantConfig, DepthFrame, StepContext, rules_off
+from assist_policy.evaluate import EvalArgs, evaluate
+from assist_policy.flight import FlightConfig, FlightMonitor
+from assist_policy.policy_core import PolicyCore, PolicyCoreConfig
+
+_spec = importlib.util.spec_from_file_location('policy_core_helpers', Path(__file__).with_name('test_policy_core.py'))
+_helpers = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_helpers)
+FLOOR_3M = np.full((64, 64), 3.0 - 0.05, np.float32)        # bare floor seen from 3 m
+
+
+def ctx(t: float, u, position=(0.0, 0.0, 3.0), depth=None, mean_u=None) -> StepContext:
+    """A step context at rest at `position` (frame: `depth` or none)."""
+    frame = None if depth is None else DepthFrame(t, lambda: depth, lambda: (np.asarray(position, float), None))
+    u = np.asarray(u, float)
+    return StepContext(t, u, u if mean_u is None else np.asarray(mean_u, float), np.asarray(position, float),
+                       np.zeros(3), None, frame, (1.0, 1.0, 0.6))
+
+
+def test_chain_blends_then_clamps_and_says_why():
+    chain = Assistant(rules_off())
+    r = chain.step(ctx(0.0, [1.0, 0.0, 0.0]), np.array([1.0, 1.0, 0.0]))
+    np.testing.assert_allclose(r.velocity, [1.0, 0.5, 0.0])          # (u + a) / 2, within 1.5 m/s
+    assert r.key == 'assisting' and r.acted == ()
+    r = chain.step(ctx(0.05, [0.5, 0.0, 0.0]), np.array([0.1, 0.0, 0.0]))
+    np.testing.assert_allclose(r.velocity, [0.5, 0.0, 0.0])          # |a| <= 0.25: V = u
+    assert r.key == 'small_action'
+    chain.configure(max_speed_mps=0.4)                                # run-time limits reach the clamp
+    r = chain.step(ctx(0.1, [1.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0]))
+    np.testing.assert_allclose(r.velocity, [0.4, 0.0, 0.0])
+    with pytest.raises(ValueError):
+        chain.configure(max_speed_mps=float('nan'))
+    assert chain.cfg.max_speed_mps == 0.4                             # nothing changed
+
+
+def test_chain_guard_protects_a_relinquished_pilot_and_the_actor_alike():
+    chain = Assistant(AssistantConfig())
+    low = (0.0, 0.0, 0.8)
+    floor = np.full((64, 64), 0.8 - 0.05, np.float32)
+    for agent, key in ((None, 'feature_stale'), (np.array([0.0, 0.0, -0.6]), '')):
+        r = chain.step(ctx(0.0, [0.0, 0.0, -0.5], low, floor), agent, key, 'why')
+        assert r.key == 'floor_guard' and r.velocity[2] > 0.0, r       # no descent over bare floor below 1 m
+        assert r.acted == ('floor_guard',)
+    # without a depth frame the guard cannot look: the descent passes, the input's reason stays
+    r = chain.step(ctx(0.1, [0.0, 0.0, -0.5], low), None, 'feature_stale', 'latent stale')
+    assert r.key == 'feature_stale' and r.velocity[2] == pytest.approx(-0.5)
+
+
+def test_chain_order_the_override_wins_over_the_recall_and_the_recall_maps_anyway():
+    chain = Assistant(AssistantConfig())
+    pad = FLOOR_3M.copy()
+    pad[22:42, 22:42] = 3.0 - 0.05 - 0.8                               # a 0.8 m pad right below
+    t = 0.0
+    for k in range(30):                                                # 1.5 s of a held key forward
+        t = 0.05 * k
+        r = chain.step(ctx(t, [1.0, 0.0, 0.0], depth=pad, mean_u=[1.0, 0.0, 0.0]), np.array([-0.9, 0.0, -0.5]))
+    assert r.key == 'pilot_override' and 'pad_recall' not in r.acted
+    assert len(chain.recall.map.pads) == 1                             # mapped although the override acted
+    np.testing.assert_allclose(r.velocity[:2], [1.0, 0.0])             # the pilot's key passes
+    assert chain.engaged['pilot_override'] > 0 and chain.modes['pilot_override:held_key'] > 0
+    chain.reset()                                                      # a new flight forgets the map
+    assert not chain.recall.map.pads
+
+
+def test_flight_monitor_boundaries():
+    m = FlightMonitor(FlightConfig())
+    assert m.update(0.0, [0, 0, 3.0], [0.5, 0, 0], 0.0) is None
+    assert m.update(0.05, [0.025, 0, 3.0], [0.5, 0, 0], 0.0) is None          # flying: moves as fast as it says
+    assert m.update(0.10, [4.0, 2.0, 5.0], [0, 0, 0], 0.0) == 'odom_jump'     # teleported (sim reset, EKF reset)
+    # a hover (command not descending) is not a landing, however long
+    assert all(m.update(0.1 + 0.05 * k, [4.0, 2.0, 5.0], [0, 0, 0], 0.0) is None for k in range(1, 60))
+    # at rest while the command descends: landed after rest_s
+    seen = [m.update(3.1 + 0.05 * k, [4.0, 2.0, 5.0], [0, 0, 0.01], -0.3) for k in range(30)]
+    assert seen.index('landed') == 20 and seen.count('landed') == 1 and m.landed
+    assert m.update(5.0, [4.0, 2.0, 5.2], [0, 0, 0.5], 0.5) is None           # lifting, not yet 0.3 m
+    assert m.update(5.5, [4.0, 2.0, 5.4], [0, 0, 0.5], 0.5) == 'takeoff'
+    # an autopilot starting on the ground: its first take-off is a boundary
+    g = FlightMonitor()
+    assert g.update(0.0, [0, 0, 0.02], [0, 0, 0], 0.0) is None and g.landed
+    assert g.update(1.0, [0, 0, 0.5], [0, 0, 0.6], 0.5) == 'takeoff'
+    off = FlightMonitor(FlightConfig(enabled=False))
+    off.update(0.0, [0, 0, 3.0], [0, 0, 0], 0.0)
+    assert off.update(0.05, [9.0, 0, 3.0], [0, 0, 0], 0.0) is None
+    assert m.update(6.0, [np.nan, 0, 1.0], [0, 0, 0], 0.0) is None            # non-finite odometry: no judgement
+    with pytest.raises(ValueError):
+        FlightConfig(jump_m=0.0)
+
+
+def test_policy_core_forgets_the_flight_at_an_odometry_jump_and_on_request(tmp_path):
+    path = _helpers.constant_actor(tmp_path / 'a.pt', [0.0, 0.0, 0.0])
+    core = PolicyCore(path, PolicyCoreConfig(mode='latent'))
+    pad = FLOOR_3M.copy()
+    pad[22:42, 22:42] = 3.0 - 0.05 - 0.8
+    for k in range(10):                                       # hovering over a pad: mapped, history filled
+        t = 0.05 * k
+        core.set_odom(t, [0, 0, 3.0], [0, 0, 0])
+        core.set_depth(t, pad)
+        core.set_latent(t, np.zeros(_helpers.LATENT))
+        core.set_pilot(t, [0.3, 0, 0])
+        core.step(t)
+    assert len(core.recall.map.pads) == 1 and len(core.builder.history) > 0
+    core.set_odom(0.55, [6.0, 1.0, 3.0], [0, 0, 0])          # the next episode's start pose
+    assert not core.recall.map.pads and len(core.builder.history) == 0
+    assert core.flight_resets['odom_jump'] == 1 and core.last_reset == (0.55, 'odom_jump')
+    core.step(0.55)
+    core.reset()
+    assert core.flight_resets['service'] == 1 and len(core.builder.history) == 0
+
+
+# Rows evaluate wrote before the chain existed (the env then chained the stages by hand), on these seeds: the
+# chain must fly them identically. Held-out pilots with the override, recall and damper all acting, and the bare
+# end-to-end actor.
+BEFORE = {
+    ('latent+guard+override+recall+damper', 'mix', 2024): ('keyboard', '0.1313', 'success', '33.58', '0.351',
+                                                            '0.006', '0.079'),
+    ('latent+guard+override+recall+damper', 'mix', 3024): ('bang_bang', '0.0578', 'success', '16.72', '0.275',
+                                                            '0.119', '0.137'),
+    ('end_to_end', 'paper', 2024): ('paper', '0.3405', 'success', '20.25', '0.0', '0.0', '0.0'),
+}
+
+
+@pytest.mark.timeout(600)
+def test_evaluate_rows_identical_to_the_hand_chained_env(tmp_path: Path):
+    runs = {'mix': EvalArgs(out=str(tmp_path / 'mix'), conditions=('latent',), betas=(0.0, 0.25), landings=1,
+                            pilot='mix', plot=False),
+            'paper': EvalArgs(out=str(tmp_path / 'paper'), conditions=('end_to_end',), betas=(0.0,), landings=1,
+                              pilot='paper', plot=False, safety=False, override=False, recall=False, damper=False)}
+    got = {}
+    for pilot, args in runs.items():
+        evaluate(args)
+        for r in csv.DictReader(open(Path(args.out) / 'landings.csv', encoding='utf-8')):
+            got[(r['condition'], pilot, int(r['seed']))] = (r['pilot'], r['error_m'], r['outcome'], r['duration_s'],
+                                                           r['override_fraction'], r['recall_fraction'],
+                                                           r['damper_fraction'])
+    assert got == BEFORE
