@@ -41,7 +41,7 @@ from .override import OverrideConfig
 from .poses import PoseHistory
 from .recall import RecallConfig
 from .safety import SafetyConfig
-from .td3 import load_actor
+from .actor import load_actor
 
 log = logging.getLogger(__name__)
 

@@ -143,3 +143,13 @@ def test_evaluate_rows_identical_to_the_hand_chained_env(tmp_path: Path):
                                                            r['override_fraction'], r['recall_fraction'],
                                                            r['damper_fraction'])
     assert got == BEFORE
+
+
+def test_policy_node_loads_the_actor_without_the_training_code():
+    import subprocess  # noqa: PLC0415
+    import sys  # noqa: PLC0415
+    code = ('import sys, assist_policy.policy_node; '
+            'print(sorted(m for m in ("assist_policy.td3", "assist_policy.env", "assist_policy.train", "pybullet", '
+            '"gymnasium") if m in sys.modules))')
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=120, check=True)
+    assert out.stdout.strip() == '[]', out.stdout       # no replay buffer, no simulator on the deploy path
