@@ -39,18 +39,29 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .settings import node_param
+
 
 @dataclass
 class DamperConfig:
     """Settings of the oscillation damper (policy_node parameters oscillation_damper_* map onto these)."""
 
-    enabled: bool = True
-    gain: float = 2.0               # 1/s: a_xy = -gain v_xy while an oscillation is detected
+    enabled: bool = node_param(True, 'oscillation_damper', 'Oscillation damper (assist_policy.damper, not learned): '
+                               "while the pilot's held keys keep reversing (a pilot-induced oscillation), the "
+                               "actor's horizontal action is replaced by a velocity damper, a_xy = -gain v_xy. "
+                               'Default false in mode oracle.')
+    # 1/s: a_xy = -gain v_xy while an oscillation is detected
+    gain: float = node_param(2.0, 'oscillation_damper_gain', 'Gain of the oscillation damper (1/s): a_xy = -gain '
+                             'v_xy.', min=0.0, max=10.0)
     speed_mps: float = 0.5          # mean horizontal pilot speed over mean_s that counts as a held key
     mean_s: float = 0.5             # span of each mean compared
     gap_s: float = 1.0              # the earlier mean is taken this long before the latest
-    window_s: float = 8.0           # reversals are counted over this window
-    min_reversals: int = 2          # this many reversals within window_s: an oscillation
+    # reversals are counted over this window
+    window_s: float = node_param(8.0, 'oscillation_damper_window_s', 'The oscillation damper counts reversals of '
+                                 "the pilot's held keys over this window (s).", min=0.5, max=60.0)
+    # this many reversals within window_s: an oscillation
+    min_reversals: int = node_param(2, 'oscillation_damper_reversals', 'This many reversals within the window '
+                                    'engage the oscillation damper.', min=1, max=20)
     cross_radius_m: float = 0.5     # damped only if the last swing passed this close to a mapped pad's centre
     near_m: float = 1.5             # ... and the vehicle is still this close to that pad (horizontal m)
     leave_s: float = 1.5            # getting farther from that pad for this long: leaving it, let go

@@ -25,6 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .settings import node_param
+
 REASONS = ('odom_jump', 'landed', 'takeoff', 'service', 'episode')
 
 
@@ -32,12 +34,27 @@ REASONS = ('odom_jump', 'landed', 'takeoff', 'service', 'episode')
 class FlightConfig:
     """Thresholds of the flight boundaries (policy_node flight_* parameters)."""
 
-    enabled: bool = True               # False: only the explicit boundaries (~/reset, a new env episode)
-    jump_m: float = 1.0                # odometry moving this much farther than its speed explains: a jump (m)
-    rest_speed_mps: float = 0.05       # slower than this (3-D norm of the twist) counts as at rest
-    rest_s: float = 1.0                # ... for this long, while the command flown descends: landed
-    rest_descent_mps: float = 0.1      # the command's descent that makes a rest a landing (m/s)
-    takeoff_climb_m: float = 0.3       # rising this far above the resting altitude: a take-off (m)
+    # False: only the explicit boundaries (~/reset, a new env episode)
+    enabled: bool = node_param(True, 'flight_boundaries', 'Forget the flight (action history, pad and wall maps, '
+                               'landing spots, override and damper state) at an odometry jump, a landing and a '
+                               'take-off (assist_policy.flight); false: only at ~/reset.')
+    # odometry moving this much farther than its speed explains: a jump (m)
+    jump_m: float = node_param(1.0, 'flight_jump_m', 'Odometry moving this much farther between two samples than '
+                               'its speed explains is a jump (reset, teleport, EKF reset): a new flight (m).',
+                               min=0.0, max=100.0, min_exclusive=True)
+    # slower than this (3-D norm of the twist) counts as at rest
+    rest_speed_mps: float = node_param(0.05, 'flight_rest_speed_mps', 'Slower than this (odometry twist norm, m/s) '
+                                       'counts as at rest.', min=0.0, max=1.0, min_exclusive=True)
+    # ... for this long, while the command flown descends: landed
+    rest_s: float = node_param(1.0, 'flight_rest_s', 'At rest this long while /cmd_vel descends at '
+                               'flight_rest_descent_mps or more: landed, the flight ends (s).',
+                               min=0.0, max=60.0, min_exclusive=True)
+    # the command's descent that makes a rest a landing (m/s)
+    rest_descent_mps: float = node_param(0.1, 'flight_rest_descent_mps', 'Descent of the command flown that makes a '
+                                         'rest a landing (m/s).', min=0.0, max=5.0, min_exclusive=True)
+    # rising this far above the resting altitude: a take-off (m)
+    takeoff_climb_m: float = node_param(0.3, 'flight_takeoff_climb_m', 'After a landing, rising this far above it '
+                                        'is a take-off: a new flight (m).', min=0.0, max=10.0, min_exclusive=True)
     ground_altitude_m: float = 0.3     # the first odometry at rest below this altitude (odom z) starts landed
 
     def __post_init__(self) -> None:

@@ -101,6 +101,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .scripted import YIELD_SPEED_MPS, holds_key
+from .settings import node_param
 
 # what the depth image shows below the vehicle, on demand: (bare floor under every leg, height over the
 # surface below in m), None where unknown (safety.FloorGuard.surface_below)
@@ -111,30 +112,66 @@ Surface = Callable[[], tuple[bool | None, float | None]]
 class OverrideConfig:
     """Settings of the pilot override (policy_node parameters pilot_override_* map onto these)."""
 
-    enabled: bool = True
+    enabled: bool = node_param(True, 'pilot_override', 'Pilot override (assist_policy.override, not learned): while '
+                               'the pilot holds a horizontal key and does not descend, its correction passes (the '
+                               "vehicle rises gently when low) instead of the actor's action. Default false in mode "
+                               'oracle.')
     # window-mean horizontal pilot speed that counts as a held key: the yielding teacher's test and threshold
     # (scripted.holds_key, YIELD_SPEED_MPS: above the paper pilot's fine taps, below a held key)
-    speed_mps: float = YIELD_SPEED_MPS
-    climb_mps: float = 0.3          # vertical V while yielding low (the pilot's own climb if faster)
-    climb_below_m: float = 2.0      # altitude over the floor below which the yield adds the climb (pads <= 1.2 m)
-    reversal_s: float = 3.0         # a held key reversing one held within this many seconds does not engage it
+    speed_mps: float = node_param(YIELD_SPEED_MPS, 'pilot_override_speed_mps', 'Mean horizontal pilot speed over '
+                                  'the last second (m/s) above which a key counts as held; keep it below the '
+                                  "pilot's key speed (teleop speed, 1 m/s by default).", min=0.0, max=10.0)
+    # vertical V while yielding low (the pilot's own climb if faster)
+    climb_mps: float = node_param(0.3, 'pilot_override_climb_mps', 'Vertical velocity while the pilot override acts '
+                                  "low (m/s; the pilot's own climb if faster).", min=0.0, max=1.0)
+    # altitude over the floor below which the yield adds the climb (pads <= 1.2 m)
+    climb_below_m: float = node_param(2.0, 'pilot_override_climb_below_m', 'Altitude (odom z over the floor, m) '
+                                      'below which the pilot override adds the climb; above it it relinquishes.',
+                                      min=0.0, max=20.0)
+    # a held key reversing one held within this many seconds does not engage it
+    reversal_s: float = node_param(3.0, 'pilot_override_reversal_s', 'A held key reversing one held within this '
+                                   'many seconds is an overshoot being corrected: the pilot override stays out (s).',
+                                   min=0.0, max=60.0)
     # persistent push (module docstring): a command held against the assistant for persist_s (0 = off)
-    persist_s: float = 2.0
-    persist_speed_mps: float = 0.6          # its mean along one axis over a pad (fine positioning: <= 0.5 per axis)
-    persist_floor_speed_mps: float = 0.4    # ... over bare floor under every leg (no pad to hold the pilot on)
+    persist_s: float = node_param(2.0, 'pilot_override_persist_s', 'Persistent push: a horizontal command held one '
+                                  'way this long (s) while the assistant held the vehicle back passes as a held key '
+                                  'does, descending or not; 0 = off.', min=0.0, max=60.0)
+    # its mean along one axis over a pad (fine positioning: <= 0.5 per axis)
+    persist_speed_mps: float = node_param(0.6, 'pilot_override_persist_speed_mps', 'Mean horizontal pilot speed '
+                                          'over pilot_override_persist_s (m/s) that counts as a persistent push '
+                                          'over a pad (above fine positioning).', min=0.01, max=10.0)
+    # ... over bare floor under every leg (no pad to hold the pilot on)
+    persist_floor_speed_mps: float = node_param(0.4, 'pilot_override_persist_floor_speed_mps', 'The same over bare '
+                                                'floor under every leg in the depth image (m/s).', min=0.01, max=10.0)
     held_back_fraction: float = 0.5        # held back: the vehicle made less than this share of the push's speed
     persist_min_height_m: float = 1.0      # not lower than this over the surface below (the last metre: landing)
     # held climb (module docstring): a climb commanded for persist_s that the vehicle does not make (0 = off)
-    persist_climb_mps: float = 0.3         # mean climb command over persist_s that counts (keys climb at 0.5)
+    # mean climb command over persist_s that counts (keys climb at 0.5)
+    persist_climb_mps: float = node_param(0.3, 'pilot_override_persist_climb_mps', 'Held climb: a climb commanded '
+                                          'for pilot_override_persist_s at at least this mean (m/s) that the '
+                                          'vehicle did not make passes until the pilot stops climbing; 0 = off.',
+                                          min=0.0, max=10.0)
     # long push (module docstring): a slower push held longer, with no descent commanded (0 = off)
-    long_push_s: float = 5.0
-    long_push_speed_mps: float = 0.35      # its mean along one axis (a novice taps at 0.5 m/s)
+    long_push_s: float = node_param(5.0, 'pilot_override_long_push_s', 'Long push: a slower horizontal command held '
+                                    'one way this long (s), with no descent, while the assistant held the vehicle '
+                                    'back passes as a held key does until the pilot stops pushing that way or '
+                                    'descends; 0 = off.', min=0.0, max=60.0)
+    # its mean along one axis (a novice taps at 0.5 m/s)
+    long_push_speed_mps: float = node_param(0.35, 'pilot_override_long_push_speed_mps', 'Mean horizontal pilot '
+                                            'speed along one axis over pilot_override_long_push_s (m/s) that counts '
+                                            'as a long push.', min=0.01, max=10.0)
     long_push_min_height_m: float = 0.3    # not lower than this over the surface below (touching down)
     long_push_release_mps: float = 0.15    # latched: released once the mean command over long_push_s descends faster
     # landing spots (module docstring): where the pilot commanded a descent while not going anywhere (0 = off)
-    spot_memory_s: float = 20.0            # such a descent is remembered this long
+    # such a descent is remembered this long
+    spot_memory_s: float = node_param(20.0, 'pilot_override_spot_memory_s', 'Landing spots: where the pilot '
+                                      'commanded a descent while not going anywhere is remembered this long (s); a '
+                                      'persistent or long push back to such a spot, or a held climb near one, stays '
+                                      'with the actor (positioning, not leaving); 0 = off.', min=0.0, max=600.0)
     spot_speed_mps: float = 0.4            # ... commanded with a 1 s mean horizontal command slower than this
-    spot_radius_m: float = 1.2             # a push toward a spot this close, or a climb this close to one, stays
+    # a push toward a spot this close, or a climb this close to one, stays
+    spot_radius_m: float = node_param(1.2, 'pilot_override_spot_radius_m', 'A landing spot this close (horizontal '
+                                      'm) counts for pilot_override_spot_memory_s.', min=0.0, max=10.0)
     spot_ahead_m: float = 0.2              # ... with the actor: 'toward' = the spot this far ahead along the push
 
     def __post_init__(self) -> None:

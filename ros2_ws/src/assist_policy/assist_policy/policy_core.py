@@ -42,6 +42,7 @@ from .poses import PoseHistory
 from .recall import RecallConfig
 from .safety import SafetyConfig
 from .actor import load_actor
+from .settings import nested, node_param
 
 log = logging.getLogger(__name__)
 
@@ -72,29 +73,43 @@ class PolicyCoreConfig:
     """Settings of the policy core (policy_node parameters map 1:1); validated on construction."""
 
     mode: str = 'latent'
-    blend_threshold: float = DEFAULT_THRESHOLD
-    pilot_timeout_s: float = 0.5
-    feature_timeout_s: float = 0.5
-    odom_timeout_s: float = 0.5
-    max_speed_mps: float = MAX_SPEED_MPS
-    max_vertical_mps: float = MAX_VERTICAL_MPS
-    max_input_mps: float = 5.0          # pilot commands faster than this (norm) are rejected
-    body_frame: str = 'base_link'       # pilot commands must be in this frame (or carry no frame)
+    blend_threshold: float = node_param(DEFAULT_THRESHOLD, 'blend_threshold', 'Agent actions with |a| at or below '
+                                        'this (m/s) are ignored: V = u.', min=0.0, max=10.0)
+    pilot_timeout_s: float = node_param(0.5, 'pilot_timeout_s', 'Pilot command older than this counts as absent (u '
+                                        '= 0).', min=0.0, max=10.0, min_exclusive=True)
+    feature_timeout_s: float = node_param(0.5, 'latent_timeout_s', 'Latent (or image) older than this: the '
+                                          'assistant relinquishes (V = u).', min=0.0, max=10.0, min_exclusive=True)
+    odom_timeout_s: float = node_param(0.5, 'odom_timeout_s', 'Odometry older than this: the assistant relinquishes '
+                                       '(V = u).', min=0.0, max=10.0, min_exclusive=True)
+    max_speed_mps: float = node_param(MAX_SPEED_MPS, 'max_speed', 'Horizontal speed limit of the published /cmd_vel '
+                                      '(m/s).', min=0.0, max=20.0, min_exclusive=True)
+    max_vertical_mps: float = node_param(MAX_VERTICAL_MPS, 'max_vertical_speed', 'Vertical speed limit of the '
+                                         'published /cmd_vel (m/s).', min=0.0, max=10.0, min_exclusive=True)
+    # pilot commands faster than this (norm) are rejected
+    max_input_mps: float = node_param(5.0, 'max_input_speed', 'Pilot commands faster than this (speed, the norm) '
+                                      'are rejected (m/s).', min=0.0, max=50.0, min_exclusive=True)
+    # pilot commands must be in this frame (or carry no frame)
+    body_frame: str = node_param('base_link', 'frame_id', 'Body frame: frame_id of the published commands; pilot '
+                                 'commands must carry it (or none).', dynamic=False)
     max_odom_speed_mps: float = 50.0    # odometry faster than this is not a multirotor: rejected
     max_position_m: float = 1.0e4       # odometry / goal coordinates beyond this are rejected
     max_latent_abs: float = 1.0e3       # encoder means beyond this are rejected
-    safety: SafetyConfig | None = None  # floor guard settings (None: SafetyConfig() defaults)
-    override: OverrideConfig | None = None  # pilot override settings (None: OverrideConfig() defaults)
-    recall: RecallConfig | None = None      # pad recall settings (None: RecallConfig() defaults)
-    damper: DamperConfig | None = None      # oscillation damper settings (None: DamperConfig() defaults)
-    flight: FlightConfig | None = None      # flight boundaries (None: FlightConfig() defaults)
+    safety: SafetyConfig | None = nested(SafetyConfig)   # floor guard settings (None: SafetyConfig() defaults)
+    override: OverrideConfig | None = nested(OverrideConfig)   # pilot override settings (None: OverrideConfig() defaults)
+    recall: RecallConfig | None = nested(RecallConfig)   # pad recall settings (None: RecallConfig() defaults)
+    damper: DamperConfig | None = nested(DamperConfig)   # oscillation damper settings (None: DamperConfig() defaults)
+    flight: FlightConfig | None = nested(FlightConfig)   # flight boundaries (None: FlightConfig() defaults)
     # velocity the actor sees: the odometry twist as given (base_link, policy_node) or rotated to odom with the
     # odometry attitude (as evaluate's env trains and flies it; replay_assist for evaluate's bags); the rules
     # (floor guard, override, damper) always read the twist
     actor_velocity: str = 'twist'
     # the pad recall maps a depth frame from the odometry pose at the frame's sensor stamp (interpolated) when
     # odometry stamps lie within this of it (s); else from the latest odometry (counted: depth_pose_unmatched)
-    depth_pose_match_s: float = 0.1
+    depth_pose_match_s: float = node_param(0.1, 'depth_pose_match_s', 'The pad recall maps a depth frame from the '
+                                           "odometry pose at the frame's header stamp (interpolated) when /odom "
+                                           'header stamps lie within this of it (s); else from the latest odometry '
+                                           '(counted in /diagnostics depth_pose_unmatched: stamps never set, '
+                                           'another clock).', min=0.0, max=1.0)
 
     def __post_init__(self) -> None:
         """Reject settings that would reverse, suppress or invent motion (ValueError, one line)."""
@@ -184,13 +199,25 @@ class PolicyCore:
         return self.assistant.engaged
 
     def configure(self, **changes) -> None:
-        """Change settings at run time (e.g. speed limits); ValueError (nothing changed) if invalid."""
+        """Change settings at run time; ValueError (nothing changed) if any is invalid.
+
+        Top-level fields by name (e.g. ``max_speed_mps=1.0``); a rule's by its config field and a dict
+        (``safety={'enabled': False}``, also ``override``, ``recall``, ``damper``, ``flight``): the rule's live
+        settings object changes in place (the floor guard's is shared with the wall rule and the recall's floor test).
+        """
+        live = {'safety': self.guard.cfg, 'override': self.override.cfg, 'recall': self.recall.cfg,
+                'damper': self.damper.cfg, 'flight': self.flight.cfg}
+        nested_changes = {k: changes.pop(k) for k in list(changes) if k in live}
+        checked = {k: dataclasses.replace(live[k], **v) for k, v in nested_changes.items()}   # validates each
         cfg = dataclasses.replace(self.cfg, **changes)
         if cfg.mode != self.cfg.mode:
             raise ValueError('the mode of a running policy core cannot change')
         self.assistant.configure(blend_threshold=cfg.blend_threshold, max_speed_mps=cfg.max_speed_mps,
                                  max_vertical_mps=cfg.max_vertical_mps)
-        self.cfg = cfg
+        for k, v in nested_changes.items():
+            for name in v:
+                setattr(live[k], name, getattr(checked[k], name))
+        self.cfg = dataclasses.replace(cfg, **{k: live[k] for k in live})
         self._poses.match_s = cfg.depth_pose_match_s
 
     # ------------------------------------------------------------- inputs

@@ -42,43 +42,20 @@ from assist_sim.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagno
                                    declare_parameters, executor_param, exit_process, fill_twist,
                                    realtime_priority_param, run_node, twist_to_array)
 
-from .blending import DEFAULT_THRESHOLD
-from .damper import DamperConfig
+from . import settings
 from .flight import REASONS as FLIGHT_REASONS
-from .flight import FlightConfig
 from .observation import Condition
-from .override import OverrideConfig
 from .policy_core import PolicyCore, PolicyCoreConfig, PolicyOutput, default_model_path
 from .poses import header_seconds
-from .recall import RecallConfig
-from .safety import SafetyConfig
 
-PARAMS = {
+# policy_node's own parameters; the assistant's (blending, limits, timeouts, every rule, flight boundaries) are
+# declared on its config dataclasses (settings.node_param) and derived from them below
+NODE_PARAMS = {
     'model_path': Param('', 'TD3 actor file; empty: the shipped models/td3_<mode>_actor.pt.'),
     'mode': Param('latent', 'Assistant input: latent (CM-VAE /assist/latent), oracle (/sim/goal, sim only), '
                             'end_to_end (raw RGB-D images).', choices=('latent', 'oracle', 'end_to_end')),
     'rate_hz': Param(20.0, 'Actor rate (the training control rate is 20 Hz).', min=0.0, max=200.0,
                      min_exclusive=True),
-    'blend_threshold': Param(DEFAULT_THRESHOLD, 'Agent actions with |a| at or below this (m/s) are ignored: V = u.',
-                             min=0.0, max=10.0, dynamic=True),
-    'pilot_timeout_s': Param(0.5, 'Pilot command older than this counts as absent (u = 0).', min=0.0, max=10.0,
-                             min_exclusive=True, dynamic=True),
-    'latent_timeout_s': Param(0.5, 'Latent (or image) older than this: the assistant relinquishes (V = u).',
-                              min=0.0, max=10.0, min_exclusive=True, dynamic=True),
-    'odom_timeout_s': Param(0.5, 'Odometry older than this: the assistant relinquishes (V = u).', min=0.0, max=10.0,
-                            min_exclusive=True, dynamic=True),
-    'depth_pose_match_s': Param(0.1, 'The pad recall maps a depth frame from the odometry pose at the frame\'s '
-                                'header stamp (interpolated) when /odom header stamps lie within this of it (s); '
-                                'else from the latest odometry (counted in /diagnostics depth_pose_unmatched: '
-                                'stamps never set, another clock).', min=0.0, max=1.0, dynamic=True),
-    'max_speed': Param(1.5, 'Horizontal speed limit of the published /cmd_vel (m/s).', min=0.0, max=20.0,
-                       min_exclusive=True, dynamic=True),
-    'max_vertical_speed': Param(1.0, 'Vertical speed limit of the published /cmd_vel (m/s).', min=0.0, max=10.0,
-                                min_exclusive=True, dynamic=True),
-    'max_input_speed': Param(5.0, 'Pilot commands faster than this (speed, the norm) are rejected (m/s).',
-                             min=0.0, max=50.0, min_exclusive=True, dynamic=True),
-    'frame_id': Param('base_link', 'Body frame: frame_id of the published commands; pilot commands must carry it '
-                                   '(or none).'),
     'torch_threads': Param(1, 'Intra-op CPU threads for the actor (1 is fastest for this small network).',
                            min=1, max=64),
     'error_after_faults': Param(20, 'Consecutive failed steps (exceptions or non-finite actor output) after which '
@@ -90,108 +67,15 @@ PARAMS = {
                                   'rate_hz timer then runs only while latents are missing.'),
     'executor': executor_param('events'),
     'realtime_priority': realtime_priority_param(0),
-    'floor_guard': Param(True, 'Floor guard (assist_policy.safety, not learned): low over the floor with no pad under '
-                               'the legs in /camera/depth/image_raw, a descent is replaced by a small climb.',
-                         dynamic=True),
-    'floor_guard_height_m': Param(1.0, 'Altitude (odom z over the floor, m) below which the floor guard acts.',
-                                  min=0.0, max=10.0, dynamic=True),
-    'floor_guard_edge_height_m': Param(SafetyConfig.edge_height_m, 'Floor guard edge rule: a descent is held while '
-                                       'the legs straddle a pad edge with the camera nearer than this to the pad '
-                                       '(m; 0 = off).', min=0.0, max=5.0, dynamic=True),
-    'floor_guard_climb_mps': Param(0.15, 'Vertical velocity the floor guard imposes instead of a descent (m/s; at '
-                                         'least blend_threshold / 2 + 0.01 is used).', min=0.0, max=1.0, dynamic=True),
-    'floor_guard_wall_radius_m': Param(SafetyConfig.wall_radius_m, 'Floor guard wall rule (assist_policy.walls): the '
-                                       'part of /cmd_vel heading for a wall seen within this horizontal distance is '
-                                       'removed, the pilot\'s as well as the actor\'s (m; 0 = off).',
-                                       min=0.0, max=10.0, dynamic=True),
-    'floor_guard_wall_height_m': Param(SafetyConfig.wall_height_m, 'Floor guard wall rule: a surface seen this high '
-                                       'over the floor (odom z) is a wall (m; landing pads must stand lower).',
-                                       min=0.1, max=50.0, dynamic=True),
-    'pilot_override': Param(True, 'Pilot override (assist_policy.override, not learned): while the pilot holds a '
-                                  'horizontal key and does not descend, its correction passes (the vehicle rises '
-                                  'gently when low) instead of the actor\'s action. Default false in mode oracle.',
-                            dynamic=True),
-    'pilot_override_speed_mps': Param(OverrideConfig.speed_mps, 'Mean horizontal pilot speed over the last second '
-                                      '(m/s) above which a key counts as held; keep it below the pilot\'s key speed '
-                                      '(teleop speed, 1 m/s by default).', min=0.0, max=10.0, dynamic=True),
-    'pilot_override_climb_mps': Param(OverrideConfig.climb_mps, 'Vertical velocity while the pilot override acts '
-                                      'low (m/s; the pilot\'s own climb if faster).', min=0.0, max=1.0, dynamic=True),
-    'pilot_override_climb_below_m': Param(OverrideConfig.climb_below_m, 'Altitude (odom z over the floor, m) below '
-                                          'which the pilot override adds the climb; above it it relinquishes.',
-                                          min=0.0, max=20.0, dynamic=True),
-    'pilot_override_reversal_s': Param(OverrideConfig.reversal_s, 'A held key reversing one held within this many '
-                                       'seconds is an overshoot being corrected: the pilot override stays out (s).',
-                                       min=0.0, max=60.0, dynamic=True),
-    'pilot_override_persist_s': Param(OverrideConfig.persist_s, 'Persistent push: a horizontal command held one way '
-                                      'this long (s) while the assistant held the vehicle back passes as a held key '
-                                      'does, descending or not; 0 = off.', min=0.0, max=60.0, dynamic=True),
-    'pilot_override_persist_speed_mps': Param(OverrideConfig.persist_speed_mps, 'Mean horizontal pilot speed over '
-                                              'pilot_override_persist_s (m/s) that counts as a persistent push over '
-                                              'a pad (above fine positioning).', min=0.01, max=10.0, dynamic=True),
-    'pilot_override_persist_floor_speed_mps': Param(OverrideConfig.persist_floor_speed_mps, 'The same over bare '
-                                                    'floor under every leg in the depth image (m/s).', min=0.01,
-                                                    max=10.0, dynamic=True),
-    'pilot_override_persist_climb_mps': Param(OverrideConfig.persist_climb_mps, 'Held climb: a climb commanded for '
-                                              'pilot_override_persist_s at at least this mean (m/s) that the vehicle '
-                                              'did not make passes until the pilot stops climbing; 0 = off.',
-                                              min=0.0, max=10.0, dynamic=True),
-    'pilot_override_long_push_s': Param(OverrideConfig.long_push_s, 'Long push: a slower horizontal command held '
-                                        'one way this long (s), with no descent, while the assistant held the '
-                                        'vehicle back passes as a held key does until the pilot stops pushing that '
-                                        'way or descends; 0 = off.', min=0.0, max=60.0, dynamic=True),
-    'pilot_override_long_push_speed_mps': Param(OverrideConfig.long_push_speed_mps, 'Mean horizontal pilot speed '
-                                                'along one axis over pilot_override_long_push_s (m/s) that counts as '
-                                                'a long push.', min=0.01, max=10.0, dynamic=True),
-    'pilot_override_spot_memory_s': Param(OverrideConfig.spot_memory_s, 'Landing spots: where the pilot '
-                                          'commanded a descent while not going anywhere is remembered this long '
-                                          '(s); a persistent or long push back to such a spot, or a held climb '
-                                          'near one, stays with the actor (positioning, not leaving); 0 = off.',
-                                          min=0.0, max=600.0, dynamic=True),
-    'pilot_override_spot_radius_m': Param(OverrideConfig.spot_radius_m, 'A landing spot this close (horizontal '
-                                          'm) counts for pilot_override_spot_memory_s.', min=0.0, max=10.0,
-                                          dynamic=True),
-    'pad_recall': Param(True, 'Pad recall (assist_policy.recall, not learned): pads seen in the depth image are '
-                              'mapped; when the pilot descends (or is low) over bare floor, the actor\'s horizontal '
-                              'action is replaced by a push back to the nearest mapped pad. Default false in mode '
-                              'oracle.', dynamic=True),
-    'pad_recall_radius_m': Param(RecallConfig.radius_m, 'The pad recall steers only to a mapped pad this close '
-                                 '(horizontal m).', min=0.0, max=50.0, dynamic=True),
-    'pad_recall_touchdown_height_m': Param(RecallConfig.touchdown_height_m, 'Lower than this over the top of a '
-                                           'mapped pad seen whole (and over it) during a descent, the pad recall '
-                                           'centres on it instead of the actor (m; 0: off).',
-                                           min=0.0, max=5.0, dynamic=True),
-    'pad_recall_scout_max_m': Param(RecallConfig.scout_max_m, 'Before steering back to a mapped pad behind, the '
-                                    'pad recall looks at the ground beyond not yet seen, where a nearer pad may be, '
-                                    'at most this far (horizontal m; 0: off).', min=0.0, max=10.0, dynamic=True),
-    'oscillation_damper': Param(True, 'Oscillation damper (assist_policy.damper, not learned): while the pilot\'s '
-                                      'held keys keep reversing (a pilot-induced oscillation), the actor\'s horizontal '
-                                      'action is replaced by a velocity damper, a_xy = -gain v_xy. Default false in '
-                                      'mode oracle.', dynamic=True),
-    'oscillation_damper_gain': Param(DamperConfig.gain, 'Gain of the oscillation damper (1/s): a_xy = -gain v_xy.',
-                                     min=0.0, max=10.0, dynamic=True),
-    'oscillation_damper_window_s': Param(DamperConfig.window_s, 'The oscillation damper counts reversals of the '
-                                         'pilot\'s held keys over this window (s).', min=0.5, max=60.0, dynamic=True),
-    'oscillation_damper_reversals': Param(DamperConfig.min_reversals, 'This many reversals within the window '
-                                          'engage the oscillation damper.', min=1, max=20, dynamic=True),
-    'flight_boundaries': Param(FlightConfig.enabled, 'Forget the flight (action history, pad and wall maps, landing '
-                               'spots, override and damper state) at an odometry jump, a landing and a take-off '
-                               '(assist_policy.flight); false: only at ~/reset.', dynamic=True),
-    'flight_jump_m': Param(FlightConfig.jump_m, 'Odometry moving this much farther between two samples than its '
-                           'speed explains is a jump (reset, teleport, EKF reset): a new flight (m).',
-                           min=0.0, max=100.0, min_exclusive=True, dynamic=True),
-    'flight_rest_speed_mps': Param(FlightConfig.rest_speed_mps, 'Slower than this (odometry twist norm, m/s) counts '
-                                   'as at rest.', min=0.0, max=1.0, min_exclusive=True, dynamic=True),
-    'flight_rest_s': Param(FlightConfig.rest_s, 'At rest this long while /cmd_vel descends at flight_rest_descent_mps '
-                           'or more: landed, the flight ends (s).', min=0.0, max=60.0, min_exclusive=True, dynamic=True),
-    'flight_rest_descent_mps': Param(FlightConfig.rest_descent_mps, 'Descent of the command flown that makes a rest '
-                                     'a landing (m/s).', min=0.0, max=5.0, min_exclusive=True, dynamic=True),
-    'flight_takeoff_climb_m': Param(FlightConfig.takeoff_climb_m, 'After a landing, rising this far above it is a '
-                                    'take-off: a new flight (m).', min=0.0, max=10.0, min_exclusive=True, dynamic=True),
 }
+CORE_PARAMS = settings.parameters(PolicyCoreConfig)      # parameter name -> config path, default, rule
+PARAMS = {**NODE_PARAMS, **{name: Param(f.default, f.spec.description, f.spec.min, f.spec.max, f.spec.min_exclusive,
+                                        f.spec.choices, f.spec.dynamic) for name, f in CORE_PARAMS.items()}}
 # The goal-agnostic rules: on by default, off by default in mode oracle, where the assistant knows the goal: letting
 # the pilot's keys through, steering to the nearest pad or damping the pilot only cost it (evaluate, 110 paper-pilot
 # landings: oracle + floor guard 99.1 % on the goal pad / 0 % crashes, with all three rules too 76.4 % / 8.2 %).
 GOAL_AGNOSTIC_RULES = ('pilot_override', 'pad_recall', 'oscillation_damper')
+RULE_SWITCHES = ('floor_guard', *GOAL_AGNOSTIC_RULES)          # on/off in /diagnostics
 
 
 def params_for_mode(mode: str) -> dict[str, Param]:
@@ -201,43 +85,6 @@ def params_for_mode(mode: str) -> dict[str, Param]:
     return {**PARAMS, **{k: dataclasses.replace(PARAMS[k], default=False) for k in GOAL_AGNOSTIC_RULES}}
 
 
-# node parameter -> (DamperConfig field, type)
-DAMPER_FIELDS = {'oscillation_damper': ('enabled', bool), 'oscillation_damper_gain': ('gain', float),
-                 'oscillation_damper_window_s': ('window_s', float),
-                 'oscillation_damper_reversals': ('min_reversals', int)}
-# node parameter -> (OverrideConfig field, type)
-OVERRIDE_FIELDS = {'pilot_override': ('enabled', bool), 'pilot_override_speed_mps': ('speed_mps', float),
-                   'pilot_override_climb_mps': ('climb_mps', float),
-                   'pilot_override_climb_below_m': ('climb_below_m', float),
-                   'pilot_override_reversal_s': ('reversal_s', float), 'pilot_override_persist_s': ('persist_s', float),
-                   'pilot_override_persist_speed_mps': ('persist_speed_mps', float),
-                   'pilot_override_persist_floor_speed_mps': ('persist_floor_speed_mps', float),
-                   'pilot_override_persist_climb_mps': ('persist_climb_mps', float),
-                   'pilot_override_long_push_s': ('long_push_s', float),
-                   'pilot_override_long_push_speed_mps': ('long_push_speed_mps', float),
-                   'pilot_override_spot_memory_s': ('spot_memory_s', float),
-                   'pilot_override_spot_radius_m': ('spot_radius_m', float)}
-# node parameter -> (FlightConfig field, type)
-FLIGHT_FIELDS = {'flight_boundaries': ('enabled', bool), 'flight_jump_m': ('jump_m', float),
-                 'flight_rest_speed_mps': ('rest_speed_mps', float), 'flight_rest_s': ('rest_s', float),
-                 'flight_rest_descent_mps': ('rest_descent_mps', float),
-                 'flight_takeoff_climb_m': ('takeoff_climb_m', float)}
-# node parameter -> (RecallConfig field, type)
-RECALL_FIELDS = {'pad_recall': ('enabled', bool), 'pad_recall_radius_m': ('radius_m', float),
-                 'pad_recall_touchdown_height_m': ('touchdown_height_m', float),
-                 'pad_recall_scout_max_m': ('scout_max_m', float)}
-
-
-def config_fields(params: dict, table: dict[str, tuple[str, type]]) -> dict:
-    """Config keyword arguments from the entries of `params` named in `table` (others ignored), typed."""
-    return {table[k][0]: table[k][1](v) for k, v in params.items() if k in table}
-
-
-# node parameter -> PolicyCoreConfig field, for the parameters applied to the core at run time
-CORE_FIELDS = {'blend_threshold': 'blend_threshold', 'pilot_timeout_s': 'pilot_timeout_s',
-               'latent_timeout_s': 'feature_timeout_s', 'odom_timeout_s': 'odom_timeout_s',
-               'max_speed': 'max_speed_mps', 'max_vertical_speed': 'max_vertical_mps',
-               'max_input_speed': 'max_input_mps', 'depth_pose_match_s': 'depth_pose_match_s'}
 # step outcomes that are normal operation (diagnostics OK); everything else is a WARN with its reason
 OK_KEYS = ('assisting', 'small_action', 'floor_guard', 'wall_guard', 'pilot_override', 'pad_recall',
            'oscillation_damper')
@@ -295,18 +142,7 @@ class PolicyNode(Node):
         torch.set_num_threads(int(self.p['torch_threads']))
         path = self.p['model_path'] or str(default_model_path(mode))
         try:
-            cfg = PolicyCoreConfig(mode=mode, body_frame=self.p['frame_id'],
-                                   safety=SafetyConfig(enabled=bool(self.p['floor_guard']),
-                                                       guard_height_m=float(self.p['floor_guard_height_m']),
-                                                       min_climb_mps=float(self.p['floor_guard_climb_mps']),
-                                                       edge_height_m=float(self.p['floor_guard_edge_height_m']),
-                                                       wall_radius_m=float(self.p['floor_guard_wall_radius_m']),
-                                                       wall_height_m=float(self.p['floor_guard_wall_height_m'])),
-                                   override=OverrideConfig(**config_fields(self.p, OVERRIDE_FIELDS)),
-                                   recall=RecallConfig(**config_fields(self.p, RECALL_FIELDS)),
-                                   damper=DamperConfig(**config_fields(self.p, DAMPER_FIELDS)),
-                                   flight=FlightConfig(**config_fields(self.p, FLIGHT_FIELDS)),
-                                   **{f: self.p[k] for k, f in CORE_FIELDS.items()})
+            cfg = settings.config_from(PolicyCoreConfig, self.p, mode=mode)
             self.core = PolicyCore(path, cfg)
         except ValueError as exc:
             raise StartupError(f'policy_node: {exc}') from None
@@ -340,55 +176,22 @@ class PolicyNode(Node):
                           callback_group=MutuallyExclusiveCallbackGroup())
         self.diag.set('model_path', path)
         self.diag.set('mode', mode)
-        self.diag.set('floor_guard', 'on' if self.p['floor_guard'] else 'off')
-        self.diag.set('pilot_override', 'on' if self.p['pilot_override'] else 'off')
-        self.diag.set('pad_recall', 'on' if self.p['pad_recall'] else 'off')
-        self.diag.set('oscillation_damper', 'on' if self.p['oscillation_damper'] else 'off')
+        for switch in RULE_SWITCHES:
+            self.diag.set(switch, 'on' if self.p[switch] else 'off')
         self.diag.status(DiagnosticStatus.WARN, 'relinquished: waiting for inputs')
         self.get_logger().info(f'policy_node: {mode} actor {path} at {self.p["rate_hz"]} Hz')
 
     # ------------------------------------------------------------- parameters
     def _on_params(self, changed: dict) -> None:
         """Apply run-time parameter changes to the core (ValueError refuses the whole set)."""
-        core_changes = {CORE_FIELDS[k]: v for k, v in changed.items() if k in CORE_FIELDS}
-        if core_changes:
+        changes = settings.changes_for(CORE_PARAMS, changed)
+        if changes:
+            top = changes.pop((), {})
             with self._lock:
-                self.core.configure(**core_changes)
-        guard = {k: changed[k] for k in ('floor_guard', 'floor_guard_height_m', 'floor_guard_climb_mps',
-                                         'floor_guard_edge_height_m', 'floor_guard_wall_radius_m',
-                                         'floor_guard_wall_height_m') if k in changed}
-        if guard:
-            with self._lock:
-                g = self.core.guard.cfg           # the wall rule reads the same settings object
-                g.enabled = bool(guard.get('floor_guard', g.enabled))
-                g.guard_height_m = float(guard.get('floor_guard_height_m', g.guard_height_m))
-                g.min_climb_mps = float(guard.get('floor_guard_climb_mps', g.min_climb_mps))
-                g.edge_height_m = float(guard.get('floor_guard_edge_height_m', g.edge_height_m))
-                g.wall_radius_m = float(guard.get('floor_guard_wall_radius_m', g.wall_radius_m))
-                g.wall_height_m = float(guard.get('floor_guard_wall_height_m', g.wall_height_m))
-            self.diag.set('floor_guard', 'on' if g.enabled else 'off')
-        override = config_fields(changed, OVERRIDE_FIELDS)
-        if override:
-            with self._lock:
-                self.core.override.cfg = dataclasses.replace(self.core.override.cfg, **override)
-            self.diag.set('pilot_override', 'on' if self.core.override.cfg.enabled else 'off')
-        recall = config_fields(changed, RECALL_FIELDS)
-        if recall:
-            with self._lock:
-                r = self.core.recall.cfg            # shared with the map: changed in place, once validated
-                dataclasses.replace(r, **recall)
-                for name, value in recall.items():
-                    setattr(r, name, value)
-            self.diag.set('pad_recall', 'on' if r.enabled else 'off')
-        flight = config_fields(changed, FLIGHT_FIELDS)
-        if flight:
-            with self._lock:
-                self.core.flight.cfg = dataclasses.replace(self.core.flight.cfg, **flight)
-        damper = config_fields(changed, DAMPER_FIELDS)
-        if damper:
-            with self._lock:
-                self.core.damper.cfg = dataclasses.replace(self.core.damper.cfg, **damper)
-            self.diag.set('oscillation_damper', 'on' if self.core.damper.cfg.enabled else 'off')
+                self.core.configure(**top, **{path[0]: fields for path, fields in changes.items()})
+        for switch in RULE_SWITCHES:
+            if switch in changed:
+                self.diag.set(switch, 'on' if changed[switch] else 'off')
 
     # ------------------------------------------------------------- inputs
     def _now(self) -> float:

@@ -86,6 +86,7 @@ from assist_sim.core.geometry import R_BODY_FROM_OPTICAL, quat_to_matrix, yaw_ro
 
 from .safety import FloorGuard, SafetyConfig
 from .scripted import ScriptedConfig, ScriptedOracle
+from .settings import node_param
 
 log = logging.getLogger(__name__)
 
@@ -94,15 +95,23 @@ log = logging.getLogger(__name__)
 class RecallConfig:
     """Settings of the pad map and the recall rule (policy_node parameters pad_recall_* map onto these)."""
 
-    enabled: bool = True
-    radius_m: float = 3.0             # steers only to a mapped pad this close (pads stand ~4 m apart)
+    enabled: bool = node_param(True, 'pad_recall', 'Pad recall (assist_policy.recall, not learned): pads seen in '
+                               'the depth image are mapped; when the pilot descends (or is low) over bare floor, '
+                               "the actor's horizontal action is replaced by a push back to the nearest mapped pad. "
+                               'Default false in mode oracle.')
+    # steers only to a mapped pad this close (pads stand ~4 m apart)
+    radius_m: float = node_param(3.0, 'pad_recall_radius_m', 'The pad recall steers only to a mapped pad this close '
+                                 '(horizontal m).', min=0.0, max=50.0)
     gain_xy: float = ScriptedConfig.gain_xy   # 1/s, the reference's centring gain (V = gain (pad - p))
     low_height_m: float = 1.2         # also acts without a descent this low over the pad's top (reference: 1.2)
     clear_height_m: float = 0.35      # lower than this over the pad's top and off it: climb first (its side)
     clear_radius_m: float = 0.4       # 'over it': nearer its centre than this (pads >= 0.8 m): the rule is off
     climb_mps: float = 0.3            # vertical V while climbing to clear the pad's side
     leave_speed_mps: float = 0.5      # a command (now or 1 s mean) this fast away from the pad: leaving it
-    touchdown_height_m: float = 1.0   # lower than this over a pad seen whole and over it: centre on it (0: off)
+    # lower than this over a pad seen whole and over it: centre on it (0: off)
+    touchdown_height_m: float = node_param(1.0, 'pad_recall_touchdown_height_m', 'Lower than this over the top of a '
+                                           'mapped pad seen whole (and over it) during a descent, the pad recall '
+                                           'centres on it instead of the actor (m; 0: off).', min=0.0, max=5.0)
     min_top_m: float = 0.25           # a point this high over the floor is raised (pads 0.4-1.2 m)
     max_top_m: float = 2.0            # a raised region reaching this high is a wall (walls stand 6 m)
     top_band_m: float = 0.1           # the top surface: raised points within this of the region's top
@@ -114,7 +123,10 @@ class RecallConfig:
     vertical_fov_deg: float = SafetyConfig.vertical_fov_deg  # depth camera vertical field of view (square pixels)
     max_image_px: int = 128           # a larger depth image is subsampled to this many pixels on its long side
     # scout (module docstring): look beyond before steering back to a pad behind (scout_max_m 0: off)
-    scout_max_m: float = 1.5          # at most this far from where the scout began (then back to the pad)
+    # at most this far from where the scout began (then back to the pad)
+    scout_max_m: float = node_param(1.5, 'pad_recall_scout_max_m', 'Before steering back to a mapped pad behind, '
+                                    'the pad recall looks at the ground beyond not yet seen, where a nearer pad may '
+                                    'be, at most this far (horizontal m; 0: off).', min=0.0, max=10.0)
     scout_margin_m: float = 0.4       # a pad nearer than the mapped one has its centre this much nearer still
     scout_back_mps: float = 0.25      # a command this fast toward the pad behind: the pilot is coming back (no scout)
     cell_m: float = 0.25              # ground seen: cells of this size (m) with a depth pixel on them

@@ -153,3 +153,37 @@ def test_policy_node_loads_the_actor_without_the_training_code():
             '"gymnasium") if m in sys.modules))')
     out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=120, check=True)
     assert out.stdout.strip() == '[]', out.stdout       # no replay buffer, no simulator on the deploy path
+
+
+def test_policy_node_parameters_and_assist_yaml_come_from_the_config_dataclasses():
+    import yaml  # noqa: PLC0415
+
+    from assist_policy import policy_node, settings  # noqa: PLC0415
+    derived = settings.parameters(PolicyCoreConfig)
+    assert len(derived) >= 40 and set(derived) <= set(policy_node.PARAMS)
+    cfg = PolicyCoreConfig()
+    for name, f in derived.items():
+        p = policy_node.PARAMS[name]
+        assert (p.default, p.description, p.min, p.max, p.dynamic) == (f.default, f.spec.description, f.spec.min,
+                                                                       f.spec.max, f.spec.dynamic), name
+        obj = cfg
+        for part in f.path[:-1]:
+            obj = getattr(obj, part) or dataclasses_default(type(cfg), part)
+        assert getattr(obj, f.path[-1]) == f.default, name        # the dataclass default is the parameter's
+    yml = yaml.safe_load(open(Path(policy_node.__file__).parents[1] / 'config' / 'assist.yaml', encoding='utf-8'))
+    shipped = yml['policy_node']['ros__parameters']
+    assert set(shipped) <= set(policy_node.PARAMS), set(shipped) - set(policy_node.PARAMS)
+    # every parameter but the per-mode switches (their default depends on the mode) is in the file, at its default
+    missing = set(policy_node.PARAMS) - set(shipped) - set(policy_node.GOAL_AGNOSTIC_RULES)
+    assert not missing, missing
+    assert {k: v for k, v in shipped.items() if v != policy_node.PARAMS[k].default} == {}
+    # a run-time set reaches the live settings through the same table
+    changes = settings.changes_for(derived, {'floor_guard_wall_radius_m': 0, 'max_speed': 1, 'flight_rest_s': 2})
+    assert changes == {('safety',): {'wall_radius_m': 0.0}, (): {'max_speed_mps': 1.0}, ('flight',): {'rest_s': 2.0}}
+
+
+def dataclasses_default(cls, name):
+    """The default instance of a nested config field left None."""
+    import dataclasses  # noqa: PLC0415
+    from assist_policy.settings import NESTED_KEY  # noqa: PLC0415
+    return next(f.metadata[NESTED_KEY] for f in dataclasses.fields(cls) if f.name == name)()
