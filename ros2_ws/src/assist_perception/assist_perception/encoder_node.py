@@ -3,6 +3,14 @@
 Thin rclpy shell over assist_perception.encoder_core. Colour and depth are paired by header stamp
 (approximate sync, `sync_slop_s`); each pair goes into a latest-only slot and a worker thread runs
 the inference, so a slow frame never queues up old ones and callbacks never block.
+
+With `depth_noise` (simulation: the encoder was trained on noisy depth) each frame's noise is drawn
+from `noise.frame_rng(noise_seed, the depth header stamp in ns)`, not from one running generator: the
+noise a frame got then depends on the recorded data alone, not on which frames this node happened to
+drop or skip. bag_record stores this node's parameters (depth_noise, noise_seed, level_camera,
+model_path, ...) in the bag's metadata, so replay_assist re-encodes a recorded flight through the
+same noise and reproduces the latents that flew. (The alternative, publishing the noisy depth, would
+cost a second depth stream per frame in every recording and still not tell replay the settings.)
 """
 from __future__ import annotations
 
@@ -26,7 +34,7 @@ from assist_sim.ros_common import (SENSOR_QOS, Diagnostics, Param, StartupError,
 from .encoder_core import BadFrame, LatentEncoder, LatestOnly, StampPairer, decode_color, decode_depth
 from .level import AttitudeBuffer, level_frame, level_rotation, tilt_deg
 from .model import ModelLoadError
-from .noise import apply_depth_noise
+from .noise import apply_depth_noise, frame_rng
 from .onnx_backend import BACKENDS
 
 PARAMS = {
@@ -47,7 +55,8 @@ PARAMS = {
                                             'time).', min=0.0, max=1.0, dynamic=True),
     'depth_noise': Param(False, 'Apply the D435i-like noise model to incoming depth (clean sim depth -> '
                                 'training distribution); leave off for a real camera.'),
-    'noise_seed': Param(0, 'Seed of the depth noise (depth_noise only).', min=0, max=2**31 - 1),
+    'noise_seed': Param(0, 'Seed of the depth noise (depth_noise only): the noise of a frame is a function of this '
+                           'seed and its header stamp.', min=0, max=2**31 - 1),
     'executor': executor_param('events'),
     'realtime_priority': realtime_priority_param(0),
     'level_camera': Param(False, 'Undo the camera tilt before encoding (camera rigidly mounted on an airframe '
@@ -87,7 +96,6 @@ class EncoderNode(Node):
         self.diag.set('latent_dim', self.encoder.latent_dim)
         self.pairer = StampPairer(float(self.p['sync_slop_s']))
         self.slot: LatestOnly[tuple[Image, Image]] = LatestOnly()
-        self.rng = np.random.default_rng(int(self.p['noise_seed']))
         self._last_warn: dict[str, float] = {}
         self._stopping = threading.Event()
 
@@ -205,7 +213,11 @@ class EncoderNode(Node):
         dep = decode_depth(depth.data, depth.encoding, depth.height, depth.width, depth.step,
                            bool(depth.is_bigendian))
         if self.p['depth_noise']:
-            dep = apply_depth_noise(dep, self.rng, rgb=rgb if rgb.shape[:2] == dep.shape else None)
+            stamp_ns = depth.header.stamp.sec * 1_000_000_000 + depth.header.stamp.nanosec
+            if stamp_ns < 0:
+                raise BadFrame('bad_stamp', f'depth stamp {stamp_ns} ns is before the epoch')
+            dep = apply_depth_noise(dep, frame_rng(int(self.p['noise_seed']), stamp_ns),
+                                    rgb=rgb if rgb.shape[:2] == dep.shape else None)
         if self.p['level_camera']:             # after the noise: the sensor sees the tilted scene
             rgb, dep = self._level(rgb, dep, stamp_to_sec(depth.header.stamp))
         t0 = time.perf_counter()

@@ -19,6 +19,10 @@ in `NoiseConfig`, and each can be switched off by setting its probability/coeffi
    in `blob_radius_frac` times the image width.
 
 Holes are 0 (as in the RealSense driver). Input holes (0 or NaN) stay holes.
+
+`frame_rng(seed, stamp_ns)` is the generator encoder_node draws one frame's noise from: a function of
+the node's `noise_seed` and the frame's header stamp only (not of the frames before it, nor of which
+frames the node dropped), so a replay of a recorded flight re-applies the very noise the encoder saw.
 """
 from __future__ import annotations
 
@@ -67,6 +71,14 @@ class NoiseConfig:
             raise ValueError('NoiseConfig.blob_radius_frac must satisfy 0 < lo <= hi')
         if self.focal_baseline_px_m <= 0:
             raise ValueError('NoiseConfig.focal_baseline_px_m must be > 0')
+
+
+def frame_rng(seed: int, stamp_ns: int) -> np.random.Generator:
+    """Noise generator of one frame: seeded by (seed, the frame's header stamp in ns) alone; ValueError if negative."""
+    seed, stamp_ns = int(seed), int(stamp_ns)
+    if seed < 0 or stamp_ns < 0:
+        raise ValueError(f'frame_rng: seed {seed} and stamp {stamp_ns} ns must be >= 0')
+    return np.random.default_rng([seed, stamp_ns])
 
 
 def _neighbour_extremum(z: np.ndarray, radius: int, op) -> np.ndarray:

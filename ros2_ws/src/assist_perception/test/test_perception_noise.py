@@ -4,7 +4,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from assist_perception.noise import NoiseConfig, apply_depth_noise, discontinuity_band
+from assist_perception.noise import NoiseConfig, apply_depth_noise, discontinuity_band, frame_rng
 
 # Every effect off; each test switches on the one it measures.
 QUIET = NoiseConfig(sigma_z2=0.0, disparity_step_px=0.0, depth_unit_m=0.0, edge_hole_prob=0.0,
@@ -142,3 +142,16 @@ def test_bad_config_and_shape_are_rejected():
         NoiseConfig(edge_hole_prob=1.5)
     with pytest.raises(ValueError):
         apply_depth_noise(np.zeros((2, 2, 2, 2)), np.random.default_rng(0))
+
+
+def test_frame_noise_is_a_function_of_seed_and_stamp_alone():
+    """encoder_node's per-frame generator: same seed and stamp, same noise, whatever came before; else other noise."""
+    z = _step_scene(1)[0]
+    stamp = 1_700_000_000_050_000_000
+    a = apply_depth_noise(z, frame_rng(7, stamp))
+    apply_depth_noise(z, frame_rng(7, stamp + 50_000_000))              # another frame in between changes nothing
+    np.testing.assert_array_equal(apply_depth_noise(z, frame_rng(7, stamp)), a)
+    assert not np.array_equal(apply_depth_noise(z, frame_rng(7, stamp + 1)), a)       # 1 ns later: another frame
+    assert not np.array_equal(apply_depth_noise(z, frame_rng(8, stamp)), a)           # another seed
+    with pytest.raises(ValueError):
+        frame_rng(7, -1)

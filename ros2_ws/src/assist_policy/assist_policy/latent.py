@@ -34,13 +34,15 @@ class LatentFn:
     `reset(episode_seed)` starts a landing: the depth noise is re-seeded from (seed, episode_seed) and the
     repeated latent goes back to zeros, so a landing depends on its own seed only, not on the landings
     flown before it with the same env. A frame the encoder rejects (e.g. no valid depth) repeats the
-    previous mu (zeros at first) and is logged.
+    previous mu (zeros at first) and is logged. Called with a frame's header stamp (`stamp_ns`), the frame's
+    noise comes from (seed, stamp) instead (`assist_perception.noise.frame_rng`), as encoder_node draws it:
+    replay_assist re-encodes a graph's recording that way.
     """
 
     def __init__(self, encoder, depth_noise: bool, seed: int):
         from assist_perception.encoder_core import BadFrame  # noqa: PLC0415
-        from assist_perception.noise import apply_depth_noise  # noqa: PLC0415
-        self._encoder, self._apply_noise = encoder, apply_depth_noise
+        from assist_perception.noise import apply_depth_noise, frame_rng  # noqa: PLC0415
+        self._encoder, self._apply_noise, self._frame_rng = encoder, apply_depth_noise, frame_rng
         self._bad_frame = BadFrame
         self.depth_noise = bool(depth_noise)
         self.seed = int(seed)
@@ -55,9 +57,14 @@ class LatentFn:
         self._rng = np.random.default_rng(key)
         self._mu = np.zeros(self.latent_dim)
 
-    def __call__(self, rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
-        """The encoder mean of this frame (the previous one if the encoder rejects the frame)."""
-        d = self._apply_noise(depth, self._rng, rgb=rgb) if self.depth_noise else depth
+    def __call__(self, rgb: np.ndarray, depth: np.ndarray, stamp_ns: int | None = None) -> np.ndarray:
+        """The encoder mean of this frame (the previous one if the encoder rejects the frame); `stamp_ns`: the
+        frame's noise from (seed, stamp) as encoder_node draws it, else from the landing's generator."""
+        if self.depth_noise:
+            rng = self._rng if stamp_ns is None else self._frame_rng(self.seed, stamp_ns)
+            d = self._apply_noise(depth, rng, rgb=rgb if np.shape(rgb)[:2] == np.shape(depth) else None)
+        else:
+            d = depth
         self.last_input = (rgb, d)      # evaluate --record-dir saves it
         try:
             self._mu = np.asarray(self._encoder.encode(rgb, d, want_xyz=False).mu, dtype=float)

@@ -79,6 +79,12 @@ CONTRACT_TOPICS: dict[str, tuple[str, Qos]] = {
 }
 
 
+# custom_data that bag_record writes: assist.params.<node> -> JSON object of the node's parameters when the recorder
+# reached it; assist.record_clock -> 'sim' (receive times are sim time) or 'wall'
+PARAMS_KEY = 'assist.params.'
+CLOCK_KEY = 'assist.record_clock'
+
+
 @lru_cache(maxsize=1)
 def typestore() -> Typestore:
     """The ROS 2 Jazzy message definitions (rosbags' built-in store)."""
@@ -345,6 +351,13 @@ class BagWriter:
         msgtype, profiles, ts, msgdef, digest = self._topics[topic]
         self._conns[topic] = self._writer.add_connection(
             topic, msgtype, typestore=ts, msgdef=msgdef, rihs01=digest, offered_qos_profiles=profiles)
+
+    def set_custom_data(self, key: str, value: str) -> None:
+        """Set one custom_data entry of metadata.yaml and rewrite it now (a killed recorder keeps it too)."""
+        if self.closed:
+            raise BagError(f'{self.final}: bag already closed')
+        self.custom_data[str(key)] = str(value)
+        self._write_metadata()
 
     # ------------------------------------------------------------------ messages
     def write(self, topic: str, t_ns: int, raw: bytes) -> None:

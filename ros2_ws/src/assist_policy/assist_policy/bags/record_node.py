@@ -8,20 +8,34 @@ Topics are subscribed as they appear (type and offered QoS taken from their publ
 written as received (CDR bytes, receive time of the node's clock: sim time with use_sim_time).
 Ctrl-C / SIGTERM close the bag cleanly; a killed recorder loses at most the file it was writing
 (metadata.yaml is rewritten after every finished file; see split_duration_s / split_size_mb).
+
+The configuration that flew goes into the bag too: with `record_parameters` (default on) the recorder
+asks each node named in `parameter_nodes` (encoder_node and policy_node by default, in any namespace)
+for all its parameters over the node's parameter services once it appears, and writes them into
+metadata.yaml's custom_data as ``assist.params.<node>`` (a JSON object; the node's name without the
+leading slash), rewritten at once. replay_assist reads the flown mode, rules and models from there and
+encoder_node's depth-noise settings (depth_noise, noise_seed: each frame's noise is a function of the
+seed and the frame's stamp), so it can re-encode the frames through the noise they had. The values
+are those the node held when the recorder reached it; ``assist.record_clock`` says whether receive
+times are sim time (use_sim_time) or wall-clock time.
 """
 from __future__ import annotations
 
+import json
 import logging
 import sys
 import time
+from typing import Any
 
+from rcl_interfaces.srv import GetParameters, ListParameters
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rclpy.parameter import Parameter
+from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from assist_sim.ros_common import Diagnostics, Param, StartupError, declare_parameters, run_node
 
-from .bagio import CONTRACT_TOPICS, BagError, BagWriter, typestore
+from .bagio import CLOCK_KEY, CONTRACT_TOPICS, PARAMS_KEY, BagError, BagWriter, typestore
 from .rosutil import bag_qos, cli_to_ros_args, message_class
 
 log = logging.getLogger('bag_record')
@@ -37,7 +51,12 @@ PARAMS = {
                            max=1e6),
     'discovery_period_s': Param(0.5, 'How often to look for new publishers of the wanted topics.', min=0.05,
                                 max=60.0),
+    'record_parameters': Param(True, 'Write the parameters of the nodes in parameter_nodes into the bag\'s '
+                                     'custom_data (assist.params.<node>, JSON) once they appear.'),
+    'parameter_nodes': Param(Parameter.Type.STRING_ARRAY, 'Names of the nodes (any namespace) whose parameters '
+                             'record_parameters stores; empty or unset: encoder_node and policy_node.'),
 }
+PARAMETER_NODES = ('encoder_node', 'policy_node')
 
 
 class BagRecordNode(Node):
@@ -59,11 +78,24 @@ class BagRecordNode(Node):
         except BagError as exc:
             raise StartupError(f'bag_record: {exc}') from exc
         self.output = out
+        use_sim_time = bool(self.get_parameter('use_sim_time').value)
+        try:
+            self.writer.set_custom_data(CLOCK_KEY, 'sim' if use_sim_time else 'wall')
+        except BagError as exc:
+            raise StartupError(f'bag_record: {exc}') from exc
+        nodes = [n for n in (self.p['parameter_nodes'] or []) if n] or PARAMETER_NODES
+        self.param_nodes = set(nodes) if self.p['record_parameters'] else set()
+        self.param_clients: dict[str, tuple[Any, Any]] = {}   # node -> (list, get) parameter service clients
+        self.param_pending: set[str] = set()
+        self.params_done: set[str] = set()
         self.subs: dict[str, object] = {}
         self.warned: set[str] = set()
         self.count = 0
         self.write_errors = 0
-        self.create_timer(float(self.p['discovery_period_s']), self._discover)
+        # on the steady clock: with use_sim_time a sim-time timer would wait for /clock, and nodes and topics that
+        # appear before the sim starts would go unrecorded until it does
+        self.create_timer(float(self.p['discovery_period_s']), self._discover,
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))
         self._discover()
         self.get_logger().info(f'bag_record: recording {len(self.wanted)} topics into {out} '
                                f'({self.p["storage"]})')
@@ -74,6 +106,7 @@ class BagRecordNode(Node):
             self.get_logger().warning(text)
 
     def _discover(self) -> None:
+        self._discover_parameters()
         types = dict(self.get_topic_names_and_types())
         for topic in self.wanted:
             if topic in self.subs or topic not in types:
@@ -100,6 +133,58 @@ class BagRecordNode(Node):
             self.subs[topic] = self.create_subscription(cls, topic, lambda raw, t=topic: self._on_msg(t, raw),
                                                         qos, raw=True)
             self.get_logger().info(f'bag_record: recording {topic} [{msgtype}]')
+
+    def _discover_parameters(self) -> None:
+        """Ask each wanted node that has appeared (once its parameter services are up) for its parameters, once."""
+        if not self.param_nodes:
+            return
+        for name, ns in self.get_node_names_and_namespaces():
+            fqn = (ns.rstrip('/') + '/' + name).lstrip('/')
+            if name not in self.param_nodes or fqn in self.params_done or fqn in self.param_pending:
+                continue
+            if fqn not in self.param_clients:
+                self.param_clients[fqn] = (self.create_client(ListParameters, f'/{fqn}/list_parameters'),
+                                           self.create_client(GetParameters, f'/{fqn}/get_parameters'))
+            lister, getter = self.param_clients[fqn]
+            if not (lister.service_is_ready() and getter.service_is_ready()):
+                continue
+            self.param_pending.add(fqn)
+            lister.call_async(ListParameters.Request()).add_done_callback(
+                lambda fut, n=fqn: self._on_param_names(n, fut))
+
+    def _param_failed(self, fqn: str, what: str) -> None:
+        """Forget the pending request: the next discovery asks again."""
+        self.param_pending.discard(fqn)
+        self._warn_once(f'params:{fqn}:{what}', f'bag_record: asking /{fqn} for its parameters failed ({what}); '
+                                                'retrying')
+
+    def _on_param_names(self, fqn: str, fut: Any) -> None:
+        res = fut.result() if fut.exception() is None else None
+        if res is None:
+            self._param_failed(fqn, 'list_parameters')
+            return
+        names = sorted(res.result.names)
+        req = GetParameters.Request()
+        req.names = names
+        self.param_clients[fqn][1].call_async(req).add_done_callback(
+            lambda f, n=fqn, k=names: self._on_param_values(n, k, f))
+
+    def _on_param_values(self, fqn: str, names: list[str], fut: Any) -> None:
+        res = fut.result() if fut.exception() is None else None
+        if res is None or len(res.values) != len(names):
+            self._param_failed(fqn, 'get_parameters')
+            return
+        values = {}
+        for name, value in zip(names, res.values):
+            v = parameter_value_to_python(value)
+            values[name] = list(v) if not isinstance(v, (str, bytes)) and hasattr(v, '__len__') else v
+        try:
+            self.writer.set_custom_data(PARAMS_KEY + fqn, json.dumps(values, sort_keys=True, default=str))
+        except BagError as exc:
+            self.get_logger().error(f'bag_record: {exc}')
+        self.params_done.add(fqn)
+        self.param_pending.discard(fqn)
+        self.get_logger().info(f'bag_record: recorded the {len(values)} parameters of /{fqn}')
 
     def _on_msg(self, topic: str, raw: bytes) -> None:
         try:
