@@ -56,10 +56,12 @@ class Probe:
         d = self.get('diag')
         return int(d[-1].get(name, 0)) if d else 0
 
-    def publish_pair(self, rgb, rgb_enc, depth_bytes, depth_enc, h, w, depth_step, t):
+    def publish_pair(self, rgb, rgb_enc, depth_bytes, depth_enc, h, w, depth_step, t=None):
+        """Publish one colour + depth pair stamped `t` (s; None: now on the probe's clock, as a camera stamps)."""
         stamp = self.node.get_clock().now().to_msg()
-        stamp.sec = int(t)
-        stamp.nanosec = int((t - int(t)) * 1e9)
+        if t is not None:
+            stamp.sec = int(t)
+            stamp.nanosec = int((t - int(t)) * 1e9)
         c = Image(height=h, width=w, encoding=rgb_enc, step=len(rgb) // h, data=rgb)
         d = Image(height=h, width=w, encoding=depth_enc, step=depth_step, data=depth_bytes)
         c.header.stamp = d.header.stamp = stamp
@@ -83,7 +85,7 @@ def probe(ros):
 
 def test_latents_from_sim_frames_have_model_size_and_camera_rate(probe, start_node, wait):
     latent_dim = load_model(default_model_path()).cfg.latent_dim
-    enc = start_node('encoder_node', {'realtime_priority': 20})
+    enc = start_node('encoder_node', {'realtime_priority': 20, 'use_sim_time': True})   # frames carry sim time
     sim = start_node('sim_node', {'seed': 5, 'real_time_factor': 1.0, 'camera_rate_hz': 20.0})
     assert wait(lambda: probe.count('latent') >= 40, 90), sim.log() + enc.log()
     assert 'onnxruntime' in enc.log()              # the default backend on CPU
@@ -124,25 +126,21 @@ def test_bad_frames_are_skipped_counted_and_good_ones_still_encoded(probe, start
     rgb = np.random.default_rng(0).integers(0, 255, (h, w, 3), dtype=np.uint8)
     good_depth = np.full((h, w), 2500, np.uint16)          # 2.5 m in millimetres
     nan_depth = np.full((h, w), np.nan, np.float32)
-    t = 100.0
     # one bad pair at a time: the node keeps only the latest pair, so a pair sent right behind
     # another can replace it before the worker looks (by design); repeat, since sensor-data QoS
     # may also drop the first ones while discovery settles
     for _ in range(5):
-        probe.publish_pair(rgb.tobytes(), 'mono8', good_depth.tobytes(), '16UC1', h, w, 2 * w, t)
-        t += 1.0
+        probe.publish_pair(rgb.tobytes(), 'mono8', good_depth.tobytes(), '16UC1', h, w, 2 * w)
         if wait(lambda: probe.counter('bad_bad_encoding') > 0, 3):
             break
     for _ in range(5):
-        probe.publish_pair(rgb.tobytes(), 'rgb8', nan_depth.tobytes(), '32FC1', h, w, 4 * w, t)
-        t += 1.0
+        probe.publish_pair(rgb.tobytes(), 'rgb8', nan_depth.tobytes(), '32FC1', h, w, 4 * w)
         if wait(lambda: probe.counter('bad_no_valid_depth') > 0, 3):
             break
     assert probe.counter('bad_bad_encoding') > 0 and probe.counter('bad_no_valid_depth') > 0, enc.log()
     assert probe.count('latent') == 0
     for _ in range(5):   # bgr8 + 16UC1 at a non-64 resolution is a good frame
-        probe.publish_pair(rgb[..., ::-1].tobytes(), 'bgr8', good_depth.tobytes(), '16UC1', h, w, 2 * w, t)
-        t += 0.1
+        probe.publish_pair(rgb[..., ::-1].tobytes(), 'bgr8', good_depth.tobytes(), '16UC1', h, w, 2 * w)
         if wait(lambda: probe.count('latent') > 0, 2):
             break
     assert probe.count('latent') > 0, enc.log()
@@ -183,7 +181,8 @@ def test_level_camera_needs_attitude_and_intrinsics_then_levels(probe, ros, star
     pub_odom = ros.create_publisher(Odometry, '/odom', SENSOR_QOS)
     assert wait(lambda: probe.count('diag') > 0, 60), enc.log()
 
-    def send(t, info=True, odom=True):
+    def send(info=True, odom=True):
+        t = ros.get_clock().now().nanoseconds * 1e-9          # stamped now, as a camera does (old frames are skipped)
         stamp = ros.get_clock().now().to_msg()
         stamp.sec, stamp.nanosec = int(t), int((t - int(t)) * 1e9)
         if info:
@@ -196,17 +195,14 @@ def test_level_camera_needs_attitude_and_intrinsics_then_levels(probe, ros, star
             pub_odom.publish(o)
         probe.publish_pair(f.rgb.tobytes(), 'rgb8', f.depth.astype('<f4').tobytes(), '32FC1', h, w, 4 * w, t)
 
-    t = 50.0
     for _ in range(8):                     # intrinsics but no attitude: skipped
-        send(t, info=True, odom=False)
-        t += 0.5
+        send(info=True, odom=False)
         if wait(lambda: probe.counter('bad_no_attitude') > 0, 1.5):
             break
     assert probe.counter('bad_no_attitude') > 0, enc.log()
     assert probe.count('latent') == 0
     for _ in range(10):                    # both: levelled and encoded
-        send(t)
-        t += 0.5
+        send()
         if wait(lambda: probe.counter('frames_levelled') > 0 and probe.count('latent') > 0, 1.5):
             break
     assert probe.counter('frames_levelled') > 0 and probe.count('latent') > 0, enc.log()
@@ -216,3 +212,24 @@ def test_level_camera_needs_attitude_and_intrinsics_then_levels(probe, ros, star
     ros.destroy_publisher(pub_info)
     ros.destroy_publisher(pub_odom)
     assert enc.proc.poll() is None
+
+
+def test_frames_stamped_long_ago_or_in_the_future_are_skipped_and_counted(probe, start_node, wait):
+    enc = start_node('encoder_node', {'warn_period_s': 0.0})
+    assert wait(lambda: probe.count('diag') > 0, 60), enc.log()
+    h, w = 64, 64
+    rgb = np.random.default_rng(0).integers(0, 255, (h, w, 3), dtype=np.uint8).tobytes()
+    depth = np.full((h, w), 2500, np.uint16).tobytes()
+    for offset_s, reason in ((-60.0, 'bad_stale_stamp'), (60.0, 'bad_future_stamp')):
+        for _ in range(5):
+            probe.publish_pair(rgb, 'rgb8', depth, '16UC1', h, w, 2 * w,
+                               probe.node.get_clock().now().nanoseconds * 1e-9 + offset_s)
+            if wait(lambda r=reason: probe.counter(r) > 0, 3):
+                break
+        assert probe.counter(reason) > 0, enc.log()
+    assert probe.count('latent') == 0                      # never encoded as the present
+    for _ in range(5):                                     # a frame stamped now is
+        probe.publish_pair(rgb, 'rgb8', depth, '16UC1', h, w, 2 * w)
+        if wait(lambda: probe.count('latent') > 0, 2):
+            break
+    assert probe.count('latent') > 0, enc.log()

@@ -42,11 +42,12 @@ def depth_msg(encoding: str, depth: np.ndarray | None = None) -> Image:
     depth = np.full((64, 64), FLOOR_DEPTH, np.float32) if depth is None else depth.astype(np.float32)
     m = Image()
     m.height = m.width = 64
-    m.encoding = encoding
+    m.encoding = encoding.removesuffix('be')          # '16UC1be': a big-endian 16UC1 image (is_bigendian set)
+    m.is_bigendian = int(encoding.endswith('be'))
     if encoding == '32FC1':
         m.step, m.data = 64 * 4, depth.tobytes()
     else:
-        m.step, m.data = 64 * 2, np.round(depth * 1000).astype(np.uint16).tobytes()
+        m.step, m.data = 64 * 2, np.round(depth * 1000).astype('>u2' if m.is_bigendian else '<u2').tobytes()
     return m
 
 
@@ -129,7 +130,7 @@ def test_floor_guard_blocks_descent_over_floor_and_can_be_turned_off(ros, start_
     node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0,
                                       'pad_recall': False})
     probe.until_first(probe.agent, node)
-    for enc in ('32FC1', '16UC1'):
+    for enc in ('32FC1', '16UC1', '16UC1be'):         # a big-endian image reads as the same floor
         t1 = probe.run(1.5, enc)
         cmds, agents = probe.since(probe.cmd, t1 + 0.7), probe.since(probe.agent, t1 + 0.7)
         assert cmds and agents, node.log()
@@ -356,3 +357,24 @@ def test_wall_rule_stops_an_approach_to_a_wall_in_view_and_can_be_turned_off(ros
     t2 = probe.run(1.5, position=position, depth=wall)
     cmds = probe.since(probe.cmd, t2 + 0.5)
     assert cmds and all(v[0] > 0.9 for v in cmds), cmds[-3:]           # radius 0: the wall rule is off
+
+
+def test_policy_node_dates_inputs_by_their_stamps_and_rejects_old_and_future_ones(ros, start_node, wait, tmp_path):
+    model = _helpers.constant_actor(tmp_path / 'relinquish.pt', [0.0, 0.0, 0.0])     # a = 0: V = u
+    probe = Probe(ros)
+    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0,
+                                      'pad_recall': False})
+    now = lambda ns: (ns, ns)                                                       # noqa: E731
+    probe.until_first(probe.agent, node, stamps=now)
+    t1 = probe.run(1.5, stamps=now)                   # stamped now: the floor guard holds the descent
+    assert all(np.allclose(v, [0, 0, 0.15], atol=1e-5) for v in probe.since(probe.cmd, t1 + 0.7))
+    for offset_s, reason in ((-60.0, 'stale_stamp'), (60.0, 'future_stamp')):
+        shifted = lambda ns, o=offset_s: (ns + int(o * 1e9),) * 2                  # noqa: E731
+        t2 = probe.run(1.5, stamps=shifted)
+        cmds = probe.since(probe.cmd, t2 + 0.8)
+        # odometry and depth refused: no pose to guard by, the assistant relinquishes (V = u, the descent passes)
+        assert cmds and all(np.allclose(v, [0, 0, -0.5], atol=1e-5) for v in cmds), (reason, cmds[-3:])
+        assert wait(lambda r=reason: any(int(d.get(f'rejected_odom_{r}', 0)) > 0
+                                         and int(d.get(f'rejected_depth_{r}', 0)) > 0 for d in probe.diag), 5), \
+            probe.diag[-1:]
+        assert node.proc.poll() is None

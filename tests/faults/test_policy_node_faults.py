@@ -263,7 +263,7 @@ def test_node_survives_hostile_odometry_and_wrong_frames(probe, start_node, wait
 
 
 @pytest.mark.graph
-@pytest.mark.parametrize('param, value, words', [('max_vertical_speed', '-1.0', "'max_vertical_speed' must be > 0"),
+@pytest.mark.parametrize('param, value, words', [('max_vertical_speed', '-1.0', "'max_vertical_speed' must be >= 0.1"),
                                                  ('max_speed', '.nan', "'max_speed' must be finite"),
                                                  ('rate_hz', '0', "'rate_hz' must be > 0")])
 def test_bad_parameter_exits_with_one_line(start_node, wait, model, param, value, words):

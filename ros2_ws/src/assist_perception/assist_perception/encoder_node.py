@@ -27,9 +27,9 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Float32MultiArray, MultiArrayDimension
 
-from assist_sim.ros_common import (SENSOR_QOS, Diagnostics, Param, StartupError, declare_parameters,
+from assist_sim.ros_common import (SENSOR_QOS, STAMP_TOLERANCE_S, Diagnostics, Param, StartupError, declare_parameters,
                                    executor_param, exit_process, forward_logging, realtime_priority_param,
-                                   run_node, stamp_to_sec)
+                                   run_node, stamp_problem, stamp_to_sec)
 
 from .encoder_core import BadFrame, LatentEncoder, LatestOnly, StampPairer, decode_color, decode_depth
 from .level import AttitudeBuffer, level_frame, level_rotation, tilt_deg
@@ -57,6 +57,13 @@ PARAMS = {
                                 'training distribution); leave off for a real camera.'),
     'noise_seed': Param(0, 'Seed of the depth noise (depth_noise only): the noise of a frame is a function of this '
                            'seed and its header stamp.', min=0, max=2**31 - 1),
+    'max_frame_age_s': Param(0.5, 'Frames whose depth header stamp is older than this on the node\'s clock (sim or '
+                                  'wall) are skipped and counted (bad_stale_stamp): a latent is never made of an '
+                                  'old frame (settable at run time).', min=0.0, max=60.0, min_exclusive=True,
+                             dynamic=True),
+    'stamp_tolerance_s': Param(STAMP_TOLERANCE_S, 'Frames stamped further ahead of the node\'s clock than this (s) '
+                               'are skipped and counted (bad_future_stamp) (settable at run time).', min=0.0,
+                               max=10.0, dynamic=True),
     'executor': executor_param('events'),
     'realtime_priority': realtime_priority_param(0),
     'level_camera': Param(False, 'Undo the camera tilt before encoding (camera rigidly mounted on an airframe '
@@ -209,6 +216,13 @@ class EncoderNode(Node):
         return True
 
     def _process(self, color: Image, depth: Image) -> None:
+        # a frame is dated by its header stamp against this node's clock (sim or wall): stale or from the future,
+        # it is skipped and counted (bad_stale_stamp / bad_future_stamp), never encoded as the present
+        stamp = stamp_to_sec(depth.header.stamp)
+        problem = stamp_problem(stamp if stamp > 0 else None, self.get_clock().now().nanoseconds * 1e-9,
+                                float(self.p['max_frame_age_s']), float(self.p['stamp_tolerance_s']))
+        if problem is not None:
+            raise BadFrame(*problem)
         rgb = decode_color(color.data, color.encoding, color.height, color.width, color.step)
         dep = decode_depth(depth.data, depth.encoding, depth.height, depth.width, depth.step,
                            bool(depth.is_bigendian))

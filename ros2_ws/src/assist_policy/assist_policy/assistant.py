@@ -36,7 +36,7 @@ from typing import Callable, Hashable, Protocol
 
 import numpy as np
 
-from .blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS, blend, clamp_velocity
+from .blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS, MIN_SPEED_LIMIT_MPS, blend, clamp_velocity
 from .damper import DamperConfig, OscillationDamper
 from .override import OverrideConfig, PilotOverride
 from .recall import PadRecall, RecallConfig
@@ -123,8 +123,8 @@ class AssistantConfig:
             raise ValueError(f'blend_threshold must be a finite number >= 0, got {t!r}')
         for name in ('max_speed_mps', 'max_vertical_mps'):
             v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f'{name} must be a finite number > 0, got {v!r}')
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= MIN_SPEED_LIMIT_MPS):
+                raise ValueError(f'{name} must be a finite number >= {MIN_SPEED_LIMIT_MPS}, got {v!r}')
 
 
 def rules_off(cfg: AssistantConfig | None = None) -> AssistantConfig:

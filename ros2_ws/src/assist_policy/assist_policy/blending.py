@@ -9,6 +9,7 @@ DEFAULT_THRESHOLD = 0.25  # m/s; paper, "TD3 implementation": small assistant ac
 
 MAX_SPEED_MPS = 1.5      # policy_node max_speed: horizontal speed limit of the published /cmd_vel
 MAX_VERTICAL_MPS = 1.0   # policy_node max_vertical_speed
+MIN_SPEED_LIMIT_MPS = 0.1   # speed limits below this would silently stop every motion, the pilot's too
 
 
 def clamp_velocity(v: np.ndarray, max_speed_mps: float = MAX_SPEED_MPS,

@@ -33,7 +33,7 @@ from assist_sim.shipped import shipped_model_path
 
 from .actions import scale_action
 from .assistant import Assistant, AssistantConfig, DepthFrame, StepContext
-from .blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS, clamp_velocity
+from .blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS, MIN_SPEED_LIMIT_MPS, clamp_velocity
 from .damper import DamperConfig
 from .flight import FlightConfig, FlightMonitor
 from .observation import Condition, ObservationBuilder, image_feature, oracle_feature
@@ -82,9 +82,11 @@ class PolicyCoreConfig:
     odom_timeout_s: float = node_param(0.5, 'odom_timeout_s', 'Odometry older than this: the assistant relinquishes '
                                        '(V = u).', min=0.0, max=10.0, min_exclusive=True)
     max_speed_mps: float = node_param(MAX_SPEED_MPS, 'max_speed', 'Horizontal speed limit of the published /cmd_vel '
-                                      '(m/s).', min=0.0, max=20.0, min_exclusive=True)
+                                      '(m/s; not below 0.1: a tinier limit would silently stop the pilot too).',
+                                      min=MIN_SPEED_LIMIT_MPS, max=20.0)
     max_vertical_mps: float = node_param(MAX_VERTICAL_MPS, 'max_vertical_speed', 'Vertical speed limit of the '
-                                         'published /cmd_vel (m/s).', min=0.0, max=10.0, min_exclusive=True)
+                                         'published /cmd_vel (m/s; not below 0.1).', min=MIN_SPEED_LIMIT_MPS,
+                                         max=10.0)
     # pilot commands faster than this (norm) are rejected
     max_input_mps: float = node_param(5.0, 'max_input_speed', 'Pilot commands faster than this (speed, the norm) '
                                       'are rejected (m/s).', min=0.0, max=50.0, min_exclusive=True)
@@ -117,8 +119,11 @@ class PolicyCoreConfig:
         thr = self.blend_threshold
         if not (isinstance(thr, (int, float)) and math.isfinite(thr) and thr >= 0):
             raise ValueError(f'PolicyCoreConfig.blend_threshold must be a finite number >= 0, got {thr!r}')
-        for name in ('pilot_timeout_s', 'feature_timeout_s', 'odom_timeout_s', 'max_speed_mps',
-                     'max_vertical_mps', 'max_input_mps', 'max_odom_speed_mps', 'max_position_m',
+        for name in ('max_speed_mps', 'max_vertical_mps'):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= MIN_SPEED_LIMIT_MPS):
+                raise ValueError(f'PolicyCoreConfig.{name} must be a finite number >= {MIN_SPEED_LIMIT_MPS}, got {v!r}')
+        for name in ('pilot_timeout_s', 'feature_timeout_s', 'odom_timeout_s', 'max_input_mps', 'max_odom_speed_mps', 'max_position_m',
                      'max_latent_abs'):
             _positive(name, getattr(self, name))
         m = self.depth_pose_match_s

@@ -38,14 +38,16 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import Float32MultiArray
 from std_srvs.srv import Trigger
 
-from assist_sim.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError,
+from assist_perception.images import decode_color, decode_depth
+from assist_sim.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, STAMP_TOLERANCE_S, Diagnostics, Param,
+                                   StartupError, stamp_problem,
                                    declare_parameters, executor_param, exit_process, fill_twist,
                                    realtime_priority_param, run_node, twist_to_array)
 
 from . import settings
 from .flight import REASONS as FLIGHT_REASONS
 from .observation import Condition
-from .policy_core import PolicyCore, PolicyCoreConfig, PolicyOutput, default_model_path
+from .policy_core import InputRejected, PolicyCore, PolicyCoreConfig, PolicyOutput, default_model_path
 from .poses import header_seconds
 
 # policy_node's own parameters; the assistant's (blending, limits, timeouts, every rule, flight boundaries) are
@@ -65,6 +67,10 @@ NODE_PARAMS = {
     'step_on_latent': Param(True, 'latent mode: run the actor as soon as a new latent arrives (camera-to-command '
                                   'latency = one inference, /cmd_vel stamped with the frame\'s sim time); the '
                                   'rate_hz timer then runs only while latents are missing.'),
+    'stamp_tolerance_s': Param(STAMP_TOLERANCE_S, 'An input stamped further ahead of the node\'s clock than this '
+                               '(s) is rejected and counted (rejected_<input>_future_stamp); one older than its '
+                               'timeout is rejected as stale. Inputs are dated by their header stamp (unset: '
+                               'arrival).', min=0.0, max=10.0, dynamic=True),
     'executor': executor_param('events'),
     'realtime_priority': realtime_priority_param(0),
 }
@@ -107,18 +113,6 @@ class ReasonThrottle:
             return False
         self._last[reason] = now
         return True
-
-
-def _image_to_array(msg: Image) -> np.ndarray:
-    """sensor_msgs/Image (rgb8, 32FC1, 16UC1) -> numpy (uint8 HxWx3 or float32 metres HxW)."""
-    h, w = msg.height, msg.width
-    if msg.encoding == 'rgb8':
-        return np.frombuffer(bytes(msg.data), np.uint8).reshape(h, msg.step)[:, :w * 3].reshape(h, w, 3)
-    if msg.encoding == '32FC1':
-        return np.frombuffer(bytes(msg.data), np.float32).reshape(h, msg.step // 4)[:, :w].copy()
-    if msg.encoding == '16UC1':
-        return np.frombuffer(bytes(msg.data), np.uint16).reshape(h, msg.step // 2)[:, :w].astype(np.float32) / 1000.0
-    raise ValueError(f'unsupported image encoding {msg.encoding!r}')
 
 
 class PolicyNode(Node):
@@ -216,15 +210,26 @@ class PolicyNode(Node):
                 self._reject(what, exc)
         return guarded
 
+    def _dated(self, what: str, msg, max_age_s: float) -> tuple[float, float | None]:
+        """(time the core dates the message by, its header stamp): the stamp against the node's clock (an unset
+        stamp: the arrival); InputRejected when it lies in the future beyond stamp_tolerance_s or is older than
+        `max_age_s` (the input's timeout: it would count as absent anyway, and must not replace a newer one)."""
+        now, stamp = self._now(), header_seconds(msg)
+        problem = stamp_problem(stamp, now, max_age_s, float(self.p['stamp_tolerance_s']))
+        if problem is not None:
+            raise InputRejected(f'{what}_{problem[0]}', f'{what}: {problem[1]}')
+        return (now if stamp is None else min(stamp, now)), stamp
+
     def _on_odom(self, msg: Odometry) -> None:
         p, v, q = msg.pose.pose.position, msg.twist.twist.linear, msg.pose.pose.orientation
         with self._lock:
-            self.core.set_odom(self._now(), [p.x, p.y, p.z], [v.x, v.y, v.z], [q.x, q.y, q.z, q.w],
-                               header_seconds(msg))
+            t, stamp = self._dated('odom', msg, self.core.cfg.odom_timeout_s)
+            self.core.set_odom(t, [p.x, p.y, p.z], [v.x, v.y, v.z], [q.x, q.y, q.z, q.w], stamp)
 
     def _on_pilot(self, msg: TwistStamped) -> None:
         with self._lock:
-            self.core.set_pilot(self._now(), twist_to_array(msg), msg.header.frame_id)
+            t, _ = self._dated('pilot', msg, self.core.cfg.pilot_timeout_s)
+            self.core.set_pilot(t, twist_to_array(msg), msg.header.frame_id)
 
     def _on_latent(self, msg: Float32MultiArray) -> None:
         with self._lock:
@@ -250,16 +255,16 @@ class PolicyNode(Node):
         return response
 
     def _on_rgb(self, msg: Image) -> None:
-        self._rgb = _image_to_array(msg)
+        self._rgb = decode_color(msg.data, msg.encoding, msg.height, msg.width, msg.step)
 
     def _on_depth(self, msg: Image) -> None:
-        depth = _image_to_array(msg)
-        if depth.ndim != 2:
-            raise ValueError(f'depth image must be 32FC1 or 16UC1, got {msg.encoding!r}')
+        # encoding, step and byte order honoured (images.decode_depth); what it cannot read raises BadFrame (counted)
+        depth = decode_depth(msg.data, msg.encoding, msg.height, msg.width, msg.step, bool(msg.is_bigendian))
         with self._lock:
-            self.core.set_depth(self._now(), depth, header_seconds(msg))
+            t, stamp = self._dated('depth', msg, self.core.cfg.feature_timeout_s)
+            self.core.set_depth(t, depth, stamp)
             if self.core.mode.value == 'end_to_end' and self._rgb is not None:
-                self.core.set_image(self._now(), self._rgb, depth)
+                self.core.set_image(t, self._rgb, depth)
 
     # ------------------------------------------------------------- control step
     def _publish(self, out: PolicyOutput) -> None:

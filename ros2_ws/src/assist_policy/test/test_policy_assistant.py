@@ -187,3 +187,18 @@ def dataclasses_default(cls, name):
     import dataclasses  # noqa: PLC0415
     from assist_policy.settings import NESTED_KEY  # noqa: PLC0415
     return next(f.metadata[NESTED_KEY] for f in dataclasses.fields(cls) if f.name == name)()
+
+
+@pytest.mark.parametrize('value', [1e-300, 0.0, 0.05, -1.0, float('nan')])
+def test_speed_limits_that_would_silently_stop_every_motion_are_refused(value, tmp_path):
+    from assist_policy import policy_node  # noqa: PLC0415
+    for name in ('max_speed_mps', 'max_vertical_mps'):
+        with pytest.raises(ValueError):
+            PolicyCoreConfig(**{name: value})
+    for param in ('max_speed', 'max_vertical_speed'):
+        with pytest.raises(ValueError):
+            policy_node.PARAMS[param].coerce(param, value)
+    core = PolicyCore(_helpers.constant_actor(tmp_path / 'a.pt', [0.0, 0.0, 0.0]), PolicyCoreConfig())
+    with pytest.raises(ValueError):
+        core.configure(max_speed_mps=value)
+    assert core.assistant.cfg.max_speed_mps == 1.5            # nothing changed

@@ -21,6 +21,7 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
@@ -50,6 +51,9 @@ class Param:
     accepted strings, `dynamic` marks a parameter the node applies at run time (validated by the
     parameter callback); every other parameter is declared read-only, so `ros2 param set` is
     refused instead of accepted and ignored. A float parameter accepts an integer (`-p x:=2`).
+    An array parameter has a list default and `item_type` (int, float or str): every item is
+    checked against `min`/`max`/`choices` (rcl's parser wants one item type: write 0.0, not 0, in a
+    float array).
     """
 
     default: Any
@@ -59,9 +63,15 @@ class Param:
     min_exclusive: bool = False
     choices: tuple[str, ...] | None = None
     dynamic: bool = False
+    item_type: type | None = None
 
     def coerce(self, name: str, value: Any) -> Any:
         """Value converted to the parameter's type and checked; ValueError with a one-line reason."""
+        if self.item_type is not None:
+            if not isinstance(value, (list, tuple)):
+                raise ValueError(f"parameter '{name}' must be a list, got {value!r}")
+            item = Param(self.item_type(), self.description, self.min, self.max, self.min_exclusive, self.choices)
+            return [item.coerce(f'{name}[{i}]', v) for i, v in enumerate(value)]
         kind = type(self.default)
         if kind is bool:
             if not isinstance(value, bool):
@@ -110,6 +120,10 @@ class Param:
             raise ValueError(f"parameter '{name}' must be {self.rule()}, got {value!r}")
 
 
+_ARRAY_TYPES = {int: Parameter.Type.INTEGER_ARRAY, float: Parameter.Type.DOUBLE_ARRAY,
+                str: Parameter.Type.STRING_ARRAY}
+
+
 class ParamValues(dict):
     """The node's current (validated, coerced) parameter values; dynamic ones follow run-time sets."""
 
@@ -132,7 +146,12 @@ def declare_parameters(node: Node, spec: Mapping[str, Param],
         desc = ParameterDescriptor(description=text, read_only=not p.dynamic,
                                    dynamic_typing=isinstance(p.default, (int, float)) and not isinstance(p.default, bool))
         try:
-            raw = node.declare_parameter(name, p.default, desc).value
+            if p.item_type is not None:      # typed array (an empty default has no type of its own)
+                desc.type = _ARRAY_TYPES[p.item_type].value
+                raw = node.declare_parameter(name, _ARRAY_TYPES[p.item_type], desc).value
+                raw = list(p.default) if raw is None else raw
+            else:
+                raw = node.declare_parameter(name, p.default, desc).value
         except Exception as exc:  # rclpy raises its own type errors for e.g. a string for a bool
             raise StartupError(f'{node.get_name()}: parameter {name!r}: {exc}') from exc
         try:
@@ -180,6 +199,25 @@ def sec_to_stamp(t: float, stamp=None):
     sec, nanosec = divmod(int(round(float(t) * 1e9)), 1_000_000_000)
     stamp.sec, stamp.nanosec = int(sec), int(nanosec)
     return stamp
+
+
+STAMP_TOLERANCE_S = 0.25    # default: a header stamp this far ahead of the node's clock is still accepted
+
+
+def stamp_problem(stamp_s: float | None, now_s: float, max_age_s: float,
+                  tolerance_s: float = STAMP_TOLERANCE_S) -> tuple[str, str] | None:
+    """Why a message's header stamp makes it unusable at `now_s` (the node's clock, sim or wall), else None.
+
+    (reason key, text): ``future_stamp`` when the stamp lies more than `tolerance_s` ahead, ``stale_stamp``
+    when it is older than `max_age_s`. An unset stamp (None: 0 in the message) is judged by arrival: None.
+    """
+    if stamp_s is None:
+        return None
+    if stamp_s - now_s > tolerance_s:
+        return 'future_stamp', f'stamped {stamp_s - now_s:.3f} s ahead of the clock (tolerance {tolerance_s:g} s)'
+    if now_s - stamp_s > max_age_s:
+        return 'stale_stamp', f'stamped {now_s - stamp_s:.3f} s ago (older than {max_age_s:g} s)'
+    return None
 
 
 def twist_to_array(msg: TwistStamped):
