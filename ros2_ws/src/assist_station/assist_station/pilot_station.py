@@ -2,13 +2,16 @@
 
 Serves the page (chase view from /sim/scene + /odom, camera inset, assisted state, landing results)
 and publishes the pilot's held keys as /pilot/cmd_vel (TwistStamped, base_link) at a fixed rate,
-and at once on every key change.
+and at once when the command changes. No message on any topic stops the node: an unusable one is
+rejected, counted on /diagnostics and logged once per reason.
 """
 from __future__ import annotations
 
+import functools
 import math
 import threading
 import time
+from typing import Any, Callable
 
 import numpy as np
 from geometry_msgs.msg import TwistStamped
@@ -23,11 +26,16 @@ from assist_sim.ros_common import (LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, SENSO
                                    StartupError, declare_parameters, exit_process, fill_twist, run_node, twist_to_array)
 
 from .server import ServerConfig, StationServer
-from .station_core import (MODES, AssistMonitor, KeyState, StationConfig, camera_payload, landing_feedback,
-                           parse_landing, scene_from_boxes)
+from .access import allowed_hosts
+from .station_core import (MODES, AssistMonitor, CommandGate, InputError, KeyState, OncePerReason, StationConfig,
+                           camera_payload, landing_feedback, parse_landing, scene_from_boxes, short_repr)
 
 PARAMS = {
-    'host': Param('127.0.0.1', 'Address the HTTP/WebSocket server binds to (loopback by default).'),
+    'host': Param('127.0.0.1', 'Address the HTTP/WebSocket server binds to (loopback by default). Requests '
+                               'must name it (Host and Origin headers): 127.0.0.1, localhost or [::1] for a '
+                               'loopback bind, also the machine\'s names for 0.0.0.0, else the address itself.'),
+    'allowed_hosts': Param([], 'More host names (or name:port) the page may be reached by, e.g. a DNS name of '
+                               'this machine; each is added to the Host/Origin allow-list.', item_type=str),
     'port': Param(8080, 'TCP port of the page (0: any free port; the printed URL says which).', min=0, max=65535),
     'mode': Param('practice', 'practice: goal marked, result after each landing; study: goal marked, no '
                               'feedback (the paper\'s study landings); free: no goal marker, result shown.',
@@ -42,7 +50,8 @@ PARAMS = {
     'view_rate_hz': Param(30.0, 'Rate of pose/state updates sent to the page (Hz).', min=1.0, max=120.0),
     'camera_rate_hz': Param(15.0, 'Most camera inset frames per second sent to the page (0: no inset).',
                             min=0.0, max=60.0),
-    'camera_max_width': Param(160, 'Camera inset frames wider than this are subsampled (pixels).', min=8, max=1280),
+    'camera_max_width': Param(160, 'Camera inset frames wider or taller than this are subsampled (pixels).',
+                              min=8, max=1280),
     'agent_timeout_s': Param(0.5, '/assist/agent_cmd older than this: the page shows "unassisted".',
                              min=0.0, max=10.0, min_exclusive=True),
     'assist_threshold': Param(DEFAULT_THRESHOLD, 'Agent actions above this norm (m/s) show as "assistant '
@@ -50,6 +59,10 @@ PARAMS = {
     'max_message_bytes': Param(1024, 'Page messages larger than this are rejected (bytes).', min=64, max=65536),
     'stall_timeout_s': Param(5.0, 'A page that stops reading for this long is disconnected (s).',
                              min=0.1, max=120.0),
+    'max_connections': Param(16, 'Most WebSocket connections open at once; more are refused (503). The pilot '
+                                 'page reconnecting with its session token is always let in.', min=1, max=10000),
+    'pilot_grace_s': Param(10.0, 'After the pilot page\'s socket drops, the pilot role waits this long for that '
+                                 'page to reconnect; other pages stay view only meanwhile (s).', min=0.0, max=600.0),
     'chase_back_m': Param(3.5, 'Chase camera distance behind the drone (m).', min=0.0, max=50.0),
     'chase_up_m': Param(2.0, 'Chase camera height above the drone (m).', min=0.0, max=50.0),
     'fov_deg': Param(60.0, 'Vertical field of view of the chase view (deg).', min=10.0, max=120.0),
@@ -71,32 +84,61 @@ class PilotStation(Node):
         p = self.p
         self.keys = KeyState(StationConfig(speed=p['speed'], speed_z=p['speed_z'], key_timeout_s=p['key_timeout_s']))
         self.assist = AssistMonitor(p['agent_timeout_s'], p['assist_threshold'])
+        self.gate = CommandGate()
+        self._first = OncePerReason()
         self._lock = threading.Lock()
         self._odom: dict | None = None
         self._odom_time = -math.inf
         self._last_camera = -math.inf
         self.pub_cmd = self.create_publisher(TwistStamped, '/pilot/cmd_vel', RELIABLE_QOS)
-        self.create_subscription(Odometry, '/odom', self._on_odom, SENSOR_QOS)
-        self.create_subscription(MarkerArray, '/sim/scene', self._on_scene, LATCHED_QOS)
-        self.create_subscription(TwistStamped, '/assist/agent_cmd', self._on_agent, RELIABLE_QOS)
-        self.create_subscription(String, '/sim/landing', self._on_landing, LANDING_QOS)
+        guard = self._guarded
+        self.create_subscription(Odometry, '/odom', guard('odom', self._on_odom), SENSOR_QOS)
+        self.create_subscription(MarkerArray, '/sim/scene', guard('scene', self._on_scene), LATCHED_QOS)
+        self.create_subscription(TwistStamped, '/assist/agent_cmd', guard('agent_cmd', self._on_agent), RELIABLE_QOS)
+        self.create_subscription(String, '/sim/landing', guard('landing', self._on_landing), LANDING_QOS)
         if p['camera_rate_hz'] > 0:
-            self.create_subscription(Image, '/camera/color/image_raw', self._on_camera, SENSOR_QOS)
+            self.create_subscription(Image, '/camera/color/image_raw', guard('camera', self._on_camera), SENSOR_QOS)
         hello = {'mode': p['mode'], 'show_goal': p['mode'] in ('practice', 'study'),
                  'chase': {'back_m': p['chase_back_m'], 'up_m': p['chase_up_m'], 'fov_deg': p['fov_deg']},
                  'speed': p['speed'], 'speed_z': p['speed_z'], 'camera': p['camera_rate_hz'] > 0}
+        try:
+            allowed_hosts(p['host'], 80, p['allowed_hosts'])
+        except ValueError as exc:
+            raise StartupError(f"pilot_station: parameter 'allowed_hosts': {exc}") from None
         self.server = StationServer(
             ServerConfig(host=p['host'], port=int(p['port']), max_message_bytes=int(p['max_message_bytes']),
-                         view_rate_hz=p['view_rate_hz'], stall_timeout_s=p['stall_timeout_s']),
-            self.keys, self._state, hello, on_command=self._publish, count=self.diag.count)
+                         view_rate_hz=p['view_rate_hz'], stall_timeout_s=p['stall_timeout_s'],
+                         allowed_hosts=tuple(p['allowed_hosts']), max_connections=int(p['max_connections']),
+                         pilot_grace_s=p['pilot_grace_s']),
+            self.keys, self._state, hello, on_command=self._on_page_command, count=self.diag.count)
         try:
             url = self.server.start()
         except OSError as exc:
             raise StartupError(f"pilot_station: cannot serve on {p['host']}:{p['port']}: {exc}") from exc
-        self.create_timer(1.0 / p['rate_hz'], self._tick)
-        self.create_timer(1.0, self._diag_values)
+        self.create_timer(1.0 / p['rate_hz'], guard('tick', self._tick))
+        self.create_timer(1.0, guard('diagnostics', self._diag_values))
         print(f'pilot_station: open {url} in a browser', flush=True)
-        self.get_logger().info(f"pilot station at {url} (mode {p['mode']}, /pilot/cmd_vel at {p['rate_hz']} Hz)")
+        self.get_logger().info(f"pilot station at {url} (mode {p['mode']}, /pilot/cmd_vel at {p['rate_hz']} Hz; "
+                               f"serves the host names {self.server.policy.describe()})")
+
+    def _guarded(self, name: str, fn: Callable[..., None]) -> Callable[..., None]:
+        """`fn` as a callback that never raises: an exception is counted ({name}_errors) and logged once per kind."""
+        @functools.wraps(fn)
+        def call(*args: Any) -> None:
+            try:
+                fn(*args)
+            except Exception as exc:  # noqa: BLE001 - no message may kill the node between pilot and vehicle
+                self.diag.count(f'{name}_errors')
+                if self._first(f'{name}:{type(exc).__name__}'):
+                    self.get_logger().error(f'{name} callback failed, input dropped (further ones counted as '
+                                            f'{name}_errors): {short_repr(exc, 200)}')
+        return call
+
+    def _rejected(self, counter: str, exc: InputError) -> None:
+        """Count an unusable input and log it the first time its reason is seen."""
+        self.diag.count(counter)
+        if self._first(f'{counter}:{exc.reason}'):
+            self.get_logger().warning(f'{exc} (further ones counted as {counter})')
 
     # ------------------------------------------------------------------ commands
     def _publish(self, v: np.ndarray) -> None:
@@ -105,8 +147,15 @@ class PilotStation(Node):
         msg.header.frame_id = self.p['frame_id']
         self.pub_cmd.publish(fill_twist(msg, v))
 
+    def _on_page_command(self, v: np.ndarray) -> None:
+        """A command from the page: published at once when it changed (CommandGate), else left to the timer."""
+        if self.gate.immediate(v, time.monotonic()):
+            self._publish(v)
+
     def _tick(self) -> None:
-        self._publish(self.keys.command(time.monotonic()))
+        v = self.keys.command(time.monotonic())
+        self.gate.sent(v)
+        self._publish(v)
 
     # ------------------------------------------------------------------ inputs
     def _on_odom(self, msg: Odometry) -> None:
@@ -115,9 +164,7 @@ class PilotStation(Node):
         q = (pp.orientation.x, pp.orientation.y, pp.orientation.z, pp.orientation.w)
         v = (tw.linear.x, tw.linear.y, tw.linear.z)
         if not (_finite(p) and _finite(q) and _finite(v)) or sum(x * x for x in q) < 1e-6:
-            self.diag.count('odom_rejected')
-            self.get_logger().warning('/odom rejected: non-finite pose/twist or zero quaternion',
-                                      throttle_duration_sec=2.0)
+            self._rejected('odom_rejected', InputError('/odom rejected: non-finite pose/twist or zero quaternion'))
             return
         with self._lock:
             self._odom = {'p': [float(x) for x in p], 'q': [float(x) for x in q], 'v': [float(x) for x in v]}
@@ -139,22 +186,20 @@ class PilotStation(Node):
         try:
             scene = scene_from_boxes(boxes)
         except ValueError as exc:
-            self.diag.count('scene_rejected')
-            self.get_logger().warning(f'/sim/scene rejected: {exc}')
+            self._rejected('scene_rejected', InputError('/sim/scene rejected', short_repr(str(exc), 200)))
             return
         self.server.set_scene(scene)
         self.get_logger().info(f"scene: {len(scene['platforms'])} platforms, goal {scene['goal']}")
 
     def _on_agent(self, msg: TwistStamped) -> None:
         if not self.assist.note(twist_to_array(msg), time.monotonic()):
-            self.diag.count('agent_cmd_rejected')
+            self._rejected('agent_cmd_rejected', InputError('/assist/agent_cmd rejected: not a finite 3-vector'))
 
     def _on_landing(self, msg: String) -> None:
         try:
             landing = parse_landing(msg.data)
-        except ValueError as exc:
-            self.diag.count('landing_rejected')
-            self.get_logger().warning(str(exc))
+        except InputError as exc:
+            self._rejected('landing_rejected', exc)
             return
         self.server.push_event(landing_feedback(landing, self.p['mode']))
 
@@ -165,12 +210,11 @@ class PilotStation(Node):
         try:
             w, h, rgb = camera_payload(msg.width, msg.height, msg.encoding, msg.step, msg.data,
                                        int(self.p['camera_max_width']))
-        except ValueError as exc:
-            self.diag.count('camera_rejected')
-            self.get_logger().warning(f'/camera/color/image_raw rejected: {exc}', throttle_duration_sec=5.0)
+            self.server.set_camera(w, h, rgb)
+        except InputError as exc:
+            self._rejected('camera_rejected', InputError(f'/camera/color/image_raw rejected: {exc.reason}', exc.detail))
             return
         self._last_camera = now
-        self.server.set_camera(w, h, rgb)
 
     # ------------------------------------------------------------------ view state
     def _state(self) -> dict:
@@ -179,6 +223,7 @@ class PilotStation(Node):
             odom, age = self._odom, now - self._odom_time
         return {'pose': odom, 'odom_age_s': round(age, 3) if math.isfinite(age) else None,
                 'assist': self.assist.state(now), 'keys': list(self.keys.held(now)),
+                'stopped': self.keys.stopped(now),
                 'cmd': [round(float(x), 3) for x in self.keys.command(now)]}
 
     def _diag_values(self) -> None:

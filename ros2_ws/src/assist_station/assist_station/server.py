@@ -1,18 +1,26 @@
 """HTTP + WebSocket server of the pilot station (aiohttp, its own asyncio thread; no rclpy).
 
 One page (``/`` and ``/static/*``, every asset served from the package: the station works offline)
-and one WebSocket (``/ws``). The first browser to connect is the pilot; later ones are told so and
-get a view-only role. Outgoing data is latest-value only (state, camera) or a short bounded queue
-(events), so a client that never reads loses frames (counted) instead of growing memory or
-blocking anything; one whose send stalls for `stall_timeout_s` is disconnected. When the pilot's
-socket goes away (closed, dropped, stalled, oversized message) every key is released and a zero
-command goes out at once.
+and one WebSocket (``/ws``). Every request must name the station in its Host header (an allow-list
+derived from the bind address and port, see access.py), and a WebSocket's Origin must be one of
+those too; a connection without an Origin (not a browser page) is view only. The first page to
+connect is the pilot and gets a session token; when its socket drops, the pilot role waits
+`pilot_grace_s` for the page to reconnect with that token (``/ws?session=TOKEN``), and every other
+page is view only. Any connected page may hold the stop key (Space): the command is zero while it
+does. At most `max_connections` WebSockets are open at once (the pilot's reconnect always gets in).
+Outgoing data is latest-value only (state, camera) or a short bounded queue (events), so a client
+that never reads loses frames (counted) instead of growing memory or blocking anything; one whose
+send stalls for `stall_timeout_s` is disconnected. When the pilot's socket goes away (closed,
+dropped, stalled, oversized message) every key is released and a zero command goes out at once.
 """
 from __future__ import annotations
 
 import asyncio
+import hmac
 import json
 import logging
+import math
+import secrets
 import threading
 import time
 from collections import Counter, deque
@@ -24,7 +32,8 @@ from typing import Any, Callable
 import numpy as np
 from aiohttp import WSCloseCode, WSMsgType, web
 
-from .station_core import KeyState, MessageError, camera_frame_bytes, parse_client_message
+from .access import HostPolicy, allowed_hosts
+from .station_core import STOP_KEY, KeyState, MessageError, camera_frame_bytes, parse_client_message, short_repr
 
 _LOG = logging.getLogger('assist_station.server')
 WEB_DIR = Path(__file__).resolve().parent / 'web'
@@ -43,6 +52,9 @@ class ServerConfig:
     view_rate_hz: float = 30.0            # state pushes to each page
     stall_timeout_s: float = 5.0          # a send blocked this long disconnects the client
     max_events: int = 32                  # queued events per client (acks, landings, errors)
+    allowed_hosts: tuple[str, ...] = ()   # more names the page may be reached by ('name', 'name:port')
+    max_connections: int = 16             # open WebSockets at most (the pilot's reconnect is always let in)
+    pilot_grace_s: float = 10.0           # the pilot role waits this long for its page to reconnect
 
 
 class _Client:
@@ -57,6 +69,7 @@ class _Client:
         self.camera: bytes | None = None
         self.scene_version = -1
         self.peer = request.remote or '?'
+        self.stopping = False             # a view-only page holding the stop key
 
 
 class _Throttle:
@@ -86,6 +99,10 @@ class StationServer:
         self._web_dir = web_dir
         self._clients: set[_Client] = set()
         self._pilot: _Client | None = None
+        self._session: str | None = None          # the pilot page's token
+        self._reserved_until = -math.inf          # the pilot role waits for its page until then
+        self._n_ws = 0                            # WebSockets open or opening
+        self._policy: HostPolicy | None = None
         self._lock = threading.Lock()
         self._scene: str | None = None
         self._scene_version = 0
@@ -128,9 +145,17 @@ class StationServer:
         return len(self._clients)
 
     @property
+    def policy(self) -> HostPolicy:
+        """The Host/Origin allow-list (derived from host, port and allowed_hosts once the port is bound)."""
+        if self._policy is None:
+            self._policy = HostPolicy(allowed_hosts(self.cfg.host, self.port or self.cfg.port, self.cfg.allowed_hosts))
+        return self._policy
+
+    @property
     def url(self) -> str:
-        """http://HOST:PORT/ of the running server."""
-        host = self.cfg.host if ':' not in self.cfg.host else f'[{self.cfg.host}]'
+        """http://HOST:PORT/ of the running server (127.0.0.1 for a wildcard bind)."""
+        host = {'': '127.0.0.1', '0.0.0.0': '127.0.0.1', '::': '::1'}.get(self.cfg.host, self.cfg.host)
+        host = host if ':' not in host else f'[{host}]'
         return f'http://{host}:{self.port}/'
 
     def _count(self, key: str, n: int = 1) -> None:
@@ -152,7 +177,15 @@ class StationServer:
 
     @web.middleware
     async def _headers(self, request: web.Request, handler):
-        resp = await handler(request)
+        host = request.headers.get('Host')
+        if not self.policy.host_ok(host):
+            self._count('http_host_rejected')
+            if self._throttle('host'):
+                _LOG.warning('request for host %s from %s refused (allowed: %s)', short_repr(host),
+                             request.remote, self.policy.describe())
+            resp = web.Response(status=403, text='unknown host')
+        else:
+            resp = await handler(request)
         resp.headers.setdefault('Content-Security-Policy', CSP)
         resp.headers.setdefault('Cache-Control', 'no-store')
         resp.headers.setdefault('X-Content-Type-Options', 'nosniff')
@@ -171,32 +204,79 @@ class StationServer:
             await self._abort(c)
 
     # ------------------------------------------------------------------ websocket
-    def _origin_ok(self, request: web.Request) -> bool:
-        origin = request.headers.get('Origin')
-        if origin is None:          # not a browser (tools, tests): nothing to protect against
-            return True
-        return origin in (f'http://{request.host}', f'https://{request.host}')
+    def _claims_pilot(self, request: web.Request, now: float) -> bool:
+        """Whether the request carries the pilot's session token while that session holds or awaits the role."""
+        token = request.query.get('session', '')
+        if not token or self._session is None or request.headers.get('Origin') is None:
+            return False
+        if self._pilot is None and now > self._reserved_until:
+            return False
+        return hmac.compare_digest(token.encode(), self._session.encode())
+
+    def _role(self, request: web.Request, now: float) -> tuple[str, str | None]:
+        """('pilot', None) or ('spectator', why) for a new connection."""
+        if request.headers.get('Origin') is None:
+            return 'spectator', 'no Origin header (not a browser page): view only'
+        if self._claims_pilot(request, now):
+            return 'pilot', None
+        if self._pilot is not None:
+            return 'spectator', 'another pilot is connected: this page is view only (Space stops the vehicle)'
+        if now <= self._reserved_until:
+            return 'spectator', 'the pilot is reconnecting: this page is view only (Space stops the vehicle)'
+        return 'pilot', None
 
     async def _ws_handler(self, request: web.Request) -> web.StreamResponse:
-        if not self._origin_ok(request):
+        origin = request.headers.get('Origin')
+        if origin is not None and not self.policy.origin_ok(origin):
             self._count('ws_origin_rejected')
-            _LOG.warning('WebSocket from foreign origin %r refused', request.headers.get('Origin'))
+            if self._throttle('origin'):
+                _LOG.warning('WebSocket from foreign origin %s refused', short_repr(origin, 100))
             return web.Response(status=403, text='foreign origin')
+        if self._n_ws >= self.cfg.max_connections and not self._claims_pilot(request, time.monotonic()):
+            self._count('ws_connections_refused')
+            if self._throttle('capacity'):
+                _LOG.warning('WebSocket from %s refused: %d connections open (max_connections)',
+                             request.remote, self._n_ws)
+            return web.Response(status=503, text='too many connections')
+        self._n_ws += 1
+        try:
+            return await self._serve_ws(request)
+        finally:
+            self._n_ws -= 1
+
+    async def _serve_ws(self, request: web.Request) -> web.WebSocketResponse:
         ws = web.WebSocketResponse(max_msg_size=self.cfg.hard_max_message_bytes, compress=False)
         await ws.prepare(request)
-        role = 'pilot' if self._pilot is None else 'spectator'
+        now = time.monotonic()
+        role, reason = self._role(request, now)      # decided here: nothing awaited until the role is taken
         client = _Client(ws, request, role, self.cfg.max_events)
         self._clients.add(client)
         hello = dict(self._hello, type='hello', role=role)
         if role == 'pilot':
+            previous = self._pilot
+            reclaim = self._claims_pilot(request, now)
+            if not reclaim:
+                self._session = secrets.token_urlsafe(24)
             self._pilot = client
+            self._reserved_until = -math.inf
             self.keys.release_all()
-            self._count('pilot_connects')
-            _LOG.info('pilot connected from %s', client.peer)
+            hello['session'] = self._session
+            if reclaim:
+                self._count('pilot_reclaims')
+                _LOG.info('pilot reconnected from %s', client.peer)
+            else:
+                self._count('pilot_connects')
+                _LOG.info('pilot connected from %s', client.peer)
+            if previous is not None:               # the same session from a new socket: the old one is demoted
+                previous.role = 'spectator'
+                self._enqueue(previous, json.dumps(dict(self._hello, type='hello', role='spectator',
+                                                        reason='the pilot role moved to another page')))
         else:
-            self._count('second_browser_refused')
-            hello['reason'] = 'another pilot is connected: this page is view only'
-            _LOG.warning('second browser from %s: view only (one pilot at a time)', client.peer)
+            no_origin = request.headers.get('Origin') is None
+            self._count('ws_no_origin' if no_origin else 'second_browser_refused')
+            hello['reason'] = reason
+            if self._throttle('no_origin' if no_origin else 'spectator'):
+                _LOG.warning('page from %s is view only: %s', client.peer, reason)
         self._enqueue(client, json.dumps(hello))
         writer = asyncio.get_running_loop().create_task(self._writer(client))
         try:
@@ -221,12 +301,17 @@ class StationServer:
         if client not in self._clients:
             return
         self._clients.discard(client)
+        if client.stopping:
+            client.stopping = False
+            self._on_command(self.keys.set_stop(client, False, time.monotonic()))
         if self._pilot is client:
             self._pilot = None
+            self._reserved_until = time.monotonic() + self.cfg.pilot_grace_s
             self.keys.release_all()
             self._on_command(np.zeros(3))
             self._count('pilot_disconnects')
-            _LOG.info('pilot %s disconnected (%s): all keys released, zero command', client.peer, why)
+            _LOG.info('pilot %s disconnected (%s): all keys released, zero command; the role waits %.1f s '
+                      'for its page', client.peer, why, self.cfg.pilot_grace_s)
 
     def _reject(self, client: _Client, kind: str, reason: str) -> None:
         self._count(f'ws_{kind}')
@@ -243,15 +328,23 @@ class StationServer:
         if msg.unknown:
             self._count('ws_unknown_keys', len(msg.unknown))
             if self._throttle('unknown'):
-                _LOG.warning('unknown keys from %s ignored: %s', client.peer, ', '.join(msg.unknown))
+                _LOG.warning('unknown keys from %s ignored: %s', client.peer,
+                             ', '.join(short_repr(k) for k in msg.unknown))
+        now = time.monotonic()
         if client is not self._pilot:
-            if msg.down:
+            stop = STOP_KEY in msg.down
+            if stop or client.stopping:
+                if stop and not client.stopping:
+                    self._count('spectator_stops')
+                    _LOG.warning('view-only page %s holds the stop key: zero command', client.peer)
+                client.stopping = stop
+                self._on_command(self.keys.set_stop(client, stop, now))
+            if any(k != STOP_KEY for k in msg.down):
                 self._count('spectator_keys')
-                if self._throttle('spectator'):
-                    _LOG.warning('keys from view-only page %s ignored', client.peer)
-            return
-        cmd = self.keys.set(msg.down, time.monotonic())
-        self._on_command(cmd)
+                if self._throttle('spectator_keys'):
+                    _LOG.warning('keys from view-only page %s ignored (only Space, stop, is taken)', client.peer)
+        else:
+            self._on_command(self.keys.set(msg.down, now))
         if msg.seq is not None:
             self._enqueue(client, json.dumps({'type': 'ack', 'seq': msg.seq}))
 
@@ -362,6 +455,7 @@ class StationServer:
             site = web.TCPSite(self._runner, self.cfg.host, self.cfg.port, reuse_address=True)
             loop.run_until_complete(site.start())
             self.port = int(self._runner.addresses[0][1])
+            self._policy = HostPolicy(allowed_hosts(self.cfg.host, self.port, self.cfg.allowed_hosts))
         except BaseException as exc:  # noqa: BLE001 - hand the failure to start()
             ready.set_exception(exc)
             loop.close()

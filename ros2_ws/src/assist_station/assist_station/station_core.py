@@ -12,7 +12,7 @@ import json
 import math
 import threading
 from dataclasses import dataclass
-from typing import Any, Iterable, Sequence
+from typing import Any, Hashable, Iterable, Sequence
 
 import numpy as np
 
@@ -25,6 +25,36 @@ STOP_KEY = 'Space'
 KNOWN_KEYS = frozenset(BROWSER_KEYS) | {STOP_KEY}
 MODES = ('practice', 'study', 'free')
 MAX_KEYS_PER_MESSAGE = 16
+
+
+def short_repr(value: Any, limit: int = 40) -> str:
+    """repr() of a value from outside, cut to `limit` characters: safe to log (no raw newlines or escapes)."""
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + '...'
+
+
+class InputError(ValueError):
+    """An unusable input message; `reason` is a fixed phrase (one log line per reason), `detail` the value."""
+
+    def __init__(self, reason: str, detail: str = ''):
+        super().__init__(reason + (f' ({detail})' if detail else ''))
+        self.reason, self.detail = reason, detail
+
+
+class OncePerReason:
+    """True the first time a reason is seen (log it), False after; at most `max_reasons` remembered."""
+
+    def __init__(self, max_reasons: int = 256):
+        self.max_reasons = max_reasons
+        self._seen: set[str] = set()
+        self._lock = threading.Lock()
+
+    def __call__(self, reason: str) -> bool:
+        with self._lock:
+            if reason in self._seen or len(self._seen) >= self.max_reasons:
+                return False
+            self._seen.add(reason)
+            return True
 
 
 class MessageError(ValueError):
@@ -58,7 +88,7 @@ def parse_client_message(raw: str | bytes, max_bytes: int) -> KeysMessage:
     if not isinstance(obj, dict):
         raise MessageError('malformed', f'expected a JSON object, got {type(obj).__name__}')
     if obj.get('type') != 'keys':
-        raise MessageError('malformed', f"unknown message type {obj.get('type')!r}")
+        raise MessageError('malformed', f"unknown message type {short_repr(obj.get('type'))}")
     down = obj.get('down')
     if not isinstance(down, list) or not all(isinstance(k, str) for k in down):
         raise MessageError('malformed', "'down' must be a list of key names")
@@ -107,37 +137,114 @@ class StationConfig:
 
 
 class KeyState:
-    """The pilot's held keys (thread-safe: written by the web server, read by the ROS timer)."""
+    """The pilot's held keys and the stops held by other pages (thread-safe: web server writes, ROS timer reads).
+
+    Any connected page may stop the vehicle: while one holds a stop (refreshed like keys, within
+    `key_timeout_s`) the command is zero whatever the pilot holds, and the keys the pilot held
+    through the stop stay ignored until the pilot releases them (a stop never ends in a lurch).
+    """
 
     def __init__(self, cfg: StationConfig | None = None):
         self.cfg = cfg or StationConfig()
         self._lock = threading.Lock()
         self._down: tuple[str, ...] = ()
         self._updated = -math.inf
+        self._stops: dict[Hashable, float] = {}
+        self._suppressed: set[str] = set()
 
     def set(self, down: Iterable[str], now: float) -> np.ndarray:
         """Replace the held set (a keys message at time `now`); returns the new command."""
         with self._lock:
             self._down = tuple(k for k in down if k in KNOWN_KEYS)
             self._updated = now
-            return command_from_keys(self._down, self.cfg.speed, self.cfg.speed_z)
+            self._suppressed &= set(self._down)
+            return self._command(now)
 
     def release_all(self) -> None:
         """Every key up (blur, socket drop, pilot change)."""
         with self._lock:
             self._down = ()
             self._updated = -math.inf
+            self._suppressed.clear()
+
+    def set_stop(self, source: Hashable, held: bool, now: float) -> np.ndarray:
+        """A page other than the pilot's holds (or releases) the stop key at `now`; returns the new command."""
+        with self._lock:
+            if held:
+                self._stops[source] = now
+            else:
+                self._stops.pop(source, None)
+            return self._command(now)
+
+    def stopped(self, now: float) -> bool:
+        """Whether some page other than the pilot's holds a stop at `now`."""
+        with self._lock:
+            return self._stopped(now)
 
     def held(self, now: float) -> tuple[str, ...]:
         """Keys held at `now` (none once the browser has been silent for key_timeout_s)."""
         with self._lock:
-            if now - self._updated > self.cfg.key_timeout_s:
-                self._down = ()
-            return self._down
+            return self._held(now)
 
     def command(self, now: float) -> np.ndarray:
-        """Body-FLU velocity (m/s) of the keys held at `now`."""
-        return command_from_keys(self.held(now), self.cfg.speed, self.cfg.speed_z)
+        """Body-FLU velocity (m/s) of the keys held at `now` (zero while a stop is held)."""
+        with self._lock:
+            return self._command(now)
+
+    def _held(self, now: float) -> tuple[str, ...]:
+        if now - self._updated > self.cfg.key_timeout_s:
+            self._down = ()
+            self._suppressed.clear()
+        return self._down
+
+    def _stopped(self, now: float) -> bool:
+        for source, t in list(self._stops.items()):
+            if now - t > self.cfg.key_timeout_s:
+                del self._stops[source]
+        return bool(self._stops)
+
+    def _command(self, now: float) -> np.ndarray:
+        down = self._held(now)
+        if self._stopped(now):
+            self._suppressed |= set(down)
+            return np.zeros(3)
+        return command_from_keys([k for k in down if k not in self._suppressed], self.cfg.speed, self.cfg.speed_z)
+
+
+class CommandGate:
+    """Which pilot commands go out at once, between the fixed-rate publishes.
+
+    A command goes out at once only when it differs from the last one sent, and at most `burst`
+    at once plus `rate_hz` per second after that (a page that toggles keys hundreds of times a
+    second cannot flood the topic; the fixed-rate publish still carries the latest command).
+    """
+
+    def __init__(self, rate_hz: float = 50.0, burst: int = 10):
+        self.rate_hz, self.burst = float(rate_hz), float(burst)
+        self._lock = threading.Lock()
+        self._last: np.ndarray | None = None
+        self._tokens = float(burst)
+        self._t = -math.inf
+
+    def immediate(self, v: np.ndarray, now: float) -> bool:
+        """Whether a command from the page should be published now (and record it as sent if so)."""
+        v = np.asarray(v, dtype=float)
+        with self._lock:
+            if self._last is not None and np.array_equal(v, self._last):
+                return False
+            if math.isfinite(self._t):
+                self._tokens = min(self.burst, self._tokens + (now - self._t) * self.rate_hz)
+            self._t = now
+            if self._tokens < 1.0:
+                return False
+            self._tokens -= 1.0
+            self._last = v.copy()
+            return True
+
+    def sent(self, v: np.ndarray) -> None:
+        """Record a command published by the fixed-rate timer."""
+        with self._lock:
+            self._last = np.asarray(v, dtype=float).copy()
 
 
 class AssistMonitor:
@@ -168,21 +275,48 @@ class AssistMonitor:
 
 LANDING_FIELDS = ('episode', 'goal_index', 'landed_index', 'nearest_index', 'error_m', 'nearest_error_m',
                   'success', 'crash', 'duration_s', 'assisted', 'outcome')
+MAX_LANDING_CHARS = 16384
+_LANDING_INDICES = ('goal_index', 'landed_index', 'nearest_index')   # pad indices: int >= 0 (goal) or null
+_LANDING_FLOATS = ('error_m', 'nearest_error_m', 'duration_s')
+_LANDING_BOOLS = ('success', 'crash', 'assisted')
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
 
 
 def parse_landing(text: str) -> dict[str, Any]:
-    """The contract's /sim/landing JSON -> dict of its known fields; ValueError when unusable."""
+    """The contract's /sim/landing JSON -> dict of its known fields, types checked; InputError when unusable.
+
+    Pad indices are integers >= 0 (`landed_index`, `nearest_index` may be null), `success`, `crash`
+    and `assisted` booleans, `episode` an integer; a distance or duration that is not a finite
+    number becomes null, an `outcome` that is not a short string is dropped.
+    """
+    if len(text) > MAX_LANDING_CHARS:
+        raise InputError('/sim/landing message too long', f'{len(text)} characters')
     try:
         obj = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise ValueError(f'/sim/landing is not JSON: {exc}') from None
+    except (json.JSONDecodeError, RecursionError):
+        raise InputError('/sim/landing is not JSON') from None
     if not isinstance(obj, dict) or 'success' not in obj or 'goal_index' not in obj:
-        raise ValueError('/sim/landing lacks success/goal_index')
+        raise InputError('/sim/landing lacks success/goal_index')
     out = {k: obj[k] for k in LANDING_FIELDS if k in obj}
-    for k in ('error_m', 'nearest_error_m', 'duration_s'):
+    for k in _LANDING_INDICES:
         v = out.get(k)
-        if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v)):
+        if (v is None and k != 'goal_index') or (_is_int(v) and 0 <= v < 1_000_000):
+            continue
+        raise InputError(f'/sim/landing {k} is not a pad index', short_repr(v))
+    for k in _LANDING_BOOLS:
+        if k in out and not isinstance(out[k], bool):
+            raise InputError(f'/sim/landing {k} is not true/false', short_repr(out[k]))
+    if 'episode' in out and out['episode'] is not None and not _is_int(out['episode']):
+        raise InputError('/sim/landing episode is not an integer', short_repr(out['episode']))
+    for k in _LANDING_FLOATS:
+        v = out.get(k)
+        if v is not None and not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)):
             out[k] = None
+    if 'outcome' in out and not (isinstance(out['outcome'], str) and len(out['outcome']) <= 32):
+        del out['outcome']
     return out
 
 
@@ -229,23 +363,29 @@ def scene_from_boxes(boxes: Iterable[dict[str, Any]]) -> dict[str, Any]:
 
 def camera_payload(width: int, height: int, encoding: str, step: int, data: bytes,
                    max_width: int) -> tuple[int, int, bytes]:
-    """An rgb8/bgr8/mono8 image -> (w, h, RGB bytes), at most `max_width` wide (integer stride); ValueError if bad."""
+    """An rgb8/bgr8/mono8 image -> (w, h, RGB bytes), subsampled (integer stride) to at most `max_width` pixels
+    on either side (a tall image too); InputError if unusable."""
     channels = {'rgb8': 3, 'bgr8': 3, 'mono8': 1}.get(encoding)
     if channels is None:
-        raise ValueError(f'unsupported camera encoding {encoding!r} (rgb8, bgr8, mono8)')
+        raise InputError('unsupported camera encoding (rgb8, bgr8, mono8)', short_repr(encoding))
     if width <= 0 or height <= 0 or step < width * channels or len(data) < step * height:
-        raise ValueError(f'inconsistent image: {width}x{height} step {step}, {len(data)} bytes')
+        raise InputError('inconsistent image size', f'{width}x{height} step {step}, {len(data)} bytes')
     img = np.frombuffer(bytes(data), np.uint8)[:step * height].reshape(height, step)[:, :width * channels]
     img = img.reshape(height, width, channels)
     if channels == 1:
         img = np.repeat(img, 3, axis=2)
     elif encoding == 'bgr8':
         img = img[:, :, ::-1]
-    k = max(1, math.ceil(width / max_width))
+    k = max(1, math.ceil(width / max_width), math.ceil(height / max_width))
     img = np.ascontiguousarray(img[::k, ::k])
     return img.shape[1], img.shape[0], img.tobytes()
 
 
+MAX_FRAME_SIDE = 65535
+
+
 def camera_frame_bytes(width: int, height: int, rgb: bytes) -> bytes:
-    """Binary WebSocket frame of a camera image: uint16 LE width, height, then RGB rows."""
+    """Binary WebSocket frame of a camera image: uint16 LE width, height, then RGB rows; InputError if it cannot be."""
+    if not (0 < width <= MAX_FRAME_SIDE and 0 < height <= MAX_FRAME_SIDE) or len(rgb) != width * height * 3:
+        raise InputError('camera frame does not fit the inset format', f'{width}x{height}, {len(rgb)} bytes')
     return int(width).to_bytes(2, 'little') + int(height).to_bytes(2, 'little') + rgb

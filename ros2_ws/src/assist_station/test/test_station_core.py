@@ -5,9 +5,10 @@ import math
 import numpy as np
 import pytest
 
-from assist_station.station_core import (AssistMonitor, KeyState, MessageError, StationConfig, camera_frame_bytes,
-                                         camera_payload, command_from_keys, landing_feedback, parse_client_message,
-                                         parse_landing, scene_from_boxes)
+from assist_station.station_core import (AssistMonitor, CommandGate, InputError, KeyState, MessageError,
+                                         OncePerReason, StationConfig, camera_frame_bytes, camera_payload,
+                                         command_from_keys, landing_feedback, parse_client_message, parse_landing,
+                                         scene_from_boxes)
 
 
 def keys(down, seq=None):
@@ -74,6 +75,39 @@ def test_key_state_expires_without_refresh_and_releases_on_demand():
     np.testing.assert_allclose(ks.command(20.0), [0, 0, 0])
 
 
+def test_a_stop_from_another_page_zeros_the_command_until_the_held_keys_are_pressed_again():
+    ks = KeyState(StationConfig(speed=1.0, speed_z=0.5, key_timeout_s=1.0))
+    ks.set(['KeyW', 'ArrowUp'], now=0.0)
+    viewer = object()
+    np.testing.assert_allclose(ks.set_stop(viewer, True, 0.1), [0, 0, 0])
+    assert ks.stopped(0.2)
+    np.testing.assert_allclose(ks.set(['KeyW', 'ArrowUp', 'KeyA'], 0.3), [0, 0, 0])   # keys while stopped: zero
+    np.testing.assert_allclose(ks.set_stop(viewer, False, 0.4), [0, 0, 0])             # held through the stop
+    np.testing.assert_allclose(ks.set(['ArrowUp'], 0.5), [0, 0, 0])
+    np.testing.assert_allclose(ks.set(['ArrowUp', 'KeyS'], 0.6), [-1.0, 0, 0])          # a new press counts
+    np.testing.assert_allclose(ks.set(['KeyS'], 0.7), [-1.0, 0, 0])
+    np.testing.assert_allclose(ks.set(['KeyS', 'ArrowUp'], 0.8), [-1.0, 0, 0.5])       # pressed again: counts
+    ks.set_stop(viewer, True, 1.0)
+    assert ks.stopped(1.9) and not ks.stopped(2.1)              # a stop not refreshed expires like a key
+    assert ks.held(2.1) == ()
+
+
+def test_command_gate_publishes_changes_only_and_bounds_a_flood():
+    gate = CommandGate(rate_hz=50.0, burst=10)
+    w, zero = np.array([1.0, 0, 0]), np.zeros(3)
+    assert gate.immediate(w, 0.0) and not gate.immediate(w, 0.001)          # unchanged: left to the timer
+    gate.sent(w)
+    assert not gate.immediate(w, 0.5)
+    assert gate.immediate(zero, 0.6) and gate.immediate(w, 0.61)
+    toggles = sum(gate.immediate(zero if i % 2 else w, 1.0 + i / 900) for i in range(900))   # 900 changes in 1 s
+    assert 50 <= toggles <= 61, toggles
+
+
+def test_once_per_reason():
+    once = OncePerReason(max_reasons=2)
+    assert once('a') and not once('a') and once('b') and not once('c')
+
+
 def test_station_config_rejects_bad_values():
     with pytest.raises(ValueError, match='speed'):
         StationConfig(speed=float('nan'))
@@ -107,10 +141,23 @@ def test_landing_feedback_depends_on_the_mode():
     assert crash['crash'] and crash['text'].startswith('Crashed')
 
 
-@pytest.mark.parametrize('text', ['nope', '[]', '{"episode": 1}'])
+@pytest.mark.parametrize('text', ['nope', '[]', '{"episode": 1}', '[' * 100000 + ']' * 100000,
+                                  json.dumps(dict(LANDING, goal_index='two')), json.dumps(dict(LANDING, goal_index=-1)),
+                                  json.dumps(dict(LANDING, goal_index=2.5)), json.dumps(dict(LANDING, goal_index=None)),
+                                  json.dumps(dict(LANDING, landed_index='3')), json.dumps(dict(LANDING, success='yes')),
+                                  json.dumps(dict(LANDING, crash=1)), json.dumps(dict(LANDING, episode=[1])),
+                                  json.dumps(dict(LANDING, outcome='x' * 20000))])
 def test_unusable_landing_messages_raise(text):
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError) as err:
         parse_landing(text)
+    assert len(str(err.value)) < 200 and '\n' not in str(err.value)
+
+
+def test_a_valid_landing_always_gives_feedback():
+    for mode in ('practice', 'study', 'free'):
+        for landed in (None, 0, 4):
+            landing = parse_landing(json.dumps(dict(LANDING, landed_index=landed, outcome={'x': 1})))
+            assert 'outcome' not in landing and landing_feedback(landing, mode)['text']
 
 
 def test_non_finite_landing_error_is_dropped():
@@ -149,6 +196,17 @@ def test_camera_payload_converts_and_subsamples():
     assert camera_payload(2, 1, 'mono8', 2, mono.tobytes(), 160)[2] == bytes([7, 7, 7, 9, 9, 9])
     frame = camera_frame_bytes(3, 2, b'x' * 18)
     assert frame[:4] == bytes([3, 0, 2, 0]) and len(frame) == 22
+
+
+def test_a_tall_or_wide_image_is_subsampled_to_fit_the_inset_frame():
+    w, h, data = camera_payload(1, 70000, 'mono8', 1, bytes(70000), max_width=160)
+    assert (w, h) == (1, 160) and len(camera_frame_bytes(w, h, data)) == 4 + 160 * 3
+    w, h, data = camera_payload(70000, 1, 'mono8', 70000, bytes(70000), max_width=160)
+    assert (w, h) == (160, 1)
+    w, h, _ = camera_payload(640, 480, 'mono8', 640, bytes(640 * 480), max_width=160)
+    assert (w, h) == (160, 120)
+    with pytest.raises(InputError):
+        camera_frame_bytes(1, 70000, bytes(3 * 70000))
 
 
 @pytest.mark.parametrize('args', [(6, 4, '32FC1', 24, b'\0' * 96), (6, 4, 'rgb8', 18, b'\0' * 10),

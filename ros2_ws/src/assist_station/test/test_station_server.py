@@ -52,6 +52,11 @@ def harness():
     h.server.stop()
 
 
+def origin(url: str) -> dict[str, str]:
+    """The Origin header of a page served from `url` (the station's own page)."""
+    return {'Origin': url.rstrip('/')}
+
+
 def run(coro):
     return asyncio.run(asyncio.wait_for(coro, 30))
 
@@ -91,7 +96,7 @@ def test_serves_the_page_and_its_assets_from_the_package_only(harness):
 def test_pilot_keys_become_commands_and_a_dropped_socket_releases_them(harness):
     async def main():
         async with aiohttp.ClientSession() as s:
-            ws = await s.ws_connect(harness.server.url + 'ws')
+            ws = await s.ws_connect(harness.server.url + 'ws', headers=origin(harness.server.url))
             hello = await receive_until(ws, lambda m: m['type'] == 'hello')
             assert hello['role'] == 'pilot' and hello['mode'] == 'practice'
             await ws.send_str(json.dumps({'type': 'keys', 'down': ['KeyW', 'ArrowUp'], 'seq': 5}))
@@ -111,11 +116,11 @@ def test_pilot_keys_become_commands_and_a_dropped_socket_releases_them(harness):
 def test_second_browser_is_view_only_and_told_so(harness):
     async def main():
         async with aiohttp.ClientSession() as s:
-            pilot = await s.ws_connect(harness.server.url + 'ws')
+            pilot = await s.ws_connect(harness.server.url + 'ws', headers=origin(harness.server.url))
             assert (await receive_until(pilot, lambda m: m['type'] == 'hello'))['role'] == 'pilot'
             await pilot.send_str(json.dumps({'type': 'keys', 'down': ['KeyA'], 'seq': 1}))
             await receive_until(pilot, lambda m: m['type'] == 'ack')
-            second = await s.ws_connect(harness.server.url + 'ws')
+            second = await s.ws_connect(harness.server.url + 'ws', headers=origin(harness.server.url))
             hello = await receive_until(second, lambda m: m['type'] == 'hello')
             assert hello['role'] == 'spectator' and 'another pilot' in hello['reason']
             await second.send_str(json.dumps({'type': 'keys', 'down': ['KeyS', 'ArrowDown'], 'seq': 1}))
@@ -132,7 +137,7 @@ def test_second_browser_is_view_only_and_told_so(harness):
 def test_bad_messages_are_rejected_counted_and_the_pilot_keeps_flying(harness):
     async def main():
         async with aiohttp.ClientSession() as s:
-            ws = await s.ws_connect(harness.server.url + 'ws')
+            ws = await s.ws_connect(harness.server.url + 'ws', headers=origin(harness.server.url))
             await receive_until(ws, lambda m: m['type'] == 'hello')
             await ws.send_str(json.dumps({'type': 'keys', 'down': ['KeyD'], 'seq': 1}))
             await receive_until(ws, lambda m: m['type'] == 'ack')
@@ -178,7 +183,8 @@ def raw_ws_client(port: int) -> socket.socket:
     sock = socket.create_connection(('127.0.0.1', port))
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
     key = base64.b64encode(os.urandom(16)).decode()
-    sock.sendall((f'GET /ws HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n'
+    sock.sendall((f'GET /ws HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nOrigin: http://127.0.0.1:{port}\r\n'
+                  f'Upgrade: websocket\r\nConnection: Upgrade\r\n'
                   f'Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n').encode())
     head = b''
     while b'\r\n\r\n' not in head:
@@ -205,7 +211,7 @@ def test_a_client_that_never_reads_loses_frames_is_dropped_and_never_blocks_the_
     try:
         async def spectator():
             async with aiohttp.ClientSession() as s:
-                ws = await s.ws_connect(srv.url + 'ws')
+                ws = await s.ws_connect(srv.url + 'ws', headers=origin(srv.url))
                 n_states, n_frames, t0 = 0, 0, time.monotonic()
                 while time.monotonic() - t0 < 4.0:
                     msg = await ws.receive(timeout=2.0)
@@ -226,3 +232,233 @@ def test_a_client_that_never_reads_loses_frames_is_dropped_and_never_blocks_the_
         stop.set()
         feeder.join()
         sock.close()
+
+
+# ---------------------------------------------------------------------- who may connect, and as what
+def harness_with(**cfg):
+    base = dict(view_rate_hz=30.0, stall_timeout_s=1.0, max_message_bytes=1024, hard_max_message_bytes=8192)
+    h = Harness(**dict(base, **cfg))
+    h.server.start()
+    return h
+
+
+async def pilot_page(s, url, session=None, **headers):
+    """A page of the station on `url` (its Origin), optionally presenting a session token; returns (ws, hello)."""
+    query = f'?session={session}' if session else ''
+    ws = await s.ws_connect(url + 'ws' + query, headers=dict(origin(url), **headers))
+    return ws, await receive_until(ws, lambda m: m['type'] == 'hello')
+
+
+async def until(predicate, timeout=5.0):
+    """Poll `predicate` without blocking the client's event loop; True once it holds."""
+    end = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > end:
+            return False
+        await asyncio.sleep(0.02)
+    return True
+
+
+async def send_keys(ws, down, seq):
+    await ws.send_str(json.dumps({'type': 'keys', 'down': down, 'seq': seq}))
+    await receive_until(ws, lambda m: m['type'] == 'ack' and m['seq'] == seq)
+
+
+def test_dns_rebinding_name_is_refused_for_the_page_and_the_socket(harness):
+    port = harness.server.port
+    rebind = f'rebind.example:{port}'
+
+    async def main():
+        async with aiohttp.ClientSession() as s:
+            async with s.get(harness.server.url, headers={'Host': rebind}) as r:
+                assert r.status == 403
+            async with s.get(harness.server.url + 'static/station.js', headers={'Host': rebind}) as r:
+                assert r.status == 403
+            with pytest.raises(aiohttp.WSServerHandshakeError) as err:
+                await s.ws_connect(harness.server.url + 'ws', headers={'Host': rebind, 'Origin': f'http://{rebind}'})
+            assert err.value.status == 403
+            # a page of the station itself whose socket names a foreign host: refused too
+            with pytest.raises(aiohttp.WSServerHandshakeError) as err:
+                await s.ws_connect(harness.server.url + 'ws', headers={'Origin': f'http://{rebind}'})
+            assert err.value.status == 403
+            assert not harness.server.pilot_connected
+    run(main())
+    assert harness.server.stats['http_host_rejected'] == 3 and harness.server.stats['ws_origin_rejected'] == 1
+
+
+@pytest.mark.parametrize('name', ['127.0.0.1', 'localhost', 'LOCALHOST', '[::1]'])
+def test_the_loopback_names_of_a_loopback_bind_are_served(harness, name):
+    url = f'http://{name}:{harness.server.port}/'
+
+    async def main():
+        async with aiohttp.ClientSession() as s:
+            host = {'Host': f'{name}:{harness.server.port}'}
+            async with s.get(harness.server.url, headers=host) as r:
+                assert r.status == 200
+            ws = await s.ws_connect(harness.server.url + 'ws', headers={**host, **origin(url)})
+            assert (await receive_until(ws, lambda m: m['type'] == 'hello'))['role'] == 'pilot'
+            await ws.close()
+    run(main())
+
+
+def test_an_extra_allowed_host_is_served_and_other_names_are_not():
+    h = harness_with(allowed_hosts=('station.lan', 'other.lan:9999'))
+    try:
+        async def main():
+            async with aiohttp.ClientSession() as s:
+                for host, status in ((f'station.lan:{h.server.port}', 200), (f'station.lan:{h.server.port + 1}', 403),
+                                     ('other.lan:9999', 200), (f'other.lan:{h.server.port}', 403),
+                                     (f'evil@127.0.0.1:{h.server.port}', 403), ('', 403)):
+                    async with s.get(h.server.url, headers={'Host': host}) as r:
+                        assert r.status == status, host
+        run(main())
+    finally:
+        h.server.stop()
+
+
+def test_a_connection_without_origin_is_never_the_pilot(harness):
+    async def main():
+        async with aiohttp.ClientSession() as s:
+            tool = await s.ws_connect(harness.server.url + 'ws')          # no Origin: not a browser page
+            hello = await receive_until(tool, lambda m: m['type'] == 'hello')
+            assert hello['role'] == 'spectator' and 'Origin' in hello['reason'] and 'session' not in hello
+            await send_keys(tool, ['KeyW', 'ArrowDown'], 1)
+            assert harness.last_command() is None and not harness.server.pilot_connected
+            page, hello = await pilot_page(s, harness.server.url)          # the real page still gets the role
+            assert hello['role'] == 'pilot'
+            await send_keys(page, ['KeyS'], 1)
+            np.testing.assert_allclose(harness.last_command(), [-1.0, 0, 0])
+            await tool.close()
+            await page.close()
+    run(main())
+    assert harness.server.stats['ws_no_origin'] == 1 and harness.server.stats['spectator_keys'] == 1
+
+
+def test_the_pilot_keeps_the_role_across_a_reconnect_and_any_page_can_stop(harness):
+    """The audited attack: another client connects during the pilot page's reconnect and flies forward and down."""
+    url = harness.server.url
+
+    async def main():
+        async with aiohttp.ClientSession() as s:
+            pilot, hello = await pilot_page(s, url)
+            token = hello['session']
+            assert hello['role'] == 'pilot' and len(token) >= 20
+            await send_keys(pilot, ['KeyW'], 1)
+            pilot._response.connection.transport.abort()                  # the pilot's socket drops
+            assert await until(lambda: not harness.server.pilot_connected)
+            np.testing.assert_allclose(harness.last_command(), [0, 0, 0])
+            intruder, hello = await pilot_page(s, url)                    # within the reconnect gap
+            assert hello['role'] == 'spectator' and 'reconnecting' in hello['reason'] and 'session' not in hello
+            await send_keys(intruder, ['KeyW', 'ArrowDown'], 1)
+            np.testing.assert_allclose(harness.last_command(), [0, 0, 0])
+            guess, hello = await pilot_page(s, url, session='x' * len(token))
+            assert hello['role'] == 'spectator'
+            back, hello = await pilot_page(s, url, session=token)          # the pilot's page reconnects
+            assert hello['role'] == 'pilot' and hello['session'] == token
+            await send_keys(back, ['KeyW', 'KeyA'], 1)
+            np.testing.assert_allclose(harness.last_command(), [1.0, 1.0, 0])
+            # any page may stop: the view-only page holds Space, the command is zero at once and stays so
+            await send_keys(intruder, ['Space'], 2)
+            np.testing.assert_allclose(harness.last_command(), [0, 0, 0])
+            await send_keys(back, ['KeyW', 'KeyA'], 2)                     # the pilot's heartbeat: still stopped
+            np.testing.assert_allclose(harness.keys.command(time.monotonic()), [0, 0, 0])
+            await send_keys(intruder, [], 3)                               # stop released: held keys stay ignored
+            np.testing.assert_allclose(harness.last_command(), [0, 0, 0])
+            await send_keys(back, ['KeyA'], 3)                              # ... until released and pressed again
+            np.testing.assert_allclose(harness.last_command(), [0, 0, 0])
+            await send_keys(back, [], 4)
+            await send_keys(back, ['KeyA', 'KeyW'], 5)
+            np.testing.assert_allclose(harness.last_command(), [1.0, 1.0, 0])
+            await send_keys(guess, ['Space'], 1)                           # a stopping page that drops releases it
+            np.testing.assert_allclose(harness.last_command(), [0, 0, 0])
+            guess._response.connection.transport.abort()
+            assert await until(lambda: np.allclose(harness.last_command(), [0, 0, 0]))
+            for ws in (intruder, back):
+                await ws.close()
+    run(main())
+    st = harness.server.stats
+    assert st['pilot_connects'] == 1 and st['pilot_reclaims'] == 1 and st['spectator_stops'] == 2
+
+
+def test_the_reserved_pilot_role_is_freed_after_the_grace_period():
+    h = harness_with(pilot_grace_s=0.3)
+    try:
+        async def main():
+            async with aiohttp.ClientSession() as s:
+                first, hello = await pilot_page(s, h.server.url)
+                token = hello['session']
+                await first.close()
+                assert await until(lambda: not h.server.pilot_connected)
+                await asyncio.sleep(0.5)
+                other, hello = await pilot_page(s, h.server.url)            # grace over: a new pilot
+                assert hello['role'] == 'pilot' and hello['session'] != token
+                late, hello = await pilot_page(s, h.server.url, session=token)   # the old token no longer works
+                assert hello['role'] == 'spectator'
+                await other.close()
+                await late.close()
+        run(main())
+    finally:
+        h.server.stop()
+
+
+def test_a_second_socket_of_the_pilot_session_takes_the_role_and_the_old_one_is_told():
+    h = harness_with()
+    try:
+        async def main():
+            async with aiohttp.ClientSession() as s:
+                old, hello = await pilot_page(s, h.server.url)
+                new, hello2 = await pilot_page(s, h.server.url, session=hello['session'])
+                assert hello2['role'] == 'pilot'
+                demoted = await receive_until(old, lambda m: m['type'] == 'hello')
+                assert demoted['role'] == 'spectator'
+                await send_keys(old, ['KeyW'], 1)
+                await send_keys(new, ['KeyD'], 1)
+                np.testing.assert_allclose(h.last_command(), [0, -1.0, 0])
+                await old.close()
+                await new.close()
+        run(main())
+    finally:
+        h.server.stop()
+
+
+def test_connections_beyond_max_connections_are_refused_but_the_pilot_always_gets_back_in():
+    h = harness_with(max_connections=3)
+    try:
+        async def main():
+            async with aiohttp.ClientSession() as s:
+                pilot, hello = await pilot_page(s, h.server.url)
+                others = [(await pilot_page(s, h.server.url))[0] for _ in range(2)]
+                for _ in range(5):                                          # full: refused, cheaply
+                    with pytest.raises(aiohttp.WSServerHandshakeError) as err:
+                        await pilot_page(s, h.server.url)
+                    assert err.value.status == 503
+                pilot._response.connection.transport.abort()
+                assert await until(lambda: not h.server.pilot_connected)
+                others.append((await pilot_page(s, h.server.url))[0])      # takes the freed slot, view only
+                with pytest.raises(aiohttp.WSServerHandshakeError):
+                    await pilot_page(s, h.server.url)
+                back, hello2 = await pilot_page(s, h.server.url, session=hello['session'])
+                assert hello2['role'] == 'pilot' and h.server.n_clients == 4
+                await send_keys(back, ['ArrowUp'], 1)
+                np.testing.assert_allclose(h.last_command(), [0, 0, 0.5])
+                for ws in others + [back]:
+                    await ws.close()
+        run(main())
+    finally:
+        h.server.stop()
+    assert h.server.stats['ws_connections_refused'] == 6
+
+
+def test_key_names_reach_the_log_escaped(harness, caplog):
+    forged = 'KeyQ\n2031-01-01 00:00:00 [INFO] pilot_station: operator approved'
+
+    async def main():
+        async with aiohttp.ClientSession() as s:
+            ws, _ = await pilot_page(s, harness.server.url)
+            await send_keys(ws, ['KeyW', forged[:32], '\x1b[2J'], 1)
+            await ws.close()
+    with caplog.at_level('WARNING', logger='assist_station.server'):
+        run(main())
+    lines = [r.getMessage() for r in caplog.records if 'unknown keys' in r.getMessage()]
+    assert len(lines) == 1 and '\n' not in lines[0] and '\x1b' not in lines[0], lines
+    assert repr(forged[:32]) in lines[0] and r"'\x1b[2J'" in lines[0]

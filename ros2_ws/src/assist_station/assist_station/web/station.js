@@ -24,6 +24,11 @@
   const el = (id) => document.getElementById(id);
 
   let ws = null, reconnectMs = 500, seq = 0;
+  // the pilot's session token: a reconnecting (or reloaded) pilot page presents it to keep the pilot role
+  const SESSION_KEY = 'stationSession';
+  const storage = { get() { try { return sessionStorage.getItem(SESSION_KEY); } catch (err) { return null; } },
+    set(v) { try { if (v) sessionStorage.setItem(SESSION_KEY, v); else sessionStorage.removeItem(SESSION_KEY); } catch (err) { /* no storage */ } } };
+  let session = storage.get();
   let held = [];
   const sentAt = new Map();
   let motionProbe = null;
@@ -83,7 +88,7 @@
   }
   function connect() {
     const proto = location.protocol === 'https:' ? 'wss:' : 'ws:';
-    ws = new WebSocket(proto + '//' + location.host + '/ws');
+    ws = new WebSocket(proto + '//' + location.host + '/ws' + (session ? '?session=' + encodeURIComponent(session) : ''));
     ws.binaryType = 'arraybuffer';
     stats.ws = 'connecting';
     ws.onopen = () => { stats.ws = 'open'; reconnectMs = 500; setConn('connected', 'ok'); sendKeys(); };
@@ -112,6 +117,8 @@
   }
   function onHello(msg) {
     cfg = msg;
+    session = msg.role === 'pilot' && msg.session ? msg.session : null;   // a view-only page holds no token
+    storage.set(session);
     stats.role = msg.role; stats.mode = msg.mode;
     el('role').textContent = msg.role === 'pilot' ? 'you are the pilot' : 'view only';
     el('role').className = 'pill ' + (msg.role === 'pilot' ? 'ok' : 'warn');
@@ -158,6 +165,8 @@
         `height ${(p[2] - ground).toFixed(2)} m   alt ${p[2].toFixed(2)} m\n` +
         `v ${v[0].toFixed(2)} ${v[1].toFixed(2)} ${v[2].toFixed(2)} m/s   cmd ${msg.cmd.map((x) => x.toFixed(1)).join(' ')}`;
     } else el('telemetry').textContent = 'waiting for /odom';
+    if (msg.stopped) el('telemetry').textContent += '\nSTOP held by a view-only page';
+    stats.stopped = !!msg.stopped;
   }
   function onCamera(buf) {
     const dv = new DataView(buf);
