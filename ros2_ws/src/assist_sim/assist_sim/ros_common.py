@@ -369,6 +369,14 @@ def forward_logging(node: Node | None) -> RosLogHandler:
     return _LOG_HANDLER
 
 
+def release_logging() -> None:
+    """Undo forward_logging: the handler forgets its node and leaves the root logger (a process that built nodes
+    in turn, e.g. a test run, must not log one's records under the name of a node destroyed before)."""
+    if _LOG_HANDLER is not None:
+        _LOG_HANDLER.attach(None)
+        logging.getLogger().removeHandler(_LOG_HANDLER)
+
+
 EXECUTORS = ('single', 'multi', 'events')
 EXECUTOR_PARAM = 'executor'
 

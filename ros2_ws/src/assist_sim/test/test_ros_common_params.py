@@ -91,3 +91,52 @@ def test_descriptor_states_the_rule_for_ros2_param_describe():
         assert fixed.description == 'read-only float Read-only.'
     finally:
         close(ctx, node)
+
+
+ARRAYS = {'seeds': Param((), 'seeds', min=0, max=10, item_type=int),
+          'betas': Param((), 'betas', min=0.0, max=1.0, item_type=float),
+          'names': Param((), 'names', choices=('paper', 'mix'), item_type=str)}
+
+
+def test_array_parameters_typed_empty_by_default_and_every_item_checked():
+    ctx, node = make([])
+    try:
+        assert declare_parameters(node, ARRAYS) == {'seeds': [], 'betas': [], 'names': []}
+        assert node.describe_parameter('seeds').type == Parameter.Type.INTEGER_ARRAY.value
+        assert node.describe_parameter('seeds').read_only
+    finally:
+        close(ctx, node)
+    ctx, node = make(['-p', 'seeds:=[1, 2]', '-p', 'betas:=[0.0, 0.5]', '-p', 'names:=[paper, mix]'])
+    try:
+        assert declare_parameters(node, ARRAYS) == {'seeds': [1, 2], 'betas': [0.0, 0.5], 'names': ['paper', 'mix']}
+    finally:
+        close(ctx, node)
+    for arg, words in (('seeds:=[1, 11]', "'seeds[1]' must be >= 0 and <= 10"),
+                       ('names:=[paper, nobody]', "'names[1]' must be one of paper, mix"),
+                       ('seeds:=[0.5]', 'INTEGER_ARRAY')):
+        ctx, node = make(['-p', arg])
+        try:
+            with pytest.raises(StartupError, match=r'.*') as err:
+                declare_parameters(node, ARRAYS)
+            assert words in str(err.value), err.value
+        finally:
+            close(ctx, node)
+
+
+def test_release_logging_stops_forwarding_to_a_destroyed_node():
+    import logging  # noqa: PLC0415
+
+    import rclpy  # noqa: PLC0415
+
+    from assist_sim.ros_common import forward_logging, release_logging  # noqa: PLC0415
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    try:
+        node = rclpy.create_node('logging_owner', context=ctx)
+        handler = forward_logging(node)
+        assert handler in logging.getLogger().handlers and handler._logger('a.b').name == 'logging_owner.a.b'
+        node.destroy_node()
+        release_logging()
+        assert handler not in logging.getLogger().handlers and handler._logger('a.b').name == 'a.b'
+    finally:
+        rclpy.shutdown(context=ctx)
