@@ -1,11 +1,24 @@
 """Command lines from settings dataclasses: every field is a --flag, `--config file.yaml` sets many.
 
 Precedence: dataclass default < YAML file (`--config`) < explicit --flags.
+
+Settings rules (one mechanism for every command line of the project; assist_policy's `cli` uses it
+too): a field declared with `setting(default, ge=..., choices=..., ...)` carries a `Rule` in its
+metadata, and `check_settings` checks every field of a settings object against its type (an int
+is an int, a float is a finite number, a string holds no NUL, a tuple holds items of its type)
+and its Rule, then the object's own `check_relations()` (rules between fields) if it has one. The
+command lines run it before doing any work: a bad value is one `error:` line and exit status 2, as
+argparse reports a malformed flag.
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
+import sys
+import types
+import typing
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -13,6 +26,132 @@ import yaml
 
 _T = TypeVar('_T')
 _TYPES = {'int': int, 'float': float, 'str': str, 'bool': bool}
+RULE_KEY = 'settings_rule'
+
+
+class SettingsError(ValueError):
+    """A settings value breaks its field's type or rule; the message is one line naming the --flag."""
+
+
+@dataclass(frozen=True)
+class Rule:
+    """Allowed values of one settings field (numbers: bounds; strings: choices, non-empty, a file name)."""
+
+    ge: float | None = None          # value (or each tuple item) >= ge
+    gt: float | None = None          # ... > gt
+    le: float | None = None          # ... <= le
+    lt: float | None = None          # ... < lt
+    choices: tuple[Any, ...] = ()    # value (or each tuple item) is one of these
+    min_len: int = 0                 # tuple fields: number of items
+    max_len: int | None = None
+    nonempty: bool = False           # strings: not ''
+    file_name: bool = False          # strings: one path component (no '/', not '.' or '..')
+
+    def problem(self, value: Any) -> str | None:
+        """Why one scalar value breaks this rule (None when it follows it)."""
+        if self.choices and value not in self.choices:
+            return 'must be one of ' + ', '.join(str(c) for c in self.choices)
+        if isinstance(value, str):
+            if (self.nonempty or self.file_name) and not value:
+                return 'must not be empty'
+            if self.file_name and ('/' in value or '\\' in value or value in ('.', '..')):
+                return "must be a plain name (no '/', not '.' or '..')"
+            return None
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            bounds = (('ge', '>=', lambda b: value >= b), ('gt', '>', lambda b: value > b),
+                      ('le', '<=', lambda b: value <= b), ('lt', '<', lambda b: value < b))
+            for attr, word, ok in bounds:
+                bound = getattr(self, attr)
+                if bound is not None and not ok(bound):
+                    return f'must be {word} {bound:g}'
+        return None
+
+
+def setting(default: Any, **rule: Any) -> Any:
+    """A dataclass field with `default` whose values must follow `Rule(**rule)` (see `check_settings`)."""
+    return dataclasses.field(default=default, metadata={RULE_KEY: Rule(**rule)})
+
+
+def flag(name: str) -> str:
+    """The --flag of a settings field name."""
+    return '--' + name.replace('_', '-')
+
+
+def _type_problem(hint: Any, value: Any) -> str | None:
+    """Why `value` is not of type `hint` (int, float, str, bool, optional bool, tuples of those)."""
+    if hint is bool:
+        return None if isinstance(value, bool) else 'must be true or false'
+    if hint is int:
+        return None if isinstance(value, int) and not isinstance(value, bool) else 'must be an integer'
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return 'must be a number'
+        return None if math.isfinite(value) else 'must be a finite number'
+    if hint is str:
+        if not isinstance(value, str):
+            return 'must be a string'
+        return 'must not contain a NUL character' if '\0' in value else None
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        inner = [a for a in args if a is not type(None)]
+        return _type_problem(inner[0], value) if len(inner) == 1 else None
+    if origin in (tuple, list):
+        if not isinstance(value, (tuple, list)):
+            return 'must be a list of values'
+        item_types = [args[0]] * len(value) if len(args) == 2 and args[1] is Ellipsis else list(args)
+        if len(item_types) != len(value):
+            return f'must hold {len(item_types)} values'
+        for item, item_hint in zip(value, item_types):
+            why = _type_problem(item_hint, item)
+            if why:
+                return f'items {why}'
+    return None
+
+
+def _shown(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + '...'
+
+
+def check_settings(obj: Any) -> None:
+    """SettingsError (one line, naming the --flag) unless every field of dataclass `obj` fits its type and Rule.
+
+    Then runs `obj.check_relations()` when the class defines it (rules between fields; it raises
+    SettingsError itself).
+    """
+    cls = type(obj)
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        value = getattr(obj, f.name)
+        why = _type_problem(hints.get(f.name, Any), value)
+        rule: Rule | None = f.metadata.get(RULE_KEY)
+        if why is None and rule is not None:
+            if isinstance(value, (tuple, list)):
+                if len(value) < rule.min_len:
+                    why = f'needs at least {rule.min_len} value(s)'
+                elif rule.max_len is not None and len(value) > rule.max_len:
+                    why = f'takes at most {rule.max_len} value(s)'
+                else:
+                    why = next((f'items {w}' for w in map(rule.problem, value) if w), None)
+            else:
+                why = rule.problem(value)
+        if why:
+            raise SettingsError(f'{flag(f.name)} {why}, got {_shown(value)}')
+    relations = getattr(obj, 'check_relations', None)
+    if callable(relations):
+        relations()
+
+
+def exit_error(prog: str, problem: BaseException | str, status: int) -> typing.NoReturn:
+    """Write one `<prog>: error: ...` line to stderr and exit with `status` (2: bad arguments, 1: the run failed)."""
+    text = str(problem).strip()
+    line = text.splitlines()[0] if text else type(problem).__name__
+    if isinstance(problem, OSError) and problem.filename is not None and str(problem.filename) not in line:
+        line = f'{problem.filename}: {line}'
+    sys.stderr.write(f'{prog}: error: {line}\n')
+    raise SystemExit(status)
 
 
 def _bool(text: str) -> bool:
@@ -33,29 +172,49 @@ def load_yaml_settings(cls: type[_T], path: str | Path) -> dict[str, Any]:
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = set(data) - names
     if unknown:
-        raise ValueError(f'{path}: unknown {cls.__name__} setting(s) {sorted(unknown)}')
+        raise ValueError(f'{path}: unknown {cls.__name__} setting(s) {sorted(map(str, unknown))}')
     return data
 
 
 def parse_settings(cls: type[_T], description: str, argv: list[str] | None = None,
-                   extra: dict[str, dict] | None = None) -> tuple[_T, argparse.Namespace]:
-    """Build `cls` from --config YAML and --flags; returns (settings, namespace with `extra` flags)."""
-    ap = argparse.ArgumentParser(description=description)
+                   extra: dict[str, dict] | None = None, prog: str | None = None) -> tuple[_T, argparse.Namespace]:
+    """Build `cls` from --config YAML and --flags, checked (`check_settings`); returns (settings, namespace).
+
+    A bad flag, an unreadable or wrong --config file or a value that breaks its rule exits with
+    status 2 and one `error:` line (argparse's `error`) before the caller does any work.
+    """
+    ap = argparse.ArgumentParser(prog=prog, description=description)
     ap.add_argument('--config', help=f'YAML file of {cls.__name__} fields')
     for f in dataclasses.fields(cls):
         typ = _TYPES[str(f.type)]
-        flag = '--' + f.name.replace('_', '-')
+        name = flag(f.name)
         if typ is bool:
-            ap.add_argument(flag, nargs='?', const=True, type=_bool, default=None,
+            ap.add_argument(name, nargs='?', const=True, type=_bool, default=None,
                             help=f'(default {f.default})')
         else:
-            ap.add_argument(flag, type=typ, default=None, help=f'(default {f.default})')
-    for flag, kw in (extra or {}).items():
-        ap.add_argument(flag, **kw)
+            ap.add_argument(name, type=typ, default=None, help=f'(default {f.default})')
+    for name, kw in (extra or {}).items():
+        ap.add_argument(name, **kw)
     args = ap.parse_args(argv)
-    values: dict[str, Any] = load_yaml_settings(cls, args.config) if args.config else {}
+    try:
+        values: dict[str, Any] = load_yaml_settings(cls, args.config) if args.config else {}
+    except ValueError as exc:               # not a mapping, unknown settings (the message names the file)
+        ap.error(f'--config: {exc}')
+    except (OSError, yaml.YAMLError) as exc:
+        reason = getattr(exc, 'strerror', None) or (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        ap.error(f'--config {args.config}: {reason}')
     for f in dataclasses.fields(cls):
         v = getattr(args, f.name)
         if v is not None:
             values[f.name] = v
-    return cls(**values), args
+        elif _TYPES[str(f.type)] is float and isinstance(values.get(f.name), str):
+            try:                        # YAML 1.1 reads 1e-3 (no dot) as a string
+                values[f.name] = float(values[f.name])
+            except ValueError:
+                pass                    # check_settings names it
+    cfg = cls(**values)
+    try:
+        check_settings(cfg)
+    except SettingsError as exc:
+        ap.error(str(exc))
+    return cfg, args

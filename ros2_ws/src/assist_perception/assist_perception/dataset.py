@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,7 +33,7 @@ import numpy as np
 
 from assist_sim.atomic import atomic_path, remove_stale_temporaries, write_text_atomic
 
-from .cli import parse_settings
+from .cli import SettingsError, check_settings, exit_error, parse_settings, setting
 
 DATASET_VERSION = 1
 _LOG = logging.getLogger(__name__)
@@ -40,24 +41,44 @@ _LOG = logging.getLogger(__name__)
 
 @dataclass
 class DatasetConfig:
-    """Settings of `make_dataset` (every field is a --flag)."""
+    """Settings of `make_dataset` (every field is a --flag; ranges checked before any work)."""
 
-    out_dir: str = 'data/cmvae'           # shard directory
-    frames: int = 50_000                  # total frames (the paper's size)
-    frames_per_scene: int = 50            # paper: 50 frames per generated scene
-    scenes_per_shard: int = 20            # 1000 frames per shard
-    seed: int = 0
-    min_pad_pixels: int = 12              # visible: >= this many top-surface pixels (of 64x64)
-    surface_tol_m: float = 0.03           # back-projected point within this of the pad top height
-    min_clearance_m: float = 0.3          # base_link above the surface below it
-    max_altitude_m: float = 4.5           # base_link above the floor
-    x_before_m: float = 1.0               # sweep starts this far before the start pose
-    x_after_m: float = 2.0                # ... and ends this far past the last pad
-    y_amplitude_m: float = 1.5            # max amplitude of the lateral sweep curve
-    y_offset_m: float = 0.8               # max constant lateral offset of the curve
-    y_jitter_m: float = 0.2               # per-frame lateral jitter
-    yaw_jitter_rad: float = 0.0           # heading is held at 0 in the task
+    out_dir: str = setting('data/cmvae', nonempty=True)       # shard directory
+    frames: int = setting(50_000, ge=1, le=100_000_000)       # total frames (the paper's size)
+    frames_per_scene: int = setting(50, ge=1, le=100_000)     # paper: 50 frames per generated scene
+    scenes_per_shard: int = setting(20, ge=1, le=100_000)     # 1000 frames per shard
+    seed: int = setting(0, ge=0, le=2**63 - 1)
+    min_pad_pixels: int = setting(12, ge=1)                   # visible: >= this many top-surface pixels (of 64x64)
+    surface_tol_m: float = setting(0.03, gt=0.0, le=1.0)      # back-projected point within this of the pad top
+    min_clearance_m: float = setting(0.3, gt=0.0)             # base_link above the surface below it
+    max_altitude_m: float = setting(4.5, gt=0.0)              # base_link above the floor
+    x_before_m: float = setting(1.0, ge=0.0, le=50.0)         # sweep starts this far before the start pose
+    x_after_m: float = setting(2.0, ge=0.0, le=50.0)          # ... and ends this far past the last pad
+    y_amplitude_m: float = setting(1.5, ge=0.0, le=50.0)      # max amplitude of the lateral sweep curve
+    y_offset_m: float = setting(0.8, ge=0.0, le=50.0)         # max constant lateral offset of the curve
+    y_jitter_m: float = setting(0.2, ge=0.0, le=50.0)         # per-frame lateral jitter
+    yaw_jitter_rad: float = setting(0.0, ge=0.0, le=math.pi)  # heading is held at 0 in the task
     overwrite: bool = False               # discard an existing, different dataset in out_dir
+
+    def check_relations(self) -> None:
+        """SettingsError unless the sweep fits the dataset world's camera (its pixels, near and far planes)."""
+        from assist_sim.core.config import WorldConfig  # plain dataclasses (no pybullet)
+
+        world = WorldConfig()
+        cam = world.camera
+        pixels = cam.width * cam.height
+        if self.min_pad_pixels > pixels:
+            raise SettingsError(f'--min-pad-pixels must be <= {pixels} (the {cam.width}x{cam.height} image), '
+                                f'got {self.min_pad_pixels}')
+        lowest = cam.near_m + cam.offset_below_base_m       # camera at least at its near plane above a surface
+        if self.min_clearance_m < lowest:
+            raise SettingsError(f'--min-clearance-m must be >= {lowest:g} (camera {cam.offset_below_base_m:g} m below '
+                                f'base_link, near plane {cam.near_m:g} m), got {self.min_clearance_m:g}')
+        ceiling = min(cam.far_m, world.scene.wall_height_m)
+        if not self.min_clearance_m < self.max_altitude_m <= ceiling:
+            raise SettingsError(f'--max-altitude-m must be above --min-clearance-m ({self.min_clearance_m:g}) and '
+                                f'<= {ceiling:g} (the room\'s walls and the camera\'s far plane), '
+                                f'got {self.max_altitude_m:g}')
 
 
 class PadLabel(NamedTuple):
@@ -192,8 +213,7 @@ def make_dataset(cfg: DatasetConfig, progress: bool = True) -> dict:
     from assist_sim.core.config import WorldConfig
     from assist_sim.core.world import LandingWorld
 
-    if cfg.frames <= 0 or cfg.frames_per_scene <= 0 or cfg.scenes_per_shard <= 0:
-        raise ValueError('frames, frames_per_scene and scenes_per_shard must be positive')
+    check_settings(cfg)
     out = Path(cfg.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     for stale in remove_stale_temporaries(out):
@@ -306,9 +326,14 @@ def main(argv: list[str] | None = None) -> int:
     """Console entry point `make_dataset`."""
     logging.basicConfig(level=logging.INFO, format='[%(levelname)s] %(name)s: %(message)s')
     cfg, args = parse_settings(DatasetConfig, 'Generate the CM-VAE RGB-D dataset (compressed shards).',
-                               argv, {'--no-progress': {'action': 'store_true', 'help': 'hide the progress bar'}})
-    summary = make_dataset(cfg, progress=not args.no_progress)
-    frames = load_frames(cfg.out_dir)
+                               argv, {'--no-progress': {'action': 'store_true', 'help': 'hide the progress bar'}},
+                               prog='make_dataset')
+    try:
+        summary = make_dataset(cfg, progress=not args.no_progress)
+        frames = load_frames(cfg.out_dir)
+    except (ValueError, OSError) as exc:       # a different dataset in --out-dir, disk full, unwritable
+        _LOG.debug('make_dataset failed', exc_info=True)
+        exit_error('make_dataset', exc, 1)
     print(json.dumps({**summary, 'visible_fraction': float(frames.visible.mean())}, indent=1))
     return 0
 

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .cli import parse_settings
+from .cli import check_settings, exit_error, parse_settings, setting
 from .dataset import FrameSet, load_frames, split_by_scene
 from .model import CMVAE, latent_interpolation, load_model, preprocess
 from .noise import NoiseConfig, apply_depth_noise
@@ -29,19 +29,19 @@ _LOG = logging.getLogger(__name__)
 
 @dataclass
 class EvalConfig:
-    """Settings of `evaluate_cmvae` (every field is a --flag)."""
+    """Settings of `evaluate_cmvae` (every field is a --flag; ranges checked before any work)."""
 
-    model_path: str = 'models/cmvae.pt'
-    data_dir: str = 'data/cmvae50k'
-    split: str = 'val'              # 'val': the held-out scenes of training; 'all': a fresh dataset
-    val_fraction: float = 0.05      # must match training (scene split)
-    split_seed: int = 0             # training seed (scene split)
-    max_frames: int = 0             # 0 = all frames of data_dir
-    noise_seed: int = 1
-    out_dir: str = 'runs/cmvae_eval'
-    pairs: int = 4                  # rows of the interpolation figure
-    steps: int = 8                  # interpolation steps per row
-    batch_size: int = 256
+    model_path: str = setting('models/cmvae.pt', nonempty=True)
+    data_dir: str = setting('data/cmvae50k', nonempty=True)
+    split: str = setting('val', choices=('val', 'all'))   # val: training's held-out scenes; all: a fresh dataset
+    val_fraction: float = setting(0.05, gt=0.0, lt=1.0)   # must match training (scene split)
+    split_seed: int = setting(0, ge=0, le=2**63 - 1)      # training seed (scene split)
+    max_frames: int = setting(0, ge=0)                    # 0 = all frames of data_dir
+    noise_seed: int = setting(1, ge=0, le=2**63 - 1)
+    out_dir: str = setting('runs/cmvae_eval', nonempty=True)
+    pairs: int = setting(4, ge=1, le=64)                  # rows of the interpolation figure
+    steps: int = setting(8, ge=2, le=64)                  # interpolation steps per row
+    batch_size: int = setting(256, ge=1, le=65_536)
 
 
 def compute_metrics(model: CMVAE, frames: FrameSet, idx: np.ndarray, noise_seed: int = 1,
@@ -130,6 +130,7 @@ def interpolation_figure(model: CMVAE, frames: FrameSet, idx: np.ndarray, path: 
 
 def evaluate(cfg: EvalConfig) -> dict:
     """Run the evaluation described by `cfg`; writes metrics.json and interpolation.png."""
+    check_settings(cfg)
     model = load_model(cfg.model_path)
     frames = load_frames(cfg.data_dir, cfg.max_frames or None)
     if cfg.split == 'val':
@@ -152,8 +153,12 @@ def evaluate(cfg: EvalConfig) -> dict:
 def main(argv: list[str] | None = None) -> int:
     """Console entry point `evaluate_cmvae`."""
     logging.basicConfig(level=logging.INFO, format='[%(levelname)s] %(name)s: %(message)s')
-    cfg, _ = parse_settings(EvalConfig, 'Evaluate a trained CM-VAE on held-out frames.', argv)
-    metrics = evaluate(cfg)
+    cfg, _ = parse_settings(EvalConfig, 'Evaluate a trained CM-VAE on held-out frames.', argv, prog='evaluate_cmvae')
+    try:
+        metrics = evaluate(cfg)
+    except (ValueError, OSError) as exc:       # bad model file, no dataset, unwritable --out-dir
+        _LOG.debug('evaluate_cmvae failed', exc_info=True)
+        exit_error('evaluate_cmvae', exc, 1)
     width = max(len(k) for k in metrics)
     for k, v in metrics.items():
         print(f'{k:<{width}}  {v:.4f}' if isinstance(v, float) else f'{k:<{width}}  {v}')

@@ -6,6 +6,13 @@ are held out for validation. The run directory gets config.json, metrics.csv (on
 checkpoint.pt (latest, for --resume), best.pt and model.pt (weights files for load_model).
 Every file is replaced atomically (temporary file, fsync, rename); on --resume the metrics rows of
 epochs after the checkpoint are dropped (they are trained again).
+
+Settings are checked before any work (one `error:` line, exit status 2): each field's rule, a run
+directory holding a checkpoint needs --resume, and a resumed run must have the settings it was
+started with (config.json), except RESUMABLE_CHANGES (epochs, threads, max_minutes,
+stop_after_epoch); the error names each setting that differs. A damaged checkpoint, and a run whose
+loss turns non-finite (it stops before writing that epoch's files, keeping the last finite model),
+end with one `error:` line and exit status 1.
 """
 from __future__ import annotations
 
@@ -24,7 +31,7 @@ import torch
 
 from assist_sim.atomic import atomic_path, remove_stale_temporaries, truncate_csv, write_text_atomic
 
-from .cli import parse_settings
+from .cli import SettingsError, check_settings, exit_error, flag, parse_settings, setting
 from .dataset import FrameSet, load_frames, split_by_scene
 from .model import CMVAE, CMVAEConfig, LossConfig, cmvae_loss, preprocess, save_model
 from .noise import NoiseConfig, apply_depth_noise
@@ -34,33 +41,40 @@ _LOG = logging.getLogger(__name__)
 
 @dataclass
 class TrainConfig:
-    """Settings of one training run (every field is a --flag)."""
+    """Settings of one training run (every field is a --flag; ranges checked before any work)."""
 
-    data_dir: str = 'data/cmvae50k'       # make_dataset output
-    run_dir: str = 'runs/cmvae'           # config, metrics.csv, checkpoints
-    epochs: int = 10
-    batch_size: int = 128
-    lr: float = 1e-3                      # Adam, cosine decay to lr_min after warm-up
-    lr_min: float = 2e-5
-    warmup_steps: int = 100
-    weight_decay: float = 0.0
-    val_fraction: float = 0.05            # fraction of scenes held out
-    max_frames: int = 0                   # 0 = the whole dataset
-    seed: int = 0
-    latent_dim: int = 10
-    depth_scale_m: float = 5.0
-    noise_prob: float = 0.9               # fraction of training inputs degraded by G (rest clean)
-    kl_warmup_epochs: float = 1.0         # KL weight ramps linearly from 0 over this many epochs
-    w_depth: float = 1.0                  # paper weights 1 / 2 / 4
-    w_xyz: float = 2.0
-    w_kl: float = 4.0
-    depth_sigma_m: float = 0.25           # loss units (see LossConfig)
-    xyz_sigma_m: float = 0.03
-    threads: int = 1                      # torch intra-op threads (1 is fastest on a shared 2-core box)
-    max_minutes: float = 0.0              # time budget (0 = off): the LR schedule follows whichever of
-    #                                       steps or elapsed/budget is further along; stops when spent
-    stop_after_epoch: int = 0             # end the run after this epoch (0 = off); --resume continues
-    resume: bool = False                  # continue from run_dir/checkpoint.pt
+    data_dir: str = setting('data/cmvae50k', nonempty=True)       # make_dataset output
+    run_dir: str = setting('runs/cmvae', nonempty=True)           # config, metrics.csv, checkpoints
+    epochs: int = setting(10, ge=1, le=100_000)
+    batch_size: int = setting(128, ge=1, le=65_536)
+    lr: float = setting(1e-3, gt=0.0, le=1.0)                     # Adam, cosine decay to lr_min after warm-up
+    lr_min: float = setting(2e-5, ge=0.0, le=1.0)                 # <= lr
+    warmup_steps: int = setting(100, ge=0)
+    weight_decay: float = setting(0.0, ge=0.0, le=1.0)
+    val_fraction: float = setting(0.05, ge=0.0, lt=1.0)           # fraction of scenes held out
+    max_frames: int = setting(0, ge=0)                            # 0 = the whole dataset
+    seed: int = setting(0, ge=0, le=2**31 - 1)
+    latent_dim: int = setting(10, ge=1, le=4096)
+    depth_scale_m: float = setting(5.0, gt=0.0, le=100.0)
+    noise_prob: float = setting(0.9, ge=0.0, le=1.0)              # fraction of training inputs degraded by G
+    kl_warmup_epochs: float = setting(1.0, ge=0.0, le=100_000)    # KL weight ramps linearly from 0 over these
+    w_depth: float = setting(1.0, ge=0.0, le=1e6)                 # paper weights 1 / 2 / 4
+    w_xyz: float = setting(2.0, ge=0.0, le=1e6)
+    w_kl: float = setting(4.0, ge=0.0, le=1e6)
+    depth_sigma_m: float = setting(0.25, gt=0.0, le=100.0)        # loss units (see LossConfig)
+    xyz_sigma_m: float = setting(0.03, gt=0.0, le=100.0)
+    threads: int = setting(1, ge=1, le=256)       # torch intra-op threads (1 is fastest on a shared 2-core box)
+    max_minutes: float = setting(0.0, ge=0.0)     # time budget (0 = off): the LR schedule follows whichever of
+    #                                               steps or elapsed/budget is further along; stops when spent
+    stop_after_epoch: int = setting(0, ge=0)      # end the run after this epoch (0 = off); --resume continues
+    resume: bool = False                          # continue from run_dir/checkpoint.pt (same settings)
+
+    def check_relations(self) -> None:
+        """SettingsError when fields contradict each other."""
+        if self.lr_min > self.lr:
+            raise SettingsError(f'--lr-min ({self.lr_min:g}) must not exceed --lr ({self.lr:g})')
+        if self.w_depth + self.w_xyz == 0.0:
+            raise SettingsError('--w-depth and --w-xyz are both 0: nothing to learn')
 
 
 def _batch_inputs(frames: FrameSet, idx: np.ndarray, rng: np.random.Generator,
@@ -129,16 +143,70 @@ def _lr_at(step: int, total: int, cfg: TrainConfig, elapsed_s: float = 0.0) -> f
     return cfg.lr_min + 0.5 * (cfg.lr - cfg.lr_min) * (1 + math.cos(math.pi * t))
 
 
+RESUMABLE_CHANGES = ('epochs', 'threads', 'max_minutes', 'stop_after_epoch', 'resume')
+CHECKPOINT_KEYS = ('model', 'optimizer', 'epoch', 'step', 'best', 'elapsed_s')
+
+
+def check_run_dir(cfg: TrainConfig) -> None:
+    """SettingsError unless `cfg` may train in its run directory (nothing is written).
+
+    A directory holding a checkpoint needs --resume, and a resumed run keeps the settings it was
+    started with (config.json): only RESUMABLE_CHANGES may differ; the error names the others.
+    """
+    run = Path(cfg.run_dir)
+    if run.exists() and not run.is_dir():
+        raise SettingsError(f'--run-dir {run} exists and is not a directory')
+    ckpt_path = run / 'checkpoint.pt'
+    if not ckpt_path.exists():
+        return
+    if not cfg.resume:
+        raise SettingsError(f'--run-dir {run} holds a checkpoint: pass --resume to continue it, or use a new '
+                            '--run-dir')
+    try:
+        saved = json.loads((run / 'config.json').read_text(encoding='utf-8'))
+        if not isinstance(saved, dict):
+            raise ValueError('not a mapping')
+    except (OSError, ValueError) as exc:
+        raise SettingsError(f'--resume: {run / "config.json"} is missing or unreadable ({exc}), so the run\'s '
+                            'settings are unknown') from None
+    now = dataclasses.asdict(cfg)
+    changed = [f'{flag(k)} (run: {saved[k]!r}, now: {now[k]!r})' for k in now
+               if k in saved and k not in RESUMABLE_CHANGES and saved[k] != now[k]]
+    if changed:
+        raise SettingsError(f'--resume: the run in {run} was started with other settings: {"; ".join(changed)}; '
+                            'resume with its settings (only ' + ', '.join(flag(k) for k in RESUMABLE_CHANGES[:-1])
+                            + ' may change) or use a new --run-dir')
+
+
+def load_checkpoint(path: Path) -> dict:
+    """The training state in checkpoint.pt (weights_only); ValueError (one line) when it is damaged."""
+    try:
+        ck = torch.load(path, map_location='cpu', weights_only=True)
+    except Exception as exc:  # torch raises many types (pickle, zip, runtime, EOF) for damaged files
+        first = (str(exc).strip().splitlines() or [''])[0][:200]
+        raise ValueError(f'damaged checkpoint {path}: {type(exc).__name__}: {first}') from None
+    missing = [k for k in CHECKPOINT_KEYS if not isinstance(ck, dict) or k not in ck]
+    if missing:
+        raise ValueError(f'damaged checkpoint {path}: lacks {", ".join(missing)}')
+    return ck
+
+
 def train(cfg: TrainConfig, frames: FrameSet | None = None, progress: bool = True) -> dict:
-    """Run (or resume) training; returns the last epoch's metrics plus timing."""
+    """Run (or resume) training; returns the last epoch's metrics plus timing.
+
+    SettingsError (before anything is written) for bad settings or a run directory they do not fit;
+    ValueError for a damaged checkpoint or a diverged run (non-finite loss: the last good model.pt
+    and checkpoint are kept).
+    """
     from tqdm import tqdm
 
-    torch.set_num_threads(max(1, cfg.threads))
+    check_settings(cfg)
+    check_run_dir(cfg)
+    torch.set_num_threads(cfg.threads)
     run = Path(cfg.run_dir)
-    run.mkdir(parents=True, exist_ok=True)
     ckpt_path = run / 'checkpoint.pt'
-    if not cfg.resume and ckpt_path.exists():
-        raise FileExistsError(f'{ckpt_path} exists: pass --resume or use a new --run-dir')
+    ck = load_checkpoint(ckpt_path) if cfg.resume and ckpt_path.exists() else None
+    run.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(run)
     write_text_atomic(run / 'config.json', json.dumps(dataclasses.asdict(cfg), indent=1))
 
@@ -160,12 +228,16 @@ def train(cfg: TrainConfig, frames: FrameSet | None = None, progress: bool = Tru
     steps_per_epoch = math.ceil(len(train_idx) / cfg.batch_size)
     total_steps = steps_per_epoch * cfg.epochs
     start_epoch, step, best, elapsed = 0, 0, math.inf, 0.0
-    if cfg.resume and ckpt_path.exists():
-        ck = torch.load(ckpt_path, map_location='cpu', weights_only=True)
-        model.load_state_dict(ck['model'])
-        model.set_xyz_stats(model.xyz_mean.numpy(), model.xyz_std.numpy())
-        opt.load_state_dict(ck['optimizer'])
-        start_epoch, step, best, elapsed = ck['epoch'] + 1, ck['step'], ck['best'], ck['elapsed_s']
+    if ck is not None:
+        try:
+            model.load_state_dict(ck['model'])
+            model.set_xyz_stats(model.xyz_mean.numpy(), model.xyz_std.numpy())
+            opt.load_state_dict(ck['optimizer'])
+            start_epoch, step = int(ck['epoch']) + 1, int(ck['step'])
+            best, elapsed = float(ck['best']), float(ck['elapsed_s'])
+        except (RuntimeError, ValueError, KeyError, TypeError) as exc:
+            first = (str(exc).strip().splitlines() or [''])[0][:200]
+            raise ValueError(f'damaged checkpoint {ckpt_path}: {type(exc).__name__}: {first}') from None
         _LOG.info('resumed from %s at epoch %d', ckpt_path, start_epoch)
 
     metrics_file = run / 'metrics.csv'
@@ -199,7 +271,11 @@ def train(cfg: TrainConfig, frames: FrameSet | None = None, progress: bool = Tru
             opt.step()
             step += 1
             done += 1
-            acc += [float(t.detach()) for t in terms]
+            values = [float(t.detach()) for t in terms]
+            if not all(math.isfinite(v) for v in values):
+                raise ValueError(f'training diverged at epoch {epoch + 1}, step {step}: the loss is {values[0]} '
+                                 f'(try a lower --lr); {run} keeps the last finite model')
+            acc += values
             bar.set_postfix(loss=f'{acc[0] / done:.1f}', kl=f'{acc[3] / done:.1f}')
             if cfg.max_minutes > 0 and time.perf_counter() - t_start >= 60.0 * cfg.max_minutes:
                 break   # budget spent: validate and save what we have (counts as the last epoch)
@@ -247,8 +323,17 @@ def main(argv: list[str] | None = None) -> int:
     """Console entry point `train_cmvae`."""
     logging.basicConfig(level=logging.INFO, format='[%(levelname)s] %(name)s: %(message)s')
     cfg, args = parse_settings(TrainConfig, 'Train the denoising CM-VAE (see TrainConfig).', argv,
-                               {'--no-progress': {'action': 'store_true', 'help': 'hide progress bars'}})
-    last = train(cfg, progress=not args.no_progress)
+                               {'--no-progress': {'action': 'store_true', 'help': 'hide progress bars'}},
+                               prog='train_cmvae')
+    try:
+        check_run_dir(cfg)
+    except SettingsError as exc:
+        exit_error('train_cmvae', str(exc), 2)
+    try:
+        last = train(cfg, progress=not args.no_progress)
+    except (ValueError, OSError) as exc:       # damaged checkpoint or dataset, diverged run, disk full
+        _LOG.debug('train_cmvae failed', exc_info=True)
+        exit_error('train_cmvae', exc, 1)
     print(json.dumps(last, indent=1))
     return 0
 

@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 
 from assist_perception import dataset, evaluate, train
-from assist_perception.cli import load_yaml_settings, parse_settings
+from assist_perception.cli import check_settings, load_yaml_settings, parse_settings
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config'
 
@@ -19,8 +19,9 @@ def test_flags_override_yaml_override_defaults(tmp_path):
     cfg, _ = parse_settings(train.TrainConfig, 'x', ['--resume', '--batch-size', '7'])
     assert cfg.resume is True and cfg.batch_size == 7
     y.write_text('epochz: 3\n')
-    with pytest.raises(ValueError, match='epochz'):
+    with pytest.raises(SystemExit) as stop:       # one error: line naming the unknown setting, exit 2
         parse_settings(train.TrainConfig, 'x', ['--config', str(y)])
+    assert stop.value.code == 2
     with pytest.raises(SystemExit):
         parse_settings(train.TrainConfig, 'x', ['--epochs', 'many'])
 
@@ -31,6 +32,7 @@ def test_flags_override_yaml_override_defaults(tmp_path):
 def test_shipped_config_files_are_valid(name, cls):
     cfg = cls(**load_yaml_settings(cls, CONFIG / name))
     assert dataclasses.asdict(cfg)
+    check_settings(cfg)                     # every value within its rule
 
 
 def test_make_dataset_main_small_set(tmp_path, capsys):

@@ -6,6 +6,7 @@ import torch
 
 from assist_perception.dataset import DatasetConfig, load_frames, make_dataset
 from assist_perception.model import load_model
+from assist_perception.cli import SettingsError
 from assist_perception.train import TrainConfig, train
 
 
@@ -50,7 +51,7 @@ def test_seeded_and_resumable(frames, tmp_path):
     # b: the same run stopped after epoch 1, then resumed -> identical to the uninterrupted run
     train(_cfg(b, epochs=2, stop_after_epoch=1), frames=frames, progress=False)
     assert len(_rows(b)) == 1
-    with pytest.raises(FileExistsError):
+    with pytest.raises(SettingsError, match='--resume'):      # a run directory with a checkpoint needs --resume
         train(_cfg(b, epochs=2), frames=frames, progress=False)
     train(_cfg(b, epochs=2, resume=True), frames=frames, progress=False)
     ra, rb = _rows(a), _rows(b)

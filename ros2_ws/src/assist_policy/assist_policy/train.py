@@ -1,8 +1,14 @@
 """train_td3: train the assistant with TD3 against simulated pilots (resumable, background-friendly).
 
     train_td3 --name oracle_a --condition oracle --total-steps 2000000
-    train_td3 --resume runs/oracle_a            # continue where it stopped (other session, same flags)
+    train_td3 --resume runs/oracle_a            # continue where it stopped, with the run's own settings
 
+Every value is checked before any work (TrainArgs' field rules and check_relations, the files it
+names, a run name that is a plain name and a run directory that holds no run yet): a bad one is one
+`error:` line and exit status 2. A resumed run keeps the settings in its config.json: only
+--total-steps and --torch-threads may be given with other values; any other flag that differs is an
+error naming each. A damaged checkpoint, or an actor that does not fit the run, is one `error:` line
+and exit status 1.
 Run directory runs/<name>/: config.json, metrics.csv (one row per training landing), eval.csv
 (periodic deterministic evaluation), progress.txt (last status line), checkpoint/ (state.pt +
 replay.npz: the full training state, written as one unit: a crash leaves the previous checkpoint or
@@ -19,6 +25,8 @@ import logging
 import math
 import sys
 import time
+import zipfile
+from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,10 +38,11 @@ from assist_sim.atomic import (CsvLog, atomic_dir, atomic_path, committed_dir, r
                                write_text_atomic)
 from assist_sim.pilots import HELDOUT_FAMILIES, TRAIN_FAMILIES
 
-from .cli import add_dataclass_args, dataclass_from_args
+from .cli import (SettingsError, add_dataclass_args, check_settings, exit_error, flag, parse_dataclass_args,
+                  setting)
 from .env import EnvConfig, LandingAssistEnv, RewardConfig, run_episode
 from .latent import make_latent_fn
-from .observation import DISPLACEMENT_DIM, feature_dim
+from .observation import DISPLACEMENT_DIM, MAX_FEATURE_LAG_S, MAX_FEATURE_LAGS, feature_dim
 from .override import OverrideConfig
 from .safety import SafetyConfig
 from .scripted import NEAREST_PAD_VARIANTS, ScriptedOracle, make_nearest_pad
@@ -42,65 +51,93 @@ from .td3 import TD3, OUNoise, ReplayBuffer, TD3Config, load_actor, save_actor
 log = logging.getLogger(__name__)
 
 EVAL_BETAS = (0.0, 0.25, 0.5, 0.75, 1.0)
+DEMO_POLICIES = ('oracle', *NEAREST_PAD_VARIANTS, 'init_actor')
+CONDITIONS = ('oracle', 'latent', 'end_to_end')
+MAX_SEED = 2**31 - 1
 
 
 @dataclass
 class TrainArgs:
-    """Command-line arguments of train_td3 (every field is a --flag)."""
+    """Command-line arguments of train_td3 (every field is a --flag; values checked before any work)."""
 
-    name: str = 'td3_oracle'
-    runs_dir: str = 'runs'
+    name: str = setting('td3_oracle', file_name=True)
+    runs_dir: str = setting('runs', nonempty=True)
     resume: str = ''
-    condition: str = 'oracle'
-    seed: int = 0
-    total_steps: int = 1_000_000
-    start_steps: int = 5_000
-    updates_per_step: float = 1.0
-    buffer_size: int = 1_000_000
-    preload: tuple[str, ...] = ()
-    ou_sigma: float = 0.3
-    ou_sigma_min: float = 0.05
-    ou_decay: float = 0.997
-    ou_theta: float = 0.15
-    eval_every_episodes: int = 50
-    eval_episodes_per_beta: int = 4
-    checkpoint_every_steps: int = 25_000
+    condition: str = setting('oracle', choices=CONDITIONS)
+    seed: int = setting(0, ge=0, le=MAX_SEED)
+    total_steps: int = setting(1_000_000, ge=0, le=10**10)
+    start_steps: int = setting(5_000, ge=0)
+    updates_per_step: float = setting(1.0, ge=0.0, le=100.0)
+    buffer_size: int = setting(1_000_000, ge=1, le=10**8)
+    preload: tuple[str, ...] = setting((), nonempty=True)
+    ou_sigma: float = setting(0.3, ge=0.0, le=10.0)
+    ou_sigma_min: float = setting(0.05, ge=0.0, le=10.0)
+    ou_decay: float = setting(0.997, gt=0.0, le=1.0)
+    ou_theta: float = setting(0.15, ge=0.0, le=1.0)
+    eval_every_episodes: int = setting(50, ge=1)
+    eval_episodes_per_beta: int = setting(4, ge=1, le=10_000)
+    checkpoint_every_steps: int = setting(25_000, ge=1)
     save_buffer: bool = True
-    alpha: float = 0.5
-    max_episode_s: float = 60.0
+    alpha: float = setting(0.5, ge=0.0, le=1.0)
+    max_episode_s: float = setting(60.0, gt=0.0, le=3600.0)
     encoder_path: str = ''
-    landing_weight: float = 10.0
-    progress_weight: float = 1.0
-    progress_radius_m: float = 3.0
-    action_weight: float = 0.01
-    success_bonus: float = 0.0
-    crash_penalty: float = 0.0
-    torch_threads: int = 1
-    demo_episodes: int = 0
-    demo_noise: float = 0.2
-    bc_steps: int = 0
-    critic_warmup_updates: int = 0
-    actor_start_steps: int = 0
-    bc_alpha: float = 0.0
-    demo_policy: str = 'oracle'
+    landing_weight: float = setting(10.0, ge=0.0, le=1e6)
+    progress_weight: float = setting(1.0, ge=0.0, le=1e6)
+    progress_radius_m: float = setting(3.0, gt=0.0, le=100.0)
+    action_weight: float = setting(0.01, ge=0.0, le=1e6)
+    success_bonus: float = setting(0.0, ge=0.0, le=1e6)
+    crash_penalty: float = setting(0.0, ge=0.0, le=1e6)
+    torch_threads: int = setting(1, ge=1, le=256)
+    demo_episodes: int = setting(0, ge=0, le=10**7)
+    demo_noise: float = setting(0.2, ge=0.0, le=10.0)
+    bc_steps: int = setting(0, ge=0)
+    critic_warmup_updates: int = setting(0, ge=0)
+    actor_start_steps: int = setting(0, ge=0)
+    bc_alpha: float = setting(0.0, ge=0.0, le=1e6)
+    demo_policy: str = setting('oracle', choices=DEMO_POLICIES)
     demo_bc_file: str = ''
     init_actor: str = ''
-    dagger_rounds: int = 0
-    dagger_episodes: int = 100
-    hidden: tuple[int, ...] = (256, 256)
-    actor_lr: float = 1e-3
+    dagger_rounds: int = setting(0, ge=0, le=10_000)
+    dagger_episodes: int = setting(100, ge=1, le=10**7)
+    hidden: tuple[int, ...] = setting((256, 256), ge=1, le=8192, min_len=1, max_len=16)   # as load_actor accepts
+    actor_lr: float = setting(1e-3, gt=0.0, le=1.0)
     pilot: str = 'paper'
-    paper_share: float = 0.0
+    paper_share: float = setting(0.0, ge=0.0, le=1.0)
     safety: bool = False
     override: bool = False
-    floor_descent_weight: float = 0.0
-    feature_lags_s: tuple[float, ...] = ()
+    floor_descent_weight: float = setting(0.0, ge=0.0, le=1e6)
+    feature_lags_s: tuple[float, ...] = setting((), gt=0.0, le=MAX_FEATURE_LAG_S, max_len=MAX_FEATURE_LAGS)
     memory_displacement: bool = False
+
+    def check_relations(self) -> None:
+        """SettingsError when flags contradict each other (what training would refuse later, said up front)."""
+        try:
+            check_training_pilot(self.pilot)
+        except ValueError as exc:
+            raise SettingsError(f'--pilot: {exc}') from None
+        if self.memory_displacement and not self.feature_lags_s:
+            raise SettingsError('--memory-displacement true needs --feature-lags-s')
+        if self.feature_lags_s and self.condition == 'end_to_end':
+            raise SettingsError('--feature-lags-s needs the latent or oracle condition')
+        if self.condition != 'latent' and self.encoder_path:
+            raise SettingsError('--encoder-path is only used by the latent condition')
+        if self.resume:
+            return                      # the run's saved settings decide the rest
+        if self.dagger_rounds > 0 and not (self.demo_episodes > 0 or self.demo_bc_file):
+            raise SettingsError('--dagger-rounds needs demonstrations (--demo-episodes or --demo-bc-file)')
+        if self.demo_policy == 'init_actor' and not self.init_actor:
+            raise SettingsError('--demo-policy init_actor needs --init-actor (the actor that labels the '
+                                'demonstrations)')
+        if self.demo_policy == 'init_actor' and self.dagger_rounds > 0:
+            raise SettingsError('--demo-policy init_actor labels with the starting actor: DAgger would clone it '
+                                'onto itself')
 
 
 HELP = {
     'name': 'run name: the run directory is <runs-dir>/<name>',
-    'resume': 'run directory to continue (its config.json wins over the other flags except total-steps)',
+    'resume': 'run directory to continue with the settings it was started with (its config.json); only '
+              '--total-steps and --torch-threads may be given with other values, any other flag that differs '
+              'from the run\'s is an error naming it',
     'condition': 'oracle | latent | end_to_end',
     'total_steps': 'environment steps to train for (in total, across resumes)',
     'start_steps': 'initial steps with uniformly random actions',
@@ -150,8 +187,6 @@ HELP = {
                 'part of the environment (as it sees the floor guard)',
 }
 
-
-DEMO_POLICIES = ('oracle', *NEAREST_PAD_VARIANTS, 'init_actor')
 
 
 def collect_demos(env: LandingAssistEnv, episodes: int, noise: float, seed: int, buffer: ReplayBuffer,
@@ -287,6 +322,85 @@ def init_actor(agent: TD3, path: str, condition: str) -> None:
 
 
 CHECKPOINT_DIR = 'checkpoint'
+RESUME_MAY_CHANGE = ('resume', 'total_steps', 'torch_threads')   # flags a resumed run takes from the command line
+
+
+def _plain(value):
+    """A settings value as config.json holds it (tuples as lists), for comparing."""
+    return list(value) if isinstance(value, (tuple, list)) else value
+
+
+def resumed_args(args: TrainArgs, given: Collection[str] | None = None) -> TrainArgs:
+    """The settings `args.resume`'s run continues with: its config.json, plus --total-steps/--torch-threads.
+
+    `given`: the flags of the command line (None: the fields that differ from TrainArgs' defaults).
+    SettingsError (one line) when the directory holds no readable train_td3 config.json, its settings
+    are no longer valid, or a given flag asks for another value than the run was started with (each
+    is named: a resumed run keeps its settings).
+    """
+    run_dir = Path(args.resume)
+    cfg_file = run_dir / 'config.json'
+    if not run_dir.is_dir():
+        raise SettingsError(f'--resume {run_dir}: no such run directory')
+    try:
+        saved = json.loads(cfg_file.read_text(encoding='utf-8'))['train']
+        if not isinstance(saved, dict):
+            raise TypeError('"train" is not a mapping')
+    except FileNotFoundError:
+        raise SettingsError(f'--resume {run_dir}: no config.json (not a train_td3 run directory)') from None
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise SettingsError(f'--resume {run_dir}: damaged config.json ({type(exc).__name__}: '
+                            f'{str(exc).splitlines()[0] if str(exc) else ""})') from None
+    unknown = sorted(set(saved) - {f.name for f in dataclasses.fields(TrainArgs)})
+    if unknown:
+        raise SettingsError(f'--resume {run_dir}: config.json holds settings train_td3 does not know: '
+                            f'{", ".join(map(str, unknown))}')
+    resumed = TrainArgs(**{k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()})
+    resumed.resume = str(run_dir)
+    try:
+        check_settings(resumed)
+    except SettingsError as exc:
+        raise SettingsError(f'--resume {run_dir}: config.json: {exc}') from None
+    if given is None:
+        defaults = TrainArgs()
+        given = [f.name for f in dataclasses.fields(TrainArgs) if getattr(args, f.name) != getattr(defaults, f.name)]
+    changed = [f'{flag(n)} (run: {_plain(getattr(resumed, n))}, given: {_plain(getattr(args, n))})'
+               for n in sorted(set(given) - set(RESUME_MAY_CHANGE))
+               if _plain(getattr(args, n)) != _plain(getattr(resumed, n))]
+    if changed:
+        raise SettingsError(f'--resume {run_dir}: the run was started with other settings: {"; ".join(changed)}. '
+                            'A resumed run keeps its settings (only --total-steps and --torch-threads may change): '
+                            'drop these flags, or start a new run with another --name')
+    for n in RESUME_MAY_CHANGE[1:]:
+        if n in given:
+            setattr(resumed, n, getattr(args, n))
+    return resumed
+
+
+def prepare_run(args: TrainArgs, given: Collection[str] | None = None) -> TrainArgs:
+    """Checked settings of a run, before any work: resolved from config.json on --resume; SettingsError (one line).
+
+    Besides each flag's rule: a new run needs a run directory that holds no run yet, and the files it
+    names (--preload, --init-actor, --demo-bc-file, --encoder-path) must exist.
+    """
+    check_settings(args)
+    if args.resume:
+        args = resumed_args(args, given)
+    else:
+        run_dir = Path(args.runs_dir) / args.name
+        if (run_dir / 'config.json').exists() or committed_dir(run_dir / CHECKPOINT_DIR) is not None:
+            raise SettingsError(f'{run_dir} already holds a run: continue it with --resume {run_dir} or choose '
+                                'another --name')
+        if run_dir.exists() and not run_dir.is_dir():
+            raise SettingsError(f'{run_dir} exists and is not a directory')
+        for name, paths in (('preload', args.preload), ('init_actor', [args.init_actor] if args.init_actor else []),
+                            ('demo_bc_file', [args.demo_bc_file] if args.demo_bc_file else [])):
+            for path in paths:
+                if not Path(path).is_file():
+                    raise SettingsError(f'{flag(name)} {path}: no such file')
+    if args.encoder_path and not Path(args.encoder_path).is_file():
+        raise SettingsError(f'--encoder-path {args.encoder_path}: no such file')
+    return args
 
 
 def save_checkpoint(run_dir: Path, agent: TD3, buffer: ReplayBuffer | None, step: int, episode: int,
@@ -301,8 +415,27 @@ def save_checkpoint(run_dir: Path, agent: TD3, buffer: ReplayBuffer | None, step
     return path
 
 
+STATE_KEYS = ('agent', 'step', 'episode', 'best')
+
+
+def _load_state(path: Path) -> dict:
+    """A checkpoint's state.pt (weights_only); ValueError (one line) when it is damaged."""
+    try:
+        state = torch.load(path, map_location='cpu', weights_only=True)
+    except Exception as exc:  # torch raises many types (pickle, zip, runtime, EOF) for damaged files
+        first = (str(exc).strip().splitlines() or [''])[0][:200]
+        raise ValueError(f'damaged checkpoint {path}: {type(exc).__name__}: {first}') from None
+    missing = [k for k in STATE_KEYS if not isinstance(state, dict) or k not in state]
+    if missing:
+        raise ValueError(f'damaged checkpoint {path}: lacks {", ".join(missing)}')
+    return state
+
+
 def load_checkpoint(run_dir: Path) -> tuple[dict, Path | None] | None:
-    """(state, replay.npz or None) of the last complete checkpoint of a run, or None if it has none."""
+    """(state, replay.npz or None) of the last complete checkpoint of a run, or None if it has none.
+
+    ValueError (one line, naming the file) when the checkpoint is damaged.
+    """
     path = committed_dir(run_dir / CHECKPOINT_DIR)
     if path is None:
         legacy = run_dir / 'ckpt.pt'       # runs from before checkpoints were written as one unit
@@ -310,14 +443,29 @@ def load_checkpoint(run_dir: Path) -> tuple[dict, Path | None] | None:
             return None
         log.warning('%s: old checkpoint layout (ckpt.pt + replay.npz written one by one): their steps may '
                     'disagree', run_dir)
-        state = torch.load(legacy, map_location='cpu', weights_only=True)
+        state = _load_state(legacy)
         replay = run_dir / 'replay.npz'
         return state, replay if replay.exists() else None
-    state = torch.load(path / 'state.pt', map_location='cpu', weights_only=True)
+    state = _load_state(path / 'state.pt')
     replay = path / 'replay.npz'
     if state.get('buffer_size') is not None and not replay.exists():
         raise ValueError(f'{path}: checkpoint lacks replay.npz')
     return state, replay if replay.exists() else None
+
+
+def _restore(agent: TD3, buffer: ReplayBuffer, state: dict, replay: Path | None, run_dir: Path) -> None:
+    """Load a checkpoint's agent and replay buffer; ValueError (one line) when they are damaged or do not fit."""
+    try:
+        agent.load_state_dict(state['agent'])
+    except (RuntimeError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        first = (str(exc).strip().splitlines() or [''])[0][:200]
+        raise ValueError(f'damaged checkpoint in {run_dir}: agent state: {type(exc).__name__}: {first}') from None
+    if replay is not None:
+        try:
+            buffer.load(replay)
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+            first = (str(exc).strip().splitlines() or [''])[0][:200]
+            raise ValueError(f'damaged checkpoint {replay}: {type(exc).__name__}: {first}') from None
 
 
 def _best_on_disk(path: Path) -> float:
@@ -328,16 +476,16 @@ def _best_on_disk(path: Path) -> float:
         return math.inf
 
 
-def train(args: TrainArgs) -> Path:
-    """Train (or resume) a run; returns the run directory."""
-    torch.set_num_threads(max(1, args.torch_threads))
+def train(args: TrainArgs, given: Collection[str] | None = None) -> Path:
+    """Train (or resume) a run; returns the run directory.
+
+    `given`: the flags of the command line (see `resumed_args`). SettingsError before anything is
+    written for bad settings (`prepare_run`); ValueError for a damaged checkpoint.
+    """
+    args = prepare_run(args, given)
+    torch.set_num_threads(args.torch_threads)
     run_dir = Path(args.resume) if args.resume else Path(args.runs_dir) / args.name
-    if args.resume:
-        saved = json.loads((run_dir / 'config.json').read_text(encoding='utf-8'))['train']
-        total = args.total_steps
-        args = TrainArgs(**{k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()})
-        args.total_steps = max(total, args.total_steps) if total != TrainArgs.total_steps else args.total_steps
-        args.resume = str(run_dir)
+    saved = load_checkpoint(run_dir) if args.resume else None      # a damaged state.pt stops us here
     run_dir.mkdir(parents=True, exist_ok=True)
     for stale in remove_stale_temporaries(run_dir):
         log.info('removed %s (left by an interrupted write)', stale)
@@ -359,14 +507,11 @@ def train(args: TrainArgs) -> Path:
     rng = np.random.default_rng(args.seed)
     noise = OUNoise(3, args.ou_theta, args.ou_sigma, args.ou_sigma_min, args.ou_decay, rng=rng)
     step, episode, best = 0, 0, math.inf
-    saved = load_checkpoint(run_dir) if args.resume else None
     if saved is not None:
         state, replay = saved
-        agent.load_state_dict(state['agent'])
+        _restore(agent, buffer, state, replay, run_dir)
         step, episode, best = int(state['step']), int(state['episode']), float(state['best'])
         noise.landings = episode
-        if replay is not None:
-            buffer.load(replay)
         if state.get('buffer_size') is not None and buffer.size != int(state['buffer_size']):
             raise ValueError(f'{run_dir}: checkpoint at step {step} holds {buffer.size} transitions, '
                              f'expected {state["buffer_size"]}')
@@ -386,13 +531,7 @@ def train(args: TrainArgs) -> Path:
     for path in () if args.resume else args.preload:   # on resume replay.npz already holds them
         log.info('preloaded %d transitions from %s', buffer.load(path), path)
     has_demos = not args.resume and bool(args.demo_episodes > 0 or args.demo_bc_file)
-    if not args.resume and args.dagger_rounds > 0 and not has_demos:
-        raise ValueError('--dagger-rounds needs demonstrations (--demo-episodes or --demo-bc-file)')
-    anchored = args.demo_policy == 'init_actor'
-    if anchored and not args.init_actor:
-        raise ValueError('--demo-policy init_actor needs --init-actor (the actor that labels the demonstrations)')
-    if anchored and args.dagger_rounds > 0:
-        raise ValueError('--demo-policy init_actor labels with the starting actor: DAgger would clone it onto itself')
+    anchored = args.demo_policy == 'init_actor'     # TrainArgs.check_relations: it comes with --init-actor
     if has_demos and anchored and not args.resume:
         init_actor(agent, args.init_actor, args.condition)    # it labels the demonstrations
     if has_demos:
@@ -519,10 +658,19 @@ def train(args: TrainArgs) -> Path:
 def main(argv: list[str] | None = None) -> int:
     """Console entry point."""
     logging.basicConfig(level=logging.INFO, format='%(asctime)s %(levelname)s %(name)s: %(message)s')
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(prog='train_td3', description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     add_dataclass_args(parser, TrainArgs, HELP)
-    args = dataclass_from_args(TrainArgs, parser.parse_args(argv))
-    run_dir = train(args)
+    args, given = parse_dataclass_args(parser, TrainArgs, argv)
+    try:
+        args = prepare_run(args, given)
+    except SettingsError as exc:
+        parser.error(str(exc))
+    try:
+        run_dir = train(args)
+    except (ValueError, OSError) as exc:     # damaged checkpoint, an actor that does not fit, disk full
+        log.debug('train_td3 failed', exc_info=True)
+        exit_error(parser.prog, exc, 1)
     print(f'run directory: {run_dir}')
     return 0
 

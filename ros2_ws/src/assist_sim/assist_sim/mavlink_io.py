@@ -111,16 +111,27 @@ def open_connection(url: str, *, baud: int = 57600, source_system: int = 255, so
 def load_signing_key(path: str) -> bytes:
     """The 32-byte MAVLink 2 signing key in `path` (32 raw bytes, or 64 hex characters and optional newline).
 
-    Refuses a key file that other users can read or write (chmod 600 it): ValueError, one line.
+    Refuses a key file that other users can read or write (chmod 600 it), and anything but a regular
+    file: the type is checked before opening (a FIFO, socket or device is never opened), and again
+    on the descriptor, opened without blocking, in case the path was swapped meanwhile; so a wrong
+    path cannot hang start-up. ValueError, one line.
     """
     try:
         st = os.stat(path)
-        with open(path, 'rb') as f:
-            data = f.read(1024)
+        if not stat.S_ISREG(st.st_mode):
+            raise ValueError(f'signing key file {path!r} is not a regular file ({_file_kind(st.st_mode)})')
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOCTTY | os.O_CLOEXEC)
     except OSError as exc:
         raise ValueError(f'signing key file {path!r}: {exc.strerror or exc}') from exc
-    if not stat.S_ISREG(st.st_mode):
-        raise ValueError(f'signing key file {path!r} is not a regular file')
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise ValueError(f'signing key file {path!r} is not a regular file ({_file_kind(st.st_mode)})')
+        data = os.read(fd, 1024)
+    except OSError as exc:
+        raise ValueError(f'signing key file {path!r}: {exc.strerror or exc}') from exc
+    finally:
+        os.close(fd)
     if st.st_mode & 0o077:
         mode = stat.S_IMODE(st.st_mode)
         raise ValueError(f'signing key file {path!r} is accessible by other users (mode {mode:03o}); '
@@ -136,6 +147,15 @@ def load_signing_key(path: str) -> bytes:
     if key == bytes(SIGNING_KEY_BYTES):
         raise ValueError(f'signing key file {path!r} holds the all-zero key (which means "signing off")')
     return key
+
+
+def _file_kind(mode: int) -> str:
+    """What a non-regular file is, in words."""
+    for test, kind in ((stat.S_ISFIFO, 'a FIFO'), (stat.S_ISDIR, 'a directory'), (stat.S_ISSOCK, 'a socket'),
+                       (stat.S_ISCHR, 'a character device'), (stat.S_ISBLK, 'a block device')):
+        if test(mode):
+            return kind
+    return 'not a plain file'
 
 
 def signing_timestamp_now() -> int:
