@@ -34,6 +34,7 @@ setup(
             'policy_node = assist_policy.policy_node:main',
             'train_td3 = assist_policy.train:main',
             'evaluate = assist_policy.evaluate:main',
+            'evaluate_graph = assist_policy.graph_eval:main',
             'compare_landings = assist_policy.compare:main',
             'bag_record = assist_policy.bags.record_node:main',
             'bag_play = assist_policy.bags.play_node:main',

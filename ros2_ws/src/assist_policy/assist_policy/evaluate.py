@@ -74,7 +74,7 @@ from .override import OverrideConfig
 from .recall import RecallConfig
 from .safety import SafetyConfig
 from .scripted import NEAREST_PAD_VARIANTS, ScriptedOracle, make_nearest_pad
-from .td3 import load_actor
+from .actor import load_actor
 
 log = logging.getLogger(__name__)
 
@@ -411,8 +411,7 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
                 continue
             t0 = time.time()
             rows = []
-            name = (cond + ('+guard' if args.safety and cond != 'unassisted' else '')
-                    + ''.join(f'+{rule}' for rule, flies in on.items() if flies))
+            name = condition_name(cond, args.safety, on)
             for bi, beta in enumerate(args.betas):
                 for k in range(args.landings):
                     seed = args.seed + 1000 * bi + k
@@ -434,6 +433,11 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
         results.commit(rows_by_cond)
     elif rows_by_cond:
         write_landings(out / 'landings.csv', rows_by_cond)
+    return write_results(out, rows_by_cond, args.plot)
+
+
+def write_results(out: Path, rows_by_cond: dict[str, list[dict]], with_plot: bool = True) -> dict[str, dict]:
+    """summary.csv, error_vs_beta.png and paired.txt of a run's landings in `out`; the per-condition summaries."""
     summary = {c: summarize(r) for c, r in rows_by_cond.items()}
     with atomic_path(out / 'summary.csv') as tmp, open(tmp, 'w', newline='', encoding='utf-8') as fh:
         w = csv.writer(fh)
@@ -442,12 +446,18 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
         w.writerow(['condition'] + keys)
         for c, s in summary.items():
             w.writerow([c] + [round(s[k], 4) for k in keys])
-    if args.plot and rows_by_cond:
+    if with_plot and rows_by_cond:
         plot(rows_by_cond, out / 'error_vs_beta.png')
     paired = paired_vs_unassisted(rows_by_cond)
     if paired:
         write_text_atomic(out / 'paired.txt', format_paired(paired) + '\n')
     return summary
+
+
+def condition_name(cond: str, safety: bool, on: dict[str, bool]) -> str:
+    """A condition's row name: cond, +guard when the floor guard flies with it, +<rule> for each rule in `on` that flies."""
+    return (cond + ('+guard' if safety and cond != 'unassisted' else '')
+            + ''.join(f'+{rule}' for rule, flies in on.items() if flies))
 
 
 def rule_on(flag: bool | None, cond: str) -> bool:

@@ -191,6 +191,8 @@ class PolicyCore:
         self.flight = FlightMonitor(c.flight or FlightConfig())
         self.flight_resets: Counter[str] = Counter()    # flight boundaries seen, per reason (flight.REASONS)
         self.last_reset: tuple[float, str] | None = None   # (odometry time, reason) of the latest
+        self._odom_stamp = -math.inf                # sensor stamp of the latest odometry
+        self._flight_start: float | None = None     # sensor time of the latest boundary: older depth frames are refused
         self._last_vz = 0.0                         # vertical command flown in the last step (flight monitor)
         self._depth: tuple[float, np.ndarray] | None = None
         self._depth_stamp = 0.0                     # sensor stamp of the latest depth frame (s)
@@ -285,6 +287,7 @@ class PolicyCore:
             if not 0.9 < n < 1.1:
                 raise self._reject('odom_orientation', f'odometry orientation {q.tolist()} is not a unit quaternion')
             q = q / n
+        self._odom_stamp = stamp
         boundary = self.flight.update(stamp, p, v, self._last_vz)
         if boundary is not None:
             self._forget(stamp, boundary)
@@ -331,6 +334,9 @@ class PolicyCore:
         if depth.ndim != 2 or depth.size == 0 or not np.issubdtype(depth.dtype, np.number):
             raise self._reject('depth_image', f'depth image must be a numeric HxW array, got {depth.dtype} '
                                               f'{depth.shape}')
+        if self._flight_start is not None and stamp < self._flight_start:
+            raise self._reject('depth_before_flight', f'depth frame stamped {stamp:.3f} s, before the flight began '
+                                                      f'({self._flight_start:.3f} s)')
         depth = depth.astype(np.float32)
         self._depth = (t, np.where(np.isfinite(depth) & (depth >= 0) & (depth <= MAX_DEPTH_M), depth, 0.0))
         self._depth_stamp = stamp
@@ -339,14 +345,20 @@ class PolicyCore:
         """Forget the flight (an explicit boundary: policy_node's ~/reset): action history, the stages' memories,
         the odometry poses; counted in `flight_resets` under `reason`."""
         self.flight.reset()
-        self._forget(self._odom[0] if self._odom else 0.0, reason)
+        self._forget(self._odom_stamp, reason)
 
     def _forget(self, t: float, reason: str) -> None:
         """Drop everything that belongs to the current flight (flight boundary `reason` at odometry time `t`)."""
         self.builder.reset()
         self.assistant.reset()
         self._poses.clear()
-        self._frame = None
+        # what the camera showed before the boundary belongs to the last flight: a frame taken on the pad just
+        # landed on, mapped from the next start pose 3 m up, is a 'wall' under the start (the assistant then
+        # held the vehicle there); the next frame and latent arrive within a camera period
+        self._frame = self._depth = None
+        if not self.mode.knows_goal:
+            self._feature = None
+        self._flight_start = float(t)
         self.flight_resets[reason] += 1
         self.last_reset = (float(t), reason)
         log.info('assistant reset: %s', reason)

@@ -11,7 +11,7 @@ import pytest
 from assist_policy.assistant import Assistant, AssistantConfig, DepthFrame, StepContext, rules_off
 from assist_policy.evaluate import EvalArgs, evaluate
 from assist_policy.flight import FlightConfig, FlightMonitor
-from assist_policy.policy_core import PolicyCore, PolicyCoreConfig
+from assist_policy.policy_core import InputRejected, PolicyCore, PolicyCoreConfig
 
 _spec = importlib.util.spec_from_file_location('policy_core_helpers', Path(__file__).with_name('test_policy_core.py'))
 _helpers = importlib.util.module_from_spec(_spec)
@@ -112,7 +112,17 @@ def test_policy_core_forgets_the_flight_at_an_odometry_jump_and_on_request(tmp_p
     core.set_odom(0.55, [6.0, 1.0, 3.0], [0, 0, 0])          # the next episode's start pose
     assert not core.recall.map.pads and len(core.builder.history) == 0
     assert core.flight_resets['odom_jump'] == 1 and core.last_reset == (0.55, 'odom_jump')
-    core.step(0.55)
+    # the last flight's camera is gone: its latest frame (taken over the pad) is not mapped from the new pose, and a
+    # frame stamped before the jump that arrives after it is refused
+    assert core._depth is None and core._feature is None
+    with pytest.raises(InputRejected) as exc:
+        core.set_depth(0.56, pad, stamp=0.5)
+    assert exc.value.reason == 'depth_before_flight'
+    assert core.step(0.55).key == 'feature_stale'              # no latent of this flight yet: relinquished
+    core.set_depth(0.6, FLOOR_3M, stamp=0.6)
+    core.set_latent(0.6, np.zeros(_helpers.LATENT))
+    core.step(0.6)
+    assert not core.walls.near(np.array([6.0, 1.0]))[0].size and not core.recall.map.pads
     core.reset()
     assert core.flight_resets['service'] == 1 and len(core.builder.history) == 0
 

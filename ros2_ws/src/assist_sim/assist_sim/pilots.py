@@ -743,13 +743,19 @@ POPULATIONS: dict[str, tuple[str, ...]] = {'mix': MIX_FAMILIES, 'approach_mix': 
 PILOT_NAMES: tuple[str, ...] = tuple(FAMILIES) + tuple(POPULATIONS)
 
 
+def resolve_pilot_name(name: str, rng: np.random.Generator) -> str:
+    """The family `name` flies: itself, or for a population one of its families drawn with `rng` (make_pilot's draw)."""
+    if name in POPULATIONS:
+        return str(rng.choice(list(POPULATIONS[name])))
+    return name
+
+
 def make_pilot(name: str, alpha: float = 0.5, beta: float = 0.5, cfg: PilotConfig | None = None,
                rng: np.random.Generator | int | None = None, pads: np.ndarray | None = None,
                family_cfg: FamilyConfig | None = None) -> FamilyPilot:
     """A pilot of family `name` (or one drawn from population `name` with `rng`); ValueError if unknown."""
     rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
-    if name in POPULATIONS:
-        name = str(rng.choice(list(POPULATIONS[name])))
+    name = resolve_pilot_name(name, rng)
     if name not in FAMILIES:
         raise ValueError(f'unknown pilot {name!r}; choose from {", ".join(PILOT_NAMES)}')
     return FAMILIES[name](alpha, beta, cfg, rng, pads=pads, family_cfg=family_cfg)
@@ -757,4 +763,4 @@ def make_pilot(name: str, alpha: float = 0.5, beta: float = 0.5, cfg: PilotConfi
 
 __all__ = ['FAMILIES', 'TRAIN_FAMILIES', 'MIX_FAMILIES', 'APPROACH_FAMILIES', 'UNTUNED_FAMILIES', 'HELDOUT_FAMILIES',
            'POPULATIONS',
-           'PILOT_NAMES', 'FamilyConfig', 'FamilyPilot', 'make_pilot', 'confuse']
+           'PILOT_NAMES', 'FamilyConfig', 'FamilyPilot', 'make_pilot', 'resolve_pilot_name', 'confuse']

@@ -61,6 +61,12 @@ PARAMS = {
     'max_cmd_speed_mps': Param(5.0, 'Commands faster than this are rejected as out of range (settable at run '
                                     'time).', min=0.0, max=50.0, min_exclusive=True, dynamic=True),
     'turbulence': Param(True, 'Ground-effect turbulence on the target velocity.'),
+    'episode_seeds': Param((), 'Scene seed of episode 0, 1, 2, ... in order (every reset, automatic or /sim/reset, '
+                               'starts the next; an evaluation plan, e.g. assist_policy.graph_eval); past its end, or '
+                               'empty, the episodes follow seed.', min=0, max=2**31 - 1, item_type=int),
+    'episode_timeout_s': Param(0.0, 'An episode with no landing after this many sim seconds ends as a timeout (the '
+                                    'evaluation env cuts at 60 s); 0: the world\'s own limit (world_config '
+                                    'judge.max_episode_s, 90 s by default).', min=0.0, max=3600.0),
     'executor': executor_param('events'),
     'odom_frame': Param('odom', 'World frame id (ENU).'),
     'base_frame': Param('base_link', 'Body frame id (FLU).'),
@@ -99,6 +105,8 @@ class SimNode(Node):
                                'session (or ssh -X, or xvfb-run), or leave gui:=false')
         cfg.camera.width, cfg.camera.height = int(self.p['camera_width']), int(self.p['camera_height'])
         cfg.turbulence.enabled = bool(self.p['turbulence'])
+        if self.p['episode_timeout_s'] > 0:
+            cfg.judge.max_episode_s = float(self.p['episode_timeout_s'])
         self.mavlink = bool(self.p['mavlink_url'])
         if self.mavlink and self.p['real_time_factor'] != 1.0:
             raise StartupError(f"sim_node: real_time_factor {self.p['real_time_factor']:g} cannot apply: as a "
@@ -106,11 +114,15 @@ class SimNode(Node):
         self.json_mode = self.p['physics'] == 'ardupilot_json'
         if self.json_mode and self.mavlink:
             raise StartupError('sim_node: physics ardupilot_json and mavlink_url are exclusive (SITL is the vehicle)')
+        if self.json_mode and self.p['episode_seeds']:
+            raise StartupError('sim_node: episode_seeds cannot apply with physics ardupilot_json (its episodes follow '
+                               'seed); leave episode_seeds empty')
         self.world = LandingWorld(cfg, seed=int(self.p['seed']), gui=bool(self.p['gui']))
         runner_cfg = RunnerConfig(
             camera_rate_hz=float(self.p['camera_rate_hz']), auto_reset=bool(self.p['auto_reset']),
             reset_delay_s=float(self.p['reset_delay_s']), cmd_timeout_s=float(self.p['cmd_timeout_s']),
-            max_cmd_speed_mps=float(self.p['max_cmd_speed_mps']), airborne_start=not (self.mavlink or self.json_mode))
+            max_cmd_speed_mps=float(self.p['max_cmd_speed_mps']), airborne_start=not (self.mavlink or self.json_mode),
+            episode_seeds=tuple(self.p['episode_seeds']))
         if self.json_mode:   # ArduPilot SITL flies the airframe; the runner serves its JSON physics link
             from .json_backend import make_json_runner
             try:

@@ -5,6 +5,13 @@ Reads /odom, the latched /sim/goal (every message starts a new landing: a fresh 
 while it is above the blending threshold and fresh). `pilot` picks the model: `paper` (the reference)
 or a family / population of assist_sim.pilots (a fresh pilot, with freshly drawn family parameters,
 for every landing; the pad positions for the wrong-pad family come from the latched /sim/scene).
+
+An evaluation plan (`episode_seeds`, with `episode_betas` and `episode_pilots`, one entry per landing in
+order: landing i is the i-th /sim/goal this node receives) makes landing i's pilot exactly the
+evaluation env's: a fresh ``make_pilot(episode_pilots[i], alpha, episode_betas[i], cfg,
+np.random.default_rng(episode_seeds[i]), pads)``, started only once the latched /sim/scene of that
+landing (the one whose pads hold the goal) is in. Past the end of the plan (or without one) the
+landings follow `pilot`, `beta` and `seed` as before.
 """
 from __future__ import annotations
 
@@ -19,8 +26,8 @@ from visualization_msgs.msg import MarkerArray
 
 from .pilot import PilotConfig
 from .pilots import PILOT_NAMES, make_pilot
-from .ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, declare_parameters,
-                         exit_process, fill_twist, forward_logging, run_node, twist_to_array)
+from .ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError,
+                         declare_parameters, exit_process, fill_twist, forward_logging, run_node, twist_to_array)
 
 PARAMS = {
     'alpha': Param(0.5, 'Conformance to the assistant in [0, 1] (paper alpha; settable at run time).',
@@ -38,6 +45,14 @@ PARAMS = {
     'pilot': Param('paper', 'Pilot model: paper (the reference) or an assist_sim.pilots family or population '
                             '(mix = held-out families, train_mix = training families), drawn anew per landing.',
                    choices=PILOT_NAMES),
+    'episode_seeds': Param((), 'Evaluation plan: seed of the pilot of landing 0, 1, 2, ... (each its own fresh pilot, '
+                               'as the evaluation env builds it); empty: the landings follow seed.', min=0,
+                           max=2**31 - 1, item_type=int),
+    'episode_betas': Param((), 'Evaluation plan: skill of the pilot of landing 0, 1, 2, ... (needs episode_seeds, '
+                               'same length); empty: beta.', min=0.0, max=1.0, item_type=float),
+    'episode_pilots': Param((), 'Evaluation plan: pilot model (family or population, drawn with that landing\'s '
+                                'seed) of landing 0, 1, 2, ... (needs episode_seeds, same length); empty: pilot.',
+                            choices=PILOT_NAMES, item_type=str),
     'frame_id': Param('base_link', 'frame_id of /pilot/cmd_vel.'),
     'start_altitude_m': Param(0.0, 'A landing starts (the pilot model is reset to the new goal) once /odom is at '
                                    'or above this altitude; 0: at once. For episodes that start on the ground '
@@ -60,7 +75,13 @@ class SimPilotNode(Node):
         self._cfg = cfg
         self._rng = np.random.default_rng(int(self.p['seed']))
         self._pads: np.ndarray | None = None
+        n_plan = len(self.p['episode_seeds'])
+        for key in ('episode_betas', 'episode_pilots'):
+            if self.p[key] and len(self.p[key]) != n_plan:
+                raise StartupError(f"sim_pilot_node: {key} has {len(self.p[key])} entries, episode_seeds {n_plan}: "
+                                   'an evaluation plan gives every landing its seed (and beta, pilot)')
         self.pilot = self._new_pilot()
+        self._default_pilot = self.pilot        # the paper pilot flies every landing past the plan
         self._odom: tuple[float, np.ndarray] | None = None
         self._agent: tuple[float, np.ndarray] | None = None
         self._pending_goal: np.ndarray | None = None
@@ -81,6 +102,17 @@ class SimPilotNode(Node):
         return make_pilot(self.p['pilot'], float(self.p['alpha']), float(self.p['beta']), self._cfg, self._rng,
                           pads=self._pads)
 
+    def _planned_pilot(self, i: int):
+        """Landing i's pilot from the evaluation plan (the env's: its own generator seeded per landing)."""
+        pilots, betas = self.p['episode_pilots'], self.p['episode_betas']
+        return make_pilot(pilots[i] if pilots else self.p['pilot'], float(self.p['alpha']),
+                          float(betas[i]) if betas else float(self.p['beta']), self._cfg,
+                          np.random.default_rng(int(self.p['episode_seeds'][i])), pads=self._pads)
+
+    def _scene_holds(self, goal: np.ndarray) -> bool:
+        """True when the latest /sim/scene is the scene of `goal` (one of its pad tops is the goal)."""
+        return self._pads is not None and bool(np.any(np.linalg.norm(self._pads - goal, axis=1) < 1e-3))
+
     def _on_scene(self, msg: MarkerArray) -> None:
         tops = {m.id: (m.pose.position.x, m.pose.position.y, m.pose.position.z + 0.5 * m.scale.z)
                 for m in msg.markers if m.ns == 'platforms'}
@@ -95,10 +127,11 @@ class SimPilotNode(Node):
     def _on_params(self, changed: dict) -> None:
         """alpha / beta go to the pilot model; the thresholds and timeouts are read every tick."""
         with self._lock:
-            if 'alpha' in changed:
-                self.pilot.alpha = self.pilot.base_alpha = float(changed['alpha'])
-            if 'beta' in changed:
-                self.pilot.beta = float(changed['beta'])
+            for pilot in {id(p): p for p in (self.pilot, self._default_pilot)}.values():
+                if 'alpha' in changed:
+                    pilot.alpha = pilot.base_alpha = float(changed['alpha'])
+                if 'beta' in changed:
+                    pilot.beta = float(changed['beta'])
 
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
@@ -136,10 +169,17 @@ class SimPilotNode(Node):
         now = self._now()
         with self._lock:
             odom_ok = self._odom is not None and abs(now - self._odom[0]) <= self.p['odom_timeout_s']
-            if self._pending_goal is not None and self._odom is not None \
+            planned = self.episodes < len(self.p['episode_seeds'])
+            if planned and self._pending_goal is not None and not self._scene_holds(self._pending_goal):
+                self.get_logger().info('waiting for the /sim/scene of the new goal', throttle_duration_sec=2.0)
+            elif self._pending_goal is not None and self._odom is not None \
                     and self._odom[1][2] >= self.p['start_altitude_m']:
-                if self.p['pilot'] != 'paper':
+                if planned:
+                    self.pilot = self._planned_pilot(self.episodes)
+                elif self.p['pilot'] != 'paper':
                     self.pilot = self._new_pilot()      # new family draw (and pads) per landing
+                else:
+                    self.pilot = self._default_pilot
                 self.pilot.reset(self._pending_goal, self._odom[1])
                 self.diag.set('pilot', self.pilot.name)
                 self._pending_goal = None

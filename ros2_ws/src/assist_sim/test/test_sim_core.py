@@ -220,6 +220,40 @@ def test_runner_stale_commands_and_auto_reset(world):
     assert new_ep and world.episode == ep + 1 and not world.done and world.armed
 
 
+def test_runner_publishes_no_frame_of_the_last_episode_at_a_reset(world):
+    """A frame rendered in the reset step showed the landed pose and old scene, stamped with the new start's time."""
+    runner = SimRunner(world, RunnerConfig(camera_rate_hz=world.cfg.control_hz, auto_reset=True, reset_delay_s=0.2))
+    runner.reset(11)
+    world.set_armed(False)                               # drop onto the floor: the episode ends
+    frames_before_reset = 0
+    for _ in range(200):
+        out = runner.step()
+        if out.new_episode:
+            break
+        frames_before_reset += out.frame is not None
+    assert out.new_episode and frames_before_reset > 0   # a frame every step until then
+    assert out.frame is None
+    assert runner.step().frame is not None               # the new episode's frames follow
+
+
+def test_runner_episode_seeds_give_each_episode_its_scene(world):
+    """RunnerConfig.episode_seeds: episode i gets scene seed i of the list, then the world's own sequence."""
+    runner = SimRunner(world, RunnerConfig(episode_seeds=(7, 123)))
+    runner.reset()
+    first = (world.scene, world.goal_index)
+    runner.reset()
+    second = (world.scene, world.goal_index)
+    ref = LandingWorld(WorldConfig(), seed=99)
+    try:
+        for seed, (scene, goal) in zip((7, 123), (first, second)):
+            ref.reset(seed=seed)
+            assert scene == ref.scene and goal == ref.goal_index
+    finally:
+        ref.close()
+    runner.reset()                                   # past the list: the world's sequence, not an error
+    assert runner.episodes_started == 3 and world.scene not in (first[0], second[0])
+
+
 def test_world_config_yaml_roundtrip(tmp_path):
     path = tmp_path / 'w.yaml'
     path.write_text('control_hz: 40\ncamera:\n  width: 32\nturbulence:\n  enabled: false\n')

@@ -158,3 +158,78 @@ def test_pilot_family_parameter_uses_the_scene_and_rejects_unknown_names():
         probe.destroy_node()
     finally:
         rclpy.shutdown(context=ctx)
+
+
+def _scene(tops):
+    from visualization_msgs.msg import Marker, MarkerArray
+    scene = MarkerArray()
+    for i, (x, y, top) in enumerate(tops):
+        m = Marker()
+        m.ns, m.id, m.type = 'platforms', i, Marker.CUBE
+        m.pose.position.x, m.pose.position.y, m.pose.position.z = x, y, top / 2
+        m.scale.x, m.scale.y, m.scale.z = 1.0, 1.0, top
+        scene.markers.append(m)
+    return scene
+
+
+def test_evaluation_plan_gives_each_landing_its_own_pilot():
+    """episode_seeds/betas/pilots: landing i flies make_pilot(pilots[i], alpha, betas[i], rng(seeds[i]), pads),
+    started only once the /sim/scene holding its goal is in; plans of unequal length cannot start."""
+    from assist_sim.pilot import PilotConfig
+    from assist_sim.pilots import make_pilot
+    from assist_sim.ros_common import StartupError
+    from visualization_msgs.msg import MarkerArray
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=random.Random(os.getpid() ^ time.monotonic_ns()).randint(1, 100))
+    seeds, betas, names = [11, 2222], [0.3, 0.9], ['mix', 'late_correction']
+    try:
+        with pytest.raises(StartupError, match='episode_betas'):
+            SimPilotNode(context=ctx, parameter_overrides=[Parameter('episode_seeds', value=seeds),
+                                                           Parameter('episode_betas', value=[0.5])])
+        pilot = SimPilotNode(context=ctx, parameter_overrides=[
+            Parameter('episode_seeds', value=seeds), Parameter('episode_betas', value=betas),
+            Parameter('episode_pilots', value=names)])
+        probe = Node('probe', context=ctx)
+        ex = MultiThreadedExecutor(num_threads=2, context=ctx)
+        ex.add_node(pilot)
+        ex.add_node(probe)
+        th = threading.Thread(target=ex.spin, daemon=True)
+        th.start()
+        pub_scene = probe.create_publisher(MarkerArray, '/sim/scene', LATCHED_QOS)
+        pub_odom = probe.create_publisher(Odometry, '/odom', SENSOR_QOS)
+        pub_goal = probe.create_publisher(PointStamped, '/sim/goal', LATCHED_QOS)
+        scenes = [[(4.0, 0.5, 0.8), (8.5, -0.6, 1.0), (12.0, 0.2, 0.6)],
+                  [(3.5, -0.2, 0.7), (7.5, 0.4, 1.1), (11.0, 0.0, 0.9)]]
+
+        def fly(i: int, publish_scene_after_goal: bool) -> None:
+            goal = PointStamped()
+            goal.point.x, goal.point.y, goal.point.z = scenes[i][1]
+            if not publish_scene_after_goal:
+                pub_scene.publish(_scene(scenes[i]))
+                time.sleep(0.3)
+            pub_goal.publish(goal)
+            for k in range(60):
+                if publish_scene_after_goal and k == 10:
+                    assert pilot.episodes == i          # the goal alone does not start the landing
+                    pub_scene.publish(_scene(scenes[i]))
+                m = Odometry()
+                m.pose.pose.position.z = 3.0
+                pub_odom.publish(m)
+                time.sleep(0.05)
+                if pilot.episodes > i:
+                    break
+            assert pilot.episodes == i + 1
+            pads = np.array([(x, y, top) for x, y, top in scenes[i]])
+            ref = make_pilot(names[i], 0.5, betas[i], PilotConfig(), np.random.default_rng(seeds[i]), pads=pads)
+            ref.reset(np.array(scenes[i][1]), np.array([0.0, 0.0, 3.0]))
+            assert pilot.pilot.name == ref.name and pilot.pilot.beta == betas[i]
+            assert pilot.pilot.params == ref.params
+            # the same draw (the node has flown a few ticks since: beta pulls the estimate a little)
+            np.testing.assert_allclose(pilot.pilot.goal_estimate, ref.goal_estimate, atol=0.05)
+        fly(0, publish_scene_after_goal=False)
+        fly(1, publish_scene_after_goal=True)
+        ex.shutdown()
+        pilot.destroy_node()
+        probe.destroy_node()
+    finally:
+        rclpy.shutdown(context=ctx)

@@ -23,6 +23,8 @@ class RunnerConfig:
     cmd_timeout_s: float = 0.5        # older commands count as absent (zero velocity)
     max_cmd_speed_mps: float = 5.0    # larger commands are rejected as out of range
     airborne_start: bool = True       # False: episodes start landed and disarmed (MAVLink vehicle)
+    # scene seed of episode 0, 1, 2, ... (every reset starts the next); past the end, or empty: the world's sequence
+    episode_seeds: tuple[int, ...] = ()
 
 
 @dataclass
@@ -60,6 +62,7 @@ class SimRunner:
         self._next_frame_time = 0.0
         self._landed_at: float | None = None
         self.episodes_finished = 0
+        self.episodes_started = 0
         self.commands_rejected = 0
 
     # -------------------------------------------------------------- inputs
@@ -91,8 +94,11 @@ class SimRunner:
 
     # -------------------------------------------------------------- episodes
     def reset(self, seed: int | None = None) -> VehicleState:
-        """Start a new episode now."""
+        """Start a new episode now (scene `seed`, else the next of cfg.episode_seeds, else the world's sequence)."""
+        if seed is None and self.episodes_started < len(self.cfg.episode_seeds):
+            seed = int(self.cfg.episode_seeds[self.episodes_started])
         state = self.world.reset(seed, airborne=self.cfg.airborne_start)
+        self.episodes_started += 1
         self._cmd = np.zeros(3)
         self._cmd_time = -math.inf
         self._agent_seen = False
@@ -116,13 +122,15 @@ class SimRunner:
             out.landing = w.result
             self.episodes_finished += 1
             self._landed_at = w.time
+        # a reset before the camera: a frame of this step would show the last episode's scene and pose, stamped
+        # with the time the new episode starts (a receiver would place it at the new start pose)
+        if (self.cfg.auto_reset and self._landed_at is not None
+                and w.time - self._landed_at >= self.cfg.reset_delay_s):
+            out.state = self.reset()
+            out.new_episode = True
         if self.cfg.camera_rate_hz > 0 and w.time + 1e-9 >= self._next_frame_time:
             out.frame = w.render()
             self._next_frame_time += 1.0 / self.cfg.camera_rate_hz
             if self._next_frame_time < w.time:  # fell behind: do not burst
                 self._next_frame_time = w.time + 1.0 / self.cfg.camera_rate_hz
-        if (self.cfg.auto_reset and self._landed_at is not None
-                and w.time - self._landed_at >= self.cfg.reset_delay_s):
-            out.state = self.reset()
-            out.new_episode = True
         return out

@@ -1,0 +1,616 @@
+"""evaluate_graph: `evaluate`'s landings flown through the real node graph, as a user runs it.
+
+For each condition one graph runs every landing in turn, never restarted between landings: sim_node
+(auto_reset, use_sim_time, `--real-time-factor`), encoder_node (latent only; depth noise on), policy_node
+(mode = the condition, its default rules as `evaluate` flies them, or as --safety/--override/--recall/--damper
+set them) and sim_pilot_node, each the console script of this virtualenv in its own process on a private
+ROS_DOMAIN_ID (`--domain-id`; 0 picks one no other graph on this machine is using). Unassisted: no
+policy_node; sim_node flies /pilot/cmd_vel (its /cmd_vel input remapped).
+
+Same landings as `evaluate`: landing k at beta index b has seed `--seed` + 1000 b + k, and
+assist_policy.episodes_plan.landing_plan turns it into what LandingAssistEnv.reset draws (scene seed, pilot
+family and seed, depth-noise seed). The graph is told the plan in order: sim_node `episode_seeds` (scene of
+episode 0, 1, ...), sim_pilot_node `episode_seeds`/`episode_betas`/`episode_pilots` (the env's pilot of each
+landing), sim_node `episode_timeout_s` = `--max-episode-s` (the env's 60 s cut; the world's own is 90 s).
+encoder_node has one `noise_seed` for the whole run (the first landing's noise seed), while the env reseeds its
+depth noise per landing; with message timing and frames dropped under load, landings agree with the env within
+noise, not bit for bit.
+
+Each landing is read from /sim/landing by a small rclpy listener in this process; the row has evaluate's
+columns (evaluate.LANDING_FIELDS) and condition names. active_fraction counts /assist/agent_cmd messages above
+the blending threshold per control step (20 Hz); guard/wall/override/recall/damper fractions come from
+policy_node's /diagnostics counters, published once a wall second and interpolated at the landing's start
+and end in sim time (approximate); aimed_index from sim_pilot_node's goal_estimate on /diagnostics.
+
+    evaluate_graph --out runs/graph_eval --landings 4 --betas 0 0.5 1 --conditions unassisted latent
+    evaluate_graph --out runs/graph_eval_mix --pilot mix --landings 4 --betas 0 0.5 1 --real-time-factor 2
+
+Writes <out>/landings.csv, summary.csv, paired.txt, error_vs_beta.png as `evaluate` does (crash-safe and
+resumable the same way: an interrupted run flies only the landings still missing) and every node's log
+under <out>/nodes/. The graph must keep up with the sim: each landing's policy coverage (control steps
+the policy ran / sim steps) is logged and a warning printed below 90 %; lower --real-time-factor then.
+Children are stopped with SIGINT (SIGKILL after a timeout) on the way out, Ctrl-C and errors included,
+and die with this process (PR_SET_PDEATHSIG) if it is killed.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import math
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Self
+
+import numpy as np
+import rclpy
+import rclpy.signals
+from assist_sim.pilots import PILOT_NAMES
+from assist_sim.ros_common import LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, stamp_to_sec
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PointStamped, TwistStamped
+from rcl_interfaces.srv import SetParameters
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from std_msgs.msg import String
+from visualization_msgs.msg import MarkerArray
+
+from .cli import add_dataclass_args, dataclass_from_args
+from .episodes_plan import LandingPlan, evaluation_plans
+from .evaluate import (
+    CONDITIONS,
+    EvalArgs,
+    LandingLog,
+    condition_name,
+    format_table,
+    rule_on,
+    write_results,
+)
+
+log = logging.getLogger(__name__)
+
+BIN = Path(sys.executable).parent
+CONTROL_HZ = 20.0                       # the world's control rate: the policy's and the pilot's step
+BLEND_THRESHOLD = 0.25
+# policy_node diagnostics counters -> evaluate's fraction columns
+POLICY_COUNTERS = {'guard_fraction': 'floor_guard_engaged', 'wall_fraction': 'wall_guard_engaged',
+                   'override_fraction': 'pilot_override_engaged', 'recall_fraction': 'pad_recall_engaged',
+                   'damper_fraction': 'oscillation_damper_engaged'}
+RULE_PARAMS = {'override': 'pilot_override', 'recall': 'pad_recall', 'damper': 'oscillation_damper'}
+AUTO_DOMAINS = range(200, 233)          # 233+ overflow Fast DDS's default UDP ports
+# the sim starts slowly while the other nodes' subscriptions match its publishers and their first inferences
+# warm up (at full speed the first landing lost ~15 % of its policy steps), then runs at --real-time-factor
+WARMUP_RTF = 0.5
+WARMUP_WALL_S = 3.0
+_EVAL = EvalArgs()
+
+
+@dataclass
+class GraphEvalArgs:
+    """Command-line arguments of evaluate_graph (every field is a --flag)."""
+
+    out: str = 'runs/graph_eval'
+    conditions: tuple[str, ...] = ('unassisted', 'latent')
+    alpha: float = _EVAL.alpha
+    betas: tuple[float, ...] = _EVAL.betas
+    landings: int = _EVAL.landings
+    seed: int = _EVAL.seed
+    pilot: str = 'paper'
+    latent_model: str = ''
+    oracle_model: str = ''
+    end_to_end_model: str = ''
+    encoder_path: str = ''
+    max_episode_s: float = _EVAL.max_episode_s
+    safety: bool = True
+    override: bool | None = None
+    recall: bool | None = None
+    damper: bool | None = None
+    real_time_factor: float = 2.0
+    domain_id: int = 0
+    depth_noise: bool = True
+    landing_timeout_s: float = 300.0
+    startup_timeout_s: float = 180.0
+    policy_params: tuple[str, ...] = ()
+    plot: bool = True
+
+
+HELP = {
+    'out': 'output directory (landings.csv, summary.csv, paired.txt, error_vs_beta.png, nodes/*.log)',
+    'conditions': 'any of unassisted latent oracle end_to_end (policy_node modes; evaluate\'s names)',
+    'betas': 'pilot skills (landing k at beta index b: seed + 1000 b + k, as evaluate)',
+    'landings': 'landings per beta and condition',
+    'pilot': 'simulated pilot: paper or an assist_sim.pilots family or population (mix: a held-out family per landing)',
+    'latent_model': 'policy_node model_path for latent (default: the shipped actor)',
+    'oracle_model': 'policy_node model_path for oracle',
+    'end_to_end_model': 'policy_node model_path for end_to_end',
+    'encoder_path': 'encoder_node model_path (default: the shipped CM-VAE)',
+    'max_episode_s': 'sim_node episode_timeout_s: a landing not finished by then is a timeout (the env\'s cut)',
+    'safety': 'policy_node floor_guard (rows +guard)',
+    'override': 'policy_node pilot_override for every assistant; unset: policy_node\'s default for the mode',
+    'recall': 'policy_node pad_recall for every assistant; unset: policy_node\'s default for the mode',
+    'damper': 'policy_node oscillation_damper for every assistant; unset: policy_node\'s default for the mode',
+    'real_time_factor': 'sim_node real_time_factor: sim seconds per wall second (the nodes must keep up: 2 on two '
+                        'cores; 0 = as fast as possible, which they do not)',
+    'domain_id': 'ROS_DOMAIN_ID of the graph (1-232); 0: the first of 200-232 nobody on this machine uses',
+    'depth_noise': 'encoder_node depth_noise (the env\'s camera noise)',
+    'landing_timeout_s': 'wall seconds without a landing after which the graph counts as stalled (error)',
+    'startup_timeout_s': 'wall seconds the nodes may take to come up',
+    'policy_params': 'extra policy_node parameters, name:=value (e.g. floor_guard_wall_radius_m:=0.0); rows keep '
+                     'their names, the settings file records them',
+}
+
+
+class GraphError(RuntimeError):
+    """The graph could not start, a node died, or landings stopped coming."""
+
+
+# ----------------------------------------------------------------------------------------- processes
+# util-linux setpriv sets PR_SET_PDEATHSIG and execs the node: it gets SIGTERM if this process dies, even killed
+SETPRIV = shutil.which('setpriv')
+
+
+def _yaml_value(value: Any) -> str:
+    """A parameter value in YAML flow style (json is YAML; floats keep their point)."""
+    if isinstance(value, (list, tuple)):
+        return '[' + ', '.join(_yaml_value(v) for v in value) + ']'
+    if isinstance(value, float):
+        return repr(float(value))
+    return json.dumps(value)
+
+
+def write_params_file(path: Path, node: str, params: dict[str, Any]) -> None:
+    """A ROS 2 --params-file for one node."""
+    lines = [f'{node}:', '  ros__parameters:'] + [f'    {k}: {_yaml_value(v)}' for k, v in params.items()]
+    path.write_text('\n'.join(lines) + '\n', encoding='utf-8')
+
+
+class NodeGroup:
+    """Node console scripts as child processes on one domain; stop() ends them all (SIGINT, then SIGKILL)."""
+
+    def __init__(self, domain_id: int, log_dir: Path):
+        self.domain_id = domain_id
+        self.log_dir = log_dir
+        log_dir.mkdir(parents=True, exist_ok=True)
+        self.procs: dict[str, subprocess.Popen] = {}
+        self._logs: dict[str, Any] = {}
+
+    def start(self, executable: str, params: dict[str, Any], remaps: dict[str, str] | None = None,
+              extra: tuple[str, ...] = ()) -> None:
+        """Start `executable` with these parameters (written to a params file) and remappings."""
+        exe = BIN / executable
+        if not exe.exists():
+            raise GraphError(f'{exe} not installed (make venv)')
+        param_file = self.log_dir / f'{executable}.params.yaml'
+        write_params_file(param_file, executable, params)
+        cmd = [str(exe), '--ros-args', '--params-file', str(param_file)]
+        if SETPRIV:
+            cmd = [SETPRIV, '--pdeathsig', 'TERM', *cmd]
+        for arg in extra:
+            cmd += ['-p', arg]
+        for k, v in (remaps or {}).items():
+            cmd += ['-r', f'{k}:={v}']
+        env = dict(os.environ, ROS_DOMAIN_ID=str(self.domain_id), PYTHONUNBUFFERED='1')
+        fh = open(self.log_dir / f'{executable}.log', 'a', encoding='utf-8')   # noqa: SIM115 - closed in stop()
+        fh.write(f'$ {" ".join(cmd)}\n')
+        fh.flush()
+        self._logs[executable] = fh
+        self.procs[executable] = subprocess.Popen(cmd, env=env, stdout=fh, stderr=subprocess.STDOUT,
+                                                  start_new_session=True)
+        log.info('started %s (pid %d, domain %d)', executable, self.procs[executable].pid, self.domain_id)
+
+    def tail(self, executable: str, chars: int = 1500) -> str:
+        """The end of a node's log."""
+        path = self.log_dir / f'{executable}.log'
+        return path.read_text(encoding='utf-8', errors='replace')[-chars:] if path.exists() else ''
+
+    def check(self) -> None:
+        """GraphError if a node has exited."""
+        for name, proc in self.procs.items():
+            if proc.poll() is not None:
+                raise GraphError(f'{name} exited with code {proc.returncode}:\n{self.tail(name)}')
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        """SIGINT every node, wait up to `timeout_s` for all of them, SIGKILL the rest (their process groups)."""
+        for proc in self.procs.values():
+            if proc.poll() is None:
+                try:
+                    os.killpg(proc.pid, signal.SIGINT)
+                except ProcessLookupError:
+                    pass
+        end = time.monotonic() + timeout_s
+        for name, proc in self.procs.items():
+            try:
+                proc.wait(max(0.1, end - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.warning('%s did not stop on SIGINT within %.0f s: killed', name, timeout_s)
+                try:
+                    os.killpg(proc.pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+                proc.wait(5)
+        for fh in self._logs.values():
+            fh.close()
+        self.procs.clear()
+        self._logs.clear()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+# ----------------------------------------------------------------------------------------- listener
+class Listener:
+    """rclpy node in this process: landings, episode starts, scenes, agent commands and diagnostics."""
+
+    def __init__(self, domain_id: int):
+        self.ctx = Context()
+        rclpy.init(context=self.ctx, domain_id=domain_id, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+        self.node = Node('graph_eval_listener', context=self.ctx)
+        self.lock = threading.Lock()
+        self.landings: dict[int, dict] = {}
+        self.goal_stamps: list[float] = []             # sim time each episode started (/sim/goal stamp)
+        self.scenes: list[np.ndarray] = []             # pad top centres of each episode
+        self.agent: list[tuple[float, float]] = []     # (sim stamp, |a|) of /assist/agent_cmd
+        self.policy_diag: list[tuple[float, dict[str, float]]] = []
+        self.pilot_diag: dict[int, dict[str, str]] = {}   # episodes counter -> values (first seen)
+        n = self.node
+        n.create_subscription(String, '/sim/landing', self._on_landing, LANDING_QOS)
+        n.create_subscription(PointStamped, '/sim/goal', self._on_goal, LATCHED_QOS)
+        n.create_subscription(MarkerArray, '/sim/scene', self._on_scene, LATCHED_QOS)
+        n.create_subscription(TwistStamped, '/assist/agent_cmd', self._on_agent, RELIABLE_QOS)
+        n.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 100)
+        self.executor = SingleThreadedExecutor(context=self.ctx)
+        self.executor.add_node(n)
+        self.thread = threading.Thread(target=self._spin, name='graph_eval_listener', daemon=True)
+        self.thread.start()
+
+    def _spin(self) -> None:
+        try:
+            self.executor.spin()
+        except Exception as exc:  # noqa: BLE001 - shutdown races end the spin; anything else is logged
+            if self.ctx.ok():
+                log.error('listener stopped: %r', exc)
+
+    def _on_landing(self, msg) -> None:
+        data = json.loads(msg.data)
+        with self.lock:
+            self.landings[int(data['episode'])] = data
+
+    def _on_goal(self, msg) -> None:
+        with self.lock:
+            self.goal_stamps.append(stamp_to_sec(msg.header.stamp))
+
+    def _on_scene(self, msg) -> None:
+        tops = {m.id: (m.pose.position.x, m.pose.position.y, m.pose.position.z + 0.5 * m.scale.z)
+                for m in msg.markers if m.ns == 'platforms'}
+        if tops:
+            with self.lock:
+                self.scenes.append(np.array([tops[k] for k in sorted(tops)], dtype=float))
+
+    def _on_agent(self, msg) -> None:
+        a = msg.twist.linear
+        with self.lock:
+            self.agent.append((stamp_to_sec(msg.header.stamp), math.sqrt(a.x * a.x + a.y * a.y + a.z * a.z)))
+
+    def _on_diag(self, msg) -> None:
+        stamp = stamp_to_sec(msg.header.stamp)
+        for st in msg.status:
+            values = {kv.key: kv.value for kv in st.values}
+            if st.hardware_id == 'policy_node':
+                counts = {}
+                for key in POLICY_COUNTERS.values():
+                    try:
+                        counts[key] = float(values.get(key, 0))
+                    except ValueError:
+                        counts[key] = 0.0
+                with self.lock:
+                    self.policy_diag.append((stamp, counts))
+            elif st.hardware_id == 'sim_pilot_node' and 'episodes' in values:
+                with self.lock:
+                    self.pilot_diag.setdefault(int(values['episodes']), values)
+
+    def set_sim_real_time_factor(self, rtf: float, timeout_s: float = 10.0) -> None:
+        """Set sim_node's real_time_factor through its parameter service; GraphError if refused or unanswered."""
+        client = self.node.create_client(SetParameters, '/sim_node/set_parameters')
+        try:
+            if not client.wait_for_service(timeout_sec=timeout_s):
+                raise GraphError('sim_node parameter service not available')
+            req = SetParameters.Request(parameters=[Parameter('real_time_factor', value=float(rtf)).to_parameter_msg()])
+            future = client.call_async(req)
+            end = time.monotonic() + timeout_s
+            while not future.done() and time.monotonic() < end:
+                time.sleep(0.05)
+            if not future.done() or not future.result().results[0].successful:
+                raise GraphError(f'sim_node did not take real_time_factor {rtf:g}')
+        finally:
+            self.node.destroy_client(client)
+
+    def forget_before(self, t: float) -> None:
+        """Drop the agent commands stamped before sim time t (landings already scored)."""
+        with self.lock:
+            self.agent = [x for x in self.agent if x[0] >= t]
+
+    def publishers(self, topic: str) -> int:
+        """Publishers of `topic` in the graph."""
+        return self.node.count_publishers(topic)
+
+    def counter_at(self, key: str, t: float) -> float | None:
+        """policy_node counter `key` at sim time t, interpolated between diagnostics snapshots (None: no data)."""
+        with self.lock:
+            snaps = list(self.policy_diag)
+        if not snaps:
+            return None
+        snaps.sort(key=lambda s: s[0])
+        times = np.array([s[0] for s in snaps])
+        vals = np.array([s[1][key] for s in snaps])
+        return float(np.interp(t, times, vals))
+
+    def close(self) -> None:
+        """Stop spinning and shut the context down."""
+        self.executor.shutdown()
+        self.node.destroy_node()
+        if self.ctx.ok():
+            rclpy.shutdown(context=self.ctx)
+        self.thread.join(timeout=5.0)
+
+
+def domain_in_use(domain_id: int, listen_s: float = 2.0) -> bool:
+    """True when some ROS 2 node on this machine's network already runs on `domain_id`."""
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=domain_id, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+    node = Node('graph_eval_probe', context=ctx)
+    try:
+        end = time.monotonic() + listen_s
+        while time.monotonic() < end:
+            if [n for n in node.get_node_names() if n != 'graph_eval_probe']:
+                return True
+            time.sleep(0.1)
+        return False
+    finally:
+        node.destroy_node()
+        rclpy.shutdown(context=ctx)
+
+
+def pick_domain_id() -> int:
+    """A domain in AUTO_DOMAINS with no node on it, starting from one derived from this process id."""
+    n = len(AUTO_DOMAINS)
+    first = os.getpid() % n
+    for i in range(n):
+        candidate = AUTO_DOMAINS[(first + i) % n]
+        if not domain_in_use(candidate):
+            return candidate
+    raise GraphError(f'every ROS_DOMAIN_ID in {AUTO_DOMAINS.start}-{AUTO_DOMAINS.stop - 1} is in use: pass --domain-id')
+
+
+# ----------------------------------------------------------------------------------------- one condition
+def node_params(args: GraphEvalArgs, cond: str, plans: list[LandingPlan], on: dict[str, bool]) -> dict[str, dict]:
+    """Parameters of every node of `cond`'s graph, for these landings in order."""
+    nodes = {
+        'sim_node': {'seed': int(args.seed), 'real_time_factor': float(args.real_time_factor), 'auto_reset': True,
+                     'episode_seeds': [p.scene_seed for p in plans], 'episode_timeout_s': float(args.max_episode_s),
+                     'camera_rate_hz': 20.0},
+        'sim_pilot_node': {'use_sim_time': True, 'alpha': float(args.alpha), 'pilot': args.pilot,
+                           'blend_threshold': BLEND_THRESHOLD, 'episode_seeds': [p.pilot_seed for p in plans],
+                           'episode_betas': [float(p.beta) for p in plans],
+                           'episode_pilots': [p.pilot_family for p in plans]},
+    }
+    if cond == 'unassisted':
+        nodes['sim_node']['camera_rate_hz'] = 0.0       # nothing looks at the camera
+        return nodes
+    model = getattr(args, f'{cond}_model', '')
+    policy = {'use_sim_time': True, 'mode': cond, 'floor_guard': bool(args.safety),
+              **{RULE_PARAMS[r]: bool(flies) for r, flies in on.items()}}
+    if model:
+        policy['model_path'] = str(Path(model).resolve())
+    nodes['policy_node'] = policy
+    if cond == 'latent':
+        enc = {'use_sim_time': True, 'depth_noise': bool(args.depth_noise), 'noise_seed': int(plans[0].noise_seed)}
+        if args.encoder_path:
+            enc['model_path'] = str(Path(args.encoder_path).resolve())
+        nodes['encoder_node'] = enc
+    return nodes
+
+
+def ready_topics(cond: str) -> dict[str, str]:
+    """Topic whose publisher shows each node is up (created after its models load)."""
+    topics = {'sim_pilot_node': '/pilot/cmd_vel'}
+    if cond != 'unassisted':
+        topics['policy_node'] = '/assist/agent_cmd'
+    if cond == 'latent':
+        topics['encoder_node'] = '/assist/latent'
+    return topics
+
+
+def landing_row(listener: Listener, data: dict, seed: int, plan: LandingPlan, name: str,
+                assisted: bool) -> tuple[dict, float]:
+    """evaluate's row of one landing from its /sim/landing JSON and what the listener saw; (row, policy coverage)."""
+    ep = int(data['episode'])
+    duration = float(data['duration_s'])
+    steps = max(1, round(duration * CONTROL_HZ))
+    with listener.lock:
+        t0 = listener.goal_stamps[ep] if ep < len(listener.goal_stamps) else None
+        pads = listener.scenes[ep] if ep < len(listener.scenes) else None
+        pilot_values = listener.pilot_diag.get(ep + 1, {})
+        agent = list(listener.agent) if assisted else []
+    active, coverage = 0.0, 1.0
+    fractions = {k: 0.0 for k in POLICY_COUNTERS}
+    if assisted and t0 is not None:
+        t1 = t0 + duration
+        in_window = [n for t, n in agent if t0 < t <= t1 + 1e-6]
+        active = sum(n > BLEND_THRESHOLD for n in in_window) / steps
+        coverage = len(in_window) / steps
+        for col, key in POLICY_COUNTERS.items():
+            a, b = listener.counter_at(key, t0), listener.counter_at(key, t1)
+            fractions[col] = 0.0 if a is None or b is None else max(0.0, b - a) / steps
+    aimed = None
+    estimate = pilot_values.get('goal_estimate')
+    if estimate and pads is not None:
+        g = np.array(json.loads(estimate), dtype=float)
+        aimed = int(np.argmin(np.linalg.norm(pads[:, :2] - g[:2], axis=1)))
+    row = {'condition': name, 'beta': float(plan.beta), 'seed': seed, 'scene_seed': plan.scene_seed,
+           'goal_index': int(data['goal_index']), 'landed_index': data.get('landed_index'),
+           'nearest_index': data.get('nearest_index'), 'aimed_index': aimed,
+           'error_m': round(float(data['error_m']), 4), 'nearest_error_m': round(float(data['nearest_error_m']), 4),
+           'outcome': data['outcome'], 'success': bool(data['success']), 'crash': bool(data['crash']),
+           'duration_s': round(duration, 2), 'active_fraction': round(min(active, 1.0), 3),
+           'pilot': pilot_values.get('pilot', plan.pilot_family_resolved),
+           **{k: round(min(v, 1.0), 3) for k, v in fractions.items()}}
+    return row, coverage
+
+
+def fly_condition(args: GraphEvalArgs, cond: str, name: str, on: dict[str, bool],
+                  todo: list[tuple[int, LandingPlan]], domain_id: int, log_dir: Path, results: LandingLog) -> list[dict]:
+    """Start `cond`'s graph, fly the landings `todo` in order as consecutive episodes, write each row; stop the graph."""
+    plans = [p for _, p in todo]
+    params = node_params(args, cond, plans, on)
+    listener = Listener(domain_id)
+    rows: list[dict] = []
+    try:
+        with NodeGroup(domain_id, log_dir) as group:
+            remaps = {'/cmd_vel': '/pilot/cmd_vel'} if cond == 'unassisted' else None
+            for node in ('encoder_node', 'policy_node', 'sim_pilot_node'):
+                if node in params:
+                    group.start(node, params[node], extra=args.policy_params if node == 'policy_node' else ())
+            end = time.monotonic() + args.startup_timeout_s
+            topics = ready_topics(cond)
+            while not all(listener.publishers(t) > 0 for t in topics.values()):
+                group.check()
+                if time.monotonic() > end:
+                    late = [n for n, t in topics.items() if listener.publishers(t) == 0]
+                    raise GraphError(f'{", ".join(late)} not up after {args.startup_timeout_s:.0f} s')
+                time.sleep(0.2)
+            warmup = args.real_time_factor == 0 or args.real_time_factor > WARMUP_RTF
+            sim_params = dict(params['sim_node'], real_time_factor=WARMUP_RTF) if warmup else params['sim_node']
+            group.start('sim_node', sim_params, remaps=remaps)   # last: no episode starts unflown
+            t_start = time.monotonic()
+            if warmup:
+                while not listener.goal_stamps:
+                    group.check()
+                    if time.monotonic() - t_start > args.startup_timeout_s:
+                        raise GraphError(f'sim_node not up after {args.startup_timeout_s:.0f} s')
+                    time.sleep(0.1)
+                time.sleep(WARMUP_WALL_S)
+                listener.set_sim_real_time_factor(args.real_time_factor)
+            last = time.monotonic()
+            for i, (seed, plan) in enumerate(todo):
+                while True:
+                    with listener.lock:
+                        data = listener.landings.get(i)
+                    if data is not None:
+                        break
+                    group.check()
+                    if time.monotonic() - last > args.landing_timeout_s:
+                        raise GraphError(f'no landing {i} within {args.landing_timeout_s:.0f} s (wall); '
+                                         f'sim_node:\n{group.tail("sim_node")}')
+                    time.sleep(0.1)
+                last = time.monotonic()
+                row, coverage = landing_row(listener, data, seed, plan, name, cond != 'unassisted')
+                if cond != 'unassisted' and not data.get('assisted', False):
+                    log.warning('%s landing %d (seed %d): sim_node saw no /assist/agent_cmd', name, i, seed)
+                if coverage < 0.9:
+                    log.warning('%s landing %d (seed %d): the policy ran %.0f %% of the control steps: the graph '
+                                'did not keep up (lower --real-time-factor)', name, i, seed, 100 * coverage)
+                log.info('%s %d/%d seed %d beta %.2f %s: %s error %.2f m, %.1f s%s', name, i + 1, len(todo), seed,
+                         plan.beta, row['pilot'], row['outcome'], row['error_m'], row['duration_s'],
+                         '' if cond == 'unassisted' else f', policy coverage {100 * coverage:.0f} %')
+                results.write(row)
+                results.sync()
+                rows.append(row)
+                ep = int(data['episode'])
+                with listener.lock:
+                    started = listener.goal_stamps[ep] if ep < len(listener.goal_stamps) else None
+                if started is not None:
+                    listener.forget_before(started + float(data['duration_s']))
+            log.info('%s: %d landings in %.0f s wall (%.1f sim s per wall s)', name, len(todo),
+                     time.monotonic() - t_start,
+                     sum(r['duration_s'] for r in rows) / max(1e-6, time.monotonic() - t_start))
+    finally:
+        listener.close()
+    return rows
+
+
+# ----------------------------------------------------------------------------------------- run
+def evaluate_graph(args: GraphEvalArgs) -> dict[str, dict]:
+    """Fly every condition's landings through the node graph; write evaluate's files; return the summaries."""
+    if args.pilot not in PILOT_NAMES:
+        raise ValueError(f'unknown pilot {args.pilot!r}; choose from {", ".join(PILOT_NAMES)}')
+    for cond in args.conditions:
+        if cond not in CONDITIONS:
+            raise ValueError(f'unknown condition {cond!r}; the graph flies {", ".join(CONDITIONS)}')
+    if not 0 <= args.domain_id <= 232:
+        raise ValueError(f'--domain-id {args.domain_id} out of range (0 = pick one, or 1-232)')
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    settings = {k: v for k, v in dataclasses.asdict(args).items()
+                if k not in ('out', 'plot', 'domain_id', 'landing_timeout_s', 'startup_timeout_s')}
+    results = LandingLog(out, {'graph': True, **settings})
+    planned = evaluation_plans(args.seed, tuple(args.betas), args.landings, args.pilot, args.alpha)
+    domain_id = args.domain_id or pick_domain_id()
+    rows_by_cond: dict[str, list[dict]] = {}
+    try:
+        for cond in args.conditions:
+            on = {rule: rule_on(getattr(args, rule), cond) for rule in ('override', 'recall', 'damper')}
+            name = condition_name(cond, args.safety, on)
+            done = {seed: results.flown(name, float(p.beta), seed) for seed, p in planned}
+            todo = [(seed, p) for seed, p in planned if done[seed] is None]
+            t0 = time.monotonic()
+            if todo:
+                log.info('%s: flying %d landings through the graph on ROS_DOMAIN_ID %d', name, len(todo), domain_id)
+                flown = fly_condition(args, cond, name, on, todo, domain_id, out / 'nodes' / name, results)
+                done.update({r['seed']: r for r in flown})
+            rows_by_cond[name] = [done[seed] for seed, _ in planned]
+            log.info('%s: %d landings in %.0f s', name, len(planned), time.monotonic() - t0)
+    finally:
+        results.close()
+    results.commit(rows_by_cond)
+    return write_results(out, rows_by_cond, args.plot)
+
+
+def _raise_interrupt(signum, frame) -> None:
+    """SIGTERM handler: unwind like Ctrl-C, so the graph is stopped."""
+    raise KeyboardInterrupt
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console entry point: fly, print the table."""
+    logging.basicConfig(level=logging.INFO, format='%(asctime)s %(levelname)s %(name)s: %(message)s')
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_dataclass_args(parser, GraphEvalArgs, HELP)
+    args = dataclass_from_args(GraphEvalArgs, parser.parse_args(argv))
+    signal.signal(signal.SIGINT, signal.default_int_handler)    # even when started with SIGINT ignored (a `&` job)
+    signal.signal(signal.SIGTERM, _raise_interrupt)
+    t0 = time.monotonic()
+    try:
+        summary = evaluate_graph(args)
+    except KeyboardInterrupt:
+        print('interrupted: the graph was stopped; landings flown so far are in '
+              f'{args.out}/landings.partial.csv (re-run to go on)', file=sys.stderr)
+        return 130
+    except (OSError, ValueError, GraphError) as exc:
+        print(f'error: {exc}', file=sys.stderr)
+        return 1
+    print(f'graph: pilot {args.pilot}, alpha {args.alpha}, betas {" ".join(f"{b:g}" for b in args.betas)}, '
+          f'{args.landings} landings each, seed {args.seed}, real_time_factor {args.real_time_factor:g}, '
+          f'{time.monotonic() - t0:.0f} s wall')
+    print(format_table(summary))
+    paired = Path(args.out) / 'paired.txt'
+    if paired.exists():
+        print(paired.read_text(encoding='utf-8'), end='')
+    print(f'written: {args.out}/landings.csv, summary.csv, error_vs_beta.png, nodes/')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
