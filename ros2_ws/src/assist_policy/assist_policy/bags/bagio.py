@@ -6,7 +6,10 @@ directory reader: the latter matches the storage's connections to metadata.yaml 
 silently yields no messages when the two differ (measured: rosbag2's own test bags talker/,
 convert_a/, rewriter_a/ read 0 of 20/150/150 messages that way, all of them per file).
 Every failure (missing, truncated, corrupt, compressed, another serialisation format) is a `BagError`
-with one line saying what and where.
+with one line saying what and where. metadata.yaml is untrusted input: it is read with a size cap
+(`METADATA_MAX_BYTES`), without YAML aliases and with a nesting limit (an alias bomb of a few kB would
+otherwise expand to gigabytes), and every data file it lists must lie inside the bag directory (no
+absolute paths, no `..`, no symlinks leading out), so a bag never makes the tools read another bag's data.
 
 Writing: `BagWriter` writes metadata version 9 (what Jazzy's rosbag2 writes) with type names,
 RIHS01 type hashes, message definitions and offered QoS profiles, so `ros2 bag info/play` accept the
@@ -14,10 +17,16 @@ bag. It splits into files by size and/or duration; after each finished file meta
 rewritten (atomically) to list the finished files, so a killed writer loses at most the file it was
 writing. With `atomic=True` the bag is built in a hidden temporary directory beside the target and
 renamed into place by `close()`: a failed run never leaves a bag that looks complete.
+A write error (or free space on the bag's filesystem falling below `min_free_bytes`, checked before each
+message so that the file being written can still be closed) puts the writer in a failed state: the
+error is raised, every later `write` raises it again, no new file is started and nothing already
+written is deleted; `close()` then finishes the current file with every message accepted so far (or,
+should that fail too, leaves its data where it is and says so).
 """
 from __future__ import annotations
 
 import logging
+import errno
 import os
 import shutil
 import sqlite3
@@ -42,6 +51,10 @@ READ_VERSIONS = range(4, 10)
 STORAGES = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
 SUFFIX = {'mcap': '.mcap', 'sqlite3': '.db3'}
 _INF = QosTime(9223372036, 854775807)   # RMW_DURATION_INFINITE as rosbag2 writes it
+METADATA_MAX_BYTES = 4 * 1024 * 1024     # a real metadata.yaml is a few kB (custom_data holds node parameters)
+METADATA_MAX_DEPTH = 32                  # nesting of metadata.yaml (rosbag2 writes 6 levels)
+MIN_FREE_BYTES = 8 * 1024 * 1024         # kept free while writing: closing a file flushes up to ~1-2 MB (mcap
+                                         # chunk, sqlite page cache) plus indexes and metadata.yaml
 
 
 class BagError(Exception):
@@ -104,16 +117,73 @@ class TopicInfo:
     digest: str = ''
 
 
+class _MetadataLoader(yaml.SafeLoader):
+    """SafeLoader for untrusted metadata.yaml: no aliases (no alias bombs) and a nesting limit."""
+
+    _depth = 0
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        """Compose one node; refuses aliases and documents nested deeper than METADATA_MAX_DEPTH."""
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise yaml.composer.ComposerError(None, None, f'YAML aliases (*{event.anchor}) are not allowed',
+                                              event.start_mark)
+        self._depth += 1
+        try:
+            if self._depth > METADATA_MAX_DEPTH:
+                raise yaml.composer.ComposerError(None, None, f'nested deeper than {METADATA_MAX_DEPTH} levels',
+                                                  self.peek_event().start_mark)
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+
+def load_metadata_yaml(file: Path) -> Any:
+    """Parse a metadata.yaml with limits (size cap, no aliases, nesting limit); BagError with one line."""
+    try:
+        with open(file, 'rb') as fh:
+            raw = fh.read(METADATA_MAX_BYTES + 1)
+    except FileNotFoundError:
+        raise
+    except OSError as exc:
+        raise BagError(f'{file}: unreadable bag metadata ({exc.strerror})') from None
+    if len(raw) > METADATA_MAX_BYTES:
+        raise BagError(f'{file}: bag metadata larger than {METADATA_MAX_BYTES // (1024 * 1024)} MiB; not a '
+                       f'rosbag2 metadata.yaml')
+    try:
+        return yaml.load(raw.decode('utf-8'), Loader=_MetadataLoader)  # noqa: S506 - a SafeLoader subclass
+    except (yaml.YAMLError, UnicodeDecodeError, RecursionError) as exc:
+        raise BagError(f'{file}: unreadable bag metadata ({_one_line(exc)})') from None
+
+
+def _inside(bag: Path, name: str) -> Path:
+    """The data file `name` of the bag at `bag`; BagError unless it lies inside the bag directory."""
+    rel = Path(name)
+    if not name or rel.is_absolute() or '..' in rel.parts:
+        raise BagError(f'{bag}: {METADATA} lists data file {name!r} outside the bag directory; refusing it')
+    path = bag / rel
+    try:
+        inside = path.resolve().is_relative_to(bag.resolve())
+    except (OSError, RuntimeError):      # a symlink loop
+        inside = False
+    if not inside:
+        raise BagError(f'{bag}: {METADATA} lists data file {name!r}, which leads outside the bag directory '
+                       f'(a symlink); refusing it')
+    return path
+
+
 def _load_metadata(path: Path) -> dict:
     try:
-        data = yaml.safe_load((path / METADATA).read_text(encoding='utf-8'))
+        data = load_metadata_yaml(path / METADATA)
         info = data['rosbag2_bagfile_information']
         version = int(info['version'])
         storage = str(info['storage_identifier'])
-        files = [str(f) for f in info['relative_file_paths']]
+        files = info['relative_file_paths']
+        if not isinstance(files, list) or not all(isinstance(f, str) for f in files):
+            raise TypeError('relative_file_paths is not a list of file names')
     except FileNotFoundError:
         raise BagError(f'{path}: not a bag (no {METADATA})') from None
-    except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError) as exc:
+    except (KeyError, TypeError, ValueError) as exc:
         raise BagError(f'{path}/{METADATA}: unreadable bag metadata ({type(exc).__name__}: {exc})'.splitlines()[0]
                        ) from None
     if version not in READ_VERSIONS:
@@ -123,6 +193,8 @@ def _load_metadata(path: Path) -> dict:
     if info.get('compression_mode') or info.get('compression_format'):
         raise BagError(f'{path}: compressed bags are not supported; decompress it first '
                        f'(ros2 bag convert)')
+    for f in files:
+        _inside(path, f)
     info['relative_file_paths'] = files
     return info
 
@@ -137,7 +209,7 @@ class BagReader:
         self._readers: list[Reader] = []
         if self.path.is_dir():
             self.metadata = _load_metadata(self.path)
-            self.files = [self.path / f for f in self.metadata['relative_file_paths']]
+            self.files = [_inside(self.path, f) for f in self.metadata['relative_file_paths']]
             missing = [f.name for f in self.files if not f.is_file()]
             if missing:
                 raise BagError(f'{self.path}: data file(s) {", ".join(missing)} listed in {METADATA} are missing')
@@ -158,9 +230,10 @@ class BagReader:
 
     def open(self) -> None:
         """Open every storage file and collect the topics; BagError when a file is unreadable."""
-        for t in self.metadata.get('topics_with_message_count', []) or []:
-            tm = t.get('topic_metadata', {}) or {}
-            fmt = tm.get('serialization_format', 'cdr')
+        listed = self.metadata.get('topics_with_message_count')
+        for t in listed if isinstance(listed, list) else []:
+            tm = (t.get('topic_metadata', {}) if isinstance(t, dict) else {}) or {}
+            fmt = tm.get('serialization_format', 'cdr') if isinstance(tm, dict) else 'cdr'
             if fmt != 'cdr':
                 raise BagError(f'{self.path}: topic {tm.get("name")} is serialised as {fmt!r}, not cdr')
         for f in self.files:
@@ -280,6 +353,15 @@ def _one_line(exc: BaseException) -> str:
 
 
 # ---------------------------------------------------------------------------------------------- writing
+STORAGE_ERRORS = (WriterError, OSError, sqlite3.Error)    # what the storages raise on a failed write
+
+
+def free_bytes(path: str | Path) -> int:
+    """Bytes an unprivileged writer may still use on the filesystem holding `path`."""
+    st = os.statvfs(path)
+    return st.f_bavail * st.f_frsize
+
+
 def check_output(path: str | Path) -> None:
     """BagError unless `path` does not exist yet and could be created (checked before any long work)."""
     path = Path(path)
@@ -292,15 +374,31 @@ def check_output(path: str | Path) -> None:
         raise BagError(f'{path}: cannot be created ({parent} is not a writable directory)')
 
 
+def publish_new(tmp: Path, dst: Path) -> None:
+    """Move the finished temporary file `tmp` to `dst` unless `dst` exists (never overwrites, even in a race)."""
+    try:
+        os.link(tmp, dst)
+    except FileExistsError:
+        raise BagError(f'{dst}: exists already; not overwriting') from None
+    except OSError as exc:
+        raise BagError(f'{dst}: cannot write ({exc.strerror})') from None
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
 class BagWriter:
     """rosbag2 writer (metadata v9) with size/duration splitting and a crash-tolerant metadata.yaml."""
 
     def __init__(self, path: str | Path, storage: str = 'mcap', split_size_bytes: int = 0,
-                 split_duration_ns: int = 0, atomic: bool = False):
+                 split_duration_ns: int = 0, atomic: bool = False, min_free_bytes: int = MIN_FREE_BYTES):
         if storage not in STORAGES:
             raise BagError(f'storage must be mcap or sqlite3, got {storage!r}')
         if split_size_bytes < 0 or split_duration_ns < 0:
             raise BagError('split sizes must be >= 0 (0: no split)')
+        if min_free_bytes < 0:
+            raise BagError('min_free_bytes must be >= 0')
+        self.min_free = int(min_free_bytes)
+        self.failed: BagError | None = None     # the first write error: the bag takes nothing more
         self.final = Path(path)
         self.storage = storage
         self.split_size = int(split_size_bytes)
@@ -315,6 +413,10 @@ class BagWriter:
             raise BagError(f'{parent}: cannot create output directory ({exc.strerror})') from None
         if not os.access(parent, os.W_OK):
             raise BagError(f'{parent}: output directory is not writable')
+        free = free_bytes(parent) if self.min_free else 0
+        if free < self.min_free:
+            raise BagError(f'{parent}: disk full: {free / 1e6:.1f} MB free, less than the {self.min_free / 1e6:.1f} MB '
+                           f'a bag keeps free')
         self.path = parent / f'.{self.final.name}.partial-{os.getpid()}' if atomic else self.final
         try:
             self.path.mkdir()
@@ -333,6 +435,7 @@ class BagWriter:
         self.closed = False
         self.custom_data: dict[str, str] = {}
         self._write_metadata()                # a valid (empty) bag from the start
+        self.messages = 0                     # messages accepted (each is kept by close())
 
     # ------------------------------------------------------------------ topics
     def add_topic(self, topic: str, msgtype: str, qos: Qos | list[Qos] | None = None,
@@ -356,14 +459,18 @@ class BagWriter:
         """Set one custom_data entry of metadata.yaml and rewrite it now (a killed recorder keeps it too)."""
         if self.closed:
             raise BagError(f'{self.final}: bag already closed')
+        if self.failed is not None:
+            raise self.failed
         self.custom_data[str(key)] = str(value)
         self._write_metadata()
 
     # ------------------------------------------------------------------ messages
     def write(self, topic: str, t_ns: int, raw: bytes) -> None:
-        """Append one CDR-serialised message received at `t_ns`."""
+        """Append one CDR-serialised message received at `t_ns`; BagError (and the writer fails) on a write error."""
         if self.closed:
             raise BagError(f'{self.final}: bag already closed')
+        if self.failed is not None:
+            raise self.failed
         if topic not in self._topics:
             raise BagError(f'{topic}: add_topic first')
         t_ns = int(t_ns)
@@ -371,16 +478,36 @@ class BagWriter:
                 (self.split_size and self._chunk_bytes >= self.split_size) or
                 (self.split_duration and t_ns - self._chunk_start >= self.split_duration)):
             self._finish_chunk()
+        self._check_space(len(raw))
         if self._writer is None:
             self._start_chunk()
         if self._chunk_start is None:
             self._chunk_start = t_ns
         try:
             self._writer.write(self._conns[topic], t_ns, raw)
-        except (WriterError, OSError) as exc:
-            raise BagError(f'{self.path}: write failed ({_one_line(exc)})') from None
+        except STORAGE_ERRORS as exc:
+            raise self._fail(f'write failed ({_one_line(exc)})') from None
         self._chunk_bytes += len(raw)
         self._chunk_count += 1
+        self.messages += 1
+
+    def _fail(self, what: str) -> BagError:
+        """Enter the failed state (first error wins); returns the error to raise."""
+        if self.failed is None:
+            self.failed = BagError(f'{self.path}: {what}')
+        return self.failed
+
+    def _check_space(self, size: int) -> None:
+        """Fail before the storage sees a message that would leave less than min_free_bytes free."""
+        if not self.min_free:
+            return
+        try:
+            free = free_bytes(self.path)
+        except OSError as exc:
+            raise self._fail(f'cannot check free space ({exc.strerror})') from None
+        if free - size < self.min_free:
+            raise self._fail(f'disk full: {free / 1e6:.1f} MB free, less than the {self.min_free / 1e6:.1f} MB kept '
+                             f'for closing the bag ({errno.errorcode[errno.ENOSPC]}); recording stopped')
 
     def write_msg(self, topic: str, t_ns: int, msg: Any) -> None:
         """Serialise a rosbags message object (Jazzy definitions) and append it."""
@@ -390,13 +517,13 @@ class BagWriter:
     def _start_chunk(self) -> None:
         index = len(self._files)
         self._chunk_dir = self.path / f'.writing_{self.name}_{index}'
-        if self._chunk_dir.exists():
-            shutil.rmtree(self._chunk_dir)
+        if self._chunk_dir.exists():          # never reuse (and so delete) a file's data
+            raise self._fail(f'{self._chunk_dir.name} exists already; not overwriting it')
         try:
             writer = Writer(self._chunk_dir, version=WRITE_VERSION, storage_plugin=STORAGES[self.storage])
             writer.open()
-        except (WriterError, OSError) as exc:
-            raise BagError(f'{self.path}: cannot write ({_one_line(exc)})') from None
+        except STORAGE_ERRORS as exc:
+            raise self._fail(f'cannot write ({_one_line(exc)})') from None
         self._writer, self._conns = writer, {}
         for topic in self._topics:
             self._add_conn(topic)
@@ -418,8 +545,9 @@ class BagWriter:
             src = chunk / info['relative_file_paths'][0]
             dst_name = f'{self.name}_{len(self._files)}{SUFFIX[self.storage]}'
             os.replace(src, self.path / dst_name)
-        except (WriterError, OSError, KeyError, yaml.YAMLError) as exc:
-            raise BagError(f'{self.path}: closing a bag file failed ({_one_line(exc)})') from None
+        except (*STORAGE_ERRORS, KeyError, yaml.YAMLError) as exc:
+            # the unfinished file stays where it is (its data may still be recoverable): never deleted
+            raise self._fail(f'closing a bag file failed ({_one_line(exc)}); its data is left in {chunk}') from None
         shutil.rmtree(chunk, ignore_errors=True)
         f = info['files'][0]
         self._files.append({'path': dst_name, 'starting_time': f['starting_time'], 'duration': f['duration'],
@@ -457,19 +585,32 @@ class BagWriter:
         try:
             tmp.write_text(yaml.safe_dump({'rosbag2_bagfile_information': info}, sort_keys=False), encoding='utf-8')
             os.replace(tmp, self.path / METADATA)
-        except OSError as exc:
-            raise BagError(f'{self.path}: cannot write {METADATA} ({exc.strerror})') from None
+        except OSError as exc:     # the previous metadata.yaml (and every file it lists) is kept
+            tmp.unlink(missing_ok=True)
+            raise self._fail(f'cannot write {METADATA} ({exc.strerror})') from None
 
     # ------------------------------------------------------------------ end
     def close(self) -> Path:
-        """Finish the last file, write metadata.yaml, move an atomic bag into place; returns its path."""
+        """Finish the last file, write metadata.yaml, move an atomic bag into place; returns its path.
+
+        After a write error the current file is still finished with every message accepted before it (BagError
+        only when that fails too; its data is then left in place); check `failed` for the error itself."""
         if self.closed:
             return self.final
-        if self._writer is None and not self._files:
-            self._start_chunk()          # an empty bag still gets its (empty) storage file
-        if self._writer is not None:
-            self._finish_chunk()
-        self.closed = True
+        try:
+            if self._writer is None and not self._files and self.failed is None:
+                self._start_chunk()          # an empty bag still gets its (empty) storage file
+            if self._writer is not None:
+                self._finish_chunk()
+        except BagError:
+            if self.atomic:
+                shutil.rmtree(self.path, ignore_errors=True)
+            raise
+        finally:
+            self.closed = True
+        if self.atomic and self.failed is not None:     # never a complete-looking bag from a failed run
+            shutil.rmtree(self.path, ignore_errors=True)
+            raise self.failed
         if self.atomic:
             if self.final.exists():
                 raise BagError(f'{self.final}: appeared while writing; the new bag is left in {self.path}')

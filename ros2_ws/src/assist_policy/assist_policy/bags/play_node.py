@@ -8,8 +8,9 @@ Messages go out as the CDR bytes recorded (no re-serialisation) with QoS derived
 profiles in the bag (best effort if any publisher offered it; transient local if all did, so /sim/goal
 and /sim/scene stay latched). With clock:=true, /clock follows the bag's timestamps (scaled by the rate)
 for graphs run with use_sim_time. Topics whose message type this install lacks are skipped with one
-warning each. A missing, corrupt or truncated bag, an empty topic selection or a bag recorded with other
-message definitions ends the node with one error line and exit code 1.
+warning each. A missing, corrupt or truncated bag, an empty topic selection, a bag recorded with other
+message definitions, or nothing to play (the selected topics hold no messages at or after the start
+offset; with loop:=true too, which would otherwise spin) ends the node with one `error:` line and exit code 1.
 """
 from __future__ import annotations
 
@@ -83,8 +84,19 @@ class BagPlayNode(Node):
         if not self.pubs:
             self.reader.close()
             raise StartupError(f'bag_play: none of the selected topics has a type installed here ({topics})')
+        first = self.reader.start_ns + int(self.p['start_offset_s'] * 1e9)
+        if not sum(self.reader.topics[t].count for t in self.pubs):
+            self.reader.close()
+            raise StartupError(f'bag_play: {self.p["bag"]}: nothing to play: the selected topics '
+                               f'{sorted(self.pubs)} hold no messages')
+        if first > self.reader.end_ns:
+            self.reader.close()
+            raise StartupError(f'bag_play: {self.p["bag"]}: nothing to play: start offset {self.p["start_offset_s"]} s '
+                               f'is past the end of the bag '
+                               f'({(self.reader.end_ns - self.reader.start_ns) * 1e-9:.3f} s long)')
         self.pub_clock = self.create_publisher(Clock, '/clock', 10) if self.p['clock'] else None
         self.exit_code: int | None = None
+        self.error: str | None = None      # why playback failed (main prints it as the error: line)
         self.published = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._play, daemon=True)
@@ -121,23 +133,33 @@ class BagPlayNode(Node):
                 if self._stop.wait(0.05):
                     return
             first = self.reader.start_ns + int(self.p['start_offset_s'] * 1e9)
-            while True:
+            while not self._stop.is_set():
                 clock = PlayClock(first, time.monotonic(), float(self.p['rate']))
+                played = 0
                 for topic, t, raw in self.reader.messages(list(self.pubs), start_ns=first):
                     if not self._wait_until(clock, clock.due(t)):
                         return
                     self._publish_clock(t)
                     self.pubs[topic].publish(raw)
                     self.published += 1
+                    played += 1
+                if not played:        # a loop over nothing would spin at full speed
+                    self._fail(f'{self.p["bag"]}: nothing to play: the selected topics {sorted(self.pubs)} hold no '
+                               f'messages at or after the start offset ({self.p["start_offset_s"]} s)')
+                    return
                 if not self.p['loop']:
                     break
             self.exit_code = 0
         except BagError as exc:
-            log.error('bag_play: %s', exc)
-            self.exit_code = 1
+            self._fail(str(exc))
         except Exception as exc:  # noqa: BLE001 - reported as one line, the node then exits non-zero
-            log.error('bag_play: playback failed: %s: %s', type(exc).__name__, exc)
-            self.exit_code = 1
+            self._fail(f'playback failed: {type(exc).__name__}: {exc}')
+
+    def _fail(self, text: str) -> None:
+        """End playback with an error (exit code 1)."""
+        log.error('bag_play: %s', text)
+        self.error = text
+        self.exit_code = 1
 
     def _check_done(self) -> None:
         if self.exit_code is not None:
@@ -156,10 +178,18 @@ def main(args=None):
     """Console entry point (flags map to the node parameters; --help lists them)."""
     argv = sys.argv[1:] if args is None else list(args)
     ros_args = cli_to_ros_args('bag_play', __doc__, PARAMS, argv, positional='bag')
+    nodes: list[BagPlayNode] = []
+
+    def make() -> BagPlayNode:
+        nodes.append(BagPlayNode())
+        return nodes[-1]
     try:
-        code = run_node(lambda: BagPlayNode(), ros_args)
+        code = run_node(make, ros_args)
     except SystemExit as exc:
         code = int(exc.code or 0)
+    if nodes and nodes[0].error is not None:
+        sys.stderr.write(f'error: bag_play: {nodes[0].error}\n')
+        code = code or 1
     sys.exit(code)
 
 

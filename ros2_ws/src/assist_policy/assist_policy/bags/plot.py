@@ -8,13 +8,18 @@ Each figure: top view (x-y) and side view (x-z) of the flown path with the five 
 pads), the stretches where the assistant was active (|a| > blend threshold) highlighted, and pilot (u)
 vs assistant (a) vs blended (V) velocity commands over time per axis, with the active stretches shaded.
 A bag holds one landing per /sim/landing message (the stretch since the previous one); what follows the
-last landing (or a bag without any) gives one more figure, marked unfinished.
+last landing (or a bag without any) gives one more figure, marked unfinished. A landing JSON whose
+error_m is not a number (null, text, a list) is drawn with the error marked n/a (warned).
+Existing figures are refused, never overwritten (another --out, or move them away); a failed run leaves
+no empty output directory behind.
 """
 from __future__ import annotations
 
 import argparse
 import logging
+import math
 import os
+import re
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,7 +28,7 @@ import numpy as np
 
 from ..blending import DEFAULT_THRESHOLD
 from . import msgs
-from .bagio import BagError, BagReader, check_output
+from .bagio import BagError, BagReader, check_output, publish_new
 
 log = logging.getLogger(__name__)
 
@@ -83,27 +88,29 @@ def read_flights(bag: str | Path, progress: bool = False) -> list[Flight]:
         if progress:
             from tqdm import tqdm  # noqa: PLC0415
             bar = tqdm(total=sum(r.topics[t].count for t in used), unit='msg', desc='read', file=sys.stderr)
-        for topic, t_ns, raw in r.messages(used):
-            t = (t_ns - start) * 1e-9
-            msg = r.deserialize(raw, topic)
-            try:
-                if topic == '/odom':
-                    series[topic].add(t, msgs.odom_arrays(msg)[0])
-                elif topic in series:
-                    series[topic].add(t, msgs.twist_linear(msg))
-                elif topic == '/sim/goal':
-                    goals.append((t, msgs.point(msg)))
-                elif topic == '/sim/scene':
-                    pads, gi = msgs.pads_from_markers(msg)
-                    scenes.append((t, pads, gi))
-                elif topic == '/sim/landing':
-                    landings.append((t, msgs.landing_json(msg)))
-            except ValueError as exc:
-                log.warning('skipping %s at %.2f s: %s', topic, t, exc)
-            if bar is not None:
-                bar.update()
-        if bar is not None:
-            bar.close()
+        try:
+            for topic, t_ns, raw in r.messages(used):
+                t = (t_ns - start) * 1e-9
+                msg = r.deserialize(raw, topic)
+                try:
+                    if topic == '/odom':
+                        series[topic].add(t, msgs.odom_arrays(msg)[0])
+                    elif topic in series:
+                        series[topic].add(t, msgs.twist_linear(msg))
+                    elif topic == '/sim/goal':
+                        goals.append((t, msgs.point(msg)))
+                    elif topic == '/sim/scene':
+                        pads, gi = msgs.pads_from_markers(msg)
+                        scenes.append((t, pads, gi))
+                    elif topic == '/sim/landing':
+                        landings.append((t, msgs.landing_json(msg)))
+                except ValueError as exc:
+                    log.warning('skipping %s at %.2f s: %s', topic, t, exc)
+                if bar is not None:
+                    bar.update()
+        finally:
+            if bar is not None:     # before any error line, which must start a line of its own
+                bar.close()
         end = (r.end_ns - start) * 1e-9
     bounds = [(-1.0, t) for t, _ in landings[:1]] + [(a[0], b[0]) for a, b in zip(landings, landings[1:])]
     if not landings:
@@ -212,13 +219,22 @@ def plot_flight(f: Flight, path: Path, title: str, threshold: float = DEFAULT_TH
     tmp = path.with_name(f'.{path.stem}.partial-{os.getpid()}.png')
     try:
         fig.savefig(tmp, dpi=100)
-        os.replace(tmp, path)
     except OSError as exc:
         tmp.unlink(missing_ok=True)
         raise BagError(f'{path}: cannot write ({exc.strerror})') from None
     finally:
         plt.close(fig)
+    publish_new(tmp, path)
     return fig
+
+
+def landing_error(landing: dict) -> float | None:
+    """The landing's error_m when it is a finite number, else None (warned)."""
+    v = landing.get('error_m')
+    if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
+        return float(v)
+    log.warning('landing %s: error_m is %r, not a number; drawn as n/a', landing.get('episode', '?'), v)
+    return None
 
 
 def describe(f: Flight, name: str, k: int) -> str:
@@ -227,8 +243,9 @@ def describe(f: Flight, name: str, k: int) -> str:
         return f'{name} flight {k}: no /sim/landing recorded (unfinished)'
     L = f.landing
     pads = '' if f.pads else '  [pads not recorded (/sim/scene): goal from /sim/goal only]'
+    err = landing_error(L)
     return (f"{name} landing {k}: goal pad {L.get('goal_index')}, landed on {L.get('landed_index')}, "
-            f"error {float(L.get('error_m', float('nan'))):.2f} m, "
+            f"error {'n/a' if err is None else f'{err:.2f} m'}, "
             f"{'success' if L.get('success') else ('crash' if L.get('crash') else 'miss')}, "
             f"{'assisted' if L.get('assisted') else 'unassisted'}{pads}")
 
@@ -246,18 +263,35 @@ def main(argv: list[str] | None = None) -> int:
     bag = Path(a.bag.rstrip('/'))
     name = bag.stem if bag.suffix in ('.mcap', '.db3') else bag.name
     out = Path(a.out) if a.out else bag.with_name(name + '_plots')
+    created: list[Path] = []            # directories this run made (removed again when it fails empty)
+    written: list[str] = []
     try:
-        if not out.is_dir():
+        if out.is_dir():
+            pattern = re.compile(re.escape(name) + r'_landing\d+\.png')
+            old = sorted(p.name for p in out.iterdir() if pattern.fullmatch(p.name))
+            if old:
+                raise BagError(f'{out / old[0]}: exists already; not overwriting ({len(old)} figures of this bag '
+                               f'in {out}: choose another --out)')
+        else:
             check_output(out)
         flights = read_flights(bag, progress=True)
-        out.mkdir(parents=True, exist_ok=True)
-        written = []
+        for d in reversed([out, *out.parents]):
+            if not d.exists():
+                d.mkdir()
+                created.append(d)
         for k, f in enumerate(flights):
             path = out / f'{name}_landing{k}.png'
             plot_flight(f, path, describe(f, name, k), a.threshold)
             written.append(str(path))
     except (BagError, OSError) as exc:
+        for d in reversed(created):     # what was written stays; an empty directory of this run goes
+            try:
+                d.rmdir()
+            except OSError:
+                break
         print(f'error: {exc}', file=sys.stderr)
+        if written:
+            print(f'kept: {", ".join(written)}', file=sys.stderr)
         return 1
     print('written: ' + ', '.join(written))
     return 0

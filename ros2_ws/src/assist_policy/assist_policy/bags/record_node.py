@@ -8,6 +8,9 @@ Topics are subscribed as they appear (type and offered QoS taken from their publ
 written as received (CDR bytes, receive time of the node's clock: sim time with use_sim_time).
 Ctrl-C / SIGTERM close the bag cleanly; a killed recorder loses at most the file it was writing
 (metadata.yaml is rewritten after every finished file; see split_duration_s / split_size_mb).
+A write error, or free space on the bag's filesystem falling below `min_free_mb` (kept so that the file
+being written can still be closed), stops the recording: nothing more is written, the bag is closed with
+every message written so far, and the recorder exits with one `error:` line and exit code 1.
 
 The configuration that flew goes into the bag too: with `record_parameters` (default on) the recorder
 asks each node named in `parameter_nodes` (encoder_node and policy_node by default, in any namespace)
@@ -49,6 +52,8 @@ PARAMS = {
                               max=86400.0),
     'split_size_mb': Param(0.0, 'Start a new data file after this many MB of messages (0: never).', min=0.0,
                            max=1e6),
+    'min_free_mb': Param(8.0, 'Stop recording (error, exit 1) when less than this many MB would stay free on the '
+                         'bag\'s filesystem: room to close the file being written.', min=0.0, max=1e6),
     'discovery_period_s': Param(0.5, 'How often to look for new publishers of the wanted topics.', min=0.05,
                                 max=60.0),
     'record_parameters': Param(True, 'Write the parameters of the nodes in parameter_nodes into the bag\'s '
@@ -74,7 +79,8 @@ class BagRecordNode(Node):
         try:
             self.writer = BagWriter(out, storage=self.p['storage'],
                                     split_size_bytes=int(self.p['split_size_mb'] * 1e6),
-                                    split_duration_ns=int(self.p['split_duration_s'] * 1e9))
+                                    split_duration_ns=int(self.p['split_duration_s'] * 1e9),
+                                    min_free_bytes=int(self.p['min_free_mb'] * 1e6))
         except BagError as exc:
             raise StartupError(f'bag_record: {exc}') from exc
         self.output = out
@@ -92,6 +98,7 @@ class BagRecordNode(Node):
         self.warned: set[str] = set()
         self.count = 0
         self.write_errors = 0
+        self.failure: str | None = None      # why the recording stopped early (exit code 1)
         # on the steady clock: with use_sim_time a sim-time timer would wait for /clock, and nodes and topics that
         # appear before the sim starts would go unrecorded until it does
         self.create_timer(float(self.p['discovery_period_s']), self._discover,
@@ -106,6 +113,8 @@ class BagRecordNode(Node):
             self.get_logger().warning(text)
 
     def _discover(self) -> None:
+        if self.failure is not None:
+            return
         self._discover_parameters()
         types = dict(self.get_topic_names_and_types())
         for topic in self.wanted:
@@ -181,35 +190,65 @@ class BagRecordNode(Node):
         try:
             self.writer.set_custom_data(PARAMS_KEY + fqn, json.dumps(values, sort_keys=True, default=str))
         except BagError as exc:
-            self.get_logger().error(f'bag_record: {exc}')
+            if self.writer.failed is not None:
+                self._stop_recording(exc)
+            else:
+                self.get_logger().error(f'bag_record: {exc}')
         self.params_done.add(fqn)
         self.param_pending.discard(fqn)
         self.get_logger().info(f'bag_record: recorded the {len(values)} parameters of /{fqn}')
 
     def _on_msg(self, topic: str, raw: bytes) -> None:
+        if self.failure is not None:
+            return                      # stopped: messages already queued are not taken any more
         try:
             self.writer.write(topic, self.get_clock().now().nanoseconds, raw)
             self.count += 1
         except BagError as exc:
-            self.write_errors += 1
-            self.diag.count('write_errors')
-            self.get_logger().error(f'bag_record: {exc}', throttle_duration_sec=5.0)
+            self._stop_recording(exc)
+
+    def _stop_recording(self, exc: BagError) -> None:
+        """A write error ends the recording: nothing more is written, the node exits (close() keeps what was)."""
+        if self.failure is not None:
+            return
+        self.failure = str(exc)
+        self.write_errors += 1
+        self.diag.count('write_errors')
+        self.get_logger().error(f'bag_record: {exc}; stopping after {self.count} messages')
+        raise SystemExit(1)             # ends the spin (nothing more is taken); run_node then calls close()
 
     def close(self) -> None:
-        """Finish the bag (called by run_node on Ctrl-C, SIGTERM and normal exit)."""
+        """Finish the bag (called by run_node on Ctrl-C, SIGTERM, normal exit and after a write error)."""
         # plain logging: after SIGTERM the rclpy context (and /rosout) is already gone
         try:
             self.writer.close()
             log.info('bag_record: wrote %d messages to %s', self.count, self.output)
         except BagError as exc:
             log.error('bag_record: %s', exc)
+            if self.failure is None:
+                self.failure = str(exc)
+            else:
+                self.failure += f'; {exc}'.replace(f'{self.writer.path}: ', '', 1)
 
 
 def main(args=None):
-    """Console entry point (flags map to the node parameters; --help lists them)."""
+    """Console entry point (flags map to the node parameters; --help lists them); exit 1 after a write error."""
     argv = sys.argv[1:] if args is None else list(args)
     ros_args = cli_to_ros_args('bag_record', __doc__, PARAMS, argv, positional='output')
-    sys.exit(run_node(lambda: BagRecordNode(), ros_args))
+    nodes: list[BagRecordNode] = []
+
+    def make() -> BagRecordNode:
+        nodes.append(BagRecordNode())
+        return nodes[-1]
+    try:
+        code = run_node(make, ros_args)
+    except SystemExit as exc:           # raised by _stop_recording inside the spin
+        code = int(exc.code or 0)
+    if nodes and nodes[0].failure is not None:
+        sys.stderr.write(f'error: bag_record: {nodes[0].failure} ({nodes[0].count} messages kept in '
+                         f'{nodes[0].output})\n')
+        code = code or 1
+    sys.exit(code)
 
 
 if __name__ == '__main__':

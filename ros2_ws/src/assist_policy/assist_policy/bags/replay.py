@@ -6,10 +6,12 @@
 
 No ROS graph: the bag's camera frames, /odom and /pilot/cmd_vel (and /sim/goal for the oracle) are fed to
 the same cores the nodes run (assist_perception's LatentEncoder via make_latent_fn, PolicyCore) at the
-recorded receive times; the policy steps once per recorded /cmd_vel message (or at --rate-hz when the bag
-has none). Writes /assist/latent, /assist/agent_cmd and /cmd_vel into a new bag (or one CSV row per step)
+recorded receive times; the policy steps once per recorded /cmd_vel message (or at --rate-hz, at most
+1000 Hz, when the bag has none; a gap that would take more than a million such steps, e.g. one message with
+a far-future timestamp, is refused). Writes /assist/latent, /assist/agent_cmd and /cmd_vel into a new bag (or one CSV row per step)
 and prints (and writes as JSON) the max, mean and rms difference of /cmd_vel, /assist/agent_cmd and the
-latent from the recorded ones. With the models that flew the bag the difference is ~0 (tests/test_bag_replay.py
+latent from the recorded ones. Existing outputs (bag, CSV, summary JSON) are refused, never overwritten.
+With the models that flew the bag the difference is ~0 (tests/test_bag_replay.py
 holds evaluate's bags to < 1e-4 m/s): that is the check that replay is faithful before a new model is tried
 on old flights.
 
@@ -46,6 +48,7 @@ import argparse
 import csv
 import json
 import logging
+import math
 import os
 import sys
 from dataclasses import dataclass, field
@@ -54,7 +57,7 @@ from pathlib import Path
 import numpy as np
 
 from . import msgs
-from .bagio import CONTRACT_TOPICS, PARAMS_KEY, BagError, BagReader, BagWriter, check_output
+from .bagio import CONTRACT_TOPICS, PARAMS_KEY, BagError, BagReader, BagWriter, check_output, publish_new
 from ..blending import DEFAULT_THRESHOLD
 from ..observation import Condition
 from ..poses import header_seconds
@@ -67,6 +70,8 @@ LATENT, AGENT, CMD, GOAL = '/assist/latent', '/assist/agent_cmd', '/cmd_vel', '/
 PAD, DIAG = '/assist/pad_estimate', '/diagnostics'
 FRAME_MEMORY = 40          # recent camera frames kept for the latents that follow them (2 s at 20 Hz)
 SAME_CLOCK_NS = 1_000_000_000   # a /cmd_vel stamp this close to its receive time is on the recorder's clock
+MAX_RATE_HZ = 1000.0            # --rate-hz limit (policy_node runs at most 200 Hz)
+MAX_STEPS = 1_000_000           # steps at --rate-hz that one gap between messages may take (14 h at 20 Hz)
 
 
 @dataclass
@@ -258,11 +263,20 @@ def _model(option: str, params: dict | None, what: str) -> str:
     return flown
 
 
+def check_rate(rate_hz: float) -> None:
+    """ValueError unless `rate_hz` is a usable step rate (finite, > 0, <= MAX_RATE_HZ)."""
+    if not (math.isfinite(rate_hz) and 0 < rate_hz <= MAX_RATE_HZ):
+        raise ValueError(f'rate must be > 0 and <= {MAX_RATE_HZ:g} Hz, got {rate_hz!r}')
+
+
 def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> ReplayResult:
     """Re-run encoder + policy on the bag's inputs; BagError/ValueError with one line on bad input."""
+    check_rate(cfg.rate_hz)
     res = ReplayResult()
     with BagReader(bag) as r:
         custom = (r.metadata.get('custom_data') or {}) if r.metadata else {}
+        if not isinstance(custom, dict):
+            raise BagError(f'{bag}: custom_data in the bag metadata is not a mapping')
         # evaluate names its rows (and bags) <condition>[+guard][+override]
         condition, *flags = custom.get('assist.condition', '').split('+')
         policy_params = None if condition else recorded_params(custom, 'policy_node')
@@ -414,100 +428,106 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
                 core.set_latent(now, mu)
                 latent_id = k
 
-        for topic, t, raw in r.messages(used):
-            if not ticks_from_bag:
-                if next_tick is None:
-                    next_tick = t
-                while next_tick < t:
-                    step(next_tick)
-                    next_tick += period
-            now = (t - start) * 1e-9
-            msg = r.deserialize(raw, topic)
-            try:
-                if topic == ODOM:
-                    pos, quat, twist = msgs.odom_arrays(msg)
-                    core.set_odom(now, pos, twist, quat, header_seconds(msg))
-                elif topic == PILOT:
-                    pilot_msgs.append((now, msgs.twist_linear(msg), msg.header.frame_id))
-                    core.set_pilot(now, msgs.twist_linear(msg), msg.header.frame_id)
-                elif topic == GOAL and mode == 'oracle':
-                    core.set_goal(msgs.point(msg))
-                    core.reset()          # as policy_node does: a new goal is a new episode
-                elif topic in (RGB, DEPTH):
-                    st = msgs.stamp_ns(msg.header.stamp)
-                    rgb, depth = frames.pop(st, (None, None))
-                    if topic == RGB:
-                        rgb = msgs.image_array(msg)
-                    else:
-                        depth = msgs.image_array(msg)
-                        core.set_depth(now, depth, header_seconds(msg))    # every mode: the rules read it
-                        last_frame = st
-                        if mode == 'end_to_end' and rgb is not None:
-                            core.set_image(now, rgb, depth)
-                    if rgb is not None and depth is None:    # encoder_node pairs colour and depth within its slop
-                        near = [s for s, f in frames.items() if f[1] is not None and f[0] is None
-                                and abs(s - st) <= slop_ns]
-                        if near:
-                            st = min(near, key=lambda s: abs(s - st))
-                            depth = frames.pop(st)[1]
-                    elif depth is not None and rgb is None:
-                        near = [s for s, f in frames.items() if f[0] is not None and f[1] is None
-                                and abs(s - st) <= slop_ns]
-                        if near:
-                            rgb = frames.pop(min(near, key=lambda s: abs(s - st)))[0]
-                    frames[st] = (rgb, depth)
-                    while len(frames) > FRAME_MEMORY:
-                        del frames[next(iter(frames))]
-                    if at_latents and rgb is not None and depth is not None:
-                        for k in waiting.pop(st, []):     # latents the recorder got before their frame
-                            apply_latent(k, st, t, now)
-                    if encode is not None and not at_latents and rgb is not None and depth is not None:
-                        mu = encode_frame(st)              # every frame, once it is complete
-                        if mu is not None:
-                            res.latents[st] = mu
-                            res.latent_times[st] = t
-                            core.set_latent(now, mu)
-                            latent_id = st
-                elif topic == LATENT:
-                    rec = np.asarray(msg.data, dtype=float)
-                    k = n_latent if at_latents else t
-                    n_latent += 1
-                    res.rec_latent[k] = rec
-                    if at_latents:
-                        stamp = frame_of.get(k, last_frame)
-                        f = frames.get(stamp, (None, None))
-                        if stamp is not None and (f[0] is None or f[1] is None):
-                            waiting.setdefault(stamp, []).append(k)    # its frame is still on its way
-                        elif stamp is None:
-                            counts['latent_frames_missing'] += 1
+        try:
+            for topic, t, raw in r.messages(used):
+                if not ticks_from_bag:
+                    if next_tick is None:
+                        next_tick = t
+                    if (t - next_tick) // period > MAX_STEPS:
+                        raise BagError(f'{bag}: {topic} at {(t - start) * 1e-9:.3f} s comes '
+                                       f'{(t - next_tick) * 1e-9:.3g} s after the previous message: stepping through that '
+                                       f'at {cfg.rate_hz:g} Hz would take more than {MAX_STEPS} steps (a wrong timestamp?)')
+                    while next_tick < t:
+                        step(next_tick)
+                        next_tick += period
+                now = (t - start) * 1e-9
+                msg = r.deserialize(raw, topic)
+                try:
+                    if topic == ODOM:
+                        pos, quat, twist = msgs.odom_arrays(msg)
+                        core.set_odom(now, pos, twist, quat, header_seconds(msg))
+                    elif topic == PILOT:
+                        pilot_msgs.append((now, msgs.twist_linear(msg), msg.header.frame_id))
+                        core.set_pilot(now, msgs.twist_linear(msg), msg.header.frame_id)
+                    elif topic == GOAL and mode == 'oracle':
+                        core.set_goal(msgs.point(msg))
+                        core.reset()          # as policy_node does: a new goal is a new episode
+                    elif topic in (RGB, DEPTH):
+                        st = msgs.stamp_ns(msg.header.stamp)
+                        rgb, depth = frames.pop(st, (None, None))
+                        if topic == RGB:
+                            rgb = msgs.image_array(msg)
                         else:
-                            apply_latent(k, stamp, t, now)
-                    elif mode == 'latent' and use_latent == 'recorded':
-                        core.set_latent(now, rec)
-                        latent_id = k
-                elif topic == AGENT:
-                    rec_agents.setdefault(msgs.stamp_ns(msg.header.stamp) if ticks_from_bag else t, []).append(
-                        msgs.twist_linear(msg))
-                elif topic == CMD:
-                    i = len(res.times_ns)
-                    res.rec_cmd[i] = msgs.twist_linear(msg)
-                    stamp = msgs.stamp_ns(msg.header.stamp)
-                    cmd_stamps.append(stamp)
-                    # policy_node stamps /cmd_vel with its clock at the step: the step's own time whenever the
-                    # recorder's clock is the graph's (a sim-time recorder receives it up to a /clock tick later)
-                    live_pilot = pilot_of.get(i)
-                    if live_pilot is not None:
-                        core.set_pilot(now, *live_pilot)      # the message the live step had (pilot_alignment)
-                        counts['pilot_aligned'] += 1
-                    step(t, stamp if abs(stamp - t) <= SAME_CLOCK_NS else None)
-                    if live_pilot is not None and pilot_msgs:
-                        core.set_pilot(*pilot_msgs[-1])       # back to the latest, as the bag goes on
-            except ValueError as exc:     # a bad recorded input is skipped, as the nodes do
-                log.warning('skipping %s at %.3f s: %s', topic, now, exc)
-            if bar is not None:
-                bar.update(1)
-        if bar is not None:
-            bar.close()
+                            depth = msgs.image_array(msg)
+                            core.set_depth(now, depth, header_seconds(msg))    # every mode: the rules read it
+                            last_frame = st
+                            if mode == 'end_to_end' and rgb is not None:
+                                core.set_image(now, rgb, depth)
+                        if rgb is not None and depth is None:    # encoder_node pairs colour and depth within its slop
+                            near = [s for s, f in frames.items() if f[1] is not None and f[0] is None
+                                    and abs(s - st) <= slop_ns]
+                            if near:
+                                st = min(near, key=lambda s: abs(s - st))
+                                depth = frames.pop(st)[1]
+                        elif depth is not None and rgb is None:
+                            near = [s for s, f in frames.items() if f[0] is not None and f[1] is None
+                                    and abs(s - st) <= slop_ns]
+                            if near:
+                                rgb = frames.pop(min(near, key=lambda s: abs(s - st)))[0]
+                        frames[st] = (rgb, depth)
+                        while len(frames) > FRAME_MEMORY:
+                            del frames[next(iter(frames))]
+                        if at_latents and rgb is not None and depth is not None:
+                            for k in waiting.pop(st, []):     # latents the recorder got before their frame
+                                apply_latent(k, st, t, now)
+                        if encode is not None and not at_latents and rgb is not None and depth is not None:
+                            mu = encode_frame(st)              # every frame, once it is complete
+                            if mu is not None:
+                                res.latents[st] = mu
+                                res.latent_times[st] = t
+                                core.set_latent(now, mu)
+                                latent_id = st
+                    elif topic == LATENT:
+                        rec = np.asarray(msg.data, dtype=float)
+                        k = n_latent if at_latents else t
+                        n_latent += 1
+                        res.rec_latent[k] = rec
+                        if at_latents:
+                            stamp = frame_of.get(k, last_frame)
+                            f = frames.get(stamp, (None, None))
+                            if stamp is not None and (f[0] is None or f[1] is None):
+                                waiting.setdefault(stamp, []).append(k)    # its frame is still on its way
+                            elif stamp is None:
+                                counts['latent_frames_missing'] += 1
+                            else:
+                                apply_latent(k, stamp, t, now)
+                        elif mode == 'latent' and use_latent == 'recorded':
+                            core.set_latent(now, rec)
+                            latent_id = k
+                    elif topic == AGENT:
+                        rec_agents.setdefault(msgs.stamp_ns(msg.header.stamp) if ticks_from_bag else t, []).append(
+                            msgs.twist_linear(msg))
+                    elif topic == CMD:
+                        i = len(res.times_ns)
+                        res.rec_cmd[i] = msgs.twist_linear(msg)
+                        stamp = msgs.stamp_ns(msg.header.stamp)
+                        cmd_stamps.append(stamp)
+                        # policy_node stamps /cmd_vel with its clock at the step: the step's own time whenever the
+                        # recorder's clock is the graph's (a sim-time recorder receives it up to a /clock tick later)
+                        live_pilot = pilot_of.get(i)
+                        if live_pilot is not None:
+                            core.set_pilot(now, *live_pilot)      # the message the live step had (pilot_alignment)
+                            counts['pilot_aligned'] += 1
+                        step(t, stamp if abs(stamp - t) <= SAME_CLOCK_NS else None)
+                        if live_pilot is not None and pilot_msgs:
+                            core.set_pilot(*pilot_msgs[-1])       # back to the latest, as the bag goes on
+                except ValueError as exc:     # a bad recorded input is skipped, as the nodes do
+                    log.warning('skipping %s at %.3f s: %s', topic, now, exc)
+                if bar is not None:
+                    bar.update(1)
+        finally:
+            if bar is not None:     # before any error line, which must start a line of its own
+                bar.close()
     if not res.times_ns:
         raise BagError(f'{bag}: no policy step could be replayed (no inputs in the bag)')
     counts['latent_frames_missing'] += sum(len(ks) for ks in waiting.values())
@@ -570,10 +590,10 @@ def write_outputs(res: ReplayResult, out: Path, storage: str = 'mcap') -> Path:
                     w.writerow([f'{t * 1e-9:.9f}'] + [f'{x:.6g}' for x in lat] +
                                [f'{x:.6g}' for x in res.agent.get(i, nan3)] + [f'{x:.6g}' for x in res.cmd[i]] +
                                [f'{x:.6g}' for x in res.rec_cmd.get(i, nan3)])
-            os.replace(tmp, out)
         except OSError as exc:
             tmp.unlink(missing_ok=True)
             raise BagError(f'{out}: cannot write ({exc.strerror})') from None
+        publish_new(tmp, out)
         return out
     rows: list[tuple[int, int, str, object]] = [(t, 0, LATENT, msgs.float_array(res.latents[k]))
                                                 for k, t in res.latent_times.items() if k in res.latents]
@@ -631,7 +651,8 @@ def main(argv: list[str] | None = None) -> int:
                    help='re-encode the camera frames, or use the recorded /assist/latent')
     p.add_argument('--velocity-frame', default=d.velocity_frame, choices=('auto', 'twist', 'odom'),
                    help="actor's velocity input: /odom twist as is (policy_node) or rotated to odom (evaluate)")
-    p.add_argument('--rate-hz', type=float, default=d.rate_hz, help='step rate when the bag has no /cmd_vel')
+    p.add_argument('--rate-hz', type=float, default=d.rate_hz,
+                   help=f'step rate when the bag has no /cmd_vel (at most {MAX_RATE_HZ:g})')
     p.add_argument('--blend-threshold', type=float, default=d.blend_threshold,
                    help='|a| above which a is blended (default: policy_node\'s recorded value, else 0.25)')
     p.add_argument('--timeout-s', type=float, default=d.timeout_s,
@@ -648,9 +669,11 @@ def main(argv: list[str] | None = None) -> int:
                    help='give each step the pilot command its recorded V and a imply, when that is the recorded '
                         'message before or after the latest (auto: graph bags)')
     a = p.parse_args(argv)
-    if not a.rate_hz > 0 or (a.timeout_s is not None and not a.timeout_s > 0) or (
-            a.blend_threshold is not None and not a.blend_threshold >= 0):
-        print('error: --rate-hz and --timeout-s must be > 0, --blend-threshold >= 0', file=sys.stderr)
+    if not (math.isfinite(a.rate_hz) and 0 < a.rate_hz <= MAX_RATE_HZ) or (
+            a.timeout_s is not None and not (math.isfinite(a.timeout_s) and a.timeout_s > 0)) or (
+            a.blend_threshold is not None and not (math.isfinite(a.blend_threshold) and a.blend_threshold >= 0)):
+        print(f'error: --rate-hz must be > 0 and <= {MAX_RATE_HZ:g}, --timeout-s finite and > 0, --blend-threshold '
+              f'finite and >= 0', file=sys.stderr)
         return 2
     bag = Path(a.bag.rstrip('/'))
     out = Path(a.out) if a.out else bag.with_name(bag.name + '_replay')
@@ -658,16 +681,21 @@ def main(argv: list[str] | None = None) -> int:
                        velocity_frame=a.velocity_frame, rate_hz=a.rate_hz, blend_threshold=a.blend_threshold,
                        timeout_s=a.timeout_s, override=a.override, floor_guard=a.floor_guard, recall=a.recall,
                        damper=a.damper, align_pilot=a.align_pilot)
+    spath = Path(a.summary) if a.summary else out.with_name(out.name + '.summary.json')
     try:
         check_output(out)
+        check_output(spath)
         res = replay(bag, cfg, progress=True)
         write_outputs(res, out, a.storage)
         summary = summarize(res)
         summary['output'] = str(out)
-        spath = Path(a.summary) if a.summary else out.with_name(out.name + '.summary.json')
-        tmp = spath.with_name(f'.{spath.name}.partial')
-        tmp.write_text(json.dumps(summary, indent=2), encoding='utf-8')
-        os.replace(tmp, spath)
+        tmp = spath.with_name(f'.{spath.name}.partial-{os.getpid()}')
+        try:
+            tmp.write_text(json.dumps(summary, indent=2), encoding='utf-8')
+        except OSError as exc:
+            tmp.unlink(missing_ok=True)
+            raise BagError(f'{spath}: cannot write ({exc.strerror})') from None
+        publish_new(tmp, spath)
     except (BagError, ValueError, OSError) as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 1
