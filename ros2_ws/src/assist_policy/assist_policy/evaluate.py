@@ -64,7 +64,7 @@ from assist_sim.pilots import PILOT_NAMES
 
 from .bags.bagio import BagError
 from .bags.episode import record_landing
-from .cli import add_dataclass_args, dataclass_from_args
+from .cli import add_dataclass_args, check_settings, parse_dataclass_args, setting
 from .damper import DamperConfig
 from .env import EnvConfig, LandingAssistEnv, run_episode
 from .latent import make_latent_fn
@@ -86,23 +86,27 @@ PAPER = {'unassisted': '0.67 +- 0.40', 'end_to_end': '0.37 +- 0.33', 'latent': '
          'oracle': '0.10 +- 0.07'}
 
 
+MAX_EVAL_SEED = 2**31 - 1 - 1000 * 1000 - 100_000     # landing seeds (seed + 1000 beta index + k) stay valid
+
+
 @dataclass
 class EvalArgs:
     """Command-line arguments of evaluate (every field is a --flag)."""
 
-    out: str = 'runs/eval'
-    conditions: tuple[str, ...] = CONDITIONS
-    alpha: float = 0.5
-    betas: tuple[float, ...] = tuple(np.round(np.arange(0.0, 1.0001, 0.05), 2).tolist())
-    landings: int = 40
-    seed: int = 2024
+    out: str = setting('runs/eval', nonempty=True)
+    conditions: tuple[str, ...] = setting(CONDITIONS, choices=CONDITIONS + BASELINES, min_len=1)
+    alpha: float = setting(0.5, ge=0.0, le=1.0)
+    betas: tuple[float, ...] = setting(tuple(np.round(np.arange(0.0, 1.0001, 0.05), 2).tolist()), ge=0.0, le=1.0,
+                                       min_len=1)
+    landings: int = setting(40, ge=1, le=100_000)        # 0 would replace an existing landings.csv with nothing
+    seed: int = setting(2024, ge=0, le=MAX_EVAL_SEED)
     latent_model: str = ''
     oracle_model: str = ''
     end_to_end_model: str = ''
     encoder_path: str = ''
-    max_episode_s: float = 60.0
+    max_episode_s: float = setting(60.0, gt=0.0, le=3600.0)
     plot: bool = True
-    pilot: str = 'paper'
+    pilot: str = setting('paper', choices=PILOT_NAMES)
     # the non-learned rules, by default as policy_node flies each mode (false: the bare actor): the floor guard on;
     # the goal-agnostic three (None) on for latent and end_to_end, off for the oracle, which knows the goal
     safety: bool = True
@@ -380,7 +384,8 @@ def plot(rows_by_cond: dict[str, list[dict]], path: Path) -> None:
 
 
 def evaluate(args: EvalArgs) -> dict[str, dict]:
-    """Run the experiment; write CSVs and the plot; return per-condition summaries."""
+    """Run the experiment; write CSVs and the plot; return per-condition summaries (SettingsError: a bad value)."""
+    check_settings(args)
     if args.pilot not in PILOT_NAMES:
         raise ValueError(f'unknown pilot {args.pilot!r}; choose from {", ".join(PILOT_NAMES)}')
     out = Path(args.out)
@@ -472,9 +477,10 @@ def main(argv: list[str] | None = None) -> int:
     """Console entry point: run, print the table."""
     logging.basicConfig(level=logging.INFO, format='%(levelname)s %(name)s: %(message)s')
     torch.set_num_threads(1)
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(prog='evaluate', description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     add_dataclass_args(parser, EvalArgs, HELP)
-    args = dataclass_from_args(EvalArgs, parser.parse_args(argv))
+    args, _ = parse_dataclass_args(parser, EvalArgs, argv)      # a bad value: one error line, exit 2, nothing run
     try:
         summary = evaluate(args)
     except (OSError, ValueError, BagError) as exc:

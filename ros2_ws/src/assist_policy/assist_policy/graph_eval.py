@@ -65,10 +65,11 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
 
-from .cli import add_dataclass_args, dataclass_from_args
+from .cli import add_dataclass_args, check_settings, parse_dataclass_args, setting
 from .episodes_plan import LandingPlan, evaluation_plans
 from .evaluate import (
     CONDITIONS,
+    MAX_EVAL_SEED,
     EvalArgs,
     LandingLog,
     condition_name,
@@ -99,27 +100,27 @@ _EVAL = EvalArgs()
 class GraphEvalArgs:
     """Command-line arguments of evaluate_graph (every field is a --flag)."""
 
-    out: str = 'runs/graph_eval'
-    conditions: tuple[str, ...] = ('unassisted', 'latent')
-    alpha: float = _EVAL.alpha
-    betas: tuple[float, ...] = _EVAL.betas
-    landings: int = _EVAL.landings
-    seed: int = _EVAL.seed
-    pilot: str = 'paper'
+    out: str = setting('runs/graph_eval', nonempty=True)
+    conditions: tuple[str, ...] = setting(('unassisted', 'latent'), choices=CONDITIONS, min_len=1)
+    alpha: float = setting(_EVAL.alpha, ge=0.0, le=1.0)
+    betas: tuple[float, ...] = setting(_EVAL.betas, ge=0.0, le=1.0, min_len=1)
+    landings: int = setting(_EVAL.landings, ge=1, le=100_000)
+    seed: int = setting(_EVAL.seed, ge=0, le=MAX_EVAL_SEED)
+    pilot: str = setting('paper', choices=PILOT_NAMES)
     latent_model: str = ''
     oracle_model: str = ''
     end_to_end_model: str = ''
     encoder_path: str = ''
-    max_episode_s: float = _EVAL.max_episode_s
+    max_episode_s: float = setting(_EVAL.max_episode_s, gt=0.0, le=3600.0)
     safety: bool = True
     override: bool | None = None
     recall: bool | None = None
     damper: bool | None = None
-    real_time_factor: float = 2.0
-    domain_id: int = 0
+    real_time_factor: float = setting(2.0, gt=0.0, le=100.0)
+    domain_id: int = setting(0, ge=0, le=232)
     depth_noise: bool = True
-    landing_timeout_s: float = 300.0
-    startup_timeout_s: float = 180.0
+    landing_timeout_s: float = setting(300.0, gt=0.0, le=86_400.0)
+    startup_timeout_s: float = setting(180.0, gt=0.0, le=3600.0)
     policy_params: tuple[str, ...] = ()
     plot: bool = True
 
@@ -544,8 +545,7 @@ def fly_condition(args: GraphEvalArgs, cond: str, name: str, on: dict[str, bool]
 # ----------------------------------------------------------------------------------------- run
 def evaluate_graph(args: GraphEvalArgs) -> dict[str, dict]:
     """Fly every condition's landings through the node graph; write evaluate's files; return the summaries."""
-    if args.pilot not in PILOT_NAMES:
-        raise ValueError(f'unknown pilot {args.pilot!r}; choose from {", ".join(PILOT_NAMES)}')
+    check_settings(args)                     # SettingsError (a ValueError): one line naming the --flag
     for cond in args.conditions:
         if cond not in CONDITIONS:
             raise ValueError(f'unknown condition {cond!r}; the graph flies {", ".join(CONDITIONS)}')
@@ -586,9 +586,10 @@ def _raise_interrupt(signum, frame) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Console entry point: fly, print the table."""
     logging.basicConfig(level=logging.INFO, format='%(asctime)s %(levelname)s %(name)s: %(message)s')
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(prog='evaluate_graph', description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     add_dataclass_args(parser, GraphEvalArgs, HELP)
-    args = dataclass_from_args(GraphEvalArgs, parser.parse_args(argv))
+    args, _ = parse_dataclass_args(parser, GraphEvalArgs, argv)   # a bad value: one error line, exit 2
     signal.signal(signal.SIGINT, signal.default_int_handler)    # even when started with SIGINT ignored (a `&` job)
     signal.signal(signal.SIGTERM, _raise_interrupt)
     t0 = time.monotonic()

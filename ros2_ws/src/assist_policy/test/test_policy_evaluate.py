@@ -85,3 +85,21 @@ def test_summary_statistics():
     assert s['landed_on_goal'] == pytest.approx(1 / 3)
     assert s['misaimed'] == pytest.approx(2 / 3)           # rows 0 and 1 set off for pads 1 and 3
     assert s['misaimed_success'] == pytest.approx(1 / 2)   # row 0 still landed on its goal
+
+
+@pytest.mark.parametrize('flags', [['--landings', '0'], ['--landings', '-1'], ['--betas'], ['--seed', '-1'],
+                                   ['--max-episode-s', '0'], ['--max-episode-s', 'nan'], ['--conditions'],
+                                   ['--alpha', '2']])
+def test_bad_values_exit_2_and_never_replace_results(flags, tmp_path, capsys):
+    out = tmp_path / 'ev'
+    out.mkdir()
+    (out / 'landings.csv').write_text('condition,beta,seed\nlatent,0.5,2024\n')
+    with pytest.raises(SystemExit) as exc:
+        main(['--out', str(out), *flags])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) >= 1 and err[-1].startswith('evaluate: error:') and 'Traceback' not in '\n'.join(err)
+    assert (out / 'landings.csv').read_text() == 'condition,beta,seed\nlatent,0.5,2024\n'    # untouched
+    assert sorted(p.name for p in out.iterdir()) == ['landings.csv']
+    with pytest.raises(ValueError):                      # the library call refuses them too
+        evaluate(EvalArgs(out=str(out), landings=0))
