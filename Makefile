@@ -6,7 +6,7 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
-PKGS := assist_sim assist_perception assist_policy assist_bridge assist_station
+PKGS := assist_common assist_sim assist_perception assist_policy assist_bridge assist_station
 PKG_INPUTS := $(foreach p,$(PKGS),ros2_ws/src/$(p)/setup.py ros2_ws/src/$(p)/setup.cfg ros2_ws/src/$(p)/package.xml)
 # Nodes in tests run on a private DDS domain so they never meet anyone else's graph.
 export ROS_DOMAIN_ID ?= 42

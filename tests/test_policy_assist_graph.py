@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from std_msgs.msg import String
 
-from assist_sim.ros_common import LANDING_QOS
+from assist_common.ros_common import LANDING_QOS
 
 pytestmark = pytest.mark.graph
 

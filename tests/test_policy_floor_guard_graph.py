@@ -24,7 +24,7 @@ from rcl_interfaces.srv import SetParameters
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float32MultiArray
 
-from assist_sim.ros_common import RELIABLE_QOS, SENSOR_QOS
+from assist_common.ros_common import RELIABLE_QOS, SENSOR_QOS
 
 pytestmark = pytest.mark.graph
 

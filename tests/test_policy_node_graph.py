@@ -11,7 +11,7 @@ from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry
 from std_msgs.msg import Float32MultiArray
 
-from assist_sim.ros_common import RELIABLE_QOS, SENSOR_QOS
+from assist_common.ros_common import RELIABLE_QOS, SENSOR_QOS
 
 pytestmark = pytest.mark.graph
 

@@ -1,4 +1,4 @@
-"""Fault injection, the shared crash-safe writer (assist_sim.atomic): failures at every point of a write
+"""Fault injection, the shared crash-safe writer (assist_common.atomic): failures at every point of a write
 leave the old content or the new, never a mix; interrupted writers' temporaries are cleaned up;
 resumed logs are truncated to what the checkpoint counted.
 """
@@ -8,9 +8,9 @@ import os
 
 import pytest
 
-from assist_sim import atomic
-from assist_sim.atomic import (atomic_dir, atomic_path, committed_dir, remove_stale_temporaries, truncate_csv,
-                               write_text_atomic)
+from assist_common import atomic
+from assist_common.atomic import (atomic_dir, atomic_path, committed_dir, remove_stale_temporaries, truncate_csv,
+                                  write_text_atomic)
 
 
 def test_failed_write_keeps_the_old_file_and_leaves_no_temporary(tmp_path):

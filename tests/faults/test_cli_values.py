@@ -26,7 +26,7 @@ from hypothesis import strategies as st
 
 from assist_perception import dataset, evaluate
 from assist_perception import train as ctrain
-from assist_perception.cli import RULE_KEY, SettingsError, flag
+from assist_common.settings import RULE_KEY, SettingsError, flag
 from assist_perception.model import load_model
 from assist_policy import train as ptrain
 

@@ -22,7 +22,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from assist_bridge.bridge_core import BridgeConfig, MavlinkBridge
-from assist_sim.mavlink_io import mavlink
+from assist_common.mavlink_io import mavlink
 from assist_sim.testing import SilentAutopilot, free_udp_port
 
 SETTINGS = settings(max_examples=150, deadline=None,
@@ -259,7 +259,7 @@ def test_bridge_node_under_fuzz(ros, start_node, wait):
     from geometry_msgs.msg import TwistStamped
     from diagnostic_msgs.msg import DiagnosticArray
 
-    from assist_sim.ros_common import RELIABLE_QOS, fill_twist
+    from assist_common.ros_common import RELIABLE_QOS, fill_twist
 
     port = free_udp_port()
     bridge = start_node('mavlink_bridge_node', {'connection': f'udpin:127.0.0.1:{port}'})

@@ -23,7 +23,7 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import Float32MultiArray
 
 from assist_policy.policy_node import PolicyNode, ReasonThrottle
-from assist_sim.ros_common import RELIABLE_QOS, SENSOR_QOS
+from assist_common.ros_common import RELIABLE_QOS, SENSOR_QOS
 
 REPO = Path(__file__).resolve().parents[2]
 _spec = importlib.util.spec_from_file_location('policy_core_helpers_faults',

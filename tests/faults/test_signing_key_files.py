@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from assist_sim.mavlink_io import load_signing_key
+from assist_common.mavlink_io import load_signing_key
 from assist_sim.testing import free_udp_port
 
 BIN = Path(sys.executable).parent

@@ -20,7 +20,7 @@ import pytest
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 
-from assist_sim.ros_common import LANDING_QOS
+from assist_common.ros_common import LANDING_QOS
 
 SIM_S = float(os.environ.get('ASSIST_SOAK_SIM_S', '0') or 0)
 SOAK_RSS_GROWTH_MIB = float(os.environ.get('ASSIST_SOAK_RSS_GROWTH_MIB', '64'))

@@ -18,7 +18,7 @@ setup(
         ('share/' + PACKAGE, ['package.xml']),
         ('share/' + PACKAGE + '/config', glob('config/*.yaml')),
         ('share/' + PACKAGE + '/launch', glob('launch/*.launch.py')),
-        # shipped CM-VAE weights + card (found by assist_sim.shipped)
+        # shipped CM-VAE weights + card (found by assist_common.shipped)
         ('share/' + PACKAGE + '/models', sorted(glob(os.path.join(MODELS, 'cmvae*')))),
     ],
     package_data={PACKAGE: ['data/*']},

@@ -18,7 +18,7 @@ setup(
         ('share/' + PACKAGE, ['package.xml']),
         ('share/' + PACKAGE + '/config', glob('config/*.yaml')),
         ('share/' + PACKAGE + '/launch', glob('launch/*.launch.py')),
-        # shipped TD3 actors + cards (found by assist_sim.shipped)
+        # shipped TD3 actors + cards (found by assist_common.shipped)
         ('share/' + PACKAGE + '/models', sorted(glob(os.path.join(MODELS, 'td3_*_actor.*')))),
     ],
     package_data={PACKAGE: ['data/*']},

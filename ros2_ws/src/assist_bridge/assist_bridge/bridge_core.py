@@ -42,21 +42,14 @@ import numpy as np
 os.environ['MAVLINK20'] = '1'  # MAVLink 2 framing; must be set before mavutil is imported
 from pymavlink import mavutil  # noqa: E402
 
-from assist_sim.mavlink_io import (ThrottledLog, enable_signing, load_signing_key, next_message,  # noqa: E402
-                                   open_connection, parse_endpoint, refresh_signing_timestamp)
+from assist_common.mavlink_io import (COPTER_MODE_NAMES, COPTER_MODES, FORCE_ARM_DISARM_MAGIC,  # noqa: E402
+                                      ThrottledLog, enable_signing, load_signing_key, next_message, open_connection,
+                                      parse_endpoint, refresh_signing_timestamp)
 
-from . import frames  # noqa: E402
+from assist_common import frames  # noqa: E402
 
 _LOG = logging.getLogger(__name__)
 mavlink = mavutil.mavlink
-
-FORCE_DISARM_MAGIC = 21196.0            # ArduPilot's magic_force_arm_disarm_value (GCS_Common.cpp)
-COPTER_MODES: dict[str, int] = {
-    'STABILIZE': 0, 'ACRO': 1, 'ALT_HOLD': 2, 'AUTO': 3, 'GUIDED': 4, 'LOITER': 5, 'RTL': 6,
-    'CIRCLE': 7, 'LAND': 9, 'DRIFT': 11, 'SPORT': 13, 'FLIP': 14, 'AUTOTUNE': 15, 'POSHOLD': 16,
-    'BRAKE': 17, 'THROW': 18, 'AVOID_ADSB': 19, 'GUIDED_NOGPS': 20, 'SMART_RTL': 21,
-}
-MODE_NAMES = {v: k for k, v in COPTER_MODES.items()}
 
 # SET_POSITION_TARGET_LOCAL_NED.type_mask: use vx, vy, vz and yaw; ignore position,
 # acceleration and yaw rate (0x09C7).
@@ -419,7 +412,7 @@ class MavlinkBridge:
                 st.last_heartbeat = now
                 old_mode, was_armed = st.mode, st.armed
                 reported_mode, reported_armed = self._hb_mode, self._hb_armed
-                st.mode = MODE_NAMES.get(int(msg.custom_mode), f'MODE_{msg.custom_mode}')
+                st.mode = COPTER_MODE_NAMES.get(int(msg.custom_mode), f'MODE_{msg.custom_mode}')
                 if old_mode == 'GUIDED' and st.mode != 'GUIDED':
                     self._takeoff_until_alt = None
                 st.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
@@ -769,7 +762,7 @@ class MavlinkBridge:
             return refused
         t0 = self._clock()
         return self._report('force_disarm', self.command_long(mavlink.MAV_CMD_COMPONENT_ARM_DISARM,
-                                                              [0.0, FORCE_DISARM_MAGIC]), t0)
+                                                              [0.0, FORCE_ARM_DISARM_MAGIC]), t0)
 
     def reboot(self) -> tuple[bool, str]:
         """Reboot the autopilot (MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN), only while disarmed.

@@ -20,9 +20,9 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from assist_sim.atomic import CsvLog
-from assist_sim.ros_common import (LANDING_QOS, LATCHED_QOS, Diagnostics, Param, StartupError, declare_parameters,
-                                   exit_process, forward_logging, run_node)
+from assist_common.atomic import CsvLog
+from assist_common.ros_common import (LANDING_QOS, LATCHED_QOS, Diagnostics, Param, StartupError, declare_parameters,
+                                      exit_process, forward_logging, run_node)
 
 from .landing_runner_core import LandingRunnerCore, RunnerConfig, RunnerState
 

@@ -31,8 +31,9 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 from std_srvs.srv import Trigger
 
-from assist_sim.ros_common import (RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError,
-                                   declare_parameters, exit_process, forward_logging, run_node, twist_to_array)
+from assist_common.constants import ACCEPTED_CMD_FRAMES
+from assist_common.ros_common import (RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError, declare_parameters,
+                                      exit_process, forward_logging, run_node, twist_to_array)
 
 from .bridge_core import LIMIT_FIELDS, BridgeConfig, MavlinkBridge, Odometry as CoreOdometry
 
@@ -97,7 +98,6 @@ PARAMS = {
     'odom_frame': Param('odom', 'World frame id of /odom (ENU).'),
     'base_frame': Param('base_link', 'Body frame id of /odom and the accepted /cmd_vel frame (FLU).'),
 }
-ACCEPTED_CMD_FRAMES = ('', 'base_link')
 _SEVERITY_LEVEL = {0: logging.ERROR, 1: logging.ERROR, 2: logging.ERROR, 3: logging.ERROR,
                    4: logging.WARNING, 5: logging.INFO, 6: logging.INFO, 7: logging.DEBUG}
 

@@ -18,8 +18,8 @@ import time
 from geometry_msgs.msg import TwistStamped
 from rclpy.node import Node
 
-from assist_sim.ros_common import (RELIABLE_QOS, Param, StartupError, declare_parameters, fill_twist,
-                                   exit_process, forward_logging, run_node)
+from assist_common.ros_common import (RELIABLE_QOS, Param, StartupError, declare_parameters, fill_twist, exit_process,
+                                      forward_logging, run_node)
 
 from .teleop_core import HELP, KeyDecoder, TeleopConfig, TeleopCore
 

@@ -17,7 +17,8 @@ from pymavlink import mavutil  # noqa: E402
 
 from assist_bridge.bridge_core import BridgeConfig, MavlinkBridge  # noqa: E402
 from assist_bridge.mavlink_bridge_node import PARAMS  # noqa: E402
-from assist_sim.mavlink_vehicle import COPTER_MODES, MavlinkVehicle, MavlinkVehicleConfig  # noqa: E402
+from assist_common.mavlink_io import COPTER_MODES  # noqa: E402
+from assist_sim.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleConfig  # noqa: E402
 from assist_sim.testing import KinematicWorld, VehicleThread as _VehicleThread, free_udp_port  # noqa: E402
 
 mavlink = mavutil.mavlink
@@ -241,7 +242,7 @@ def _key_file(tmp_path, data: bytes, mode=0o600):
 
 
 def test_signing_key_file_formats_and_permissions(tmp_path):
-    from assist_sim.mavlink_io import load_signing_key
+    from assist_common.mavlink_io import load_signing_key
     assert load_signing_key(_key_file(tmp_path, KEY)) == KEY
     assert load_signing_key(_key_file(tmp_path, KEY.hex().encode() + b'\n')) == KEY
     for data, mode, words in ((KEY, 0o644, 'chmod 600'), (KEY, 0o640, 'chmod 600'), (KEY[:31], 0o600, '32 raw bytes'),
@@ -271,7 +272,7 @@ def test_signed_link_flies_and_unsigned_or_wrong_key_frames_are_dropped(make_lin
 
 
 def test_a_forged_frame_cannot_poison_a_signed_stream():
-    from assist_sim.mavlink_io import enable_signing, open_connection
+    from assist_common.mavlink_io import enable_signing, open_connection
     rx = open_connection(f'udpin:127.0.0.1:{free_udp_port()}')
     try:
         enable_signing(rx, KEY)

@@ -31,9 +31,9 @@ from typing import Iterator, NamedTuple, Sequence
 
 import numpy as np
 
-from assist_sim.atomic import atomic_path, remove_stale_temporaries, write_text_atomic
+from assist_common.atomic import atomic_path, remove_stale_temporaries, write_text_atomic
 
-from .cli import SettingsError, check_settings, exit_error, parse_settings, setting
+from assist_common.settings import SettingsError, check_settings, exit_error, parse_settings, setting
 
 DATASET_VERSION = 1
 _LOG = logging.getLogger(__name__)

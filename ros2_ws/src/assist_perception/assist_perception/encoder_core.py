@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 import torch
 
-from assist_sim.shipped import shipped_model_path
+from assist_common.shipped import shipped_model_path
 
 from .images import COLOR_ENCODINGS, DEPTH_ENCODINGS, BadFrame, decode_color, decode_depth  # noqa: F401
 from .model import CMVAE, load_model, preprocess

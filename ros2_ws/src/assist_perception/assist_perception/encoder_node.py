@@ -27,9 +27,9 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Float32MultiArray, MultiArrayDimension
 
-from assist_sim.ros_common import (SENSOR_QOS, STAMP_TOLERANCE_S, Diagnostics, Param, StartupError, declare_parameters,
-                                   executor_param, exit_process, forward_logging, realtime_priority_param,
-                                   run_node, stamp_problem, stamp_to_sec)
+from assist_common.ros_common import (SENSOR_QOS, STAMP_TOLERANCE_S, Diagnostics, Param, StartupError,
+                                      declare_parameters, executor_param, exit_process, forward_logging,
+                                      realtime_priority_param, run_node, stamp_problem, stamp_to_sec)
 
 from .encoder_core import BadFrame, LatentEncoder, LatestOnly, StampPairer, decode_color, decode_depth
 from .level import AttitudeBuffer, level_frame, level_rotation, tilt_deg

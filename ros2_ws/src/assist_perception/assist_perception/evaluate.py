@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .cli import check_settings, exit_error, parse_settings, setting
+from assist_common.settings import check_settings, exit_error, parse_settings, setting
 from .dataset import FrameSet, load_frames, split_by_scene
 from .model import CMVAE, latent_interpolation, load_model, preprocess
 from .noise import NoiseConfig, apply_depth_noise

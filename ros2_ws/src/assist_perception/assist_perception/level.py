@@ -23,7 +23,7 @@ from collections import deque
 import cv2
 import numpy as np
 
-from assist_sim.core.geometry import R_BODY_FROM_OPTICAL, unit_quat_to_matrix, yaw_rotation
+from assist_common.frames import R_BODY_FROM_OPTICAL, unit_quat_to_matrix, yaw_rotation
 
 
 def level_rotation(q_world_from_base) -> np.ndarray:

@@ -18,7 +18,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from assist_sim.atomic import atomic_path
+from assist_common.atomic import atomic_path
 
 MODEL_FORMAT = 'assist_perception.cmvae'
 MODEL_VERSION = 1

@@ -29,9 +29,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from assist_sim.atomic import atomic_path, remove_stale_temporaries, truncate_csv, write_text_atomic
+from assist_common.atomic import atomic_path, remove_stale_temporaries, truncate_csv, write_text_atomic
 
-from .cli import SettingsError, check_settings, exit_error, flag, parse_settings, setting
+from assist_common.settings import SettingsError, check_settings, exit_error, flag, parse_settings, setting
 from .dataset import FrameSet, load_frames, split_by_scene
 from .model import CMVAE, CMVAEConfig, LossConfig, cmvae_loss, preprocess, save_model
 from .noise import NoiseConfig, apply_depth_noise

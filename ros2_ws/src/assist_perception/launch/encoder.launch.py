@@ -8,7 +8,7 @@ from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 from launch_ros.parameter_descriptions import ParameterValue
 
-from assist_sim.launch_tools import BOOL_CHOICES, shutdown_when_exits
+from assist_common.launch_tools import BOOL_CHOICES, shutdown_when_exits
 
 
 def generate_launch_description():

@@ -5,8 +5,8 @@ from pathlib import Path
 
 import pytest
 
+from assist_common.settings import check_settings, load_yaml_settings, parse_settings
 from assist_perception import dataset, evaluate, train
-from assist_perception.cli import check_settings, load_yaml_settings, parse_settings
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config'
 

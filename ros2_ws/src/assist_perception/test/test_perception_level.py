@@ -9,7 +9,7 @@ from assist_perception.dataset import pad_label
 from assist_perception.encoder_core import LatentEncoder
 from assist_perception.level import AttitudeBuffer, level_frame, level_rotation, tilt_deg
 from assist_sim.core.config import WorldConfig
-from assist_sim.core.geometry import unit_quat_to_matrix as quaternion_matrix
+from assist_common.frames import unit_quat_to_matrix as quaternion_matrix
 from assist_sim.core.world import LandingWorld
 
 

@@ -6,7 +6,7 @@ import torch
 
 from assist_perception.dataset import DatasetConfig, load_frames, make_dataset
 from assist_perception.model import load_model
-from assist_perception.cli import SettingsError
+from assist_common.settings import SettingsError
 from assist_perception.train import TrainConfig, train
 
 

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from assist_sim.atomic import atomic_path
+from assist_common.atomic import atomic_path
 
 from .observation import IMAGE_SHAPE, MAX_FEATURE_LAG_S, MAX_FEATURE_LAGS, Condition, vector_dim
 

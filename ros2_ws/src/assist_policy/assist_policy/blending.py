@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-DEFAULT_THRESHOLD = 0.25  # m/s; paper, "TD3 implementation": small assistant actions are ignored
+from assist_common.constants import BLEND_THRESHOLD_MPS as DEFAULT_THRESHOLD  # m/s; the paper's threshold
 
 
 MAX_SPEED_MPS = 1.5      # policy_node max_speed: horizontal speed limit of the published /cmd_vel

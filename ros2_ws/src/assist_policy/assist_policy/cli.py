@@ -1,6 +1,6 @@
 """Build an argparse parser from a dataclass (documented fields -> --flags) and back, with checked values.
 
-The value rules are the project's one settings mechanism (``assist_perception.cli``): a field
+The value rules are the project's one settings mechanism (``assist_common.settings``): a field
 declared with ``setting(default, ge=..., choices=...)`` carries its rule, ``check_settings`` checks
 types (an int is an int, a float is finite, ...), rules and the class's ``check_relations()``.
 ``parse_dataclass_args`` parses, checks and exits with status 2 and one ``error:`` line (argparse's
@@ -14,7 +14,7 @@ import math
 import typing
 from typing import Any
 
-from assist_perception.cli import Rule, SettingsError, check_settings, exit_error, flag, setting  # noqa: F401
+from assist_common.settings import Rule, SettingsError, check_settings, exit_error, flag, setting  # noqa: F401
 
 _UNSET = object()     # marks a flag the command line did not give
 

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
-from assist_sim.atomic import atomic_path
+from assist_common.atomic import atomic_path
 
 from .evaluate import mean_se, read_landings
 

@@ -37,7 +37,7 @@ import numpy as np
 from gymnasium import spaces
 
 from assist_sim.core.config import WorldConfig
-from assist_sim.core.geometry import quat_to_matrix
+from assist_common.frames import quat_to_matrix
 from assist_sim.core.world import LandingWorld
 from assist_sim.pilot import PilotConfig, SimulatedPilot
 from assist_sim.pilots import make_pilot

@@ -59,7 +59,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from assist_sim.atomic import CsvLog, atomic_path, truncate_csv, write_text_atomic
+from assist_common.atomic import CsvLog, atomic_path, truncate_csv, write_text_atomic
 from assist_sim.pilots import PILOT_NAMES
 
 from .bags.bagio import BagError

@@ -53,8 +53,9 @@ from typing import Any, Self
 import numpy as np
 import rclpy
 import rclpy.signals
+from assist_common.constants import BLEND_THRESHOLD_MPS
+from assist_common.ros_common import LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, stamp_to_sec
 from assist_sim.pilots import PILOT_NAMES
-from assist_sim.ros_common import LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, stamp_to_sec
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, TwistStamped
 from rcl_interfaces.srv import SetParameters
@@ -82,7 +83,6 @@ log = logging.getLogger(__name__)
 
 BIN = Path(sys.executable).parent
 CONTROL_HZ = 20.0                       # the world's control rate: the policy's and the pilot's step
-BLEND_THRESHOLD = 0.25
 # policy_node diagnostics counters -> evaluate's fraction columns
 POLICY_COUNTERS = {'guard_fraction': 'floor_guard_engaged', 'wall_fraction': 'wall_guard_engaged',
                    'override_fraction': 'pilot_override_engaged', 'recall_fraction': 'pad_recall_engaged',
@@ -403,7 +403,7 @@ def node_params(args: GraphEvalArgs, cond: str, plans: list[LandingPlan], on: di
                      'episode_seeds': [p.scene_seed for p in plans], 'episode_timeout_s': float(args.max_episode_s),
                      'camera_rate_hz': 20.0},
         'sim_pilot_node': {'use_sim_time': True, 'alpha': float(args.alpha), 'pilot': args.pilot,
-                           'blend_threshold': BLEND_THRESHOLD, 'episode_seeds': [p.pilot_seed for p in plans],
+                           'blend_threshold': BLEND_THRESHOLD_MPS, 'episode_seeds': [p.pilot_seed for p in plans],
                            'episode_betas': [float(p.beta) for p in plans],
                            'episode_pilots': [p.pilot_family for p in plans]},
     }
@@ -450,7 +450,7 @@ def landing_row(listener: Listener, data: dict, seed: int, plan: LandingPlan, na
     if assisted and t0 is not None:
         t1 = t0 + duration
         in_window = [n for t, n in agent if t0 < t <= t1 + 1e-6]
-        active = sum(n > BLEND_THRESHOLD for n in in_window) / steps
+        active = sum(n > BLEND_THRESHOLD_MPS for n in in_window) / steps
         coverage = len(in_window) / steps
         for col, key in POLICY_COUNTERS.items():
             a, b = listener.counter_at(key, t0), listener.counter_at(key, t1)

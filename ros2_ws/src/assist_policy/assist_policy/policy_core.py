@@ -28,8 +28,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from assist_sim.core.geometry import quat_to_matrix
-from assist_sim.shipped import shipped_model_path
+from assist_common.frames import quat_to_matrix
+from assist_common.shipped import shipped_model_path
 
 from .actions import scale_action
 from .assistant import Assistant, AssistantConfig, DepthFrame, StepContext

@@ -39,10 +39,9 @@ from std_msgs.msg import Float32MultiArray
 from std_srvs.srv import Trigger
 
 from assist_perception.images import decode_color, decode_depth
-from assist_sim.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, STAMP_TOLERANCE_S, Diagnostics, Param,
-                                   StartupError, stamp_problem,
-                                   declare_parameters, executor_param, exit_process, fill_twist,
-                                   realtime_priority_param, run_node, twist_to_array)
+from assist_common.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, STAMP_TOLERANCE_S, Diagnostics, Param,
+                                      StartupError, stamp_problem, declare_parameters, executor_param, exit_process,
+                                      fill_twist, realtime_priority_param, run_node, twist_to_array)
 
 from . import settings
 from .flight import REASONS as FLIGHT_REASONS

@@ -82,7 +82,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from assist_sim.core.geometry import R_BODY_FROM_OPTICAL, quat_to_matrix, yaw_rotation
+from assist_common.frames import R_BODY_FROM_OPTICAL, heading, quat_to_matrix, rotate_xy
 
 from .safety import FloorGuard, SafetyConfig
 from .scripted import ScriptedConfig, ScriptedOracle
@@ -431,14 +431,3 @@ def depth_points(depth: np.ndarray, position: np.ndarray, quaternion: np.ndarray
 def _thinnest_spread(xy: np.ndarray) -> float:
     """Standard deviation of points `xy` (Nx2) across their narrowest direction (m)."""
     return float(math.sqrt(max(np.linalg.eigvalsh(np.cov(xy.T))[0], 0.0))) if len(xy) > 2 else 0.0
-
-
-def rotate_xy(xy: np.ndarray, yaw: float) -> np.ndarray:
-    """Horizontal vector `xy` rotated by `yaw` (rad): base_link -> odom for the vehicle's heading, -yaw back."""
-    return yaw_rotation(yaw)[:2, :2] @ np.asarray(xy, dtype=float)[:2]
-
-
-def heading(q: np.ndarray) -> float:
-    """Heading (rad) of quaternion (x, y, z, w)."""
-    x, y, z, w = (float(v) for v in q)
-    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))

@@ -19,7 +19,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from assist_sim.atomic import atomic_path
+from assist_common.atomic import atomic_path
 
 from .actor import (MAX_ACTION_SPEED, META_DEFAULTS, Actor, ImageFeatures, _mlp, _Trunk, load_actor,  # noqa: F401
                     save_actor, validate_actor_meta)

@@ -14,7 +14,7 @@ Run directory runs/<name>/: config.json, metrics.csv (one row per training landi
 replay.npz: the full training state, written as one unit: a crash leaves the previous checkpoint or
 the new one, never a mix), actor_last.pt / actor_best.pt: shippable actors (``td3.load_actor``).
 On --resume, metrics.csv and eval.csv rows written after the checkpoint are dropped (they are
-flown again). Every file is written via a temporary file renamed into place (``assist_sim.atomic``).
+flown again). Every file is written via a temporary file renamed into place (``assist_common.atomic``).
 """
 from __future__ import annotations
 
@@ -34,8 +34,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from assist_sim.atomic import (CsvLog, atomic_dir, atomic_path, committed_dir, remove_stale_temporaries, truncate_csv,
-                               write_text_atomic)
+from assist_common.atomic import (CsvLog, atomic_dir, atomic_path, committed_dir, remove_stale_temporaries,
+                                  truncate_csv, write_text_atomic)
 from assist_sim.pilots import HELDOUT_FAMILIES, TRAIN_FAMILIES
 
 from .cli import (SettingsError, add_dataclass_args, check_settings, exit_error, flag, parse_dataclass_args,

@@ -33,9 +33,9 @@ import math
 
 import numpy as np
 
-from assist_sim.core.geometry import yaw_rotation
+from assist_common.frames import heading, yaw_rotation
 
-from .recall import cells_within, depth_points, heading, subsample
+from .recall import cells_within, depth_points, subsample
 from .safety import GuardResult, SafetyConfig
 
 WALL_IMAGE_PX = 48          # frames larger than this on their long side are subsampled (walls span many pixels)

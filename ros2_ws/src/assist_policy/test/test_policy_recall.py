@@ -13,7 +13,7 @@ from assist_policy.evaluate import EvalArgs, evaluate
 from assist_policy.policy_core import PolicyCore, PolicyCoreConfig
 from assist_policy.flight import FlightConfig
 from assist_policy.recall import PadMap, PadRecall, RecallConfig
-from assist_sim.core.geometry import R_BODY_FROM_OPTICAL, quat_to_matrix
+from assist_common.frames import R_BODY_FROM_OPTICAL, quat_to_matrix
 from assist_sim.core.scene import PadSpec, SceneSpec
 from assist_sim.core.world import LandingWorld
 

@@ -35,20 +35,15 @@ import numpy as np
 os.environ['MAVLINK20'] = '1'  # MAVLink 2 framing; must be set before mavutil is imported
 from pymavlink import mavutil  # noqa: E402
 
-from .core.world import quat_to_matrix, yaw_rotation  # noqa: E402
-from .mavlink_io import (enable_signing, load_signing_key, next_message, open_connection,  # noqa: E402
-                         refresh_signing_timestamp)
+from assist_common.frames import (attitude_enu_flu_to_ned_frd, enu_to_ned, flu_to_frd, ned_to_enu,  # noqa: E402
+                                  quat_to_matrix, yaw_rotation)
+from assist_common.mavlink_io import (COPTER_MODE_NAMES, COPTER_MODES, FORCE_ARM_DISARM_MAGIC,  # noqa: E402
+                                      enable_signing, load_signing_key, next_message, open_connection,
+                                      refresh_signing_timestamp)
 
 _LOG = logging.getLogger(__name__)
 mavlink = mavutil.mavlink
 
-# ArduCopter custom_mode numbers (ArduCopter/mode.h).
-COPTER_MODES: dict[str, int] = {
-    'STABILIZE': 0, 'ACRO': 1, 'ALT_HOLD': 2, 'AUTO': 3, 'GUIDED': 4, 'LOITER': 5, 'RTL': 6,
-    'CIRCLE': 7, 'LAND': 9, 'DRIFT': 11, 'SPORT': 13, 'POSHOLD': 16, 'BRAKE': 17,
-    'SMART_RTL': 21,
-}
-MODE_NAMES: dict[int, str] = {v: k for k, v in COPTER_MODES.items()}
 # Modes this stand-in flies; the others exist on ArduCopter but are refused here.
 SUPPORTED_MODES = frozenset({'STABILIZE', 'ALT_HOLD', 'GUIDED', 'LOITER', 'LAND', 'POSHOLD', 'BRAKE'})
 ARMABLE_MODES = frozenset({'STABILIZE', 'ALT_HOLD', 'GUIDED', 'LOITER', 'POSHOLD'})
@@ -65,7 +60,6 @@ YAW_RATE_IGNORE = 0b1000_0000_0000
 VELOCITY_FRAMES = frozenset({mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_OFFSET_NED,
                              mavlink.MAV_FRAME_BODY_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED})
 BODY_FRAMES = frozenset({mavlink.MAV_FRAME_BODY_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED})
-FORCE_ARM_MAGIC = 21196.0
 
 # Telemetry messages this vehicle can stream (id -> name) and ArduCopter's stream groups.
 TELEMETRY = {
@@ -85,8 +79,6 @@ STREAM_GROUPS = {
 }
 STREAM_GROUPS[mavlink.MAV_DATA_STREAM_ALL] = tuple(m for g in list(STREAM_GROUPS.values()) for m in g)
 
-_ENU_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
-_FLU_FRD = np.diag([1.0, -1.0, -1.0])
 EARTH_RADIUS_M = 6378137.0
 
 
@@ -358,7 +350,7 @@ class MavlinkVehicle:
         return mavlink.MAV_RESULT_ACCEPTED
 
     def _arm_disarm(self, p1: float, p2: float) -> int:
-        forced = p2 == FORCE_ARM_MAGIC
+        forced = p2 == FORCE_ARM_DISARM_MAGIC
         if p1 == 1.0:
             if self._armed:
                 return mavlink.MAV_RESULT_ACCEPTED
@@ -397,7 +389,7 @@ class MavlinkVehicle:
         _LOG.info('disarmed (%s)', why)
 
     def _set_mode_number(self, number: int) -> int:
-        name = MODE_NAMES.get(number)
+        name = COPTER_MODE_NAMES.get(number)
         if name is None:
             self._statustext(mavlink.MAV_SEVERITY_WARNING, f'Mode change to {number} failed: unknown mode')
             return mavlink.MAV_RESULT_FAILED
@@ -537,7 +529,7 @@ class MavlinkVehicle:
                 _LOG.info('GUIDED velocity target timed out after %.1f s', self.cfg.guid_timeout_s)
                 return np.zeros(3)
             self._update_yaw(dt)
-            return _ENU_NED @ self._target.vel_ned
+            return ned_to_enu(self._target.vel_ned)
         if self._landed():
             return np.zeros(3)
         if self._submode == 'idle':
@@ -621,23 +613,20 @@ class MavlinkVehicle:
             mav.sys_status_send(sensors, sensors, health, 200, int(self.cfg.battery_voltage_v * 1000),
                                 -1, -1, 0, 0, 0, 0, 0, 0)
         elif mid == mavlink.MAVLINK_MSG_ID_ATTITUDE:
-            r = _ENU_NED @ quat_to_matrix(st.quaternion) @ _FLU_FRD
-            roll = math.atan2(r[2, 1], r[2, 2])
-            pitch = -math.asin(max(-1.0, min(1.0, r[2, 0])))
-            yaw = math.atan2(r[1, 0], r[0, 0])
-            rates = _FLU_FRD @ np.asarray(st.angular_velocity, dtype=float)
+            roll, pitch, yaw = attitude_enu_flu_to_ned_frd(quat_to_matrix(st.quaternion))
+            rates = flu_to_frd(st.angular_velocity)
             mav.attitude_send(tb, roll, pitch, yaw, *(float(x) for x in rates))
         elif mid == mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
             if not self.ekf_ready:
                 return   # ArduPilot sends no local position before the EKF has an origin
-            p = _ENU_NED @ np.asarray(st.position, dtype=float)
-            v = _ENU_NED @ np.asarray(st.velocity, dtype=float)
+            p = enu_to_ned(st.position)
+            v = enu_to_ned(st.velocity)
             mav.local_position_ned_send(tb, *(float(x) for x in p), *(float(x) for x in v))
         elif mid == mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT:
             if not self.ekf_ready:
                 return
-            p = _ENU_NED @ np.asarray(st.position, dtype=float)
-            v = _ENU_NED @ np.asarray(st.velocity, dtype=float)
+            p = enu_to_ned(st.position)
+            v = enu_to_ned(st.velocity)
             lat = self.cfg.home_lat_deg + math.degrees(p[0] / EARTH_RADIUS_M)
             lon = self.cfg.home_lon_deg + math.degrees(
                 p[1] / (EARTH_RADIUS_M * math.cos(math.radians(self.cfg.home_lat_deg))))

@@ -20,14 +20,17 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
+from assist_common.constants import ACCEPTED_CMD_FRAMES
+from assist_common.frames import quat_to_matrix
+from assist_common.ros_common import (LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param,
+                                      StartupError, declare_parameters, executor_param, exit_process, forward_logging,
+                                      run_node, sec_to_stamp, twist_to_array)
+
 from .core.config import WorldConfig
 from .core.runner import RunnerConfig, SimRunner, StepOutput
 from .core.scene_markers import scene_markers
-from .core.world import LandingWorld, quat_to_matrix
+from .core.world import LandingWorld
 from .scene_msgs import scene_marker_array
-from .ros_common import (LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param,
-                         StartupError, declare_parameters, executor_param, exit_process, forward_logging,
-                         run_node, sec_to_stamp, twist_to_array)
 
 PARAMS = {
     'seed': Param(0, 'Seed of the scene and episode sequence; same seed, same episodes.', min=0, max=2**31 - 1),
@@ -76,7 +79,6 @@ PARAMS = {
 RUNNER_PARAMS = ('camera_rate_hz', 'auto_reset', 'reset_delay_s', 'cmd_timeout_s', 'max_cmd_speed_mps')
 # /sim/reset requests queued before the middleware drops more (each reset takes ~10-50 ms)
 RESET_QUEUE_DEPTH = 100
-ACCEPTED_CMD_FRAMES = ('', 'base_link')
 
 
 class SimNode(Node):

@@ -24,10 +24,12 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from visualization_msgs.msg import MarkerArray
 
+from assist_common.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError,
+                                      declare_parameters, exit_process, fill_twist, forward_logging, run_node,
+                                      twist_to_array)
+
 from .pilot import PilotConfig
 from .pilots import PILOT_NAMES, make_pilot
-from .ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError,
-                         declare_parameters, exit_process, fill_twist, forward_logging, run_node, twist_to_array)
 
 PARAMS = {
     'alpha': Param(0.5, 'Conformance to the assistant in [0, 1] (paper alpha; settable at run time).',

@@ -21,7 +21,8 @@ from typing import Sequence
 
 import numpy as np
 
-from .mavlink_io import mavlink, mavutil
+from assist_common.mavlink_io import mavlink, mavutil
+
 from .mavlink_vehicle import MavlinkVehicle, MavlinkVehicleConfig
 
 SO_TIMESTAMPNS = getattr(socket, 'SO_TIMESTAMPNS', 35)   # Linux value; Python < 3.12 has no constant

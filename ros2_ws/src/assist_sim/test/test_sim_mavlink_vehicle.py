@@ -9,7 +9,8 @@ import pytest
 os.environ['MAVLINK20'] = '1'
 from pymavlink import mavutil  # noqa: E402
 
-from assist_sim.mavlink_vehicle import COPTER_MODES, MavlinkVehicle, MavlinkVehicleConfig  # noqa: E402
+from assist_common.mavlink_io import COPTER_MODES  # noqa: E402
+from assist_sim.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleConfig  # noqa: E402
 from assist_sim.testing import KinematicWorld, free_udp_port  # noqa: E402
 
 mavlink = mavutil.mavlink

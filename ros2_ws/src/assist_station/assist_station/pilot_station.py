@@ -21,9 +21,10 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import String
 from visualization_msgs.msg import Marker, MarkerArray
 
-from assist_policy.blending import DEFAULT_THRESHOLD
-from assist_sim.ros_common import (LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param,
-                                   StartupError, declare_parameters, exit_process, fill_twist, run_node, twist_to_array)
+from assist_common.constants import BLEND_THRESHOLD_MPS
+from assist_common.ros_common import (LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param,
+                                      StartupError, declare_parameters, exit_process, fill_twist, run_node,
+                                      twist_to_array)
 
 from .server import ServerConfig, StationServer
 from .access import allowed_hosts
@@ -54,7 +55,7 @@ PARAMS = {
                               min=8, max=1280),
     'agent_timeout_s': Param(0.5, '/assist/agent_cmd older than this: the page shows "unassisted".',
                              min=0.0, max=10.0, min_exclusive=True),
-    'assist_threshold': Param(DEFAULT_THRESHOLD, 'Agent actions above this norm (m/s) show as "assistant '
+    'assist_threshold': Param(BLEND_THRESHOLD_MPS, 'Agent actions above this norm (m/s) show as "assistant '
                               'acting" (the blending threshold).', min=0.0, max=5.0),
     'max_message_bytes': Param(1024, 'Page messages larger than this are rejected (bytes).', min=64, max=65536),
     'stall_timeout_s': Param(5.0, 'A page that stops reading for this long is disconnected (s).',

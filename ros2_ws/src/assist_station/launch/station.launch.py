@@ -18,7 +18,7 @@ from launch.conditions import IfCondition, UnlessCondition
 from launch.substitutions import AndSubstitution, EqualsSubstitution, LaunchConfiguration
 from launch_ros.actions import Node
 
-from assist_sim.launch_tools import BOOL_CHOICES, shutdown_when_exits
+from assist_common.launch_tools import BOOL_CHOICES, shutdown_when_exits
 
 
 def generate_launch_description():

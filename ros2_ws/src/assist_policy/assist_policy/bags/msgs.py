@@ -6,6 +6,8 @@ from typing import Any
 
 import numpy as np
 
+from assist_common.frames import quat_to_matrix
+
 from .bagio import typestore
 
 
@@ -56,18 +58,10 @@ def point(msg: Any) -> np.ndarray:
     return np.array([msg.point.x, msg.point.y, msg.point.z], dtype=float)
 
 
-def quat_matrix(q) -> np.ndarray:
-    """Rotation matrix of a quaternion (x, y, z, w)."""
-    x, y, z, w = (float(v) for v in q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
 def odometry(t_ns: int, position, quaternion, velocity_world, odom_frame: str = 'odom',
              base_frame: str = 'base_link') -> Any:
     """nav_msgs/Odometry as sim_node publishes it (twist in base_link, REP-105)."""
-    rot = quat_matrix(quaternion)
+    rot = quat_to_matrix(quaternion)
     v_body = rot.T @ np.asarray(velocity_world, dtype=float)
     Pose, Quat = T('geometry_msgs/msg/Pose'), T('geometry_msgs/msg/Quaternion')
     pose = Pose(position=T('geometry_msgs/msg/Point')(x=float(position[0]), y=float(position[1]),

@@ -9,8 +9,9 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from assist_common.frames import R_BODY_FROM_OPTICAL, quat_to_matrix, yaw_rotation
+
 from .config import WorldConfig
-from .geometry import R_BODY_FROM_OPTICAL, quat_to_matrix, yaw_rotation
 from .quiet import quiet_output
 from .render import SceneRenderer
 from .scene import PadSpec, SceneSpec, generate_scene
@@ -597,4 +598,4 @@ class LandingWorld:
 
 
 __all__ = ['LandingWorld', 'VehicleState', 'CameraFrame', 'LandingResult', 'PadSpec', 'SceneSpec',
-           'camera_intrinsics', 'linearize_depth', 'turbulence_sigma', 'quat_to_matrix', 'yaw_rotation', 'R_BODY_FROM_OPTICAL']
+           'camera_intrinsics', 'linearize_depth', 'turbulence_sigma']

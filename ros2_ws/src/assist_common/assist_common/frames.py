@@ -1,10 +1,15 @@
-"""Frame conventions between ROS (ENU world, FLU body) and ArduPilot MAVLink (NED world, FRD body).
+"""Frames and rotations shared by every package (numpy and scipy only: no rclpy, no pybullet).
 
 ROS (REP-103/105): world `odom` is East-North-Up, body `base_link` is Forward-Left-Up, yaw is
 measured counter-clockwise from East. ArduPilot: LOCAL_NED is North-East-Down, body is
-Forward-Right-Down, yaw (heading) is measured clockwise from North. Pure numpy, no rclpy.
+Forward-Right-Down, yaw (heading) is measured clockwise from North. The downward camera's optical
+frame (ARCHITECTURE.md): optical x = body -y, optical y = body -x, optical z = body -z.
 
-Every function takes and returns plain numpy arrays (float64); vectors are shape (3,).
+Quaternions are (x, y, z, w) as in ROS messages unless a name says otherwise. Every function takes
+and returns plain numpy arrays (float64); vectors are shape (3,). `quat_to_matrix` and
+`yaw_rotation` are closed forms (they run per frame in the renderer, the pad map and the policy, and
+the renderer's pixels depend on their exact values); Euler angles to a matrix and a matrix to a
+quaternion go through scipy's Rotation.
 """
 from __future__ import annotations
 
@@ -12,8 +17,10 @@ import math
 from typing import Sequence
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-from assist_sim.core.geometry import unit_quat_to_matrix as quaternion_to_matrix  # noqa: F401 (re-exported)
+# Optical frame axes expressed in base_link (FLU): x_opt = -y_body, y_opt = -x_body, z_opt = -z_body.
+R_BODY_FROM_OPTICAL = np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 
 # Axis permutation world ENU <-> NED (its own inverse): x_ned = y_enu, y_ned = x_enu, z_ned = -z_enu.
 _ENU_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
@@ -64,20 +71,51 @@ def yaw_ned_to_enu(yaw_ned: float) -> float:
     return wrap_pi(math.pi / 2.0 - float(yaw_ned))
 
 
-def rot_z(yaw: float) -> np.ndarray:
-    """Right-handed rotation matrix about +z by `yaw` radians."""
+def yaw_rotation(yaw: float) -> np.ndarray:
+    """Right-handed 3x3 rotation matrix about +z by `yaw` radians."""
     c, s = math.cos(yaw), math.sin(yaw)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def quat_to_matrix(q: Sequence[float]) -> np.ndarray:
+    """Unit quaternion (x, y, z, w) -> 3x3 rotation matrix (not normalised: see unit_quat_to_matrix)."""
+    x, y, z, w = (float(v) for v in q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def unit_quat_to_matrix(q_xyzw: Sequence[float]) -> np.ndarray:
+    """Quaternion (x, y, z, w) from outside (a message), normalised -> rotation matrix.
+
+    ValueError when it is not finite or zero."""
+    x, y, z, w = (float(c) for c in q_xyzw)
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    if n == 0.0 or not math.isfinite(n):
+        raise ValueError('quaternion must be finite and non-zero')
+    return quat_to_matrix((x / n, y / n, z / n, w / n))
+
+
+def heading(q: Sequence[float]) -> float:
+    """Heading (rad, CCW about +z) of quaternion (x, y, z, w)."""
+    x, y, z, w = (float(v) for v in q)
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+def rotate_xy(xy: Sequence[float], yaw: float) -> np.ndarray:
+    """Horizontal vector `xy` rotated by `yaw` (rad): base_link -> odom for the vehicle's heading, -yaw back."""
+    return yaw_rotation(yaw)[:2, :2] @ np.asarray(xy, dtype=float)[:2]
+
+
 def flu_to_enu(v_flu: Sequence[float], yaw_enu: float) -> np.ndarray:
     """Body FLU vector of a level vehicle with ROS yaw `yaw_enu` -> world ENU."""
-    return rot_z(yaw_enu) @ _vec3(v_flu)
+    return yaw_rotation(yaw_enu) @ _vec3(v_flu)
 
 
 def enu_to_flu(v_enu: Sequence[float], yaw_enu: float) -> np.ndarray:
     """World ENU vector -> body FLU of a level vehicle with ROS yaw `yaw_enu`."""
-    return rot_z(yaw_enu).T @ _vec3(v_enu)
+    return yaw_rotation(yaw_enu).T @ _vec3(v_enu)
 
 
 def frd_to_ned(v_frd: Sequence[float], yaw_ned: float) -> np.ndarray:
@@ -85,12 +123,12 @@ def frd_to_ned(v_frd: Sequence[float], yaw_ned: float) -> np.ndarray:
 
     This is ArduCopter's rotate_body_frame_to_NE for MAV_FRAME_BODY_(OFFSET_)NED velocities.
     """
-    return rot_z(yaw_ned) @ _vec3(v_frd)
+    return yaw_rotation(yaw_ned) @ _vec3(v_frd)
 
 
 def ned_to_frd(v_ned: Sequence[float], yaw_ned: float) -> np.ndarray:
     """World NED vector -> body FRD of a level vehicle with NED heading `yaw_ned`."""
-    return rot_z(yaw_ned).T @ _vec3(v_ned)
+    return yaw_rotation(yaw_ned).T @ _vec3(v_ned)
 
 
 def flu_velocity_to_ned(v_flu: Sequence[float], yaw_enu: float) -> np.ndarray:
@@ -100,11 +138,7 @@ def flu_velocity_to_ned(v_flu: Sequence[float], yaw_enu: float) -> np.ndarray:
 
 def euler_to_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
     """Z-Y-X (yaw, pitch, roll) Euler angles -> rotation matrix world_from_body."""
-    cr, sr = math.cos(roll), math.sin(roll)
-    cp, sp = math.cos(pitch), math.sin(pitch)
-    rx = np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
-    ry = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
-    return rot_z(yaw) @ ry @ rx
+    return Rotation.from_euler('ZYX', [yaw, pitch, roll]).as_matrix()
 
 
 def matrix_to_euler(r: np.ndarray) -> tuple[float, float, float]:
@@ -117,23 +151,8 @@ def matrix_to_euler(r: np.ndarray) -> tuple[float, float, float]:
 
 def matrix_to_quaternion(r: np.ndarray) -> np.ndarray:
     """Rotation matrix -> unit quaternion (x, y, z, w) with w >= 0."""
-    m = np.asarray(r, dtype=float)
-    tr = m[0, 0] + m[1, 1] + m[2, 2]
-    if tr > 0.0:
-        s = math.sqrt(tr + 1.0) * 2.0
-        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2.0
-        q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
-    elif m[1, 1] > m[2, 2]:
-        s = math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2.0
-        q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
-    else:
-        s = math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2.0
-        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
-    qa = np.array(q, dtype=float)
-    qa /= np.linalg.norm(qa)
-    return -qa if qa[3] < 0.0 else qa
+    q = Rotation.from_matrix(np.asarray(r, dtype=float)).as_quat()
+    return -q if q[3] < 0.0 else q
 
 
 def attitude_ned_frd_to_enu_flu(roll: float, pitch: float, yaw: float) -> np.ndarray:

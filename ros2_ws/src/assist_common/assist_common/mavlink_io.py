@@ -36,6 +36,16 @@ _DEV_RE = re.compile(r'^/dev/[A-Za-z0-9._/+-]+$')
 SIGNING_KEY_BYTES = 32
 # MAVLink signing timestamps count 10 us units since 2015-01-01 00:00:00 UTC.
 SIGNING_EPOCH_S = 1420070400
+# ArduCopter custom_mode numbers (ArduCopter/mode.h).
+COPTER_MODES: dict[str, int] = {
+    'STABILIZE': 0, 'ACRO': 1, 'ALT_HOLD': 2, 'AUTO': 3, 'GUIDED': 4, 'LOITER': 5, 'RTL': 6,
+    'CIRCLE': 7, 'LAND': 9, 'DRIFT': 11, 'SPORT': 13, 'FLIP': 14, 'AUTOTUNE': 15, 'POSHOLD': 16,
+    'BRAKE': 17, 'THROW': 18, 'AVOID_ADSB': 19, 'GUIDED_NOGPS': 20, 'SMART_RTL': 21,
+}
+COPTER_MODE_NAMES: dict[int, str] = {v: k for k, v in COPTER_MODES.items()}
+# MAV_CMD_COMPONENT_ARM_DISARM param2 that forces an arm or disarm (ArduPilot's
+# magic_force_arm_disarm_value, GCS_Common.cpp).
+FORCE_ARM_DISARM_MAGIC = 21196.0
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
-from assist_sim.ros_common import forward_logging
+from assist_common.ros_common import forward_logging
 
 
 def test_core_log_records_reach_rosout_under_the_node_logger():

@@ -1,7 +1,7 @@
-"""assist_sim.shipped: $ASSIST_MODELS_DIR, then the ament index's share/<pkg>/models, then the checkout."""
+"""assist_common.shipped: $ASSIST_MODELS_DIR, then the ament index's share/<pkg>/models, then the checkout."""
 from pathlib import Path
 
-from assist_sim.shipped import shipped_model_path
+from assist_common.shipped import shipped_model_path
 
 REPO_MODELS = Path(__file__).resolve().parents[4] / 'models'
 

@@ -17,8 +17,8 @@ from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock as ClockMsg
 from std_msgs.msg import String
 
-from assist_sim.ros_common import (EXECUTORS, EventsExecutorLoop, freeze_startup_heap, make_executor,
-                                   sec_to_stamp, spin_until_stopped)
+from assist_common.ros_common import (EXECUTORS, EventsExecutorLoop, freeze_startup_heap, make_executor, sec_to_stamp,
+                                      spin_until_stopped)
 
 
 def test_executor_kinds_by_name():
@@ -89,7 +89,7 @@ SCRIPT = textwrap.dedent('''
     import gc, sys
     import rclpy
     from rclpy.node import Node
-    import assist_sim.ros_common as rc
+    import assist_common.ros_common as rc
 
     made = []
     real = rc.make_executor
@@ -154,7 +154,7 @@ class _Spinner:
 
 @pytest.mark.parametrize('shutdown', [True, False])
 def test_run_node_treats_a_runtime_error_as_shutdown_only_after_the_context_went_away(monkeypatch, shutdown):
-    import assist_sim.ros_common as rc
+    import assist_common.ros_common as rc
     spinner = _Spinner(shutdown)
     monkeypatch.setattr(rc, 'make_executor', lambda kind, num_threads=2: spinner)
     monkeypatch.setenv('ROS_DOMAIN_ID', str(random.randint(100, 199)))
@@ -171,7 +171,7 @@ def test_run_node_treats_a_runtime_error_as_shutdown_only_after_the_context_went
 CTRL_C_SCRIPT = textwrap.dedent('''
     import sys, threading, time
     from rclpy.node import Node
-    import assist_sim.ros_common as rc
+    import assist_common.ros_common as rc
 
     class N(Node):
         """A timer callback of ~1.5 s of pure-Python work: a Ctrl-C will land while it runs."""
@@ -255,7 +255,7 @@ def test_a_ctrl_c_in_the_wait_returns_only_after_spin_and_teardown_ended():
     The running callback and the teardown end before the context is shut down."""
     import os
     import signal
-    from assist_sim.ros_common import spin_off_main_thread
+    from assist_common.ros_common import spin_off_main_thread
     rclpy.init(domain_id=random.randint(100, 199))
     spinner = _SlowStopSpinner()
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
