@@ -155,7 +155,7 @@ def main(args=None):
     def make() -> LandingRunner:
         holder['node'] = LandingRunner()
         return holder['node']
-    code = run_node(make, args)
+    code = run_node(make, args, params=PARAMS)
     node = holder.get('node')
     exit_process(code if code or node is None else (node.exit_code or 0))
 

@@ -271,7 +271,7 @@ class MavlinkBridgeNode(Node):
 
 def main(args=None):
     """Console entry point."""
-    exit_process(run_node(lambda: MavlinkBridgeNode(), args))
+    exit_process(run_node(lambda: MavlinkBridgeNode(), args, params=PARAMS))
 
 
 if __name__ == '__main__':

@@ -163,7 +163,7 @@ class TeleopKeyboard(Node):
 
 def main(args=None):
     """Console entry point."""
-    exit_process(run_node(lambda: TeleopKeyboard(), args))
+    exit_process(run_node(lambda: TeleopKeyboard(), args, params=PARAMS))
 
 
 if __name__ == '__main__':

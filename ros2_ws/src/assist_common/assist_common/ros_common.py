@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import gc
+import importlib.metadata
 import logging
 import math
 import os
@@ -9,6 +10,7 @@ import signal
 import sys
 import threading
 import time
+import xml.etree.ElementTree as ET
 from collections import Counter
 from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Mapping, Sequence
@@ -587,9 +589,80 @@ def _interrupt(signum, frame) -> None:
     raise KeyboardInterrupt(f'signal {signum}')
 
 
+HELP_FLAGS = ('-h', '--help')
+VERSION_FLAG = '--version'
+
+
+def package_version(package: str) -> str:
+    """Version of an installed package: its Python distribution's, else its package.xml's in the ament index."""
+    try:
+        return importlib.metadata.version(package)
+    except importlib.metadata.PackageNotFoundError:
+        pass
+    try:
+        from ament_index_python.packages import get_package_share_directory  # noqa: PLC0415
+        version = ET.parse(os.path.join(get_package_share_directory(package), 'package.xml')).findtext('version')
+    except (ImportError, LookupError, OSError, ValueError, ET.ParseError):
+        version = None
+    return (version or 'unknown').strip()
+
+
+def _param_type(p: Param) -> str:
+    """ROS type name of a parameter's values (bool, integer, double, string, or an array of one)."""
+    names = {bool: 'bool', int: 'integer', float: 'double', str: 'string'}
+    if p.item_type is not None:
+        return names[p.item_type] + '[]'
+    return names.get(type(p.default), type(p.default).__name__)
+
+
+def parameter_help(params: Mapping[str, Param]) -> str:
+    """One entry per parameter: name, type, default, accepted values, run-time or read-only, description."""
+    lines = []
+    for name, p in params.items():
+        rule = p.rule()
+        facts = [_param_type(p), f'default {p.default!r}'] + ([rule] if rule else [])
+        facts.append('run-time' if p.dynamic else 'read-only')
+        lines.append(f'  {name} ({"; ".join(facts)})')
+        lines.append(f'      {p.description}')
+    return '\n'.join(lines)
+
+
+def node_help(prog: str, summary: str, params: Mapping[str, Param] | None) -> str:
+    """The --help text of node executable `prog`: usage, `summary`, and its parameter table."""
+    text = [f'usage: {prog} [-h] [--version] [--ros-args [-p NAME:=VALUE ...] [--params-file FILE] ...]', '']
+    if summary:
+        text += [summary, '']
+    if params:
+        text += ['parameters (-p NAME:=VALUE; run-time ones also by `ros2 param set`):', parameter_help(params)]
+    else:
+        text += ['parameters: see `ros2 param describe` on the running node']
+    return '\n'.join(text) + '\n'
+
+
+def console_request(factory: Callable[[], Node], args: list[str] | None,
+                    params: Mapping[str, Param] | None) -> str | None:
+    """The text --help or --version asks for (flags before --ros-args only), else None: the node should start."""
+    argv = sys.argv[1:] if args is None else list(args)
+    own = argv[:argv.index('--ros-args')] if '--ros-args' in argv else argv
+    if not any(a in HELP_FLAGS or a == VERSION_FLAG for a in own):
+        return None
+    module = getattr(factory, '__module__', None) or __name__
+    package, prog = module.split('.')[0], module.rsplit('.', 1)[-1]
+    if any(a in HELP_FLAGS for a in own):
+        doc = (getattr(sys.modules.get(module), '__doc__', None) or '').strip()
+        return node_help(prog, doc.splitlines()[0] if doc else '', params)
+    return f'{prog} ({package}) {package_version(package)}\n'
+
+
 def run_node(factory: Callable[[], Node], args: list[str] | None = None,
-             num_threads: int = 1, executor: str | None = None) -> int:
+             num_threads: int = 1, executor: str | None = None,
+             params: Mapping[str, Param] | None = None) -> int:
     """Init rclpy, build the node, spin it, always clean up; returns the process exit code.
+
+    `-h`/`--help` (parameter table `params`: name, type, default, range, run-time or read-only,
+    description) and `--version` (the package's version) before any `--ros-args` are answered on
+    stdout with exit code 0, without starting rclpy or building the node; the program name and
+    package come from the module that defines `factory`.
 
     num_threads 1 (default) spins a SingleThreadedExecutor: nodes keep heavy work on their own
     threads, and rclpy 7.1's MultiThreadedExecutor burns a core on its bookkeeping at ~100
@@ -607,6 +680,10 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
     endpoints in it) is reported as one clear line on stderr and gives exit code 1, no traceback.
     Python `logging` records go to the node's logger (/rosout).
     """
+    answer = console_request(factory, args, params)
+    if answer is not None:
+        sys.stdout.write(answer)
+        return 0
     # rclpy's SIGINT/SIGTERM handler would shut the context down at once, under a running callback;
     # spin_off_main_thread stops the executor first and the context goes down last (below).
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)

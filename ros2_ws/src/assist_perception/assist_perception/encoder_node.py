@@ -272,7 +272,7 @@ class EncoderNode(Node):
 
 def main(args=None):
     """Console entry point `encoder_node`."""
-    exit_process(run_node(lambda: EncoderNode(), args))
+    exit_process(run_node(lambda: EncoderNode(), args, params=PARAMS))
 
 
 if __name__ == '__main__':

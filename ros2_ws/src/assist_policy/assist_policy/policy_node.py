@@ -352,7 +352,7 @@ class PolicyNode(Node):
 
 def main(args=None):
     """Console entry point."""
-    exit_process(run_node(lambda: PolicyNode(), args))
+    exit_process(run_node(lambda: PolicyNode(), args, params=PARAMS))
 
 
 if __name__ == '__main__':

@@ -370,7 +370,7 @@ def main(args=None):
     # behind the GIL-heavy sim thread at real_time_factor > 1 and commands went stale (1.75 m instead
     # of 3.5 m flown in 2 s). The default events executor dispatches from C++ (test_sim_graph's
     # flights at 8x and as fast as possible pass) and costs ~6 % of a core at 1x instead of 17-39 %.
-    exit_process(run_node(SimNode, args, num_threads=2))
+    exit_process(run_node(SimNode, args, num_threads=2, params=PARAMS))
 
 
 if __name__ == '__main__':

@@ -205,7 +205,7 @@ class SimPilotNode(Node):
 
 def main(args=None):
     """Console entry point."""
-    exit_process(run_node(lambda: SimPilotNode(), args))
+    exit_process(run_node(lambda: SimPilotNode(), args, params=PARAMS))
 
 
 if __name__ == '__main__':

@@ -243,7 +243,7 @@ class PilotStation(Node):
 
 def main(args=None):
     """Entry point of `ros2 run assist_station pilot_station`."""
-    exit_process(run_node(PilotStation, args))
+    exit_process(run_node(PilotStation, args, params=PARAMS))
 
 
 if __name__ == '__main__':

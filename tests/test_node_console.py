@@ -1,0 +1,80 @@
+"""Console convention of every node executable: `--help` lists its parameters (type, default, range, run-time or
+read-only, description) and `--version` prints its package's version; both exit 0 without starting the node."""
+from __future__ import annotations
+
+import importlib
+import os
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+# executable -> (package, module holding its PARAMS)
+NODES = {
+    'sim_node': ('assist_sim', 'assist_sim.sim_node'),
+    'sim_pilot_node': ('assist_sim', 'assist_sim.sim_pilot_node'),
+    'encoder_node': ('assist_perception', 'assist_perception.encoder_node'),
+    'policy_node': ('assist_policy', 'assist_policy.policy_node'),
+    'mavlink_bridge_node': ('assist_bridge', 'assist_bridge.mavlink_bridge_node'),
+    'teleop_keyboard': ('assist_bridge', 'assist_bridge.teleop_keyboard'),
+    'pilot_station': ('assist_station', 'assist_station.pilot_station'),
+    'landing_runner': ('assist_bridge', 'assist_bridge.landing_runner'),
+}
+
+
+@pytest.fixture(scope='module')
+def answers():
+    """executable -> (--help process, --version process), all run side by side."""
+    env = dict(os.environ, ROS_DOMAIN_ID='105')
+    procs = {(name, flag): subprocess.Popen([str(BIN / name), flag], env=env, stdin=subprocess.DEVNULL,
+                                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for name in NODES for flag in ('--help', '--version')}
+    out = {}
+    for key, proc in procs.items():
+        stdout, stderr = proc.communicate(timeout=300)
+        out[key] = (proc.returncode, stdout, stderr)
+    return out
+
+
+@pytest.mark.parametrize('name', NODES)
+def test_help_lists_every_parameter(answers, name):
+    package, module = NODES[name]
+    code, stdout, stderr = answers[(name, '--help')]
+    assert code == 0, stderr[-3000:]
+    assert stdout.startswith(f'usage: {name} [-h] [--version] [--ros-args')
+    params = importlib.import_module(module).PARAMS
+    lines = stdout.splitlines()
+    for pname, p in params.items():
+        entry = next((i for i, ln in enumerate(lines) if ln.startswith(f'  {pname} (')), None)
+        assert entry is not None, f'{name} --help does not list {pname}'
+        facts = lines[entry]
+        assert f'default {p.default!r}' in facts
+        assert ('run-time' if p.dynamic else 'read-only') in facts
+        if p.rule():
+            assert p.rule() in facts
+        assert lines[entry + 1].strip() == p.description
+    # the node never started: no ROS log line, nothing on stderr
+    assert stderr == ''
+
+
+@pytest.mark.parametrize('name', NODES)
+def test_version_is_the_package_version(answers, name):
+    package, _ = NODES[name]
+    code, stdout, stderr = answers[(name, '--version')]
+    version = ET.parse(REPO / 'ros2_ws' / 'src' / package / 'package.xml').getroot().findtext('version')
+    assert code == 0, stderr[-3000:]
+    assert stdout == f'{name} ({package}) {version}\n'
+
+
+def test_flags_after_ros_args_are_not_ours():
+    """`--ros-args ... --help` belongs to ROS: the node is not answered with our help."""
+    from assist_common.ros_common import console_request
+
+    def factory():
+        raise AssertionError('never built')
+    assert console_request(factory, ['--ros-args', '-p', 'x:=1', '--help'], {}) is None
+    assert console_request(factory, ['--version', '--ros-args'], {}).endswith('\n')
