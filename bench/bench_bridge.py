@@ -2,11 +2,11 @@
 a change, the setpoint rate out under a ~900 Hz command flood, and the rate held with no command.
 
 The bridge sends the latest command at setpoint_rate_hz plus at most one immediate send of a changed
-command per period (issue 9 item 6), so: (1) commands at 8 Hz (slower than the 10 Hz schedule) each
+command per period, so: (1) commands at 8 Hz (slower than the 10 Hz schedule) each
 go out at once, and their publish -> datagram latency is timed; (2) a flood of ~900 changing commands
 per second must leave at no more than twice setpoint_rate_hz; (3) with no command, zero velocity at
 setpoint_rate_hz; (4) a one-way link loss while the pilot keeps commanding: how soon the sim's
-ArduCopter stand-in is at zero velocity (the bridge core against it in-process, issue 9 item 4).
+ArduCopter stand-in is at zero velocity (the bridge core against it in-process).
 
 The bridge runs as its own process (console script) on a private ROS domain; this process is
 both the ROS publisher of /cmd_vel and a minimal ArduCopter endpoint on UDP loopback

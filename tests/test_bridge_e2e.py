@@ -175,7 +175,7 @@ def test_arm_takeoff_fly_stop_land_disarm(rig, wait):
     assert wait(lambda: probe.pos()[2] < ground[2] + 0.05, 40.0), f'did not land: {probe.pos()}'
     assert wait(lambda: probe.diag_value('armed') == 'False', 10.0), 'not disarmed after landing'
     assert sim.proc.poll() is None and bridge.proc.poll() is None
-    # vehicle events reach /rosout through the node logger, stamped (issue 10 item 5)
+    # vehicle events reach /rosout through the node logger, stamped
     # 'mode GUIDED': a mode change is logged as 'vehicle mode GUIDED (was ...)', or inside the
     # 'MAVLink link up ... mode GUIDED' line when it happened while the link was down
     for text in ('MAVLink link up', 'mode GUIDED', 'takeoff complete', 'vehicle mode LAND',

@@ -3,7 +3,7 @@
 forged lengths and flags), from the locked vehicle's address and from spoofed sources (another port,
 another host).
 
-Contract (issue 9): the bridge stays alive (no exception out of poll/tick); what it publishes is
+Contract: the bridge stays alive (no exception out of poll/tick); what it publishes is
 finite; a spoofed source changes nothing, is counted and never receives a byte; the bridge never
 sends a mode change on its own; every setpoint it sends is finite and inside the clamps. The core
 runs in-process on a fake clock (so the link never times out between examples); one graph-level run

@@ -129,7 +129,7 @@ def test_oracle_core_goal_and_odom(tmp_path_factory, goal, pos, vel, t):
     assert not core.faults
 
 
-# ------------------------------------------------------------------ issue 9 item 1 regressions
+# ------------------------------------------------------------------ regressions: hostile and broken inputs
 def test_odometry_overflowing_float32_is_rejected_and_step_keeps_flying_the_pilot(actor_file):
     """An /odom twist of 1e39 (finite double, inf as float32) used to make step() raise."""
     core = PolicyCore(actor_file, PolicyCoreConfig(mode='latent'))

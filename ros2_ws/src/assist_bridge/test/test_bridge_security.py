@@ -1,4 +1,4 @@
-"""Bridge core against a hostile or broken link (issue 9 items 3-7): endpoint vetting, vehicle lock,
+"""Bridge core against a hostile or broken link: endpoint vetting, vehicle lock,
 signing, zero velocity on link loss, non-finite telemetry, setpoint rate limit, throttled errors."""
 import functools
 import logging
@@ -426,7 +426,7 @@ def test_set_limits_validated_and_applied():
 
 # ---------------------------------------------------------------------- /odom rate against the stand-in
 def test_stand_in_caps_telemetry_at_its_step_rate_and_says_so(caplog):
-    """30 Hz requested from a vehicle stepped at 20 Hz: 20 Hz arrive, and its log says why (issue 10 item 8)."""
+    """30 Hz requested from a vehicle stepped at 20 Hz: 20 Hz arrive, and its log says why."""
     clock = FakeClock()
     port = free_udp_port()
     gcs = mavutil.mavlink_connection(f'udpin:127.0.0.1:{port}', source_system=255, source_component=191,

@@ -1,4 +1,4 @@
-"""Oscillation damper: a non-learned rule that damps a pilot-induced oscillation (issue 12).
+"""Oscillation damper: a non-learned rule that damps a pilot-induced oscillation.
 
 Why: a pilot who reacts late (choice reaction 0.35-0.6 s plus a video link's latency) and flies keys at a
 fixed speed overshoots its aim, reverses, and overshoots again the other way: a pilot-induced oscillation

@@ -80,8 +80,8 @@ class EnvConfig:
     max_episode_s: float = 60.0                      # truncation (the world's own timeout is longer)
     blend_threshold: float = DEFAULT_THRESHOLD
     max_speed: tuple[float, float, float] = DEFAULT_MAX_SPEED
-    # an assisted V is flown within policy_node's limits (max_speed, max_vertical_speed), as deployed (since
-    # session 30; before, only the world's own 3 m/s clamp); the unassisted pilot is not limited
+    # an assisted V is flown within policy_node's limits (max_speed, max_vertical_speed), as deployed (the
+    # world's own clamp is 3 m/s); the unassisted pilot is not limited
     max_cmd_speed_mps: float = MAX_SPEED_MPS
     max_cmd_vertical_mps: float = MAX_VERTICAL_MPS
     window_s: float = 1.0

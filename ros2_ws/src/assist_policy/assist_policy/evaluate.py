@@ -17,12 +17,12 @@ pilot set off for another pad (its first goal estimate was nearest a pad other t
 column aimed_index), and `misaimed_success` how many of those still ended on the goal: a
 goal-agnostic assistant can only get these right by reading the pilot's corrections.
 
-Pilots other than the paper's (issue 12): `--pilot <family|mix|train_mix>` flies every landing with a
+Pilots other than the paper's: `--pilot <family|mix|train_mix>` flies every landing with a
 pilot of that assist_sim.pilots family (`mix`: a held-out family drawn per landing); the column `pilot`
 names the family flown.
 
 The non-learned rules policy_node runs are on by default here too, as policy_node's defaults for each
-mode (since session 30; before, they were off unless asked for), so `evaluate` measures the assistant as
+mode, so `evaluate` measures the assistant as
 it is deployed: the floor guard for every assisted condition, the pilot override, pad recall and
 oscillation damper for latent and end_to_end but not for the oracle (it knows the goal: yielding to the
 pilot or steering to the nearest pad only costs it). `--override/--recall/--damper true|false` set them

@@ -13,7 +13,7 @@ feature per condition (``Condition``):
 The vector part is the same for every condition, so one builder serves training, evaluation
 and the policy node. Times are in seconds of whatever clock the caller uses (sim or ROS).
 
-Feature memory (issue 12, optional): an actor whose metadata lists ``feature_lags_s`` (e.g. [1, 2])
+Feature memory (optional): an actor whose metadata lists ``feature_lags_s`` (e.g. [1, 2])
 also sees the scene feature as it was that many seconds ago (``FeatureMemory``), appended after the
 vector above, so it still knows where the pads were after they left the view. Actors without it
 (every older file) see exactly the layout above. With ``memory_displacement`` the actor also sees,

@@ -1,4 +1,4 @@
-"""Pilot override: a non-learned arbitration rule that lets a deliberate correction through (issue 12).
+"""Pilot override: a non-learned arbitration rule that lets a deliberate correction through.
 
 Rule: while the pilot holds a horizontal key (its mean horizontal command over the observation window,
 1 s, is faster than ``speed_mps``) and does not command a descent, the assistant's action is replaced:
@@ -8,7 +8,7 @@ speed and the vehicle rises gently; higher up by a' = 0 (relinquish, V = u). a' 
 actor's max_speed as any action is.
 
 Why: a pilot who set off for a neighbour pad and sees the mistake low over it (late_correction, and the
-independent pilot of issue 12: "sudden late corrections") holds a key toward the right pad. The
+independent pilots, whose "sudden late corrections" started it) holds a key toward the right pad. The
 nearest-pad behaviour the learned assistant imitates cancels that command over the pad below and pushes
 down, so the pilot lands on the wrong pad, or, once the correction wins, the vehicle slides off the pad
 still descending and catches its edge (tipped over). The climb is what makes letting go safe: a

@@ -1,9 +1,9 @@
-"""Pad recall: a non-learned memory of the pads the camera has seen, and a rule that steers to them (issue 12).
+"""Pad recall: a non-learned memory of the pads the camera has seen, and a rule that steers to them.
 
 Why: the learned assistant knows about a pad only while the encoder sees one (its feature memory
 covers a couple of seconds). A pilot who overshoots the last pad, or sets down between pads, descends
 over bare floor with no pad in view, and there the actor is almost inactive or points nowhere in
-particular (issue 12's first failure: "the assistant is almost inactive there"); the floor guard then
+particular (the first failure seen with pilots it never trained with: "the assistant is almost inactive there"); the floor guard then
 stops the descent, and the landing times out hovering over the floor. The nearest-pad reference, which
 knows the true pad positions, pulls such a pilot back onto the pad it passed.
 

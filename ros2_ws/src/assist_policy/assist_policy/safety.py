@@ -1,4 +1,4 @@
-"""Floor guard: an independent, non-learned safety layer over the blended command (issue 12).
+"""Floor guard: an independent, non-learned safety layer over the blended command.
 
 Rule: when base_link is lower than ``guard_height_m`` above the floor and the downward depth image
 shows the floor (no pad) beneath every leg, a descending V is not passed through: its vertical
@@ -31,10 +31,10 @@ that pad: a touchdown there tips the vehicle over (the crashes left with the flo
 watches up to ``edge_watch_m`` of altitude (pads stand up to 1.2 m tall). On by default since the pad
 recall (assist_policy.recall) brings vehicles back to pads from beside them: with both, it turned the
 two tip-overs of 810 held-out landings into a success and an edge landing and changed nothing for the
-worse on the paper pilot (840 landings; assist_policy README, "Issue 12, pad recall"). With the actor
-alone (0.5 m, an earlier session) it avoided three crashes and caused three others.
+worse on the paper pilot (840 landings; docs/experiments/2026-11-pad-recall-and-edge-rule.md). With the actor
+alone (0.5 m, measured before the recall existed) it avoided three crashes and caused three others.
 
-Wall rule (``wall_radius_m`` > 0, 1.5 m by default; ``assist_policy.walls``, since session 31): no
+Wall rule (``wall_radius_m`` > 0, 1.5 m by default; ``assist_policy.walls``): no
 horizontal command toward a wall the camera has seen within that distance (surfaces higher than
 ``wall_height_m``, remembered for the landing).
 

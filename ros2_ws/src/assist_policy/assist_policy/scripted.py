@@ -47,24 +47,24 @@ class ScriptedConfig:
     descend_mps: float = 1.0
     climb_mps: float = 0.5
     cancel_pilot: float = 1.0         # fraction of the pilot's horizontal command cancelled
-    # Yield to a deliberate correction (issue 12; 0 = never, the reference script): when the pilot's mean
+    # Yield to a deliberate correction (0 = never, the reference script): when the pilot's mean
     # horizontal command over the last second exceeds this (a held key, not fine taps: the paper pilot
     # taps at duty <= 0.5 near its aim) while it is not descending, the nearest-pad assistant relinquishes
     # instead of cancelling the pilot on the pad below: a pilot who set off for a neighbour pad and
     # noticed late can leave it. Uses only what the actor observes (u and its 1 s mean).
     yield_speed_mps: float = 0.0
-    # Do not hurry a descent the pilot is already making (issue 12): while the pilot commands descent the
+    # Do not hurry a descent the pilot is already making : while the pilot commands descent the
     # nearest-pad assistant adds none of its own (a_z = 0, so V_z = u_z / 2 while it centres) instead of
     # pushing down at descend_mps. It still descends for a pilot who hovers low over the pad. The pilot
     # gets twice the time to see that the pad below is the wrong one and leave it, and under the paper's
     # conformance update its goal estimate is no longer dragged down with the vehicle (which kept the
-    # late_correction pilots from ever noticing). Measured in assist_policy README, issue 12 teachers.
+    # late_correction pilots from ever noticing). Measured: docs/experiments/2026-11-descent-sparing-teachers.md.
     gentle_descent: bool = False
     # With gentle_descent: below this height over the pad (m) the assistant pushes down again as the
     # reference does, so the last part of the descent is committed and quick. Meant to shorten the slow
     # final descent, in which the gentle teacher's learned imitators land less precisely than the
-    # reference's (whether that is the cause is not settled: assist_policy README, issue 12 DAgger with
-    # the descent-sparing teachers). 0 = gentle all the way down.
+    # reference's (whether that is the cause is not settled: docs/experiments/2026-11-descent-sparing-teachers.md,
+    # DAgger with the descent-sparing teachers). 0 = gentle all the way down.
     commit_height_m: float = 0.0
 
 
@@ -98,14 +98,14 @@ class ScriptedOracle:
                               self.max_speed)
 
 
-# Named nearest-pad teachers (all goal-agnostic; `nearest_pad` is the reference script of issue 12).
+# Named nearest-pad teachers (all goal-agnostic; `nearest_pad` is the reference script).
 NEAREST_PAD_VARIANTS = {
     'nearest_pad': {},                                                # centre and push down
     'nearest_pad_yield': {'yield_speed_mps': YIELD_SPEED_MPS},        # + let a held-key correction through
     'nearest_pad_gentle': {'gentle_descent': True},                   # + add no descent to the pilot's
     'nearest_pad_commit': {'gentle_descent': True, 'commit_height_m': COMMIT_HEIGHT_M},  # gentle, then commit
-    # the commit teacher that also lets a held-key correction through (issue 12; it costs reaction-delayed
-    # pilots, whose delayed overshoot is a held key too: assist_policy README, issue 12 commit + yield)
+    # the commit teacher that also lets a held-key correction through (it costs reaction-delayed
+    # pilots, whose delayed overshoot is a held key too: docs/experiments/2026-11-memory-displacement.md)
     'nearest_pad_commit_yield': {'gentle_descent': True, 'commit_height_m': COMMIT_HEIGHT_M,
                                  'yield_speed_mps': YIELD_SPEED_MPS},
 }

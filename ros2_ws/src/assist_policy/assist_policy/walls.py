@@ -1,6 +1,6 @@
 """Wall guard: the floor guard's second rule, not learned: no command carries the vehicle into a wall it has seen.
 
-Why (session 31, traced with the held-out ``cautious`` family, which climbs to look before setting off):
+Why (traced with the held-out ``cautious`` family, which climbs to look before setting off):
 a novice whose aim lies beyond the last pad flew on toward the room's end wall at 4-5 m, where the
 learned actor, with no pad in view, pushed at full speed (a = (1, 1) m/s) the same way; the vehicle hit
 the wall 0.2 m from it and fell (2 of 110 landings, both "new crashes": alone, the pilot hovered short

@@ -1,4 +1,4 @@
-"""Feature memory (issue 12): lagged scene features as extra actor inputs, declared in the actor metadata."""
+"""Feature memory: lagged scene features as extra actor inputs, declared in the actor metadata."""
 import numpy as np
 import pytest
 import torch
