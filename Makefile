@@ -12,11 +12,12 @@ PKG_INPUTS := $(foreach p,$(PKGS),ros2_ws/src/$(p)/setup.py ros2_ws/src/$(p)/set
 export ROS_DOMAIN_ID ?= 42
 export RMW_IMPLEMENTATION ?= rmw_fastrtps_cpp
 
-.PHONY: venv demo test bench soak colcon clean help browser
+.PHONY: venv demo test lint bench soak colcon clean help browser
 
 help:
 	@echo "make demo   - run the simulated landing demo (creates .venv)"
-	@echo "make test   - run the test suite (creates .venv)"
+	@echo "make test   - lint, then run the test suite (creates .venv)"
+	@echo "make lint   - the style gate: ruff check with ruff.toml"
 	@echo "make bench  - print the benchmark table"
 	@echo "make soak   - soak test: full assisted graph, 30 min sim time (ASSIST_SOAK_SIM_S=seconds to change)"
 	@echo "make colcon - build ros2_ws with colcon into ros2_ws/install"
@@ -40,7 +41,11 @@ browser:
 	  SUDO=$$( [ "$$(id -u)" -eq 0 ] || echo sudo ); \
 	  $$SUDO apt-get update && $$SUDO apt-get install -y chromium chromium-driver; }
 
-test: $(STAMP) browser
+# The style gate (ruff.toml); make test runs it first, so CI does too.
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+
+test: $(STAMP) browser lint
 	$(PY) -m pytest
 
 bench: $(STAMP)

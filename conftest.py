@@ -8,5 +8,5 @@ import pytest
 def _python_logging_released():
     """After each test, Python logging no longer forwards to a node an in-process test built (ros_common)."""
     yield
-    from assist_common.ros_common import release_logging  # noqa: PLC0415
+    from assist_common.ros_common import release_logging
     release_logging()

@@ -72,18 +72,19 @@ def _brake_after_link_loss(runs: int = 3) -> tuple[float, float]:
         port = free_udp_port()
         declared: list[float] = []
         bridge = MavlinkBridge(BridgeConfig(connection=f'udpin:127.0.0.1:{port}', takeoff_altitude_m=1.0),
-                               on_link=lambda up, _why: None if up else declared.append(time.monotonic()))
+                               on_link=lambda up, _why, declared=declared:
+                               None if up else declared.append(time.monotonic()))
         world = KinematicWorld()
         vehicle = MavlinkVehicle(world, f'udpout:127.0.0.1:{port}',
                                  MavlinkVehicleConfig(ekf_ready_delay_s=0.3, guid_timeout_s=30.0))
         stop = threading.Event()
 
-        def step_vehicle():
+        def step_vehicle(stop=stop, vehicle=vehicle):
             while not stop.is_set():
                 vehicle.step(0.02)
                 time.sleep(0.02)
 
-        def pilot():
+        def pilot(stop=stop, bridge=bridge):
             while not stop.is_set():
                 bridge.set_command([1.0, 0.0, 0.0])
                 time.sleep(0.05)

@@ -233,7 +233,8 @@ def measure(frames: int = FRAMES, startup_timeout_s: float = 90.0, node_params: 
         raise RuntimeError('no frame could be matched to its latent and command')
     ms = lambda x: 1e3 * np.asarray(x)  # noqa: E731
     return {'frames': len(gaps),
-            'latent_p50': float(np.percentile(ms(to_latent), 50)), 'latent_p99': float(np.percentile(ms(to_latent), 99)),
+            'latent_p50': float(np.percentile(ms(to_latent), 50)),
+            'latent_p99': float(np.percentile(ms(to_latent), 99)),
             'cmd_p50': float(np.percentile(ms(to_cmd), 50)), 'cmd_p99': float(np.percentile(ms(to_cmd), 99)),
             'lost_latent': lost['latent'], 'lost_cmd': lost['cmd'], 'skipped_no_depth': lost['no_depth'],
             'lost_in_burst': lost['burst'], 'burst_frames': int(np.count_nonzero(gaps < 0.5 * PERIOD_S)),

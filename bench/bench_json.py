@@ -68,8 +68,8 @@ def throughput(rate: int = RATE) -> list[dict]:
     world.close()
     sim = n / rate
     if rate != RATE:      # 800: the shipped .parm's SIM_RATE_HZ; 1200: SITL's default at ArduPilot 90700977c553
-        return [{'name': f'x real time per CPU-second of the backend thread at {rate} Hz', 'value': sim / cpu['backend'],
-                 'unit': 'x', 'target': '>= 1x'}]
+        return [{'name': f'x real time per CPU-second of the backend thread at {rate} Hz',
+                 'value': sim / cpu['backend'], 'unit': 'x', 'target': '>= 1x'}]
     return [
         {'name': f'lock-step frames/s vs stand-in, wall ({rate} Hz physics, camera 20 Hz)', 'value': n / wall,
          'unit': 'frames/s'},

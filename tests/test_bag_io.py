@@ -93,8 +93,8 @@ def test_writer_round_trip_with_splits_and_v9_metadata(tmp_path, storage):
 
 def test_official_mcap_reader_decodes_our_bags(tmp_path):
     """Our MCAP files decode with the official mcap + mcap-ros2-support readers (another implementation)."""
-    from mcap import reader  # noqa: PLC0415 - test-only dependency (requirements.txt)
-    from mcap_ros2 import decoder  # noqa: PLC0415
+    from mcap import reader  # test-only dependency (requirements.txt)
+    from mcap_ros2 import decoder
     bag = tmp_path / 'b'
     _write(bag, 'mcap', n=5).close()
     with open(bag / 'b_0.mcap', 'rb') as fh:

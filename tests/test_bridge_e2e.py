@@ -248,7 +248,8 @@ def test_cmd_vel_flows_while_a_service_waits_for_its_ack(ros, start_node, wait):
             probe.send([0.37, 0.0, 0.0])
             time.sleep(0.05)
         arrivals = arrivals_of(0.37)
-        assert arrivals, f'no setpoint for /cmd_vel while the service waited: {vehicle.setpoints()[-5:]} {bridge.log()[-1500:]}'
+        assert arrivals, (f'no setpoint for /cmd_vel while the service waited: {vehicle.setpoints()[-5:]} '
+                          f'{bridge.log()[-1500:]}')
         assert not fut.done(), 'the service answered before its ACK timeout'
         assert wait(fut.done, 10.0), 'service never answered'
         res = fut.result()

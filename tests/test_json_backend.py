@@ -144,7 +144,7 @@ def test_ned_position_velocity_attitude_match_pybullet_enu_truth(rig):
     rig.airborne(2.5)
     hover = rig.hover_pwm
     rng = np.random.default_rng(1)
-    for i in range(300):
+    for _ in range(300):
         pwm = [hover + d for d in rng.normal(0, 25, 4)]
         reply = rig.frame(pwm)
         st = rig.world.state

@@ -93,7 +93,8 @@ def test_sim_node_command_in_odometry_and_images_out(probe, start_node, wait):
     assert goal.header.frame_id == 'odom' and 0.3 < goal.point.z < 1.5
 
     x0 = probe.last('odom').pose.pose.position.x
-    _fly(probe, (1.0, 0.0, 0.0), 4.0)                      # 4 s of sim time (at rtf 1 a command stays fresh for 0.5 s of wall time)
+    # 4 s of sim time (at rtf 1 a command stays fresh for 0.5 s of wall time)
+    _fly(probe, (1.0, 0.0, 0.0), 4.0)
     od = probe.last('odom')
     assert od.header.frame_id == 'odom' and od.child_frame_id == 'base_link'
     assert od.pose.pose.position.x - x0 > 2.0             # moved forward (+x ENU)
@@ -142,7 +143,8 @@ def test_sim_node_reports_landings(probe, start_node, wait):
     keys = {'episode', 'goal_index', 'landed_index', 'nearest_index', 'error_m', 'nearest_error_m', 'success',
             'crash', 'duration_s', 'assisted'}
     assert keys <= set(result)
-    assert result['success'] and result['landed_index'] == result['goal_index'] and result['error_m'] < 0.4   # the test's own P controller in ground-effect turbulence
+    # the test's own P controller in ground-effect turbulence
+    assert result['success'] and result['landed_index'] == result['goal_index'] and result['error_m'] < 0.4
     assert result['assisted'] is False
     # auto_reset: a new goal follows
     assert wait(lambda: probe.count('goal') >= 2, 10)

@@ -46,7 +46,7 @@ class Intruder:
                             break
                     await ws.send_str(json.dumps({'type': 'keys', 'down': ['KeyW', 'ArrowDown']}))
                     await ws.close()
-                except (aiohttp.ClientError, asyncio.TimeoutError):
+                except (TimeoutError, aiohttp.ClientError):
                     pass
                 await asyncio.sleep(0.05)
 

@@ -200,11 +200,12 @@ def bad_arguments(cls) -> st.SearchStrategy[list[str]]:
         hint, rule = hints[f.name], f.metadata.get(RULE_KEY)
         tuple_field = typing.get_origin(hint) is tuple
         item = typing.get_args(hint)[0] if tuple_field else hint
+        name = flag(f.name)
         for words in _bad_items(item, rule):
             if tuple_field:
-                options.append(st.lists(words, min_size=1, max_size=3).map(lambda w, n=flag(f.name): [n, *w]))
+                options.append(st.lists(words, min_size=1, max_size=3).map(lambda w, n=name: [n, *w]))
             else:
-                options.append(words.map(lambda w, n=flag(f.name): [n, w]))
+                options.append(words.map(lambda w, n=name: [n, w]))
     return st.one_of(options)
 
 

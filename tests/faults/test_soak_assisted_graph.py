@@ -4,7 +4,8 @@ shipped models) at real_time_factor 0 for ASSIST_SOAK_SIM_S seconds of sim time 
 Asserts: no landing lost from /sim/landing (episode numbers 0, 1, 2, ... with no gap or repeat), no node
 exits or restarts (each process alive with the pid it started with, no traceback in its log), and each
 node's resident memory grows by at most SOAK_RSS_GROWTH_MIB from the end of the warm-up (the first 10%
-of the run, and at least one landing) to the end. Figures are printed and, with ASSIST_SOAK_REPORT=path, written as JSON.
+of the run, and at least one landing) to the end. Figures are printed and, with ASSIST_SOAK_REPORT=path,
+written as JSON.
 
 Not part of the default run (skipped unless ASSIST_SOAK_SIM_S is set); marked slow and graph.
 """

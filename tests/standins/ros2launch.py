@@ -13,9 +13,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from ament_index_python.packages import get_package_share_directory  # noqa: E402
-from launch import LaunchService  # noqa: E402
-from launch._impl import log  # noqa: E402
+from ament_index_python.packages import get_package_share_directory
+from launch import LaunchService
+from launch._impl import log
 
 
 def find_launch_file(package: str, name: str) -> Path:
@@ -55,7 +55,8 @@ def main(argv: list[str]) -> int:
         for arg in description.get_launch_arguments():
             print(f"    '{arg.name}':\n        {arg.description}")
             if arg.default_value is not None:
-                print(f"        (default: '{''.join(getattr(s, 'text', '<substitution>') for s in arg.default_value)}')")
+                default = ''.join(getattr(s, 'text', '<substitution>') for s in arg.default_value)
+                print(f"        (default: '{default}')")
             print()
         return 0
     service = LaunchService(argv=pairs)

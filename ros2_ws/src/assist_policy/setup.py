@@ -26,7 +26,8 @@ setup(
     zip_safe=True,
     maintainer='Assisted landing maintainers',
     maintainer_email='maintainers@assist-landing.dev',
-    description='Observation building, blending rule, TD3 assistant training and evaluation against simulated pilots, policy node',
+    description='Observation building, blending rule, TD3 assistant training and evaluation against simulated '
+                'pilots, policy node',
     license='Apache-2.0',
     tests_require=['pytest'],
     entry_points={

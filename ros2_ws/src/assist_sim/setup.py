@@ -20,7 +20,8 @@ setup(
     zip_safe=True,
     maintainer='Assisted landing maintainers',
     maintainer_email='maintainers@assist-landing.dev',
-    description='pybullet landing world (scene generator, multirotor, velocity flight controller, turbulence, RGB-D camera, landing judge), simulated pilot and MAVLink vehicle stand-in',
+    description='pybullet landing world (scene generator, multirotor, velocity flight controller, turbulence, '
+                'RGB-D camera, landing judge), simulated pilot and MAVLink vehicle stand-in',
     license='Apache-2.0',
     tests_require=['pytest'],
     entry_points={

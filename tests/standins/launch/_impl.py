@@ -21,7 +21,8 @@ import sys
 import threading
 import time
 from types import SimpleNamespace
-from typing import Any, Callable, Iterable, Optional
+from typing import Any
+from collections.abc import Callable, Iterable
 
 _PRINT_LOCK = threading.Lock()
 
@@ -47,7 +48,7 @@ class SubstitutionFailure(RuntimeError):
 class Substitution:
     """Something that becomes text at launch time."""
 
-    def perform(self, context: 'LaunchContext') -> str:
+    def perform(self, context: LaunchContext) -> str:
         """The text in `context`."""
         raise NotImplementedError
 
@@ -81,7 +82,7 @@ def normalize_to_list_of_substitutions(subs: Any) -> list[Substitution]:
     raise TypeError(f'expected str, Substitution or an iterable of them, got {subs!r}')
 
 
-def perform_substitutions(context: 'LaunchContext', subs: Iterable[Substitution]) -> str:
+def perform_substitutions(context: LaunchContext, subs: Iterable[Substitution]) -> str:
     """Concatenated text of `subs`."""
     return ''.join(context.perform_substitution(s) for s in subs)
 
@@ -94,15 +95,15 @@ class InvalidConditionExpressionError(ValueError):
 class Condition:
     """A predicate evaluated when the action it guards is visited."""
 
-    def __init__(self, *, predicate: Callable[['LaunchContext'], bool] | None = None) -> None:
+    def __init__(self, *, predicate: Callable[[LaunchContext], bool] | None = None) -> None:
         self._predicate = predicate
 
-    def evaluate(self, context: 'LaunchContext') -> bool:
+    def evaluate(self, context: LaunchContext) -> bool:
         """True when the guarded action should run."""
         return bool(self._predicate(context)) if self._predicate else True
 
 
-def evaluate_condition_expression(context: 'LaunchContext', expression: list[Substitution]) -> bool:
+def evaluate_condition_expression(context: LaunchContext, expression: list[Substitution]) -> bool:
     """launch's rule: the stripped, lower-cased text must be true/1 or false/0; anything else is an error."""
     text = perform_substitutions(context, expression).strip().lower()
     if text in ('true', '1'):
@@ -153,7 +154,7 @@ class ProcessExited(Event):
 class LaunchDescriptionEntity:
     """Anything a LaunchDescription may hold."""
 
-    def visit(self, context: 'LaunchContext') -> Optional[list]:
+    def visit(self, context: LaunchContext) -> list | None:
         """Run this entity; returns sub-entities to visit next."""
         raise NotImplementedError
 
@@ -169,7 +170,7 @@ class Action(LaunchDescriptionEntity):
             return None
         return self.execute(context)
 
-    def execute(self, context: 'LaunchContext') -> Optional[list]:
+    def execute(self, context: LaunchContext) -> list | None:
         """Do the work; returns sub-entities or None."""
         return None
 
@@ -191,7 +192,7 @@ class LaunchDescription(LaunchDescriptionEntity):
 
     def get_launch_arguments(self) -> list:
         """The DeclareLaunchArgument actions reachable without launching, in order."""
-        from .actions import DeclareLaunchArgument, GroupAction  # noqa: PLC0415
+        from .actions import DeclareLaunchArgument, GroupAction
         found = []
 
         def walk(entities):
@@ -219,7 +220,7 @@ class EventHandler:
         """True when this handler wants `event`."""
         return self.matcher(event)
 
-    def handle(self, event: Event, context: 'LaunchContext') -> Optional[list]:
+    def handle(self, event: Event, context: LaunchContext) -> list | None:
         """Entities to visit for `event` (context.locals.event is set)."""
         context.locals.event = event
         ents = self.entities
@@ -418,7 +419,7 @@ class ExecuteProcess(Action):
         base = self._text(context, self._name) if self._name is not None else os.path.basename(cmd[0])
         self.process_name = unique_process_name(base)
         if self._on_exit is not None:
-            from .event_handlers import OnProcessExit  # noqa: PLC0415
+            from .event_handlers import OnProcessExit
             context.register_event_handler(OnProcessExit(target_action=self, on_exit=self._on_exit))
         if context.is_shutdown:
             return None

@@ -35,18 +35,18 @@ import threading
 import time
 from dataclasses import dataclass, field
 from struct import error as struct_error
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
 os.environ['MAVLINK20'] = '1'  # MAVLink 2 framing; must be set before mavutil is imported
-from pymavlink import mavutil  # noqa: E402
+from pymavlink import mavutil
 
-from assist_common.mavlink_io import (COPTER_MODE_NAMES, COPTER_MODES, FORCE_ARM_DISARM_MAGIC,  # noqa: E402
+from assist_common.mavlink_io import (COPTER_MODE_NAMES, COPTER_MODES, FORCE_ARM_DISARM_MAGIC,
                                       ThrottledLog, enable_signing, load_signing_key, next_message, open_connection,
                                       parse_endpoint, refresh_signing_timestamp)
 
-from assist_common import frames  # noqa: E402
+from assist_common import frames
 
 _LOG = logging.getLogger(__name__)
 mavlink = mavutil.mavlink
@@ -273,7 +273,7 @@ class MavlinkBridge:
                 self.conn.select(min(max(wake - now, 0.0), 0.02))
                 self.poll()
                 self.tick()
-            except Exception as exc:   # keep the link alive whatever one message did; counted, throttled
+            except Exception as exc:   # noqa: BLE001 - keep the link alive whatever one message did; counted, throttled
                 self.counters['loop_errors'] += 1
                 self._throttled.log(logging.ERROR, f'loop:{type(exc).__name__}',
                                     'MAVLink loop error (continuing): %s: %s', type(exc).__name__, exc)

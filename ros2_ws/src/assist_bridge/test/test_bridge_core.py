@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 os.environ['MAVLINK20'] = '1'
-from pymavlink import mavutil  # noqa: E402
+from pymavlink import mavutil
 
-from assist_bridge.bridge_core import (TYPE_MASK_VELOCITY_YAW, BridgeConfig, MavlinkBridge,  # noqa: E402
+from assist_bridge.bridge_core import (TYPE_MASK_VELOCITY_YAW, BridgeConfig, MavlinkBridge,
                                        limit_velocity, velocity_setpoint)
-from assist_sim.testing import VehicleThread as _VehicleThread, free_udp_port  # noqa: E402
+from assist_sim.testing import VehicleThread as _VehicleThread, free_udp_port
 
 mavlink = mavutil.mavlink
 

@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 
 os.environ['MAVLINK20'] = '1'
-from pymavlink import mavutil  # noqa: E402
+from pymavlink import mavutil
 
-from assist_bridge.bridge_core import BridgeConfig, MavlinkBridge  # noqa: E402
-from assist_bridge.mavlink_bridge_node import PARAMS  # noqa: E402
-from assist_common.mavlink_io import COPTER_MODES  # noqa: E402
-from assist_sim.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleConfig  # noqa: E402
-from assist_sim.testing import KinematicWorld, VehicleThread as _VehicleThread, free_udp_port  # noqa: E402
+from assist_bridge.bridge_core import BridgeConfig, MavlinkBridge
+from assist_bridge.mavlink_bridge_node import PARAMS
+from assist_common.mavlink_io import COPTER_MODES
+from assist_sim.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleConfig
+from assist_sim.testing import KinematicWorld, VehicleThread as _VehicleThread, free_udp_port
 
 mavlink = mavutil.mavlink
 KEY = bytes(range(1, 33))
@@ -147,7 +147,7 @@ def test_spoofed_heartbeats_from_another_port_are_ignored_and_get_nothing(make_l
             spoof.sendto(heartbeat_frame('LOITER', armed=True), ('127.0.0.1', port))
             try:
                 got.append(spoof.recv(4096))
-            except socket.timeout:
+            except TimeoutError:
                 pass
     finally:
         spoof.close()

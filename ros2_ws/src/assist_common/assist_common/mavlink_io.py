@@ -21,10 +21,10 @@ import re
 import stat
 import time
 from dataclasses import dataclass
-from typing import Callable
+from collections.abc import Callable
 
 os.environ.setdefault('MAVLINK20', '1')
-from pymavlink import mavutil  # noqa: E402
+from pymavlink import mavutil
 
 mavlink = mavutil.mavlink
 

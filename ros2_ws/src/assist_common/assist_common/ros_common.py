@@ -13,7 +13,8 @@ import time
 import xml.etree.ElementTree as ET
 from collections import Counter
 from dataclasses import dataclass
-from typing import Any, Callable, Iterable, Mapping, Sequence
+from typing import Any
+from collections.abc import Callable, Iterable, Mapping, Sequence
 
 import rclpy
 import rclpy.logging
@@ -146,7 +147,8 @@ def declare_parameters(node: Node, spec: Mapping[str, Param],
         rule = p.rule()
         text = p.description + (f' Accepted: {rule}.' if rule else '') + ('' if p.dynamic else ' Read-only.')
         desc = ParameterDescriptor(description=text, read_only=not p.dynamic,
-                                   dynamic_typing=isinstance(p.default, (int, float)) and not isinstance(p.default, bool))
+                                   dynamic_typing=(isinstance(p.default, (int, float))
+                                                   and not isinstance(p.default, bool)))
         try:
             if p.item_type is not None:      # typed array (an empty default has no type of its own)
                 desc.type = _ARRAY_TYPES[p.item_type].value
@@ -600,7 +602,7 @@ def package_version(package: str) -> str:
     except importlib.metadata.PackageNotFoundError:
         pass
     try:
-        from ament_index_python.packages import get_package_share_directory  # noqa: PLC0415
+        from ament_index_python.packages import get_package_share_directory
         version = ET.parse(os.path.join(get_package_share_directory(package), 'package.xml')).findtext('version')
     except (ImportError, LookupError, OSError, ValueError, ET.ParseError):
         version = None

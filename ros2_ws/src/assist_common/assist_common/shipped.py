@@ -17,7 +17,7 @@ MODELS_ENV = 'ASSIST_MODELS_DIR'
 def _share_dir(package: str) -> Path | None:
     """share/<package>/models of the package in the ament index, or None when it is not indexed."""
     try:
-        from ament_index_python.packages import get_package_share_directory  # noqa: PLC0415
+        from ament_index_python.packages import get_package_share_directory
         return Path(get_package_share_directory(package)) / 'models'
     except (ImportError, LookupError, OSError, ValueError):
         return None  # no AMENT_PREFIX_PATH (editable install) or the package is not in it

@@ -124,11 +124,11 @@ def test_array_parameters_typed_empty_by_default_and_every_item_checked():
 
 
 def test_release_logging_stops_forwarding_to_a_destroyed_node():
-    import logging  # noqa: PLC0415
+    import logging
 
-    import rclpy  # noqa: PLC0415
+    import rclpy
 
-    from assist_common.ros_common import forward_logging, release_logging  # noqa: PLC0415
+    from assist_common.ros_common import forward_logging, release_logging
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     try:

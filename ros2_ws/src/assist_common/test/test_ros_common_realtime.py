@@ -8,7 +8,8 @@ import pytest
 
 from assist_common.ros_common import set_realtime_priority
 
-CHILD = 'import threading, time; [threading.Thread(target=time.sleep, args=(30,), daemon=True).start() for _ in range(3)]; time.sleep(30)'
+CHILD = ('import threading, time; '
+         '[threading.Thread(target=time.sleep, args=(30,), daemon=True).start() for _ in range(3)]; time.sleep(30)')
 
 
 def _policies(pid):

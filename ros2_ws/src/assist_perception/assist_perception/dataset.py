@@ -27,7 +27,8 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator, NamedTuple, Sequence
+from typing import NamedTuple
+from collections.abc import Iterator, Sequence
 
 import numpy as np
 
@@ -279,7 +280,7 @@ class FrameSet:
     def __len__(self) -> int:
         return len(self.visible)
 
-    def subset(self, idx: np.ndarray) -> 'FrameSet':
+    def subset(self, idx: np.ndarray) -> FrameSet:
         """Rows `idx` as a new FrameSet."""
         return FrameSet(self.rgb[idx], self.depth[idx], self.xyz[idx], self.visible[idx],
                         self.scene[idx], self.pad_index[idx], self.meta)

@@ -189,7 +189,7 @@ class EncoderNode(Node):
                 self._process(*pair)
             except BadFrame as exc:
                 self._bad(exc.reason, str(exc))
-            except Exception as exc:  # keep the worker alive; log and count anything unexpected
+            except Exception as exc:  # noqa: BLE001 - keep the worker alive; log and count anything unexpected
                 if self._stopping.is_set() or not self.context.ok():
                     break             # shutting down: the publishers' context is going away
                 self._bad('inference_error', f'{type(exc).__name__}: {exc}')

@@ -88,7 +88,7 @@ class CMVAEConfig:
             raise ValueError(f'CMVAEConfig.xyz_std must be in (0, {MAX_RANGE_M:g}] m, got {self.xyz_std}')
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> 'CMVAEConfig':
+    def from_dict(cls, data: dict[str, Any]) -> CMVAEConfig:
         """Build from a plain dict (as stored in a weights file); unknown keys raise ValueError."""
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = set(data) - names
@@ -322,7 +322,7 @@ def load_model(path: str | Path, device: str | torch.device = 'cpu') -> CMVAE:
         raise ModelLoadError(f'CM-VAE weights file not found: {path}')
     try:
         payload = torch.load(path, map_location='cpu', weights_only=True)
-    except Exception as exc:  # torch raises many types (pickle, zip, runtime) for bad files
+    except Exception as exc:  # noqa: BLE001 - torch raises many types (pickle, zip, runtime) for bad files
         raise ModelLoadError(f'cannot read CM-VAE weights {path}: {type(exc).__name__} (not a torch '
                              'weights file, truncated, or holding objects that weights_only=True '
                              'refuses)') from None

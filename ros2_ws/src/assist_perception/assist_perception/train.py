@@ -182,7 +182,7 @@ def load_checkpoint(path: Path) -> dict:
     """The training state in checkpoint.pt (weights_only); ValueError (one line) when it is damaged."""
     try:
         ck = torch.load(path, map_location='cpu', weights_only=True)
-    except Exception as exc:  # torch raises many types (pickle, zip, runtime, EOF) for damaged files
+    except Exception as exc:  # noqa: BLE001 - torch raises many types (pickle, zip, runtime, EOF) for damaged files
         first = (str(exc).strip().splitlines() or [''])[0][:200]
         raise ValueError(f'damaged checkpoint {path}: {type(exc).__name__}: {first}') from None
     missing = [k for k in CHECKPOINT_KEYS if not isinstance(ck, dict) or k not in ck]

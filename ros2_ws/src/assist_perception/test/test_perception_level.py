@@ -111,7 +111,8 @@ def test_cmvae_pad_estimate_recovers_with_levelling(world):
         raw.append(np.linalg.norm((cam + r_wo_level @ enc.encode(frame.rgb, frame.depth).pad_xyz)[:2] - target))
         c2, d2 = level_frame(frame.rgb, frame.depth, frame.K, r)
         lev.append(np.linalg.norm((cam + r_wo_level @ enc.encode(c2, d2).pad_xyz)[:2] - target))
-        world._bc.resetBasePositionAndOrientation(world._vehicle, base.tolist(), quat(yaw_deg=math.degrees(yaw)).tolist())
+        world._bc.resetBasePositionAndOrientation(world._vehicle, base.tolist(),
+                                                  quat(yaw_deg=math.degrees(yaw)).tolist())
         f0 = world.render()
         c0, r0 = world.camera_pose()
         flat.append(np.linalg.norm((c0 + r0 @ enc.encode(f0.rgb, f0.depth).pad_xyz)[:2] - target))

@@ -10,7 +10,8 @@ import logging
 import math
 import pickle
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -143,7 +144,8 @@ def validate_actor_meta(meta: Any) -> dict[str, Any]:
     meta['window_s'] = _float(meta['window_s'], "'window_s'", 0.0, 3600.0, lo_open=True)
     lags = meta['feature_lags_s']
     if not isinstance(lags, (list, tuple)) or len(lags) > MAX_FEATURE_LAGS:
-        raise ValueError(f"metadata 'feature_lags_s' must be a list of at most {MAX_FEATURE_LAGS} lags (s), got {lags!r}")
+        raise ValueError(f"metadata 'feature_lags_s' must be a list of at most {MAX_FEATURE_LAGS} lags (s), "
+                         f'got {lags!r}')
     meta['feature_lags_s'] = [_float(v, f'feature_lags_s[{i}]', 0.0, MAX_FEATURE_LAG_S, lo_open=True)
                               for i, v in enumerate(lags)]
     if 'blend_threshold' in meta:
@@ -193,7 +195,7 @@ def load_actor(path: str | Path) -> tuple[Actor, dict[str, Any]]:
         raise ValueError(f'actor file not found: {path}')
     try:
         blob = torch.load(path, map_location='cpu', weights_only=True)
-    except Exception as exc:  # torch raises many types (pickle, zip, runtime, EOF) for bad files
+    except Exception as exc:  # noqa: BLE001 - torch raises many types (pickle, zip, runtime, EOF) for bad files
         raise ValueError(f'cannot load actor from {path}: {_load_error(exc)}') from None
     try:
         if not isinstance(blob, dict) or not isinstance(blob.get('actor'), dict):

@@ -32,7 +32,8 @@ import functools
 import math
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Callable, Hashable, Protocol
+from typing import Protocol
+from collections.abc import Callable, Hashable
 
 import numpy as np
 

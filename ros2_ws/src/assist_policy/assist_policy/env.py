@@ -30,7 +30,8 @@ from __future__ import annotations
 import dataclasses
 import logging
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
+from collections.abc import Callable
 
 import gymnasium as gym
 import numpy as np
@@ -278,7 +279,8 @@ class LandingAssistEnv(gym.Env):
         return self._obs(), float(reward), bool(terminated), bool(truncated), info
 
     def camera_frame(self):
-        """This step's camera frame as rendered (clean depth): the encoder's, else rendered on first use (once a step)."""
+        """This step's camera frame as rendered (clean depth): the encoder's, else rendered on first use
+        (once a step)."""
         if self._frame is None:
             self._frame = self.world.render()
         return self._frame

@@ -70,7 +70,8 @@ def landing_plan(seed: int | np.random.Generator | None, beta: float | None = No
 
 def evaluation_plans(seed: int, betas: tuple[float, ...], landings: int, pilot_family: str = 'paper',
                      alpha: float = 0.5) -> list[tuple[int, LandingPlan]]:
-    """(seed, plan) of every landing `evaluate` flies, in its order: landing k at beta index b has seed seed + 1000 b + k."""
+    """(seed, plan) of every landing `evaluate` flies, in its order: landing k at beta index b has seed
+    seed + 1000 b + k."""
     out = []
     for bi, beta in enumerate(betas):
         for k in range(landings):

@@ -28,14 +28,15 @@ oscillation damper for latent and end_to_end but not for the oracle (it knows th
 pilot or steering to the nearest pad only costs it). `--override/--recall/--damper true|false` set them
 for every learned assistant; `--safety false --override false --recall false --damper false` flies the
 bare learned actor, as the paper did. `--safety`: the floor guard (assist_policy.safety) for every
-assisted condition, rows named `<condition>+guard` (so runs with and without it combine with --from-csv); `guard_fraction` is the share
-of steps it acted, `wall_fraction` the share its wall rule (assist_policy.walls) stopped an approach to a wall. `--override`: the pilot override (assist_policy.override) for the learned assistants
-(not for the scripted references, which stay as defined): rows `<condition>[+guard]+override`,
-`override_fraction` the share of steps it replaced the actor's action. `--recall`: the pad recall
-(assist_policy.recall) for the learned assistants: rows `<condition>[+guard][+override]+recall`,
-`recall_fraction` the share of steps it steered. `--damper`: the oscillation damper (assist_policy.damper)
-for the learned assistants: rows `<condition>[+guard][+override][+recall]+damper`, `damper_fraction` the
-share of steps it damped.
+assisted condition, rows named `<condition>+guard` (so runs with and without it combine with --from-csv);
+`guard_fraction` is the share of steps it acted, `wall_fraction` the share its wall rule
+(assist_policy.walls) stopped an approach to a wall. `--override`: the pilot override
+(assist_policy.override) for the learned assistants (not for the scripted references, which stay as
+defined): rows `<condition>[+guard]+override`, `override_fraction` the share of steps it replaced the
+actor's action. `--recall`: the pad recall (assist_policy.recall) for the learned assistants: rows
+`<condition>[+guard][+override]+recall`, `recall_fraction` the share of steps it steered. `--damper`: the
+oscillation damper (assist_policy.damper) for the learned assistants: rows
+`<condition>[+guard][+override][+recall]+damper`, `damper_fraction` the share of steps it damped.
 
     evaluate --pilot bang_bang --betas 0 0.25 0.5 0.75 1 --landings 8 --out runs/eval_bang_bang
 
@@ -362,9 +363,9 @@ def format_table(summary: dict[str, dict]) -> str:
 
 def plot(rows_by_cond: dict[str, list[dict]], path: Path) -> None:
     """Mean landing error (+- std band) against beta per condition, like the paper's Fig. 5."""
-    import matplotlib  # noqa: PLC0415
+    import matplotlib
     matplotlib.use('Agg')
-    import matplotlib.pyplot as plt  # noqa: PLC0415
+    import matplotlib.pyplot as plt
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
     for cond, rows in rows_by_cond.items():
         betas = sorted({r['beta'] for r in rows})
@@ -460,7 +461,8 @@ def write_results(out: Path, rows_by_cond: dict[str, list[dict]], with_plot: boo
 
 
 def condition_name(cond: str, safety: bool, on: dict[str, bool]) -> str:
-    """A condition's row name: cond, +guard when the floor guard flies with it, +<rule> for each rule in `on` that flies."""
+    """A condition's row name: cond, +guard when the floor guard flies with it, +<rule> for each rule in
+    `on` that flies."""
     return (cond + ('+guard' if safety and cond != 'unassisted' else '')
             + ''.join(f'+{rule}' for rule, flies in on.items() if flies))
 

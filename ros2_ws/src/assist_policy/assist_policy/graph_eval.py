@@ -201,7 +201,7 @@ class NodeGroup:
         for k, v in (remaps or {}).items():
             cmd += ['-r', f'{k}:={v}']
         env = dict(os.environ, ROS_DOMAIN_ID=str(self.domain_id), PYTHONUNBUFFERED='1')
-        fh = open(self.log_dir / f'{executable}.log', 'a', encoding='utf-8')   # noqa: SIM115 - closed in stop()
+        fh = open(self.log_dir / f'{executable}.log', 'a', encoding='utf-8')  # closed in stop()
         fh.write(f'$ {" ".join(cmd)}\n')
         fh.flush()
         self._logs[executable] = fh
@@ -472,8 +472,10 @@ def landing_row(listener: Listener, data: dict, seed: int, plan: LandingPlan, na
 
 
 def fly_condition(args: GraphEvalArgs, cond: str, name: str, on: dict[str, bool],
-                  todo: list[tuple[int, LandingPlan]], domain_id: int, log_dir: Path, results: LandingLog) -> list[dict]:
-    """Start `cond`'s graph, fly the landings `todo` in order as consecutive episodes, write each row; stop the graph."""
+                  todo: list[tuple[int, LandingPlan]], domain_id: int, log_dir: Path,
+                  results: LandingLog) -> list[dict]:
+    """Start `cond`'s graph, fly the landings `todo` in order as consecutive episodes, write each row; stop
+    the graph."""
     plans = [p for _, p in todo]
     params = node_params(args, cond, plans, on)
     listener = Listener(domain_id)

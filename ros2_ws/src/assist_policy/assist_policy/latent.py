@@ -19,7 +19,7 @@ log = logging.getLogger(__name__)
 def default_encoder_path() -> Path:
     """The shipped CM-VAE weights (perception package's default: models/cmvae.pt); ValueError if missing."""
     try:
-        from assist_perception.encoder_core import default_model_path  # noqa: PLC0415
+        from assist_perception.encoder_core import default_model_path
     except ImportError as exc:
         raise ValueError(f'latent condition needs assist_perception: {exc}') from exc
     path = default_model_path()
@@ -40,8 +40,8 @@ class LatentFn:
     """
 
     def __init__(self, encoder, depth_noise: bool, seed: int):
-        from assist_perception.encoder_core import BadFrame  # noqa: PLC0415
-        from assist_perception.noise import apply_depth_noise, frame_rng  # noqa: PLC0415
+        from assist_perception.encoder_core import BadFrame
+        from assist_perception.noise import apply_depth_noise, frame_rng
         self._encoder, self._apply_noise, self._frame_rng = encoder, apply_depth_noise, frame_rng
         self._bad_frame = BadFrame
         self.depth_noise = bool(depth_noise)
@@ -84,8 +84,8 @@ def make_latent_fn(model_path: str | Path | None = None, depth_noise: bool = Tru
     Raises ValueError with a clear message when the package or weights are unavailable.
     """
     try:
-        from assist_perception.encoder_core import LatentEncoder  # noqa: PLC0415
-        from assist_perception.model import ModelLoadError  # noqa: PLC0415
+        from assist_perception.encoder_core import LatentEncoder
+        from assist_perception.model import ModelLoadError
     except ImportError as exc:
         raise ValueError(f'latent condition needs assist_perception (CM-VAE): {exc}') from exc
     path = Path(model_path) if model_path else default_encoder_path()

@@ -51,7 +51,8 @@ MAX_DEPTH_M = 100.0   # depth beyond this (or negative / non-finite) is a hole (
 
 
 def default_model_path(mode: str) -> Path:
-    """Shipped actor for a mode, td3_<mode>_actor.pt: $ASSIST_MODELS_DIR, share/assist_policy/models or the repo's models/."""
+    """Shipped actor for a mode, td3_<mode>_actor.pt: $ASSIST_MODELS_DIR, share/assist_policy/models or the
+    repo's models/."""
     return shipped_model_path('assist_policy', f'td3_{Condition(mode).value}_actor.pt')
 
 
@@ -97,7 +98,8 @@ class PolicyCoreConfig:
     max_position_m: float = 1.0e4       # odometry / goal coordinates beyond this are rejected
     max_latent_abs: float = 1.0e3       # encoder means beyond this are rejected
     safety: SafetyConfig | None = nested(SafetyConfig)   # floor guard settings (None: SafetyConfig() defaults)
-    override: OverrideConfig | None = nested(OverrideConfig)   # pilot override settings (None: OverrideConfig() defaults)
+    # pilot override settings (None: OverrideConfig() defaults)
+    override: OverrideConfig | None = nested(OverrideConfig)
     recall: RecallConfig | None = nested(RecallConfig)   # pad recall settings (None: RecallConfig() defaults)
     damper: DamperConfig | None = nested(DamperConfig)   # oscillation damper settings (None: DamperConfig() defaults)
     flight: FlightConfig | None = nested(FlightConfig)   # flight boundaries (None: FlightConfig() defaults)
@@ -123,8 +125,8 @@ class PolicyCoreConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= MIN_SPEED_LIMIT_MPS):
                 raise ValueError(f'PolicyCoreConfig.{name} must be a finite number >= {MIN_SPEED_LIMIT_MPS}, got {v!r}')
-        for name in ('pilot_timeout_s', 'feature_timeout_s', 'odom_timeout_s', 'max_input_mps', 'max_odom_speed_mps', 'max_position_m',
-                     'max_latent_abs'):
+        for name in ('pilot_timeout_s', 'feature_timeout_s', 'odom_timeout_s', 'max_input_mps', 'max_odom_speed_mps',
+                     'max_position_m', 'max_latent_abs'):
             _positive(name, getattr(self, name))
         m = self.depth_pose_match_s
         if not (isinstance(m, (int, float)) and math.isfinite(m) and m >= 0):
@@ -198,7 +200,8 @@ class PolicyCore:
         self._depth_stamp = 0.0                     # sensor stamp of the latest depth frame (s)
         self._frame: DepthFrame | None = None       # the latest depth frame as the stages read it (pose looked up once)
         self._poses = PoseHistory(POSE_HISTORY_S, self.cfg.depth_pose_match_s)   # odometry by sensor stamp
-        self.depth_pose_unmatched = 0               # depth frames mapped from the latest odometry (no pose at their stamp)
+        # depth frames mapped from the latest odometry (no pose at their stamp)
+        self.depth_pose_unmatched = 0
 
     @property
     def engaged(self) -> Counter[str]:

@@ -13,13 +13,13 @@ removed a command's approach to a wall), pilot_override (on/off) and pilot_overr
 (steps the pilot override, assist_policy.override, replaced the actor's action) and
 pilot_override_persistent_engaged, pilot_override_climb_engaged and pilot_override_long_engaged (of
 those, steps for a persistent push, a held climb, a long push), pilot_override_spot_kept (steps a push back to,
-or a climb off, a spot the pilot tried to land on stayed with the actor), pad_recall (on/off), pad_recall_engaged (steps it steered to a mapped pad),
-pad_recall_touchdown and pad_recall_scout (of those, steps it centred on the pad below for touchdown, it
-looked beyond for a nearer pad before steering back to one behind), pad_recall_pads (pads in its map),
-depth_pose_unmatched (depth frames mapped from the latest odometry because no /odom header stamp lay within
-depth_pose_match_s of theirs; the recall maps each frame from the pose at its header stamp), oscillation_damper (on/off) and
-oscillation_damper_engaged (steps the oscillation damper, assist_policy.damper, replaced the actor's
-horizontal action).
+or a climb off, a spot the pilot tried to land on stayed with the actor), pad_recall (on/off),
+pad_recall_engaged (steps it steered to a mapped pad), pad_recall_touchdown and pad_recall_scout (of those,
+steps it centred on the pad below for touchdown, it looked beyond for a nearer pad before steering back to one
+behind), pad_recall_pads (pads in its map), depth_pose_unmatched (depth frames mapped from the latest odometry
+because no /odom header stamp lay within depth_pose_match_s of theirs; the recall maps each frame from the pose
+at its header stamp), oscillation_damper (on/off) and oscillation_damper_engaged (steps the oscillation damper,
+assist_policy.damper, replaced the actor's horizontal action).
 """
 from __future__ import annotations
 

@@ -3,9 +3,10 @@
 Why: the learned assistant knows about a pad only while the encoder sees one (its feature memory
 covers a couple of seconds). A pilot who overshoots the last pad, or sets down between pads, descends
 over bare floor with no pad in view, and there the actor is almost inactive or points nowhere in
-particular (the first failure seen with pilots it never trained with: "the assistant is almost inactive there"); the floor guard then
-stops the descent, and the landing times out hovering over the floor. The nearest-pad reference, which
-knows the true pad positions, pulls such a pilot back onto the pad it passed.
+particular (the first failure seen with pilots it never trained with: "the assistant is almost inactive
+there"); the floor guard then stops the descent, and the landing times out hovering over the floor. The
+nearest-pad reference, which knows the true pad positions, pulls such a pilot back onto the pad it
+passed.
 
 Map (``PadMap``): every depth frame is back-projected into odom with the camera's pose (odometry
 position and attitude, camera ``camera_offset_m`` below base_link on the body z axis, optical frame as

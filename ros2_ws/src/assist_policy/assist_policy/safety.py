@@ -129,7 +129,8 @@ class FloorGuard:
                 and position[2] - c.camera_offset_m - top < c.blind_range_m)
 
     def _remember_pad(self, legs: list[float | None], position: np.ndarray) -> None:
-        """Store the top height of the surface under the legs (nearest of the leg depths `legs`) and where it was seen."""
+        """Store the top height of the surface under the legs (nearest of the leg depths `legs`) and where it
+        was seen."""
         tops = [d for d in legs if d is not None]
         if tops:
             self._pad = (float(position[0]), float(position[1]),

@@ -111,7 +111,7 @@ NEAREST_PAD_VARIANTS = {
 }
 
 
-def make_nearest_pad(variant: str = 'nearest_pad', max_speed=DEFAULT_MAX_SPEED) -> 'ScriptedNearestPad':
+def make_nearest_pad(variant: str = 'nearest_pad', max_speed=DEFAULT_MAX_SPEED) -> ScriptedNearestPad:
     """The named nearest-pad teacher (NEAREST_PAD_VARIANTS); ValueError for an unknown name."""
     if variant not in NEAREST_PAD_VARIANTS:
         raise ValueError(f'unknown nearest-pad variant {variant!r}; one of {", ".join(NEAREST_PAD_VARIANTS)}')

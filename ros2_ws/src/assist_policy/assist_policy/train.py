@@ -422,7 +422,7 @@ def _load_state(path: Path) -> dict:
     """A checkpoint's state.pt (weights_only); ValueError (one line) when it is damaged."""
     try:
         state = torch.load(path, map_location='cpu', weights_only=True)
-    except Exception as exc:  # torch raises many types (pickle, zip, runtime, EOF) for damaged files
+    except Exception as exc:  # noqa: BLE001 - torch raises many types (pickle, zip, runtime, EOF) for damaged files
         first = (str(exc).strip().splitlines() or [''])[0][:200]
         raise ValueError(f'damaged checkpoint {path}: {type(exc).__name__}: {first}') from None
     missing = [k for k in STATE_KEYS if not isinstance(state, dict) or k not in state]
@@ -634,12 +634,13 @@ def train(args: TrainArgs, given: Collection[str] | None = None) -> Path:
             episode += 1
             noise.landed()
             res = sinfo['result']
-            cl = [l['critic_loss'] for l in losses]
-            qm = [l['q_mean'] for l in losses]
+            cl = [loss['critic_loss'] for loss in losses]
+            qm = [loss['q_mean'] for loss in losses]
             metrics.write({'episode': episode, 'step': step, 'beta': round(info['beta'], 3),
                            'return': round(env.episode_return, 3), 'error_m': round(res['error_m'], 3),
                            'outcome': res['outcome'], 'success': int(res['success']),
-                           'crash': int(res['crash']), 'active_fraction': round(n_active / n_steps, 3), 'sigma': round(noise.sigma, 4),
+                           'crash': int(res['crash']), 'active_fraction': round(n_active / n_steps, 3),
+                           'sigma': round(noise.sigma, 4),
                            'critic_loss': round(float(np.mean(cl)), 4) if cl else '',
                            'q_mean': round(float(np.mean(qm)), 3) if qm else '',
                            'wall_s': round(time.time() - t0, 1)})

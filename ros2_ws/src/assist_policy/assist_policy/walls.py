@@ -19,13 +19,13 @@ Rule (``WallGuard.apply``): for every wall cell within ``wall_radius_m`` horizon
 nearest first, the part of the blended command's horizontal velocity V_xy that points at it is removed
 (two passes), the pilot's as well as the actor's: like ArduPilot's simple avoidance, it stops the
 approach. Moving away from a wall, climbing and descending are untouched; moving along one within reach
-is slowed and turned away from it (the cells ahead along the wall are approached too). As the floor guard does, it publishes
-what it imposed as the agent action a' = 2 V' - u. How near the wall it stops depends on the height:
-the camera sees a point h over the floor at most (z_cam - h) tan(29 deg) to the side (0.55 (z_cam - h)
-along an image axis), so a wall is marked 1.4 m away at 4.5 m and 0.8 m away at 3.5 m; from 1 m/s the
-velocity controller stops within ~0.2 m. Below about 2.5 m the camera sees no wall point higher than
-``wall_height_m`` before it is within 0.3 m: low flight near walls is not covered, except where the wall
-was marked from higher up. Pure numpy; no rclpy.
+is slowed and turned away from it (the cells ahead along the wall are approached too). As the floor guard
+does, it publishes what it imposed as the agent action a' = 2 V' - u. How near the wall it stops depends
+on the height: the camera sees a point h over the floor at most (z_cam - h) tan(29 deg) to the side
+(0.55 (z_cam - h) along an image axis), so a wall is marked 1.4 m away at 4.5 m and 0.8 m away at 3.5 m;
+from 1 m/s the velocity controller stops within ~0.2 m. Below about 2.5 m the camera sees no wall point
+higher than ``wall_height_m`` before it is within 0.3 m: low flight near walls is not covered, except
+where the wall was marked from higher up. Pure numpy; no rclpy.
 """
 from __future__ import annotations
 

@@ -156,8 +156,8 @@ def test_evaluate_rows_identical_to_the_hand_chained_env(tmp_path: Path):
 
 
 def test_policy_node_loads_the_actor_without_the_training_code():
-    import subprocess  # noqa: PLC0415
-    import sys  # noqa: PLC0415
+    import subprocess
+    import sys
     code = ('import sys, assist_policy.policy_node; '
             'print(sorted(m for m in ("assist_policy.td3", "assist_policy.env", "assist_policy.train", "pybullet", '
             '"gymnasium") if m in sys.modules))')
@@ -166,9 +166,9 @@ def test_policy_node_loads_the_actor_without_the_training_code():
 
 
 def test_policy_node_parameters_and_assist_yaml_come_from_the_config_dataclasses():
-    import yaml  # noqa: PLC0415
+    import yaml
 
-    from assist_policy import policy_node, settings  # noqa: PLC0415
+    from assist_policy import policy_node, settings
     derived = settings.parameters(PolicyCoreConfig)
     assert len(derived) >= 40 and set(derived) <= set(policy_node.PARAMS)
     cfg = PolicyCoreConfig()
@@ -194,14 +194,14 @@ def test_policy_node_parameters_and_assist_yaml_come_from_the_config_dataclasses
 
 def dataclasses_default(cls, name):
     """The default instance of a nested config field left None."""
-    import dataclasses  # noqa: PLC0415
-    from assist_policy.settings import NESTED_KEY  # noqa: PLC0415
+    import dataclasses
+    from assist_policy.settings import NESTED_KEY
     return next(f.metadata[NESTED_KEY] for f in dataclasses.fields(cls) if f.name == name)()
 
 
 @pytest.mark.parametrize('value', [1e-300, 0.0, 0.05, -1.0, float('nan')])
 def test_speed_limits_that_would_silently_stop_every_motion_are_refused(value, tmp_path):
-    from assist_policy import policy_node  # noqa: PLC0415
+    from assist_policy import policy_node
     for name in ('max_speed_mps', 'max_vertical_mps'):
         with pytest.raises(ValueError):
             PolicyCoreConfig(**{name: value})

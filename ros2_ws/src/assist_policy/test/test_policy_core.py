@@ -123,7 +123,8 @@ def test_end_to_end_core_needs_fresh_images(tmp_path):
 
 
 def test_actor_velocity_odom_rotates_the_twist_with_the_attitude(tmp_path, monkeypatch):
-    """actor_velocity 'odom' (evaluate's env, replay of its bags): the actor sees R(q) twist; 'twist' (policy_node): as given."""
+    """actor_velocity 'odom' (evaluate's env, replay of its bags): the actor sees R(q) twist; 'twist'
+    (policy_node): as given."""
     seen = {}
     yaw90 = [0.0, 0.0, math.sin(math.pi / 4), math.cos(math.pi / 4)]
     for frame in ('twist', 'odom'):

@@ -20,6 +20,7 @@ DT = 0.05
 MAX_SPEED = (1.0, 1.0, 0.6)
 HERE = np.array([5.0, 0.0, 3.0])            # the vehicle's odom position in the tests that do not move it
 PADS = np.array([[5.1, 0.1, 0.8]])          # a mapped pad right below it
+NO_AGENT = np.zeros(3)                      # the agent action act() passes by default
 
 
 def swings(half_period_s: float, total_s: float, speed: float = 1.0, z: float = 0.0):
@@ -30,7 +31,7 @@ def swings(half_period_s: float, total_s: float, speed: float = 1.0, z: float = 
         yield k * DT, np.array([sign * speed, 0.0, z])
 
 
-def act(d: OscillationDamper, t: float, u, agent=np.zeros(3), velocity=(0.5, 0.0, 0.0), position=HERE,
+def act(d: OscillationDamper, t: float, u, agent=NO_AGENT, velocity=(0.5, 0.0, 0.0), position=HERE,
         pads=PADS):
     """One damper step (default: at HERE over PADS, moving 0.5 m/s along +x)."""
     return d.apply(t, np.asarray(u, dtype=float), agent, np.asarray(velocity, dtype=float), position, pads, MAX_SPEED)
@@ -150,7 +151,8 @@ def test_policy_core_damps_an_oscillating_pilot_and_reports_it(tmp_path):
             out = core.step(t)
             keys.append(out.key)
         if enabled:
-            assert out.key == 'oscillation_damper' and core.engaged['oscillation_damper'] > 0 and len(core.recall.map.pads) == 1
+            assert (out.key == 'oscillation_damper' and core.engaged['oscillation_damper'] > 0
+                    and len(core.recall.map.pads) == 1)
             assert out.agent[:2] == pytest.approx([-2.0 * 0.4 * np.sign(u[0]), 0.0])
             assert keys.count('oscillation_damper') == core.engaged['oscillation_damper']
         else:

@@ -172,7 +172,6 @@ def test_floor_descent_term_costs_only_low_descents_over_bare_floor():
         e.reset(seed=5, options={'beta': 0.0})
     diffs, low = [], []
     for _ in range(200):                           # the agent pushes straight down from the start (over the floor)
-        z_before = envs[0].world.state.position[2]
         r0 = envs[0].step(np.array([0.0, 0.0, -1.0]))
         r1 = envs[1].step(np.array([0.0, 0.0, -1.0]))
         diffs.append(r0[1] - r1[1])

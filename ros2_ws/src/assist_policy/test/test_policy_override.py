@@ -221,7 +221,8 @@ def test_policy_core_passes_a_persistent_push_and_says_so(tmp_path):
     assert all(o.key == 'assisting' for o in outs[:40])
     assert outs[-1].key == 'pilot_override' and 'persistent push' in outs[-1].reason
     np.testing.assert_allclose(outs[-1].velocity, [0.7, 0.0, -0.3])   # relinquished up there: V = u
-    assert core.assistant.modes['pilot_override:persistent'] == core.engaged['pilot_override'] == sum(o.key == 'pilot_override' for o in outs) >= 15
+    assert (core.assistant.modes['pilot_override:persistent'] == core.engaged['pilot_override']
+            == sum(o.key == 'pilot_override' for o in outs) >= 15)
 
 
 def test_a_held_climb_the_vehicle_does_not_make_passes_until_the_pilot_stops_climbing():
@@ -353,7 +354,8 @@ def test_policy_core_passes_a_held_climb_and_says_so(tmp_path):
         out = core.step(t)
     assert out.key == 'pilot_override' and 'held climb' in out.reason
     assert out.velocity[2] == pytest.approx(0.5)           # the pilot's climb
-    assert core.assistant.modes['pilot_override:climb'] == core.engaged['pilot_override'] >= 15 and core.assistant.modes['pilot_override:persistent'] == 0
+    assert (core.assistant.modes['pilot_override:climb'] == core.engaged['pilot_override'] >= 15
+            and core.assistant.modes['pilot_override:persistent'] == 0)
 
 
 def test_policy_core_passes_a_long_push_and_says_so(tmp_path):
@@ -369,7 +371,8 @@ def test_policy_core_passes_a_long_push_and_says_so(tmp_path):
     assert all(o.key == 'assisting' for o in outs[:95])   # under 5 s
     assert outs[-1].key == 'pilot_override' and 'long push' in outs[-1].reason
     assert outs[-1].velocity[0] >= 0.0 and outs[-1].velocity[2] == pytest.approx(0.3)   # on, rising gently
-    assert core.assistant.modes['pilot_override:long'] == core.engaged['pilot_override'] >= 30 and core.assistant.modes['pilot_override:persistent'] == 0
+    assert (core.assistant.modes['pilot_override:long'] == core.engaged['pilot_override'] >= 30
+            and core.assistant.modes['pilot_override:persistent'] == 0)
 
 
 def test_policy_core_keeps_a_push_back_to_where_the_pilot_tried_to_land_with_the_actor(tmp_path):
@@ -384,7 +387,8 @@ def test_policy_core_keeps_a_push_back_to_where_the_pilot_tried_to_land_with_the
         core.set_latent(t, np.zeros(_helpers.LATENT))
         outs.append(core.step(t))
     assert all(o.key == 'assisting' for o in outs[20:])   # no long push back to the spot (positioning)
-    assert core.engaged['pilot_override'] == core.assistant.modes['pilot_override:long'] == 0 and core.assistant.modes['pilot_override:spot_kept'] >= 30
+    assert (core.engaged['pilot_override'] == core.assistant.modes['pilot_override:long'] == 0
+            and core.assistant.modes['pilot_override:spot_kept'] >= 30)
 
 
 @pytest.mark.parametrize('surface, engages', [('floor', True), ('pad', False)])
@@ -400,7 +404,8 @@ def test_policy_core_reads_bare_floor_from_the_depth_image(tmp_path, surface, en
         core.set_latent(t, np.zeros(_helpers.LATENT))
         core.set_depth(t, depth)
         out = core.step(t)
-    assert (out.key == 'pilot_override') is engages and (core.assistant.modes['pilot_override:persistent'] > 0) is engages
+    assert ((out.key == 'pilot_override') is engages
+            and (core.assistant.modes['pilot_override:persistent'] > 0) is engages)
 
 
 def test_evaluate_a_glide_pilot_passes_the_nearer_pad_with_the_persistent_push(tmp_path, monkeypatch):

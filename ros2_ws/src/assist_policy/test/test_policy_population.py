@@ -47,7 +47,9 @@ def test_evaluate_pilot_and_safety_columns(tmp_path):
     assert len(rows) == 4 and {r['pilot'] for r in rows} == {'bang_bang'}
     assert all(0.0 <= float(r['guard_fraction']) <= 1.0 for r in rows)
     assert all(float(r['guard_fraction']) == 0.0 for r in rows if r['condition'] == 'unassisted')
-    assert main(['--pilot', 'nobody', '--out', str(tmp_path / 'x'), '--landings', '1']) == 1
+    with pytest.raises(SystemExit) as exc:          # a bad value: one error line, exit 2, before any work
+        main(['--pilot', 'nobody', '--out', str(tmp_path / 'x'), '--landings', '1'])
+    assert exc.value.code == 2 and not (tmp_path / 'x').exists()
 
 
 def test_env_floor_guard_turns_a_floor_descent_into_a_climb():

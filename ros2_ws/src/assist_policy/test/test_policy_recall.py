@@ -357,8 +357,8 @@ def test_env_steers_a_descent_past_the_last_pad_back_and_records_it():
 def test_evaluate_recall_rows_and_column(tmp_path):
     actor = _helpers.constant_actor(tmp_path / 'still.pt', [0.0, 0.0, 0.0], condition='oracle', latent_dim=0)
     args = EvalArgs(out=str(tmp_path / 'ev'), conditions=('oracle', 'scripted_nearest_pad'), betas=(0.5,),
-                    landings=1, pilot='paper', safety=True, override=False, recall=True, damper=False, oracle_model=str(actor),
-                    plot=False, max_episode_s=5.0)
+                    landings=1, pilot='paper', safety=True, override=False, recall=True, damper=False,
+                    oracle_model=str(actor), plot=False, max_episode_s=5.0)
     assert set(evaluate(args)) == {'oracle+guard+recall', 'scripted_nearest_pad+guard'}   # scripts stay as defined
     rows = {r['condition']: r for r in csv.DictReader(open(tmp_path / 'ev' / 'landings.csv'))}
     assert float(rows['scripted_nearest_pad+guard']['recall_fraction']) == 0.0

@@ -74,7 +74,7 @@ def test_passes_through_over_a_pad_above_the_guard_height_climbing_or_disabled(d
     u = np.array([0.0, 0.0, -0.5])
     g = FloorGuard(SafetyConfig(edge_height_m=0.0))                    # the floor rule alone
     assert not g.apply(u, None, u, depth_at(5.0, 0.0, 1.1), [5.0, 0.0, 1.1], THR).engaged          # pad below
-    assert not g.apply(u, None, u, depth_at(5.55, 0.0, 1.0), [5.55, 0.0, 1.0], THR).engaged         # edge: pad under 2 legs
+    assert not g.apply(u, None, u, depth_at(5.55, 0.0, 1.0), [5.55, 0.0, 1.0], THR).engaged  # edge: pad under 2 legs
     assert not g.apply(u, None, u, depth_at(0.0, 0.0, 1.3), [0.0, 0.0, 1.3], THR).engaged          # above 1 m
     up = np.array([0.0, 0.0, 0.5])
     assert not g.apply(up, None, up, depth_at(0.0, 0.0, 0.8), [0.0, 0.0, 0.8], THR).engaged        # not descending

@@ -36,7 +36,7 @@ import socket
 import struct
 import time
 from dataclasses import dataclass
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -165,7 +165,7 @@ class JsonPhysicsServer:
         self.sock.settimeout(max(0.0, timeout))
         try:
             data, addr = self.sock.recvfrom(2048)
-        except (socket.timeout, BlockingIOError):
+        except (TimeoutError, BlockingIOError):
             return None
         except OSError as exc:          # e.g. ICMP port unreachable from a previous reply on some stacks
             _LOG.debug('recvfrom: %s', exc)
@@ -394,8 +394,8 @@ class JsonSimRunner:
         dropped = c['bad_magic'] + c['bad_length'] + c['bad_frame_rate']
         if not srv.connected and dropped:
             self.diag.status(2, f'no valid SITL packet on udp {host}:{port}: dropped {c["bad_magic"]} with a wrong '
-                                f'magic, {c["bad_length"]} with a wrong length, {c["bad_frame_rate"]} with a frame rate '
-                                f'outside {srv.cfg.min_frame_rate_hz}-{srv.cfg.max_frame_rate_hz} Hz')
+                                f'magic, {c["bad_length"]} with a wrong length, {c["bad_frame_rate"]} with a '
+                                f'frame rate outside {srv.cfg.min_frame_rate_hz}-{srv.cfg.max_frame_rate_hz} Hz')
         elif not srv.connected:
             self.diag.status(1, f'waiting for ArduPilot SITL (JSON) on udp {host}:{port}')
         elif srv.silent:

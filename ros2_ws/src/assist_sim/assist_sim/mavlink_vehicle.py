@@ -28,16 +28,17 @@ import os
 import time
 from dataclasses import dataclass, field
 from struct import error as struct_error   # pymavlink can raise it on truncated frames
-from typing import Any, Callable
+from typing import Any
+from collections.abc import Callable
 
 import numpy as np
 
 os.environ['MAVLINK20'] = '1'  # MAVLink 2 framing; must be set before mavutil is imported
-from pymavlink import mavutil  # noqa: E402
+from pymavlink import mavutil
 
-from assist_common.frames import (attitude_enu_flu_to_ned_frd, enu_to_ned, flu_to_frd, ned_to_enu,  # noqa: E402
+from assist_common.frames import (attitude_enu_flu_to_ned_frd, enu_to_ned, flu_to_frd, ned_to_enu,
                                   quat_to_matrix, yaw_rotation)
-from assist_common.mavlink_io import (COPTER_MODE_NAMES, COPTER_MODES, FORCE_ARM_DISARM_MAGIC,  # noqa: E402
+from assist_common.mavlink_io import (COPTER_MODE_NAMES, COPTER_MODES, FORCE_ARM_DISARM_MAGIC,
                                       enable_signing, load_signing_key, next_message, open_connection,
                                       refresh_signing_timestamp)
 

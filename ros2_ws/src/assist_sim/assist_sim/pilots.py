@@ -35,12 +35,13 @@ Families (``FAMILIES``; the reasoning is in each class's docstring):
 Split (``TRAIN_FAMILIES`` / ``HELDOUT_FAMILIES``): training may use ``paper``, ``delay``, ``tapper``,
 ``depth_bias`` and ``follower``; ``bang_bang``, ``late_correction``, ``key_confusion``, ``ignorer``,
 ``keyboard``, ``glide``, ``low_flyer`` and ``cautious`` are for evaluation only (``cautious``,
-``UNTUNED_FAMILIES``, came after every non-learned rule had been tuned and no rule was tuned to it). Population names (``POPULATIONS``):
-``mix`` = one of the first five held-out families (``MIX_FAMILIES``) drawn uniformly per episode (the
-held-out evaluation the issue-12 tables report), ``approach_mix`` = ``glide`` or ``low_flyer``
-(``APPROACH_FAMILIES``: added later, after they broke an assistant that had learned from keyboard
-families that a descent starts over the aim; kept out of ``mix`` so earlier tables stay comparable),
-``train_mix`` = one training family drawn per episode (domain randomisation for training).
+``UNTUNED_FAMILIES``, came after every non-learned rule had been tuned and no rule was tuned to it).
+Population names (``POPULATIONS``): ``mix`` = one of the first five held-out families (``MIX_FAMILIES``)
+drawn uniformly per episode (the held-out evaluation the issue-12 tables report), ``approach_mix`` =
+``glide`` or ``low_flyer`` (``APPROACH_FAMILIES``: added later, after they broke an assistant that had
+learned from keyboard families that a descent starts over the aim; kept out of ``mix`` so earlier tables
+stay comparable), ``train_mix`` = one training family drawn per episode (domain randomisation for
+training).
 
 ``make_pilot(name, alpha, beta, cfg, rng, pads)`` builds a pilot by name; ``pads`` (the pad top
 centres, known to the env and to sim_pilot_node from /sim/scene) lets ``late_correction`` pick a real

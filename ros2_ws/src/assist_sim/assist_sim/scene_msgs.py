@@ -1,7 +1,7 @@
 """BoxMarker list (assist_sim.core.scene_markers) -> visualization_msgs/MarkerArray for /sim/scene."""
 from __future__ import annotations
 
-from typing import Iterable
+from collections.abc import Iterable
 
 from visualization_msgs.msg import Marker, MarkerArray
 

@@ -263,7 +263,7 @@ class SimNode(Node):
                 break                      # rclpy is shutting down (SIGINT): stop publishing
             try:
                 self._publish(out)
-            except Exception as exc:       # noqa: BLE001
+            except Exception:
                 if not self.context.ok():  # the context went away between the check and publish
                     break
                 raise

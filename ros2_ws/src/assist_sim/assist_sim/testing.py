@@ -17,7 +17,7 @@ import subprocess
 import threading
 import time
 from types import SimpleNamespace
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -189,7 +189,7 @@ class SilentAutopilot:
         while self._run:
             try:
                 data, anc, _flags, _addr = sock.recvmsg(4096, socket.CMSG_SPACE(16))
-            except (socket.timeout, BlockingIOError):
+            except (TimeoutError, BlockingIOError):
                 continue
             t = time.time()
             for level, kind, raw in anc:

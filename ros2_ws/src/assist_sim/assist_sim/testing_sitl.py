@@ -103,7 +103,7 @@ class SitlStandIn:
         self.sock.settimeout(timeout)
         try:
             data, _ = self.sock.recvfrom(65000)
-        except socket.timeout:
+        except TimeoutError:
             return None
         self.raw = data
         self.buffer += data.replace(b'\n', b'\0')

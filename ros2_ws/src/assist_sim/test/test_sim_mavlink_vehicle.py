@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 
 os.environ['MAVLINK20'] = '1'
-from pymavlink import mavutil  # noqa: E402
+from pymavlink import mavutil
 
-from assist_common.mavlink_io import COPTER_MODES  # noqa: E402
-from assist_sim.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleConfig  # noqa: E402
-from assist_sim.testing import KinematicWorld, free_udp_port  # noqa: E402
+from assist_common.mavlink_io import COPTER_MODES
+from assist_sim.mavlink_vehicle import MavlinkVehicle, MavlinkVehicleConfig
+from assist_sim.testing import KinematicWorld, free_udp_port
 
 mavlink = mavutil.mavlink
 DT = 0.05

@@ -18,7 +18,7 @@ from __future__ import annotations
 import ipaddress
 import re
 import socket
-from typing import Iterable
+from collections.abc import Iterable
 
 LOOPBACK_NAMES = ('127.0.0.1', 'localhost', '::1')
 WILDCARD_BINDS = ('', '0.0.0.0', '::')

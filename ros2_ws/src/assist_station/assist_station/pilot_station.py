@@ -11,7 +11,8 @@ import functools
 import math
 import threading
 import time
-from typing import Any, Callable
+from typing import Any
+from collections.abc import Callable
 
 import numpy as np
 from geometry_msgs.msg import TwistStamped

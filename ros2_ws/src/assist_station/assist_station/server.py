@@ -27,7 +27,8 @@ from collections import Counter, deque
 from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
+from collections.abc import Callable
 
 import numpy as np
 from aiohttp import WSCloseCode, WSMsgType, web
@@ -378,7 +379,7 @@ class StationServer:
                 send = ws.send_bytes(item) if isinstance(item, bytes) else ws.send_str(item)
                 try:
                     await asyncio.wait_for(send, self.cfg.stall_timeout_s)
-                except asyncio.TimeoutError:
+                except TimeoutError:
                     self._count('slow_clients_closed')
                     _LOG.warning('%s stopped reading for %.1f s: disconnected', client.peer, self.cfg.stall_timeout_s)
                     await self._abort(client)

@@ -33,7 +33,8 @@ import sqlite3
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any
+from collections.abc import Iterable, Iterator
 
 import yaml
 from rosbags.interfaces import (MessageDefinitionFormat, Qos, QosDurability, QosHistory, QosLiveliness,
@@ -151,7 +152,7 @@ def load_metadata_yaml(file: Path) -> Any:
         raise BagError(f'{file}: bag metadata larger than {METADATA_MAX_BYTES // (1024 * 1024)} MiB; not a '
                        f'rosbag2 metadata.yaml')
     try:
-        return yaml.load(raw.decode('utf-8'), Loader=_MetadataLoader)  # noqa: S506 - a SafeLoader subclass
+        return yaml.load(raw.decode('utf-8'), Loader=_MetadataLoader)  # a SafeLoader subclass
     except (yaml.YAMLError, UnicodeDecodeError, RecursionError) as exc:
         raise BagError(f'{file}: unreadable bag metadata ({_one_line(exc)})') from None
 
@@ -221,7 +222,7 @@ class BagReader:
             raise BagError(f'{self.path}: not a bag (a directory with {METADATA}, or a .mcap/.db3 file)')
 
     # ------------------------------------------------------------------ open / close
-    def __enter__(self) -> 'BagReader':
+    def __enter__(self) -> BagReader:
         self.open()
         return self
 
@@ -268,7 +269,7 @@ class BagReader:
         for r in self._readers:
             try:
                 r.close()
-            except Exception:  # noqa: BLE001 - closing after an error must not hide that error
+            except Exception:  # aborting after an error must not hide that error
                 log.debug('closing %s failed', r.path, exc_info=True)
         self._readers = []
 
@@ -622,7 +623,7 @@ class BagWriter:
         if self._writer is not None:
             try:
                 self._writer.abort()
-            except Exception:  # noqa: BLE001 - aborting after an error must not hide that error
+            except Exception:  # aborting after an error must not hide that error
                 log.debug('abort failed', exc_info=True)
             self._writer = None
             if self._chunk_dir is not None:
@@ -631,7 +632,7 @@ class BagWriter:
         if self.atomic:
             shutil.rmtree(self.path, ignore_errors=True)
 
-    def __enter__(self) -> 'BagWriter':
+    def __enter__(self) -> BagWriter:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:

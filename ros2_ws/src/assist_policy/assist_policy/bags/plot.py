@@ -86,7 +86,7 @@ def read_flights(bag: str | Path, progress: bool = False) -> list[Flight]:
         start = r.start_ns
         bar = None
         if progress:
-            from tqdm import tqdm  # noqa: PLC0415
+            from tqdm import tqdm
             bar = tqdm(total=sum(r.topics[t].count for t in used), unit='msg', desc='read', file=sys.stderr)
         try:
             for topic, t_ns, raw in r.messages(used):
@@ -161,9 +161,9 @@ def _pad_outline(pad: dict) -> np.ndarray:
 
 def plot_flight(f: Flight, path: Path, title: str, threshold: float = DEFAULT_THRESHOLD):
     """Draw one landing into a PNG at `path` (written to a temporary name, then renamed); returns the figure."""
-    import matplotlib  # noqa: PLC0415
+    import matplotlib
     matplotlib.use('Agg')
-    import matplotlib.pyplot as plt  # noqa: PLC0415
+    import matplotlib.pyplot as plt
     fig = plt.figure(figsize=(12, 7.5))
     gs = fig.add_gridspec(2, 3, height_ratios=(1.2, 1))
     top, side = fig.add_subplot(gs[0, :2]), fig.add_subplot(gs[0, 2])

@@ -8,10 +8,10 @@ No ROS graph: the bag's camera frames, /odom and /pilot/cmd_vel (and /sim/goal f
 the same cores the nodes run (assist_perception's LatentEncoder via make_latent_fn, PolicyCore) at the
 recorded receive times; the policy steps once per recorded /cmd_vel message (or at --rate-hz, at most
 1000 Hz, when the bag has none; a gap that would take more than a million such steps, e.g. one message with
-a far-future timestamp, is refused). Writes /assist/latent, /assist/agent_cmd and /cmd_vel into a new bag (or one CSV row per step)
-and prints (and writes as JSON) the max, mean and rms difference of /cmd_vel, /assist/agent_cmd and the
-latent from the recorded ones. Existing outputs (bag, CSV, summary JSON) are refused, never overwritten.
-With the models that flew the bag the difference is ~0 (tests/test_bag_replay.py
+a far-future timestamp, is refused). Writes /assist/latent, /assist/agent_cmd and /cmd_vel into a new bag (or
+one CSV row per step) and prints (and writes as JSON) the max, mean and rms difference of /cmd_vel,
+/assist/agent_cmd and the latent from the recorded ones. Existing outputs (bag, CSV, summary JSON) are
+refused, never overwritten. With the models that flew the bag the difference is ~0 (tests/test_bag_replay.py
 holds evaluate's bags to < 1e-4 m/s): that is the check that replay is faithful before a new model is tried
 on old flights.
 
@@ -302,10 +302,10 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
             raise BagError(f'{bag}: lacks {", ".join(missing)}: cannot re-run the {mode} assistant')
         used = need + [t for t in (AGENT, CMD, LATENT, PAD) if t in r.topics and t not in need]
         r.check_definitions(used)
-        import torch  # noqa: PLC0415 - heavy: only once the bag is known to be good
+        import torch  # heavy: only once the bag is known to be good
 
-        from .. import settings  # noqa: PLC0415
-        from ..policy_core import PolicyCore, PolicyCoreConfig, default_model_path  # noqa: PLC0415
+        from .. import settings
+        from ..policy_core import PolicyCore, PolicyCoreConfig, default_model_path
         torch.set_num_threads(1)
         frame = cfg.velocity_frame if cfg.velocity_frame != 'auto' else custom.get(VELOCITY_FRAME_KEY, 'twist')
         if frame not in ('twist', 'odom'):
@@ -331,7 +331,7 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
         frame_noise = noise_seeds is None and bool(ep.get('depth_noise', False))   # encoder_node's per-frame noise
         encoder_path = _model(cfg.encoder, encoder_params, 'the CM-VAE')
         if mode == 'latent' and use_latent == 'encode':
-            from ..latent import make_latent_fn  # noqa: PLC0415
+            from ..latent import make_latent_fn
             seed = noise_seeds[0] if noise_seeds else int(ep.get('noise_seed', 0))
             encode, dim = make_latent_fn(encoder_path or None, depth_noise=noise_seeds is not None or frame_noise,
                                          seed=seed)
@@ -384,7 +384,7 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
         total = sum(r.topics[t].count for t in used)
         bar = None
         if progress:
-            from tqdm import tqdm  # noqa: PLC0415
+            from tqdm import tqdm
             bar = tqdm(total=total, unit='msg', desc='replay', file=sys.stderr)
         cmd_stamps: list[int | None] = []          # header stamp of each step's recorded /cmd_vel
         rec_agents: dict[int, list[np.ndarray]] = {}   # header stamp -> recorded /assist/agent_cmd
@@ -435,8 +435,9 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
                         next_tick = t
                     if (t - next_tick) // period > MAX_STEPS:
                         raise BagError(f'{bag}: {topic} at {(t - start) * 1e-9:.3f} s comes '
-                                       f'{(t - next_tick) * 1e-9:.3g} s after the previous message: stepping through that '
-                                       f'at {cfg.rate_hz:g} Hz would take more than {MAX_STEPS} steps (a wrong timestamp?)')
+                                       f'{(t - next_tick) * 1e-9:.3g} s after the previous message: stepping '
+                                       f'through that at {cfg.rate_hz:g} Hz would take more than {MAX_STEPS} '
+                                       f'steps (a wrong timestamp?)')
                     while next_tick < t:
                         step(next_tick)
                         next_tick += period

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import argparse
 import importlib
-from typing import Any, Mapping
+from typing import Any
+from collections.abc import Mapping
 
 from rclpy.duration import Duration
 from rclpy.parameter import Parameter

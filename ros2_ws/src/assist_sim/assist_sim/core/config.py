@@ -4,7 +4,8 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
+from collections.abc import Mapping
 
 import yaml
 
@@ -121,12 +122,12 @@ class WorldConfig:
     judge: JudgeConfig = field(default_factory=JudgeConfig)
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any] | None) -> 'WorldConfig':
+    def from_dict(cls, data: Mapping[str, Any] | None) -> WorldConfig:
         """Build from a (possibly partial, nested) mapping; unknown keys raise ValueError."""
         return _from_dict(cls, data or {})
 
     @classmethod
-    def from_yaml(cls, path: str | Path) -> 'WorldConfig':
+    def from_yaml(cls, path: str | Path) -> WorldConfig:
         """Load a (possibly partial) YAML file of the same nesting as this dataclass."""
         with open(path, encoding='utf-8') as fh:
             return cls.from_dict(yaml.safe_load(fh) or {})

@@ -6,7 +6,7 @@ import ctypes
 import ctypes.util
 import os
 import sys
-from typing import Iterator
+from collections.abc import Iterator
 
 _LIBC = ctypes.CDLL(ctypes.util.find_library('c'))
 

@@ -87,7 +87,7 @@ class PinholeRays:
     rays: np.ndarray
 
     @classmethod
-    def make(cls, width: int, height: int, f: float, cx: float, cy: float) -> 'PinholeRays':
+    def make(cls, width: int, height: int, f: float, cx: float, cy: float) -> PinholeRays:
         """Rays through pixel (col, row) = ((col - cx) / f, (row - cy) / f, 1)."""
         uu, vv = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
         return cls(np.stack([(uu - cx) / f, (vv - cy) / f, np.ones_like(uu)], axis=-1))

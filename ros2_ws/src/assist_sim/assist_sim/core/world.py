@@ -5,11 +5,11 @@ from __future__ import annotations
 import json
 import logging
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from assist_common.frames import R_BODY_FROM_OPTICAL, quat_to_matrix, yaw_rotation
+from assist_common.frames import R_BODY_FROM_OPTICAL, yaw_rotation
 
 from .config import WorldConfig
 from .quiet import quiet_output
