@@ -309,8 +309,9 @@ def test_oscillation_damper_slows_a_pilot_swinging_across_a_pad_and_can_be_turne
 
 def test_depth_frames_are_posed_by_their_header_stamps(ros, start_node, wait, tmp_path):
     """Stamped /odom and depth on one clock (the frame 25 ms old, odometry every >= 50 ms): every frame finds its
-    pose (interpolated between the two around it); a depth stamp of
-    another clock finds none and is counted (mapped from the latest odometry); depth_pose_match_s at run time."""
+    pose (interpolated between the two around it); a frame no odometry stamp lies near (odometry 0.4 s behind: old
+    but not stale) finds none and is counted (mapped from the latest odometry); depth_pose_match_s at run time.
+    (A stamp of another clock is refused as stale or from the future before any lookup: rejected_depth_*.)"""
     model = _helpers.constant_actor(tmp_path / 'still.pt', [0.0, 0.0, 0.0])
     probe = Probe(ros)
     node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0})
@@ -321,7 +322,7 @@ def test_depth_frames_are_posed_by_their_header_stamps(ros, start_node, wait, tm
     probe.run(1.0, position=(0.0, 0.0, 3.0), depth=pad, stamps=same_clock)
     assert wait(lambda: probe.diag and probe.diag[-1].get('pad_recall_pads') == '1', 5), probe.diag[-1:]
     assert probe.diag[-1].get('depth_pose_unmatched') == '0'
-    probe.run(1.0, position=(0.0, 0.0, 3.0), depth=pad, stamps=lambda now: (now, 5_000_000_000))
+    probe.run(1.0, position=(0.0, 0.0, 3.0), depth=pad, stamps=lambda now: (now - 400_000_000, now))
     assert wait(lambda: int(probe.diag[-1].get('depth_pose_unmatched', 0)) >= 5, 5), probe.diag[-1:]
     set_param(ros, 'depth_pose_match_s', 0.01, wait)        # >= 25 ms from either sample: counted too
     seen = int(probe.diag[-1]['depth_pose_unmatched'])
