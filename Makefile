@@ -52,7 +52,7 @@ bench: $(STAMP)
 	$(PY) -m bench
 
 # Not part of `make test`: the full assisted graph for ASSIST_SOAK_SIM_S seconds of sim time (default 30 min).
-soak: $(STAMP)
+soak: $(STAMP)  # ASSIST_SOAK_RTF=2: a real-time factor the graph keeps up with (default 0)
 	ASSIST_SOAK_SIM_S=$${ASSIST_SOAK_SIM_S:-1800} $(PY) -m pytest -s -p no:cacheprovider tests/faults/test_soak_assisted_graph.py
 
 colcon: $(STAMP)

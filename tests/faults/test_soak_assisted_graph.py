@@ -1,5 +1,6 @@
 """Soak test: the full assisted graph (sim_node + encoder_node + sim_pilot_node + policy_node, latent mode,
-shipped models) at real_time_factor 0 for ASSIST_SOAK_SIM_S seconds of sim time (`make soak`: 1800).
+shipped models) at real_time_factor ASSIST_SOAK_RTF (default 0: as fast as possible) for ASSIST_SOAK_SIM_S seconds
+of sim time (`make soak`: 1800).
 
 Asserts: no landing lost from /sim/landing (episode numbers 0, 1, 2, ... with no gap or repeat), no node
 exits or restarts (each process alive with the pid it started with, no traceback in its log), and each
@@ -24,6 +25,9 @@ from std_msgs.msg import String
 from assist_common.ros_common import LANDING_QOS
 
 SIM_S = float(os.environ.get('ASSIST_SOAK_SIM_S', '0') or 0)
+# sim_node real_time_factor: 0 (as fast as possible, the default) stresses the processes; the graph then falls
+# behind the sim and most landings time out. 2 is what the nodes keep up with on two cores (evaluate_graph).
+RTF = float(os.environ.get('ASSIST_SOAK_RTF', '0') or 0)
 SOAK_RSS_GROWTH_MIB = float(os.environ.get('ASSIST_SOAK_RSS_GROWTH_MIB', '64'))
 REPO = Path(__file__).resolve().parents[2]
 MODELS = [REPO / 'models' / 'td3_latent_actor.pt', REPO / 'models' / 'cmvae.pt']
@@ -68,7 +72,7 @@ def test_soak_full_assisted_graph(ros, start_node):
         assert all(n.proc.poll() is None for n in nodes.values()), {k: n.log()[-2000:] for k, n in nodes.items()}
         time.sleep(0.5)
     time.sleep(2.0)
-    nodes['sim_node'] = start_node('sim_node', {'seed': 21, 'real_time_factor': 0.0, 'camera_rate_hz': 20.0,
+    nodes['sim_node'] = start_node('sim_node', {'seed': 21, 'real_time_factor': RTF, 'camera_rate_hz': 20.0,
                                                 'reset_delay_s': 0.5})
     pids = {name: n.proc.pid for name, n in nodes.items()}
     t0 = time.monotonic()
@@ -94,7 +98,8 @@ def test_soak_full_assisted_graph(ros, start_node):
         got = sorted(landings, key=lambda r: r['episode'])
     episodes = [r['episode'] for r in got]
     growth = {k: end_rss[k] - warm_rss[k] for k in end_rss}
-    report = {'sim_s': round(clock[0], 1), 'wall_s': round(wall, 1), 'speed_x': round(clock[0] / wall, 2),
+    report = {'real_time_factor': RTF, 'sim_s': round(clock[0], 1), 'wall_s': round(wall, 1),
+              'speed_x': round(clock[0] / wall, 2),
               'landings': len(got), 'first_episode': episodes[0] if episodes else None,
               'last_episode': episodes[-1] if episodes else None,
               'assisted': sum(bool(r.get('assisted')) for r in got),
