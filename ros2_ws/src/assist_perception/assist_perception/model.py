@@ -310,6 +310,19 @@ def save_model(path: str | Path, model: CMVAE, metadata: dict[str, Any] | None =
         torch.save(payload, tmp)
 
 
+def load_training_state(path: str | Path, keys: tuple[str, ...]) -> dict:
+    """A training checkpoint (weights_only) holding `keys`; ValueError (one line) when it is damaged."""
+    try:
+        state = torch.load(path, map_location='cpu', weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - torch raises many types (pickle, zip, runtime, EOF) for damaged files
+        first = (str(exc).strip().splitlines() or [''])[0][:200]
+        raise ValueError(f'damaged checkpoint {path}: {type(exc).__name__}: {first}') from None
+    missing = [k for k in keys if not isinstance(state, dict) or k not in state]
+    if missing:
+        raise ValueError(f'damaged checkpoint {path}: lacks {", ".join(missing)}')
+    return state
+
+
 def _first_line(exc: BaseException) -> str:
     text = str(exc).strip()
     return (text.splitlines()[0] if text else type(exc).__name__)[:200]

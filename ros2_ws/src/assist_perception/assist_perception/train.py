@@ -33,7 +33,7 @@ from assist_common.atomic import atomic_path, remove_stale_temporaries, truncate
 
 from assist_common.settings import SettingsError, check_settings, exit_error, flag, parse_settings, setting
 from .dataset import FrameSet, load_frames, split_by_scene
-from .model import CMVAE, CMVAEConfig, LossConfig, cmvae_loss, preprocess, save_model
+from .model import CMVAE, CMVAEConfig, LossConfig, cmvae_loss, load_training_state, preprocess, save_model
 from .noise import NoiseConfig, apply_depth_noise
 
 _LOG = logging.getLogger(__name__)
@@ -180,15 +180,7 @@ def check_run_dir(cfg: TrainConfig) -> None:
 
 def load_checkpoint(path: Path) -> dict:
     """The training state in checkpoint.pt (weights_only); ValueError (one line) when it is damaged."""
-    try:
-        ck = torch.load(path, map_location='cpu', weights_only=True)
-    except Exception as exc:  # noqa: BLE001 - torch raises many types (pickle, zip, runtime, EOF) for damaged files
-        first = (str(exc).strip().splitlines() or [''])[0][:200]
-        raise ValueError(f'damaged checkpoint {path}: {type(exc).__name__}: {first}') from None
-    missing = [k for k in CHECKPOINT_KEYS if not isinstance(ck, dict) or k not in ck]
-    if missing:
-        raise ValueError(f'damaged checkpoint {path}: lacks {", ".join(missing)}')
-    return ck
+    return load_training_state(path, CHECKPOINT_KEYS)
 
 
 def train(cfg: TrainConfig, frames: FrameSet | None = None, progress: bool = True) -> dict:

@@ -36,6 +36,7 @@ from tqdm import tqdm
 
 from assist_common.atomic import (CsvLog, atomic_dir, atomic_path, committed_dir, remove_stale_temporaries,
                                   truncate_csv, write_text_atomic)
+from assist_perception.model import load_training_state
 from assist_sim.pilots import HELDOUT_FAMILIES, TRAIN_FAMILIES
 
 from .cli import (SettingsError, add_dataclass_args, check_settings, exit_error, flag, parse_dataclass_args,
@@ -420,15 +421,7 @@ STATE_KEYS = ('agent', 'step', 'episode', 'best')
 
 def _load_state(path: Path) -> dict:
     """A checkpoint's state.pt (weights_only); ValueError (one line) when it is damaged."""
-    try:
-        state = torch.load(path, map_location='cpu', weights_only=True)
-    except Exception as exc:  # noqa: BLE001 - torch raises many types (pickle, zip, runtime, EOF) for damaged files
-        first = (str(exc).strip().splitlines() or [''])[0][:200]
-        raise ValueError(f'damaged checkpoint {path}: {type(exc).__name__}: {first}') from None
-    missing = [k for k in STATE_KEYS if not isinstance(state, dict) or k not in state]
-    if missing:
-        raise ValueError(f'damaged checkpoint {path}: lacks {", ".join(missing)}')
-    return state
+    return load_training_state(path, STATE_KEYS)
 
 
 def load_checkpoint(run_dir: Path) -> tuple[dict, Path | None] | None:
