@@ -46,6 +46,10 @@ def valid_fraction(depth: np.ndarray) -> np.ndarray:
     return (np.isfinite(depth) & (depth > 0)).mean(axis=(-2, -1))
 
 
+MIN_FRAME_SIDE_PX = 16     # smaller frames are refused (bad_size): too few pixels to be a camera view
+MAX_FRAME_ASPECT = 4.0     # frames longer than this times their short side are refused (cameras: 4:3, 16:9)
+
+
 def center_square(img: np.ndarray) -> np.ndarray:
     """Centre crop to a square (the shorter side)."""
     h, w = img.shape[:2]
@@ -141,6 +145,11 @@ class LatentEncoder:
             raise BadFrame('bad_encoding', f'colour array must be uint8, got {rgb.dtype}')
         if not np.issubdtype(depth_m.dtype, np.number):
             raise BadFrame('bad_encoding', f'depth array must be numeric, got {depth_m.dtype}')
+        side = min(rgb.shape[:2])
+        if side < MIN_FRAME_SIDE_PX or max(rgb.shape[:2]) > MAX_FRAME_ASPECT * side:
+            # a 1x1 or 4096x2 frame is not a camera view: centre-cropped and resized it would still make a latent
+            raise BadFrame('bad_size', f'frame {rgb.shape[1]}x{rgb.shape[0]}: want at least {MIN_FRAME_SIDE_PX} '
+                           f'pixels a side and an aspect ratio within {MAX_FRAME_ASPECT:g}:1')
         ar_rgb = rgb.shape[1] / rgb.shape[0]
         ar_d = depth_m.shape[1] / depth_m.shape[0]
         if abs(ar_rgb - ar_d) > 0.02:

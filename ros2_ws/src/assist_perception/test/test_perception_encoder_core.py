@@ -122,3 +122,12 @@ def test_stamp_pairer_pairs_within_slop_once():
     p.add('color', 2.1, 'c4')                           # nor did c3
     assert p.unpaired == 2
     assert p.add('depth', 2.1, 'd4') == ('c4', 'd4')
+
+
+@pytest.mark.parametrize('h, w', [(1, 1), (2, 4096), (4096, 2), (8, 8), (16, 80)])
+def test_degenerate_frames_are_refused_not_encoded(model_file, h, w):
+    enc = LatentEncoder(model_file)
+    with pytest.raises(BadFrame) as e:
+        enc.encode(np.zeros((h, w, 3), np.uint8), np.ones((h, w), np.float32))
+    assert e.value.reason == 'bad_size'
+    assert enc.encode(np.zeros((16, 64, 3), np.uint8), np.ones((16, 64), np.float32)).mu.shape == (8,)   # 4:1 is
