@@ -629,6 +629,18 @@ def parameter_help(params: Mapping[str, Param]) -> str:
     return '\n'.join(lines)
 
 
+def parameter_table(params: Mapping[str, Param]) -> str:
+    """The parameters as a Markdown table (name, type, default, accepted, run-time, description): docs/nodes.md."""
+    def cell(text: str) -> str:
+        return str(text).replace('|', '\\|').replace('\n', ' ')
+    rows = ['| parameter | type | default | accepted | run-time | description |',
+            '| --- | --- | --- | --- | --- | --- |']
+    for name, p in params.items():
+        rows.append(f'| `{name}` | {_param_type(p)} | `{p.default!r}` | {cell(p.rule() or "any")} | '
+                    f'{"yes" if p.dynamic else "no"} | {cell(p.description)} |')
+    return '\n'.join(rows)
+
+
 def node_help(prog: str, summary: str, params: Mapping[str, Param] | None) -> str:
     """The --help text of node executable `prog`: usage, `summary`, and its parameter table."""
     text = [f'usage: {prog} [-h] [--version] [--ros-args [-p NAME:=VALUE ...] [--params-file FILE] ...]', '']
