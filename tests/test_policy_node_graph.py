@@ -121,16 +121,25 @@ def test_policy_node_missing_model_exits_with_one_line(start_node, wait, tmp_pat
 
 
 def _params(ros, node_name, names):
-    """The values of `names` (bools) of the node `node_name` over its get_parameters service."""
+    """The values of `names` (bools) of the node `node_name` over its get_parameters service.
+
+    A request sent as soon as the service is discovered can be lost while the reply path is still being
+    matched (Fast DDS drops a request that arrives before the server's reply writer knows the client): the
+    request is sent again, up to three times, rather than waiting on a reply that will not come."""
     from rcl_interfaces.srv import GetParameters
     cli = ros.create_client(GetParameters, f'/{node_name}/get_parameters')
-    assert cli.wait_for_service(timeout_sec=30)
-    done = threading.Event()
-    fut = cli.call_async(GetParameters.Request(names=list(names)))
-    fut.add_done_callback(lambda f: done.set())
-    assert done.wait(30)
-    ros.destroy_client(cli)
-    return dict(zip(names, (v.bool_value for v in fut.result().values)))
+    try:
+        assert cli.wait_for_service(timeout_sec=30)
+        for _ in range(3):
+            done = threading.Event()
+            fut = cli.call_async(GetParameters.Request(names=list(names)))
+            fut.add_done_callback(lambda f, d=done: d.set())
+            if done.wait(10):
+                return dict(zip(names, (v.bool_value for v in fut.result().values)))
+            cli.remove_pending_request(fut)
+        raise AssertionError(f'/{node_name}/get_parameters: no answer to three requests in 30 s')
+    finally:
+        ros.destroy_client(cli)
 
 
 def test_goal_agnostic_rules_default_off_in_oracle_mode_only(ros, start_node, tmp_path):
