@@ -501,12 +501,17 @@ def main(argv: list[str] | None = None) -> int:
               f'alpha {args.alpha}, '
               f'betas {args.betas[0]}..{args.betas[-1]} ({len(args.betas)}), '
               f'{args.landings} landings each, seed {args.seed}')
+    print_results(summary, args.out)
+    return 0
+
+
+def print_results(summary: dict[str, dict], out: str, extra: str = '') -> None:
+    """Print the table, the paired comparison (paired.txt, when written) and what was written to `out`."""
     print(format_table(summary))
-    paired = Path(args.out) / 'paired.txt'
+    paired = Path(out) / 'paired.txt'
     if paired.exists():
         print(paired.read_text(encoding='utf-8'), end='')
-    print(f'written: {args.out}/landings.csv, summary.csv, error_vs_beta.png')
-    return 0
+    print(f'written: {out}/landings.csv, summary.csv, error_vs_beta.png{extra}')
 
 
 if __name__ == '__main__':

@@ -74,7 +74,7 @@ from .evaluate import (
     EvalArgs,
     LandingLog,
     condition_name,
-    format_table,
+    print_results,
     rule_on,
     write_results,
 )
@@ -607,11 +607,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f'graph: pilot {args.pilot}, alpha {args.alpha}, betas {" ".join(f"{b:g}" for b in args.betas)}, '
           f'{args.landings} landings each, seed {args.seed}, real_time_factor {args.real_time_factor:g}, '
           f'{time.monotonic() - t0:.0f} s wall')
-    print(format_table(summary))
-    paired = Path(args.out) / 'paired.txt'
-    if paired.exists():
-        print(paired.read_text(encoding='utf-8'), end='')
-    print(f'written: {args.out}/landings.csv, summary.csv, error_vs_beta.png, nodes/')
+    print_results(summary, args.out, ', nodes/')
     return 0
 
 
