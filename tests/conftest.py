@@ -146,3 +146,22 @@ def colcon_workspace(tmp_path_factory):
             built[symlink] = ColconWorkspace(tmp_path_factory.mktemp('symlink' if symlink else 'plain'), symlink)
         return built[symlink]
     return _get
+
+
+#: Shared libraries only a program's own imports load (rclpy, torch, pybullet, OpenCV), never the interpreter.
+HEAVY_LIBRARIES = ('_rclpy_pybind11', 'libtorch', 'pybullet', 'cv2')
+
+
+def _loading_heavy_libraries(pid: int) -> bool:
+    try:
+        maps = Path(f'/proc/{pid}/maps').read_text()
+    except OSError:
+        return False
+    return any(lib in maps for lib in HEAVY_LIBRARIES)
+
+
+@pytest.fixture
+def loading_heavy_libraries():
+    """f(pid) -> True once the process has mapped one of HEAVY_LIBRARIES: it is past the interpreter's own
+    start-up and inside the program's imports (False when it is gone or not there yet)."""
+    return _loading_heavy_libraries

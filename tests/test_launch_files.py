@@ -205,6 +205,11 @@ def test_assist_launch_latent(ros, launch, symlink):
     assert_clean_exit(lau.ctrl_c(), lau.output(), nodes=4)
 
 
+def launch_errors(out: str) -> list[str]:
+    """The launch's own error lines (not the nodes')."""
+    return [ln for ln in out.splitlines() if ln.startswith('[ERROR] [launch]')]
+
+
 def test_a_dead_required_node_ends_the_launch_with_the_reason(ros, launch):
     Diag, Twist, Odom, Clock, Image, Floats = _types()
     lau = launch('assist_bridge', 'sim_mavlink.launch.py', f'port:={free_udp_port()}')
@@ -213,11 +218,47 @@ def test_a_dead_required_node_ends_the_launch_with_the_reason(ros, launch):
     os.kill(pid, signal.SIGKILL)                              # the sim crashes
     code = lau.wait(STOP_TIMEOUT_S)
     out = lau.output()
-    assert code == 0, out[-4000:]           # ros2 launch itself did not fail; the node did
-    assert 'sim_node-1 exited with code -9; the bridge has no vehicle without the sim: shutting the launch down' \
-        in out, out[-4000:]
+    assert code == 1, out[-4000:]           # ros2 launch fails because a required node did
+    assert launch_errors(out) == [
+        '[ERROR] [launch]: Caught exception in launch (see debug for traceback): sim_node-1 exited with code -9; '
+        'the bridge has no vehicle without the sim: shutting the launch down'], out[-4000:]
     assert '[INFO] [mavlink_bridge_node-2]: process has finished cleanly' in out, out[-4000:]
     assert 'Traceback' not in out
+
+
+def test_a_node_failing_at_start_up_is_one_line_and_exit_1(launch, tmp_path):
+    taken = tmp_path / 'flight'
+    taken.mkdir()
+    (taken / 'keep.txt').write_text('an earlier recording')
+    lau = launch('assist_policy', 'assist.launch.py', f'record:={taken}', 'real_time_factor:=2')
+    code = lau.wait(START_TIMEOUT_S)
+    out = lau.output()
+    assert code == 1, out[-4000:]
+    errors = launch_errors(out)
+    assert len(errors) == 1, out[-4000:]
+    # the node, its exit code, what it said, and what the launch needed it for, on one line
+    assert re.fullmatch(r'\[ERROR\] \[launch\]: Caught exception in launch \(see debug for traceback\): '
+                        r'bag_record-\d exited with code 1: error: .*flight: exists already; not overwriting a bag'
+                        r'; the flight would go unrecorded: shutting the launch down', errors[0]), errors[0]
+    # the siblings, stopped while still importing torch or starting, leave no traceback
+    assert 'Traceback' not in out and 'KeyboardInterrupt' not in out, out[-6000:]
+    assert (taken / 'keep.txt').read_text() == 'an earlier recording'
+
+
+def test_ctrl_c_during_start_up_leaves_no_traceback(launch, loading_heavy_libraries):
+    lau = launch('assist_policy', 'assist.launch.py', 'mode:=latent', 'real_time_factor:=2')
+    end = time.monotonic() + START_TIMEOUT_S
+    pids: list[int] = []
+    while time.monotonic() < end:           # until every node is inside its imports (rclpy, torch, pybullet)
+        pids = [int(p) for p in re.findall(r'process started with pid \[(\d+)\]', lau.output())]
+        if len(pids) == 4 and all(loading_heavy_libraries(pid) for pid in pids):
+            break
+        time.sleep(0.005)
+    assert len(pids) == 4, lau.output()[-4000:]
+    code = lau.ctrl_c()
+    out = lau.output()
+    assert 'Traceback' not in out and 'KeyboardInterrupt' not in out, out[-6000:]
+    assert_clean_exit(code, out, nodes=4)
 
 
 def test_every_launch_argument_is_described(colcon_workspace):

@@ -1,5 +1,6 @@
 """Console convention of every node executable: `--help` lists its parameters (type, default, range, run-time or
-read-only, description) and `--version` prints its package's version; both exit 0 without starting the node."""
+read-only, description) and `--version` prints its package's version; both exit 0 without starting the node.
+A Ctrl-C while an executable is still starting leaves no traceback."""
 from __future__ import annotations
 
 import importlib
@@ -78,3 +79,49 @@ def test_flags_after_ros_args_are_not_ours():
         raise AssertionError('never built')
     assert console_request(factory, ['--ros-args', '-p', 'x:=1', '--help'], {}) is None
     assert console_request(factory, ['--version', '--ros-args'], {}).endswith('\n')
+
+
+def console_scripts() -> dict[str, str]:
+    """Every console script of the workspace's packages: name -> 'module:function' (from each setup.py)."""
+    import re
+    found = {}
+    for setup in sorted((REPO / 'ros2_ws' / 'src').glob('*/setup.py')):
+        for name, target in re.findall(r"'(\w+) = ([\w.]+:\w+)'", setup.read_text()):
+            found[name] = target
+    return found
+
+
+def test_every_console_script_imports_its_module_only_when_run():
+    scripts = console_scripts()
+    assert set(NODES) <= set(scripts) and len(scripts) >= 19
+    for name, target in scripts.items():
+        module, function = target.split(':')
+        assert module.endswith('.entry_points') and function == name, target
+        entry = getattr(importlib.import_module(module), function)
+        assert callable(importlib.import_module(entry.target).main), target
+
+
+def test_ctrl_c_while_starting_exits_quietly(loading_heavy_libraries):
+    """A Ctrl-C while a program is still importing (rclpy, torch, pybullet): no traceback; nodes exit 0
+    (what run_node returns after a Ctrl-C), command-line tools 130."""
+    import signal
+    import time
+    env = dict(os.environ, ROS_DOMAIN_ID='106')
+    tools = ('evaluate', 'train_td3', 'train_cmvae')
+    procs = {name: subprocess.Popen([str(BIN / name)], env=env, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                    stderr=subprocess.STDOUT, text=True,
+                                    preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+             for name in (*NODES, *tools)}
+    waiting = dict(procs)
+    end = time.monotonic() + 120
+    while waiting and time.monotonic() < end:
+        for name, proc in list(waiting.items()):
+            if loading_heavy_libraries(proc.pid) or proc.poll() is not None:
+                proc.send_signal(signal.SIGINT)      # in the middle of its imports
+                del waiting[name]
+        time.sleep(0.005)
+    assert not waiting, f'never loaded rclpy/torch/pybullet/cv2: {sorted(waiting)}'
+    for name, proc in procs.items():
+        out, _ = proc.communicate(timeout=120)
+        assert 'Traceback' not in out and 'KeyboardInterrupt' not in out, f'{name}:\n{out[-3000:]}'
+        assert proc.returncode == (130 if name in tools else 0), f'{name}: {proc.returncode}\n{out[-3000:]}'

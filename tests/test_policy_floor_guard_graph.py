@@ -314,7 +314,9 @@ def test_depth_frames_are_posed_by_their_header_stamps(ros, start_node, wait, tm
     (A stamp of another clock is refused as stale or from the future before any lookup: rejected_depth_*.)"""
     model = _helpers.constant_actor(tmp_path / 'still.pt', [0.0, 0.0, 0.0])
     probe = Probe(ros)
-    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0})
+    # odometry 0.4 s old must stay "old but not stale" however late a loaded machine runs the node's tick
+    node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 20.0,
+                                      'odom_timeout_s': 2.0})
     pad = np.full((64, 64), 3.0 - 0.05, np.float32)
     pad[22:42, 22:42] = 3.0 - 0.05 - 0.8
     same_clock = lambda now: (now, now - 25_000_000)          # noqa: E731

@@ -25,9 +25,9 @@ setup(
     tests_require=['pytest'],
     entry_points={
         'console_scripts': [
-            'mavlink_bridge_node = assist_bridge.mavlink_bridge_node:main',
-            'teleop_keyboard = assist_bridge.teleop_keyboard:main',
-            'landing_runner = assist_bridge.landing_runner:main',
+            'mavlink_bridge_node = assist_bridge.entry_points:mavlink_bridge_node',
+            'teleop_keyboard = assist_bridge.entry_points:teleop_keyboard',
+            'landing_runner = assist_bridge.entry_points:landing_runner',
         ],
     },
 )

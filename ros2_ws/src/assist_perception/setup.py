@@ -31,10 +31,10 @@ setup(
     tests_require=['pytest'],
     entry_points={
         'console_scripts': [
-            'encoder_node = assist_perception.encoder_node:main',
-            'make_dataset = assist_perception.dataset:main',
-            'train_cmvae = assist_perception.train:main',
-            'evaluate_cmvae = assist_perception.evaluate:main',
+            'encoder_node = assist_perception.entry_points:encoder_node',
+            'make_dataset = assist_perception.entry_points:make_dataset',
+            'train_cmvae = assist_perception.entry_points:train_cmvae',
+            'evaluate_cmvae = assist_perception.entry_points:evaluate_cmvae',
         ],
     },
 )

@@ -26,8 +26,8 @@ setup(
     tests_require=['pytest'],
     entry_points={
         'console_scripts': [
-            'sim_node = assist_sim.sim_node:main',
-            'sim_pilot_node = assist_sim.sim_pilot_node:main',
+            'sim_node = assist_sim.entry_points:sim_node',
+            'sim_pilot_node = assist_sim.entry_points:sim_pilot_node',
         ],
     },
 )

@@ -25,7 +25,7 @@ setup(
     tests_require=['pytest'],
     entry_points={
         'console_scripts': [
-            'pilot_station = assist_station.pilot_station:main',
+            'pilot_station = assist_station.entry_points:pilot_station',
         ],
     },
 )

@@ -4,10 +4,12 @@ Written from the launch documentation and sources (github.com/ros2/launch, branc
 neither launch nor launch_ros installs from a package registry here. Semantics kept: launch
 arguments are launch configurations set before the description is visited, substitutions are
 performed at launch time (never evaluated as code), conditions accept only true/false/1/0,
-processes are started in visiting order, a process exit emits ProcessExited to the registered
-handlers, a Shutdown event stops every process (SIGINT unless the shutdown came from a SIGINT,
-then SIGTERM after `sigterm_timeout`, SIGKILL after `sigkill_timeout`), and the service returns 1
-only when the launch itself failed (a node exiting non-zero is logged, not returned).
+processes are started in visiting order, process output emits ProcessIO and a process exit
+ProcessExited to the registered handlers, a Shutdown event stops every process (SIGINT unless
+the shutdown came from a SIGINT, then SIGTERM after `sigterm_timeout`, SIGKILL after
+`sigkill_timeout`), and the service returns 1 only when the launch itself failed (an exception in an
+action or an event handler: logged as one 'Caught exception in launch' line; a node exiting non-zero
+is logged, not returned).
 Nothing here is installed or used outside tests/.
 """
 from __future__ import annotations
@@ -148,6 +150,17 @@ class ProcessExited(Event):
     def __init__(self, *, action, name, cmd, pid, returncode):
         self.action, self.process_name, self.cmd, self.pid = action, name, cmd, pid
         self.returncode = returncode
+
+
+class ProcessIO(Event):
+    """A process wrote to stdout (fd 1) or stderr (fd 2); `text` is the bytes (real launch: any chunk)."""
+
+    name = 'launch.events.process.ProcessIO'
+
+    def __init__(self, *, action, name, cmd, pid, text: bytes, fd: int):
+        self.action, self.process_name, self.cmd, self.pid = action, name, cmd, pid
+        self.text, self.fd = text, fd
+        self.from_stdin, self.from_stdout, self.from_stderr = fd == 0, fd == 1, fd == 2
 
 
 # ---------------------------------------------------------------------------- entities
@@ -437,17 +450,19 @@ class ExecuteProcess(Action):
         self._cmd_text = ' '.join(cmd)
         log('INFO', self.process_name, f'process started with pid [{self._proc.pid}]')
         context.processes.append(self)
-        for stream, to_screen in ((self._proc.stdout, output in ('screen', 'both')),
-                                  (self._proc.stderr, output in ('screen', 'both', 'log'))):
-            t = threading.Thread(target=self._pump, args=(stream, to_screen), daemon=True)
+        for fd, stream, to_screen in ((1, self._proc.stdout, output in ('screen', 'both')),
+                                      (2, self._proc.stderr, output in ('screen', 'both', 'log'))):
+            t = threading.Thread(target=self._pump, args=(stream, to_screen, fd, cmd), daemon=True)
             t.start()
             self._threads.append(t)
         threading.Thread(target=self._wait, daemon=True).start()
         context.emit_event(ProcessStarted(action=self, name=self.process_name, cmd=cmd, pid=self._proc.pid))
         return None
 
-    def _pump(self, stream, to_screen: bool) -> None:
+    def _pump(self, stream, to_screen: bool, fd: int, cmd: list[str]) -> None:
         for raw in iter(stream.readline, b''):
+            self._context.emit_event(ProcessIO(action=self, name=self.process_name, cmd=cmd,
+                                               pid=self._proc.pid, text=raw, fd=fd))
             if to_screen:
                 _screen(f'[{self.process_name}] ' + raw.decode('utf-8', 'replace').rstrip('\n'))
         stream.close()

@@ -1,5 +1,5 @@
-"""launch.event_handlers stand-in: OnProcessExit, OnProcessStart, OnShutdown."""
-from ._impl import EventHandler, ProcessExited, ProcessStarted, Shutdown
+"""launch.event_handlers stand-in: OnProcessExit, OnProcessIO, OnProcessStart, OnShutdown."""
+from ._impl import EventHandler, ProcessExited, ProcessIO, ProcessStarted, Shutdown
 
 
 def _action_matcher(target_action, cls):
@@ -33,3 +33,16 @@ class OnShutdown(EventHandler):
 
     def __init__(self, *, on_shutdown, **kwargs) -> None:
         super().__init__(matcher=lambda e: isinstance(e, Shutdown), entities=on_shutdown, **kwargs)
+
+
+class OnProcessIO(EventHandler):
+    """Handles ProcessIO of `target_action`: on_stdout / on_stderr / on_stdin are f(event) -> entities or None."""
+
+    def __init__(self, *, target_action=None, on_stdin=None, on_stdout=None, on_stderr=None, **kwargs) -> None:
+        def handle(event, context):
+            for wanted, callback in ((event.from_stdout, on_stdout), (event.from_stderr, on_stderr),
+                                     (event.from_stdin, on_stdin)):
+                if wanted:
+                    return callback(event) if callback is not None else None
+            return None
+        super().__init__(matcher=_action_matcher(target_action, ProcessIO), entities=handle, **kwargs)

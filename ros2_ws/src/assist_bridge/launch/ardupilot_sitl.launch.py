@@ -99,11 +99,11 @@ def generate_launch_description():
                   condition=IfCondition(NotSubstitution(EqualsSubstitution(LaunchConfiguration('landings'), '0'))))
     return LaunchDescription(args + [
         sim, bridge, encoder, policy, pilot_assisted, pilot_direct, runner,
-        shutdown_when_exits(runner, 'the requested landings are flown'),
-        shutdown_when_exits(sim, 'SITL has no physics without sim_node'),
-        shutdown_when_exits(bridge, 'no link to SITL without the bridge'),
-        shutdown_when_exits(encoder, 'the latent assistant needs the encoder'),
-        shutdown_when_exits(policy, 'the pilot would fly unassisted without policy_node'),
-        shutdown_when_exits(pilot_assisted, 'no pilot commands without the simulated pilot'),
-        shutdown_when_exits(pilot_direct, 'no pilot commands without the simulated pilot'),
+        *shutdown_when_exits(runner, 'the requested landings are flown'),
+        *shutdown_when_exits(sim, 'SITL has no physics without sim_node'),
+        *shutdown_when_exits(bridge, 'no link to SITL without the bridge'),
+        *shutdown_when_exits(encoder, 'the latent assistant needs the encoder'),
+        *shutdown_when_exits(policy, 'the pilot would fly unassisted without policy_node'),
+        *shutdown_when_exits(pilot_assisted, 'no pilot commands without the simulated pilot'),
+        *shutdown_when_exits(pilot_direct, 'no pilot commands without the simulated pilot'),
     ])

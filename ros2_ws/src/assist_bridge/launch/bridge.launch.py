@@ -22,5 +22,5 @@ def generate_launch_description():
         node = Node(package='assist_bridge', executable='mavlink_bridge_node', name='mavlink_bridge_node',
                     output='screen', parameters=[os.path.join(share, 'config', cfg)],
                     condition=cond(LaunchConfiguration('real')))
-        entities += [node, shutdown_when_exits(node, 'no link to the vehicle without the bridge')]
+        entities += [node, *shutdown_when_exits(node, 'no link to the vehicle without the bridge')]
     return LaunchDescription(args + entities)

@@ -39,6 +39,7 @@ def generate_launch_description():
                   parameters=[bridge_params,
                               {'connection': ParameterValue(['udpin:127.0.0.1:', port], value_type=str),
                                'signing_key_file': key}])
-    return LaunchDescription(args + [sim, bridge,
-                                     shutdown_when_exits(sim, 'the bridge has no vehicle without the sim'),
-                                     shutdown_when_exits(bridge, 'the sim vehicle has no ROS side without the bridge')])
+    return LaunchDescription(args + [
+        sim, bridge,
+        *shutdown_when_exits(sim, 'the bridge has no vehicle without the sim'),
+        *shutdown_when_exits(bridge, 'the sim vehicle has no ROS side without the bridge')])

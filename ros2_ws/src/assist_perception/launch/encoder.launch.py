@@ -27,4 +27,4 @@ def generate_launch_description():
                 parameters=[[config_dir, '/', LaunchConfiguration('params'), '.yaml'],
                             {'model_path': ParameterValue(LaunchConfiguration('model_path'), value_type=str),
                              'use_sim_time': LaunchConfiguration('use_sim_time')}])
-    return LaunchDescription(args + [node, shutdown_when_exits(node, 'no latent without the encoder')])
+    return LaunchDescription(args + [node, *shutdown_when_exits(node, 'no latent without the encoder')])

@@ -67,9 +67,9 @@ def generate_launch_description():
                   condition=IfCondition(NotEqualsSubstitution(LaunchConfiguration('record'), '')))
     return LaunchDescription(args + [
         sim, encoder, pilot, policy, record,
-        shutdown_when_exits(sim, 'nothing flies without the simulation'),
-        shutdown_when_exits(encoder, 'the latent assistant needs the encoder'),
-        shutdown_when_exits(pilot, 'no pilot commands without the simulated pilot'),
-        shutdown_when_exits(policy, 'the pilot would fly unassisted without policy_node'),
-        shutdown_when_exits(record, 'the flight would go unrecorded'),
+        *shutdown_when_exits(sim, 'nothing flies without the simulation'),
+        *shutdown_when_exits(encoder, 'the latent assistant needs the encoder'),
+        *shutdown_when_exits(pilot, 'no pilot commands without the simulated pilot'),
+        *shutdown_when_exits(policy, 'the pilot would fly unassisted without policy_node'),
+        *shutdown_when_exits(record, 'the flight would go unrecorded'),
     ])

@@ -23,4 +23,4 @@ def generate_launch_description():
     sim = Node(package='assist_sim', executable='sim_node', name='sim_node', output='screen',
                parameters=[params, {'gui': LaunchConfiguration('gui'), 'seed': LaunchConfiguration('seed'),
                                     'real_time_factor': LaunchConfiguration('real_time_factor')}])
-    return LaunchDescription(args + [sim, shutdown_when_exits(sim, 'the simulation is gone')])
+    return LaunchDescription(args + [sim, *shutdown_when_exits(sim, 'the simulation is gone')])

@@ -58,9 +58,9 @@ def generate_launch_description():
                           condition=UnlessCondition(assisted))
     return LaunchDescription(args + [
         sim, encoder, policy, station, station_direct,
-        shutdown_when_exits(sim, 'nothing flies without the simulation'),
-        shutdown_when_exits(encoder, 'the latent assistant needs the encoder'),
-        shutdown_when_exits(policy, 'the pilot would fly unassisted without policy_node'),
-        shutdown_when_exits(station, 'the pilot has no controls without the station'),
-        shutdown_when_exits(station_direct, 'the pilot has no controls without the station'),
+        *shutdown_when_exits(sim, 'nothing flies without the simulation'),
+        *shutdown_when_exits(encoder, 'the latent assistant needs the encoder'),
+        *shutdown_when_exits(policy, 'the pilot would fly unassisted without policy_node'),
+        *shutdown_when_exits(station, 'the pilot has no controls without the station'),
+        *shutdown_when_exits(station_direct, 'the pilot has no controls without the station'),
     ])

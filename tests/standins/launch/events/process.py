@@ -1,2 +1,2 @@
 """launch.events.process stand-in."""
-from .._impl import ProcessExited, ProcessStarted  # noqa: F401
+from .._impl import ProcessExited, ProcessIO, ProcessStarted  # noqa: F401

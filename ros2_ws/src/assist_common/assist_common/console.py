@@ -1,0 +1,50 @@
+"""Console-script entry points that start quietly (standard library only, imported before anything heavy).
+
+A console script imports its module before calling its `main`; a node's module imports rclpy and torch,
+which takes seconds, and a Ctrl-C in those seconds (a terminal's, or the SIGINT `ros2 launch` sends every
+process when a sibling fails at start-up) would print a KeyboardInterrupt traceback from inside torch.
+Each package's `entry_points` module names its executables with `quiet_main`: the module is imported
+when the program runs, and a Ctrl-C before `main` has installed its own handling ends the program
+without a traceback. While importing, SIGINT exits at once (nothing is open yet): a KeyboardInterrupt
+raised inside a C extension's initialisation comes out as an unrelated ImportError (rclpy's
+"C extension ... isn't present on the system"), so catching it would not be enough.
+"""
+from __future__ import annotations
+
+import importlib
+import os
+import signal
+from collections.abc import Callable
+
+#: Exit code of a ROS node stopped by Ctrl-C: it did what was asked, as run_node returns after a Ctrl-C.
+NODE_INTERRUPTED = 0
+#: Exit code of a command-line tool stopped by Ctrl-C (the shell convention, 128 + SIGINT).
+TOOL_INTERRUPTED = 130
+
+
+def quiet_main(target: str, interrupted: int = NODE_INTERRUPTED) -> Callable[[], int]:
+    """A console-script function that imports `target` and returns `target.main()`.
+
+    A SIGINT while importing, or a KeyboardInterrupt that `main` lets escape, ends the program with exit
+    code `interrupted` and no traceback. `target` is a module name ('assist_policy.policy_node').
+    """
+    def exit_now(signum, frame) -> None:
+        os._exit(interrupted)
+
+    def main() -> int:
+        quiet = signal.getsignal(signal.SIGINT) is signal.default_int_handler   # not when SIGINT is ignored
+        if quiet:
+            signal.signal(signal.SIGINT, exit_now)
+        try:
+            module = importlib.import_module(target)
+        finally:
+            if quiet:
+                signal.signal(signal.SIGINT, signal.default_int_handler)
+        try:
+            return module.main()
+        except KeyboardInterrupt:
+            return interrupted
+    main.__doc__ = f'Run {target}.main(); a Ctrl-C during start-up exits {interrupted} without a traceback.'
+    main.target = target
+    main.__qualname__ = main.__name__ = target.rsplit('.', 1)[-1]
+    return main

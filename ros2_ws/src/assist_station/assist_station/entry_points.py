@@ -1,0 +1,5 @@
+"""Console scripts of assist_station: each imports its module only when run (a Ctrl-C during start-up exits
+without a traceback; see assist_common.console)."""
+from assist_common.console import quiet_main
+
+pilot_station = quiet_main('assist_station.pilot_station')
