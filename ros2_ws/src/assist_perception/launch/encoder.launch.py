@@ -1,4 +1,4 @@
-"""encoder_node alone: ros2 launch assist_perception encoder.launch.py [params:=realsense] [model_path:=...]."""
+"""encoder_node alone: ros2 launch assist_perception encoder.launch.py (params:=realsense, model_path:=FILE)."""
 import os
 
 from ament_index_python.packages import get_package_share_directory

@@ -1,9 +1,8 @@
 """ArduPilot SITL JSON physics backend: UDP protocol, lock-step server and the sim_node runner.
 
 Pure Python (socket, json, numpy, pybullet through assist_sim.core), no rclpy. The protocol was
-checked against ArduPilot's own source at commit 90700977c553 (the one /work/shared/peers/sitl.sh
-builds; libraries/SITL/SIM_JSON.h, SIM_JSON.cpp, libraries/SITL/examples/JSON/readme.md and
-examples/JSON/pybullet/robot.py):
+checked against ArduPilot's own source at commit 90700977c553 (libraries/SITL/SIM_JSON.h, SIM_JSON.cpp,
+libraries/SITL/examples/JSON/readme.md and examples/JSON/pybullet/robot.py):
 
 * SITL -> physics, UDP to port 9002, little-endian `struct servo_packet_16 { uint16 magic = 18458;
   uint16 frame_rate; uint32 frame_count; uint16 pwm[16]; }` (40 bytes), or `servo_packet_32`
