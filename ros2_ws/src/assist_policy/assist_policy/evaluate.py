@@ -40,6 +40,9 @@ oscillation damper (assist_policy.damper) for the learned assistants: rows
 
     evaluate --pilot bang_bang --betas 0 0.25 0.5 0.75 1 --landings 8 --out runs/eval_bang_bang
 
+Landings are independent tasks keyed by (condition, beta, seed), flown from their own seeds: `--workers N`
+flies them on N processes with the rows of a one-process run, and a progress bar shows the run.
+
 Results are crash-safe: landings go to <out>/landings.partial.csv as they are flown (the run's
 settings beside it in landings.partial.json); an earlier landings.csv stays untouched until the run
 ends, when the complete table replaces it in one rename. Re-running an interrupted evaluation with
@@ -52,13 +55,18 @@ import csv
 import dataclasses
 import json
 import logging
+import multiprocessing
+import os
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm import tqdm
+from tqdm.contrib.logging import logging_redirect_tqdm
 
 from assist_common.atomic import CsvLog, atomic_path, truncate_csv, write_text_atomic
 from assist_sim.pilots import PILOT_NAMES
@@ -116,6 +124,10 @@ class EvalArgs:
     damper: bool | None = None
     from_csv: tuple[str, ...] = ()
     record_dir: str = ''
+    workers: int = setting(0, ge=0, le=1024)      # 0: one per CPU core (a short run: fewer, see worker_count)
+
+# Settings that change how a run is carried out, not which landings it flies (not part of the resume key).
+RUN_ONLY = ('out', 'plot', 'workers')
 
 
 HELP = {
@@ -142,6 +154,8 @@ HELP = {
     'from_csv': 'fly nothing: combine the landings.csv files of earlier runs (e.g. one condition split '
                 'over processes by --betas; a landing in a later file replaces the same condition, beta '
                 'and seed in an earlier one) into one table, summary.csv and plot',
+    'workers': 'processes flying landings side by side (0: one per CPU core, one per 8 landings for a short run); '
+               'every landing is flown from its own seed, so the rows are those of a one-process run',
     'record_dir': 'save every landing as a rosbag2 bag (the graph\'s topics and types) in this directory, '
                   'named <condition>_beta<beta>_seed<seed>: replay_assist / plot_flight take any of them',
 }
@@ -362,22 +376,33 @@ def format_table(summary: dict[str, dict]) -> str:
 
 
 def plot(rows_by_cond: dict[str, list[dict]], path: Path) -> None:
-    """Mean landing error (+- std band) against beta per condition, like the paper's Fig. 5."""
+    """Against pilot skill beta, per condition: the landing error's median with its inter-quartile band (the
+    error is heavy-tailed, so a mean +- std band would dip below zero), goal-pad success and crash rates."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    fig, (ax, ax_s, ax_c) = plt.subplots(3, 1, figsize=(6.4, 7.2), sharex=True,
+                                         gridspec_kw={'height_ratios': [2, 1, 1]})
     for cond, rows in rows_by_cond.items():
         betas = sorted({r['beta'] for r in rows})
-        m = np.array([np.mean([r['error_m'] for r in rows if r['beta'] == b]) for b in betas])
-        s = np.array([np.std([r['error_m'] for r in rows if r['beta'] == b]) for b in betas])
-        ax.plot(betas, m, marker='o', ms=3, label=cond)
-        ax.fill_between(betas, m - s, m + s, alpha=0.15)
-    ax.set_xlabel('pilot skill beta (alpha = 0.5)')
-    ax.set_ylabel('landing error (m)')
+        by_beta = [[r for r in rows if r['beta'] == b] for b in betas]
+        q1, med, q3 = np.array([np.percentile([r['error_m'] for r in rs], [25, 50, 75]) for rs in by_beta]).T
+        line, = ax.plot(betas, med, marker='o', ms=3, label=cond)
+        ax.fill_between(betas, q1, q3, alpha=0.15, color=line.get_color())
+        ax_s.plot(betas, [100 * np.mean([r['success'] for r in rs]) for rs in by_beta], marker='o', ms=3,
+                  color=line.get_color())
+        ax_c.plot(betas, [100 * np.mean([r['crash'] for r in rs]) for rs in by_beta], marker='o', ms=3,
+                  color=line.get_color())
+    ax.set_ylabel('landing error (m)\nmedian, IQR band')
     ax.set_ylim(bottom=0)
-    ax.grid(alpha=0.3)
-    ax.legend()
+    ax_s.set_ylabel('goal-pad\nsuccess (%)')
+    ax_c.set_ylabel('crash (%)')
+    for a in (ax_s, ax_c):
+        a.set_ylim(-3, 103)
+    ax_c.set_xlabel('pilot skill beta (alpha = 0.5)')
+    for a in (ax, ax_s, ax_c):
+        a.grid(alpha=0.3)
+    ax.legend(fontsize=8)
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=120)
@@ -401,37 +426,10 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
         if cond not in CONDITIONS + BASELINES:
             raise ValueError(f'unknown condition {cond!r}; choose from {CONDITIONS + BASELINES}')
     results = None if args.from_csv else LandingLog(out, {k: v for k, v in dataclasses.asdict(args).items()
-                                                          if k not in ('out', 'plot')})
+                                                          if k not in RUN_ONLY})
     try:
-        for cond in () if args.from_csv else args.conditions:
-            model = getattr(args, f'{cond}_model', '') if cond in CONDITIONS[1:] else ''
-            on = {rule: rule_on(getattr(args, rule), cond) for rule in ('override', 'recall', 'damper')}
-            try:
-                env, policy = make_policy(cond, model, args.encoder_path, args.max_episode_s, args.alpha,
-                                          args.pilot, SafetyConfig() if args.safety else None,
-                                          OverrideConfig() if on['override'] else None,
-                                          RecallConfig() if on['recall'] else None,
-                                          DamperConfig() if on['damper'] else None)
-            except ValueError as exc:
-                log.warning('skipping %s: %s', cond, exc)
-                continue
-            t0 = time.time()
-            rows = []
-            name = condition_name(cond, args.safety, on)
-            for bi, beta in enumerate(args.betas):
-                for k in range(args.landings):
-                    seed = args.seed + 1000 * bi + k
-                    row = results.flown(name, float(beta), seed)
-                    if row is None:
-                        row = (record_landing(run_landing, env, policy, seed, float(beta), name, args.record_dir)
-                               if args.record_dir else run_landing(env, policy, seed, float(beta)))
-                        row['condition'] = name
-                        results.write(row)
-                    rows.append(row)
-                results.sync()
-            env.close()
-            rows_by_cond[name] = rows
-            log.info('%s: %d landings in %.0f s', cond, len(rows), time.time() - t0)
+        if not args.from_csv:
+            rows_by_cond.update(fly_plan(args, results))
     finally:
         if results is not None:
             results.close()
@@ -440,6 +438,156 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
     elif rows_by_cond:
         write_landings(out / 'landings.csv', rows_by_cond)
     return write_results(out, rows_by_cond, args.plot)
+
+
+@dataclasses.dataclass(frozen=True)
+class LandingTask:
+    """One landing of the plan: condition `cond` (row name `name`) at pilot skill `beta` from `seed`."""
+
+    cond: str
+    name: str
+    beta: float
+    seed: int
+
+
+def landing_plan(args: EvalArgs) -> list[LandingTask]:
+    """Every landing of a run in the one-process order: condition, then beta, then landing (seed + 1000 b + k)."""
+    tasks = []
+    for cond in args.conditions:
+        on = {rule: rule_on(getattr(args, rule), cond) for rule in ('override', 'recall', 'damper')}
+        name = condition_name(cond, args.safety, on)
+        for bi, beta in enumerate(args.betas):
+            tasks += [LandingTask(cond, name, float(beta), args.seed + 1000 * bi + k) for k in range(args.landings)]
+    return tasks
+
+
+class LandingFlyer:
+    """Flies landings in this process: one env and assistant per condition, made on its first landing."""
+
+    def __init__(self, args: EvalArgs) -> None:
+        self.args = args
+        self.made: dict[str, tuple] = {}
+
+    def fly(self, task: LandingTask) -> dict:
+        """The landing's row (ValueError when the condition's assistant cannot be made, e.g. no model)."""
+        a = self.args
+        if task.cond not in self.made:
+            model = getattr(a, f'{task.cond}_model', '') if task.cond in CONDITIONS[1:] else ''
+            on = {rule: rule_on(getattr(a, rule), task.cond) for rule in ('override', 'recall', 'damper')}
+            self.made[task.cond] = make_policy(task.cond, model, a.encoder_path, a.max_episode_s, a.alpha, a.pilot,
+                                               SafetyConfig() if a.safety else None,
+                                               OverrideConfig() if on['override'] else None,
+                                               RecallConfig() if on['recall'] else None,
+                                               DamperConfig() if on['damper'] else None)
+        env, policy = self.made[task.cond]
+        row = (record_landing(run_landing, env, policy, task.seed, task.beta, task.name, a.record_dir)
+               if a.record_dir else run_landing(env, policy, task.seed, task.beta))
+        row['condition'] = task.name
+        return row
+
+    def close(self) -> None:
+        """Close every env this flyer made."""
+        for env, _ in self.made.values():
+            env.close()
+        self.made.clear()
+
+
+_FLYER: LandingFlyer | None = None
+
+
+def _worker_start(args: EvalArgs) -> None:
+    """Worker process initialiser: one torch thread (the workers are the parallelism), a flyer."""
+    global _FLYER
+    torch.set_num_threads(1)
+    logging.basicConfig(level=logging.WARNING, format='%(levelname)s %(name)s: %(message)s')
+    _FLYER = LandingFlyer(args)
+
+
+def _worker_fly(task: LandingTask) -> dict:
+    return _FLYER.fly(task)
+
+
+# A worker process spends ~5 s importing torch and building its envs (about three landings' worth): with
+# `--workers 0` a run gets another process for every this many landings, up to one per CPU core.
+LANDINGS_PER_AUTO_WORKER = 8
+
+
+def worker_count(requested: int, landings: int) -> int:
+    """Processes to fly `landings` with: `requested` (never more than the landings), or for 0 one per CPU core,
+    fewer for a short run (LANDINGS_PER_AUTO_WORKER)."""
+    if requested:
+        return max(1, min(requested, landings))
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else (os.cpu_count() or 1)
+    return max(1, min(cores, landings // LANDINGS_PER_AUTO_WORKER))
+
+
+def fly_plan(args: EvalArgs, results: LandingLog) -> dict[str, list[dict]]:
+    """Fly every landing of the plan not already in `results` (each written there as it lands), on
+    `args.workers` processes, with a progress bar; the rows per condition in plan order. A condition whose
+    assistant cannot be made is skipped with a warning."""
+    plan = landing_plan(args)
+    rows = {t: results.flown(t.name, t.beta, t.seed) for t in plan}
+    todo = [t for t in plan if rows[t] is None]
+    skipped: set[str] = set()
+    workers = worker_count(args.workers, len(todo))
+    started = {t.cond: time.time() for t in plan}
+    bar = tqdm(total=len(plan), initial=len(plan) - len(todo), desc='evaluate', unit='landing', file=sys.stderr,
+               mininterval=1.0, dynamic_ncols=False, disable=None)
+
+    def landed(task: LandingTask, row: dict | None, exc: Exception | None) -> None:
+        if exc is not None:
+            if task.cond not in skipped:
+                log.warning('skipping %s: %s', task.cond, exc)
+            skipped.add(task.cond)
+            return
+        rows[task] = row
+        results.write(row)
+        bar.update(1)
+
+    with logging_redirect_tqdm():
+        try:
+            if workers == 1:
+                flyer = LandingFlyer(args)
+                try:
+                    for task in todo:
+                        if task.cond in skipped:
+                            continue
+                        try:
+                            row = flyer.fly(task)
+                        except ValueError as exc:
+                            landed(task, None, exc)
+                            continue
+                        landed(task, row, None)
+                finally:
+                    flyer.close()
+            else:
+                log.info('flying %d landings on %d processes', len(todo), workers)
+                ctx = multiprocessing.get_context('spawn')
+                with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_start,
+                                         initargs=(args,)) as pool:
+                    futures = {pool.submit(_worker_fly, t): t for t in todo}
+                    try:
+                        for fut in as_completed(futures):
+                            task = futures[fut]
+                            exc = fut.exception()
+                            if exc is not None and not isinstance(exc, ValueError):
+                                raise exc
+                            landed(task, None if exc else fut.result(), exc)
+                    except BaseException:
+                        for fut in futures:
+                            fut.cancel()
+                        raise
+        finally:
+            results.sync()
+            bar.close()
+    out: dict[str, list[dict]] = {}
+    for task in plan:
+        if task.cond not in skipped and rows[task] is not None:
+            out.setdefault(task.name, []).append(rows[task])
+    for cond in dict.fromkeys(t.cond for t in plan):
+        if cond not in skipped:
+            log.info('%s: landings done in %.0f s', cond, time.time() - started[cond])
+    return out
 
 
 def write_results(out: Path, rows_by_cond: dict[str, list[dict]], with_plot: bool = True) -> dict[str, dict]:

@@ -103,3 +103,23 @@ def test_bad_values_exit_2_and_never_replace_results(flags, tmp_path, capsys):
     assert sorted(p.name for p in out.iterdir()) == ['landings.csv']
     with pytest.raises(ValueError):                      # the library call refuses them too
         evaluate(EvalArgs(out=str(out), landings=0))
+
+
+def test_two_worker_processes_fly_the_rows_of_one(tmp_path):
+    """Landings are independent tasks keyed by (condition, beta, seed): two processes give byte-identical rows."""
+    flags = ['--conditions', 'unassisted', 'oracle', '--betas', '0', '1', '--landings', '2', '--max-episode-s', '12',
+             '--plot', 'false']
+    assert main(['--out', str(tmp_path / 'one'), '--workers', '1', *flags]) == 0
+    assert main(['--out', str(tmp_path / 'two'), '--workers', '2', *flags]) == 0
+    one = (tmp_path / 'one' / 'landings.csv').read_text()
+    assert one == (tmp_path / 'two' / 'landings.csv').read_text()
+    assert len(one.splitlines()) == 1 + 8
+
+
+def test_auto_workers_scale_with_the_plan(monkeypatch):
+    from assist_policy import evaluate as ev
+    monkeypatch.setattr(ev.os, 'sched_getaffinity', lambda pid: {0, 1, 2, 3})
+    assert ev.worker_count(0, 5) == 1            # a short run stays in this process
+    assert ev.worker_count(0, 16) == 2
+    assert ev.worker_count(0, 840) == 4          # one per core
+    assert ev.worker_count(3, 2) == 2 and ev.worker_count(3, 100) == 3
