@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from assist_common.atomic import atomic_path, remove_stale_temporaries, truncate_csv, write_text_atomic
+from assist_common.curves import plot_curves
 
 from assist_common.settings import SettingsError, check_settings, exit_error, flag, parse_settings, setting
 from .dataset import FrameSet, load_frames, split_by_scene
@@ -289,6 +290,9 @@ def train(cfg: TrainConfig, frames: FrameSet | None = None, progress: bool = Tru
             w.writerow(row)
             fh.flush()
             os.fsync(fh.fileno())       # durable before the checkpoint that counts it
+        plot_curves(metrics_file, run / 'learning_curve.png', 'epoch',
+                    [['train_loss', 'val_loss'], ['train_depth_loss', 'val_depth_loss'],
+                     ['train_xyz_loss', 'val_xyz_loss']], title=f'train_cmvae {run.name}')
         meta = {'epoch': epoch + 1, 'train_frames': int(len(train_idx)), 'val_frames': int(len(val_idx)),
                 'data_dir': cfg.data_dir, 'train_seconds': round(elapsed, 1),
                 **{k: float(v) for k, v in val.items()}}

@@ -44,6 +44,7 @@ def test_loss_goes_down_and_files_are_written(frames, tmp_path):
     assert float(last['val_loss']) < float(first['val_loss'])
     for name in ('config.json', 'checkpoint.pt', 'best.pt', 'model.pt'):
         assert (run / name).is_file()
+    assert (run / 'learning_curve.png').read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
     model = load_model(run / 'model.pt')
     assert model.metadata['epoch'] == 8 and model.metadata['val_frames'] > 0
 

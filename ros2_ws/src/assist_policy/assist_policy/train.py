@@ -36,6 +36,7 @@ from tqdm import tqdm
 
 from assist_common.atomic import (CsvLog, atomic_dir, atomic_path, committed_dir, remove_stale_temporaries,
                                   truncate_csv, write_text_atomic)
+from assist_common.curves import plot_curves
 from assist_perception.model import load_training_state
 from assist_sim.pilots import HELDOUT_FAMILIES, TRAIN_FAMILIES
 
@@ -570,13 +571,20 @@ def train(args: TrainArgs, given: Collection[str] | None = None) -> Path:
     evals = CsvLog(run_dir / 'eval.csv', ['episode', 'step', 'eval_error_mean', 'eval_error_std',
                                           'eval_success', 'eval_crash', 'eval_active', 'wall_s'])
     t0 = time.time()
-    bar = tqdm(total=args.total_steps, initial=step, desc=args.name, mininterval=30, file=sys.stderr,
-               unit='step', dynamic_ncols=False)
+    bar = tqdm(total=args.total_steps, initial=min(step, args.total_steps), desc=args.name, mininterval=2,
+               file=sys.stderr, unit='step', dynamic_ncols=False)
     update_credit = 0.0
+
+    def draw_curves() -> None:
+        plot_curves(run_dir / 'eval.csv', run_dir / 'learning_curve.png', 'step',
+                    [['eval_error_mean'], ['eval_success', 'eval_crash']], title=f'train_td3 {args.name}: evaluations')
+        plot_curves(run_dir / 'metrics.csv', run_dir / 'training_landings.png', 'episode', [['error_m'], ['return']],
+                    title=f'train_td3 {args.name}: training landings', smooth=50)
 
     def checkpoint() -> None:
         metrics.sync()
         evals.sync()
+        draw_curves()
         save_checkpoint(run_dir, agent, buffer if args.save_buffer else None, step, episode, best)
         save_actor(agent.actor, agent.meta, run_dir / 'actor_last.pt')
 
@@ -591,6 +599,8 @@ def train(args: TrainArgs, given: Collection[str] | None = None) -> Path:
         msg = (f'step {step} ep {episode} eval err {ev["eval_error_mean"]:.3f} '
                f'succ {ev["eval_success"]:.2f} crash {ev["eval_crash"]:.2f} best {best:.3f}')
         write_text_atomic(run_dir / 'progress.txt', msg + '\n')
+        evals.sync()
+        draw_curves()
         log.info(msg)
 
     try:
@@ -613,7 +623,8 @@ def train(args: TrainArgs, given: Collection[str] | None = None) -> Path:
                 step += 1
                 n_steps += 1
                 n_active += int(sinfo['active'])
-                bar.update(1)
+                if step <= args.total_steps:        # the landing under way finishes past the budget
+                    bar.update(1)
                 if buffer.size >= agent.cfg.batch_size and step >= min(args.start_steps, 1000):
                     update_credit += args.updates_per_step
                     while update_credit >= 1.0:
@@ -639,6 +650,8 @@ def train(args: TrainArgs, given: Collection[str] | None = None) -> Path:
                            'wall_s': round(time.time() - t0, 1)})
             if episode % args.eval_every_episodes == 0 and step >= args.start_steps:
                 run_eval()
+        if not math.isfinite(best):     # no evaluation ran: evaluate the final actor (progress.txt, actor_best.pt)
+            run_eval()
         checkpoint()
     finally:
         bar.close()

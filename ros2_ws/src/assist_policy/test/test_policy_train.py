@@ -38,6 +38,14 @@ def test_train_writes_run_dir_and_resumes(tmp_path):
     assert len(rows) >= 3 and all(r['outcome'] for r in rows)
     actor, meta = load_actor(run / 'actor_last.pt')
     assert meta['condition'] == 'oracle' and meta['vec_dim'] == 16
+    # no periodic evaluation ran (every 1000 landings): the final actor is evaluated, so the run still has
+    # its progress line, a best actor and the figures
+    evals = list(csv.DictReader(open(run / 'eval.csv')))
+    assert len(evals) == 1 and int(evals[0]['step']) == state['step']
+    assert (run / 'progress.txt').read_text().startswith(f"step {state['step']} ")
+    assert load_actor(run / 'actor_best.pt')[1]['eval']['step'] == state['step']
+    for png in ('learning_curve.png', 'training_landings.png'):
+        assert (run / png).read_bytes()[:8] == b'\x89PNG\r\n\x1a\n', png
     # resume with a larger budget: continues from the checkpoint (steps and episodes keep counting)
     train(TrainArgs(resume=str(run), total_steps=700))
     state2, _ = load_checkpoint(run)
