@@ -6,7 +6,8 @@ change, or two actors) are paired on (beta, seed). The report: each side's error
 goal-pad success / crash, the paired error difference with its standard error and a Wilcoxon
 signed-rank test, success and crash flips with an exact McNemar test (binomial on the discordant
 pairs), the same per pilot family when the rows name one, and every landing whose outcome changed or
-whose error moved more than --worse-m. ``--out`` writes the pairs as CSV.
+whose error moved more than --worse-m. ``--out`` writes the pairs as CSV, ``--plot`` draws them (errors
+A against B, the paired difference's distribution).
 
     compare_landings --a runs/old/m7 runs/old/m99 --b runs/new/m7 runs/new/m99
     compare_landings --a runs/ev/landings.csv --condition-a unassisted --b runs/ev/landings.csv \\
@@ -137,6 +138,44 @@ def write_pairs(path: Path, pairs: list[tuple[dict, dict]]) -> None:
                         b['error_m'], round(b['error_m'] - a['error_m'], 4)])
 
 
+def plot_pairs(path: Path, pairs: list[tuple[dict, dict]], a: str, b: str) -> None:
+    """The paired comparison as a figure: each landing's error in A against B (goal-pad success marked per
+    side), and the distribution of the paired difference B - A."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    ea = np.array([x['error_m'] for x, _ in pairs])
+    eb = np.array([y['error_m'] for _, y in pairs])
+    kind = np.array([2 * bool(x['success']) + bool(y['success']) for x, y in pairs])
+    fig, (ax, hx) = plt.subplots(1, 2, figsize=(10.0, 4.4))
+    for k, (label, colour) in enumerate((('neither on the goal pad', 'tab:gray'), ('B only', 'tab:green'),
+                                         ('A only', 'tab:red'), ('both', 'tab:blue'))):
+        m = kind == k
+        if m.any():
+            ax.scatter(ea[m], eb[m], s=12, alpha=0.7, color=colour, label=f'{label} ({int(m.sum())})')
+    top = max(float(ea.max()), float(eb.max()), 0.1) * 1.05
+    ax.plot([0, top], [0, top], color='k', lw=0.8, ls='--')
+    ax.set_xlim(0, top)
+    ax.set_ylim(0, top)
+    ax.set_xlabel(f'A error (m): {a}', fontsize=8)
+    ax.set_ylabel(f'B error (m): {b}', fontsize=8)
+    ax.legend(fontsize=7, title='goal-pad success', title_fontsize=7)
+    ax.grid(alpha=0.3)
+    d = eb - ea
+    hx.hist(d, bins=min(40, max(5, len(d) // 4)), color='tab:purple', alpha=0.8)
+    hx.axvline(0.0, color='k', lw=0.8)
+    hx.axvline(float(np.median(d)), color='tab:orange', lw=1.2, label=f'median {np.median(d):+.3f} m')
+    hx.set_xlabel('paired error difference B - A (m)')
+    hx.set_ylabel('landings')
+    hx.legend(fontsize=8)
+    hx.grid(alpha=0.3)
+    fig.suptitle(f'{len(pairs)} landings flown by both', fontsize=9)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format='png')
+    plt.close(fig)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Console entry point: compare_landings --a ... --b ... (exit 2 with one line on bad input)."""
     logging.basicConfig(level=logging.INFO, format='%(levelname)s %(name)s: %(message)s')
@@ -148,6 +187,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--condition-b', default=None, help='condition of B (default: its only assisted one)')
     ap.add_argument('--worse-m', type=float, default=0.25, help='list landings whose error moved more than this')
     ap.add_argument('--out', default='', help='write the pairs to this CSV')
+    ap.add_argument('--plot', default='', help='draw the paired comparison into this PNG')
     args = ap.parse_args(argv)
     try:
         a, b = load_side(args.a, args.condition_a), load_side(args.b, args.condition_b)
@@ -159,6 +199,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.out:
         write_pairs(Path(args.out), pairs)
         log.info('pairs written to %s', args.out)
+    if args.plot:
+        plot_pairs(Path(args.plot), pairs, a.condition, b.condition)
+        log.info('figure written to %s', args.plot)
     return 0
 
 

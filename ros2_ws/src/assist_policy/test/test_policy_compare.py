@@ -63,3 +63,10 @@ def test_cli_writes_pairs_and_refuses_bad_input_in_one_line(runs, tmp_path, caps
     assert 'name one with --condition-a/-b' in capsys.readouterr().err
     assert main(['--a', str(old), '--b', str(old)]) == 0                   # a run against itself: all equal
     assert 'changed (outcome, or error moved > 0.25 m): 0' in capsys.readouterr().out
+
+
+def test_cli_draws_the_paired_comparison(runs, tmp_path):
+    old, new = runs
+    png = tmp_path / 'pairs.png'
+    assert main(['--a', str(old), '--condition-a', 'unassisted', '--b', str(new), '--plot', str(png)]) == 0
+    assert png.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n' and png.stat().st_size > 10_000
