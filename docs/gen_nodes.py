@@ -22,6 +22,8 @@ NODES = {
     'mavlink_bridge_node': 'assist_bridge.mavlink_bridge_node',
     'teleop_keyboard': 'assist_bridge.teleop_keyboard',
     'landing_runner': 'assist_bridge.landing_runner',
+    'image_relay': 'assist_bridge.image_relay',
+    'image_decoder': 'assist_bridge.image_decoder',
     'pilot_station': 'assist_station.pilot_station',
 }
 

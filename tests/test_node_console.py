@@ -24,6 +24,8 @@ NODES = {
     'teleop_keyboard': ('assist_bridge', 'assist_bridge.teleop_keyboard'),
     'pilot_station': ('assist_station', 'assist_station.pilot_station'),
     'landing_runner': ('assist_bridge', 'assist_bridge.landing_runner'),
+    'image_relay': ('assist_bridge', 'assist_bridge.image_relay'),
+    'image_decoder': ('assist_bridge', 'assist_bridge.image_decoder'),
 }
 
 

@@ -49,6 +49,8 @@ ONBOARD = {
     'teleop_keyboard': (['--ros-args', '-p', 'speed:=-1.0'], 'not a terminal'),   # stdin is not a TTY here
     'landing_runner': (['--ros-args', '-p', 'episodes:=-1'], "'episodes'"),
     'pilot_station': (['--ros-args', '-p', 'port:=-1'], "'port'"),
+    'image_relay': (['--ros-args', '-p', 'rate_hz:=-1.0'], "'rate_hz'"),
+    'image_decoder': (['--ros-args', '-p', 'color_topic:=7'], "'color_topic'"),
 }
 
 

@@ -36,6 +36,7 @@ NODES = {
     'encoder_node': 'assist_perception.encoder_node', 'policy_node': 'assist_policy.policy_node',
     'mavlink_bridge_node': 'assist_bridge.mavlink_bridge_node', 'teleop_keyboard': 'assist_bridge.teleop_keyboard',
     'landing_runner': 'assist_bridge.landing_runner', 'pilot_station': 'assist_station.pilot_station',
+    'image_relay': 'assist_bridge.image_relay', 'image_decoder': 'assist_bridge.image_decoder',
 }
 STOPPED_BY_CTRL_C = {'bag_record': 4.0, 'bag_play': 4.0}     # seconds they run before the Ctrl-C
 

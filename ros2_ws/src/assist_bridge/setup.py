@@ -28,6 +28,8 @@ setup(
             'mavlink_bridge_node = assist_bridge.entry_points:mavlink_bridge_node',
             'teleop_keyboard = assist_bridge.entry_points:teleop_keyboard',
             'landing_runner = assist_bridge.entry_points:landing_runner',
+            'image_relay = assist_bridge.entry_points:image_relay',
+            'image_decoder = assist_bridge.entry_points:image_decoder',
         ],
     },
 )

@@ -5,3 +5,5 @@ from assist_common.console import quiet_main
 mavlink_bridge_node = quiet_main('assist_bridge.mavlink_bridge_node')
 teleop_keyboard = quiet_main('assist_bridge.teleop_keyboard')
 landing_runner = quiet_main('assist_bridge.landing_runner')
+image_relay = quiet_main('assist_bridge.image_relay')
+image_decoder = quiet_main('assist_bridge.image_decoder')

@@ -18,9 +18,9 @@ import cv2
 import numpy as np
 import torch
 
+from assist_common.images import COLOR_ENCODINGS, DEPTH_ENCODINGS, BadFrame, decode_color, decode_depth  # noqa: F401
 from assist_common.shipped import shipped_model_path
 
-from .images import COLOR_ENCODINGS, DEPTH_ENCODINGS, BadFrame, decode_color, decode_depth  # noqa: F401
 from .model import CMVAE, load_model, preprocess
 from .onnx_backend import OnnxMuXyz, resolve_backend
 

@@ -38,7 +38,7 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import Float32MultiArray
 from std_srvs.srv import Trigger
 
-from assist_perception.images import decode_color, decode_depth
+from assist_common.images import decode_color, decode_depth
 from assist_common.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, STAMP_TOLERANCE_S, Diagnostics, Param,
                                       StartupError, stamp_problem, declare_parameters, executor_param, exit_process,
                                       fill_twist, realtime_priority_param, run_node, twist_to_array)
