@@ -40,10 +40,17 @@ GROUPS = [['README.md', 'ros2_ws/src/assist_sim/README.md', 'ros2_ws/src/assist_
           ['models/td3_latent_actor.md', 'models/td3_oracle_actor.md', 'models/td3_end_to_end_actor.md']]
 DOCUMENTS = [doc for group in GROUPS for doc in group]
 SHELL_BLOCK = re.compile(r'^```(?:bash|sh|shell)\n(.*?)^```', re.S | re.M)
-PROGRAMS = ['evaluate', 'evaluate_graph', 'compare_landings', 'train_td3', 'replay_assist', 'plot_flight',
-            'bag_record', 'bag_play', 'make_dataset', 'train_cmvae', 'evaluate_cmvae',
-            'sim_node', 'sim_pilot_node', 'encoder_node', 'policy_node', 'mavlink_bridge_node',
-            'teleop_keyboard', 'landing_runner', 'pilot_station']
+
+
+def console_scripts() -> list[str]:
+    """Every executable the workspace's packages install (their setup.py console_scripts)."""
+    names = []
+    for setup in sorted((REPO / 'ros2_ws' / 'src').glob('*/setup.py')):
+        names += re.findall(r"'(\w+) = [\w.]+:\w+'", setup.read_text())
+    return names
+
+
+PROGRAMS = console_scripts()
 UNAVAILABLE = {'sim_vehicle.py'}        # ArduPilot SITL: checked by hand (assist_bridge README)
 
 

@@ -31,13 +31,18 @@ REPO = Path(os.environ['DOC_SHIM_REPO'])
 REAL_BIN = Path(os.environ['DOC_SHIM_REAL_BIN'])
 LOG = Path(os.environ['DOC_SHIM_LOG'])
 STARTED = time.monotonic()
-NODES = {
-    'sim_node': 'assist_sim.sim_node', 'sim_pilot_node': 'assist_sim.sim_pilot_node',
-    'encoder_node': 'assist_perception.encoder_node', 'policy_node': 'assist_policy.policy_node',
-    'mavlink_bridge_node': 'assist_bridge.mavlink_bridge_node', 'teleop_keyboard': 'assist_bridge.teleop_keyboard',
-    'landing_runner': 'assist_bridge.landing_runner', 'pilot_station': 'assist_station.pilot_station',
-    'image_relay': 'assist_bridge.image_relay', 'image_decoder': 'assist_bridge.image_decoder',
-}
+
+
+def _node_modules() -> dict[str, str]:
+    """node executable -> module with its PARAMS: docs/gen_nodes.py's list (the one docs/nodes.md is made from)."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location('gen_nodes', REPO / 'docs' / 'gen_nodes.py')
+    gen_nodes = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gen_nodes)
+    return {exe: module for exe, module in gen_nodes.NODES.items() if exe not in ('bag_record', 'bag_play')}
+
+
+NODES = _node_modules()
 STOPPED_BY_CTRL_C = {'bag_record': 4.0, 'bag_play': 4.0}     # seconds they run before the Ctrl-C
 
 
