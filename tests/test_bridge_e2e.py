@@ -1,4 +1,5 @@
 """End to end over UDP loopback: sim_node as the MAVLink vehicle + mavlink_bridge_node in a real graph."""
+import math
 import socket
 import threading
 import time
@@ -374,3 +375,56 @@ def test_signed_link_end_to_end(ros, start_node, wait, tmp_path):
         assert sim.proc.poll() is None and bridge.proc.poll() is None
     finally:
         probe.close()
+
+
+def test_mocap_poses_reach_the_autopilot_as_vision_estimates(ros, start_node, wait):
+    """PoseStamped (ENU) on mocap_topic -> VISION_POSITION_ESTIMATE (NED) at vision_rate_hz with the pose's
+    stamp; SET_GPS_GLOBAL_ORIGIN once the link is up; stale poses are refused and never sent."""
+    from geometry_msgs.msg import PoseStamped
+    port = free_udp_port()
+    bridge = start_node('mavlink_bridge_node', {'connection': f'udpin:127.0.0.1:{port}', 'mocap_topic': '/mocap/pose',
+                                                'vision_rate_hz': 20.0, 'ekf_origin': [47.3977, 8.5456, 488.0]})
+    vehicle = SilentAutopilot(port)
+    probe = BridgeProbe(ros)
+    pub = ros.create_publisher(PoseStamped, '/mocap/pose', SENSOR_QOS)
+    try:
+        assert wait(lambda: probe.diag_value('link') == 'up', 60.0), bridge.log()
+        assert wait(lambda: pub.get_subscription_count() > 0, 30.0), 'bridge never subscribed the mocap topic'
+        assert wait(lambda: vehicle.received('SET_GPS_GLOBAL_ORIGIN'), 10.0), bridge.log()[-2000:]
+        origin = vehicle.received('SET_GPS_GLOBAL_ORIGIN')[0][1]
+        assert (origin.latitude, origin.longitude, origin.altitude) == (473977000, 85456000, 488000)
+        stamps = set()
+
+        def pose(stamp_s: float) -> PoseStamped:
+            m = PoseStamped()
+            m.header.frame_id = 'mocap'
+            m.header.stamp.sec, m.header.stamp.nanosec = divmod(int(stamp_s * 1e9), 1_000_000_000)
+            m.pose.position.x, m.pose.position.y, m.pose.position.z = 1.0, 2.0, 0.5   # 1 m east, 2 m north
+            m.pose.orientation.z, m.pose.orientation.w = math.sin(math.pi / 4), math.cos(math.pi / 4)  # north
+            return m
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 2.0:        # a 100 Hz mocap for 2 s
+            now = time.time()
+            stamps.add(round(now * 1e6))
+            pub.publish(pose(now))
+            time.sleep(0.01)
+        assert wait(lambda: len(vehicle.received('VISION_POSITION_ESTIMATE')) >= 20, 10.0), bridge.log()[-2000:]
+        got = [m for _, m in vehicle.received('VISION_POSITION_ESTIMATE')]
+        assert len(got) <= 2.0 * 20 + 3                       # paced at vision_rate_hz, not the mocap's 100 Hz
+        m = got[-1]
+        assert (m.x, m.y, m.z) == pytest.approx((2.0, 1.0, -0.5), abs=1e-5)
+        assert abs(m.yaw) < 1e-5 and abs(m.roll) < 1e-5 and abs(m.pitch) < 1e-5
+        assert all(abs(g.usec - min(stamps, key=lambda s: abs(s - g.usec))) <= 1 for g in got)
+        assert m.covariance[0] == pytest.approx(1e-4) and m.reset_counter == 0
+        # stale poses (a mocap stream 1 s behind) are refused and counted; nothing more is sent
+        n = len(vehicle.received('VISION_POSITION_ESTIMATE'))
+        for _ in range(30):
+            pub.publish(pose(time.time() - 1.0))
+            time.sleep(0.01)
+        assert wait(lambda: int(probe.diag_value('mocap_rejected_stale') or 0) >= 10, 10.0), probe.diag
+        time.sleep(0.5)
+        assert len(vehicle.received('VISION_POSITION_ESTIMATE')) <= n + 1      # at most the last good one
+        assert bridge.proc.poll() is None
+    finally:
+        probe.close()
+        vehicle.close()

@@ -32,7 +32,7 @@ REAL_BIN = Path(sys.executable).parent
 # Documents in groups: within a group in order, in one scratch root (a later block uses what an earlier one
 # made); each group has its own scratch root, and the groups run two at a time.
 GROUPS = [['README.md', 'ros2_ws/src/assist_sim/README.md', 'ros2_ws/src/assist_bridge/README.md',
-           'ros2_ws/src/assist_station/README.md', 'bench/README.md'],
+           'ros2_ws/src/assist_station/README.md', 'bench/README.md', 'docs/deployment.md'],
           ['ros2_ws/src/assist_perception/README.md'],
           ['models/cmvae.md'],
           ['ros2_ws/src/assist_policy/README.md'],

@@ -501,6 +501,27 @@ class MavlinkBridge:
             return peer.system, peer.component
         return self.cfg.target_system, self.cfg.target_component
 
+    def send_vision(self, est) -> bool:
+        """Send one VISION_POSITION_ESTIMATE (assist_bridge.vision.VisionEstimate) if the link is up."""
+        with self._lock:
+            up = self.status.link_up
+        if not up:
+            return False
+        self._send('vision_position_estimate_send', est.usec, est.x, est.y, est.z, est.roll, est.pitch, est.yaw,
+                   list(est.covariance), est.reset_counter)
+        return True
+
+    def set_ekf_origin(self, lat_deg: float, lon_deg: float, alt_m: float) -> bool:
+        """SET_GPS_GLOBAL_ORIGIN: the EKF's origin, which external navigation without GPS needs (link up only)."""
+        with self._lock:
+            up = self.status.link_up
+        if not up:
+            return False
+        system, _ = self._target()
+        self._send('set_gps_global_origin_send', system, int(round(lat_deg * 1e7)), int(round(lon_deg * 1e7)),
+                   int(round(alt_m * 1000)))
+        return True
+
     def request_streams(self) -> None:
         """Ask the autopilot for the telemetry the bridge uses (both ways ArduPilot understands)."""
         self._last_stream_request = self._clock()

@@ -20,9 +20,10 @@ import concurrent.futures
 import logging
 import math
 import threading
+import time
 
 from diagnostic_msgs.msg import DiagnosticStatus
-from geometry_msgs.msg import TwistStamped
+from geometry_msgs.msg import PoseStamped, TwistStamped
 from nav_msgs.msg import Odometry
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy._rclpy_pybind11 import RCLError
@@ -36,6 +37,7 @@ from assist_common.ros_common import (RELIABLE_QOS, SENSOR_QOS, Diagnostics, Par
                                       exit_process, forward_logging, run_node, twist_to_array)
 
 from .bridge_core import LIMIT_FIELDS, BridgeConfig, MavlinkBridge, Odometry as CoreOdometry
+from .vision import VisionConfig, VisionForwarder
 
 SERVICE_QUEUE_DEPTH = 100   # requests each /uav/* service holds before DDS drops the oldest
 SERVICE_QOS = QoSProfile(depth=SERVICE_QUEUE_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
@@ -44,6 +46,7 @@ SERVICE_QOS = QoSProfile(depth=SERVICE_QUEUE_DEPTH, reliability=ReliabilityPolic
 # Parameters marked dynamic can be changed with `ros2 param set` (validated, applied at once);
 # the others are read-only (the set is refused).
 _SPEED = dict(min=0.0, min_exclusive=True, dynamic=True)
+_V = VisionConfig()
 PARAMS = {
     'connection': Param('udpin:127.0.0.1:14550', "Autopilot endpoint: 'udpin:HOST:PORT' (listen; loopback by "
                         "default), 'udpout:HOST:PORT', 'tcp:HOST:PORT' (SITL serves tcp:127.0.0.1:5760), "
@@ -95,6 +98,23 @@ PARAMS = {
                                   "answered at once with success=false, 'busy'.", min=1, max=SERVICE_QUEUE_DEPTH),
     'auto_guided': Param(False, 'Removed: the bridge never changes the flight mode on its own. Call /uav/guided '
                          '(or select GUIDED on the transmitter). true is refused at start-up.'),
+    'mocap_topic': Param('', 'geometry_msgs/PoseStamped of the vehicle in an ENU world frame from a motion-capture '
+                         'driver, forwarded as VISION_POSITION_ESTIMATE (external navigation); empty = off.'),
+    'vision_rate_hz': Param(_V.rate_hz, 'VISION_POSITION_ESTIMATE rate at most (ArduPilot wants >= 4 Hz).',
+                            min=4.0, max=100.0),
+    'vision_max_age_s': Param(_V.max_age_s, 'Poses older than this (stamp vs wall clock) are not sent.',
+                              min=0.01, max=2.0),
+    'vision_max_ahead_s': Param(_V.max_ahead_s, 'Pose stamps further in the future than this are refused.',
+                                min=0.0, max=1.0),
+    'vision_position_sigma_m': Param(_V.position_sigma_m, 'Position noise of the mocap (1 sigma, m): the '
+                                     'covariance sent.', min=0.0, max=10.0, min_exclusive=True),
+    'vision_angle_sigma_rad': Param(_V.angle_sigma_rad, 'Attitude noise of the mocap (1 sigma, rad).', min=0.0,
+                                    max=1.0, min_exclusive=True),
+    'vision_reset_jump_m': Param(_V.reset_jump_m, 'A jump larger than this between consecutive poses counts as a '
+                                 'reset (reset_counter + 1).', min=0.01, max=100.0),
+    'ekf_origin': Param([0.0], 'EKF origin [latitude deg, longitude deg, altitude m] sent as SET_GPS_GLOBAL_ORIGIN '
+                        'once the link is up (external navigation without GPS needs one); [0.0] = not sent.',
+                        item_type=float),
     'odom_frame': Param('odom', 'World frame id of /odom (ENU).'),
     'base_frame': Param('base_link', 'Body frame id of /odom and the accepted /cmd_vel frame (FLU).'),
 }
@@ -140,6 +160,19 @@ class MavlinkBridgeNode(Node):
                              ('force_disarm', self.bridge.force_disarm)):
             self.create_service(Trigger, f'/uav/{name}', self._srv(name, action), qos_profile=SERVICE_QOS,
                                 callback_group=services)
+        self.vision = None
+        if self.p['mocap_topic']:
+            self.vision = VisionForwarder(VisionConfig(
+                rate_hz=self.p['vision_rate_hz'], max_age_s=self.p['vision_max_age_s'],
+                max_ahead_s=self.p['vision_max_ahead_s'], position_sigma_m=self.p['vision_position_sigma_m'],
+                angle_sigma_rad=self.p['vision_angle_sigma_rad'], reset_jump_m=self.p['vision_reset_jump_m']))
+            self.vision_lock = threading.Lock()
+            self.create_subscription(PoseStamped, self.p['mocap_topic'], self._on_mocap, SENSOR_QOS)
+            self.create_timer(0.5 / self.p['vision_rate_hz'], self._send_vision)
+        origin = list(self.p['ekf_origin'])
+        if origin != [0.0] and (len(origin) != 3 or not (-90 <= origin[0] <= 90 and -180 <= origin[1] <= 180)):
+            raise StartupError(f'mavlink_bridge_node: ekf_origin must be [latitude, longitude, altitude], got {origin}')
+        self.origin_sent = origin == [0.0]
         self.create_timer(1.0, self._update_diagnostics)
         self.bridge.start()
         self.get_logger().info(f"waiting for the vehicle heartbeat on '{self.cfg.connection}' "
@@ -187,6 +220,19 @@ class MavlinkBridgeNode(Node):
             log.info(line)
 
     # ------------------------------------------------------------------ ROS inputs
+    def _on_mocap(self, msg: PoseStamped) -> None:
+        pos, q = msg.pose.position, msg.pose.orientation
+        with self.vision_lock:
+            why = self.vision.offer(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, (pos.x, pos.y, pos.z),
+                                    (q.x, q.y, q.z, q.w), time.time())
+        self.diag.count('mocap_in' if why is None else f'mocap_rejected_{why}')
+
+    def _send_vision(self) -> None:
+        with self.vision_lock:
+            est = self.vision.due(time.time())
+        if est is not None:
+            self.diag.count('vision_sent' if self.bridge.send_vision(est) else 'vision_link_down')
+
     def _on_cmd(self, msg: TwistStamped) -> None:
         if msg.header.frame_id not in ACCEPTED_CMD_FRAMES:
             self._reject(f"frame '{msg.header.frame_id}' is not base_link")
@@ -251,6 +297,11 @@ class MavlinkBridgeNode(Node):
             self.diag.set(k, v)
         for k, v in list(self.bridge.counters.items()):
             self.diag.set(k, v)
+        if snap['link'] == 'up' and not self.origin_sent:
+            lat, lon, alt = self.p['ekf_origin']
+            self.origin_sent = self.bridge.set_ekf_origin(lat, lon, alt)
+            if self.origin_sent:
+                self.get_logger().info(f'EKF origin sent: {lat:.7f}, {lon:.7f}, {alt:.1f} m')
         if snap['link'] == 'up':
             self.diag.status(DiagnosticStatus.OK, f"{snap['mode']} {'armed' if snap['armed'] else 'disarmed'}")
         elif snap['link'] == 'lost':

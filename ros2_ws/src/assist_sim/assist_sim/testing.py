@@ -149,10 +149,14 @@ class SilentAutopilot:
     Sends HEARTBEAT (GUIDED, armed) at 1 Hz and ATTITUDE (level, heading `yaw_ned_rad`) at 10 Hz to
     a bridge listening on `port`; records every SET_POSITION_TARGET_LOCAL_NED with the kernel's
     receive stamp (SO_TIMESTAMPNS, CLOCK_REALTIME: compare with time.time()), so the time is when
-    the datagram arrived, not when this receive thread woke up; and records COMMAND_LONG ids.
+    the datagram arrived, not when this receive thread woke up; records COMMAND_LONG ids; and keeps
+    every other message of the types in `keep` (`received(type)`).
     """
 
-    def __init__(self, port: int, yaw_ned_rad: float = 0.0):
+    def __init__(self, port: int, yaw_ned_rad: float = 0.0,
+                 keep: tuple[str, ...] = ('VISION_POSITION_ESTIMATE', 'SET_GPS_GLOBAL_ORIGIN')):
+        self.keep = set(keep)
+        self._kept: list[tuple[float, object]] = []
         self.conn = mavutil.mavlink_connection(f'udpout:127.0.0.1:{port}', source_system=1, source_component=1,
                                                dialect='ardupilotmega')
         self.yaw_ned_rad = float(yaw_ned_rad)
@@ -202,6 +206,8 @@ class SilentAutopilot:
                         self._setpoints.append((t, float(m.vx), float(m.vy)))
                     elif m.get_type() == 'COMMAND_LONG':
                         self._commands.append(int(m.command))
+                    elif m.get_type() in self.keep:
+                        self._kept.append((t, m))
 
     def _check(self) -> None:
         if self._error is not None:
@@ -218,6 +224,12 @@ class SilentAutopilot:
         self._check()
         with self._lock:
             return list(self._commands)
+
+    def received(self, mtype: str) -> list[tuple[float, object]]:
+        """(arrival time, message) of every kept message of type `mtype` so far."""
+        self._check()
+        with self._lock:
+            return [(t, m) for t, m in self._kept if m.get_type() == mtype]
 
     def close(self) -> None:
         """Stop both threads and close the link."""
