@@ -20,6 +20,8 @@ from pathlib import Path
 
 import pytest
 
+from assist_common.ros_common import RELIABLE_QOS
+
 pytestmark = pytest.mark.graph
 
 REPO = Path(__file__).resolve().parents[1]
@@ -180,6 +182,39 @@ def test_sim_mavlink_launch(ros, launch):
     wait_for_topics(ros, {'/odom': (Odom, None), '/camera/color/image_raw': (Image, None),
                           '/diagnostics': (Diag, from_node('mavlink_bridge_node'))}, lau)
     assert_clean_exit(lau.ctrl_c(), lau.output(), nodes=2)
+
+
+def test_onboard_and_base_station_split(ros, launch):
+    """The two-machine deployment on one domain: the vehicle side (sim as camera and Pixhawk, bridge, image
+    relay) and the base station (decoder, encoder, policy): relayed images reach the networks, the vehicle's
+    odometry reaches the base station, the policy's /cmd_vel is flown by the vehicle's bridge."""
+    Diag, Twist, Odom, Clock, Image, Floats = _types()
+    from geometry_msgs.msg import TwistStamped
+    vehicle = launch('assist_bridge', 'onboard.launch.py', 'camera:=sim', f'port:={free_udp_port()}')
+    base = launch('assist_station', 'base_station.launch.py', 'pilot:=none', 'sim_time:=true')
+    pilot = ros.create_publisher(TwistStamped, '/pilot/cmd_vel', RELIABLE_QOS)
+    stop = threading.Event()
+
+    def fly():                    # the pilot holds a forward key the whole time
+        while not stop.is_set():
+            msg = TwistStamped()
+            msg.header.frame_id = 'base_link'
+            msg.twist.linear.x = 0.5
+            pilot.publish(msg)
+            time.sleep(0.05)
+    flyer = threading.Thread(target=fly, daemon=True)
+    flyer.start()
+    try:
+        wait_for_topics(ros, {'/link/camera/depth/image_raw': (Image, lambda m: m.encoding == '16UC1'),
+                              '/assist/latent': (Floats, None), '/odom': (Odom, None),
+                              '/cmd_vel': (Twist, None),
+                              '/diagnostics': (Diag, from_node('image_relay'))}, base)
+        assert vehicle.proc.poll() is None, vehicle.output()[-4000:]
+    finally:
+        stop.set()
+        flyer.join(5)
+    assert_clean_exit(base.ctrl_c(), base.output(), nodes=3)
+    assert_clean_exit(vehicle.ctrl_c(), vehicle.output(), nodes=3)
 
 
 def test_station_launch_unassisted(ros, launch):
