@@ -12,7 +12,7 @@ PKG_INPUTS := $(foreach p,$(PKGS),ros2_ws/src/$(p)/setup.py ros2_ws/src/$(p)/set
 export ROS_DOMAIN_ID ?= 42
 export RMW_IMPLEMENTATION ?= rmw_fastrtps_cpp
 
-.PHONY: venv demo test lint bench soak colcon clean help browser
+.PHONY: venv demo test lint bench soak colcon clean help browser netns
 
 help:
 	@echo "make demo   - run the simulated landing demo (creates .venv)"
@@ -22,6 +22,7 @@ help:
 	@echo "make soak   - soak test: full assisted graph, 30 min sim time (ASSIST_SOAK_SIM_S=seconds to change)"
 	@echo "make colcon - build ros2_ws with colcon into ros2_ws/install"
 	@echo "make browser - install Chromium + ChromeDriver (Debian packages) for the pilot station browser test"
+	@echo "make netns  - install iproute2 + nftables (Debian packages) for the network-split test"
 
 venv: $(STAMP)
 
@@ -41,11 +42,17 @@ browser:
 	  SUDO=$$( [ "$$(id -u)" -eq 0 ] || echo sudo ); \
 	  $$SUDO apt-get update && $$SUDO apt-get install -y chromium chromium-driver; }
 
+# The network-split test needs iproute2 (ip netns, veth, tc) and nftables (loss where the kernel has no netem).
+netns:
+	@command -v ip >/dev/null && command -v tc >/dev/null && command -v nft >/dev/null || { \
+	  SUDO=$$( [ "$$(id -u)" -eq 0 ] || echo sudo ); \
+	  $$SUDO apt-get update && $$SUDO apt-get install -y iproute2 nftables; }
+
 # The style gate (ruff.toml); make test runs it first, so CI does too.
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 
-test: $(STAMP) browser lint
+test: $(STAMP) browser netns lint
 	$(PY) -m pytest
 
 bench: $(STAMP)

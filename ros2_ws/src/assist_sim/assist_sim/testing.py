@@ -154,8 +154,10 @@ class SilentAutopilot:
     """
 
     def __init__(self, port: int, yaw_ned_rad: float = 0.0,
-                 keep: tuple[str, ...] = ('VISION_POSITION_ESTIMATE', 'SET_GPS_GLOBAL_ORIGIN')):
+                 keep: tuple[str, ...] = ('VISION_POSITION_ESTIMATE', 'SET_GPS_GLOBAL_ORIGIN'),
+                 send_position: bool = False):
         self.keep = set(keep)
+        self.send_position = send_position      # also LOCAL_POSITION_NED (hovering at 1 m): the bridge's /odom
         self._kept: list[tuple[float, object]] = []
         self.conn = mavutil.mavlink_connection(f'udpout:127.0.0.1:{port}', source_system=1, source_component=1,
                                                dialect='ardupilotmega')
@@ -177,6 +179,8 @@ class SilentAutopilot:
                                              mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
                                              | mavlink.MAV_MODE_FLAG_SAFETY_ARMED, 4, mavlink.MAV_STATE_ACTIVE)
             self.conn.mav.attitude_send(n * 100, 0.0, 0.0, self.yaw_ned_rad, 0.0, 0.0, 0.0)
+            if self.send_position:
+                self.conn.mav.local_position_ned_send(n * 100, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0)
             n += 1
             time.sleep(0.1)
 
