@@ -183,9 +183,13 @@ def test_split_over_a_veth_link_with_netem_and_a_link_cut(netns_pair, tmp_path, 
         lat, lost = _latencies(r['sent'], setpoints, after=r['sent'][0][1] + 4.0,   # discovery settles first
                                until=r['sent'][-1][1] + 2.0)
         assert len(lat) >= 20, (phase, lost, (tmp_path / 'bridge.log').read_text()[-2000:])
+        frames = np.array(r['frames'])
+        age = frames[:, 1] - frames[:, 0] if len(frames) else np.zeros(0)     # camera -> base station, relay included
         report[phase] = {'p50_ms': round(1e3 * float(np.median(lat)), 1),
                          'p99_ms': round(1e3 * float(np.percentile(lat, 99)), 1),
-                         'changes': len(lat) + lost, 'lost': lost, 'odom': r['odom'], 'frames': len(r['frames'])}
+                         'changes': len(lat) + lost, 'lost': lost, 'odom': r['odom'], 'frames': len(r['frames']),
+                         'frame_age_p50_ms': round(1e3 * float(np.median(age)), 1) if len(age) else None,
+                         'frame_age_p99_ms': round(1e3 * float(np.percentile(age, 99)), 1) if len(age) else None}
         assert r['odom'] > 50 and len(r['frames']) > 50, (phase, r['odom'], len(r['frames']))
     assert report['clean']['p99_ms'] < 500 and report['clean']['lost'] == 0, report
     report['impairment'] = impaired or 'none (see the warning)'

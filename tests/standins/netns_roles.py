@@ -6,7 +6,7 @@
     netns_roles.py pilot OUT SECONDS          the base station: /cmd_vel at 20 Hz whose vx changes every 0.25 s
                                               (vx encodes the change's number), and counts /odom and relayed depth
                                               frames; writes {"sent": [[k, first_send_s, vx], ...], "odom": n,
-                                              "frames": [stamp_s, ...]} to OUT
+                                              "frames": [[stamp_s, arrival_s], ...]} to OUT
 Both stop at SECONDS or on SIGINT/SIGTERM, and write OUT then.
 """
 from __future__ import annotations
@@ -84,9 +84,9 @@ def pilot(out: str, seconds: float) -> None:
         with lock:
             seen['odom'] += 1
 
-    def on_frame(m):
+    def on_frame(m):                  # (camera stamp, arrival): the relay keeps the camera's header
         with lock:
-            seen['frames'].append(m.header.stamp.sec + m.header.stamp.nanosec * 1e-9)
+            seen['frames'].append([m.header.stamp.sec + m.header.stamp.nanosec * 1e-9, time.time()])
     node.create_subscription(Odometry, '/odom', on_odom, SENSOR_QOS)
     node.create_subscription(CompressedImage, '/camera/depth/image_raw/compressedDepth', on_frame, SENSOR_QOS)
     spin = threading.Thread(target=rclpy.spin, args=(node,), daemon=True)
