@@ -110,10 +110,14 @@ def test_ctrl_c_while_starting_exits_quietly(loading_heavy_libraries):
     import time
     env = dict(os.environ, ROS_DOMAIN_ID='106')
     tools = ('evaluate', 'train_td3', 'train_cmvae')
-    procs = {name: subprocess.Popen([str(BIN / name)], env=env, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+    # teleop_keyboard refuses to start without a terminal (exit 1, racing the signal): it gets a pseudo-terminal
+    terminal, tty = os.openpty()
+    procs = {name: subprocess.Popen([str(BIN / name)], env=env, stdout=subprocess.PIPE,
+                                    stdin=tty if name == 'teleop_keyboard' else subprocess.DEVNULL,
                                     stderr=subprocess.STDOUT, text=True,
                                     preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
              for name in (*NODES, *tools)}
+    os.close(tty)
     waiting = dict(procs)
     end = time.monotonic() + 120
     while waiting and time.monotonic() < end:
@@ -123,7 +127,10 @@ def test_ctrl_c_while_starting_exits_quietly(loading_heavy_libraries):
                 del waiting[name]
         time.sleep(0.005)
     assert not waiting, f'never loaded rclpy/torch/pybullet/cv2: {sorted(waiting)}'
-    for name, proc in procs.items():
-        out, _ = proc.communicate(timeout=120)
-        assert 'Traceback' not in out and 'KeyboardInterrupt' not in out, f'{name}:\n{out[-3000:]}'
-        assert proc.returncode == (130 if name in tools else 0), f'{name}: {proc.returncode}\n{out[-3000:]}'
+    try:
+        for name, proc in procs.items():
+            out, _ = proc.communicate(timeout=120)
+            assert 'Traceback' not in out and 'KeyboardInterrupt' not in out, f'{name}:\n{out[-3000:]}'
+            assert proc.returncode == (130 if name in tools else 0), f'{name}: {proc.returncode}\n{out[-3000:]}'
+    finally:
+        os.close(terminal)

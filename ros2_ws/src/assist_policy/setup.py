@@ -23,6 +23,7 @@ setup(
     ],
     package_data={PACKAGE: ['data/*']},
     install_requires=['setuptools'],
+    extras_require={'ray': ['ray==2.60.0']},   # evaluate --ray
     zip_safe=True,
     maintainer='Assisted landing maintainers',
     maintainer_email='maintainers@assist-landing.dev',

@@ -41,7 +41,8 @@ oscillation damper (assist_policy.damper) for the learned assistants: rows
     evaluate --pilot bang_bang --betas 0 0.25 0.5 0.75 1 --landings 8 --out runs/eval_bang_bang
 
 Landings are independent tasks keyed by (condition, beta, seed), flown from their own seeds: `--workers N`
-flies them on N processes with the rows of a one-process run, and a progress bar shows the run.
+flies them on N processes, `--ray ADDRESS` (or auto) as tasks on a Ray cluster, with the rows of a
+one-process run either way, and a progress bar shows the run.
 
 Results are crash-safe: landings go to <out>/landings.partial.csv as they are flown (the run's
 settings beside it in landings.partial.json); an earlier landings.csv stays untouched until the run
@@ -57,6 +58,7 @@ import json
 import logging
 import multiprocessing
 import os
+import socket
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -125,9 +127,10 @@ class EvalArgs:
     from_csv: tuple[str, ...] = ()
     record_dir: str = ''
     workers: int = setting(0, ge=0, le=1024)      # 0: one per CPU core (a short run: fewer, see worker_count)
+    ray: str = ''                                  # '' local processes; 'auto' a local Ray instance; or an address
 
 # Settings that change how a run is carried out, not which landings it flies (not part of the resume key).
-RUN_ONLY = ('out', 'plot', 'workers')
+RUN_ONLY = ('out', 'plot', 'workers', 'ray')
 
 
 HELP = {
@@ -154,6 +157,9 @@ HELP = {
     'from_csv': 'fly nothing: combine the landings.csv files of earlier runs (e.g. one condition split '
                 'over processes by --betas; a landing in a later file replaces the same condition, beta '
                 'and seed in an earlier one) into one table, summary.csv and plot',
+    'ray': 'fly the landings as tasks on a Ray cluster at this address (ray://HOST:10001 or HOST:6379; every '
+           'node needs this workspace installed), or auto to start a local Ray instance; empty: local processes '
+           '(--workers). Needs the optional ray package',
     'workers': 'processes flying landings side by side (0: one per CPU core, one per 8 landings for a short run); '
                'every landing is flown from its own seed, so the rows are those of a one-process run',
     'record_dir': 'save every landing as a rosbag2 bag (the graph\'s topics and types) in this directory, '
@@ -512,6 +518,56 @@ def _worker_fly(task: LandingTask) -> dict:
 LANDINGS_PER_AUTO_WORKER = 8
 
 
+def _ray_fly(args: EvalArgs, task: LandingTask) -> dict:
+    """A Ray task: fly one landing with this worker process's flyer (made on its first task for these args)."""
+    global _FLYER
+    if _FLYER is None or _FLYER.args != args:
+        if _FLYER is not None:
+            _FLYER.close()
+        torch.set_num_threads(1)
+        _FLYER = LandingFlyer(args)
+    return _FLYER.fly(task)
+
+
+def _fly_on_ray(args: EvalArgs, todo: list[LandingTask], landed) -> None:
+    """Every task of `todo` as a Ray task; `landed(task, row, error)` as each finishes (in finishing order)."""
+    try:
+        import ray
+        from ray.exceptions import RayTaskError
+    except ImportError as exc:
+        raise ValueError(f'--ray needs the ray package ({exc}); pip install "ray==2.60.0"') from None
+    if not ray.is_initialized() and args.ray != 'auto':
+        host, _, port = args.ray.removeprefix('ray://').rpartition(':')
+        try:                          # Ray retries an unreachable address for minutes: ask the socket first
+            socket.create_connection((host or '127.0.0.1', int(port)), timeout=5.0).close()
+        except (OSError, ValueError) as exc:
+            raise ValueError(f'--ray {args.ray}: cannot start or reach Ray: {exc}') from None
+    if not ray.is_initialized():
+        try:
+            ray.init(address=None if args.ray == 'auto' else args.ray, include_dashboard=False, log_to_driver=False,
+                     configure_logging=False)
+        except (ConnectionError, RuntimeError, ValueError) as exc:
+            raise ValueError(f'--ray {args.ray}: cannot start or reach Ray: {exc}') from None
+    log.info('flying %d landings on Ray (%s, %d CPUs)', len(todo), args.ray,
+             int(ray.cluster_resources().get('CPU', 0)))
+    fly = ray.remote(num_cpus=1)(_ray_fly)
+    args_ref = ray.put(args)
+    pending = {fly.remote(args_ref, t): t for t in todo}
+    try:
+        while pending:
+            done, _ = ray.wait(list(pending), num_returns=1)
+            task = pending.pop(done[0])
+            try:
+                landed(task, ray.get(done[0]), None)
+            except RayTaskError as exc:
+                if not isinstance(exc.cause, ValueError):
+                    raise
+                landed(task, None, exc.cause)
+    finally:
+        for ref in pending:
+            ray.cancel(ref)
+
+
 def worker_count(requested: int, landings: int) -> int:
     """Processes to fly `landings` with: `requested` (never more than the landings), or for 0 one per CPU core,
     fewer for a short run (LANDINGS_PER_AUTO_WORKER)."""
@@ -546,7 +602,9 @@ def fly_plan(args: EvalArgs, results: LandingLog) -> dict[str, list[dict]]:
 
     with logging_redirect_tqdm():
         try:
-            if workers == 1:
+            if args.ray and todo:
+                _fly_on_ray(args, todo, landed)
+            elif workers == 1:
                 flyer = LandingFlyer(args)
                 try:
                     for task in todo:
