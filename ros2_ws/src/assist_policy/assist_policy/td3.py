@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -223,11 +224,14 @@ class TD3:
         return out
 
     def behaviour_clone(self, obs: np.ndarray, act: np.ndarray, steps: int, batch: int = 256) -> float:
-        """Supervised actor pre-training on (obs, raw action) demonstrations; returns the final MSE."""
+        """Supervised actor pre-training on (obs, raw action) demonstrations; returns the final MSE (a progress
+        bar on stderr when it is a terminal)."""
+        from tqdm import tqdm
         obs_t = torch.as_tensor(np.asarray(obs, dtype=np.float32))
         act_t = torch.as_tensor(np.asarray(act, dtype=np.float32)).clamp(-0.999, 0.999)
         loss = torch.zeros(())
-        for _ in range(steps):
+        for _ in tqdm(range(steps), desc='behaviour cloning', unit='step', file=sys.stderr, mininterval=2,
+                      disable=None):
             idx = torch.as_tensor(self.rng.integers(0, len(obs_t), size=batch))
             loss = F.mse_loss(self.actor(obs_t[idx]), act_t[idx])
             self.actor_opt.zero_grad()

@@ -192,13 +192,14 @@ HELP = {
 
 
 def collect_demos(env: LandingAssistEnv, episodes: int, noise: float, seed: int, buffer: ReplayBuffer,
-                  demo_policy: str = 'oracle', act_fn=None, label_fn=None) -> tuple[np.ndarray, np.ndarray, list[dict]]:
+                  demo_policy: str = 'oracle', act_fn=None, label_fn=None,
+                  desc: str = 'demonstrations') -> tuple[np.ndarray, np.ndarray, list[dict]]:
     """Fly `episodes` landings into `buffer`; (obs, demonstrator actions, results).
 
     The demonstrator labels every state: the scripted assistant `demo_policy`, or for 'init_actor'
     `label_fn(obs)` (the starting actor, frozen: TD3+BC then anchors fine-tuning to it). It also flies
     (+ Gaussian `noise`) unless `act_fn(obs)` is given: then that policy flies and the demonstrator
-    only labels (DAgger).
+    only labels (DAgger). A progress bar (`desc`, landings) on stderr when it is a terminal.
     """
     if demo_policy not in DEMO_POLICIES:
         raise ValueError(f'demo_policy must be one of {", ".join(DEMO_POLICIES)}, got {demo_policy!r}')
@@ -208,7 +209,7 @@ def collect_demos(env: LandingAssistEnv, episodes: int, noise: float, seed: int,
               if demo_policy == 'oracle' else make_nearest_pad(demo_policy, max_speed=env.cfg.max_speed))
     rng = np.random.default_rng(seed)
     obs_l, act_l, results = [], [], []
-    for ep in range(episodes):
+    for ep in tqdm(range(episodes), desc=desc, unit='landing', file=sys.stderr, mininterval=2, disable=None):
         obs, _ = env.reset(seed=int(seed * 7919 + ep))
         while True:
             clean = np.asarray(label_fn(obs), dtype=float) if script is None else script.raw_action(env)
@@ -551,7 +552,8 @@ def train(args: TrainArgs, given: Collection[str] | None = None) -> Path:
     if has_demos:
         for rnd in range(args.dagger_rounds):
             o, a, res = collect_demos(env, args.dagger_episodes, 0.0, args.seed * 1009 + 31 * (rnd + 1), buffer,
-                                      args.demo_policy, act_fn=agent.act)
+                                      args.demo_policy, act_fn=agent.act,
+                                      desc=f'DAgger {rnd + 1}/{args.dagger_rounds}')
             d_obs, d_act = np.concatenate([d_obs, o]), np.concatenate([d_act, a])
             mse = agent.behaviour_clone(d_obs, d_act, args.bc_steps)
             log.info('DAgger round %d: actor flew %d landings (error %.3f m, success %.2f, crash %.2f); '
@@ -561,7 +563,8 @@ def train(args: TrainArgs, given: Collection[str] | None = None) -> Path:
         with atomic_path(run_dir / 'demos_bc.npz') as tmp:          # what --resume's TD3+BC term reads
             np.savez(tmp, obs=d_obs, act=d_act)
         demos = (d_obs, d_act) if args.bc_alpha > 0 else None
-        for _ in range(args.critic_warmup_updates):
+        for _ in tqdm(range(args.critic_warmup_updates), desc='critic warm-up', unit='update', file=sys.stderr,
+                      mininterval=2, disable=None):
             agent.update(buffer, train_actor=False)
         if args.critic_warmup_updates:
             log.info('critic warm-up: %d updates', args.critic_warmup_updates)

@@ -148,3 +148,29 @@ def test_init_actor_demonstrations_are_the_starting_actors_own_actions(tmp_path)
             assert text in str(exc)
         else:
             raise AssertionError(f'{bad} was accepted')
+
+
+def test_demonstrations_and_cloning_show_progress_on_a_terminal(monkeypatch):
+    import io
+    import sys
+
+    from assist_policy.env import EnvConfig, LandingAssistEnv
+    from assist_policy.td3 import TD3, ReplayBuffer, TD3Config
+    from assist_policy.train import collect_demos
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+    term = Terminal()
+    monkeypatch.setattr(sys, 'stderr', term)
+    env = LandingAssistEnv(EnvConfig(condition='oracle', max_episode_s=2.0))
+    try:
+        buf = ReplayBuffer(env.observation_space.shape[0], 3, 5000)
+        obs, act, res = collect_demos(env, 2, 0.0, 1, buf, desc='DAgger 1/3')
+        agent = TD3(obs.shape[1], 3, TD3Config(hidden=(16, 16)), seed=0)
+        agent.behaviour_clone(obs, act, 5)
+    finally:
+        env.close()
+    out = term.getvalue()
+    assert len(res) == 2 and 'DAgger 1/3' in out and '2/2' in out
+    assert 'behaviour cloning' in out and '5/5' in out
