@@ -19,6 +19,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from assist_common.atomic import atomic_path
+from assist_common.settings import SettingsError
 
 MODEL_FORMAT = 'assist_perception.cmvae'
 MODEL_VERSION = 1
@@ -386,3 +387,13 @@ def latent_interpolation(model: CMVAE, x1: torch.Tensor, x2: torch.Tensor,
 __all__ = ['CMVAE', 'CMVAEConfig', 'CMVAEOutput', 'LossConfig', 'LossTerms', 'ModelLoadError',
            'cmvae_loss', 'count_parameters', 'kl_divergence', 'latent_interpolation', 'load_model',
            'preprocess', 'reparameterize', 'save_model', 'MODEL_FORMAT', 'MODEL_VERSION']
+
+
+def training_device(choice: str) -> str:
+    """'cuda' or 'cpu' for a training script's --device (auto: cuda when torch sees a GPU); SettingsError for cuda
+    without one (said before any work)."""
+    if choice == 'auto':
+        return 'cuda' if torch.cuda.is_available() else 'cpu'
+    if choice == 'cuda' and not torch.cuda.is_available():
+        raise SettingsError('--device cuda: torch sees no CUDA GPU here (use --device cpu or auto)')
+    return choice

@@ -34,7 +34,8 @@ from assist_common.curves import plot_curves
 
 from assist_common.settings import SettingsError, check_settings, exit_error, flag, parse_settings, setting
 from .dataset import FrameSet, load_frames, split_by_scene
-from .model import CMVAE, CMVAEConfig, LossConfig, cmvae_loss, load_training_state, preprocess, save_model
+from .model import (CMVAE, CMVAEConfig, LossConfig, cmvae_loss, load_training_state, preprocess, save_model,
+                    training_device)
 from .noise import NoiseConfig, apply_depth_noise
 
 _LOG = logging.getLogger(__name__)
@@ -65,6 +66,7 @@ class TrainConfig:
     depth_sigma_m: float = setting(0.25, gt=0.0, le=100.0)        # loss units (see LossConfig)
     xyz_sigma_m: float = setting(0.03, gt=0.0, le=100.0)
     threads: int = setting(1, ge=1, le=256)       # torch intra-op threads (1 is fastest on a shared 2-core box)
+    device: str = setting('auto', choices=('auto', 'cpu', 'cuda'))   # auto: cuda when torch sees a GPU
     max_minutes: float = setting(0.0, ge=0.0)     # time budget (0 = off): the LR schedule follows whichever of
     #                                               steps or elapsed/budget is further along; stops when spent
     stop_after_epoch: int = setting(0, ge=0)      # end the run after this epoch (0 = off); --resume continues
@@ -97,8 +99,9 @@ def _targets(frames: FrameSet, idx: np.ndarray) -> tuple[torch.Tensor, torch.Ten
 
 def evaluate_split(model: CMVAE, frames: FrameSet, idx: np.ndarray, loss_cfg: LossConfig,
                    noise_cfg: NoiseConfig, seed: int, batch_size: int = 256) -> dict[str, float]:
-    """Losses (z = mu) and metrics on rows `idx` with a fixed noise draw (same every call)."""
+    """Losses (z = mu) and metrics on rows `idx` with a fixed noise draw (same every call), on the model's device."""
     model.eval()
+    device = next(model.parameters()).device
     rng = np.random.default_rng(seed)
     sums = {'loss': 0.0, 'depth_loss': 0.0, 'xyz_loss': 0.0, 'kl': 0.0}
     se_rec = se_in = se_valid = 0.0
@@ -107,8 +110,8 @@ def evaluate_split(model: CMVAE, frames: FrameSet, idx: np.ndarray, loss_cfg: Lo
     with torch.no_grad():
         for s in range(0, len(idx), batch_size):
             b = idx[s:s + batch_size]
-            x = _batch_inputs(frames, b, rng, noise_cfg, 1.0, model.cfg)
-            d, xyz, vis = _targets(frames, b)
+            x = _batch_inputs(frames, b, rng, noise_cfg, 1.0, model.cfg).to(device)
+            d, xyz, vis = (v.to(device) for v in _targets(frames, b))
             out = model(x, sample=False)
             terms = cmvae_loss(out, d, xyz, vis, loss_cfg)
             for k, t in zip(sums, terms):
@@ -120,8 +123,8 @@ def evaluate_split(model: CMVAE, frames: FrameSet, idx: np.ndarray, loss_cfg: Lo
             se_valid += float(((d_in - d)[valid] ** 2).sum())
             n_valid += int(valid.sum())
             n_px += d.numel()
-            v = vis.numpy()
-            err.append((out.xyz.numpy() - xyz.numpy())[v])
+            v = vis.cpu().numpy()
+            err.append((out.xyz.cpu().numpy() - xyz.cpu().numpy())[v])
     n = max(len(idx), 1)
     e = np.concatenate(err) if err else np.zeros((0, 3))
     res = {k: v / n for k, v in sums.items()}
@@ -144,7 +147,7 @@ def _lr_at(step: int, total: int, cfg: TrainConfig, elapsed_s: float = 0.0) -> f
     return cfg.lr_min + 0.5 * (cfg.lr - cfg.lr_min) * (1 + math.cos(math.pi * t))
 
 
-RESUMABLE_CHANGES = ('epochs', 'threads', 'max_minutes', 'stop_after_epoch', 'resume')
+RESUMABLE_CHANGES = ('epochs', 'threads', 'max_minutes', 'stop_after_epoch', 'device', 'resume')
 CHECKPOINT_KEYS = ('model', 'optimizer', 'epoch', 'step', 'best', 'elapsed_s')
 
 
@@ -195,6 +198,7 @@ def train(cfg: TrainConfig, frames: FrameSet | None = None, progress: bool = Tru
 
     check_settings(cfg)
     check_run_dir(cfg)
+    device = torch.device(training_device(cfg.device))
     torch.set_num_threads(cfg.threads)
     run = Path(cfg.run_dir)
     ckpt_path = run / 'checkpoint.pt'
@@ -213,7 +217,7 @@ def train(cfg: TrainConfig, frames: FrameSet | None = None, progress: bool = Tru
 
     torch.manual_seed(cfg.seed)
     model = CMVAE(CMVAEConfig(latent_dim=cfg.latent_dim, depth_scale_m=cfg.depth_scale_m))
-    model = model.to(memory_format=torch.channels_last)   # ~1.5x faster convolutions on CPU
+    model = model.to(device=device, memory_format=torch.channels_last)   # ~1.5x faster convolutions on CPU
     vis_train = train_idx[frames.visible[train_idx]]
     if len(vis_train):
         model.set_xyz_stats(frames.xyz[vis_train].mean(0), frames.xyz[vis_train].std(0))
@@ -224,7 +228,7 @@ def train(cfg: TrainConfig, frames: FrameSet | None = None, progress: bool = Tru
     if ck is not None:
         try:
             model.load_state_dict(ck['model'])
-            model.set_xyz_stats(model.xyz_mean.numpy(), model.xyz_std.numpy())
+            model.set_xyz_stats(model.xyz_mean.cpu().numpy(), model.xyz_std.cpu().numpy())
             opt.load_state_dict(ck['optimizer'])
             start_epoch, step = int(ck['epoch']) + 1, int(ck['step'])
             best, elapsed = float(ck['best']), float(ck['elapsed_s'])
@@ -251,8 +255,8 @@ def train(cfg: TrainConfig, frames: FrameSet | None = None, progress: bool = Tru
                    leave=False)
         for i in bar:
             b = order[i * cfg.batch_size:(i + 1) * cfg.batch_size]
-            x = _batch_inputs(frames, b, rng, noise_cfg, cfg.noise_prob, model.cfg)
-            d, xyz, vis = _targets(frames, b)
+            x = _batch_inputs(frames, b, rng, noise_cfg, cfg.noise_prob, model.cfg).to(device)
+            d, xyz, vis = (v.to(device) for v in _targets(frames, b))
             kl_scale = min(1.0, (step + 1) / max(1.0, cfg.kl_warmup_epochs * steps_per_epoch))
             lr = _lr_at(step, total_steps, cfg, time.perf_counter() - t_start)
             for g in opt.param_groups:
@@ -323,6 +327,7 @@ def main(argv: list[str] | None = None) -> int:
                                prog='train_cmvae')
     try:
         check_run_dir(cfg)
+        training_device(cfg.device)         # --device cuda without a GPU: refused before any work
     except SettingsError as exc:
         exit_error('train_cmvae', str(exc), 2)
     try:

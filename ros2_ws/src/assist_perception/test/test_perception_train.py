@@ -64,3 +64,15 @@ def test_seeded_and_resumable(frames, tmp_path):
         assert float(rb[1][key]) == pytest.approx(float(ra[1][key]), rel=1e-4), key
     ck = torch.load(b / 'checkpoint.pt', weights_only=True)
     assert ck['epoch'] == 1 and ck['step'] == int(ra[1]['step'])
+
+
+def test_device_cuda_without_a_gpu_is_refused_before_any_work(tmp_path, monkeypatch, capsys):
+    import torch
+
+    from assist_perception.train import main
+    monkeypatch.setattr(torch.cuda, 'is_available', lambda: False)
+    run = tmp_path / 'run'
+    with pytest.raises(SystemExit) as exit_:
+        main(['--data-dir', str(tmp_path / 'none'), '--run-dir', str(run), '--device', 'cuda'])
+    assert exit_.value.code == 2 and 'no CUDA GPU' in capsys.readouterr().err
+    assert not run.exists()

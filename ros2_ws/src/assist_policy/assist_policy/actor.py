@@ -85,7 +85,7 @@ class Actor(nn.Module):
 def save_actor(actor: Actor, meta: dict[str, Any], path: str | Path) -> None:
     """Write a shippable actor file: {'actor': state_dict, 'meta': plain dict} (atomic, fsynced)."""
     with atomic_path(path) as tmp:
-        torch.save({'actor': actor.state_dict(), 'meta': dict(meta)}, tmp)
+        torch.save({'actor': {k: v.cpu() for k, v in actor.state_dict().items()}, 'meta': dict(meta)}, tmp)
 
 
 META_DEFAULTS = {'act_dim': 3, 'image': False, 'image_channels': [32, 32, 64, 64], 'latent_dim': 0,

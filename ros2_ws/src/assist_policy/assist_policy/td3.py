@@ -156,12 +156,13 @@ class TD3:
     """TD3 agent: act(), update(), state_dict()/load_state_dict() for checkpoints."""
 
     def __init__(self, vec_dim: int, act_dim: int = 3, cfg: TD3Config | None = None,
-                 image: bool = False, seed: int = 0):
+                 image: bool = False, seed: int = 0, device: str = 'cpu'):
         self.cfg = cfg or TD3Config()
+        self.device = torch.device(device)
         torch.manual_seed(seed)
         kw = dict(hidden=self.cfg.hidden, image=image, image_channels=self.cfg.image_channels)
-        self.actor = Actor(vec_dim, act_dim, **kw)
-        self.critic = Critic(vec_dim, act_dim, **kw)
+        self.actor = Actor(vec_dim, act_dim, **kw).to(self.device)
+        self.critic = Critic(vec_dim, act_dim, **kw).to(self.device)
         self.actor_target = copy.deepcopy(self.actor)
         self.critic_target = copy.deepcopy(self.critic)
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=self.cfg.actor_lr)
@@ -174,8 +175,8 @@ class TD3:
     @torch.no_grad()
     def act(self, obs: np.ndarray) -> np.ndarray:
         """Deterministic raw action in [-1, 1] for one observation."""
-        x = torch.as_tensor(np.asarray(obs, dtype=np.float32)).unsqueeze(0)
-        return self.actor(x)[0].numpy().astype(float)
+        x = torch.as_tensor(np.asarray(obs, dtype=np.float32), device=self.device).unsqueeze(0)
+        return self.actor(x)[0].cpu().numpy().astype(float)
 
     def update(self, buffer: ReplayBuffer, train_actor: bool = True,
                demos: tuple[np.ndarray, np.ndarray] | None = None, bc_alpha: float = 0.0) -> dict[str, float]:
@@ -187,7 +188,7 @@ class TD3:
         demonstrations where the critic has no evidence for something better.
         """
         c = self.cfg
-        obs, act, rew, nxt, done = buffer.sample(c.batch_size, self.rng)
+        obs, act, rew, nxt, done = (x.to(self.device) for x in buffer.sample(c.batch_size, self.rng))
         with torch.no_grad():
             noise = (torch.randn_like(act) * c.policy_noise).clamp(-c.noise_clip, c.noise_clip)
             nxt_act = (self.actor_target(nxt) + noise).clamp(-1.0, 1.0)
@@ -205,8 +206,8 @@ class TD3:
                 q = self.critic.q1_only(obs, self.actor(obs))
                 if demos is not None and bc_alpha > 0:
                     idx = self.rng.integers(0, len(demos[0]), size=c.batch_size)
-                    d_obs = torch.as_tensor(np.asarray(demos[0][idx], dtype=np.float32))
-                    d_act = torch.as_tensor(np.asarray(demos[1][idx], dtype=np.float32))
+                    d_obs = torch.as_tensor(np.asarray(demos[0][idx], dtype=np.float32), device=self.device)
+                    d_act = torch.as_tensor(np.asarray(demos[1][idx], dtype=np.float32), device=self.device)
                     lam = bc_alpha / q.abs().mean().detach().clamp(min=1e-3)
                     bc = F.mse_loss(self.actor(d_obs), d_act)
                     actor_loss = -lam * q.mean() + bc
@@ -227,12 +228,12 @@ class TD3:
         """Supervised actor pre-training on (obs, raw action) demonstrations; returns the final MSE (a progress
         bar on stderr when it is a terminal)."""
         from tqdm import tqdm
-        obs_t = torch.as_tensor(np.asarray(obs, dtype=np.float32))
-        act_t = torch.as_tensor(np.asarray(act, dtype=np.float32)).clamp(-0.999, 0.999)
+        obs_t = torch.as_tensor(np.asarray(obs, dtype=np.float32), device=self.device)
+        act_t = torch.as_tensor(np.asarray(act, dtype=np.float32), device=self.device).clamp(-0.999, 0.999)
         loss = torch.zeros(())
         for _ in tqdm(range(steps), desc='behaviour cloning', unit='step', file=sys.stderr, mininterval=2,
                       disable=None):
-            idx = torch.as_tensor(self.rng.integers(0, len(obs_t), size=batch))
+            idx = torch.as_tensor(self.rng.integers(0, len(obs_t), size=batch), device=self.device)
             loss = F.mse_loss(self.actor(obs_t[idx]), act_t[idx])
             self.actor_opt.zero_grad()
             loss.backward()

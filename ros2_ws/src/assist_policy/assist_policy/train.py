@@ -37,7 +37,7 @@ from tqdm import tqdm
 from assist_common.atomic import (CsvLog, atomic_dir, atomic_path, committed_dir, remove_stale_temporaries,
                                   truncate_csv, write_text_atomic)
 from assist_common.curves import plot_curves
-from assist_perception.model import load_training_state
+from assist_perception.model import load_training_state, training_device
 from assist_sim.pilots import HELDOUT_FAMILIES, TRAIN_FAMILIES
 
 from .cli import (SettingsError, add_dataclass_args, check_settings, exit_error, flag, parse_dataclass_args,
@@ -90,6 +90,7 @@ class TrainArgs:
     success_bonus: float = setting(0.0, ge=0.0, le=1e6)
     crash_penalty: float = setting(0.0, ge=0.0, le=1e6)
     torch_threads: int = setting(1, ge=1, le=256)
+    device: str = setting('auto', choices=('auto', 'cpu', 'cuda'))
     demo_episodes: int = setting(0, ge=0, le=10**7)
     demo_noise: float = setting(0.2, ge=0.0, le=10.0)
     bc_steps: int = setting(0, ge=0)
@@ -152,6 +153,8 @@ HELP = {
     'checkpoint_every_steps': 'write checkpoint/ (state.pt + replay.npz, one unit) every this many steps',
     'encoder_path': 'CM-VAE weights for the latent condition (default: the shipped model)',
     'torch_threads': 'torch CPU threads (the machine is shared)',
+    'device': 'where the networks train: cuda (a GPU), cpu, or auto (cuda when torch sees one); a resumed run may '
+              'change it',
     'demo_episodes': 'landings flown by the scripted oracle assistant to preload the buffer (paper: preload '
                      'from earlier models); saved to demos.npz',
     'demo_noise': 'Gaussian noise (raw action units) on the demonstrations, for action diversity',
@@ -325,7 +328,8 @@ def init_actor(agent: TD3, path: str, condition: str) -> None:
 
 
 CHECKPOINT_DIR = 'checkpoint'
-RESUME_MAY_CHANGE = ('resume', 'total_steps', 'torch_threads')   # flags a resumed run takes from the command line
+# flags a resumed run takes from the command line
+RESUME_MAY_CHANGE = ('resume', 'total_steps', 'torch_threads', 'device')
 
 
 def _plain(value):
@@ -372,7 +376,8 @@ def resumed_args(args: TrainArgs, given: Collection[str] | None = None) -> Train
                if _plain(getattr(args, n)) != _plain(getattr(resumed, n))]
     if changed:
         raise SettingsError(f'--resume {run_dir}: the run was started with other settings: {"; ".join(changed)}. '
-                            'A resumed run keeps its settings (only --total-steps and --torch-threads may change): '
+                            'A resumed run keeps its settings (only --total-steps, --torch-threads and --device may '
+                            'change): '
                             'drop these flags, or start a new run with another --name')
     for n in RESUME_MAY_CHANGE[1:]:
         if n in given:
@@ -403,6 +408,7 @@ def prepare_run(args: TrainArgs, given: Collection[str] | None = None) -> TrainA
                     raise SettingsError(f'{flag(name)} {path}: no such file')
     if args.encoder_path and not Path(args.encoder_path).is_file():
         raise SettingsError(f'--encoder-path {args.encoder_path}: no such file')
+    training_device(args.device)      # --device cuda without a GPU: refused before any work
     return args
 
 
@@ -491,8 +497,10 @@ def train(args: TrainArgs, given: Collection[str] | None = None) -> Path:
         {'train': dataclasses.asdict(args), 'env': dataclasses.asdict(env_cfg),
          'td3': dataclasses.asdict(TD3Config(hidden=args.hidden, actor_lr=args.actor_lr))}, indent=2, default=str))
     obs_dim = env.observation_space.shape[0]
+    device = training_device(args.device)
+    log.info('training on %s', device)
     agent = TD3(obs_dim - env.image_size, cfg=TD3Config(hidden=args.hidden, actor_lr=args.actor_lr),
-                image=env.image_size > 0, seed=args.seed)
+                image=env.image_size > 0, seed=args.seed, device=device)
     agent.meta.update(condition=args.condition, latent_dim=int(env_cfg.latent_dim),
                       max_speed=list(env_cfg.max_speed), blend_threshold=env_cfg.blend_threshold,
                       window_s=env_cfg.window_s, feature_lags_s=list(env_cfg.feature_lags_s),

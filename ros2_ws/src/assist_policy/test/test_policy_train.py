@@ -2,6 +2,7 @@
 import csv
 import json
 
+import pytest
 import torch
 
 from assist_policy.env import EnvConfig, LandingAssistEnv
@@ -174,3 +175,25 @@ def test_demonstrations_and_cloning_show_progress_on_a_terminal(monkeypatch):
     out = term.getvalue()
     assert len(res) == 2 and 'DAgger 1/3' in out and '2/2' in out
     assert 'behaviour cloning' in out and '5/5' in out
+
+
+def test_device_choice(tmp_path, monkeypatch, capsys):
+    """--device auto trains on the CPU where torch sees no GPU (as before); cuda without one is refused before any
+    work; a resumed run may change the device."""
+    import torch as _torch
+
+    from assist_policy.train import SettingsError, main, prepare_run, training_device
+    monkeypatch.setattr(_torch.cuda, 'is_available', lambda: False)
+    assert training_device('auto') == 'cpu' and training_device('cpu') == 'cpu'
+    with pytest.raises(SettingsError, match='no CUDA GPU'):
+        training_device('cuda')
+    with pytest.raises(SystemExit) as exit_:
+        main(['--name', 'gpu', '--runs-dir', str(tmp_path), '--device', 'cuda', '--total-steps', '10'])
+    assert exit_.value.code == 2 and 'no CUDA GPU' in capsys.readouterr().err
+    assert not (tmp_path / 'gpu').exists()
+    monkeypatch.setattr(_torch.cuda, 'is_available', lambda: True)
+    assert training_device('auto') == 'cuda'
+    run = train(TrainArgs(name='cpu', **_tiny_run(tmp_path, total_steps=30, buffer_size=2000, device='cpu')))
+    resumed = prepare_run(TrainArgs(resume=str(run), device='cuda', total_steps=60), given=['resume', 'device',
+                                                                                          'total_steps'])
+    assert resumed.device == 'cuda' and resumed.total_steps == 60
