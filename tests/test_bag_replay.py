@@ -185,3 +185,24 @@ def test_replay_runs_the_rules_the_bag_was_flown_with(rules_landing, landing):
                                                           'damper': False}
     with pytest.raises(ValueError, match='recall must be'):
         replay(bag, ReplayConfig(recall='sometimes'))
+
+
+def test_replay_a_folder_of_bags(landing, override_landing, tmp_path, capsys):
+    """replay_assist on a folder of bags (evaluate --record-dir's): each replayed into <bag>_replay with its summary,
+    one line each; a second run refuses to overwrite and says so per bag (exit 1)."""
+    import shutil
+
+    from assist_policy.bags.replay import main as replay_main
+    folder = tmp_path / 'bags'
+    folder.mkdir()
+    for bag, _ in (landing, override_landing):
+        shutil.copytree(bag, folder / bag.name)
+    assert replay_main([str(folder)]) == 0
+    out = capsys.readouterr().out
+    assert '2 of 2 bags replayed' in out
+    for bag, _ in (landing, override_landing):
+        summary = json.loads((folder / f'{bag.name}_replay.summary.json').read_text())
+        assert summary['cmd_vel']['max'] < 1e-9 and f'{bag.name}: ' in out
+    assert replay_main([str(folder)]) == 1                       # outputs exist: never overwritten
+    assert '0 of 2 bags replayed' in capsys.readouterr().out
+    assert replay_main([str(folder), '--summary', str(tmp_path / 's.json')]) == 2

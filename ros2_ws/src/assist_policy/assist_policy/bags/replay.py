@@ -57,7 +57,8 @@ from pathlib import Path
 import numpy as np
 
 from . import msgs
-from .bagio import CONTRACT_TOPICS, PARAMS_KEY, BagError, BagReader, BagWriter, check_output, publish_new
+from .bagio import (CONTRACT_TOPICS, METADATA, PARAMS_KEY, BagError, BagReader, BagWriter, check_output,
+                    publish_new)
 from ..blending import DEFAULT_THRESHOLD
 from ..observation import Condition
 from ..poses import header_seconds
@@ -636,7 +637,8 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING, format='%(levelname)s %(name)s: %(message)s')
     p = argparse.ArgumentParser(prog='replay_assist', description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument('bag', help='recorded bag (directory or .mcap/.db3)')
+    p.add_argument('bag', help='recorded bag (directory or .mcap/.db3), or a folder of bags (e.g. evaluate '
+                               '--record-dir): each is replayed into <bag>_replay')
     p.add_argument('--out', default='', help='new bag directory, or a .csv file (default: <bag>_replay)')
     p.add_argument('--summary', default='', help='also write the summary as JSON here (default: <out>.summary.json)')
     p.add_argument('--storage', default='mcap', choices=('mcap', 'sqlite3'), help='storage of the new bag')
@@ -677,26 +679,17 @@ def main(argv: list[str] | None = None) -> int:
               f'finite and >= 0', file=sys.stderr)
         return 2
     bag = Path(a.bag.rstrip('/'))
-    out = Path(a.out) if a.out else bag.with_name(bag.name + '_replay')
     cfg = ReplayConfig(mode=a.mode, actor=a.actor, encoder=a.encoder, latent=a.latent,
                        velocity_frame=a.velocity_frame, rate_hz=a.rate_hz, blend_threshold=a.blend_threshold,
                        timeout_s=a.timeout_s, override=a.override, floor_guard=a.floor_guard, recall=a.recall,
                        damper=a.damper, align_pilot=a.align_pilot)
+    bags = bags_under(bag)
+    if bags:
+        return replay_many(bags, Path(a.out) if a.out else None, cfg, a.storage, summary_given=bool(a.summary))
+    out = Path(a.out) if a.out else bag.with_name(bag.name + '_replay')
     spath = Path(a.summary) if a.summary else out.with_name(out.name + '.summary.json')
     try:
-        check_output(out)
-        check_output(spath)
-        res = replay(bag, cfg, progress=True)
-        write_outputs(res, out, a.storage)
-        summary = summarize(res)
-        summary['output'] = str(out)
-        tmp = spath.with_name(f'.{spath.name}.partial-{os.getpid()}')
-        try:
-            tmp.write_text(json.dumps(summary, indent=2), encoding='utf-8')
-        except OSError as exc:
-            tmp.unlink(missing_ok=True)
-            raise BagError(f'{spath}: cannot write ({exc.strerror})') from None
-        publish_new(tmp, spath)
+        summary = replay_one(bag, out, spath, cfg, a.storage, progress=True)
     except (BagError, ValueError, OSError) as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 1
@@ -704,6 +697,59 @@ def main(argv: list[str] | None = None) -> int:
     print(f'written: {out}, {spath}')
     return 0
 
+
+def bags_under(path: Path) -> list[Path]:
+    """The bags directly inside `path` when it is a folder of bags (e.g. evaluate --record-dir), not a bag itself
+    and not a replay's own output (`*_replay`); [] otherwise."""
+    if not path.is_dir() or (path / METADATA).exists():
+        return []
+    return sorted(d for d in path.iterdir()
+                  if d.is_dir() and (d / METADATA).exists() and not d.name.endswith('_replay'))
+
+
+def replay_one(bag: Path, out: Path, spath: Path, cfg: ReplayConfig, storage: str, progress: bool) -> dict:
+    """Replay one bag into `out` (bag or CSV) and its summary JSON `spath` (neither may exist); the summary."""
+    check_output(out)
+    check_output(spath)
+    res = replay(bag, cfg, progress=progress)
+    write_outputs(res, out, storage)
+    summary = summarize(res)
+    summary['output'] = str(out)
+    tmp = spath.with_name(f'.{spath.name}.partial-{os.getpid()}')
+    try:
+        tmp.write_text(json.dumps(summary, indent=2), encoding='utf-8')
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise BagError(f'{spath}: cannot write ({exc.strerror})') from None
+    publish_new(tmp, spath)
+    return summary
+
+
+def replay_many(bags: list[Path], out_dir: Path | None, cfg: ReplayConfig, storage: str, summary_given: bool) -> int:
+    """Replay every bag of a folder, each into `<bag>_replay` (in `out_dir` when given) with its summary JSON,
+    under one progress bar; one line per bag; exit 1 when any failed (the others are still replayed)."""
+    from tqdm import tqdm
+    if summary_given:
+        print('error: --summary names one file: with a folder of bags each replay writes <out>.summary.json',
+              file=sys.stderr)
+        return 2
+    if out_dir is not None:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    failed = 0
+    lines = []
+    for bag in tqdm(bags, desc='replay_assist', unit='bag', file=sys.stderr, mininterval=1, disable=None):
+        out = (out_dir or bag.parent) / (bag.name + '_replay')
+        try:
+            s = replay_one(bag, out, out.with_name(out.name + '.summary.json'), cfg, storage, progress=False)
+        except (BagError, ValueError, OSError) as exc:
+            failed += 1
+            lines.append(f'{bag.name}: error: {exc}')
+            continue
+        diff = s['cmd_vel'].get('max', float('nan'))
+        lines.append(f'{bag.name}: {s["steps"]} steps, /cmd_vel max |diff| {diff:.3g} m/s -> {out}')
+    print('\n'.join(lines))
+    print(f'{len(bags) - failed} of {len(bags)} bags replayed')
+    return 1 if failed else 0
 
 if __name__ == '__main__':
     sys.exit(main())
