@@ -118,8 +118,9 @@ def test_colcon_build_installs_executables_where_ros2_run_looks(colcon_workspace
             assert src_files == inst_files, (pkg, sub)
 
 
-SHIPPED = {'assist_policy': ['td3_end_to_end_actor.md', 'td3_end_to_end_actor.pt', 'td3_latent_actor.md',
-                             'td3_latent_actor.pt', 'td3_oracle_actor.md', 'td3_oracle_actor.pt'],
+SHIPPED = {'assist_policy': ['td3_end_to_end_actor.md', 'td3_end_to_end_actor.metrics.json', 'td3_end_to_end_actor.pt',
+                             'td3_latent_actor.md', 'td3_latent_actor.metrics.json', 'td3_latent_actor.pt',
+                             'td3_oracle_actor.md', 'td3_oracle_actor.metrics.json', 'td3_oracle_actor.pt'],
            'assist_perception': ['cmvae.md', 'cmvae.metrics.json', 'cmvae.pt', 'cmvae_interpolation.png']}
 
 
