@@ -18,7 +18,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CompressedImage, Image
 
 from assist_common.images import BadFrame, decode_color, decode_depth
-from assist_common.ros_common import Diagnostics, Param, declare_parameters, exit_process, run_node
+from assist_common.ros_common import Diagnostics, Param, declare_parameters, exit_process, run_node, stamp_to_sec
 
 from .image_link import COLOR_FORMAT, COLOR_SUFFIX, DEPTH_FORMAT, DEPTH_SUFFIX, LinkConfig, LinkError, pack_pair
 
@@ -38,10 +38,6 @@ PARAMS = {
     'max_pair_gap_s': Param(0.1, 'A colour and a depth frame whose stamps differ more than this are not a pair.',
                             min=0.0, max=5.0, min_exclusive=True),
 }
-
-
-def _stamp_s(header) -> float:
-    return header.stamp.sec + header.stamp.nanosec * 1e-9
 
 
 class ImageRelay(Node):
@@ -89,10 +85,10 @@ class ImageRelay(Node):
             color, depth, cfg = self.color, self.depth, LinkConfig(**vars(self.cfg))
         if color is None or depth is None:
             return
-        stamp = _stamp_s(depth.header)
+        stamp = stamp_to_sec(depth.header.stamp)
         if stamp == self.sent_stamp:
             return                                   # nothing new since the last pair
-        if abs(_stamp_s(color.header) - stamp) > self.p['max_pair_gap_s']:
+        if abs(stamp_to_sec(color.header.stamp) - stamp) > self.p['max_pair_gap_s']:
             self.diag.count('unpaired')
             return
         try:

@@ -34,7 +34,7 @@ from std_srvs.srv import Trigger
 
 from assist_common.constants import ACCEPTED_CMD_FRAMES
 from assist_common.ros_common import (RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError, declare_parameters,
-                                      exit_process, forward_logging, run_node, twist_to_array)
+                                      exit_process, forward_logging, run_node, stamp_to_sec, twist_to_array)
 
 from .bridge_core import LIMIT_FIELDS, BridgeConfig, MavlinkBridge, Odometry as CoreOdometry
 from .vision import VisionConfig, VisionForwarder
@@ -223,7 +223,7 @@ class MavlinkBridgeNode(Node):
     def _on_mocap(self, msg: PoseStamped) -> None:
         pos, q = msg.pose.position, msg.pose.orientation
         with self.vision_lock:
-            why = self.vision.offer(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, (pos.x, pos.y, pos.z),
+            why = self.vision.offer(stamp_to_sec(msg.header.stamp), (pos.x, pos.y, pos.z),
                                     (q.x, q.y, q.z, q.w), time.time())
         self.diag.count('mocap_in' if why is None else f'mocap_rejected_{why}')
 
