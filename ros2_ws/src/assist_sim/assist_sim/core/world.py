@@ -103,6 +103,15 @@ def linearize_depth(zbuf: np.ndarray, near: float, far: float) -> np.ndarray:
     return (far * near / (far - (far - near) * zbuf)).astype(np.float32)
 
 
+class BulletClient(bullet_client.BulletClient):
+    """pybullet_utils' BulletClient whose destructor tolerates a construction interrupted before `connect`
+    returned (a Ctrl-C while sim_node starts): the original then prints an AttributeError traceback at exit."""
+
+    def __del__(self):
+        if '_client' in self.__dict__:
+            super().__del__()
+
+
 class LandingWorld:
     """One pybullet world (own DIRECT client) that training, tests and sim_node all drive."""
 
@@ -116,7 +125,7 @@ class LandingWorld:
             raise ValueError(f'camera.renderer must be one of {RENDERERS}, got {self.cfg.camera.renderer!r}')
         self._gui = bool(gui)
         with quiet_output(stderr=not gui):  # ... and `argv[0]=` on every connect (GUI: keep X errors)
-            self._bc = bullet_client.BulletClient(p.GUI if gui else p.DIRECT)
+            self._bc = BulletClient(p.GUI if gui else p.DIRECT)
         self._cid = self._bc._client
         self._tick_dt = 1.0 / self.cfg.physics_hz
         self._bc.setGravity(0, 0, -self.cfg.gravity_mps2)
