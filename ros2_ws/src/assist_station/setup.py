@@ -20,12 +20,14 @@ setup(
     zip_safe=False,
     maintainer='Assisted landing maintainers',
     maintainer_email='maintainers@assist-landing.dev',
-    description='Base-station human interface: the browser pilot station',
+    description='Base-station human interface: the browser pilot station and the user study',
     license='Apache-2.0',
     tests_require=['pytest'],
     entry_points={
         'console_scripts': [
             'pilot_station = assist_station.entry_points:pilot_station',
+            'simulate_study = assist_station.entry_points:simulate_study',
+            'analyze_study = assist_station.entry_points:analyze_study',
         ],
     },
 )

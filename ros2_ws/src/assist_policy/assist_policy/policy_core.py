@@ -143,7 +143,8 @@ class PolicyOutput:
     |a| <= threshold), ``odom_stale``, ``feature_stale``, ``goal_absent``, ``actor_nonfinite`` or
     ``step_error``, ``floor_guard`` (the floor guard replaced a descent), ``pilot_override`` (the pilot
     override replaced the actor's action), ``pad_recall`` (the pad recall steered back to a mapped pad) or
-    ``oscillation_damper`` (the oscillation damper replaced the actor's horizontal action);
+    ``oscillation_damper`` (the oscillation damper replaced the actor's horizontal action), ``switched_off``
+    (pass_through: the node's assist_enabled is false);
     `reason` is the text.
     """
 
@@ -389,6 +390,11 @@ class PolicyCore:
         except Exception:  # noqa: BLE001 - the last line of defence must not raise
             v = np.zeros(3)
         return PolicyOutput(None, v, 'step failed: relinquished', 'step_error')
+
+    def pass_through(self, now: float) -> PolicyOutput:
+        """The assistant switched off: V = u, clamped, no agent action (a study's unassisted block)."""
+        out = self.fallback(now)
+        return PolicyOutput(None, out.velocity, 'assistant switched off (assist_enabled false): V = u', 'switched_off')
 
     def step(self, now: float) -> PolicyOutput:
         """One control step at time `now` (seconds, same clock as the input stamps); never raises.

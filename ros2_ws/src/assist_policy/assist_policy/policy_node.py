@@ -70,6 +70,9 @@ NODE_PARAMS = {
                                '(s) is rejected and counted (rejected_<input>_future_stamp); one older than its '
                                'timeout is rejected as stale. Inputs are dated by their header stamp (unset: '
                                'arrival).', min=0.0, max=10.0, dynamic=True),
+    'assist_enabled': Param(True, 'false: pass the pilot through (V = u, clamped to the speed limits; no '
+                                  '/assist/agent_cmd), e.g. a user study\'s unassisted block, switched by the '
+                                  'station at run time.', dynamic=True),
     'executor': executor_param('events'),
     'realtime_priority': realtime_priority_param(0),
 }
@@ -92,7 +95,7 @@ def params_for_mode(mode: str) -> dict[str, Param]:
 
 # step outcomes that are normal operation (diagnostics OK); everything else is a WARN with its reason
 OK_KEYS = ('assisting', 'small_action', 'floor_guard', 'wall_guard', 'pilot_override', 'pad_recall',
-           'oscillation_damper')
+           'oscillation_damper', 'switched_off')
 FAULT_KEYS = ('actor_nonfinite', 'step_error')
 
 
@@ -169,6 +172,7 @@ class PolicyNode(Node):
                           callback_group=MutuallyExclusiveCallbackGroup())
         self.diag.set('model_path', path)
         self.diag.set('mode', mode)
+        self.diag.set('assist_enabled', 'on' if self.p['assist_enabled'] else 'off')
         for switch in RULE_SWITCHES:
             self.diag.set(switch, 'on' if self.p[switch] else 'off')
         self.diag.status(DiagnosticStatus.WARN, 'relinquished: waiting for inputs')
@@ -185,6 +189,10 @@ class PolicyNode(Node):
         for switch in RULE_SWITCHES:
             if switch in changed:
                 self.diag.set(switch, 'on' if changed[switch] else 'off')
+        if 'assist_enabled' in changed:
+            self.diag.set('assist_enabled', 'on' if changed['assist_enabled'] else 'off')
+            self.get_logger().info('assistant ' + ('switched on' if changed['assist_enabled'] else
+                                                   'switched off: passing the pilot through (V = u)'))
 
     # ------------------------------------------------------------- inputs
     def _now(self) -> float:
@@ -284,7 +292,7 @@ class PolicyNode(Node):
             return                              # shutting down (Ctrl-C): no context left to publish in
         try:
             with self._lock:
-                out = self.core.step(self._now())
+                out = self.core.step(self._now()) if self.p['assist_enabled'] else self.core.pass_through(self._now())
                 if not np.all(np.isfinite(out.velocity)):   # defence in depth: never reaches an actuator
                     out = self.core.fallback(self._now())
                     out.reason = 'blended velocity not finite: relinquished'
@@ -344,6 +352,8 @@ class PolicyNode(Node):
             self.diag.status(DiagnosticStatus.OK, 'floor guard: descent over bare floor blocked')
         elif out.key in ('wall_guard', 'pilot_override', 'pad_recall', 'oscillation_damper'):
             self.diag.status(DiagnosticStatus.OK, out.reason)      # the core's text (recall: which mode acted)
+        elif out.key == 'switched_off':
+            self.diag.status(DiagnosticStatus.OK, out.reason)
         elif out.key == 'small_action':
             self.diag.status(DiagnosticStatus.OK, 'relinquished: agent action at or below blend_threshold')
         else:

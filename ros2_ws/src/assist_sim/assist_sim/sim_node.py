@@ -67,6 +67,12 @@ PARAMS = {
     'episode_seeds': Param((), 'Scene seed of episode 0, 1, 2, ... in order (every reset, automatic or /sim/reset, '
                                'starts the next; an evaluation plan, e.g. assist_policy.graph_eval); past its end, or '
                                'empty, the episodes follow seed.', min=0, max=2**31 - 1, item_type=int),
+    'scene_seed': Param(-1, 'Scene seed of every episode started from now on (-1: episode_seeds, then seed); a user '
+                            'study flies one scene throughout (settable at run time).', min=-1, max=2**31 - 1,
+                        dynamic=True),
+    'goal_index': Param(-1, 'Goal pad of every episode started from now on (-1: drawn from the episode\'s seed); set '
+                            'with scene_seed before /sim/reset to fly a predefined sequence (settable at run time).',
+                        min=-1, max=63, dynamic=True),
     'episode_timeout_s': Param(0.0, 'An episode with no landing after this many sim seconds ends as a timeout (the '
                                     'evaluation env cuts at 60 s); 0: the world\'s own limit (world_config '
                                     'judge.max_episode_s, 90 s by default).', min=0.0, max=3600.0),
@@ -76,7 +82,8 @@ PARAMS = {
     'camera_frame': Param('camera_optical_frame', 'Optical frame id of the camera images.'),
 }
 # parameters applied to the running SimRunner (RunnerConfig fields of the same name)
-RUNNER_PARAMS = ('camera_rate_hz', 'auto_reset', 'reset_delay_s', 'cmd_timeout_s', 'max_cmd_speed_mps')
+RUNNER_PARAMS = ('camera_rate_hz', 'auto_reset', 'reset_delay_s', 'cmd_timeout_s', 'max_cmd_speed_mps', 'scene_seed',
+                 'goal_index')
 # /sim/reset requests queued before the middleware drops more (each reset takes ~10-50 ms)
 RESET_QUEUE_DEPTH = 100
 
@@ -124,7 +131,16 @@ class SimNode(Node):
             camera_rate_hz=float(self.p['camera_rate_hz']), auto_reset=bool(self.p['auto_reset']),
             reset_delay_s=float(self.p['reset_delay_s']), cmd_timeout_s=float(self.p['cmd_timeout_s']),
             max_cmd_speed_mps=float(self.p['max_cmd_speed_mps']), airborne_start=not (self.mavlink or self.json_mode),
-            episode_seeds=tuple(self.p['episode_seeds']))
+            episode_seeds=tuple(self.p['episode_seeds']), scene_seed=int(self.p['scene_seed']))
+        self.n_pads = int(cfg.scene.n_pads)
+        try:
+            self._check_goal_index(int(self.p['goal_index']))
+        except ValueError as exc:
+            raise StartupError(f'sim_node: {exc}') from exc
+        runner_cfg.goal_index = int(self.p['goal_index'])
+        if self.json_mode and (runner_cfg.scene_seed >= 0 or runner_cfg.goal_index >= 0):
+            raise StartupError('sim_node: scene_seed and goal_index cannot apply with physics ardupilot_json (its '
+                               'episodes follow seed); leave them at -1')
         if self.json_mode:   # ArduPilot SITL flies the airframe; the runner serves its JSON physics link
             from .json_backend import make_json_runner
             try:
@@ -185,6 +201,10 @@ class SimNode(Node):
             raise ValueError(f'camera_rate_hz {hz:g} is above the sim step rate {self.control_hz:g} Hz '
                              '(one frame per step at most)')
 
+    def _check_goal_index(self, index: int) -> None:
+        if index >= self.n_pads:
+            raise ValueError(f'goal_index {index} is not a pad: the scene has pads 0..{self.n_pads - 1} (-1: drawn)')
+
     def _on_params(self, changed: dict) -> None:
         """Apply run-time parameter sets (validated by Param already); ValueError refuses the set."""
         if 'real_time_factor' in changed and self.mavlink:
@@ -193,6 +213,10 @@ class SimNode(Node):
             raise ValueError('real_time_factor is not used with physics ardupilot_json: SITL sets the pace')
         if 'camera_rate_hz' in changed:
             self._check_camera_rate(changed['camera_rate_hz'])
+        if 'goal_index' in changed:
+            self._check_goal_index(changed['goal_index'])
+        if self.json_mode and ('scene_seed' in changed or 'goal_index' in changed):
+            raise ValueError('scene_seed and goal_index are not used with physics ardupilot_json')
         with self.lock:
             for key in RUNNER_PARAMS:
                 if key in changed:

@@ -3,3 +3,5 @@ without a traceback; see assist_common.console)."""
 from assist_common.console import quiet_main
 
 pilot_station = quiet_main('assist_station.pilot_station')
+simulate_study = quiet_main('assist_station.simulate_study')
+analyze_study = quiet_main('assist_station.analyze_study')

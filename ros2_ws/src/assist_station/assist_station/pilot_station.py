@@ -11,6 +11,7 @@ import functools
 import math
 import threading
 import time
+from pathlib import Path
 from typing import Any
 from collections.abc import Callable
 
@@ -30,7 +31,8 @@ from assist_common.ros_common import (LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, SE
 from .server import ServerConfig, StationServer
 from .access import allowed_hosts
 from .station_core import (MODES, AssistMonitor, CommandGate, InputError, KeyState, OncePerReason, StationConfig,
-                           camera_payload, landing_feedback, parse_landing, scene_from_boxes, short_repr)
+                           StudyMessage, camera_payload, landing_feedback, parse_landing, scene_from_boxes, short_repr)
+from .study import StudyConfig, StudyError
 
 PARAMS = {
     'host': Param('127.0.0.1', 'Address the HTTP/WebSocket server binds to (loopback by default). Requests '
@@ -69,6 +71,12 @@ PARAMS = {
     'chase_up_m': Param(2.0, 'Chase camera height above the drone (m).', min=0.0, max=50.0),
     'fov_deg': Param(60.0, 'Vertical field of view of the chase view (deg).', min=10.0, max=120.0),
     'frame_id': Param('base_link', 'frame_id of the published /pilot/cmd_vel.'),
+    'study_config': Param('', 'User-study YAML file (see config/study.yaml); empty: no study. With one, the page '
+                              'runs the protocol (participant ID, consent, practice, two blocks, questionnaires), '
+                              'the keys fly only while a landing is in flight, and results go under study_dir.'),
+    'study_dir': Param('study_data', 'Directory holding one directory per participant (created if missing).'),
+    'study_sim_node': Param('/sim_node', 'sim_node whose scene_seed/goal_index/auto_reset the study sets.'),
+    'study_policy_node': Param('/policy_node', 'policy_node whose assist_enabled the study switches per block.'),
 }
 
 
@@ -100,7 +108,14 @@ class PilotStation(Node):
         self.create_subscription(String, '/sim/landing', guard('landing', self._on_landing), LANDING_QOS)
         if p['camera_rate_hz'] > 0:
             self.create_subscription(Image, '/camera/color/image_raw', guard('camera', self._on_camera), SENSOR_QOS)
-        hello = {'mode': p['mode'], 'show_goal': p['mode'] in ('practice', 'study'),
+        self.study = None
+        study_cfg = None
+        if p['study_config']:
+            try:
+                study_cfg = StudyConfig.load(p['study_config'])
+            except StudyError as exc:
+                raise StartupError(f'pilot_station: {exc}') from None
+        hello = {'mode': p['mode'], 'show_goal': p['mode'] in ('practice', 'study'), 'study': study_cfg is not None,
                  'chase': {'back_m': p['chase_back_m'], 'up_m': p['chase_up_m'], 'fov_deg': p['fov_deg']},
                  'speed': p['speed'], 'speed_z': p['speed_z'], 'camera': p['camera_rate_hz'] > 0}
         try:
@@ -112,13 +127,27 @@ class PilotStation(Node):
                          view_rate_hz=p['view_rate_hz'], stall_timeout_s=p['stall_timeout_s'],
                          allowed_hosts=tuple(p['allowed_hosts']), max_connections=int(p['max_connections']),
                          pilot_grace_s=p['pilot_grace_s']),
-            self.keys, self._state, hello, on_command=self._on_page_command, count=self.diag.count)
+            self.keys, self._state, hello, on_command=self._on_page_command, count=self.diag.count,
+            on_study=self._on_study if study_cfg is not None else None, on_pilot_lost=self._on_pilot_lost)
+        if study_cfg is not None:
+            from .study_station import StudyDriver
+            try:
+                self.study = StudyDriver(self, study_cfg[0], study_cfg[1], Path(p['study_dir']),
+                                         self.server.set_study, self.server.push_event,
+                                         sim_node=p['study_sim_node'], policy_node=p['study_policy_node'])
+            except OSError as exc:
+                raise StartupError(f"pilot_station: cannot use study_dir {p['study_dir']}: {exc}") from None
+            self.server.set_study(self.study.view())
+            self.create_timer(0.1, guard('study', self.study.tick))
         try:
             url = self.server.start()
         except OSError as exc:
             raise StartupError(f"pilot_station: cannot serve on {p['host']}:{p['port']}: {exc}") from exc
         self.create_timer(1.0 / p['rate_hz'], guard('tick', self._tick))
         self.create_timer(1.0, guard('diagnostics', self._diag_values))
+        if self.study is not None:
+            self.get_logger().info(f"user study '{study_cfg[0].name}' ({study_cfg[0].landings_per_block} landings per "
+                                   f"block): participants under {Path(p['study_dir']).resolve()}")
         print(f'pilot_station: open {url} in a browser', flush=True)
         self.get_logger().info(f"pilot station at {url} (mode {p['mode']}, /pilot/cmd_vel at {p['rate_hz']} Hz; "
                                f"serves the host names {self.server.policy.describe()})")
@@ -149,13 +178,28 @@ class PilotStation(Node):
         msg.header.frame_id = self.p['frame_id']
         self.pub_cmd.publish(fill_twist(msg, v))
 
+    def _keys_fly(self) -> bool:
+        """Whether the pilot's keys reach the vehicle now (always, except between a study's landings)."""
+        return self.study is None or self.study.flying
+
     def _on_page_command(self, v: np.ndarray) -> None:
         """A command from the page: published at once when it changed (CommandGate), else left to the timer."""
+        if not self._keys_fly():
+            v = np.zeros(3)
         if self.gate.immediate(v, time.monotonic()):
             self._publish(v)
 
+    def _on_study(self, msg: StudyMessage) -> None:
+        """A study step from the pilot page (web server thread): handed to the study driver's queue."""
+        self.study.submit(msg)
+
+    def _on_pilot_lost(self) -> None:
+        """The pilot page's socket went away (web server thread)."""
+        if self.study is not None:
+            self.study.page_lost()
+
     def _tick(self) -> None:
-        v = self.keys.command(time.monotonic())
+        v = self.keys.command(time.monotonic()) if self._keys_fly() else np.zeros(3)
         self.gate.sent(v)
         self._publish(v)
 
@@ -171,6 +215,8 @@ class PilotStation(Node):
         with self._lock:
             self._odom = {'p': [float(x) for x in p], 'q': [float(x) for x in q], 'v': [float(x) for x in v]}
             self._odom_time = time.monotonic()
+        if self.study is not None:
+            self.study.note_odom(np.array(p[:2]))
 
     def _on_scene(self, msg: MarkerArray) -> None:
         boxes = []
@@ -191,6 +237,8 @@ class PilotStation(Node):
             self._rejected('scene_rejected', InputError('/sim/scene rejected', short_repr(str(exc), 200)))
             return
         self.server.set_scene(scene)
+        if self.study is not None:
+            self.study.note_scene(boxes)
         self.get_logger().info(f"scene: {len(scene['platforms'])} platforms, goal {scene['goal']}")
 
     def _on_agent(self, msg: TwistStamped) -> None:
@@ -202,6 +250,11 @@ class PilotStation(Node):
             landing = parse_landing(msg.data)
         except InputError as exc:
             self._rejected('landing_rejected', exc)
+            return
+        if self.study is not None:       # the study driver records its landings and gives practice feedback
+            if self.study.on_landing(landing) and landing.get('episode') is not None:
+                self.server.push_event({'type': 'landing', 'show': False, 'episode': landing.get('episode'),
+                                        'text': 'Landing recorded'})
             return
         self.server.push_event(landing_feedback(landing, self.p['mode']))
 
@@ -234,8 +287,10 @@ class PilotStation(Node):
         self.diag.set('clients', self.server.n_clients)
 
     def close(self) -> None:
-        """Stop the web server (every socket closed) and send one zero command."""
+        """Stop the web server (every socket closed), close a study landing's bag, send one zero command."""
         self.server.stop()
+        if self.study is not None:
+            self.study.close()
         try:
             self._publish(np.zeros(3))
         except Exception as exc:  # noqa: BLE001 - the context may already be gone at shutdown

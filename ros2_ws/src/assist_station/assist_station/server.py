@@ -34,7 +34,8 @@ import numpy as np
 from aiohttp import WSCloseCode, WSMsgType, web
 
 from .access import HostPolicy, allowed_hosts
-from .station_core import STOP_KEY, KeyState, MessageError, camera_frame_bytes, parse_client_message, short_repr
+from .station_core import (STOP_KEY, KeyState, MessageError, StudyMessage, camera_frame_bytes, parse_client_message,
+                           short_repr)
 
 _LOG = logging.getLogger('assist_station.server')
 WEB_DIR = Path(__file__).resolve().parent / 'web'
@@ -69,6 +70,7 @@ class _Client:
         self.state: str | None = None
         self.camera: bytes | None = None
         self.scene_version = -1
+        self.study_version = 0
         self.peer = request.remote or '?'
         self.stopping = False             # a view-only page holding the stop key
 
@@ -92,9 +94,13 @@ class StationServer:
 
     def __init__(self, cfg: ServerConfig, keys: KeyState, state_fn: Callable[[], dict[str, Any]],
                  hello: dict[str, Any], on_command: Callable[[np.ndarray], None] | None = None,
-                 count: Callable[[str], None] | None = None, web_dir: Path = WEB_DIR):
+                 count: Callable[[str], None] | None = None, web_dir: Path = WEB_DIR,
+                 on_study: Callable[[StudyMessage], None] | None = None,
+                 on_pilot_lost: Callable[[], None] | None = None):
         self.cfg, self.keys, self._state_fn, self._hello = cfg, keys, state_fn, dict(hello)
         self._on_command = on_command or (lambda v: None)
+        self._on_study = on_study
+        self._on_pilot_lost = on_pilot_lost or (lambda: None)
         self._sink = count
         self.stats: Counter[str] = Counter()
         self._web_dir = web_dir
@@ -109,6 +115,8 @@ class StationServer:
         self._scene_version = 0
         self._camera: bytes | None = None
         self._camera_version = 0
+        self._study: str | None = None
+        self._study_version = 0
         self._pending_events: list[str] = []
         self._throttle = _Throttle()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -123,6 +131,12 @@ class StationServer:
         with self._lock:
             self._scene = json.dumps(scene)
             self._scene_version += 1
+
+    def set_study(self, view: dict[str, Any] | None) -> None:
+        """Latest user-study view (sent to every page, a newer one replaces it; None: no study)."""
+        with self._lock:
+            self._study = None if view is None else json.dumps(view)
+            self._study_version += 1
 
     def set_camera(self, width: int, height: int, rgb: bytes) -> None:
         """Latest camera inset frame (RGB bytes)."""
@@ -310,6 +324,7 @@ class StationServer:
             self._reserved_until = time.monotonic() + self.cfg.pilot_grace_s
             self.keys.release_all()
             self._on_command(np.zeros(3))
+            self._on_pilot_lost()
             self._count('pilot_disconnects')
             _LOG.info('pilot %s disconnected (%s): all keys released, zero command; the role waits %.1f s '
                       'for its page', client.peer, why, self.cfg.pilot_grace_s)
@@ -325,6 +340,15 @@ class StationServer:
             msg = parse_client_message(data, self.cfg.max_message_bytes)
         except MessageError as exc:
             self._reject(client, exc.kind, str(exc))
+            return
+        if isinstance(msg, StudyMessage):
+            if client is not self._pilot:
+                self._reject(client, 'study_not_pilot', 'study steps are taken from the pilot page only')
+            elif self._on_study is None:
+                self._reject(client, 'no_study', 'no study is configured on this station')
+            else:
+                self._count('study_messages')
+                self._on_study(msg)
             return
         if msg.unknown:
             self._count('ws_unknown_keys', len(msg.unknown))
@@ -367,6 +391,9 @@ class StationServer:
                 if self._scene is not None and client.scene_version != self._scene_version:
                     out.append(self._scene)
                     client.scene_version = self._scene_version
+                if self._study is not None and client.study_version != self._study_version:
+                    out.append(self._study)
+                    client.study_version = self._study_version
             while client.events:
                 out.append(client.events.popleft())
             if client.state is not None:

@@ -75,7 +75,18 @@ class KeysMessage:
     seq: int | None
 
 
-def parse_client_message(raw: str | bytes, max_bytes: int) -> KeysMessage:
+STUDY_ACTIONS = ('begin', 'consent', 'start', 'stop_practice', 'sus', 'survey')
+
+
+@dataclass(frozen=True)
+class StudyMessage:
+    """A user-study step from the page: `action` (STUDY_ACTIONS) and its data (participant, answers)."""
+
+    action: str
+    data: dict[str, Any]
+
+
+def parse_client_message(raw: str | bytes, max_bytes: int) -> KeysMessage | StudyMessage:
     """Parse one WebSocket text message from the browser; MessageError says why it is unusable."""
     size = len(raw.encode('utf-8') if isinstance(raw, str) else raw)
     if size > max_bytes:
@@ -88,6 +99,11 @@ def parse_client_message(raw: str | bytes, max_bytes: int) -> KeysMessage:
         raise MessageError('malformed', f'not JSON: {exc}') from None
     if not isinstance(obj, dict):
         raise MessageError('malformed', f'expected a JSON object, got {type(obj).__name__}')
+    if obj.get('type') == 'study':
+        action = obj.get('action')
+        if action not in STUDY_ACTIONS:
+            raise MessageError('malformed', f'unknown study action {short_repr(action)}')
+        return StudyMessage(action, {k: v for k, v in obj.items() if k not in ('type', 'action')})
     if obj.get('type') != 'keys':
         raise MessageError('malformed', f"unknown message type {short_repr(obj.get('type'))}")
     down = obj.get('down')

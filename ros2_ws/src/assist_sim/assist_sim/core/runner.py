@@ -25,6 +25,8 @@ class RunnerConfig:
     airborne_start: bool = True       # False: episodes start landed and disarmed (MAVLink vehicle)
     # scene seed of episode 0, 1, 2, ... (every reset starts the next); past the end, or empty: the world's sequence
     episode_seeds: tuple[int, ...] = ()
+    scene_seed: int = -1              # >= 0: every episode starts in the scene of this seed (a user study's one scene)
+    goal_index: int = -1              # >= 0: the goal pad of every episode started from now on; -1: drawn per episode
 
 
 @dataclass
@@ -94,10 +96,14 @@ class SimRunner:
 
     # -------------------------------------------------------------- episodes
     def reset(self, seed: int | None = None) -> VehicleState:
-        """Start a new episode now (scene `seed`, else the next of cfg.episode_seeds, else the world's sequence)."""
-        if seed is None and self.episodes_started < len(self.cfg.episode_seeds):
+        """Start a new episode now (scene `seed`, else cfg.scene_seed, else the next of cfg.episode_seeds, else the
+        world's sequence; goal pad cfg.goal_index unless -1)."""
+        if seed is None and self.cfg.scene_seed >= 0:
+            seed = int(self.cfg.scene_seed)
+        elif seed is None and self.episodes_started < len(self.cfg.episode_seeds):
             seed = int(self.cfg.episode_seeds[self.episodes_started])
-        state = self.world.reset(seed, airborne=self.cfg.airborne_start)
+        goal = int(self.cfg.goal_index) if self.cfg.goal_index >= 0 else None
+        state = self.world.reset(seed, goal_index=goal, airborne=self.cfg.airborne_start)
         self.episodes_started += 1
         self._cmd = np.zeros(3)
         self._cmd_time = -math.inf

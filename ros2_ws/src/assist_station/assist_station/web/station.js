@@ -38,6 +38,12 @@
   let landingTimer = null;
 
   // ------------------------------------------------------------------ keyboard
+  // the study panel (study.js) sends its steps through the station's socket
+  window.stationSend = (obj) => {
+    if (!ws || ws.readyState !== WebSocket.OPEN) return false;
+    ws.send(JSON.stringify(obj));
+    return true;
+  };
   function sendKeys() {
     if (!ws || ws.readyState !== WebSocket.OPEN) return;
     seq += 1;
@@ -58,8 +64,10 @@
     setHeld([]);
     stats.lastRelease = why;
   }
+  // keys typed into the study panel's forms (participant ID, answers) are not flight keys
+  const inForm = (e) => e.target && e.target.closest && e.target.closest('#study');
   window.addEventListener('keydown', (e) => {
-    if (!KEYS.includes(e.code)) return;
+    if (!KEYS.includes(e.code) || inForm(e)) return;
     e.preventDefault();
     if (held.includes(e.code)) return;                 // auto-repeat: nothing new
     stats.lastKey = { code: e.code, epochMs: performance.timeOrigin + e.timeStamp };   // for latency benches
@@ -70,7 +78,7 @@
     setHeld(held.filter((k) => k !== e.code && k !== 'Space').concat([e.code]));
   });
   window.addEventListener('keyup', (e) => {
-    if (!KEYS.includes(e.code)) return;
+    if (!KEYS.includes(e.code) || inForm(e)) return;
     e.preventDefault();
     if (motionProbe && motionProbe.code === e.code) motionProbe = null;
     setHeld(held.filter((k) => k !== e.code));
@@ -108,6 +116,10 @@
       else if (msg.type === 'scene') onScene(msg);
       else if (msg.type === 'hello') onHello(msg);
       else if (msg.type === 'landing') onLanding(msg);
+      else if (typeof msg.type === 'string' && msg.type.startsWith('study')) {
+        if (msg.type === 'study') stats.study = msg;
+        if (window.stationStudy) window.stationStudy.onMessage(msg);
+      }
       else if (msg.type === 'ack') {
         const t0 = sentAt.get(msg.seq);
         if (t0 !== undefined) { stats.ackRttMs = performance.now() - t0; sentAt.delete(msg.seq); }

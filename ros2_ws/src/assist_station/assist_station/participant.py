@@ -1,0 +1,337 @@
+"""Simulated study participants: a pilot family with a drawn skill flies the real station over its WebSocket.
+
+A participant connects to the station like the page does (same Origin rules, the same ``keys`` and
+``study`` messages), goes through the whole protocol and flies each landing with a simulated pilot of
+assist_sim.pilots (family and skill ``beta`` per participant, conformance ``alpha``): it reads the pose
+from the station's state messages and the goal pad from its scene, turns the pilot's velocity into held
+keys (W/A/S/D, arrows; a key is held while the pilot's command on that axis is above half the key
+speed) and perceives the assistant as the difference between the vehicle's velocity and its own keys.
+Questionnaire answers are scripted from the participant's skill and what it saw of its own landings
+(how far from the goal pad the drone came to rest), so they correlate with skill and performance.
+
+A dropped connection (station restarted, socket closed) is reconnected and the protocol goes on where
+the station says it stands.
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import aiohttp
+import numpy as np
+
+from .study import SURVEY, SUS_ITEMS
+
+log = logging.getLogger(__name__)
+
+KEY_SPEED_FRACTION = 0.5          # a key is held while the pilot's command on its axis exceeds this x key speed
+VERTICAL_THRESHOLD_MPS = 0.1
+HEARTBEAT_S = 0.25
+ASSIST_PERCEPTION_MPS = 0.25      # velocity beyond the keys' own that the participant takes for the assistant
+STEP_TIMEOUT_S = 30.0             # a study step the station does not answer within this (wall) is an error
+DEFAULT_FAMILIES = ('paper', 'delay', 'tapper', 'bang_bang', 'keyboard', 'cautious')
+
+
+class ParticipantError(RuntimeError):
+    """The station refused a step or stopped answering."""
+
+
+@dataclass
+class Profile:
+    """Who a simulated participant is: ID, pilot family, skill, conformance, seed and practice habit."""
+
+    pid: str
+    family: str
+    beta: float                   # skill in [0, 1] (the paper's beta)
+    alpha: float                  # conformance to the assistant in [0, 1]
+    seed: int
+    practice: int                 # practice landings flown before finishing practice
+    experience: float             # self-rated experience in [0, 1] (noisy in skill)
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def draw_profiles(n: int, seed: int, families: tuple[str, ...] = DEFAULT_FAMILIES, practice: int = 2,
+                  id_prefix: str = 'S') -> list[Profile]:
+    """`n` participants with a spread of skills: betas on a jittered grid over [0.1, 0.9], families in turn."""
+    rng = np.random.default_rng(seed)
+    grid = (np.arange(n) + rng.uniform(0.2, 0.8, n)) / max(n, 1)
+    betas = 0.1 + 0.8 * rng.permutation(grid)
+    out = []
+    for i in range(n):
+        beta = float(np.clip(betas[i], 0.05, 0.95))
+        experience = float(np.clip(beta + rng.normal(0.0, 0.12), 0.0, 1.0))
+        out.append(Profile(pid=f'{id_prefix}{i + 1:02d}', family=families[i % len(families)], beta=round(beta, 3),
+                           alpha=round(float(rng.uniform(0.3, 0.7)), 3), seed=int(rng.integers(2 ** 31 - 1)),
+                           practice=int(max(1, min(practice, 1 + rng.integers(practice + 1)))),
+                           experience=round(experience, 3)))
+    return out
+
+
+# ----------------------------------------------------------------------------------------- answers
+def _likert(rng: np.random.Generator, x: float, noise: float = 0.6) -> int:
+    """A 1-5 answer for agreement level x in [0, 1] with answer noise."""
+    return int(np.clip(round(1 + 4 * x + rng.normal(0.0, noise)), 1, 5))
+
+
+def sus_answers(rng: np.random.Generator, liking: float) -> list[int]:
+    """Ten SUS answers for how usable the block felt (liking in [0, 1]): odd items agree, even items disagree."""
+    return [_likert(rng, liking) if i % 2 == 0 else _likert(rng, 1.0 - liking) for i in range(len(SUS_ITEMS))]
+
+
+def survey_answers(rng: np.random.Generator, profile: Profile, felt: dict[str, float]) -> dict[str, Any]:
+    """The concluding survey from the profile's experience and how each condition felt (0 bad .. 1 good)."""
+    e = profile.experience
+    hours = _likert(rng, e, 0.5)
+    a: dict[str, Any] = {'1': 1 if hours >= 2 else 2, '2': hours, '3': _likert(rng, e, 0.5),
+                         '4': [1] if hours >= 2 else [], '5': _likert(rng, e, 0.7), '6': _likert(rng, e, 0.5),
+                         '7': [1, 2] if rng.random() < 0.7 else [3]}
+    un, asd = felt.get('unassisted', 0.5), felt.get('assisted', 0.5)
+    prefer = 0.5 + 0.5 * (asd - un)
+    statements = {8: un, 9: asd, 10: 1 - un, 11: 1 - asd, 12: 1 - un, 13: 1 - asd, 14: prefer, 15: prefer,
+                  16: asd, 17: 1 - asd, 18: 1 - prefer, 19: prefer, 20: 1 - prefer, 21: 0.3 + 0.4 * e}
+    for q, level in statements.items():
+        a[str(q)] = _likert(rng, float(np.clip(level, 0.0, 1.0)))
+    assert set(a) == {str(q['id']) for q in SURVEY}
+    return a
+
+
+# ----------------------------------------------------------------------------------------- keys
+def keys_for(u: np.ndarray, speed: float) -> list[str]:
+    """Held browser keys for a body-FLU velocity command (FLU = ENU at yaw 0)."""
+    keys = []
+    thr = KEY_SPEED_FRACTION * speed
+    if u[0] > thr:
+        keys.append('KeyW')
+    elif u[0] < -thr:
+        keys.append('KeyS')
+    if u[1] > thr:
+        keys.append('KeyA')
+    elif u[1] < -thr:
+        keys.append('KeyD')
+    if u[2] > VERTICAL_THRESHOLD_MPS:
+        keys.append('ArrowUp')
+    elif u[2] < -VERTICAL_THRESHOLD_MPS:
+        keys.append('ArrowDown')
+    return keys
+
+
+def key_velocity(keys: list[str], speed: float, speed_z: float) -> np.ndarray:
+    """The velocity the station commands for held keys (what the participant expects the drone to do)."""
+    v = np.zeros(3)
+    table = {'KeyW': (0, speed), 'KeyS': (0, -speed), 'KeyA': (1, speed), 'KeyD': (1, -speed),
+             'ArrowUp': (2, speed_z), 'ArrowDown': (2, -speed_z)}
+    for k in keys:
+        axis, value = table[k]
+        v[axis] = value
+    return v
+
+
+def yaw_of(q: list[float]) -> float:
+    """Yaw of an (x, y, z, w) quaternion."""
+    x, y, z, w = q
+    return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+
+
+# ----------------------------------------------------------------------------------------- client
+class Participant:
+    """Drives one simulated participant through the station's protocol over its WebSocket."""
+
+    def __init__(self, url: str, profile: Profile, real_time_factor: float = 1.0, connect_timeout_s: float = 60.0):
+        self.url = url.rstrip('/') + '/'
+        self.profile = profile
+        self.rtf = float(real_time_factor)
+        self.connect_timeout_s = connect_timeout_s
+        self.rng = np.random.default_rng(profile.seed)
+        self.ws: aiohttp.ClientWebSocketResponse | None = None
+        self.hello: dict | None = None
+        self.scene: dict | None = None
+        self.state: dict | None = None
+        self.view: dict | None = None
+        self.errors: list[str] = []
+        self.view_changed = asyncio.Event()
+        self.outcomes: dict[str, list[float]] = {'unassisted': [], 'assisted': []}
+        self.reconnects = 0
+        self.landings_flown = 0
+
+    # ---------------------------------------------------------------- connection
+    async def _connect(self, session: aiohttp.ClientSession) -> None:
+        origin = self.url.rstrip('/')
+        end = time.monotonic() + self.connect_timeout_s
+        while True:
+            try:
+                self.ws = await session.ws_connect(self.url + 'ws', headers={'Origin': origin}, heartbeat=None)
+                break
+            except (aiohttp.ClientError, OSError) as exc:
+                if time.monotonic() > end:
+                    raise ParticipantError(f'cannot reach the station at {self.url}: {exc}') from exc
+                await asyncio.sleep(0.5)
+        self.hello, self.view = None, None
+        self._reader = asyncio.get_running_loop().create_task(self._read(self.ws))
+        await self._wait(lambda: self.hello is not None, 'hello')
+        if self.hello.get('role') != 'pilot':
+            raise ParticipantError(f"the station made this participant view only: {self.hello.get('reason')}")
+
+    async def _read(self, ws: aiohttp.ClientWebSocketResponse) -> None:
+        async for msg in ws:
+            if msg.type != aiohttp.WSMsgType.TEXT:
+                continue
+            try:
+                m = json.loads(msg.data)
+            except ValueError:
+                continue
+            t = m.get('type')
+            if t == 'hello':
+                self.hello = m
+            elif t == 'scene':
+                self.scene = m
+            elif t == 'state':
+                self.state = m
+            elif t == 'study':
+                self.view = m
+                self.view_changed.set()
+            elif t == 'study_error':
+                self.errors.append(m.get('message', ''))
+                self.view_changed.set()
+
+    async def _wait(self, cond, what: str, timeout_s: float = STEP_TIMEOUT_S) -> None:
+        end = time.monotonic() + timeout_s
+        while not cond():
+            if self.ws is None or self.ws.closed:
+                raise ConnectionResetError(f'station connection lost while waiting for {what}')
+            if time.monotonic() > end:
+                raise ParticipantError(f'the station did not show {what} within {timeout_s:.0f} s '
+                                       f'(errors: {self.errors[-3:]})')
+            self.view_changed.clear()
+            try:
+                await asyncio.wait_for(self.view_changed.wait(), 0.05)
+            except TimeoutError:
+                pass
+
+    async def _send(self, obj: dict) -> None:
+        if self.ws is None or self.ws.closed:
+            raise ConnectionResetError('station connection lost')
+        await self.ws.send_str(json.dumps(obj))
+
+    async def _step(self, action: str, **data: Any) -> None:
+        """Send a study step and wait until the station's view moves on (or reports an error)."""
+        before = json.dumps(self.view, sort_keys=True)
+        n_err = len(self.errors)
+        await self._send({'type': 'study', 'action': action, **data})
+        await self._wait(lambda: json.dumps(self.view, sort_keys=True) != before or len(self.errors) > n_err,
+                         f'the result of {action}')
+        if len(self.errors) > n_err:
+            raise ParticipantError(f'station refused {action}: {self.errors[-1]}')
+
+    # ---------------------------------------------------------------- protocol
+    async def run(self, max_reconnects: int = 5) -> dict[str, Any]:
+        """Go through the whole protocol; returns what happened (landings flown, reconnects)."""
+        async with aiohttp.ClientSession() as session:
+            while True:
+                try:
+                    await self._connect(session)
+                    await self._protocol()
+                    break
+                except (ConnectionResetError, aiohttp.ClientError, ConnectionError) as exc:
+                    self.reconnects += 1
+                    if self.reconnects > max_reconnects:
+                        raise ParticipantError(f'station connection lost {self.reconnects} times: {exc}') from exc
+                    log.warning('%s: %s; reconnecting', self.profile.pid, exc)
+                    await asyncio.sleep(1.0)
+                finally:
+                    if self.ws is not None:
+                        await self.ws.close()
+        return {'participant': self.profile.pid, 'landings_flown': self.landings_flown,
+                'reconnects': self.reconnects, 'profile': asdict(self.profile)}
+
+    async def _protocol(self) -> None:
+        p = self.profile
+        await self._wait(lambda: self.view is not None, 'the study view')
+        if self.view.get('participant') != p.pid or self.view.get('phase') == 'participant':
+            await self._step('begin', participant=p.pid)
+        while True:
+            v = self.view
+            phase = v['phase']
+            if phase == 'consent':
+                await self._step('consent')
+            elif phase == 'practice' and v['trial'] > p.practice:
+                await self._step('stop_practice')
+            elif phase in ('practice', 'block1', 'block2'):
+                await self._fly(v)
+            elif phase in ('sus1', 'sus2'):
+                felt = self._felt(v['condition'])
+                await self._step('sus', answers=sus_answers(self.rng, felt))
+            elif phase == 'survey':
+                felt = {c: self._felt(c) for c in self.outcomes}
+                await self._step('survey', answers=survey_answers(self.rng, p, felt))
+            elif phase == 'done':
+                return
+            else:
+                raise ParticipantError(f'unexpected study phase {phase!r}')
+
+    def _felt(self, condition: str) -> float:
+        """How well a condition went as the participant saw it (0..1, from its own landings' distances)."""
+        d = self.outcomes.get(condition) or [1.0]
+        return float(np.clip(1.0 - np.median(d) / 1.5, 0.0, 1.0))
+
+    # ---------------------------------------------------------------- flying
+    async def _fly(self, v: dict) -> None:
+        from assist_sim.pilots import make_pilot
+
+        key = (v['phase'], v['trial'])
+        await self._step('start')
+        await self._wait(lambda: self.view.get('stage') == 'flying' or not self._same_landing(key),
+                         'the landing in flight', timeout_s=60.0)
+        if not self._same_landing(key):
+            return
+        await self._wait(lambda: self.state is not None and self.state.get('pose') is not None
+                         and self.scene is not None and self.scene.get('goal') is not None, 'pose and scene')
+        pads = np.array([[b['p'][0], b['p'][1], b['p'][2] + b['s'][2] / 2] for b in self.scene['platforms']])
+        goal = pads[int(self.scene['goal'])]
+        speed, speed_z = float(self.hello.get('speed', 1.0)), float(self.hello.get('speed_z', 0.5))
+        rng = np.random.default_rng([self.profile.seed, self.landings_flown])
+        pilot = make_pilot(self.profile.family, self.profile.alpha, self.profile.beta, rng=rng, pads=pads)
+        pilot.reset(goal, np.array(self.state['pose']['p']))
+        period = 1.0 / (pilot.cfg.control_hz * self.rtf)
+        keys: list[str] = []
+        last_sent = 0.0
+        next_t = time.monotonic()
+        while self.view.get('stage') == 'flying' and self._same_landing(key):
+            if self.ws is None or self.ws.closed:
+                raise ConnectionResetError('station connection lost during a landing')
+            pose = self.state['pose']
+            pos, vel = np.array(pose['p']), np.array(pose['v'])
+            yaw = yaw_of(pose['q'])
+            c, s = math.cos(yaw), math.sin(yaw)
+            v_body = np.array([c * vel[0] + s * vel[1], -s * vel[0] + c * vel[1], vel[2]])
+            extra = v_body - key_velocity(keys, speed, speed_z)
+            a = extra if float(np.linalg.norm(extra)) > ASSIST_PERCEPTION_MPS else None
+            u = pilot.act(pos, a)
+            new = keys_for(u, speed)
+            now = time.monotonic()
+            if new != keys or now - last_sent >= HEARTBEAT_S:
+                keys = new
+                last_sent = now
+                await self._send({'type': 'keys', 'down': keys})
+            next_t += period
+            await asyncio.sleep(max(0.0, next_t - time.monotonic()))
+            if time.monotonic() - next_t > 1.0:
+                next_t = time.monotonic()
+        await self._send({'type': 'keys', 'down': []})
+        if self.state and self.state.get('pose'):
+            final = np.array(self.state['pose']['p'])[:2]
+            self.outcomes.setdefault(v.get('condition', 'unassisted'), []).append(
+                float(np.linalg.norm(final - goal[:2])))
+        self.landings_flown += 1
+
+    def _same_landing(self, key: tuple) -> bool:
+        return (self.view.get('phase'), self.view.get('trial')) == key
+
+
+def run_participant(url: str, profile: Profile, real_time_factor: float = 1.0) -> dict[str, Any]:
+    """Run one participant to the end of the protocol (blocking)."""
+    return asyncio.run(Participant(url, profile, real_time_factor).run())

@@ -1,0 +1,643 @@
+"""The paper's user study as data and a protocol: configuration, questionnaires, per-participant files. No rclpy.
+
+A study is one YAML file (``StudyConfig``; the shipped example is ``config/study.yaml``): the scene, the
+predefined landing sequence of a block (the same goal pads for every participant), the practice landings
+(the paper allowed up to 14, goal drawn at random, feedback after each), the assistant that flies the
+assisted block and the texts the page shows. A participant goes through
+
+    consent -> practice -> block 1 -> SUS -> block 2 -> SUS -> concluding survey -> done
+
+with the two blocks in the order that follows from the participant ID (``first_condition``:
+counterbalanced, odd/even trailing number). Everything a participant produces lives in one directory
+(``ParticipantStore``): the study file as run (``study.yaml``), ``landings.csv`` (one fsynced row per
+finished landing), ``survey.json`` (SUS answers per block and the concluding survey's 21 answers,
+written atomically), ``protocol.log`` (one JSON line per protocol event) and ``bags/`` (a rosbag2 bag per
+landing, written by the station). The protocol's position is derived from those files only, so a
+station restarted mid-block resumes at the next unfinished landing: rows already written are never
+rewritten or repeated, and a landing that was in flight is flown again (its partial bag stays, the new
+one gets its own name).
+"""
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import json
+import math
+import os
+import re
+import threading
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+CONDITIONS = ('unassisted', 'assisted')
+PHASES = ('consent', 'practice', 'block1', 'sus1', 'block2', 'sus2', 'survey', 'done')
+PRACTICE_BLOCK = 0
+PARTICIPANT_ID = re.compile(r'^[A-Za-z0-9][A-Za-z0-9_-]{0,31}$')
+MAX_CONFIG_BYTES = 256 * 1024
+
+# The System Usability Scale (Brooke 1996), item order fixed: odd items positive, even items negative.
+SUS_ITEMS = (
+    'I think that I would like to use this system frequently.',
+    'I found the system unnecessarily complex.',
+    'I thought the system was easy to use.',
+    'I think that I would need the support of a technical person to be able to use this system.',
+    'I found the various functions in this system were well integrated.',
+    'I thought there was too much inconsistency in this system.',
+    'I would imagine that most people would learn to use this system very quickly.',
+    'I found the system very cumbersome to use.',
+    'I felt very confident using the system.',
+    'I needed to learn a lot of things before I could get going with this system.',
+)
+
+# The paper's concluding survey (its Tables II-III). kind: choice (one option; answer = its number 1..n),
+# multi (tick all that apply; answer = sorted option numbers), likert (1 = strongly disagree .. 5 = strongly agree).
+SURVEY = (
+    {'id': 1, 'kind': 'choice', 'text': 'Have you had any experience with flying a physical drone?',
+     'options': ['Yes', 'No']},
+    {'id': 2, 'kind': 'choice', 'text': 'How many hours of experience have you with flying physical drones?',
+     'options': ['0-5', '5-10', '10-20', '20-50', '50+']},
+    {'id': 3, 'kind': 'choice', 'text': 'How confident are you with flying physical drones?',
+     'options': ['1', '2', '3', '4', '5']},
+    {'id': 4, 'kind': 'multi', 'text': 'For what purpose have you flown a physical drone? (Tick all that apply)',
+     'options': ['Recreational', 'Inspection', 'Other']},
+    {'id': 5, 'kind': 'choice', 'text': 'How often do you play video games? (e.g. PC/PS4/Xbox)',
+     'options': ['Never', 'Monthly', 'Weekly', 'Regularly', 'Daily']},
+    {'id': 6, 'kind': 'choice', 'text': 'How many hours have you spent on games involving flying?',
+     'options': ['0-10', '10-25', '25-100', '100-200', '200+']},
+    {'id': 7, 'kind': 'multi', 'text': 'When you play video games, what input device do you use? (Tick all that '
+                                       'apply)', 'options': ['Keyboard', 'Mouse', 'Controller', 'Touch screen',
+                                                             'Other']},
+    *({'id': i, 'kind': 'likert', 'text': text} for i, text in enumerate((
+        'I felt confident in landing unassisted',
+        'I felt confident in landing assisted',
+        'I felt stressed when landing unassisted',
+        'I felt stressed when landing assisted',
+        'I felt the task was difficult to perform unassisted',
+        'I felt the task was difficult to perform assisted',
+        'I was able to land with greater accuracy whilst being assisted',
+        'I was able to land quicker whilst being assisted',
+        'I trust the actions of the assistant',
+        "The assistant didn't do what I wanted to do",
+        'I had to fight the assistant for control',
+        'I prefer to use the assistant when landing',
+        'I felt being unassisted gave me more freedom',
+        'I believe that if I practiced, I could perform better without assistance than with assistance',
+    ), start=8)),
+)
+EXPERIENCE_QUESTIONS = (2, 3, 5, 6)     # the paper's "experienced" rating and its Fig. 8 experience level
+
+LANDING_COLUMNS = ('participant', 'block', 'condition', 'order', 'trial', 'goal_index', 'landed_index',
+                   'nearest_index', 'error_m', 'nearest_error_m', 'success', 'crash', 'outcome', 'duration_s',
+                   'started_on_pad', 'start_pad', 'assist_live', 'episode', 'bag', 'recorded_utc')
+
+
+class StudyError(ValueError):
+    """A study file, participant ID, answer or protocol step that cannot be used; the text says why."""
+
+
+# ----------------------------------------------------------------------------------------- configuration
+@dataclass(frozen=True)
+class StudyConfig:
+    """One study: scene, landing sequence, practice, assistant and the page's texts (a YAML file's keys)."""
+
+    name: str = 'assisted-landing-study'
+    scene_seed: int = 7                       # every landing flies the scene of this sim seed
+    sequence: tuple[int, ...] = (2, 0, 4, 1, 3, 0, 2, 4, 3, 1, 4, 2, 0, 3, 1, 2)   # goal pads of a block, in order
+    n_pads: int = 5                           # pads in the scene (the sim's scene.n_pads)
+    practice_landings: int = 14               # at most this many practice landings (the participant may stop early)
+    practice_seed: int = 0                    # practice goals: drawn from this seed and the participant ID
+    practice_condition: str = 'first'         # first (the participant's first block's), unassisted or assisted
+    assistant_mode: str = 'latent'            # policy_node mode that flies the assisted block (checked at start)
+    record_bags: bool = True                  # a rosbag2 bag per landing under <participant>/bags/
+    bag_topics: tuple[str, ...] = ()          # empty: the contract's default set
+    landing_timeout_s: float = 120.0          # wall seconds without a landing result: the landing is flown again
+    intro_text: str = ('Land the drone on the platform marked in green. W/A/S/D move it forward, left, back and '
+                       'right; the up and down arrows climb and descend; Space stops it.')
+    consent_text: str = ('Your landings, the answers you give and the flight recordings are stored under your '
+                         'participant ID only. You may stop at any time.')
+    thanks_text: str = 'Thank you for taking part. You may close this page.'
+
+    def __post_init__(self) -> None:
+        problems = []
+        if not isinstance(self.name, str) or not self.name.strip():
+            problems.append('name must be a non-empty string')
+        if not (_is_int(self.n_pads) and 1 <= self.n_pads <= 64):
+            problems.append(f'n_pads must be an integer in 1..64, got {self.n_pads!r}')
+        if not (_is_int(self.scene_seed) and 0 <= self.scene_seed < 2 ** 31):
+            problems.append(f'scene_seed must be an integer in 0..2^31-1, got {self.scene_seed!r}')
+        seq = self.sequence
+        if not (isinstance(seq, tuple) and 1 <= len(seq) <= 200
+                and all(_is_int(g) and 0 <= g < (self.n_pads if _is_int(self.n_pads) else 0) for g in seq)):
+            problems.append(f'sequence must list 1-200 pad indices in 0..n_pads-1, got {seq!r}')
+        if not (_is_int(self.practice_landings) and 0 <= self.practice_landings <= 100):
+            problems.append(f'practice_landings must be an integer in 0..100, got {self.practice_landings!r}')
+        if not (_is_int(self.practice_seed) and self.practice_seed >= 0):
+            problems.append(f'practice_seed must be a non-negative integer, got {self.practice_seed!r}')
+        if self.practice_condition not in ('first', *CONDITIONS):
+            problems.append('practice_condition must be first, unassisted or assisted, got '
+                            f'{self.practice_condition!r}')
+        if self.assistant_mode not in ('latent', 'oracle', 'end_to_end'):
+            problems.append(f'assistant_mode must be latent, oracle or end_to_end, got {self.assistant_mode!r}')
+        if not isinstance(self.record_bags, bool):
+            problems.append('record_bags must be true or false')
+        if not all(isinstance(t, str) and t.startswith('/') for t in self.bag_topics):
+            problems.append('bag_topics must list topic names starting with /')
+        if not (isinstance(self.landing_timeout_s, (int, float)) and not isinstance(self.landing_timeout_s, bool)
+                and math.isfinite(self.landing_timeout_s) and 5.0 <= self.landing_timeout_s <= 3600.0):
+            problems.append(f'landing_timeout_s must be a number in 5..3600, got {self.landing_timeout_s!r}')
+        for name in ('intro_text', 'consent_text', 'thanks_text'):
+            if not isinstance(getattr(self, name), str) or len(getattr(self, name)) > 20000:
+                problems.append(f'{name} must be a string of at most 20000 characters')
+        if problems:
+            raise StudyError('study file: ' + '; '.join(problems))
+
+    @property
+    def landings_per_block(self) -> int:
+        """Landings in each of the two blocks (the sequence's length; the paper: 16)."""
+        return len(self.sequence)
+
+    @classmethod
+    def from_text(cls, text: str, source: str = 'study file') -> StudyConfig:
+        """Parse a study YAML document (unknown keys and wrong types refused); StudyError says why."""
+        if len(text.encode('utf-8')) > MAX_CONFIG_BYTES:
+            raise StudyError(f'{source}: larger than {MAX_CONFIG_BYTES // 1024} kB')
+        try:
+            data = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            raise StudyError(f'{source}: not valid YAML: {str(exc).splitlines()[0]}') from None
+        if data is None:
+            data = {}
+        if not isinstance(data, dict):
+            raise StudyError(f'{source}: expected a mapping of study settings, got {type(data).__name__}')
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(str(k) for k in data if k not in known)
+        if unknown:
+            raise StudyError(f'{source}: unknown setting(s) {", ".join(unknown)} (known: {", ".join(sorted(known))})')
+        values = dict(data)
+        for key in ('sequence', 'bag_topics'):
+            if key in values:
+                if not isinstance(values[key], list):
+                    raise StudyError(f'{source}: {key} must be a list')
+                values[key] = tuple(values[key])
+        try:
+            return cls(**values)
+        except StudyError as exc:
+            raise StudyError(f'{source}: {str(exc).removeprefix("study file: ")}') from None
+
+    @classmethod
+    def load(cls, path: str | Path) -> tuple[StudyConfig, str]:
+        """(config, the file's text) of a study YAML file; StudyError (one line) when unusable."""
+        path = Path(path)
+        try:
+            if not path.is_file():
+                raise StudyError(f'study file {path}: not a regular file')
+            if path.stat().st_size > MAX_CONFIG_BYTES:
+                raise StudyError(f'study file {path}: larger than {MAX_CONFIG_BYTES // 1024} kB')
+            text = path.read_text(encoding='utf-8')
+        except (OSError, UnicodeDecodeError) as exc:
+            raise StudyError(f'study file {path}: cannot read: {exc}') from None
+        return cls.from_text(text, f'study file {path}'), text
+
+    def to_dict(self) -> dict[str, Any]:
+        """The settings as plain YAML/JSON values."""
+        d = asdict(self)
+        d['sequence'], d['bag_topics'] = list(self.sequence), list(self.bag_topics)
+        return d
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+# ----------------------------------------------------------------------------------------- protocol rules
+def check_participant_id(pid: Any) -> str:
+    """A usable participant ID (1-32 of A-Z a-z 0-9 _ -, starting alphanumeric) or StudyError."""
+    if not isinstance(pid, str) or not PARTICIPANT_ID.match(pid):
+        raise StudyError('participant ID: 1-32 letters, digits, _ or -, starting with a letter or digit')
+    return pid
+
+
+def first_condition(pid: str) -> str:
+    """The condition of block 1 (counterbalanced): an odd trailing number starts unassisted, an even one
+    assisted; an ID without a trailing number by the parity of its SHA-256."""
+    m = re.search(r'(\d+)$', pid)
+    n = int(m.group(1)) if m else hashlib.sha256(pid.encode()).digest()[0]
+    return 'unassisted' if n % 2 == 1 else 'assisted'
+
+
+def block_condition(pid: str, block: int) -> str:
+    """Condition of block 1 or 2 for participant `pid`."""
+    first = first_condition(pid)
+    return first if block == 1 else CONDITIONS[1 - CONDITIONS.index(first)]
+
+
+def order_name(pid: str) -> str:
+    """'unassisted_first' or 'assisted_first'."""
+    return f'{first_condition(pid)}_first'
+
+
+def practice_goals(cfg: StudyConfig, pid: str) -> list[int]:
+    """The practice landings' goal pads for `pid` (random, reproducible from practice_seed and the ID)."""
+    salt = int.from_bytes(hashlib.sha256(pid.encode()).digest()[:4], 'little')
+    rng = np.random.default_rng([cfg.practice_seed, salt])
+    return [int(g) for g in rng.integers(cfg.n_pads, size=cfg.practice_landings)]
+
+
+def sus_score(answers: list[int]) -> float:
+    """SUS score 0-100 of ten 1-5 answers (odd items: answer - 1, even items: 5 - answer; sum x 2.5)."""
+    a = check_sus(answers)
+    return 2.5 * sum((x - 1) if i % 2 == 0 else (5 - x) for i, x in enumerate(a))
+
+
+def check_sus(answers: Any) -> list[int]:
+    """Ten integer answers in 1..5, or StudyError."""
+    if not (isinstance(answers, list) and len(answers) == len(SUS_ITEMS)
+            and all(_is_int(x) and 1 <= x <= 5 for x in answers)):
+        raise StudyError(f'SUS: expected {len(SUS_ITEMS)} answers, each an integer 1-5')
+    return list(answers)
+
+
+def check_survey(answers: Any) -> dict[str, Any]:
+    """The concluding survey's 21 answers keyed '1'..'21' (choice/likert: 1..n, multi: sorted distinct option
+    numbers, possibly none), or StudyError naming the first bad one."""
+    if not isinstance(answers, dict):
+        raise StudyError('survey: expected an object of answers keyed by question number')
+    out: dict[str, Any] = {}
+    extra = set(map(str, answers)) - {str(q['id']) for q in SURVEY}
+    if extra:
+        raise StudyError(f'survey: unknown question(s) {", ".join(sorted(extra))}')
+    for q in SURVEY:
+        key = str(q['id'])
+        if key not in answers:
+            raise StudyError(f'survey: question {key} is not answered')
+        v = answers[key]
+        n = len(q.get('options', ())) or 5
+        if q['kind'] == 'multi':
+            if not (isinstance(v, list) and all(_is_int(x) and 1 <= x <= n for x in v) and len(set(v)) == len(v)):
+                raise StudyError(f'survey: question {key} takes a list of distinct option numbers 1-{n}')
+            out[key] = sorted(v)
+        else:
+            if not (_is_int(v) and 1 <= v <= n):
+                raise StudyError(f'survey: question {key} takes one answer 1-{n}')
+            out[key] = v
+    return out
+
+
+@dataclass(frozen=True)
+class LandingSpec:
+    """What the next landing flies: its block (0 = practice), condition, trial number and goal pad."""
+
+    block: int
+    condition: str
+    trial: int
+    goal_index: int
+
+    @property
+    def assisted(self) -> bool:
+        """Whether the assistant flies along."""
+        return self.condition == 'assisted'
+
+    @property
+    def name(self) -> str:
+        """Short name (bag names, logs): practice_03, block1_12."""
+        return f"{'practice' if self.block == PRACTICE_BLOCK else f'block{self.block}'}_{self.trial:02d}"
+
+
+# ----------------------------------------------------------------------------------------- files
+def _fsync_dir(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def write_atomic(path: Path, text: str) -> None:
+    """Replace `path` by `text` all at once (temporary file, fsync, rename): never half written."""
+    tmp = path.with_name(f'.{path.name}.tmp')
+    with open(tmp, 'w', encoding='utf-8') as fh:
+        fh.write(text)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+    _fsync_dir(path.parent)
+
+
+def _csv_value(v: Any) -> str:
+    if v is None:
+        return ''
+    if isinstance(v, bool):
+        return 'true' if v else 'false'
+    if isinstance(v, float):
+        return f'{v:.4f}'
+    return str(v)
+
+
+class ParticipantStore:
+    """One participant's directory: study file, landings.csv, survey.json, protocol.log, bags/."""
+
+    def __init__(self, root: str | Path, pid: str, cfg: StudyConfig, config_text: str):
+        self.pid = check_participant_id(pid)
+        self.cfg = cfg
+        self.dir = Path(root) / pid
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.bags = self.dir / 'bags'
+        copy = self.dir / 'study.yaml'
+        if copy.exists():
+            try:
+                previous = StudyConfig.from_text(copy.read_text(encoding='utf-8'), str(copy))
+            except (OSError, UnicodeDecodeError) as exc:
+                raise StudyError(f'{copy}: cannot read: {exc}') from None
+            if previous != cfg:
+                raise StudyError(f'participant {pid} was run with a different study file ({copy}); use another '
+                                 'participant ID or study directory')
+        else:
+            write_atomic(copy, config_text)
+        self.landings_path = self.dir / 'landings.csv'
+        self.survey_path = self.dir / 'survey.json'
+        self.log_path = self.dir / 'protocol.log'
+        self.rows = self._load_rows()
+        self.survey = self._load_survey()
+        self.events = self._load_events()
+
+    # ---------------------------------------------------------------- reading
+    def _load_rows(self) -> list[dict[str, str]]:
+        if not self.landings_path.exists():
+            return []
+        raw = self.landings_path.read_bytes()
+        if raw and not raw.endswith(b'\n'):        # a row cut by a crash mid-write was never recorded: drop it
+            cut = raw.rfind(b'\n') + 1
+            with open(self.landings_path, 'r+b') as fh:
+                fh.truncate(cut)
+                os.fsync(fh.fileno())
+            self.log('torn_row_dropped', bytes=len(raw) - cut)
+            raw = raw[:cut]
+        reader = csv.DictReader(io.StringIO(raw.decode('utf-8')))
+        if reader.fieldnames is not None and tuple(reader.fieldnames) != LANDING_COLUMNS:
+            raise StudyError(f'{self.landings_path}: columns differ from this station\'s; not appending to it')
+        return list(reader)
+
+    def _load_survey(self) -> dict[str, Any]:
+        if not self.survey_path.exists():
+            return {'participant': self.pid, 'sus': {}, 'survey': None}
+        try:
+            data = json.loads(self.survey_path.read_text(encoding='utf-8'))
+        except (OSError, ValueError) as exc:
+            raise StudyError(f'{self.survey_path}: unreadable ({exc}); not overwriting it') from None
+        if not isinstance(data, dict) or not isinstance(data.get('sus'), dict):
+            raise StudyError(f'{self.survey_path}: not a survey file; not overwriting it')
+        return data
+
+    def _load_events(self) -> list[dict[str, Any]]:
+        if not self.log_path.exists():
+            return []
+        events = []
+        for line in self.log_path.read_text(encoding='utf-8', errors='replace').splitlines():
+            try:
+                e = json.loads(line)
+            except ValueError:
+                continue                              # a torn last line: the event it held did not complete
+            if isinstance(e, dict) and isinstance(e.get('event'), str):
+                events.append(e)
+        return events
+
+    # ---------------------------------------------------------------- writing
+    def log(self, event: str, **data: Any) -> None:
+        """Append one protocol event (fsynced JSON line)."""
+        entry = {'t': time.strftime('%Y-%m-%dT%H:%M:%S', time.gmtime()) + f'.{int(time.time() * 1000) % 1000:03d}Z',
+                 'event': event, **data}
+        with open(self.log_path, 'a', encoding='utf-8') as fh:
+            fh.write(json.dumps(entry, default=str) + '\n')
+            fh.flush()
+            os.fsync(fh.fileno())
+        if hasattr(self, 'events'):
+            self.events.append(entry)
+
+    def append_row(self, row: dict[str, Any]) -> dict[str, str]:
+        """Append one landing row (header first on a new file), fsynced; returns it as stored."""
+        new = not self.landings_path.exists() or self.landings_path.stat().st_size == 0
+        buf = io.StringIO()
+        writer = csv.DictWriter(buf, fieldnames=LANDING_COLUMNS, lineterminator='\n')
+        if new:
+            writer.writeheader()
+        stored = {k: _csv_value(row.get(k)) for k in LANDING_COLUMNS}
+        writer.writerow(stored)
+        with open(self.landings_path, 'a', encoding='utf-8', newline='') as fh:
+            fh.write(buf.getvalue())
+            fh.flush()
+            os.fsync(fh.fileno())
+        self.rows.append(stored)
+        return stored
+
+    def save_survey(self) -> None:
+        """Write survey.json atomically."""
+        write_atomic(self.survey_path, json.dumps(self.survey, indent=1) + '\n')
+
+    def new_bag_path(self, name: str) -> Path:
+        """A bag directory name under bags/ that does not exist yet (a repeated landing gets _2, _3, ...)."""
+        self.bags.mkdir(exist_ok=True)
+        path, k = self.bags / name, 1
+        while path.exists():
+            k += 1
+            path = self.bags / f'{name}_{k}'
+        return path
+
+
+# ----------------------------------------------------------------------------------------- protocol
+class StudySession:
+    """Where one participant stands in the protocol (derived from their files) and the steps that move it on.
+
+    Thread-safe. Steps out of order raise StudyError (the page shows the text; nothing is written).
+    """
+
+    def __init__(self, cfg: StudyConfig, config_text: str, root: str | Path, pid: str):
+        self.cfg = cfg
+        self.store = ParticipantStore(root, pid, cfg, config_text)
+        self.pid = self.store.pid
+        self.order = order_name(self.pid)
+        self._practice_goals = practice_goals(cfg, self.pid)
+        self._lock = threading.RLock()
+        self.active: LandingSpec | None = None
+        self.last_feedback: dict[str, Any] | None = None
+        self.store.log('session_opened', phase=self.phase, order=self.order, landings=len(self.store.rows))
+
+    # ---------------------------------------------------------------- state
+    def _count(self, block: int) -> int:
+        return sum(1 for r in self.store.rows if r['block'] == str(block))
+
+    def _logged(self, event: str) -> bool:
+        return any(e['event'] == event for e in self.store.events)
+
+    @property
+    def phase(self) -> str:
+        """The current phase (PHASES)."""
+        with self._lock:
+            if not self._logged('consent'):
+                return 'consent'
+            if self._count(PRACTICE_BLOCK) < self.cfg.practice_landings and not self._logged('practice_done'):
+                return 'practice'
+            for block in (1, 2):
+                if self._count(block) < self.cfg.landings_per_block:
+                    return f'block{block}'
+                if str(block) not in self.store.survey['sus']:
+                    return f'sus{block}'
+            return 'survey' if self.store.survey.get('survey') is None else 'done'
+
+    def next_landing(self) -> LandingSpec:
+        """The landing to fly next (practice or block); StudyError outside a landing phase."""
+        with self._lock:
+            phase = self.phase
+            if phase == 'practice':
+                k = self._count(PRACTICE_BLOCK)
+                cond = (self.cfg.practice_condition if self.cfg.practice_condition != 'first'
+                        else first_condition(self.pid))
+                return LandingSpec(PRACTICE_BLOCK, cond, k, self._practice_goals[k])
+            if phase in ('block1', 'block2'):
+                block = int(phase[-1])
+                k = self._count(block)
+                return LandingSpec(block, block_condition(self.pid, block), k, self.cfg.sequence[k])
+            raise StudyError(f'no landing to fly now (the study is at {phase})')
+
+    # ---------------------------------------------------------------- steps
+    def consent(self) -> None:
+        """The participant agreed to the consent text."""
+        with self._lock:
+            if self.phase != 'consent':
+                raise StudyError('consent was given already')
+            self.store.log('consent')
+
+    def start_landing(self, bag: str | None = None) -> LandingSpec:
+        """Mark the next landing as in flight (logged); returns what it flies."""
+        with self._lock:
+            if self.active is not None:
+                raise StudyError(f'landing {self.active.name} is still in flight')
+            spec = self.next_landing()
+            self.active = spec
+            self.last_feedback = None
+            self.store.log('landing_started', landing=spec.name, block=spec.block, condition=spec.condition,
+                           trial=spec.trial, goal_index=spec.goal_index, bag=bag)
+            return spec
+
+    def abort_landing(self, why: str) -> LandingSpec | None:
+        """The landing in flight will not be recorded (page gone, no result): it is flown again next."""
+        with self._lock:
+            spec, self.active = self.active, None
+            if spec is not None:
+                self.store.log('landing_aborted', landing=spec.name, why=why)
+            return spec
+
+    def record_landing(self, landing: dict[str, Any], *, start_pad: int | None, episode: int | None,
+                       bag: str | None) -> dict[str, str]:
+        """Write the landing in flight's row from its /sim/landing result; returns the stored row."""
+        with self._lock:
+            spec = self.active
+            if spec is None:
+                raise StudyError('no landing in flight')
+            if int(landing.get('goal_index', -1)) != spec.goal_index:
+                raise StudyError(f"landing result for goal pad {landing.get('goal_index')}, but {spec.name} flies "
+                                 f'goal pad {spec.goal_index}')
+            landed = landing.get('landed_index')
+            row = {
+                'participant': self.pid, 'block': spec.block, 'condition': spec.condition, 'order': self.order,
+                'trial': spec.trial, 'goal_index': spec.goal_index, 'landed_index': landed,
+                'nearest_index': landing.get('nearest_index'), 'error_m': landing.get('error_m'),
+                'nearest_error_m': landing.get('nearest_error_m'), 'success': bool(landing.get('success')),
+                'crash': bool(landing.get('crash')), 'outcome': landing.get('outcome', ''),
+                'duration_s': landing.get('duration_s'),
+                'started_on_pad': start_pad is not None and landed is not None and int(landed) == start_pad,
+                'start_pad': start_pad, 'assist_live': landing.get('assisted'), 'episode': episode, 'bag': bag,
+                'recorded_utc': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
+            }
+            stored = self.store.append_row(row)
+            self.active = None
+            self.store.log('landing_recorded', landing=spec.name, outcome=row['outcome'], episode=episode)
+            if spec.block == PRACTICE_BLOCK and self._count(PRACTICE_BLOCK) >= self.cfg.practice_landings:
+                self.store.log('practice_done', why='all practice landings flown')
+            return stored
+
+    def stop_practice(self) -> None:
+        """The participant ends the practice early."""
+        with self._lock:
+            if self.phase != 'practice' or self.active is not None:
+                raise StudyError('practice can be ended only between practice landings')
+            self.store.log('practice_done', why='participant stopped practising',
+                           landings=self._count(PRACTICE_BLOCK))
+
+    def submit_sus(self, answers: Any) -> float:
+        """SUS answers for the block just flown; returns its score."""
+        with self._lock:
+            phase = self.phase
+            if phase not in ('sus1', 'sus2'):
+                raise StudyError(f'no SUS questionnaire now (the study is at {phase})')
+            block = int(phase[-1])
+            a = check_sus(answers)
+            score = sus_score(a)
+            self.store.survey['sus'][str(block)] = {'condition': block_condition(self.pid, block), 'answers': a,
+                                                    'score': score}
+            self.store.save_survey()
+            self.store.log('sus', block=block, score=score)
+            return score
+
+    def submit_survey(self, answers: Any) -> None:
+        """The concluding survey's answers."""
+        with self._lock:
+            if self.phase != 'survey':
+                raise StudyError(f'no concluding survey now (the study is at {self.phase})')
+            self.store.survey['survey'] = check_survey(answers)
+            self.store.save_survey()
+            self.store.log('survey')
+            self.store.log('done')
+
+    # ---------------------------------------------------------------- page
+    def view(self) -> dict[str, Any]:
+        """What the station page shows (the 'study' message)."""
+        with self._lock:
+            phase = self.phase
+            v: dict[str, Any] = {'type': 'study', 'participant': self.pid, 'phase': phase, 'order': self.order,
+                                 'in_flight': self.active is not None, 'study': self.cfg.name}
+            if phase == 'consent':
+                v.update(intro=self.cfg.intro_text, consent=self.cfg.consent_text)
+            elif phase in ('practice', 'block1', 'block2'):
+                spec = self.active or self.next_landing()
+                total = self.cfg.practice_landings if phase == 'practice' else self.cfg.landings_per_block
+                v.update(trial=spec.trial + 1, of=total, condition=spec.condition, block=spec.block,
+                         intro=self.cfg.intro_text, can_stop_practice=phase == 'practice' and self.active is None)
+                if self.last_feedback is not None and phase == 'practice':
+                    v['feedback'] = self.last_feedback
+            elif phase in ('sus1', 'sus2'):
+                v.update(block=int(phase[-1]), condition=block_condition(self.pid, int(phase[-1])),
+                         items=list(SUS_ITEMS))
+            elif phase == 'survey':
+                v.update(questions=[dict(q) for q in SURVEY])
+            else:
+                v.update(thanks=self.cfg.thanks_text)
+            return v
+
+
+def practice_feedback(landing: dict[str, Any], pads: np.ndarray | None, final_xy: Any | None) -> dict[str, Any]:
+    """Practice feedback: where the drone ended relative to the goal pad (metres forward/left of its centre,
+    in the odom frame's x/y) and whether it succeeded."""
+    fb: dict[str, Any] = {'success': bool(landing.get('success')), 'crash': bool(landing.get('crash')),
+                          'outcome': landing.get('outcome', ''), 'error_m': landing.get('error_m')}
+    g = landing.get('goal_index')
+    if pads is not None and final_xy is not None and _is_int(g) and 0 <= g < len(pads):
+        d = np.asarray(final_xy, dtype=float)[:2] - np.asarray(pads[g], dtype=float)[:2]
+        fb['offset_m'] = [round(float(d[0]), 2), round(float(d[1]), 2)]
+    return fb
+
+
+__all__ = ['CONDITIONS', 'EXPERIENCE_QUESTIONS', 'LANDING_COLUMNS', 'PHASES', 'PRACTICE_BLOCK', 'SURVEY',
+           'SUS_ITEMS', 'LandingSpec', 'ParticipantStore', 'StudyConfig', 'StudyError', 'StudySession',
+           'block_condition', 'check_participant_id', 'check_survey', 'check_sus', 'first_condition', 'order_name',
+           'practice_feedback', 'practice_goals', 'sus_score', 'write_atomic']

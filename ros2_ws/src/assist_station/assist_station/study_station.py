@@ -1,0 +1,371 @@
+"""The pilot station's user-study driver: runs the protocol of assist_station.study through the graph (rclpy).
+
+The page sends study steps (begin with a participant ID, consent, start a landing, stop practising,
+SUS and survey answers); this class turns them into graph actions and files:
+
+* a landing starts by setting sim_node's ``scene_seed`` and ``goal_index`` (and ``auto_reset`` false,
+  so the station decides when each landing starts) and policy_node's ``assist_enabled`` (the block's
+  condition) over their parameter services, opening the landing's bag (an in-process bag_record) and
+  calling ``/sim/reset``; the vehicle flies the pilot's keys only while a landing is in flight;
+* the landing ends with the ``/sim/landing`` result of that episode: the row goes to landings.csv, the
+  bag is closed, practice landings get feedback (where the drone ended relative to the goal pad),
+  block landings none;
+* a landing whose page goes away, or that gets no result within ``landing_timeout_s``, is not
+  recorded and is flown again (logged in protocol.log).
+
+Every ROS call is asynchronous (futures with callbacks) on the node's executor; page steps arrive on
+the web server's thread and are queued for the node's timer.
+"""
+from __future__ import annotations
+
+import math
+import queue
+import re
+import time
+from pathlib import Path
+from typing import Any
+from collections.abc import Callable
+
+import numpy as np
+from rcl_interfaces.srv import GetParameters, SetParameters
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from std_srvs.srv import Trigger
+
+from .station_core import StudyMessage
+from .study import PRACTICE_BLOCK, LandingSpec, StudyConfig, StudyError, StudySession, practice_feedback
+
+EPISODE_RE = re.compile(r'^episode (\d+): goal pad (\d+)')
+SERVICE_WAIT_S = 10.0          # a node's parameter service / /sim/reset not answering this long: the step fails
+BAG_WARMUP_S = 0.6             # the landing's bag subscribes before the episode starts
+BAG_TAIL_S = 0.5               # ... and keeps recording this long after the result
+
+
+class _Call:
+    """One pending service call: its future, deadline and what to do with the answer."""
+
+    def __init__(self, what: str, future: Any, on_done: Callable[[Any], None], timeout_s: float = SERVICE_WAIT_S):
+        self.what, self.future, self.on_done = what, future, on_done
+        self.deadline = time.monotonic() + timeout_s
+
+
+class StudyDriver:
+    """Protocol + graph actions for one station (one participant at a time)."""
+
+    def __init__(self, node: Node, cfg: StudyConfig, config_text: str, root: Path, publish_view: Callable[[dict], None],
+                 push_event: Callable[[dict], None], sim_node: str = '/sim_node', policy_node: str = '/policy_node'):
+        self.node, self.cfg, self.text, self.root = node, cfg, config_text, Path(root)
+        self.root.mkdir(parents=True, exist_ok=True)
+        self._publish_view, self._push_event = publish_view, push_event
+        self.session: StudySession | None = None
+        self.inbox: queue.Queue[StudyMessage | tuple[str, Any]] = queue.Queue(maxsize=64)
+        self._calls: list[_Call] = []
+        self.sim_params = node.create_client(SetParameters, f'{sim_node}/set_parameters')
+        self.policy_params = node.create_client(SetParameters, f'{policy_node}/set_parameters')
+        self.policy_get = node.create_client(GetParameters, f'{policy_node}/get_parameters')
+        self.reset_client = node.create_client(Trigger, '/sim/reset')
+        self.stage = 'idle'          # idle | waiting_graph | configuring | warming | resetting | flying | closing
+        self._graph_deadline = math.inf
+        self.spec: LandingSpec | None = None
+        self.episode: int | None = None
+        self.started_at = math.inf
+        self.start_xy: np.ndarray | None = None
+        self.last_xy: np.ndarray | None = None
+        self.pads: np.ndarray | None = None
+        self.boxes: list[dict[str, Any]] = []
+        self.recorder = None
+        self.bag: str | None = None
+        self._pending_config = 0
+        self._warm_until = math.inf
+        self._close_at = math.inf
+        self._view_dirty = True
+        self.error: str | None = None
+
+    # ------------------------------------------------------------------ inputs (any thread)
+    def submit(self, msg: StudyMessage) -> None:
+        """A study step from the pilot page (web server thread): queued for the node's timer."""
+        try:
+            self.inbox.put_nowait(msg)
+        except queue.Full:
+            self.node.get_logger().warning('study: more than 64 page steps waiting; this one is dropped')
+
+    def page_lost(self) -> None:
+        """The pilot page went away (web server thread)."""
+        try:
+            self.inbox.put_nowait(('page_lost', None))
+        except queue.Full:
+            pass
+
+    @property
+    def flying(self) -> bool:
+        """Whether the pilot's keys fly the vehicle now (a landing is in flight)."""
+        return self.stage == 'flying'
+
+    def note_scene(self, boxes: list[dict[str, Any]]) -> None:
+        """The scene's pad boxes (from /sim/scene: id, centre p, size s, quaternion q)."""
+        pads = sorted((b for b in boxes if b['ns'] == 'platforms'), key=lambda b: b['id'])
+        self.boxes = [{'id': b['id'], 'p': b['p'], 's': b['s'],
+                       'yaw': math.atan2(2 * (b['q'][3] * b['q'][2] + b['q'][0] * b['q'][1]),
+                                         1 - 2 * (b['q'][1] ** 2 + b['q'][2] ** 2))} for b in pads]
+        self.pads = np.array([[b['p'][0], b['p'][1], b['p'][2] + b['s'][2] / 2] for b in pads]) if pads else None
+
+    def note_odom(self, xy: np.ndarray) -> None:
+        """The vehicle's horizontal position (from /odom)."""
+        self.last_xy = np.asarray(xy, dtype=float)[:2]
+        if self.stage == 'flying' and self.start_xy is None:
+            self.start_xy = self.last_xy.copy()
+
+    # ------------------------------------------------------------------ timer (node thread)
+    def tick(self) -> None:
+        """Run queued page steps, finished service calls, timeouts; publish the view when it changed."""
+        for call in list(self._calls):
+            if call.future.done():
+                self._calls.remove(call)
+                try:
+                    result = call.future.result()
+                except Exception as exc:  # noqa: BLE001 - a failed call fails the step, reported below
+                    self._fail(f'{call.what} failed: {exc}')
+                    continue
+                call.on_done(result)
+            elif time.monotonic() > call.deadline:
+                self._calls.remove(call)
+                self._fail(f'{call.what}: no answer within {SERVICE_WAIT_S:.0f} s')
+        while True:
+            try:
+                msg = self.inbox.get_nowait()
+            except queue.Empty:
+                break
+            if isinstance(msg, tuple):
+                if msg[0] == 'page_lost' and self.stage not in ('idle', 'closing'):
+                    self._abort('the pilot page went away')
+                continue
+            try:
+                self._step(msg)
+            except StudyError as exc:
+                self._push_event({'type': 'study_error', 'message': str(exc)})
+                self.node.get_logger().warning(f'study: {exc}')
+            self._view_dirty = True
+        now = time.monotonic()
+        if self.stage == 'waiting_graph':
+            self._configure()
+        if self.stage == 'warming' and now >= self._warm_until:
+            self._reset_sim()
+        if self.stage == 'flying' and now - self.started_at > self.cfg.landing_timeout_s:
+            self._abort(f'no landing result within {self.cfg.landing_timeout_s:.0f} s')
+        if self.stage == 'closing' and now >= self._close_at:
+            self._close_bag()
+            self.stage = 'idle'
+            self._view_dirty = True
+        if self._view_dirty:
+            self._view_dirty = False
+            self._publish_view(self.view())
+
+    def view(self) -> dict[str, Any]:
+        """The page's study view (phase, texts, counters); a participant ID prompt when none is open."""
+        if self.session is None:
+            return {'type': 'study', 'phase': 'participant', 'study': self.cfg.name,
+                    'intro': self.cfg.intro_text}
+        v = self.session.view()
+        v['stage'] = self.stage
+        v['in_flight'] = self.stage != 'idle' and self.stage != 'closing'
+        if self.error:
+            v['error'] = self.error
+        return v
+
+    # ------------------------------------------------------------------ steps
+    def _step(self, msg: StudyMessage) -> None:
+        action, data = msg.action, msg.data
+        if action == 'begin':
+            if self.stage not in ('idle', 'closing'):
+                raise StudyError('a landing is in flight; finish it first')
+            self._close_bag()
+            self.stage = 'idle'
+            self.session = StudySession(self.cfg, self.text, self.root, data.get('participant'))
+            self.error = None
+            self.node.get_logger().info(f'study: participant {self.session.pid} at {self.session.phase} '
+                                        f'({self.session.order})')
+            return
+        if self.session is None:
+            raise StudyError('enter a participant ID first')
+        if action == 'consent':
+            self.session.consent()
+        elif action == 'stop_practice':
+            self.session.stop_practice()
+        elif action == 'sus':
+            self.session.submit_sus(data.get('answers'))
+        elif action == 'survey':
+            self.session.submit_survey(data.get('answers'))
+            self.node.get_logger().info(f'study: participant {self.session.pid} done')
+        elif action == 'start':
+            self._start_landing()
+
+    def _start_landing(self) -> None:
+        if self.stage not in ('idle', 'closing'):
+            raise StudyError('a landing is in flight already')
+        self._close_bag()
+        spec = self.session.next_landing()
+        bag = None
+        if self.cfg.record_bags:
+            bag = self.session.store.new_bag_path(spec.name)
+        self.spec = self.session.start_landing(bag=None if bag is None else bag.name)
+        self.bag = None if bag is None else str(bag)
+        self.episode, self.start_xy, self.error = None, None, None
+        self.stage = 'waiting_graph'       # until sim_node (and for an assisted landing policy_node) answer
+        self._graph_deadline = time.monotonic() + SERVICE_WAIT_S
+        self._configure()
+
+    def _graph_missing(self) -> list[str]:
+        missing = [name for name, c in (('sim_node parameters', self.sim_params), ('/sim/reset', self.reset_client))
+                   if not c.service_is_ready()]
+        if self.spec is not None and self.spec.assisted and not self.policy_params.service_is_ready():
+            missing.append('policy_node (the assisted condition needs it)')
+        return missing
+
+    def _configure(self) -> None:
+        """Once the graph's services answer: set the landing's parameters (then the bag, then /sim/reset)."""
+        missing = self._graph_missing()
+        if missing:
+            if time.monotonic() > self._graph_deadline:
+                self._fail(f'not available after {SERVICE_WAIT_S:.0f} s: {", ".join(missing)}')
+            return
+        spec = self.spec
+        self.stage = 'configuring'
+        self._pending_config = 0
+        sim = [Parameter('scene_seed', value=int(self.cfg.scene_seed)),
+               Parameter('goal_index', value=int(spec.goal_index)), Parameter('auto_reset', value=False)]
+        self._set_params('sim_node', self.sim_params, sim)
+        if self.policy_params.service_is_ready():
+            self._set_params('policy_node', self.policy_params, [Parameter('assist_enabled', value=spec.assisted)])
+            if spec.assisted:
+                self._check_policy_mode()
+        self.node.get_logger().info(f'study: {self.session.pid} {spec.name} ({spec.condition}, goal pad '
+                                    f'{spec.goal_index})')
+
+    def _set_params(self, what: str, client: Any, params: list[Parameter]) -> None:
+        if not client.service_is_ready():
+            self._fail(f'{what} parameter service not available')
+            return
+        self._pending_config += 1
+        req = SetParameters.Request(parameters=[p.to_parameter_msg() for p in params])
+
+        def done(result: Any) -> None:
+            bad = [f'{p.name}: {r.reason}' for p, r in zip(params, result.results) if not r.successful]
+            if bad:
+                self._fail(f'{what} refused ' + '; '.join(bad))
+                return
+            self._pending_config -= 1
+            if self._pending_config == 0 and self.stage == 'configuring':
+                self._open_bag()
+        self._calls.append(_Call(f'setting {what} parameters', client.call_async(req), done))
+
+    def _check_policy_mode(self) -> None:
+        if not self.policy_get.service_is_ready():
+            return
+
+        def done(result: Any) -> None:
+            mode = result.values[0].string_value if result.values else ''
+            if mode != self.cfg.assistant_mode:
+                self._fail(f'policy_node flies mode {mode!r}, the study file asks for {self.cfg.assistant_mode!r}')
+        req = GetParameters.Request(names=['mode'])
+        self._calls.append(_Call('reading policy_node mode', self.policy_get.call_async(req), done))
+
+    def _open_bag(self) -> None:
+        if self.bag is not None:
+            from .study_bag import open_landing_bag
+            try:
+                self.recorder = open_landing_bag(self.node, self.bag, self.cfg.bag_topics)
+            except Exception as exc:  # noqa: BLE001 - no bag: the landing is not flown (nothing lost)
+                self._fail(f'cannot record the landing bag {self.bag}: {exc}')
+                return
+        self.stage = 'warming'
+        self._warm_until = time.monotonic() + (BAG_WARMUP_S if self.recorder is not None else 0.0)
+
+    def _reset_sim(self) -> None:
+        if not self.reset_client.service_is_ready():
+            self._fail('/sim/reset not available (is sim_node running?)')
+            return
+        self.stage = 'resetting'
+
+        def done(result: Any) -> None:
+            m = EPISODE_RE.match(result.message or '')
+            if not result.success or m is None:
+                self._fail(f'/sim/reset: {result.message!r}')
+                return
+            episode, goal = int(m.group(1)), int(m.group(2))
+            if goal != self.spec.goal_index:
+                self._fail(f'sim_node started goal pad {goal}, the landing flies {self.spec.goal_index}')
+                return
+            self.episode = episode
+            self.stage = 'flying'
+            self.started_at = time.monotonic()
+            self.start_xy = None
+            self._view_dirty = True
+        self._calls.append(_Call('/sim/reset', self.reset_client.call_async(Trigger.Request()), done))
+
+    def on_landing(self, landing: dict[str, Any]) -> bool:
+        """A /sim/landing result (node thread); True when it was the landing in flight (recorded)."""
+        if self.stage != 'flying' or self.session is None or landing.get('episode') != self.episode:
+            return False
+        spec = self.spec
+        start_pad = self._pad_under(self.start_xy)
+        try:
+            row = self.session.record_landing(landing, start_pad=start_pad, episode=self.episode,
+                                              bag=None if self.bag is None else Path(self.bag).name)
+        except (StudyError, OSError) as exc:
+            self._fail(f'landing not recorded: {exc}')
+            return False
+        if spec.block == PRACTICE_BLOCK:
+            fb = practice_feedback(landing, self.pads, self.last_xy)
+            self.session.last_feedback = fb
+            self._push_event({'type': 'study_feedback', **fb})
+        self.node.get_logger().info(f"study: {self.session.pid} {spec.name} recorded: {row['outcome']} "
+                                    f"error {row['error_m']} m")
+        self.stage = 'closing'
+        self._close_at = time.monotonic() + BAG_TAIL_S
+        self._view_dirty = True
+        return True
+
+    def _pad_under(self, xy: np.ndarray | None) -> int | None:
+        """The pad whose footprint holds `xy` (scene boxes from /sim/scene), else None."""
+        if xy is None:
+            return None
+        for b in self.boxes:
+            c, s, yaw = np.asarray(b['p'][:2]), np.asarray(b['s'][:2]), b['yaw']
+            d = np.asarray(xy) - c
+            cy, sy = math.cos(yaw), math.sin(yaw)
+            local = np.array([cy * d[0] + sy * d[1], -sy * d[0] + cy * d[1]])
+            if np.all(np.abs(local) <= s / 2):
+                return int(b['id'])
+        return None
+
+    # ------------------------------------------------------------------ failures
+    def _fail(self, why: str) -> None:
+        self.error = why
+        self.node.get_logger().error(f'study: {why}')
+        self._push_event({'type': 'study_error', 'message': why})
+        self._abort(why)
+
+    def _abort(self, why: str) -> None:
+        if self.session is not None and self.session.active is not None:
+            self.session.abort_landing(why)
+        self._calls.clear()
+        self._close_bag()
+        self.stage = 'idle'
+        self.episode = None
+        self._view_dirty = True
+
+    def _close_bag(self) -> None:
+        rec, self.recorder = self.recorder, None
+        if rec is None:
+            return
+        from .study_bag import close_landing_bag
+        try:
+            close_landing_bag(self.node, rec)
+        except Exception as exc:  # noqa: BLE001 - report; the row (if any) is written already
+            self.node.get_logger().error(f'study: closing the landing bag failed: {exc}')
+
+    def close(self) -> None:
+        """Station shutting down: a landing in flight is not recorded; its bag is closed."""
+        if self.stage not in ('idle', 'closing'):
+            self._abort('station stopped')
+        self._close_bag()
