@@ -137,6 +137,48 @@ def yaw_of(q: list[float]) -> float:
     return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
 
 
+# ----------------------------------------------------------------------------------------- flying
+class Flyer:
+    """One landing of a participant: its pilot model turned into held keys, step by step from the pose."""
+
+    def __init__(self, profile: Profile, landing: int, scene: dict, start: np.ndarray, speed: float,
+                 speed_z: float):
+        from assist_sim.pilots import make_pilot
+        self.pads = np.array([[b['p'][0], b['p'][1], b['p'][2] + b['s'][2] / 2] for b in scene['platforms']])
+        self.goal = self.pads[int(scene['goal'])]
+        self.speed, self.speed_z = speed, speed_z
+        rng = np.random.default_rng([profile.seed, landing])
+        self.pilot = make_pilot(profile.family, profile.alpha, profile.beta, rng=rng, pads=self.pads)
+        self.pilot.reset(self.goal, np.asarray(start, dtype=float))
+        self.keys: list[str] = []
+
+    @property
+    def period_s(self) -> float:
+        """Sim seconds per pilot step."""
+        return 1.0 / self.pilot.cfg.control_hz
+
+    def step(self, pose: dict) -> list[str]:
+        """The keys to hold after seeing `pose` (p, v, q in odom ENU): the pilot's command, the assistant
+        perceived as the velocity beyond what the held keys command."""
+        pos, vel = np.array(pose['p'], dtype=float), np.array(pose['v'], dtype=float)
+        yaw = yaw_of(pose['q'])
+        c, s = math.cos(yaw), math.sin(yaw)
+        v_body = np.array([c * vel[0] + s * vel[1], -s * vel[0] + c * vel[1], vel[2]])
+        extra = v_body - key_velocity(self.keys, self.speed, self.speed_z)
+        a = extra if float(np.linalg.norm(extra)) > ASSIST_PERCEPTION_MPS else None
+        self.keys = keys_for(self.pilot.act(pos, a), self.speed)
+        return self.keys
+
+    def distance(self, pose: dict) -> float:
+        """Horizontal distance from the goal pad's centre (what the participant sees of its landing)."""
+        return float(np.linalg.norm(np.array(pose['p'], dtype=float)[:2] - self.goal[:2]))
+
+
+def felt(distances: list[float]) -> float:
+    """How well a condition went as the participant saw it (0..1, from its own landings' distances)."""
+    return float(np.clip(1.0 - np.median(distances or [1.5]) / 1.5, 0.0, 1.0))
+
+
 # ----------------------------------------------------------------------------------------- client
 class Participant:
     """Drives one simulated participant through the station's protocol over its WebSocket."""
@@ -160,21 +202,27 @@ class Participant:
 
     # ---------------------------------------------------------------- connection
     async def _connect(self, session: aiohttp.ClientSession) -> None:
+        """Connect as the pilot; while the station gives only a view (the previous pilot's role is still
+        reserved for its page), close and try again until connect_timeout_s."""
         origin = self.url.rstrip('/')
         end = time.monotonic() + self.connect_timeout_s
         while True:
             try:
                 self.ws = await session.ws_connect(self.url + 'ws', headers={'Origin': origin}, heartbeat=None)
-                break
             except (aiohttp.ClientError, OSError) as exc:
                 if time.monotonic() > end:
                     raise ParticipantError(f'cannot reach the station at {self.url}: {exc}') from exc
                 await asyncio.sleep(0.5)
-        self.hello, self.view = None, None
-        self._reader = asyncio.get_running_loop().create_task(self._read(self.ws))
-        await self._wait(lambda: self.hello is not None, 'hello')
-        if self.hello.get('role') != 'pilot':
-            raise ParticipantError(f"the station made this participant view only: {self.hello.get('reason')}")
+                continue
+            self.hello, self.view = None, None
+            self._reader = asyncio.get_running_loop().create_task(self._read(self.ws))
+            await self._wait(lambda: self.hello is not None, 'hello')
+            if self.hello.get('role') == 'pilot':
+                return
+            await self.ws.close()
+            if time.monotonic() > end:
+                raise ParticipantError(f"the station kept this participant view only: {self.hello.get('reason')}")
+            await asyncio.sleep(1.0)
 
     async def _read(self, ws: aiohttp.ClientWebSocketResponse) -> None:
         async for msg in ws:
@@ -263,25 +311,17 @@ class Participant:
             elif phase in ('practice', 'block1', 'block2'):
                 await self._fly(v)
             elif phase in ('sus1', 'sus2'):
-                felt = self._felt(v['condition'])
-                await self._step('sus', answers=sus_answers(self.rng, felt))
+                await self._step('sus', answers=sus_answers(self.rng, felt(self.outcomes[v['condition']])))
             elif phase == 'survey':
-                felt = {c: self._felt(c) for c in self.outcomes}
-                await self._step('survey', answers=survey_answers(self.rng, p, felt))
+                how = {c: felt(d) for c, d in self.outcomes.items()}
+                await self._step('survey', answers=survey_answers(self.rng, p, how))
             elif phase == 'done':
                 return
             else:
                 raise ParticipantError(f'unexpected study phase {phase!r}')
 
-    def _felt(self, condition: str) -> float:
-        """How well a condition went as the participant saw it (0..1, from its own landings' distances)."""
-        d = self.outcomes.get(condition) or [1.0]
-        return float(np.clip(1.0 - np.median(d) / 1.5, 0.0, 1.0))
-
     # ---------------------------------------------------------------- flying
     async def _fly(self, v: dict) -> None:
-        from assist_sim.pilots import make_pilot
-
         key = (v['phase'], v['trial'])
         await self._step('start')
         await self._wait(lambda: self.view.get('stage') == 'flying' or not self._same_landing(key),
@@ -290,31 +330,19 @@ class Participant:
             return
         await self._wait(lambda: self.state is not None and self.state.get('pose') is not None
                          and self.scene is not None and self.scene.get('goal') is not None, 'pose and scene')
-        pads = np.array([[b['p'][0], b['p'][1], b['p'][2] + b['s'][2] / 2] for b in self.scene['platforms']])
-        goal = pads[int(self.scene['goal'])]
-        speed, speed_z = float(self.hello.get('speed', 1.0)), float(self.hello.get('speed_z', 0.5))
-        rng = np.random.default_rng([self.profile.seed, self.landings_flown])
-        pilot = make_pilot(self.profile.family, self.profile.alpha, self.profile.beta, rng=rng, pads=pads)
-        pilot.reset(goal, np.array(self.state['pose']['p']))
-        period = 1.0 / (pilot.cfg.control_hz * self.rtf)
+        flyer = Flyer(self.profile, self.landings_flown, self.scene, np.array(self.state['pose']['p']),
+                      float(self.hello.get('speed', 1.0)), float(self.hello.get('speed_z', 0.5)))
+        period = flyer.period_s / self.rtf
         keys: list[str] = []
         last_sent = 0.0
         next_t = time.monotonic()
         while self.view.get('stage') == 'flying' and self._same_landing(key):
             if self.ws is None or self.ws.closed:
                 raise ConnectionResetError('station connection lost during a landing')
-            pose = self.state['pose']
-            pos, vel = np.array(pose['p']), np.array(pose['v'])
-            yaw = yaw_of(pose['q'])
-            c, s = math.cos(yaw), math.sin(yaw)
-            v_body = np.array([c * vel[0] + s * vel[1], -s * vel[0] + c * vel[1], vel[2]])
-            extra = v_body - key_velocity(keys, speed, speed_z)
-            a = extra if float(np.linalg.norm(extra)) > ASSIST_PERCEPTION_MPS else None
-            u = pilot.act(pos, a)
-            new = keys_for(u, speed)
+            new = flyer.step(self.state['pose'])
             now = time.monotonic()
             if new != keys or now - last_sent >= HEARTBEAT_S:
-                keys = new
+                keys = list(new)
                 last_sent = now
                 await self._send({'type': 'keys', 'down': keys})
             next_t += period
@@ -323,9 +351,7 @@ class Participant:
                 next_t = time.monotonic()
         await self._send({'type': 'keys', 'down': []})
         if self.state and self.state.get('pose'):
-            final = np.array(self.state['pose']['p'])[:2]
-            self.outcomes.setdefault(v.get('condition', 'unassisted'), []).append(
-                float(np.linalg.norm(final - goal[:2])))
+            self.outcomes.setdefault(v.get('condition', 'unassisted'), []).append(flyer.distance(self.state['pose']))
         self.landings_flown += 1
 
     def _same_landing(self, key: tuple) -> bool:

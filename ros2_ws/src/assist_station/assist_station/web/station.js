@@ -131,7 +131,7 @@
     cfg = msg;
     session = msg.role === 'pilot' && msg.session ? msg.session : null;   // a view-only page holds no token
     storage.set(session);
-    stats.role = msg.role; stats.mode = msg.mode;
+    stats.role = msg.role; stats.mode = msg.mode; stats.speed = msg.speed; stats.speedZ = msg.speed_z;
     el('role').textContent = msg.role === 'pilot' ? 'you are the pilot' : 'view only';
     el('role').className = 'pill ' + (msg.role === 'pilot' ? 'ok' : 'warn');
     el('mode').textContent = { practice: 'practice', study: 'study', free: 'free flight' }[msg.mode] || msg.mode;
@@ -142,7 +142,7 @@
   }
   function onScene(msg) {
     scene = msg;
-    stats.scenePlatforms = msg.platforms.length; stats.goal = msg.goal;
+    stats.scenePlatforms = msg.platforms.length; stats.goal = msg.goal; stats.scene = msg;
   }
   function onLanding(msg) {
     stats.landing = msg;

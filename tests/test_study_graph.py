@@ -1,0 +1,131 @@
+"""The user study end to end in a real graph: sim_node, encoder_node, policy_node and pilot_station with a study file.
+
+Two simulated participants go through the whole protocol (practice, two blocks, SUS, concluding survey):
+S01 in headless Chromium through the station page's own forms and key handling, S02 over the station's
+WebSocket. The station is killed (SIGKILL) while S02 flies a block landing and started again: S02
+reconnects, the study resumes at that landing, and nothing already recorded is lost or written twice.
+analyze_study then reads both participants. Chromium comes from Debian (`make test` installs it).
+"""
+from __future__ import annotations
+
+import asyncio
+import csv
+import json
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from assist_station import analyze_study
+from assist_station.browser_participant import BrowserParticipant
+from assist_station.participant import Participant, draw_profiles
+from assist_station.simulate_study import SimulateArgs, StudyGraph, free_tcp_port, graph_params, study_file
+
+pytestmark = [pytest.mark.graph, pytest.mark.slow]
+RTF = 2.0
+
+
+def rows(path: Path) -> list[dict]:
+    with open(path, newline='') as fh:
+        return list(csv.DictReader(fh))
+
+
+def events(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+@pytest.fixture(scope='module')
+def study(tmp_path_factory, domain_id):
+    out = tmp_path_factory.mktemp('study')
+    args = SimulateArgs(out=str(out), participants=2, landings_per_block=2, practice=1, real_time_factor=RTF,
+                        browser_participants=1)
+    sim_dir = out / '.simulation'
+    sim_dir.mkdir()
+    cfg, path = study_file(args, sim_dir)
+    graph = StudyGraph(graph_params(cfg, args, path, out, free_tcp_port()), domain_id, sim_dir / 'logs')
+    graph.start()
+    try:
+        yield out, graph, draw_profiles(2, seed=0, practice=1)
+    finally:
+        graph.stop()
+
+
+def check_participant(d: Path, n_practice: int) -> list[dict]:
+    table = rows(d / 'landings.csv')
+    keys = [(r['block'], r['trial']) for r in table]
+    assert len(keys) == len(set(keys)), f'a landing recorded twice: {keys}'
+    assert sorted(keys) == sorted([('0', str(t)) for t in range(n_practice)] +
+                                  [(str(b), str(t)) for b in (1, 2) for t in range(2)])
+    for r in table:
+        # the condition the row says is the one the graph flew: sim_node saw /assist/agent_cmd exactly then
+        assert r['assist_live'] == ('true' if r['condition'] == 'assisted' else 'false'), r
+        assert r['outcome'] in ('success', 'wrong_pad', 'edge', 'crash', 'timeout')
+        assert (d / 'bags' / r['bag'] / 'metadata.yaml').is_file()
+    conds = {r['block']: r['condition'] for r in table}
+    assert {conds['1'], conds['2']} == {'unassisted', 'assisted'}
+    survey = json.loads((d / 'survey.json').read_text())
+    assert set(survey['sus']) == {'1', '2'} and len(survey['survey']) == 21
+    assert (d / 'study.yaml').is_file()
+    return table
+
+
+def test_browser_participant_goes_through_the_page(study):
+    out, graph, profiles = study
+    res = BrowserParticipant(graph.url, profiles[0], RTF, out / '.simulation' / 'browser').run()
+    assert res['landings_flown'] == 5
+    table = check_participant(out / 'S01', 1)
+    assert table[1]['condition'] == 'unassisted'               # S01: odd, starts unassisted
+    assert [int(r['goal_index']) for r in table if r['block'] != '0'] == [2, 0, 2, 0]
+
+
+def test_station_killed_mid_block_resumes_without_loss_or_duplicates(study):
+    out, graph, profiles = study
+    part = Participant(graph.url, profiles[1], RTF, connect_timeout_s=90.0)
+    result: dict = {}
+
+    def run() -> None:
+        try:
+            result['res'] = asyncio.run(part.run())
+        except Exception as exc:  # noqa: BLE001 - handed to the test thread
+            result['error'] = exc
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    log = out / 'S02' / 'protocol.log'
+    end = time.monotonic() + 240
+    while time.monotonic() < end:               # the second landing of block 1 in flight: kill the station
+        if log.exists():
+            ev = events(log)
+            if ev[-1]['event'] == 'landing_started' and ev[-1]['landing'] == 'block1_01':
+                break
+        assert t.is_alive(), result
+        time.sleep(0.2)
+    else:
+        pytest.fail('S02 never reached block1_01')
+    time.sleep(1.0)
+    graph.kill_station()
+    recorded = rows(out / 'S02' / 'landings.csv')
+    graph.start_station()
+    t.join(300)
+    assert not t.is_alive(), 'S02 did not finish after the station restart'
+    assert 'error' not in result, result.get('error')
+    assert result['res']['reconnects'] >= 1
+    table = check_participant(out / 'S02', 1)
+    assert table[:len(recorded)] == recorded                   # rows written before the crash kept as they were
+    ev = events(log)
+    started = [e['landing'] for e in ev if e['event'] == 'landing_started']
+    assert started.count('block1_01') == 2                     # flown again after the restart
+    assert [e['landing'] for e in ev if e['event'] == 'landing_recorded'].count('block1_01') == 1
+    assert (out / 'S02' / 'bags' / 'block1_01_2').is_dir()     # the interrupted landing's bag is kept
+    assert table[1]['condition'] == 'assisted'                 # S02: even, starts assisted
+
+
+def test_analyze_study_reads_the_participants(study, tmp_path):
+    out, _, _ = study
+    summary = analyze_study.run([out / 'S01', out / 'S02'], analyze_study.AnalyzeArgs(out=str(tmp_path / 'a'),
+                                                                                      trajectories=2))
+    assert summary['participants'] == 2
+    assert summary['landings'] == {'unassisted': 4, 'assisted': 4}
+    assert summary['trajectory_panels'] >= 2
+    for name in analyze_study.OUTPUTS:
+        assert (tmp_path / 'a' / name).is_file()
