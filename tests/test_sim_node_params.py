@@ -150,6 +150,14 @@ def test_a_burst_of_resets_is_answered(ros, start_node):
         while time.monotonic() < end and len(answered) < 50:
             time.sleep(0.1)
         assert len(answered) == 50 and all(answered)
+        # a user study's sequence: the scene and goal pad of the next episodes, set at run time
+        ok, reason = param_set(ros, 'sim_node', 'goal_index', 5)
+        assert not ok and 'goal_index 5 is not a pad' in reason
+        assert param_set(ros, 'sim_node', 'scene_seed', 7) == (True, '')
+        for goal in (3, 0):
+            assert param_set(ros, 'sim_node', 'goal_index', goal) == (True, '')
+            res = call(ros, client, Trigger.Request())
+            assert res.success and res.message.endswith(f'goal pad {goal}'), res.message
     finally:
         ros.destroy_client(client)
 

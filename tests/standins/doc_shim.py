@@ -107,6 +107,11 @@ def budget(program: str, args: list[str]) -> list[str]:
             args = _cap(args, opt, most,
                         default_when_absent=opt in ('--total-steps', '--max-episode-s', '--eval-episodes-per-beta'))
         return _cap(args, '--dagger-rounds', 1, default_when_absent=False)
+    if program == 'simulate_study':
+        for opt, value in (('--participants', '1'), ('--landings-per-block', '1'), ('--practice', '0'),
+                           ('--browser-participants', '0'), ('--record-bags', 'false')):
+            args = _set(args, opt, value)
+        return args
     if program == 'make_dataset':
         return args + ['--frames', '8', '--frames-per-scene', '4', '--scenes-per-shard', '1', '--no-progress']
     if program == 'train_cmvae':

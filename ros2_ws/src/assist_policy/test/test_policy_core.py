@@ -144,3 +144,13 @@ def test_actor_velocity_odom_rotates_the_twist_with_the_attitude(tmp_path, monke
     np.testing.assert_allclose(seen['odom'], [0.0, 1.0, 0.2], atol=1e-12)     # base_link x is odom y at yaw 90
     with pytest.raises(ValueError, match='actor_velocity'):
         PolicyCoreConfig(actor_velocity='world')
+
+
+def test_pass_through_flies_the_pilot_with_no_agent_action(core):
+    """assist_enabled false (a study's unassisted block): V = u, clamped, no agent action, an OK reason key."""
+    feed(core, 10.0, u=(0.5, -0.3, -0.2))
+    out = core.pass_through(10.01)
+    assert out.agent is None and out.key == 'switched_off'
+    np.testing.assert_allclose(out.velocity, [0.5, -0.3, -0.2])
+    feed(core, 10.02, u=(4.5, 0.0, 0.0))                    # accepted input, above the output speed limit
+    assert np.linalg.norm(core.pass_through(10.03).velocity) == pytest.approx(core.cfg.max_speed_mps)

@@ -283,3 +283,23 @@ def test_analytic_floor_matches_the_rasterised_floor():
     finally:
         fast.close()
         slow.close()
+
+
+def test_runner_flies_one_scene_and_the_goal_pads_it_is_given():
+    """scene_seed / goal_index (a user study's fixed scene and landing sequence) apply at every reset."""
+    world = LandingWorld(seed=1)
+    try:
+        runner = SimRunner(world, RunnerConfig(camera_rate_hz=0.0, scene_seed=7, goal_index=3))
+        runner.reset()
+        pads, start = world.pad_top_centers.copy(), np.array(world.state.position)
+        assert world.goal_index == 3
+        runner.cfg.goal_index = 0
+        runner.reset()
+        assert world.goal_index == 0
+        np.testing.assert_allclose(world.pad_top_centers, pads)          # the same scene, another goal
+        np.testing.assert_allclose(world.state.position, start, atol=1e-6)
+        runner.cfg.scene_seed, runner.cfg.goal_index = -1, -1
+        runner.reset()
+        assert not np.allclose(world.pad_top_centers, pads)              # back to the seed's sequence
+    finally:
+        world.close()

@@ -1,12 +1,15 @@
 """The pilot station with the simulated graph.
 
 ros2 launch assist_station station.launch.py [assisted:=true] [mode:=practice|study|free] [assist_mode:=latent]
-    [seed:=0] [port:=8080] [sim:=true]
+    [seed:=0] [port:=8080] [sim:=true] [study:=STUDY.yaml] [study_dir:=study_data]
 assisted:=true : sim_node + encoder_node (latent mode) + policy_node + pilot_station (the pilot's
                  /pilot/cmd_vel is blended by the policy into /cmd_vel).
 assisted:=false: sim_node + pilot_station, /pilot/cmd_vel remapped straight onto /cmd_vel.
 sim:=false     : no sim_node (e.g. with assist_bridge's sim_mavlink.launch.py or a real vehicle, where
                  /odom comes from mavlink_bridge_node).
+study:=FILE    : run the user study of that study file (config/study.yaml is the paper's) from the page;
+                 participants' directories go under study_dir. Needs assisted:=true and assist_mode equal
+                 to the file's assistant_mode (the station switches the assistant per block itself).
 Then open the URL pilot_station prints (http://127.0.0.1:8080/ by default).
 """
 import os
@@ -17,6 +20,7 @@ from launch.actions import DeclareLaunchArgument
 from launch.conditions import IfCondition, UnlessCondition
 from launch.substitutions import AndSubstitution, EqualsSubstitution, LaunchConfiguration
 from launch_ros.actions import Node
+from launch_ros.parameter_descriptions import ParameterValue
 
 from assist_common.launch_tools import BOOL_CHOICES, shutdown_when_exits
 
@@ -39,7 +43,11 @@ def generate_launch_description():
             DeclareLaunchArgument('port', default_value='8080',
                                   description='TCP port of the station page on 127.0.0.1 (0: any free port)'),
             DeclareLaunchArgument('sim', default_value='true', choices=BOOL_CHOICES,
-                                  description='Start sim_node (false: /odom from the bridge or a real vehicle)')]
+                                  description='Start sim_node (false: /odom from the bridge or a real vehicle)'),
+            DeclareLaunchArgument('study', default_value='',
+                                  description='User-study YAML file (empty: no study); see config/study.yaml'),
+            DeclareLaunchArgument('study_dir', default_value='study_data',
+                                  description='Directory of the participants\' directories (with study:=FILE)')]
     sim_time = {'use_sim_time': LaunchConfiguration('sim')}   # sim time only with sim_node's /clock
     sim = Node(package='assist_sim', executable='sim_node', name='sim_node', output='screen',
                parameters=[sim_params, {'seed': LaunchConfiguration('seed'), 'real_time_factor': 1.0}],
@@ -50,7 +58,9 @@ def generate_launch_description():
     policy = Node(package='assist_policy', executable='policy_node', name='policy_node', output='screen',
                   parameters=[policy_params, sim_time, {'mode': assist_mode}], condition=IfCondition(assisted))
     station_args = [station_params, sim_time,
-                    {'mode': LaunchConfiguration('mode'), 'port': LaunchConfiguration('port')}]
+                    {'mode': LaunchConfiguration('mode'), 'port': LaunchConfiguration('port'),
+                     'study_config': ParameterValue(LaunchConfiguration('study'), value_type=str),
+                     'study_dir': ParameterValue(LaunchConfiguration('study_dir'), value_type=str)}]
     station = Node(package='assist_station', executable='pilot_station', name='pilot_station', output='screen',
                    parameters=station_args, condition=IfCondition(assisted))
     station_direct = Node(package='assist_station', executable='pilot_station', name='pilot_station',
