@@ -38,7 +38,7 @@ def events(path: Path) -> list[dict]:
 @pytest.fixture(scope='module')
 def study(tmp_path_factory, domain_id):
     out = tmp_path_factory.mktemp('study')
-    args = SimulateArgs(out=str(out), participants=2, landings_per_block=1, practice=1, real_time_factor=RTF,
+    args = SimulateArgs(out=str(out), participants=2, landings_per_block=2, practice=1, real_time_factor=RTF,
                         browser_participants=1)
     sim_dir = out / '.simulation'
     sim_dir.mkdir()
@@ -56,7 +56,7 @@ def check_participant(d: Path, n_practice: int) -> list[dict]:
     keys = [(r['block'], r['trial']) for r in table]
     assert len(keys) == len(set(keys)), f'a landing recorded twice: {keys}'
     assert sorted(keys) == sorted([('0', str(t)) for t in range(n_practice)] +
-                                  [(str(b), '0') for b in (1, 2)])
+                                  [(str(b), str(t)) for b in (1, 2) for t in range(2)])
     for r in table:
         # the condition the row says is the one the graph flew: sim_node saw /assist/agent_cmd exactly then
         assert r['assist_live'] == ('true' if r['condition'] == 'assisted' else 'false'), r
@@ -73,10 +73,10 @@ def check_participant(d: Path, n_practice: int) -> list[dict]:
 def test_browser_participant_goes_through_the_page(study):
     out, graph, profiles = study
     res = BrowserParticipant(graph.url, profiles[0], RTF, out / '.simulation' / 'browser').run()
-    assert res['landings_flown'] == 3
+    assert res['landings_flown'] == 5
     table = check_participant(out / 'S01', 1)
     assert table[1]['condition'] == 'unassisted'               # S01: odd, starts unassisted
-    assert [int(r['goal_index']) for r in table if r['block'] != '0'] == [2, 2]   # the sequence, in both blocks
+    assert [int(r['goal_index']) for r in table if r['block'] != '0'] == [2, 0, 2, 0]
 
 
 def test_station_killed_mid_block_resumes_without_loss_or_duplicates(study):
@@ -93,15 +93,15 @@ def test_station_killed_mid_block_resumes_without_loss_or_duplicates(study):
     t.start()
     log = out / 'S02' / 'protocol.log'
     end = time.monotonic() + 240
-    while time.monotonic() < end:               # the first landing of block 1 in flight: kill the station
+    while time.monotonic() < end:               # the second landing of block 1 in flight: kill the station
         if log.exists():
             ev = events(log)
-            if ev[-1]['event'] == 'landing_started' and ev[-1]['landing'] == 'block1_00':
+            if ev[-1]['event'] == 'landing_started' and ev[-1]['landing'] == 'block1_01':
                 break
         assert t.is_alive(), result
         time.sleep(0.2)
     else:
-        pytest.fail('S02 never reached block1_00')
+        pytest.fail('S02 never reached block1_01')
     time.sleep(1.0)
     graph.kill_station()
     recorded = rows(out / 'S02' / 'landings.csv')
@@ -114,11 +114,11 @@ def test_station_killed_mid_block_resumes_without_loss_or_duplicates(study):
     assert table[:len(recorded)] == recorded                   # rows written before the crash kept as they were
     ev = events(log)
     started = [e['landing'] for e in ev if e['event'] == 'landing_started']
-    assert started.count('block1_00') == 2                     # flown again after the restart
-    assert [e['landing'] for e in ev if e['event'] == 'landing_recorded'].count('block1_00') == 1
-    assert (out / 'S02' / 'bags' / 'block1_00_2').is_dir()     # the interrupted landing's bag is kept
+    assert started.count('block1_01') == 2                     # flown again after the restart
+    assert [e['landing'] for e in ev if e['event'] == 'landing_recorded'].count('block1_01') == 1
+    assert (out / 'S02' / 'bags' / 'block1_01_2').is_dir()     # the interrupted landing's bag is kept
     assert table[1]['condition'] == 'assisted'                 # S02: even, starts assisted
-    assert len(recorded) == 1                                  # the practice landing, written before the crash
+    assert len(recorded) == 2                                  # practice and block1_00, written before the crash
 
 
 def test_analyze_study_reads_the_participants(study, tmp_path):
@@ -126,7 +126,7 @@ def test_analyze_study_reads_the_participants(study, tmp_path):
     summary = analyze_study.run([out / 'S01', out / 'S02'], analyze_study.AnalyzeArgs(out=str(tmp_path / 'a'),
                                                                                       trajectories=2))
     assert summary['participants'] == 2
-    assert summary['landings'] == {'unassisted': 2, 'assisted': 2}
+    assert summary['landings'] == {'unassisted': 4, 'assisted': 4}
     assert summary['trajectory_panels'] >= 2
     for name in analyze_study.OUTPUTS:
         assert (tmp_path / 'a' / name).is_file()
