@@ -326,11 +326,15 @@ def _fsync_dir(path: Path) -> None:
 def write_atomic(path: Path, text: str) -> None:
     """Replace `path` by `text` all at once (temporary file, fsync, rename): never half written."""
     tmp = path.with_name(f'.{path.name}.tmp')
-    with open(tmp, 'w', encoding='utf-8') as fh:
-        fh.write(text)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, 'w', encoding='utf-8') as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except OSError:
+        tmp.unlink(missing_ok=True)
+        raise
     _fsync_dir(path.parent)
 
 
@@ -434,15 +438,24 @@ class ParticipantStore:
         stored = {k: _csv_value(row.get(k)) for k in LANDING_COLUMNS}
         writer.writerow(stored)
         with open(self.landings_path, 'a', encoding='utf-8', newline='') as fh:
-            fh.write(buf.getvalue())
-            fh.flush()
-            os.fsync(fh.fileno())
+            size = fh.tell()
+            try:
+                fh.write(buf.getvalue())
+                fh.flush()
+                os.fsync(fh.fileno())
+            except OSError:
+                try:                            # a full disk: take the partial row back, the file stays whole
+                    fh.truncate(size)
+                except OSError:
+                    pass                        # dropped as a torn row when the participant is opened again
+                raise
         self.rows.append(stored)
         return stored
 
-    def save_survey(self) -> None:
-        """Write survey.json atomically."""
-        write_atomic(self.survey_path, json.dumps(self.survey, indent=1) + '\n')
+    def save_survey(self, survey: dict[str, Any]) -> None:
+        """Write `survey` to survey.json atomically, then hold it (a failed write changes nothing)."""
+        write_atomic(self.survey_path, json.dumps(survey, indent=1) + '\n')
+        self.survey = survey
 
     def new_bag_path(self, name: str) -> Path:
         """A bag directory name under bags/ that does not exist yet (a repeated landing gets _2, _3, ...)."""
@@ -583,9 +596,9 @@ class StudySession:
             block = int(phase[-1])
             a = check_sus(answers)
             score = sus_score(a)
-            self.store.survey['sus'][str(block)] = {'condition': block_condition(self.pid, block), 'answers': a,
-                                                    'score': score}
-            self.store.save_survey()
+            survey = json.loads(json.dumps(self.store.survey))
+            survey['sus'][str(block)] = {'condition': block_condition(self.pid, block), 'answers': a, 'score': score}
+            self.store.save_survey(survey)
             self.store.log('sus', block=block, score=score)
             return score
 
@@ -594,8 +607,9 @@ class StudySession:
         with self._lock:
             if self.phase != 'survey':
                 raise StudyError(f'no concluding survey now (the study is at {self.phase})')
-            self.store.survey['survey'] = check_survey(answers)
-            self.store.save_survey()
+            survey = json.loads(json.dumps(self.store.survey))
+            survey['survey'] = check_survey(answers)
+            self.store.save_survey(survey)
             self.store.log('survey')
             self.store.log('done')
 

@@ -144,6 +144,10 @@ class StudyDriver:
             except StudyError as exc:
                 self._push_event({'type': 'study_error', 'message': str(exc)})
                 self.node.get_logger().warning(f'study: {exc}')
+            except OSError as exc:          # a full or read-only disk: nothing half written, the step not taken
+                self._push_event({'type': 'study_error', 'message': f'could not save ({exc.strerror or exc}); '
+                                                                   'tell the experimenter'})
+                self.node.get_logger().error(f'study: {msg.action} not saved: {exc}')
             self._view_dirty = True
         now = time.monotonic()
         if self.stage == 'waiting_graph':

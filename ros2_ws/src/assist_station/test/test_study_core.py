@@ -225,3 +225,34 @@ def test_participant_keys_follow_the_pilot_command():
     assert keys_for(np.array([1.0, 0, -0.5]), 1.0) == ['KeyW', 'ArrowDown']
     assert keys_for(np.array([-1.0, -1.0, 0.5]), 1.0) == ['KeyS', 'KeyD', 'ArrowUp']
     assert keys_for(np.array([0.3, 0.2, 0.0]), 1.0) == []
+
+
+def test_a_full_disk_loses_nothing_and_takes_no_half_step(tmp_path, monkeypatch):
+    import errno
+    import os as os_module
+    s = StudySession(CFG, TEXT, tmp_path, 'P01')
+    s.consent()
+    fly(s)
+    path = tmp_path / 'P01' / 'landings.csv'
+    before = path.read_bytes()
+    real_fsync = os_module.fsync
+
+    def full(fd):
+        raise OSError(errno.ENOSPC, 'No space left on device')
+    spec = s.start_landing()
+    monkeypatch.setattr(os_module, 'fsync', full)
+    with pytest.raises(OSError):
+        s.record_landing(landing(spec.goal_index), start_pad=None, episode=3, bag=None)
+    monkeypatch.setattr(os_module, 'fsync', real_fsync)
+    assert path.read_bytes() == before and len(s.store.rows) == 1         # the failed row is taken back
+    s.abort_landing('disk full')
+    for _ in range(4):                  # the second practice landing, then block 1
+        fly(s)
+    assert s.phase == 'sus1'
+    monkeypatch.setattr(os_module, 'fsync', full)
+    with pytest.raises(OSError):
+        s.submit_sus([3] * 10)
+    monkeypatch.setattr(os_module, 'fsync', real_fsync)
+    assert s.phase == 'sus1' and s.store.survey['sus'] == {}             # not taken: asked again
+    assert not list((tmp_path / 'P01').glob('.*.tmp'))
+    assert s.submit_sus([3] * 10) == 50.0 and s.phase == 'block2'
