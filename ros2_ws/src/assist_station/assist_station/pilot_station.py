@@ -115,7 +115,8 @@ class PilotStation(Node):
                 study_cfg = StudyConfig.load(p['study_config'])
             except StudyError as exc:
                 raise StartupError(f'pilot_station: {exc}') from None
-        hello = {'mode': p['mode'], 'show_goal': p['mode'] in ('practice', 'study'), 'study': study_cfg is not None,
+        hello = {'mode': p['mode'], 'study': study_cfg is not None,      # a study always marks the goal pad
+                 'show_goal': p['mode'] in ('practice', 'study') or study_cfg is not None,
                  'chase': {'back_m': p['chase_back_m'], 'up_m': p['chase_up_m'], 'fov_deg': p['fov_deg']},
                  'speed': p['speed'], 'speed_z': p['speed_z'], 'camera': p['camera_rate_hz'] > 0}
         try:

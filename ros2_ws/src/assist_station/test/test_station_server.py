@@ -462,3 +462,47 @@ def test_key_names_reach_the_log_escaped(harness, caplog):
     lines = [r.getMessage() for r in caplog.records if 'unknown keys' in r.getMessage()]
     assert len(lines) == 1 and '\n' not in lines[0] and '\x1b' not in lines[0], lines
     assert repr(forged[:32]) in lines[0] and r"'\x1b[2J'" in lines[0]
+
+
+def test_study_steps_come_from_the_pilot_page_only_and_views_reach_every_page():
+    steps = []
+    h = Harness(view_rate_hz=30.0)
+    h.server._on_study = steps.append
+    h.server.start()
+    try:
+        async def main():
+            async with aiohttp.ClientSession() as s:
+                url = h.server.url
+                pilot = await s.ws_connect(url + 'ws', headers=origin(url))
+                await receive_until(pilot, lambda m: m['type'] == 'hello' and m['role'] == 'pilot')
+                other = await s.ws_connect(url + 'ws', headers=origin(url))
+                await receive_until(other, lambda m: m['type'] == 'hello')
+                await other.send_str(json.dumps({'type': 'study', 'action': 'begin', 'participant': 'X1'}))
+                err = await receive_until(other, lambda m: m['type'] == 'error')
+                assert err['kind'] == 'study_not_pilot'
+                await pilot.send_str(json.dumps({'type': 'study', 'action': 'launch_missiles'}))
+                assert (await receive_until(pilot, lambda m: m['type'] == 'error'))['kind'] == 'malformed'
+                await pilot.send_str(json.dumps({'type': 'study', 'action': 'begin', 'participant': 'P07'}))
+                assert h.wait(lambda: len(steps) == 1)
+                assert steps[0].action == 'begin' and steps[0].data == {'participant': 'P07'}
+                h.server.set_study({'type': 'study', 'phase': 'consent', 'participant': 'P07'})
+                for ws in (pilot, other):
+                    view = await receive_until(ws, lambda m: m['type'] == 'study')
+                    assert view['phase'] == 'consent'
+                await other.close()
+                await pilot.close()
+        run(main())
+    finally:
+        h.server.stop()
+    assert h.server.stats['ws_study_not_pilot'] == 1 and h.server.stats['study_messages'] == 1
+
+
+def test_a_station_without_a_study_refuses_study_steps(harness):
+    async def main():
+        async with aiohttp.ClientSession() as s:
+            ws = await s.ws_connect(harness.server.url + 'ws', headers=origin(harness.server.url))
+            await receive_until(ws, lambda m: m['type'] == 'hello')
+            await ws.send_str(json.dumps({'type': 'study', 'action': 'consent'}))
+            assert (await receive_until(ws, lambda m: m['type'] == 'error'))['kind'] == 'no_study'
+            await ws.close()
+    run(main())
