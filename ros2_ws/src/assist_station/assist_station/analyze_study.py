@@ -427,6 +427,14 @@ def _pct(v: float | None) -> str:
 
 
 # ----------------------------------------------------------------------------------------- figures
+def _save(fig: Any, path: Path, dpi: int = 120) -> None:
+    """Write a figure as PNG and free it."""
+    import matplotlib.pyplot as plt
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+
+
 def plot_violin(parts: list[Participant], path: Path) -> None:
     """Fig. 6: the distribution of landing errors per condition."""
     import matplotlib
@@ -444,9 +452,7 @@ def plot_violin(parts: list[Participant], path: Path) -> None:
         ax.set_xticks(range(1, len(shown) + 1), [c for c, _ in shown])
     ax.set_ylabel('error to the goal pad centre (m)')
     ax.set_title('Landing error per condition')
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def plot_experience(summary: dict[str, Any], path: Path) -> None:
@@ -470,9 +476,7 @@ def plot_experience(summary: dict[str, Any], path: Path) -> None:
     ax.set_xlabel('experience level (0 novice, 1 expert)')
     ax.set_ylabel('median error (m)')
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def bag_track(bag: Path) -> tuple[np.ndarray, np.ndarray | None]:
@@ -550,9 +554,7 @@ def plot_trajectories(parts: list[Participant], n: int, path: Path) -> int:
         ax.set_xlabel('x (m)')
         ax.set_ylabel('y (m)')
         ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path)
     return drawn
 
 

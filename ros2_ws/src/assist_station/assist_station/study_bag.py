@@ -14,13 +14,7 @@ from assist_policy.bags.record_node import BagRecordNode
 class LandingRecorder(BagRecordNode):
     """bag_record's node, but a write error stops only this recording (the station goes on; the row is kept)."""
 
-    def _stop_recording(self, exc: BagError) -> None:
-        if self.failure is not None:
-            return
-        self.failure = str(exc)
-        self.write_errors += 1
-        self.diag.count('write_errors')
-        self.get_logger().error(f'landing bag: {exc}; stopping it after {self.count} messages')
+    exit_on_write_error = False
 
 
 def open_landing_bag(station: Node, output: str, topics: Sequence[str] = ()) -> LandingRecorder:

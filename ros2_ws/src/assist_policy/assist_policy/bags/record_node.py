@@ -207,6 +207,9 @@ class BagRecordNode(Node):
         except BagError as exc:
             self._stop_recording(exc)
 
+    # a write error ends the process (bag_record); a recorder inside another node's process clears this
+    exit_on_write_error = True
+
     def _stop_recording(self, exc: BagError) -> None:
         """A write error ends the recording: nothing more is written, the node exits (close() keeps what was)."""
         if self.failure is not None:
@@ -215,7 +218,8 @@ class BagRecordNode(Node):
         self.write_errors += 1
         self.diag.count('write_errors')
         self.get_logger().error(f'bag_record: {exc}; stopping after {self.count} messages')
-        raise SystemExit(1)             # ends the spin (nothing more is taken); run_node then calls close()
+        if self.exit_on_write_error:
+            raise SystemExit(1)         # ends the spin (nothing more is taken); run_node then calls close()
 
     def close(self) -> None:
         """Finish the bag (called by run_node on Ctrl-C, SIGTERM, normal exit and after a write error)."""
