@@ -77,6 +77,7 @@ PARAMS = {
     'study_dir': Param('study_data', 'Directory holding one directory per participant (created if missing).'),
     'study_sim_node': Param('/sim_node', 'sim_node whose scene_seed/goal_index/auto_reset the study sets.'),
     'study_policy_node': Param('/policy_node', 'policy_node whose assist_enabled the study switches per block.'),
+    'study_encoder_node': Param('/encoder_node', 'encoder_node whose model_path the study checks (encoder_model).'),
 }
 
 
@@ -135,7 +136,8 @@ class PilotStation(Node):
             try:
                 self.study = StudyDriver(self, study_cfg[0], study_cfg[1], Path(p['study_dir']),
                                          self.server.set_study, self.server.push_event,
-                                         sim_node=p['study_sim_node'], policy_node=p['study_policy_node'])
+                                         sim_node=p['study_sim_node'], policy_node=p['study_policy_node'],
+                                         encoder_node=p['study_encoder_node'])
             except OSError as exc:
                 raise StartupError(f"pilot_station: cannot use study_dir {p['study_dir']}: {exc}") from None
             self.server.set_study(self.study.view())

@@ -113,7 +113,8 @@ def study_file(args: SimulateArgs, sim_dir: Path) -> tuple[StudyConfig, Path]:
 def graph_params(cfg: StudyConfig, args: SimulateArgs, study_path: Path, out: Path, port: int) -> dict[str, dict]:
     """Parameters of every node of the study graph."""
     view_hz = min(120.0, 25.0 * args.real_time_factor + 10.0)
-    return {
+    models = {'encoder_node': cfg.encoder_model, 'policy_node': cfg.policy_model}
+    nodes = {
         'sim_node': {'seed': int(args.seed), 'real_time_factor': float(args.real_time_factor), 'auto_reset': False,
                      'scene_seed': int(cfg.scene_seed), 'camera_rate_hz': 20.0},
         'encoder_node': {'use_sim_time': True},
@@ -122,6 +123,10 @@ def graph_params(cfg: StudyConfig, args: SimulateArgs, study_path: Path, out: Pa
                           'study_dir': str(out.resolve()), 'view_rate_hz': view_hz, 'camera_rate_hz': 0.0,
                           'mode': 'study'},
     }
+    for node, model in models.items():
+        if model:
+            nodes[node]['model_path'] = str(Path(model).expanduser().resolve())
+    return nodes
 
 
 class StudyGraph:

@@ -114,6 +114,8 @@ class StudyConfig:
     practice_seed: int = 0                    # practice goals: drawn from this seed and the participant ID
     practice_condition: str = 'first'         # first (the participant's first block's), unassisted or assisted
     assistant_mode: str = 'latent'            # policy_node mode that flies the assisted block (checked at start)
+    policy_model: str = ''                    # the TD3 actor policy_node must fly ('' = the shipped one; checked)
+    encoder_model: str = ''                   # the CM-VAE encoder_node must use (latent; '' = the shipped one; checked)
     record_bags: bool = True                  # a rosbag2 bag per landing under <participant>/bags/
     bag_topics: tuple[str, ...] = ()          # empty: the contract's default set
     landing_timeout_s: float = 120.0          # wall seconds without a landing result: the landing is flown again
@@ -144,6 +146,9 @@ class StudyConfig:
                             f'{self.practice_condition!r}')
         if self.assistant_mode not in ('latent', 'oracle', 'end_to_end'):
             problems.append(f'assistant_mode must be latent, oracle or end_to_end, got {self.assistant_mode!r}')
+        for name in ('policy_model', 'encoder_model'):
+            if not isinstance(getattr(self, name), str):
+                problems.append(f'{name} must be a file path (empty: the shipped model)')
         if not isinstance(self.record_bags, bool):
             problems.append('record_bags must be true or false')
         if not all(isinstance(t, str) and t.startswith('/') for t in self.bag_topics):

@@ -41,6 +41,13 @@ BAG_WARMUP_S = 0.6             # the landing's bag subscribes before the episode
 BAG_TAIL_S = 0.5               # ... and keeps recording this long after the result
 
 
+def _same_file(a: str, b: str) -> bool:
+    """Whether two model paths name the same file ('' = the shipped model)."""
+    if not a or not b:
+        return a == b
+    return Path(a).expanduser().resolve() == Path(b).expanduser().resolve()
+
+
 class _Call:
     """One pending service call: its future, deadline and what to do with the answer."""
 
@@ -53,7 +60,8 @@ class StudyDriver:
     """Protocol + graph actions for one station (one participant at a time)."""
 
     def __init__(self, node: Node, cfg: StudyConfig, config_text: str, root: Path, publish_view: Callable[[dict], None],
-                 push_event: Callable[[dict], None], sim_node: str = '/sim_node', policy_node: str = '/policy_node'):
+                 push_event: Callable[[dict], None], sim_node: str = '/sim_node', policy_node: str = '/policy_node',
+                 encoder_node: str = '/encoder_node'):
         self.node, self.cfg, self.text, self.root = node, cfg, config_text, Path(root)
         self.root.mkdir(parents=True, exist_ok=True)
         self._publish_view, self._push_event = publish_view, push_event
@@ -63,6 +71,7 @@ class StudyDriver:
         self.sim_params = node.create_client(SetParameters, f'{sim_node}/set_parameters')
         self.policy_params = node.create_client(SetParameters, f'{policy_node}/set_parameters')
         self.policy_get = node.create_client(GetParameters, f'{policy_node}/get_parameters')
+        self.encoder_get = node.create_client(GetParameters, f'{encoder_node}/get_parameters')
         self.reset_client = node.create_client(Trigger, '/sim/reset')
         self.stage = 'idle'          # idle | waiting_graph | configuring | warming | resetting | flying | closing
         self._graph_deadline = math.inf
@@ -263,15 +272,28 @@ class StudyDriver:
         self._calls.append(_Call(f'setting {what} parameters', client.call_async(req), done))
 
     def _check_policy_mode(self) -> None:
-        if not self.policy_get.service_is_ready():
-            return
+        """The assisted block flies the study file's assistant: policy_node's mode and model, encoder_node's model."""
+        checks = [(self.policy_get, 'policy_node', ['mode', 'model_path'],
+                   {'mode': self.cfg.assistant_mode, 'model_path': self.cfg.policy_model})]
+        if self.cfg.assistant_mode == 'latent' and self.cfg.encoder_model:
+            checks.append((self.encoder_get, 'encoder_node', ['model_path'], {'model_path': self.cfg.encoder_model}))
+        for client, what, names, wanted in checks:
+            if not client.service_is_ready():
+                if what == 'encoder_node':
+                    self._fail('encoder_node is not running; the study file names its model')
+                continue
 
-        def done(result: Any) -> None:
-            mode = result.values[0].string_value if result.values else ''
-            if mode != self.cfg.assistant_mode:
-                self._fail(f'policy_node flies mode {mode!r}, the study file asks for {self.cfg.assistant_mode!r}')
-        req = GetParameters.Request(names=['mode'])
-        self._calls.append(_Call('reading policy_node mode', self.policy_get.call_async(req), done))
+            def done(result: Any, what: str = what, names: list[str] = names, wanted: dict = wanted) -> None:
+                got = dict(zip(names, (v.string_value for v in result.values)))
+                for name, want in wanted.items():
+                    have = got.get(name, '')
+                    same = have == want if name == 'mode' else _same_file(have, want)
+                    if not same:
+                        self._fail(f'{what} flies {name} {have or "(shipped)"!r}, the study file asks for '
+                                   f'{want or "(shipped)"!r}')
+                        return
+            req = GetParameters.Request(names=names)
+            self._calls.append(_Call(f'reading {what} parameters', client.call_async(req), done))
 
     def _open_bag(self) -> None:
         if self.bag is not None:

@@ -47,6 +47,7 @@ def test_shipped_study_file_is_the_paper_protocol():
     ('[1, 2]\n', 'expected a mapping'),
     ('a: [\n', 'not valid YAML'),
     ('record_bags: 1\n', 'record_bags'),
+    ('policy_model: 3\n', 'policy_model'),
 ])
 def test_bad_study_files_are_refused_with_the_reason(text, needle):
     with pytest.raises(StudyError, match=None) as err:
