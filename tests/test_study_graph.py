@@ -72,11 +72,16 @@ def check_participant(d: Path, n_practice: int) -> list[dict]:
 
 def test_browser_participant_goes_through_the_page(study):
     out, graph, profiles = study
-    res = BrowserParticipant(graph.url, profiles[0], RTF, out / '.simulation' / 'browser').run()
-    assert res['landings_flown'] == 5
+    res = BrowserParticipant(graph.url, profiles[0], RTF, out / '.simulation' / 'browser',
+                             reload_during=('block2', 1)).run()        # the page reloaded in block 2's first landing
+    assert res['landings_flown'] == 5 and res['reconnects'] == 1
     table = check_participant(out / 'S01', 1)
     assert table[1]['condition'] == 'unassisted'               # S01: odd, starts unassisted
     assert [int(r['goal_index']) for r in table if r['block'] != '0'] == [2, 0, 2, 0]
+    ev = events(out / 'S01' / 'protocol.log')
+    aborted = [e for e in ev if e['event'] == 'landing_aborted']
+    assert [e['landing'] for e in aborted] == ['block2_00'] and 'page went away' in aborted[0]['why']
+    assert [e['landing'] for e in ev if e['event'] == 'landing_started'].count('block2_00') == 2
 
 
 def test_station_killed_mid_block_resumes_without_loss_or_duplicates(study):

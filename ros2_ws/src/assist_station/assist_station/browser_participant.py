@@ -39,12 +39,15 @@ return {study: s.study || null, pose: s.pose, scene: s.scene || null, ws: s.ws, 
 class BrowserParticipant:
     """Drives one simulated participant through the station page in headless Chromium."""
 
-    def __init__(self, url: str, profile: Profile, real_time_factor: float, work_dir: Path):
+    def __init__(self, url: str, profile: Profile, real_time_factor: float, work_dir: Path,
+                 reload_during: tuple[str, int] | None = None):
         self.url, self.profile, self.rtf = url, profile, float(real_time_factor)
+        self.reload_during = reload_during      # (phase, trial): reload the page once in that landing's flight
         self.work = Path(work_dir)
         self.rng = np.random.default_rng(profile.seed)
         self.outcomes: dict[str, list[float]] = {'unassisted': [], 'assisted': []}
         self.landings_flown = 0
+        self.reloads = 0
         self.driver = None
 
     def _stats(self, keys: list[str] | None = None) -> dict[str, Any]:
@@ -150,7 +153,7 @@ class BrowserParticipant:
                 break
             else:
                 raise ParticipantError(f'unexpected study phase {phase!r}')
-        return {'participant': self.profile.pid, 'landings_flown': self.landings_flown, 'reconnects': 0,
+        return {'participant': self.profile.pid, 'landings_flown': self.landings_flown, 'reconnects': self.reloads,
                 'profile': asdict(self.profile)}
 
     def _fly(self, v: dict) -> None:
@@ -158,6 +161,10 @@ class BrowserParticipant:
 
         def same(s: dict) -> bool:
             return s['study'] is not None and (s['study']['phase'], s['study'].get('trial')) == key
+
+        st = self._wait(lambda s: not same(s) or not s['study'].get('in_flight'), 'the landing to be startable')
+        if not same(st):                # e.g. a landing the station aborted and recorded meanwhile: look again
+            return
         self._act('study-start')
         st = self._wait(lambda s: not same(s) or (s['study'].get('stage') == 'flying' and s['pose'] is not None
                                                    and s['scene'] is not None), 'the landing in flight', 60.0)
@@ -167,9 +174,16 @@ class BrowserParticipant:
                       float(st['speed'] or 1.0), float(st['speedZ'] or 0.5))
         period = flyer.period_s / self.rtf
         self._held: list[str] = []
-        next_t = time.monotonic()
+        next_t = started = time.monotonic()
         last_pose = st['pose']
         while same(st) and st['study'].get('stage') == 'flying':
+            if self.reload_during == key and time.monotonic() - started > 1.0:
+                self.reload_during = None       # a closed tab / reload mid-landing: the station flies it again
+                self._held = []
+                self.driver.get(self.url)
+                self._wait(lambda s: s['role'] == 'pilot' and s['study'] is not None, 'the page back', 30.0)
+                self.reloads += 1
+                return
             if st['ws'] != 'open':
                 raise ParticipantError('the page lost the station during a landing')
             last_pose = st['pose'] or last_pose

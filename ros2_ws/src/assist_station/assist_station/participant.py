@@ -323,6 +323,10 @@ class Participant:
     # ---------------------------------------------------------------- flying
     async def _fly(self, v: dict) -> None:
         key = (v['phase'], v['trial'])
+        await self._wait(lambda: not self.view.get('in_flight') or not self._same_landing(key),
+                         'the landing to be startable')
+        if not self._same_landing(key):
+            return
         await self._step('start')
         await self._wait(lambda: self.view.get('stage') == 'flying' or not self._same_landing(key),
                          'the landing in flight', timeout_s=60.0)

@@ -284,6 +284,7 @@ class StationServer:
                 _LOG.info('pilot connected from %s', client.peer)
             if previous is not None:               # the same session from a new socket: the old one is demoted
                 previous.role = 'spectator'
+                self._on_pilot_lost()              # the pilot's page changed (e.g. reloaded) under it
                 self._enqueue(previous, json.dumps(dict(self._hello, type='hello', role='spectator',
                                                         reason='the pilot role moved to another page')))
         else:
