@@ -506,3 +506,26 @@ def test_a_station_without_a_study_refuses_study_steps(harness):
             assert (await receive_until(ws, lambda m: m['type'] == 'error'))['kind'] == 'no_study'
             await ws.close()
     run(main())
+
+
+def test_the_study_hears_when_the_pilot_page_goes_or_is_replaced():
+    lost = []
+    h = Harness(view_rate_hz=30.0)
+    h.server._on_pilot_lost = lambda: lost.append(time.monotonic())
+    h.server.start()
+    try:
+        async def main():
+            async with aiohttp.ClientSession() as s:
+                url = h.server.url
+                first, hello = await pilot_page(s, url)
+                token = hello['session']
+                second, hello2 = await pilot_page(s, url, session=token)      # the same page, a new socket
+                assert hello2['role'] == 'pilot' and len(lost) == 1
+                await first.close()                                          # the demoted socket: no news
+                await asyncio.sleep(0.3)
+                assert len(lost) == 1
+                await second.close()
+                assert h.wait(lambda: len(lost) == 2)
+        run(main())
+    finally:
+        h.server.stop()
