@@ -67,9 +67,20 @@ class BrowserParticipant:
                                        f"(study view: {st['study']})")
             time.sleep(0.05)
 
-    def _click(self, element_id: str) -> None:
+    def _click(self, element_id: str, timeout_s: float = 10.0) -> None:
+        """Click a page element by id; the panel may be redrawn under the click (a newer view): find it again."""
+        from selenium.common.exceptions import (ElementClickInterceptedException, NoSuchElementException,
+                                                StaleElementReferenceException)
         from selenium.webdriver.common.by import By
-        self.driver.find_element(By.ID, element_id).click()
+        end = time.monotonic() + timeout_s
+        while True:
+            try:
+                self.driver.find_element(By.ID, element_id).click()
+                return
+            except (StaleElementReferenceException, NoSuchElementException, ElementClickInterceptedException):
+                if time.monotonic() > end:
+                    raise
+                time.sleep(0.1)
 
     def _act(self, element_id: str) -> None:
         """Click a study button and wait until the station's view moves on (or an error shows)."""
@@ -87,8 +98,15 @@ class BrowserParticipant:
         from selenium.webdriver.common.by import By
         from selenium.webdriver.support import expected_conditions
         from selenium.webdriver.support.ui import WebDriverWait
+        from selenium.common.exceptions import StaleElementReferenceException
         selector = (By.CSS_SELECTOR, f'input[name="{name}"][value="{value}"]')
-        WebDriverWait(self.driver, 10.0).until(expected_conditions.element_to_be_clickable(selector)).click()
+        for attempt in range(3):            # the form may be redrawn between finding and clicking
+            try:
+                WebDriverWait(self.driver, 10.0).until(expected_conditions.element_to_be_clickable(selector)).click()
+                return
+            except StaleElementReferenceException:
+                if attempt == 2:
+                    raise
 
     def run(self) -> dict[str, Any]:
         """Go through the whole protocol in the page; returns what happened (ParticipantError if it cannot)."""
