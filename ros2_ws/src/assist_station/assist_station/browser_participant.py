@@ -67,7 +67,7 @@ class BrowserParticipant:
                                        f"(study view: {st['study']})")
             time.sleep(0.05)
 
-    def _click(self, element_id: str, timeout_s: float = 10.0) -> None:
+    def _click(self, element_id: str, timeout_s: float = STEP_TIMEOUT_S) -> None:
         """Click a page element by id; the panel may be redrawn under the click (a newer view): find it again."""
         from selenium.common.exceptions import (ElementClickInterceptedException, NoSuchElementException,
                                                 StaleElementReferenceException)
@@ -94,19 +94,26 @@ class BrowserParticipant:
             raise ParticipantError(f'station refused {element_id}: {text}')
 
     def _answer(self, name: str, value: int) -> None:
-        """Click one answer of the questionnaire on the page (waiting up to 10 s for the form to show it)."""
+        """Click one answer of the questionnaire on the page (waiting up to STEP_TIMEOUT_S for the form to show it)."""
         from selenium.webdriver.common.by import By
         from selenium.webdriver.support import expected_conditions
         from selenium.webdriver.support.ui import WebDriverWait
-        from selenium.common.exceptions import StaleElementReferenceException
+        from selenium.common.exceptions import StaleElementReferenceException, TimeoutException
         selector = (By.CSS_SELECTOR, f'input[name="{name}"][value="{value}"]')
         for attempt in range(3):            # the form may be redrawn between finding and clicking
             try:
-                WebDriverWait(self.driver, 10.0).until(expected_conditions.element_to_be_clickable(selector)).click()
+                WebDriverWait(self.driver, STEP_TIMEOUT_S).until(
+                    expected_conditions.element_to_be_clickable(selector)).click()
                 return
             except StaleElementReferenceException:
                 if attempt == 2:
                     raise
+            except TimeoutException:
+                found = self.driver.find_elements(*selector)
+                state = (f'displayed {found[0].is_displayed()}, enabled {found[0].is_enabled()}' if found
+                         else 'not on the page')
+                raise ParticipantError(f'answer {name}={value} not clickable within {STEP_TIMEOUT_S:.0f} s '
+                                       f'({state})') from None
 
     def run(self) -> dict[str, Any]:
         """Go through the whole protocol in the page; returns what happened (ParticipantError if it cannot)."""
