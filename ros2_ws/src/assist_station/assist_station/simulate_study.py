@@ -54,6 +54,7 @@ class SimulateArgs:
     record_bags: bool = True
     domain_id: int = setting(0, ge=0, le=232)
     id_prefix: str = setting('S', nonempty=True)
+    only: tuple[str, ...] = ()
 
 
 HELP = {
@@ -69,6 +70,8 @@ HELP = {
     'record_bags': 'record a bag per landing (the study file\'s record_bags; false saves disk for big runs)',
     'domain_id': 'ROS_DOMAIN_ID of the graph (0: pick a free one)',
     'id_prefix': 'participant IDs are <prefix>01, <prefix>02, ... (odd numbers start unassisted)',
+    'only': 'fly only these participant IDs of the --participants drawn (e.g. a second graph sharing the work; '
+            'give each run its own IDs)',
 }
 
 
@@ -201,7 +204,12 @@ def simulate(args: SimulateArgs) -> list[dict]:
     domain = args.domain_id or pick_domain_id()
     params = graph_params(cfg, args, study_path, out, free_tcp_port())
     profiles = draw_profiles(args.participants, args.seed, tuple(args.families), args.practice, args.id_prefix)
-    graph = StudyGraph(params, domain, sim_dir / 'logs')
+    if args.only:
+        unknown = sorted(set(args.only) - {p.pid for p in profiles})
+        if unknown:
+            raise StudyError(f'--only: {", ".join(unknown)} not among the {len(profiles)} participants drawn')
+        profiles = [p for p in profiles if p.pid in args.only]
+    graph = StudyGraph(params, domain, sim_dir / ('logs' if not args.only else f'logs_{"_".join(args.only)}'))
     results = []
     t0 = time.monotonic()
     try:
@@ -228,7 +236,7 @@ def simulate(args: SimulateArgs) -> list[dict]:
         graph.stop()
     summary = {'participants': results, 'wall_s': round(time.monotonic() - t0, 1), 'domain_id': domain,
                'settings': dataclasses.asdict(args)}
-    path = sim_dir / 'summary.json'
+    path = sim_dir / ('summary.json' if not args.only else f'summary_{"_".join(args.only)}.json')
     write_atomic(path, json.dumps(summary, indent=1, default=list) + '\n')
     return results
 
