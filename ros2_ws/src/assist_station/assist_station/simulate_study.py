@@ -205,9 +205,6 @@ def simulate(args: SimulateArgs) -> list[dict]:
     params = graph_params(cfg, args, study_path, out, free_tcp_port())
     profiles = draw_profiles(args.participants, args.seed, tuple(args.families), args.practice, args.id_prefix)
     if args.only:
-        unknown = sorted(set(args.only) - {p.pid for p in profiles})
-        if unknown:
-            raise StudyError(f'--only: {", ".join(unknown)} not among the {len(profiles)} participants drawn')
         profiles = [p for p in profiles if p.pid in args.only]
     graph = StudyGraph(params, domain, sim_dir / ('logs' if not args.only else f'logs_{"_".join(args.only)}'))
     results = []
@@ -254,6 +251,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f'--families: unknown pilot {", ".join(bad)} (choose from {", ".join(PILOT_NAMES)})')
     if args.browser_participants > args.participants:
         parser.error('--browser-participants must be at most --participants')
+    drawn = {f'{args.id_prefix}{i + 1:02d}' for i in range(args.participants)}
+    unknown = sorted(set(args.only) - drawn)
+    if unknown:
+        parser.error(f'--only: {", ".join(unknown)} not among the {args.participants} participants '
+                     f'({args.id_prefix}01-{args.id_prefix}{args.participants:02d})')
     signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         results = simulate(args)

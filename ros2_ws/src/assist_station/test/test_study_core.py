@@ -257,3 +257,18 @@ def test_a_full_disk_loses_nothing_and_takes_no_half_step(tmp_path, monkeypatch)
     assert s.phase == 'sus1' and s.store.survey['sus'] == {}             # not taken: asked again
     assert not list((tmp_path / 'P01').glob('.*.tmp'))
     assert s.submit_sus([3] * 10) == 50.0 and s.phase == 'block2'
+
+
+@pytest.mark.parametrize('argv, needle', [
+    (['--participants', '3', '--only', 'S04'], '--only: S04 not among the 3 participants'),
+    (['--participants', '2', '--browser-participants', '3'], 'at most --participants'),
+    (['--families', 'paper', 'acrobat'], 'unknown pilot acrobat'),
+    (['--real-time-factor', 'nan'], 'real-time-factor'),
+    (['--participants', '0'], '--participants'),
+])
+def test_simulate_study_refuses_bad_arguments_before_any_work(tmp_path, capsys, argv, needle):
+    from assist_station import simulate_study
+    with pytest.raises(SystemExit) as exit_:
+        simulate_study.main(['--out', str(tmp_path / 'o'), *argv])
+    assert exit_.value.code == 2 and needle in capsys.readouterr().err
+    assert not (tmp_path / 'o').exists()
