@@ -220,12 +220,16 @@ def experience_ratings(parts: list[Participant]) -> dict[str, np.ndarray]:
 
 
 def experienced_set(ratings: dict[str, np.ndarray]) -> tuple[set[str], float | None]:
-    """Participants rated experienced (mean rating >= the threshold that makes a third experienced)."""
+    """Participants rated experienced: mean rating at or above the threshold that makes the number experienced
+    closest to a third (ratings tie, so it is rarely exactly a third)."""
     if not ratings:
         return set(), None
     means = {pid: float(np.mean(r)) for pid, r in ratings.items()}
-    k = max(1, round(len(means) / 3))
-    threshold = sorted(means.values(), reverse=True)[k - 1]
+    target = len(means) / 3.0            # ratings tie: the threshold whose count comes closest to a third
+
+    def miss(c: float) -> tuple[float, float]:
+        return abs(sum(m >= c for m in means.values()) - target), -c
+    threshold = min(set(means.values()), key=miss)
     return {pid for pid, m in means.items() if m >= threshold}, threshold
 
 
@@ -410,7 +414,7 @@ def render_tables(summary: dict[str, Any]) -> tuple[str, str]:
     notes.append('Median error vs experience level, slope: ' + ', '.join(
         f"{c} {_num(fits[c]['slope'])}" for c in CONDITIONS))
     sus = summary['sus']
-    notes.append('SUS: ' + ', '.join(f"{c} {_num(sus[c]['mean'])} ({_num(sus[c]['percentile'], 0)}th percentile)"
+    notes.append('SUS: ' + ', '.join(f"{c} {_num(sus[c]['mean'])} ({_ordinal(sus[c]['percentile'])} percentile)"
                                      for c in CONDITIONS))
     gi = summary['goal_inference']
     notes.append(f"Goal inferred (assisted landings ended nearest the goal pad): {_pct(gi['rate'])}; of those "
@@ -420,6 +424,15 @@ def render_tables(summary: dict[str, Any]) -> tuple[str, str]:
 
 def _num(v: float | None, digits: int = 2) -> str:
     return '-' if v is None else f'{v:.{digits}f}'
+
+
+def _ordinal(v: float | None) -> str:
+    """31 -> '31st', 22 -> '22nd', 13 -> '13th' (rounded); '-' for None."""
+    if v is None:
+        return '-'
+    n = int(round(v))
+    suffix = 'th' if 10 <= n % 100 <= 20 else {1: 'st', 2: 'nd', 3: 'rd'}.get(n % 10, 'th')
+    return f'{n}{suffix}'
 
 
 def _pct(v: float | None) -> str:
@@ -527,9 +540,9 @@ def plot_trajectories(parts: list[Participant], n: int, path: Path) -> int:
             chosen.append((p, trials[both[len(both) // 2]]))
     if not chosen:
         return 0
-    fig, axes = plt.subplots(1, len(chosen), figsize=(4 * len(chosen), 4), squeeze=False)
+    fig, axes = plt.subplots(len(chosen), 1, figsize=(10, 2.6 * len(chosen)), squeeze=False)   # long scenes: rows
     drawn = 0
-    for ax, (p, pair) in zip(axes[0], chosen):
+    for ax, (p, pair) in zip(axes[:, 0], chosen):
         for c in CONDITIONS:
             r = pair[c]
             try:

@@ -198,6 +198,13 @@ def test_outputs_and_summary_shape(result):
         an.run([root / 'P01'], an.AnalyzeArgs(out=str(out)))
 
 
+def test_experienced_is_the_third_closest_to_a_third_with_ties():
+    r = {f'P{i}': np.full(4, v) for i, v in enumerate((5, 4, 4, 4, 3, 3, 2, 2, 1, 1, 1, 1))}
+    chosen, threshold = an.experienced_set(r)
+    assert threshold == 4 and len(chosen) == 4            # 4 of 12 (>= 5 alone: 1; >= 3: 6)
+    assert an._ordinal(22.4) == '22nd' and an._ordinal(31) == '31st' and an._ordinal(13) == '13th'
+
+
 def test_cli_errors_are_one_line(tmp_path, capsys):
     assert an.main([str(tmp_path), '--out', str(tmp_path / 'o')]) == 1
     assert 'no participant directory' in capsys.readouterr().err
