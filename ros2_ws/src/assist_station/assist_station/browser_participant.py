@@ -40,9 +40,10 @@ class BrowserParticipant:
     """Drives one simulated participant through the station page in headless Chromium."""
 
     def __init__(self, url: str, profile: Profile, real_time_factor: float, work_dir: Path,
-                 reload_during: tuple[str, int] | None = None):
+                 reload_during: tuple[str, int] | None = None, on_landing=None):
         self.url, self.profile, self.rtf = url, profile, float(real_time_factor)
         self.reload_during = reload_during      # (phase, trial): reload the page once in that landing's flight
+        self.on_landing = on_landing or (lambda: None)      # called after each landing flown (progress)
         self.work = Path(work_dir)
         self.rng = np.random.default_rng(profile.seed)
         self.outcomes: dict[str, list[float]] = {'unassisted': [], 'assisted': []}
@@ -222,3 +223,4 @@ class BrowserParticipant:
         self._stats([])
         self.outcomes.setdefault(v.get('condition', 'unassisted'), []).append(flyer.distance(last_pose))
         self.landings_flown += 1
+        self.on_landing()

@@ -183,8 +183,10 @@ def felt(distances: list[float]) -> float:
 class Participant:
     """Drives one simulated participant through the station's protocol over its WebSocket."""
 
-    def __init__(self, url: str, profile: Profile, real_time_factor: float = 1.0, connect_timeout_s: float = 60.0):
+    def __init__(self, url: str, profile: Profile, real_time_factor: float = 1.0, connect_timeout_s: float = 60.0,
+                 on_landing=None):
         self.url = url.rstrip('/') + '/'
+        self.on_landing = on_landing or (lambda: None)      # called after each landing flown (progress)
         self.profile = profile
         self.rtf = float(real_time_factor)
         self.connect_timeout_s = connect_timeout_s
@@ -357,6 +359,7 @@ class Participant:
         if self.state and self.state.get('pose'):
             self.outcomes.setdefault(v.get('condition', 'unassisted'), []).append(flyer.distance(self.state['pose']))
         self.landings_flown += 1
+        self.on_landing()
 
     def _same_landing(self, key: tuple) -> bool:
         return (self.view.get('phase'), self.view.get('trial')) == key

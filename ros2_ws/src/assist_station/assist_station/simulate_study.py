@@ -30,6 +30,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from assist_policy.cli import add_dataclass_args, parse_dataclass_args, setting
+from tqdm import tqdm
+from tqdm.contrib.logging import logging_redirect_tqdm
 
 from .participant import DEFAULT_FAMILIES, Participant, Profile, draw_profiles
 from .study import StudyConfig, StudyError, write_atomic
@@ -188,10 +190,10 @@ def participant_done(out: Path, pid: str) -> bool:
         return False
 
 
-def run_browser_participant(url: str, profile: Profile, rtf: float, work: Path) -> dict:
+def run_browser_participant(url: str, profile: Profile, rtf: float, work: Path, on_landing=None) -> dict:
     """One participant through the station page in headless Chromium (see browser_participant)."""
     from .browser_participant import BrowserParticipant
-    return BrowserParticipant(url, profile, rtf, work).run()
+    return BrowserParticipant(url, profile, rtf, work, on_landing=on_landing).run()
 
 
 def simulate(args: SimulateArgs) -> list[dict]:
@@ -209,27 +211,36 @@ def simulate(args: SimulateArgs) -> list[dict]:
     graph = StudyGraph(params, domain, sim_dir / ('logs' if not args.only else f'logs_{"_".join(args.only)}'))
     results = []
     t0 = time.monotonic()
+    per_participant = 2 * cfg.landings_per_block + cfg.practice_landings     # at most (practice may end early)
+    bar = tqdm(total=len(profiles) * per_participant, desc='simulated study', unit='landing', file=sys.stderr,
+               mininterval=1.0, dynamic_ncols=False, disable=None)
     try:
         graph.start()
         log.info('study graph up on domain %d, station %s', domain, graph.url)
         for i, prof in enumerate(profiles):
             if participant_done(out, prof.pid):
                 log.info('%s: done already, skipped', prof.pid)
+                bar.total -= per_participant
                 continue
             (out / prof.pid).mkdir(parents=True, exist_ok=True)
             write_atomic(out / prof.pid / 'simulated_participant.json',
                          json.dumps(dataclasses.asdict(prof), indent=1) + '\n')
             t = time.monotonic()
             if i < args.browser_participants:
-                res = run_browser_participant(graph.url, prof, args.real_time_factor, sim_dir / f'browser_{prof.pid}')
+                res = run_browser_participant(graph.url, prof, args.real_time_factor, sim_dir / f'browser_{prof.pid}',
+                                              on_landing=lambda: bar.update(1))
             else:
-                res = asyncio.run(Participant(graph.url, prof, args.real_time_factor).run())
+                res = asyncio.run(Participant(graph.url, prof, args.real_time_factor,
+                                              on_landing=lambda: bar.update(1)).run())
+            bar.total -= per_participant - res['landings_flown']           # practice ended early: fewer to fly
+            bar.refresh()
             res['wall_s'] = round(time.monotonic() - t, 1)
             res['browser'] = i < args.browser_participants
             results.append(res)
             log.info('%s (%s, beta %.2f%s): %d landings in %.0f s', prof.pid, prof.family, prof.beta,
                      ', browser' if res['browser'] else '', res['landings_flown'], res['wall_s'])
     finally:
+        bar.close()
         graph.stop()
     summary = {'participants': results, 'wall_s': round(time.monotonic() - t0, 1), 'domain_id': domain,
                'settings': dataclasses.asdict(args)}
@@ -258,7 +269,8 @@ def main(argv: list[str] | None = None) -> int:
                      f'({args.id_prefix}01-{args.id_prefix}{args.participants:02d})')
     signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
-        results = simulate(args)
+        with logging_redirect_tqdm():
+            results = simulate(args)
     except KeyboardInterrupt:
         print(f'interrupted: the graph was stopped; what was recorded is in {args.out} (re-run to go on)',
               file=sys.stderr)
