@@ -37,7 +37,7 @@ Split (``TRAIN_FAMILIES`` / ``HELDOUT_FAMILIES``): training may use ``paper``, `
 ``keyboard``, ``glide``, ``low_flyer`` and ``cautious`` are for evaluation only (``cautious``,
 ``UNTUNED_FAMILIES``, came after every non-learned rule had been tuned and no rule was tuned to it).
 Population names (``POPULATIONS``): ``mix`` = one of the first five held-out families (``MIX_FAMILIES``)
-drawn uniformly per episode (the held-out evaluation the issue-12 tables report), ``approach_mix`` =
+drawn uniformly per episode (the held-out evaluation docs/results.md reports), ``approach_mix`` =
 ``glide`` or ``low_flyer`` (``APPROACH_FAMILIES``: added later, after they broke an assistant that had
 learned from keyboard families that a descent starts over the aim; kept out of ``mix`` so earlier tables
 stay comparable), ``train_mix`` = one training family drawn per episode (domain randomisation for

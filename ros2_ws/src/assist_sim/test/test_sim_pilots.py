@@ -46,7 +46,7 @@ def test_registry_split_and_populations():
     with pytest.raises(ValueError, match='unknown pilot'):
         make_pilot('nobody')
     seen = {make_pilot('mix', rng=s).name for s in range(60)}
-    assert seen == set(MIX_FAMILIES)                    # the issue-12 mix is unchanged by the later families
+    assert seen == set(MIX_FAMILIES)                    # the held-out mix is unchanged by the later families
     assert {make_pilot('approach_mix', rng=s).name for s in range(20)} == set(APPROACH_FAMILIES)
 
 
