@@ -29,12 +29,13 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from assist_common.atomic import write_text_atomic
 from assist_policy.cli import add_dataclass_args, parse_dataclass_args, setting
 from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 from .participant import DEFAULT_FAMILIES, Participant, Profile, draw_profiles
-from .study import StudyConfig, StudyError, write_atomic
+from .study import StudyConfig, StudyError
 
 log = logging.getLogger('simulate_study')
 STATION_STARTUP_S = 60.0
@@ -111,7 +112,7 @@ def study_file(args: SimulateArgs, sim_dir: Path) -> tuple[StudyConfig, Path]:
     if path.exists() and StudyConfig.from_text(path.read_text(encoding='utf-8')) != cfg:
         raise StudyError(f'{path} holds another study file: this directory was simulated with other settings; '
                          'use another --out')
-    write_atomic(path, text)
+    write_text_atomic(path, text)
     return cfg, path
 
 
@@ -223,7 +224,7 @@ def simulate(args: SimulateArgs) -> list[dict]:
                 bar.total -= per_participant
                 continue
             (out / prof.pid).mkdir(parents=True, exist_ok=True)
-            write_atomic(out / prof.pid / 'simulated_participant.json',
+            write_text_atomic(out / prof.pid / 'simulated_participant.json',
                          json.dumps(dataclasses.asdict(prof), indent=1) + '\n')
             t = time.monotonic()
             if i < args.browser_participants:
@@ -245,7 +246,7 @@ def simulate(args: SimulateArgs) -> list[dict]:
     summary = {'participants': results, 'wall_s': round(time.monotonic() - t0, 1), 'domain_id': domain,
                'settings': dataclasses.asdict(args)}
     path = sim_dir / ('summary.json' if not args.only else f'summary_{"_".join(args.only)}.json')
-    write_atomic(path, json.dumps(summary, indent=1, default=list) + '\n')
+    write_text_atomic(path, json.dumps(summary, indent=1, default=list) + '\n')
     return results
 
 

@@ -35,6 +35,8 @@ from typing import Any
 import numpy as np
 import yaml
 
+from assist_common.atomic import write_text_atomic
+
 CONDITIONS = ('unassisted', 'assisted')
 PHASES = ('consent', 'practice', 'block1', 'sus1', 'block2', 'sus2', 'survey', 'done')
 PRACTICE_BLOCK = 0
@@ -315,34 +317,6 @@ class LandingSpec:
 
 
 # ----------------------------------------------------------------------------------------- files
-def _fsync_dir(path: Path) -> None:
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
-def write_atomic(path: Path, text: str) -> None:
-    """Replace `path` by `text` all at once (temporary file, fsync, rename): never half written."""
-    tmp = path.with_name(f'.{path.name}.tmp')
-    try:
-        with open(tmp, 'w', encoding='utf-8') as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except OSError:
-        tmp.unlink(missing_ok=True)
-        raise
-    _fsync_dir(path.parent)
-
-
 def _csv_value(v: Any) -> str:
     if v is None:
         return ''
@@ -372,7 +346,7 @@ class ParticipantStore:
                 raise StudyError(f'participant {pid} was run with a different study file ({copy}); use another '
                                  'participant ID or study directory')
         else:
-            write_atomic(copy, config_text)
+            write_text_atomic(copy, config_text)
         self.landings_path = self.dir / 'landings.csv'
         self.survey_path = self.dir / 'survey.json'
         self.log_path = self.dir / 'protocol.log'
@@ -459,7 +433,7 @@ class ParticipantStore:
 
     def save_survey(self, survey: dict[str, Any]) -> None:
         """Write `survey` to survey.json atomically, then hold it (a failed write changes nothing)."""
-        write_atomic(self.survey_path, json.dumps(survey, indent=1) + '\n')
+        write_text_atomic(self.survey_path, json.dumps(survey, indent=1) + '\n')
         self.survey = survey
 
     def new_bag_path(self, name: str) -> Path:
@@ -659,4 +633,4 @@ def practice_feedback(landing: dict[str, Any], pads: np.ndarray | None, final_xy
 __all__ = ['CONDITIONS', 'EXPERIENCE_QUESTIONS', 'LANDING_COLUMNS', 'PHASES', 'PRACTICE_BLOCK', 'SURVEY',
            'SUS_ITEMS', 'LandingSpec', 'ParticipantStore', 'StudyConfig', 'StudyError', 'StudySession',
            'block_condition', 'check_participant_id', 'check_survey', 'check_sus', 'first_condition', 'order_name',
-           'practice_feedback', 'practice_goals', 'sus_score', 'write_atomic']
+           'practice_feedback', 'practice_goals', 'sus_score']

@@ -255,7 +255,7 @@ def test_a_full_disk_loses_nothing_and_takes_no_half_step(tmp_path, monkeypatch)
         s.submit_sus([3] * 10)
     monkeypatch.setattr(os_module, 'fsync', real_fsync)
     assert s.phase == 'sus1' and s.store.survey['sus'] == {}             # not taken: asked again
-    assert not list((tmp_path / 'P01').glob('.*.tmp'))
+    assert not list((tmp_path / 'P01').glob('.*'))                        # no temporary left behind
     assert s.submit_sus([3] * 10) == 50.0 and s.phase == 'block2'
 
 
