@@ -49,6 +49,7 @@ from typing import Any
 
 import numpy as np
 
+from assist_common.frames import heading, rotate_xy
 from assist_policy.cli import add_dataclass_args, parse_dataclass_args, setting
 
 from .study import CONDITIONS, EXPERIENCE_QUESTIONS, LANDING_COLUMNS, StudyError
@@ -509,7 +510,7 @@ def bag_track(bag: Path) -> tuple[np.ndarray, np.ndarray | None]:
                 for m in msg.markers:
                     if m.ns == 'platforms' and m.action == 0:
                         q = m.pose.orientation
-                        yaw = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
+                        yaw = heading((q.x, q.y, q.z, q.w))
                         boxes.append((m.pose.position.x, m.pose.position.y, m.scale.x, m.scale.y, yaw))
                 if boxes:
                     pads = np.array(boxes)
@@ -552,8 +553,7 @@ def plot_trajectories(parts: list[Participant], n: int, path: Path) -> int:
                 continue
             if pads is not None and c == CONDITIONS[0]:
                 for k, (cx, cy, sx, sy, yaw) in enumerate(pads):
-                    cs, sn = math.cos(yaw), math.sin(yaw)
-                    corners = [(cx + cs * dx - sn * dy, cy + sn * dx + cs * dy)
+                    corners = [np.array([cx, cy]) + rotate_xy((dx, dy), yaw)
                                for dx, dy in ((-sx / 2, -sy / 2), (sx / 2, -sy / 2), (sx / 2, sy / 2),
                                               (-sx / 2, sy / 2))]
                     ax.add_patch(Polygon(corners, closed=True, fill=k == r['goal_index'], alpha=0.35,

@@ -17,13 +17,14 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
-import math
 import time
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import aiohttp
 import numpy as np
+
+from assist_common.frames import enu_to_flu, heading
 
 from .study import SURVEY, SUS_ITEMS
 
@@ -131,12 +132,6 @@ def key_velocity(keys: list[str], speed: float, speed_z: float) -> np.ndarray:
     return v
 
 
-def yaw_of(q: list[float]) -> float:
-    """Yaw of an (x, y, z, w) quaternion."""
-    x, y, z, w = q
-    return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-
-
 # ----------------------------------------------------------------------------------------- flying
 class Flyer:
     """One landing of a participant: its pilot model turned into held keys, step by step from the pose."""
@@ -161,9 +156,7 @@ class Flyer:
         """The keys to hold after seeing `pose` (p, v, q in odom ENU): the pilot's command, the assistant
         perceived as the velocity beyond what the held keys command."""
         pos, vel = np.array(pose['p'], dtype=float), np.array(pose['v'], dtype=float)
-        yaw = yaw_of(pose['q'])
-        c, s = math.cos(yaw), math.sin(yaw)
-        v_body = np.array([c * vel[0] + s * vel[1], -s * vel[0] + c * vel[1], vel[2]])
+        v_body = enu_to_flu(vel, heading(pose['q']))
         extra = v_body - key_velocity(self.keys, self.speed, self.speed_z)
         a = extra if float(np.linalg.norm(extra)) > ASSIST_PERCEPTION_MPS else None
         self.keys = keys_for(self.pilot.act(pos, a), self.speed)

@@ -32,6 +32,8 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_srvs.srv import Trigger
 
+from assist_common.frames import heading, rotate_xy
+
 from .station_core import StudyMessage
 from .study import PRACTICE_BLOCK, LandingSpec, StudyConfig, StudyError, StudySession, practice_feedback
 
@@ -114,8 +116,7 @@ class StudyDriver:
         """The scene's pad boxes (from /sim/scene: id, centre p, size s, quaternion q)."""
         pads = sorted((b for b in boxes if b['ns'] == 'platforms'), key=lambda b: b['id'])
         self.boxes = [{'id': b['id'], 'p': b['p'], 's': b['s'],
-                       'yaw': math.atan2(2 * (b['q'][3] * b['q'][2] + b['q'][0] * b['q'][1]),
-                                         1 - 2 * (b['q'][1] ** 2 + b['q'][2] ** 2))} for b in pads]
+                       'yaw': heading(b['q'])} for b in pads]
         self.pads = np.array([[b['p'][0], b['p'][1], b['p'][2] + b['s'][2] / 2] for b in pads]) if pads else None
 
     def note_odom(self, xy: np.ndarray) -> None:
@@ -356,11 +357,8 @@ class StudyDriver:
         if xy is None:
             return None
         for b in self.boxes:
-            c, s, yaw = np.asarray(b['p'][:2]), np.asarray(b['s'][:2]), b['yaw']
-            d = np.asarray(xy) - c
-            cy, sy = math.cos(yaw), math.sin(yaw)
-            local = np.array([cy * d[0] + sy * d[1], -sy * d[0] + cy * d[1]])
-            if np.all(np.abs(local) <= s / 2):
+            local = rotate_xy(np.asarray(xy) - np.asarray(b['p'][:2]), -b['yaw'])    # into the pad's frame
+            if np.all(np.abs(local) <= np.asarray(b['s'][:2]) / 2):
                 return int(b['id'])
         return None
 
