@@ -255,9 +255,8 @@ class PilotStation(Node):
             self._rejected('landing_rejected', exc)
             return
         if self.study is not None:       # the study driver records its landings and gives practice feedback
-            if self.study.on_landing(landing) and landing.get('episode') is not None:
-                self.server.push_event({'type': 'landing', 'show': False, 'episode': landing.get('episode'),
-                                        'text': 'Landing recorded'})
+            if self.study.on_landing(landing):
+                self.server.push_event(landing_feedback(landing, 'study'))      # "Landing recorded", no result
             return
         self.server.push_event(landing_feedback(landing, self.p['mode']))
 

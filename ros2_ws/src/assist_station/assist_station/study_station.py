@@ -180,8 +180,7 @@ class StudyDriver:
             return {'type': 'study', 'phase': 'participant', 'study': self.cfg.name,
                     'intro': self.cfg.intro_text}
         v = self.session.view()
-        v['stage'] = self.stage
-        v['in_flight'] = self.stage != 'idle' and self.stage != 'closing'
+        v['stage'] = self.stage          # in_flight comes from the session: a landing is active exactly then
         if self.error:
             v['error'] = self.error
         return v
