@@ -524,8 +524,12 @@ def spin_until_stopped(spinner, stop: threading.Event, context=None, poll_s: flo
     """Dispatch `spinner`'s callbacks (spin_once) until `stop` is set or `context` (default: rclpy's
     default context) shuts down; returns after the callback in progress has finished."""
     context = context or rclpy.get_default_context()
-    while not stop.is_set() and context.ok():
-        spinner.spin_once(timeout_sec=poll_s)
+    try:
+        while not stop.is_set() and context.ok():
+            spinner.spin_once(timeout_sec=poll_s)
+    except ExternalShutdownException:
+        if context.ok():            # raised while the context is up: not the shutdown this loop ends on
+            raise
 
 
 def spin_off_main_thread(spinner, teardown: Callable[[], None] | None = None, context=None) -> None:

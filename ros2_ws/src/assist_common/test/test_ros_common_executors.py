@@ -42,6 +42,7 @@ def _wait_for(cond, timeout=10.0):
     return cond()
 
 
+@pytest.mark.filterwarnings('error::pytest.PytestUnhandledThreadExceptionWarning')   # spin returns, not raises
 def test_events_loop_serves_steady_and_sim_time_timers_and_subscriptions_and_stops_at_shutdown():
     ctx = Context()
     rclpy.init(context=ctx, domain_id=random.randint(100, 199))
