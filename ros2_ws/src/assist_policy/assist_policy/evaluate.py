@@ -56,9 +56,6 @@ import csv
 import dataclasses
 import json
 import logging
-import multiprocessing
-import os
-import socket
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -75,6 +72,7 @@ from assist_sim.pilots import PILOT_NAMES
 
 from .bags.bagio import BagError
 from .bags.episode import record_landing
+from .cluster import connect_ray, cpu_cores, process_context, ray_cpus
 from .cli import add_dataclass_args, check_settings, parse_dataclass_args, setting
 from .damper import DamperConfig
 from .env import EnvConfig, LandingAssistEnv, run_episode
@@ -531,25 +529,9 @@ def _ray_fly(args: EvalArgs, task: LandingTask) -> dict:
 
 def _fly_on_ray(args: EvalArgs, todo: list[LandingTask], landed) -> None:
     """Every task of `todo` as a Ray task; `landed(task, row, error)` as each finishes (in finishing order)."""
-    try:
-        import ray
-        from ray.exceptions import RayTaskError
-    except ImportError as exc:
-        raise ValueError(f'--ray needs the ray package ({exc}); pip install "ray==2.60.0"') from None
-    if not ray.is_initialized() and args.ray != 'auto':
-        host, _, port = args.ray.removeprefix('ray://').rpartition(':')
-        try:                          # Ray retries an unreachable address for minutes: ask the socket first
-            socket.create_connection((host or '127.0.0.1', int(port)), timeout=5.0).close()
-        except (OSError, ValueError) as exc:
-            raise ValueError(f'--ray {args.ray}: cannot start or reach Ray: {exc}') from None
-    if not ray.is_initialized():
-        try:
-            ray.init(address=None if args.ray == 'auto' else args.ray, include_dashboard=False, log_to_driver=False,
-                     configure_logging=False)
-        except (ConnectionError, RuntimeError, ValueError) as exc:
-            raise ValueError(f'--ray {args.ray}: cannot start or reach Ray: {exc}') from None
-    log.info('flying %d landings on Ray (%s, %d CPUs)', len(todo), args.ray,
-             int(ray.cluster_resources().get('CPU', 0)))
+    ray = connect_ray(args.ray)
+    from ray.exceptions import RayTaskError
+    log.info('flying %d landings on Ray (%s, %d CPUs)', len(todo), args.ray, ray_cpus(ray))
     fly = ray.remote(num_cpus=1)(_ray_fly)
     args_ref = ray.put(args)
     pending = {fly.remote(args_ref, t): t for t in todo}
@@ -573,8 +555,7 @@ def worker_count(requested: int, landings: int) -> int:
     fewer for a short run (LANDINGS_PER_AUTO_WORKER)."""
     if requested:
         return max(1, min(requested, landings))
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else (os.cpu_count() or 1)
-    return max(1, min(cores, landings // LANDINGS_PER_AUTO_WORKER))
+    return max(1, min(cpu_cores(), landings // LANDINGS_PER_AUTO_WORKER))
 
 
 def fly_plan(args: EvalArgs, results: LandingLog) -> dict[str, list[dict]]:
@@ -622,8 +603,7 @@ def fly_plan(args: EvalArgs, results: LandingLog) -> dict[str, list[dict]]:
                     flyer.close()
             else:
                 log.info('flying %d landings on %d processes', len(todo), workers)
-                ctx = multiprocessing.get_context('spawn')
-                with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_start,
+                with ProcessPoolExecutor(workers, mp_context=process_context(), initializer=_worker_start,
                                          initargs=(args,)) as pool:
                     futures = {pool.submit(_worker_fly, t): t for t in todo}
                     try:

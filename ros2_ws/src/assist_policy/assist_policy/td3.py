@@ -140,16 +140,25 @@ class ReplayBuffer:
             if obs.shape[1] != self.obs_dim:
                 raise ValueError(f'{path}: observation size {obs.shape[1]} != {self.obs_dim}')
             arrays = (obs, data['act'], data['rew'], data['next_obs'], data['done'])  # each read once
-        n = obs.shape[0]
+        self.extend(*arrays)
+        return obs.shape[0]
+
+    def extend(self, obs, act, rew, next_obs, done) -> None:
+        """Append transitions given as arrays (one row each; rew and done may be flat); when more than
+        `capacity` come, only the newest fit."""
+        arrays = [np.asarray(a) for a in (obs, act, rew, next_obs, done)]
+        arrays[2], arrays[4] = arrays[2].reshape(-1, 1), arrays[4].reshape(-1, 1)
+        n = arrays[0].shape[0]
+        if any(a.shape[0] != n for a in arrays):
+            raise ValueError(f'transition arrays of different lengths: {[a.shape[0] for a in arrays]}')
         if n > self.capacity:             # only the newest `capacity` transitions fit
-            arrays = tuple(a[n - self.capacity:] for a in arrays)
+            arrays = [a[n - self.capacity:] for a in arrays]
         k = arrays[0].shape[0]
         idx = (self.ptr + np.arange(k)) % self.capacity
         for dst, src in zip((self.obs, self.act, self.rew, self.next_obs, self.done), arrays):
             dst[idx] = src
         self.ptr = int((self.ptr + k) % self.capacity)
         self.size = min(self.size + k, self.capacity)
-        return n
 
 
 class TD3:

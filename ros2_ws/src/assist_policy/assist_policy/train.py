@@ -6,9 +6,10 @@
 Every value is checked before any work (TrainArgs' field rules and check_relations, the files it
 names, a run name that is a plain name and a run directory that holds no run yet): a bad one is one
 `error:` line and exit status 2. A resumed run keeps the settings in its config.json: only
---total-steps and --torch-threads may be given with other values; any other flag that differs is an
-error naming each. A damaged checkpoint, or an actor that does not fit the run, is one `error:` line
-and exit status 1.
+--total-steps, --torch-threads, --device, --workers and --ray may be given with other values; any other
+flag that differs is an error naming each. `--workers N` flies the landings of every phase on N env
+worker processes (`--ray ADDRESS`: Ray actors) while this process learns (assist_policy.collect).
+A damaged checkpoint, or an actor that does not fit the run, is one `error:` line and exit status 1.
 Run directory runs/<name>/: config.json, metrics.csv (one row per training landing), eval.csv
 (periodic deterministic evaluation), progress.txt (last status line), checkpoint/ (state.pt +
 replay.npz: the full training state, written as one unit: a crash leaves the previous checkpoint or
@@ -26,6 +27,7 @@ import math
 import sys
 import time
 import zipfile
+from collections import deque
 from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +35,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from tqdm import tqdm
+from tqdm.contrib.logging import logging_redirect_tqdm
 
 from assist_common.atomic import (CsvLog, atomic_dir, atomic_path, committed_dir, remove_stale_temporaries,
                                   truncate_csv, write_text_atomic)
@@ -42,18 +45,18 @@ from assist_sim.pilots import HELDOUT_FAMILIES, TRAIN_FAMILIES
 
 from .cli import (SettingsError, add_dataclass_args, check_settings, exit_error, flag, parse_dataclass_args,
                   setting)
+from .collect import (DEMO_POLICIES, ActorWeights, LandingPool, LandingTask, collect_demos,
+                      make_env)
 from .env import EnvConfig, LandingAssistEnv, RewardConfig, run_episode
-from .latent import make_latent_fn
 from .observation import DISPLACEMENT_DIM, MAX_FEATURE_LAG_S, MAX_FEATURE_LAGS, feature_dim
 from .override import OverrideConfig
 from .safety import SafetyConfig
-from .scripted import NEAREST_PAD_VARIANTS, ScriptedOracle, make_nearest_pad
+from .scripted import NEAREST_PAD_VARIANTS
 from .td3 import TD3, OUNoise, ReplayBuffer, TD3Config, load_actor, save_actor
 
 log = logging.getLogger(__name__)
 
 EVAL_BETAS = (0.0, 0.25, 0.5, 0.75, 1.0)
-DEMO_POLICIES = ('oracle', *NEAREST_PAD_VARIANTS, 'init_actor')
 CONDITIONS = ('oracle', 'latent', 'end_to_end')
 MAX_SEED = 2**31 - 1
 
@@ -111,6 +114,8 @@ class TrainArgs:
     floor_descent_weight: float = setting(0.0, ge=0.0, le=1e6)
     feature_lags_s: tuple[float, ...] = setting((), gt=0.0, le=MAX_FEATURE_LAG_S, max_len=MAX_FEATURE_LAGS)
     memory_displacement: bool = False
+    workers: int = setting(1, ge=0, le=1024)
+    ray: str = ''
 
     def check_relations(self) -> None:
         """SettingsError when flags contradict each other (what training would refuse later, said up front)."""
@@ -139,8 +144,8 @@ class TrainArgs:
 HELP = {
     'name': 'run name: the run directory is <runs-dir>/<name>',
     'resume': 'run directory to continue with the settings it was started with (its config.json); only '
-              '--total-steps and --torch-threads may be given with other values, any other flag that differs '
-              'from the run\'s is an error naming it',
+              '--total-steps, --torch-threads, --device, --workers and --ray may be given with other values, any '
+              'other flag that differs from the run\'s is an error naming it',
     'condition': 'oracle | latent | end_to_end',
     'total_steps': 'environment steps to train for (in total, across resumes)',
     'start_steps': 'initial steps with uniformly random actions',
@@ -186,47 +191,18 @@ HELP = {
                       '(one copy per lag, e.g. 1 2); an --init-actor with fewer lags is widened with zero weights',
     'memory_displacement': 'with --feature-lags-s: the actor also sees how far the vehicle moved since each lagged '
                            'feature (odometry, 3 per lag); an --init-actor without them is widened with zero weights',
+    'workers': 'env workers flying the landings of every phase (demonstrations, DAgger, TD3 collection, evaluation) '
+               'while this process learns: 1 = all in this process (the single-process run, unchanged); 0 = one '
+               'per CPU core (or per CPU of the --ray cluster). More than one changes the TD3 run: see '
+               'assist_policy.collect',
+    'ray': 'run the env workers as actors on a Ray cluster at this address (ray://HOST:10001 or HOST:6379; auto: '
+           'a local instance) instead of local processes; needs the optional ray package',
     'safety': 'fly with the floor guard (assist_policy.safety) on, as policy_node does by default',
     'override': 'fly with the pilot override (assist_policy.override) on, as policy_node does by default; '
                 'TD3 transitions store the actor\'s action, so while the override acts the critic sees it as '
                 'part of the environment (as it sees the floor guard)',
 }
 
-
-
-def collect_demos(env: LandingAssistEnv, episodes: int, noise: float, seed: int, buffer: ReplayBuffer,
-                  demo_policy: str = 'oracle', act_fn=None, label_fn=None,
-                  desc: str = 'demonstrations') -> tuple[np.ndarray, np.ndarray, list[dict]]:
-    """Fly `episodes` landings into `buffer`; (obs, demonstrator actions, results).
-
-    The demonstrator labels every state: the scripted assistant `demo_policy`, or for 'init_actor'
-    `label_fn(obs)` (the starting actor, frozen: TD3+BC then anchors fine-tuning to it). It also flies
-    (+ Gaussian `noise`) unless `act_fn(obs)` is given: then that policy flies and the demonstrator
-    only labels (DAgger). A progress bar (`desc`, landings) on stderr when it is a terminal.
-    """
-    if demo_policy not in DEMO_POLICIES:
-        raise ValueError(f'demo_policy must be one of {", ".join(DEMO_POLICIES)}, got {demo_policy!r}')
-    if demo_policy == 'init_actor' and label_fn is None:
-        raise ValueError('demo_policy init_actor needs the starting actor (label_fn)')
-    script = (None if demo_policy == 'init_actor' else ScriptedOracle(max_speed=env.cfg.max_speed)
-              if demo_policy == 'oracle' else make_nearest_pad(demo_policy, max_speed=env.cfg.max_speed))
-    rng = np.random.default_rng(seed)
-    obs_l, act_l, results = [], [], []
-    for ep in tqdm(range(episodes), desc=desc, unit='landing', file=sys.stderr, mininterval=2, disable=None):
-        obs, _ = env.reset(seed=int(seed * 7919 + ep))
-        while True:
-            clean = np.asarray(label_fn(obs), dtype=float) if script is None else script.raw_action(env)
-            flown = clean if act_fn is None else np.asarray(act_fn(obs), dtype=float)
-            act = np.clip(flown + rng.normal(0.0, noise, 3), -1.0, 1.0)
-            nxt, rew, term, trunc, info = env.step(act)
-            buffer.add(obs, act, rew, nxt, term or trunc)
-            obs_l.append(obs)
-            act_l.append(clean)
-            obs = nxt
-            if term or trunc:
-                results.append(info['result'])
-                break
-    return np.asarray(obs_l, np.float32), np.asarray(act_l, np.float32), results
 
 
 def check_training_pilot(name: str) -> None:
@@ -254,21 +230,16 @@ def env_config_from(args: TrainArgs) -> EnvConfig:
                                          floor_descent_weight=args.floor_descent_weight))
 
 
-def make_env(env_cfg: EnvConfig) -> LandingAssistEnv:
-    """Env for a config, with the CM-VAE encoder attached for the latent condition."""
-    if env_cfg.condition == 'latent':
-        latent_fn, dim = make_latent_fn(env_cfg.encoder_path or None)
-        env_cfg.latent_dim = dim
-        return LandingAssistEnv(env_cfg, latent_fn=latent_fn)
-    return LandingAssistEnv(env_cfg)
-
-
-def evaluate_agent(env: LandingAssistEnv, agent: TD3, per_beta: int, seed: int = 12345) -> dict:
-    """Deterministic evaluation on fixed seeds over EVAL_BETAS; mean error, success, crash rates."""
-    rows = []
-    for bi, beta in enumerate(EVAL_BETAS):
-        for k in range(per_beta):
-            rows.append(run_episode(env, agent.act, seed + 1000 * bi + k, {'beta': beta}))
+def evaluate_agent(env: LandingAssistEnv, agent: TD3, per_beta: int, seed: int = 12345,
+                   pool: LandingPool | None = None) -> dict:
+    """Deterministic evaluation on fixed seeds over EVAL_BETAS; mean error, success, crash rates (flown by
+    `pool`'s workers when given: the same landings)."""
+    plan = [(seed + 1000 * bi + k, beta) for bi, beta in enumerate(EVAL_BETAS) for k in range(per_beta)]
+    if pool is None:
+        rows = [run_episode(env, agent.act, s, {'beta': beta}) for s, beta in plan]
+    else:
+        rows = list(pool.map((LandingTask('eval', i, s, beta=beta) for i, (s, beta) in enumerate(plan)),
+                             ActorWeights.of(agent.actor, agent.meta)))
     err = np.array([r['error_m'] for r in rows])
     return {'eval_error_mean': float(err.mean()), 'eval_error_std': float(err.std()),
             'eval_success': float(np.mean([r['success'] for r in rows])),
@@ -329,7 +300,7 @@ def init_actor(agent: TD3, path: str, condition: str) -> None:
 
 CHECKPOINT_DIR = 'checkpoint'
 # flags a resumed run takes from the command line
-RESUME_MAY_CHANGE = ('resume', 'total_steps', 'torch_threads', 'device')
+RESUME_MAY_CHANGE = ('resume', 'total_steps', 'torch_threads', 'device', 'workers', 'ray')
 
 
 def _plain(value):
@@ -376,8 +347,8 @@ def resumed_args(args: TrainArgs, given: Collection[str] | None = None) -> Train
                if _plain(getattr(args, n)) != _plain(getattr(resumed, n))]
     if changed:
         raise SettingsError(f'--resume {run_dir}: the run was started with other settings: {"; ".join(changed)}. '
-                            'A resumed run keeps its settings (only --total-steps, --torch-threads and --device may '
-                            'change): '
+                            'A resumed run keeps its settings (only --total-steps, --torch-threads, --device, '
+                            '--workers and --ray may change): '
                             'drop these flags, or start a new run with another --name')
     for n in RESUME_MAY_CHANGE[1:]:
         if n in given:
@@ -481,9 +452,22 @@ def train(args: TrainArgs, given: Collection[str] | None = None) -> Path:
     """Train (or resume) a run; returns the run directory.
 
     `given`: the flags of the command line (see `resumed_args`). SettingsError before anything is
-    written for bad settings (`prepare_run`); ValueError for a damaged checkpoint.
+    written for bad settings (`prepare_run`); ValueError for a damaged checkpoint or an unreachable
+    --ray cluster. With `args.workers` other than 1 (or `args.ray`) the landings are flown by a
+    LandingPool's workers (assist_policy.collect), closed when training ends.
     """
     args = prepare_run(args, given)
+    pool = (LandingPool(env_config_from(args), args.demo_policy, args.workers, args.ray)
+            if args.workers != 1 or args.ray else None)
+    try:
+        return _train(args, pool)
+    finally:
+        if pool is not None:
+            pool.close()
+
+
+def _train(args: TrainArgs, pool: LandingPool | None) -> Path:
+    """train() with checked settings: in this process, or with `pool` flying the landings."""
     torch.set_num_threads(args.torch_threads)
     run_dir = Path(args.resume) if args.resume else Path(args.runs_dir) / args.name
     saved = load_checkpoint(run_dir) if args.resume else None      # a damaged state.pt stops us here
@@ -527,6 +511,10 @@ def train(args: TrainArgs, given: Collection[str] | None = None) -> Path:
                 log.info('%s: dropped %d rows logged after the checkpoint', name, n)
         best = min(best, _best_on_disk(run_dir / 'actor_best.pt'))
         log.info('resumed %s at step %d, episode %d, buffer %d', run_dir, step, episode, buffer.size)
+    def snapshot() -> ActorWeights | None:
+        """The actor as the pool's workers fly it now (None without a pool)."""
+        return None if pool is None else ActorWeights.of(agent.actor, agent.meta)
+
     demos = None
     if args.bc_alpha > 0 and args.resume and (run_dir / 'demos_bc.npz').exists():
         with np.load(run_dir / 'demos_bc.npz', allow_pickle=False) as data:
@@ -546,7 +534,8 @@ def train(args: TrainArgs, given: Collection[str] | None = None) -> Path:
             log.info('demonstrations: %d transitions from %s', len(d_obs), args.demo_bc_file)
         else:
             d_obs, d_act, d_res = collect_demos(env, args.demo_episodes, args.demo_noise, args.seed + 17, buffer,
-                                                  args.demo_policy, label_fn=agent.act if anchored else None)
+                                                  args.demo_policy, label_fn=agent.act if anchored else None,
+                                                  pool=pool, weights=snapshot() if anchored else None)
             err = np.mean([r['error_m'] for r in d_res])
             succ = np.mean([r['success'] for r in d_res])
             log.info('demonstrations: %d landings, %d transitions, error %.3f m, success %.2f',
@@ -561,7 +550,7 @@ def train(args: TrainArgs, given: Collection[str] | None = None) -> Path:
         for rnd in range(args.dagger_rounds):
             o, a, res = collect_demos(env, args.dagger_episodes, 0.0, args.seed * 1009 + 31 * (rnd + 1), buffer,
                                       args.demo_policy, act_fn=agent.act,
-                                      desc=f'DAgger {rnd + 1}/{args.dagger_rounds}')
+                                      desc=f'DAgger {rnd + 1}/{args.dagger_rounds}', pool=pool, weights=snapshot())
             d_obs, d_act = np.concatenate([d_obs, o]), np.concatenate([d_act, a])
             mse = agent.behaviour_clone(d_obs, d_act, args.bc_steps)
             log.info('DAgger round %d: actor flew %d landings (error %.3f m, success %.2f, crash %.2f); '
@@ -601,7 +590,7 @@ def train(args: TrainArgs, given: Collection[str] | None = None) -> Path:
 
     def run_eval() -> None:
         nonlocal best
-        ev = evaluate_agent(eval_env, agent, args.eval_episodes_per_beta)
+        ev = evaluate_agent(eval_env, agent, args.eval_episodes_per_beta, pool=pool)
         ev.update(episode=episode, step=step, wall_s=round(time.time() - t0, 1))
         evals.write(ev)
         if ev['eval_error_mean'] < best:
@@ -614,10 +603,41 @@ def train(args: TrainArgs, given: Collection[str] | None = None) -> Path:
         draw_curves()
         log.info(msg)
 
-    try:
-        if not args.resume and (args.bc_steps > 0 or args.critic_warmup_updates > 0 or args.init_actor
-                                or args.dagger_rounds):
+    def stepped(losses: list[dict]) -> None:
+        """Count one environment step: progress, the updates it earns, a checkpoint when one is due."""
+        nonlocal step, update_credit
+        step += 1
+        if step <= args.total_steps:        # the landing under way finishes past the budget
+            bar.update(1)
+        if buffer.size >= agent.cfg.batch_size and step >= min(args.start_steps, 1000):
+            update_credit += args.updates_per_step
+            while update_credit >= 1.0:
+                losses.append(agent.update(buffer, train_actor=step >= args.actor_start_steps, demos=demos,
+                                           bc_alpha=args.bc_alpha))
+                update_credit -= 1.0
+        if step % args.checkpoint_every_steps == 0:
+            checkpoint()
+
+    def landed(res: dict, beta: float, episode_return: float, active_fraction: float, sigma: float,
+               losses: list[dict]) -> None:
+        """Count one training landing: its metrics row, an evaluation when one is due."""
+        nonlocal episode
+        episode += 1
+        cl = [loss['critic_loss'] for loss in losses]
+        qm = [loss['q_mean'] for loss in losses]
+        metrics.write({'episode': episode, 'step': step, 'beta': round(beta, 3),
+                       'return': round(episode_return, 3), 'error_m': round(res['error_m'], 3),
+                       'outcome': res['outcome'], 'success': int(res['success']),
+                       'crash': int(res['crash']), 'active_fraction': round(active_fraction, 3),
+                       'sigma': round(sigma, 4),
+                       'critic_loss': round(float(np.mean(cl)), 4) if cl else '',
+                       'q_mean': round(float(np.mean(qm)), 3) if qm else '',
+                       'wall_s': round(time.time() - t0, 1)})
+        if episode % args.eval_every_episodes == 0 and step >= args.start_steps:
             run_eval()
+
+    def fly_here() -> None:
+        """TD3 collection in this process: one landing after another, updates interleaved with its steps."""
         while step < args.total_steps:
             obs, info = env.reset(seed=int(args.seed * 1_000_003 + episode))
             noise.reset()
@@ -631,36 +651,51 @@ def train(args: TrainArgs, given: Collection[str] | None = None) -> Path:
                 nxt, rew, term, trunc, sinfo = env.step(act)
                 buffer.add(obs, act, rew, nxt, term or trunc)
                 obs = nxt
-                step += 1
                 n_steps += 1
                 n_active += int(sinfo['active'])
-                if step <= args.total_steps:        # the landing under way finishes past the budget
-                    bar.update(1)
-                if buffer.size >= agent.cfg.batch_size and step >= min(args.start_steps, 1000):
-                    update_credit += args.updates_per_step
-                    while update_credit >= 1.0:
-                        losses.append(agent.update(buffer, train_actor=step >= args.actor_start_steps, demos=demos,
-                                                   bc_alpha=args.bc_alpha))
-                        update_credit -= 1.0
-                if step % args.checkpoint_every_steps == 0:
-                    checkpoint()
+                stepped(losses)
                 if term or trunc:
                     break
-            episode += 1
             noise.landed()
-            res = sinfo['result']
-            cl = [loss['critic_loss'] for loss in losses]
-            qm = [loss['q_mean'] for loss in losses]
-            metrics.write({'episode': episode, 'step': step, 'beta': round(info['beta'], 3),
-                           'return': round(env.episode_return, 3), 'error_m': round(res['error_m'], 3),
-                           'outcome': res['outcome'], 'success': int(res['success']),
-                           'crash': int(res['crash']), 'active_fraction': round(n_active / n_steps, 3),
-                           'sigma': round(noise.sigma, 4),
-                           'critic_loss': round(float(np.mean(cl)), 4) if cl else '',
-                           'q_mean': round(float(np.mean(qm)), 3) if qm else '',
-                           'wall_s': round(time.time() - t0, 1)})
-            if episode % args.eval_every_episodes == 0 and step >= args.start_steps:
-                run_eval()
+            landed(sinfo['result'], info['beta'], env.episode_return, n_active / n_steps, noise.sigma, losses)
+
+    def fly_on_pool() -> None:
+        """TD3 collection by the pool's workers: `workers` landings in flight, taken in episode order
+        (assist_policy.collect says what differs from fly_here)."""
+        pending: deque = deque()
+        dispatched = episode
+
+        def dispatch() -> None:
+            nonlocal dispatched
+            task = LandingTask('td3', dispatched, int(args.seed * 1_000_003 + dispatched),
+                               noise_seed=(args.seed, dispatched), random_actions=step < args.start_steps,
+                               ou=(args.ou_theta, args.ou_sigma, args.ou_sigma_min, args.ou_decay, dispatched))
+            pending.append(pool.submit(task, None if task.random_actions else snapshot()))
+            dispatched += 1
+        try:
+            while step < args.total_steps:
+                while len(pending) < pool.workers:
+                    dispatch()
+                landing = pool.result(pending.popleft())
+                landing.into(buffer)
+                losses: list[dict] = []
+                for _ in range(landing.steps):
+                    stepped(losses)
+                noise.landings = landing.episode + 1        # the scale as fly_here logs it: after the landing
+                landed(landing.result, landing.beta, landing.episode_return, landing.active_steps / landing.steps,
+                       noise.sigma, losses)
+        finally:
+            for handle in pending:      # past the budget, or stopped: landings in flight are not used
+                pool.cancel(handle)
+
+    try:
+        if not args.resume and (args.bc_steps > 0 or args.critic_warmup_updates > 0 or args.init_actor
+                                or args.dagger_rounds):
+            run_eval()
+        if pool is None:
+            fly_here()
+        else:
+            fly_on_pool()
         if not math.isfinite(best):     # no evaluation ran: evaluate the final actor (progress.txt, actor_best.pt)
             run_eval()
         checkpoint()
@@ -685,7 +720,8 @@ def main(argv: list[str] | None = None) -> int:
     except SettingsError as exc:
         parser.error(str(exc))
     try:
-        run_dir = train(args)
+        with logging_redirect_tqdm():       # log lines above the progress bars, not through them
+            run_dir = train(args)
     except (ValueError, OSError) as exc:     # damaged checkpoint, an actor that does not fit, disk full
         log.debug('train_td3 failed', exc_info=True)
         exit_error(parser.prog, exc, 1)

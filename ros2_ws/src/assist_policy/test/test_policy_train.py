@@ -157,7 +157,7 @@ def test_demonstrations_and_cloning_show_progress_on_a_terminal(monkeypatch):
 
     from assist_policy.env import EnvConfig, LandingAssistEnv
     from assist_policy.td3 import TD3, ReplayBuffer, TD3Config
-    from assist_policy.train import collect_demos
+    from assist_policy.collect import collect_demos
 
     class Terminal(io.StringIO):
         def isatty(self):

@@ -1,0 +1,53 @@
+"""Where parallel landings run: local worker processes or a Ray cluster (evaluate, train_td3's collection).
+
+Ray is an optional dependency (requirements.txt installs it; ``pip install "ray==2.60.0"`` elsewhere),
+imported only when a command is given ``--ray``.
+"""
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import os
+import socket
+from types import ModuleType
+
+log = logging.getLogger(__name__)
+
+RAY_PIN = 'ray==2.60.0'
+
+
+def cpu_cores() -> int:
+    """CPU cores this process may run on (its affinity mask where the OS has one)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else (os.cpu_count() or 1)
+
+
+def process_context() -> multiprocessing.context.BaseContext:
+    """The start method for worker processes: spawn (a fresh interpreter: no forked torch or pybullet state)."""
+    return multiprocessing.get_context('spawn')
+
+
+def connect_ray(address: str) -> ModuleType:
+    """The ray module, initialised for `address` ('auto': a local instance; HOST:6379 or ray://HOST:10001: an
+    existing cluster); ValueError (one line) when ray is missing or the cluster cannot be started or reached."""
+    try:
+        import ray
+    except ImportError as exc:
+        raise ValueError(f'--ray needs the ray package ({exc}); pip install "{RAY_PIN}"') from None
+    if not ray.is_initialized() and address != 'auto':
+        host, _, port = address.removeprefix('ray://').rpartition(':')
+        try:                          # Ray retries an unreachable address for minutes: ask the socket first
+            socket.create_connection((host or '127.0.0.1', int(port)), timeout=5.0).close()
+        except (OSError, ValueError) as exc:
+            raise ValueError(f'--ray {address}: cannot start or reach Ray: {exc}') from None
+    if not ray.is_initialized():
+        try:
+            ray.init(address=None if address == 'auto' else address, include_dashboard=False, log_to_driver=False,
+                     configure_logging=False)
+        except (ConnectionError, RuntimeError, ValueError) as exc:
+            raise ValueError(f'--ray {address}: cannot start or reach Ray: {exc}') from None
+    return ray
+
+
+def ray_cpus(ray: ModuleType) -> int:
+    """CPUs the connected Ray cluster offers (at least 1)."""
+    return max(1, int(ray.cluster_resources().get('CPU', 0)))
