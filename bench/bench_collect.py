@@ -1,0 +1,55 @@
+"""Collect section of `make bench`: train_td3's landing collection (a DAgger round) on 1 and 2 env workers.
+
+The same DAgger round both times: the shipped latent actor flies (`--workers 1`: in this process; 2: a
+LandingPool of two worker processes, their start-up included), the nearest-pad demonstrator labels every
+state, paper pilots; the rows of both are identical (tests/test_policy_collect holds it), so only the
+time differs.
+"""
+from __future__ import annotations
+
+import time
+
+import torch
+
+LANDINGS = 24
+
+
+def run() -> list[dict]:
+    """Measure and return rows (name, value, unit, target)."""
+    from assist_policy.actor import load_actor
+    from assist_policy.cluster import cpu_cores
+    from assist_policy.collect import ActorWeights, LandingPool, collect_demos, make_env
+    from assist_policy.env import EnvConfig
+    from assist_policy.policy_core import default_model_path
+    from assist_policy.td3 import ReplayBuffer
+
+    torch.set_num_threads(1)
+    actor, meta = load_actor(default_model_path('latent'))
+
+    def cfg() -> EnvConfig:
+        return EnvConfig(condition='latent', max_episode_s=30.0, feature_lags_s=tuple(meta['feature_lags_s']),
+                         memory_displacement=meta['memory_displacement'])
+    env = make_env(cfg())
+    weights = ActorWeights.of(actor, meta)
+    act = weights.policy()
+    rows, rate = [], {}
+    try:
+        for workers in sorted({1, min(2, cpu_cores())}):
+            buf = ReplayBuffer(env.observation_space.shape[0], 3, 200_000)
+            t0 = time.perf_counter()
+            if workers == 1:
+                collect_demos(env, LANDINGS, 0.0, 7, buf, 'nearest_pad_commit', act_fn=act)
+            else:
+                with LandingPool(cfg(), 'nearest_pad_commit', workers) as pool:
+                    collect_demos(env, LANDINGS, 0.0, 7, buf, 'nearest_pad_commit', act_fn=act, pool=pool,
+                                  weights=weights)
+            rate[workers] = LANDINGS / (time.perf_counter() - t0)
+            rows.append({'name': f'DAgger round, {LANDINGS} latent landings, --workers {workers}',
+                         'value': rate[workers], 'unit': 'landings/s',
+                         'target': '>= 1.6x of 1 worker' if workers == 2 else ''})
+    finally:
+        env.close()
+    if 2 in rate:
+        rows.append({'name': 'collection speed-up, 2 workers over 1', 'value': rate[2] / rate[1], 'unit': 'x',
+                     'target': '>= 1.6'})
+    return rows
