@@ -49,9 +49,12 @@ def free_tcp_port() -> int:
 class Launch:
     """`ros2 launch PKG FILE args...` in its own process group (a terminal's Ctrl-C reaches all of it)."""
 
-    def __init__(self, ws, domain_id: int, package: str, file: str, args: list[str], log_dir: Path):
+    def __init__(self, ws, domain_id: int, package: str, file: str, args: list[str], log_dir: Path,
+                 prefixes: tuple[Path, ...] = ()):
         self.ws = ws
         env = dict(ws.env, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED='1')
+        if prefixes:          # more installed packages, found first (as a second underlay sourced after)
+            env['AMENT_PREFIX_PATH'] = os.pathsep.join([*map(str, prefixes), env.get('AMENT_PREFIX_PATH', '')])
         env.pop('DISPLAY', None)
         self.log_path = log_dir / f'{file}-{time.monotonic_ns()}.log'
         self._log = open(self.log_path, 'w')
@@ -91,12 +94,12 @@ class Launch:
 
 @pytest.fixture
 def launch(colcon_workspace, domain_id, tmp_path):
-    """Factory: launch(package, file, *args, symlink=False) -> Launch; killed at teardown."""
+    """Factory: launch(package, file, *args, symlink=False, prefixes=()) -> Launch; killed at teardown."""
     started: list[Launch] = []
 
-    def _start(package: str, file: str, *args: str, symlink: bool = False) -> Launch:
+    def _start(package: str, file: str, *args: str, symlink: bool = False, prefixes: tuple[Path, ...] = ()) -> Launch:
         ws = colcon_workspace(symlink)
-        lau = Launch(ws, domain_id, package, file, list(args), tmp_path)
+        lau = Launch(ws, domain_id, package, file, list(args), tmp_path, prefixes)
         started.append(lau)
         return lau
     yield _start
@@ -215,6 +218,47 @@ def test_onboard_and_base_station_split(ros, launch):
         flyer.join(5)
     assert_clean_exit(base.ctrl_c(), base.output(), nodes=3)
     assert_clean_exit(vehicle.ctrl_c(), vehicle.output(), nodes=3)
+
+
+def realsense_prefix(root: Path) -> Path:
+    """An install prefix holding a realsense2_camera package whose realsense2_camera_node is the stand-in
+    (tests/standins/realsense2_camera_node.py: the Jazzy driver's topics and profile, without a camera)."""
+    prefix = root / 'realsense_prefix'
+    index = prefix / 'share' / 'ament_index' / 'resource_index' / 'packages'
+    index.mkdir(parents=True)
+    (index / 'realsense2_camera').write_text('')
+    (prefix / 'share' / 'realsense2_camera').mkdir(parents=True)
+    exe = prefix / 'lib' / 'realsense2_camera' / 'realsense2_camera_node'
+    exe.parent.mkdir(parents=True)
+    exe.write_text(f'#!/bin/sh\nexec "{sys.executable}" "{REPO / "tests" / "standins" / "realsense2_camera_node.py"}" '
+                   '"$@"\n')
+    exe.chmod(0o755)
+    return prefix
+
+
+def test_onboard_with_a_realsense_camera(ros, launch, tmp_path):
+    """camera:=realsense: the driver's topics (/camera/camera/..., 640x480 rgb8 and aligned 16UC1 at 30 Hz)
+    reach the contract's names through the launch file's remappings, the image relay sends them at the
+    encoder's size, and the bridge (config/bridge_real.yaml) starts on `connection`; Ctrl-C ends all three."""
+    import cv2
+    import numpy as np
+    from sensor_msgs.msg import CompressedImage
+
+    from assist_bridge.image_relay import PARAMS as RELAY
+    Diag, Twist, Odom, Clock, Image, Floats = _types()
+    size = (RELAY['height'].default, RELAY['width'].default)
+
+    def jpeg_at_encoder_size(msg) -> bool:
+        img = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_COLOR)
+        return img is not None and img.shape[:2] == size
+    lau = launch('assist_bridge', 'onboard.launch.py', 'camera:=realsense',
+                 f'connection:=udpin:127.0.0.1:{free_udp_port()}', prefixes=(realsense_prefix(tmp_path),))
+    wait_for_topics(ros, {'/camera/color/image_raw': (Image, lambda m: (m.width, m.encoding) == (640, 'rgb8')),
+                          '/camera/depth/image_raw': (Image, lambda m: (m.width, m.encoding) == (640, '16UC1')),
+                          '/camera/color/image_raw/compressed': (CompressedImage, jpeg_at_encoder_size),
+                          '/camera/depth/image_raw/compressedDepth': (CompressedImage, lambda m: '16UC1' in m.format),
+                          '/diagnostics': (Diag, from_node('mavlink_bridge_node'))}, lau)
+    assert_clean_exit(lau.ctrl_c(), lau.output(), nodes=3)
 
 
 def test_station_launch_unassisted(ros, launch):
