@@ -26,25 +26,33 @@ def process_context() -> multiprocessing.context.BaseContext:
     return multiprocessing.get_context('spawn')
 
 
+_CONNECTED: list[str] = []         # the address this process initialised Ray with
+
+
 def connect_ray(address: str) -> ModuleType:
     """The ray module, initialised for `address` ('auto': a local instance; HOST:6379 or ray://HOST:10001: an
-    existing cluster); ValueError (one line) when ray is missing or the cluster cannot be started or reached."""
+    existing cluster); ValueError (one line) when ray is missing, the cluster cannot be started or reached, or
+    this process already uses Ray at another address (a Ray instance already up for `address` is reused)."""
     try:
         import ray
     except ImportError as exc:
         raise ValueError(f'--ray needs the ray package ({exc}); pip install "{RAY_PIN}"') from None
-    if not ray.is_initialized() and address != 'auto':
+    if address != 'auto':
         host, _, port = address.removeprefix('ray://').rpartition(':')
         try:                          # Ray retries an unreachable address for minutes: ask the socket first
             socket.create_connection((host or '127.0.0.1', int(port)), timeout=5.0).close()
         except (OSError, ValueError) as exc:
             raise ValueError(f'--ray {address}: cannot start or reach Ray: {exc}') from None
-    if not ray.is_initialized():
-        try:
-            ray.init(address=None if address == 'auto' else address, include_dashboard=False, log_to_driver=False,
-                     configure_logging=False)
-        except (ConnectionError, RuntimeError, ValueError) as exc:
-            raise ValueError(f'--ray {address}: cannot start or reach Ray: {exc}') from None
+    if ray.is_initialized():
+        if _CONNECTED and _CONNECTED[-1] != address:
+            raise ValueError(f'--ray {address}: this process already uses Ray at {_CONNECTED[-1]}')
+        return ray
+    try:
+        ray.init(address=None if address == 'auto' else address, include_dashboard=False, log_to_driver=False,
+                 configure_logging=False)
+    except (ConnectionError, RuntimeError, ValueError) as exc:
+        raise ValueError(f'--ray {address}: cannot start or reach Ray: {exc}') from None
+    _CONNECTED.append(address)
     return ray
 
 

@@ -17,3 +17,15 @@ def depth_at(request):
         return cache[(x, y, z)]
     yield render
     world.close()
+
+
+@pytest.fixture(scope='module')
+def local_ray():
+    """A local Ray instance shared by a module's tests of the --ray paths (it takes ~10 s to start; shut down
+    after the module, so its processes do not run beside later tests); the ray module. Skipped where ray is
+    not installed (requirements.txt installs it, so `make test` runs these)."""
+    ray = pytest.importorskip('ray', reason='ray is in requirements.txt; this runs wherever make test installed it')
+    from assist_policy.cluster import connect_ray
+    connect_ray('auto')
+    yield ray
+    ray.shutdown()

@@ -130,8 +130,7 @@ def test_ray_at_an_address_nobody_serves_is_one_error_line(tmp_path, capsys):
     assert not (tmp_path / 'r' / 'metrics.csv').exists()
 
 
-def test_ray_actors_fly_what_a_local_worker_flies(tmp_path):
-    ray = pytest.importorskip('ray', reason='ray is in requirements.txt; this runs wherever make test installed it')
+def test_ray_actors_fly_what_a_local_worker_flies(local_ray):
     worker = LandingWorker(EnvConfig(**CFG), 'oracle')
     tasks = [LandingTask('demo', k, 20 + k, noise_seed=(2, k), noise=0.2) for k in range(2)]
     try:
@@ -142,4 +141,13 @@ def test_ray_actors_fly_what_a_local_worker_flies(tmp_path):
             assert m.result == t.result and np.array_equal(m.obs, t.obs) and np.array_equal(m.act, t.act)
     finally:
         worker.close()
-        ray.shutdown()
+
+
+def test_a_second_ray_address_in_one_process_is_refused(local_ray):
+    import socket
+
+    from assist_policy.cluster import connect_ray
+    assert connect_ray('auto') is local_ray                        # the instance up for 'auto' is reused
+    with socket.create_server(('127.0.0.1', 0)) as server:         # something answers there, but not our Ray
+        with pytest.raises(ValueError, match='already uses Ray at auto'):
+            connect_ray(f'127.0.0.1:{server.getsockname()[1]}')

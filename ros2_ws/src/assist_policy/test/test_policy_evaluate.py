@@ -125,17 +125,13 @@ def test_auto_workers_scale_with_the_plan(monkeypatch):
     assert ev.worker_count(3, 2) == 2 and ev.worker_count(3, 100) == 3
 
 
-def test_a_local_ray_instance_flies_the_rows_of_one_process(tmp_path):
+def test_a_local_ray_instance_flies_the_rows_of_one_process(tmp_path, local_ray):
     """--ray auto: the landings as Ray tasks on a local instance, byte-identical rows."""
-    ray = pytest.importorskip('ray', reason='ray is in requirements.txt; this runs wherever make test installed it')
     flags = ['--conditions', 'unassisted', 'oracle', '--betas', '0', '1', '--landings', '1', '--max-episode-s', '12',
              '--plot', 'false']
-    try:
-        assert main(['--out', str(tmp_path / 'one'), '--workers', '1', *flags]) == 0
-        assert main(['--out', str(tmp_path / 'ray'), '--ray', 'auto', *flags]) == 0
-        assert ray.is_initialized() and ray.cluster_resources().get('CPU', 0) >= 1
-    finally:
-        ray.shutdown()
+    assert main(['--out', str(tmp_path / 'one'), '--workers', '1', *flags]) == 0
+    assert main(['--out', str(tmp_path / 'ray'), '--ray', 'auto', *flags]) == 0
+    assert local_ray.is_initialized() and local_ray.cluster_resources().get('CPU', 0) >= 1
     assert (tmp_path / 'one' / 'landings.csv').read_text() == (tmp_path / 'ray' / 'landings.csv').read_text()
 
 
