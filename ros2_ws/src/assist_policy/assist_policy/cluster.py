@@ -8,6 +8,7 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
+import signal
 import socket
 from types import ModuleType
 
@@ -24,6 +25,12 @@ def cpu_cores() -> int:
 def process_context() -> multiprocessing.context.BaseContext:
     """The start method for worker processes: spawn (a fresh interpreter: no forked torch or pybullet state)."""
     return multiprocessing.get_context('spawn')
+
+
+def ignore_ctrl_c() -> None:
+    """In a worker process: leave Ctrl-C to the parent, which stops the pool (a terminal signals the whole
+    process group, and a worker interrupted while it waits for work would print a traceback)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 _CONNECTED: list[str] = []         # the address this process initialised Ray with

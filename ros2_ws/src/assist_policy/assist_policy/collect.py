@@ -36,7 +36,7 @@ import torch
 from tqdm import tqdm
 
 from .actor import Actor
-from .cluster import connect_ray, cpu_cores, process_context, ray_cpus
+from .cluster import connect_ray, cpu_cores, ignore_ctrl_c, process_context, ray_cpus
 from .env import EnvConfig, LandingAssistEnv, run_episode
 from .latent import make_latent_fn
 from .scripted import NEAREST_PAD_VARIANTS, ScriptedOracle, make_nearest_pad
@@ -231,8 +231,9 @@ _WORKER: LandingWorker | None = None
 
 
 def _process_start(env_cfg: EnvConfig, demo_policy: str) -> None:
-    """Worker process initialiser: logging, one torch thread, the worker."""
+    """Worker process initialiser: Ctrl-C left to the parent, logging, one torch thread, the worker."""
     global _WORKER
+    ignore_ctrl_c()
     logging.basicConfig(level=logging.WARNING, format='%(levelname)s %(name)s: %(message)s')
     _WORKER = LandingWorker(env_cfg, demo_policy)
 

@@ -72,7 +72,7 @@ from assist_sim.pilots import PILOT_NAMES
 
 from .bags.bagio import BagError
 from .bags.episode import record_landing
-from .cluster import connect_ray, cpu_cores, process_context, ray_cpus
+from .cluster import connect_ray, cpu_cores, ignore_ctrl_c, process_context, ray_cpus
 from .cli import add_dataclass_args, check_settings, parse_dataclass_args, setting
 from .damper import DamperConfig
 from .env import EnvConfig, LandingAssistEnv, run_episode
@@ -500,8 +500,10 @@ _FLYER: LandingFlyer | None = None
 
 
 def _worker_start(args: EvalArgs) -> None:
-    """Worker process initialiser: one torch thread (the workers are the parallelism), a flyer."""
+    """Worker process initialiser: Ctrl-C left to the parent, one torch thread (the workers are the
+    parallelism), a flyer."""
     global _FLYER
+    ignore_ctrl_c()
     torch.set_num_threads(1)
     logging.basicConfig(level=logging.WARNING, format='%(levelname)s %(name)s: %(message)s')
     _FLYER = LandingFlyer(args)

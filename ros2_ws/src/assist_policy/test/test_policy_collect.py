@@ -151,3 +151,57 @@ def test_a_second_ray_address_in_one_process_is_refused(local_ray):
     with socket.create_server(('127.0.0.1', 0)) as server:         # something answers there, but not our Ray
         with pytest.raises(ValueError, match='already uses Ray at auto'):
             connect_ray(f'127.0.0.1:{server.getsockname()[1]}')
+
+
+def _group_of(pid: int) -> int | None:
+    """Process group of a live process `pid` (None once it is gone or a zombie: exited, not yet reaped by the
+    init process it was handed to)."""
+    from pathlib import Path
+    try:
+        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+    except OSError:
+        return None
+    return None if fields[0] in ('Z', 'X') else int(fields[2])
+
+
+def test_ctrl_c_stops_a_run_on_workers_quietly_and_it_resumes(tmp_path):
+    """Ctrl-C (SIGINT to the process group, as a terminal sends it): train_td3 and its workers stop within
+    seconds, exit status 130, no traceback from any worker, no process left; --resume continues the run."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+    cmd = [str(Path(sys.executable).parent / 'train_td3'), '--runs-dir', str(tmp_path), '--name', 'r',
+           '--condition', 'oracle', '--total-steps', '200000', '--start-steps', '100', '--max-episode-s', '4',
+           '--hidden', '32', '32', '--buffer-size', '50000', '--checkpoint-every-steps', '300',
+           '--eval-every-episodes', '100000', '--workers', '2']
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    metrics = tmp_path / 'r' / 'metrics.csv'
+    try:
+        end = time.monotonic() + 180
+        while time.monotonic() < end and proc.poll() is None:
+            if (tmp_path / 'r' / 'checkpoint').is_dir() and metrics.is_file() and len(_rows(metrics)) >= 6:
+                break
+            time.sleep(0.2)
+        assert proc.poll() is None, proc.communicate()[0][-3000:]
+        os.killpg(proc.pid, signal.SIGINT)
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(10)
+    assert proc.returncode == 130, out[-3000:]
+    assert 'Traceback' not in out and 'KeyboardInterrupt' not in out, out[-3000:]
+    end = time.monotonic() + 10                     # a worker or the resource tracker may still be exiting
+    while True:
+        left = [pid for pid in os.listdir('/proc') if pid.isdigit() and _group_of(int(pid)) == proc.pid]
+        if not left or time.monotonic() > end:
+            break
+        time.sleep(0.1)
+    assert not left, [(pid, Path(f'/proc/{pid}/stat').read_text()) for pid in left]
+    step = load_checkpoint(tmp_path / 'r')[0]['step']
+    train(TrainArgs(resume=str(tmp_path / 'r'), total_steps=step + 200, workers=1))
+    assert load_checkpoint(tmp_path / 'r')[0]['step'] >= step + 200
