@@ -22,7 +22,7 @@ help:
 	@echo "make soak   - soak test: full assisted graph, 30 min sim time (ASSIST_SOAK_SIM_S=seconds to change)"
 	@echo "make colcon - build ros2_ws with colcon into ros2_ws/install"
 	@echo "make browser - install Chromium + ChromeDriver (Debian packages) for the pilot station browser test"
-	@echo "make netns  - install iproute2 + nftables (Debian packages) for the network-split test"
+	@echo "make netns  - install iproute2 (Debian package) for the network-split test"
 
 venv: $(STAMP)
 
@@ -42,11 +42,11 @@ browser:
 	  SUDO=$$( [ "$$(id -u)" -eq 0 ] || echo sudo ); \
 	  $$SUDO apt-get update && $$SUDO apt-get install -y chromium chromium-driver; }
 
-# The network-split test needs iproute2 (ip netns, veth, tc) and nftables (loss where the kernel has no netem).
+# The network-split test needs iproute2 (ip netns, veth, tc netem; TUN devices where the kernel has no netem).
 netns:
-	@command -v ip >/dev/null && command -v tc >/dev/null && command -v nft >/dev/null || { \
+	@command -v ip >/dev/null && command -v tc >/dev/null || { \
 	  SUDO=$$( [ "$$(id -u)" -eq 0 ] || echo sudo ); \
-	  $$SUDO apt-get update && $$SUDO apt-get install -y iproute2 nftables; }
+	  $$SUDO apt-get update && $$SUDO apt-get install -y iproute2; }
 
 # The style gate (ruff.toml); make test runs it first, so CI does too.
 lint: $(STAMP)

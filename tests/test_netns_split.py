@@ -1,18 +1,23 @@
-"""The two-machine split over a real network link: two Linux network namespaces joined by a veth pair.
+"""The two-machine split over a real network link between two Linux network namespaces.
 
 The vehicle namespace runs an ArduCopter stand-in on UDP loopback (assist_sim.testing.SilentAutopilot, with
 position telemetry), mavlink_bridge_node and image_relay on a 30 Hz camera; the base-station namespace
-runs a pilot that commands /cmd_vel and watches /odom and the relayed frames. DDS discovers across the veth
+runs a pilot that commands /cmd_vel and watches /odom and the relayed frames. DDS discovers across the
 link (UDPv4 only: Fast DDS's shared-memory transport would otherwise carry the data past the link). The test
 measures pilot -> setpoint latency (publish on the base station -> the setpoint datagram at the vehicle, by
-the kernel's receive stamp; both namespaces share the host clock) on a clean link and under `tc netem`
+the kernel's receive stamp; both namespaces share the host clock) on a clean link and on an impaired one
 (50 ms delay, 5 % loss each way), then takes the link down: the vehicle must get zero velocity within
-the bridge's command timeout, and commands must flow again when the link comes back. The addresses are the
-project's own (10.213.7.0/30); namespaces and veth are created and removed by the test. Needs root and
-iproute2 (`make test` installs it); skipped, saying why, only where namespaces cannot be created.
+the bridge's command timeout, and commands must flow again when the link comes back.
+
+The link is a veth pair impaired with `tc netem` where the kernel has netem; where it has not (some cloud
+and microVM kernels are built without it), it is a pair of TUN devices joined by tests/standins/tun_link.py's
+forwarder, which applies the same delay and loss in user space. The addresses are the project's own
+(10.213.7.0/30); namespaces and devices are created and removed by the test. Needs root and iproute2
+(`make test` installs it); skipped, saying why, only where namespaces cannot be created.
 """
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import shutil
@@ -20,7 +25,6 @@ import signal
 import subprocess
 import sys
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -41,31 +45,108 @@ def _ip(*args: str) -> None:
     subprocess.run(['ip', *args], check=True, capture_output=True, text=True, timeout=30)
 
 
+DELAY_S, LOSS = 0.050, 0.05           # the impaired phase, each way
+
+
+def _tun_link():
+    """tests/standins/tun_link.py (the suite imports test modules by path, so not as a package)."""
+    spec = importlib.util.spec_from_file_location('tun_link', REPO / 'tests' / 'standins' / 'tun_link.py')
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _has_netem(ns: str) -> tuple[bool, str]:
+    """Whether `tc netem` works in namespace `ns` (tried on its loopback, then removed); the error if not."""
+    probe = subprocess.run(['ip', 'netns', 'exec', ns, 'tc', 'qdisc', 'add', 'dev', 'lo', 'root', 'netem', 'delay',
+                            '1ms'], capture_output=True, text=True, timeout=30)
+    if probe.returncode == 0:
+        subprocess.run(['ip', 'netns', 'exec', ns, 'tc', 'qdisc', 'del', 'dev', 'lo', 'root'], capture_output=True,
+                       timeout=30)
+    return probe.returncode == 0, probe.stderr.strip()
+
+
+class Link:
+    """The link between the namespaces: veth + netem, or TUN devices + the user-space forwarder."""
+
+    def __init__(self, veh: str, base: str, tag: str) -> None:
+        self.veh, self.base = veh, base
+        self.tun = None
+        netem, why = _has_netem(veh)
+        if netem:
+            self.kind, self.dev_veh, self.dev_base = 'veth', f'astv{tag}', f'astb{tag}'
+            _ip('link', 'add', self.dev_veh, 'type', 'veth', 'peer', 'name', self.dev_base)
+            _ip('link', 'set', self.dev_veh, 'netns', veh)
+            _ip('link', 'set', self.dev_base, 'netns', base)
+            addrs = ((veh, self.dev_veh, [NET + '1/30']), (base, self.dev_base, [NET + '2/30']))
+        else:
+            tun_link = _tun_link()
+            self.kind, self.dev_veh, self.dev_base = 'tun', f'astv{tag}', f'astb{tag}'
+            self.no_netem = why
+            self.tun = tun_link.TunLink(tun_link.open_tun_in(veh, self.dev_veh),
+                                        tun_link.open_tun_in(base, self.dev_base))
+            addrs = ((veh, self.dev_veh, [NET + '1', 'peer', NET + '2']),
+                     (base, self.dev_base, [NET + '2', 'peer', NET + '1']))
+        for ns, dev, addr in addrs:
+            _ip('-n', ns, 'addr', 'add', *addr, 'dev', dev)
+            _ip('-n', ns, 'link', 'set', 'lo', 'up')
+            _ip('-n', ns, 'link', 'set', dev, 'up', 'multicast', 'on')
+            _ip('-n', ns, 'route', 'add', '224.0.0.0/4', 'dev', dev)      # DDS discovery multicast
+        if self.tun is not None:
+            self.tun.start()
+
+    def impair(self) -> str:
+        """DELAY_S and LOSS each way; what was applied."""
+        if self.tun is not None:
+            self.tun.impair(DELAY_S, LOSS)
+            return f'user-space netem on a TUN link (this kernel: {self.no_netem}): delay 50ms loss 5%'
+        for ns, dev in ((self.base, self.dev_base), (self.veh, self.dev_veh)):
+            subprocess.run(['ip', 'netns', 'exec', ns, 'tc', 'qdisc', 'add', 'dev', dev, 'root', 'netem', 'delay',
+                            f'{DELAY_S * 1000:.0f}ms', 'loss', f'{LOSS * 100:.0f}%'], check=True, timeout=30)
+        return 'netem delay 50ms loss 5%'
+
+    def clear(self) -> None:
+        """Back to a clean link."""
+        if self.tun is not None:
+            self.tun.impair(0.0, 0.0)
+            return
+        for ns, dev in ((self.base, self.dev_base), (self.veh, self.dev_veh)):
+            subprocess.run(['ip', 'netns', 'exec', ns, 'tc', 'qdisc', 'del', 'dev', dev, 'root'], check=True,
+                           timeout=30)
+
+    def set_base_end(self, up: bool) -> None:
+        """The base station's end of the link down (a pulled cable) or up again."""
+        _ip('-n', self.base, 'link', 'set', self.dev_base, 'up' if up else 'down')
+        if up:
+            _ip('-n', self.base, 'route', 'replace', '224.0.0.0/4', 'dev', self.dev_base)
+
+    def close(self) -> None:
+        """Stop the forwarder (its devices go with it)."""
+        if self.tun is not None:
+            self.tun.close()
+
+
 @pytest.fixture
 def netns_pair():
-    """(vehicle namespace, base namespace, vehicle-side veth, base-side veth); removed at teardown."""
+    """(vehicle namespace, base namespace, the Link between them); all removed at teardown."""
     if shutil.which('ip') is None or shutil.which('tc') is None:
         pytest.skip('NETWORK SPLIT NOT TESTED: iproute2 (ip, tc) is not installed')
     if os.geteuid() != 0:
         pytest.skip('NETWORK SPLIT NOT TESTED: creating network namespaces needs root')
     tag = f'{os.getpid() % 100000}'
-    veh, base, vv, vb = f'astveh{tag}', f'astbase{tag}', f'astv{tag}', f'astb{tag}'
+    veh, base = f'astveh{tag}', f'astbase{tag}'
     try:
         _ip('netns', 'add', veh)
     except subprocess.CalledProcessError as exc:
         pytest.skip(f'NETWORK SPLIT NOT TESTED: cannot create a network namespace here: {exc.stderr.strip()}')
+    link = None
     try:
         _ip('netns', 'add', base)
-        _ip('link', 'add', vv, 'type', 'veth', 'peer', 'name', vb)
-        _ip('link', 'set', vv, 'netns', veh)
-        _ip('link', 'set', vb, 'netns', base)
-        for ns, dev, addr in ((veh, vv, NET + '1/30'), (base, vb, NET + '2/30')):
-            _ip('-n', ns, 'addr', 'add', addr, 'dev', dev)
-            _ip('-n', ns, 'link', 'set', 'lo', 'up')
-            _ip('-n', ns, 'link', 'set', dev, 'up', 'multicast', 'on')
-            _ip('-n', ns, 'route', 'add', '224.0.0.0/4', 'dev', dev)      # DDS discovery multicast
-        yield veh, base, vv, vb
+        link = Link(veh, base, tag)
+        yield veh, base, link
     finally:
+        if link is not None:
+            link.close()
         for ns in (veh, base):
             subprocess.run(['ip', 'netns', 'del', ns], capture_output=True, timeout=30)
 
@@ -109,33 +190,8 @@ def _latencies(sent: list, setpoints: list, after: float, until: float) -> tuple
     return np.array(lat), lost
 
 
-def impair_link(veh: str, vv: str, base: str, vb: str) -> str:
-    """50 ms delay and 5 % loss each way with `tc netem`; where the kernel has no netem (some cloud kernels
-    are built without it), 5 % loss with nftables only. Returns what was applied ('' and a loud warning when
-    neither is possible)."""
-    ns_dev = ((base, vb), (veh, vv))
-    probe = subprocess.run(['ip', 'netns', 'exec', base, 'tc', 'qdisc', 'add', 'dev', vb, 'root', 'netem', 'delay',
-                            '50ms', 'loss', '5%'], capture_output=True, text=True, timeout=30)
-    if probe.returncode == 0:
-        subprocess.run(['ip', 'netns', 'exec', veh, 'tc', 'qdisc', 'add', 'dev', vv, 'root', 'netem', 'delay', '50ms',
-                        'loss', '5%'], check=True, timeout=30)
-        return 'netem delay 50ms loss 5%'
-    if shutil.which('nft'):
-        for ns, dev in ns_dev:
-            rules = (f'add table inet astloss\nadd chain inet astloss out {{ type filter hook output priority 0; }}\n'
-                     f'add rule inet astloss out oifname "{dev}" numgen random mod 100 < 5 drop\n')
-            subprocess.run(['ip', 'netns', 'exec', ns, 'nft', '-f', '-'], input=rules, text=True, check=True,
-                           timeout=30)
-        warnings.warn(f'this kernel has no netem ({probe.stderr.strip()}): the impaired phase has 5 % loss each way '
-                      'but no added delay', stacklevel=2)
-        return 'nftables loss 5% (no netem: no delay)'
-    warnings.warn(f'IMPAIRED LINK NOT TESTED: no netem in this kernel ({probe.stderr.strip()}) and no nft',
-                  stacklevel=2)
-    return ''
-
-
-def test_split_over_a_veth_link_with_netem_and_a_link_cut(netns_pair, tmp_path, domain_id):
-    veh, base, vv, vb = netns_pair
+def test_split_over_a_network_link_with_delay_loss_and_a_link_cut(netns_pair, tmp_path, domain_id):
+    veh, base, link = netns_pair
     py = sys.executable
     procs = []
 
@@ -158,19 +214,18 @@ def test_split_over_a_veth_link_with_netem_and_a_link_cut(netns_pair, tmp_path, 
             assert out.exists(), pilot.log.read_text()[-3000:]
             return json.loads(out.read_text())
         results['clean'] = fly('clean', 12.0)
-        impaired = impair_link(veh, vv, base, vb)
-        if impaired:
-            results['netem'] = fly('netem', 12.0)
+        impaired = link.impair()
+        results['netem'] = fly('netem', 12.0)
+        link.clear()
         cut = {}
 
         def cut_link():
             time.sleep(6.0)
             cut['down'] = time.time()
-            _ip('-n', base, 'link', 'set', vb, 'down')
+            link.set_base_end(up=False)
             time.sleep(3.0)
             cut['up'] = time.time()
-            _ip('-n', base, 'link', 'set', vb, 'up')
-            _ip('-n', base, 'route', 'replace', '224.0.0.0/4', 'dev', vb)
+            link.set_base_end(up=True)
         results['cut'] = fly('cut', 25.0, cut_link)
     finally:
         for p in reversed(procs):
@@ -178,7 +233,7 @@ def test_split_over_a_veth_link_with_netem_and_a_link_cut(netns_pair, tmp_path, 
     setpoints = json.loads((tmp_path / 'vehicle.json').read_text())['setpoints']
     assert setpoints, (tmp_path / 'bridge.log').read_text()[-3000:]
     report = {}
-    for phase in [ph for ph in ('clean', 'netem') if ph in results]:
+    for phase in ('clean', 'netem'):
         r = results[phase]
         lat, lost = _latencies(r['sent'], setpoints, after=r['sent'][0][1] + 4.0,   # discovery settles first
                                until=r['sent'][-1][1] + 2.0)
@@ -192,9 +247,9 @@ def test_split_over_a_veth_link_with_netem_and_a_link_cut(netns_pair, tmp_path, 
                          'frame_age_p99_ms': round(1e3 * float(np.percentile(age, 99)), 1) if len(age) else None}
         assert r['odom'] > 50 and len(r['frames']) > 50, (phase, r['odom'], len(r['frames']))
     assert report['clean']['p99_ms'] < 500 and report['clean']['lost'] == 0, report
-    report['impairment'] = impaired or 'none (see the warning)'
-    if impaired.startswith('netem'):
-        assert 50 <= report['netem']['p50_ms'] < 400, report        # one way: 50 ms of netem at least
+    report['link'], report['impairment'] = link.kind, impaired
+    assert 50 <= report['netem']['p50_ms'] < 400, report            # one way: the 50 ms delay at least
+    assert report['netem']['frame_age_p50_ms'] >= 50, report
     # link down: the bridge's command timeout -> zero velocity at the vehicle; back up: commands again
     arr = np.array(setpoints)
     after_down = arr[arr[:, 0] > cut['down']]
