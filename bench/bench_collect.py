@@ -11,7 +11,7 @@ import time
 
 import torch
 
-LANDINGS = 24
+LANDINGS = 40
 
 
 def run() -> list[dict]:
