@@ -154,7 +154,8 @@ def exit_error(prog: str, problem: BaseException | str, status: int) -> typing.N
     raise SystemExit(status)
 
 
-def _bool(text: str) -> bool:
+def parse_bool(text: str) -> bool:
+    """argparse type: true/false, 1/0, yes/no, on/off (any case); anything else is refused, quoted."""
     low = text.strip().lower()
     if low in ('1', 'true', 'yes', 'on'):
         return True
@@ -189,7 +190,7 @@ def parse_settings(cls: type[_T], description: str, argv: list[str] | None = Non
         typ = _TYPES[str(f.type)]
         name = flag(f.name)
         if typ is bool:
-            ap.add_argument(name, nargs='?', const=True, type=_bool, default=None,
+            ap.add_argument(name, nargs='?', const=True, type=parse_bool, default=None,
                             help=f'(default {f.default})')
         else:
             ap.add_argument(name, type=typ, default=None, help=f'(default {f.default})')

@@ -14,17 +14,10 @@ import math
 import typing
 from typing import Any
 
-from assist_common.settings import Rule, SettingsError, check_settings, exit_error, flag, setting  # noqa: F401
+from assist_common.settings import (Rule, SettingsError, check_settings, exit_error, flag,  # noqa: F401
+                                    parse_bool, setting)
 
 _UNSET = object()     # marks a flag the command line did not give
-
-
-def _parse_bool(text: str) -> bool:
-    if text.lower() in ('1', 'true', 'yes', 'on'):
-        return True
-    if text.lower() in ('0', 'false', 'no', 'off'):
-        return False
-    raise argparse.ArgumentTypeError(f'not a boolean: {text}')
 
 
 def finite_float(text: str) -> float:
@@ -47,7 +40,7 @@ def add_dataclass_args(parser: argparse.ArgumentParser, cls: type, help_text: di
         doc = help_text.get(f.name, '') + f' (default: {default})'
         origin = typing.get_origin(hint)
         if hint is bool or hint == (bool | None):       # an optional bool: left unset, None
-            parser.add_argument(flag(f.name), type=_parse_bool, default=default, help=doc)
+            parser.add_argument(flag(f.name), type=parse_bool, default=default, help=doc)
         elif origin in (tuple, list):
             inner = typing.get_args(hint)[0]
             parser.add_argument(flag(f.name), type=finite_float if inner is float else inner, nargs='*',
