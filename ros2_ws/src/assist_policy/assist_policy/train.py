@@ -230,10 +230,10 @@ def env_config_from(args: TrainArgs) -> EnvConfig:
                                          floor_descent_weight=args.floor_descent_weight))
 
 
-def evaluate_agent(env: LandingAssistEnv, agent: TD3, per_beta: int, seed: int = 12345,
+def evaluate_agent(env: LandingAssistEnv | None, agent: TD3, per_beta: int, seed: int = 12345,
                    pool: LandingPool | None = None) -> dict:
-    """Deterministic evaluation on fixed seeds over EVAL_BETAS; mean error, success, crash rates (flown by
-    `pool`'s workers when given: the same landings)."""
+    """Deterministic evaluation on fixed seeds over EVAL_BETAS; mean error, success, crash rates (flown in
+    `env`, or by `pool`'s workers when given: the same landings; `env` is then not used)."""
     plan = [(seed + 1000 * bi + k, beta) for bi, beta in enumerate(EVAL_BETAS) for k in range(per_beta)]
     if pool is None:
         rows = [run_episode(env, agent.act, s, {'beta': beta}) for s, beta in plan]
@@ -476,7 +476,7 @@ def _train(args: TrainArgs, pool: LandingPool | None) -> Path:
         log.info('removed %s (left by an interrupted write)', stale)
     env_cfg = env_config_from(args)
     env = make_env(env_cfg)
-    eval_env = make_env(env_config_from(args))
+    eval_env = make_env(env_config_from(args)) if pool is None else None    # a pool's workers evaluate
     write_text_atomic(run_dir / 'config.json', json.dumps(
         {'train': dataclasses.asdict(args), 'env': dataclasses.asdict(env_cfg),
          'td3': dataclasses.asdict(TD3Config(hidden=args.hidden, actor_lr=args.actor_lr))}, indent=2, default=str))
@@ -704,7 +704,8 @@ def _train(args: TrainArgs, pool: LandingPool | None) -> Path:
         metrics.close()
         evals.close()
         env.close()
-        eval_env.close()
+        if eval_env is not None:
+            eval_env.close()
     return run_dir
 
 
