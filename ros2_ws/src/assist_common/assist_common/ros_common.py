@@ -1,6 +1,7 @@
 """Shared rclpy plumbing for every node in the workspace (parameters, QoS, diagnostics, main)."""
 from __future__ import annotations
 
+import faulthandler
 import gc
 import importlib.metadata
 import logging
@@ -517,7 +518,14 @@ def _context_going_down(grace_s: float) -> bool:
 
 
 SPIN_STOP_TIMEOUT_S = 5.0
+#: A node still going down this long after a stop signal writes every thread's stack to stderr (see _going_down).
+SHUTDOWN_STACKS_S = 8.0
+#: exit_process: flushing and exiting taking this long writes every thread's stack and exits with code 1.
+EXIT_STACKS_S = 5.0
 STOP_POLL_S = 0.1
+#: The main thread's longest uninterrupted wait while a node spins: a stop signal taken by another thread is
+#: acted on within this (spin_off_main_thread).
+SIGNAL_POLL_S = 0.1
 
 
 def spin_until_stopped(spinner, stop: threading.Event, context=None, poll_s: float = STOP_POLL_S) -> None:
@@ -572,13 +580,18 @@ def spin_off_main_thread(spinner, teardown: Callable[[], None] | None = None, co
     worker = threading.Thread(target=spin, name='rclpy_spin', daemon=True)
     try:
         worker.start()
-        finished.wait()                 # a lock wait: a signal interrupts it and its handler runs here
+        # A timed wait, again and again: the kernel hands a process-wide signal (Ctrl-C, launch's SIGINT) to
+        # any thread that does not block it (the middleware's, the node's own), and then Python's C handler
+        # only raises a flag; the main thread runs the Python handler at its next bytecode, which a wait
+        # without a timeout never reaches (sim_node ignored a Ctrl-C until launch's SIGKILL).
+        while not finished.wait(SIGNAL_POLL_S):
+            pass
     finally:
         # Not worker.join()/is_alive(): a join interrupted by Ctrl-C marks the running thread as
         # stopped (CPython's bpo-45274 fix releases its lock), and the node was then closed twice,
         # under a live executor (CI: pybullet "Not connected to physics server").
         if not finished.is_set():       # interrupted: stop dispatching, let the running callback finish
-            _ignore_stop_signals()      # a second Ctrl-C must not cut this short
+            _going_down()               # a second Ctrl-C must not cut this short
             stop.set()
             if not finished.wait(SPIN_STOP_TIMEOUT_S):
                 logging.getLogger(__name__).warning(
@@ -586,6 +599,7 @@ def spin_off_main_thread(spinner, teardown: Callable[[], None] | None = None, co
                 rclpy.try_shutdown(context=context)
                 if not finished.wait(SPIN_STOP_TIMEOUT_S):
                     logging.getLogger(__name__).warning('executor still in a callback; cleaning up anyway')
+        faulthandler.cancel_dump_traceback_later()
     if failure:
         raise failure[0]
 
@@ -746,7 +760,7 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
     finally:
         # Going down: another Ctrl-C (a second key press, or launch's SIGINT/SIGTERM to a node that is
         # already exiting) must not interrupt the clean-up with a KeyboardInterrupt traceback.
-        _ignore_stop_signals()
+        _going_down()
         if node is not None:
             if not closed.is_set():     # never spun (start-up failed), or the executor never came back
                 close_node()
@@ -754,7 +768,7 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
             node.destroy_node()
         if rclpy.ok():
             rclpy.try_shutdown()
-        _ignore_stop_signals()
+        faulthandler.cancel_dump_traceback_later()
     return code
 
 
@@ -765,6 +779,8 @@ def exit_process(code: int) -> None:
     down); tearing down torch's and the middleware's modules at interpreter exit takes another
     2-4 s on a loaded machine, which makes `ros2 launch` escalate a Ctrl-C to SIGTERM.
     """
+    _going_down()
+    faulthandler.dump_traceback_later(EXIT_STACKS_S, exit=True, file=sys.stderr)
     logging.shutdown()
     for stream in (sys.stdout, sys.stderr):
         try:
@@ -774,7 +790,21 @@ def exit_process(code: int) -> None:
     os._exit(code)
 
 
-def _ignore_stop_signals() -> None:
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+def _going_down() -> None:
+    """The process is going down: further stop signals are not obeyed, and a hang says where it is.
+
+    SIGINT is ignored; SIGTERM (launch's escalation 5 s after its SIGINT) and SHUTDOWN_STACKS_S
+    without an exit write the stack of every thread to stderr. Both are faulthandler's: its signal
+    handler and its watchdog thread run in C without the GIL, so they report even a process in which
+    no Python code can run any more (a thread stuck in an extension while holding the GIL), where a
+    log line would never come. From the main thread only (signal handlers live there).
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    try:
+        faulthandler.register(signal.SIGTERM, file=sys.stderr, all_threads=True, chain=False)
+        faulthandler.dump_traceback_later(SHUTDOWN_STACKS_S, file=sys.stderr)
+    except (AttributeError, ValueError, OSError, RuntimeError) as exc:   # no usable stderr (closed, replaced)
+        logging.getLogger(__name__).debug('no stack dump on a stuck shutdown: %s', exc)

@@ -10,11 +10,15 @@ import multiprocessing
 import os
 import signal
 import socket
+from collections.abc import Iterable, Iterator
+from concurrent.futures import FIRST_COMPLETED, Future, wait
 from types import ModuleType
 
 log = logging.getLogger(__name__)
 
 RAY_PIN = 'ray==2.60.0'
+#: The main process's longest uninterrupted wait for its workers: a Ctrl-C is raised within this (completed_in_turn).
+WAIT_POLL_S = 0.1
 
 
 def cpu_cores() -> int:
@@ -31,6 +35,26 @@ def ignore_ctrl_c() -> None:
     """In a worker process: leave Ctrl-C to the parent, which stops the pool (a terminal signals the whole
     process group, and a worker interrupted while it waits for work would print a traceback)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def completed_in_turn(futures: Iterable[Future]) -> Iterator[Future]:
+    """concurrent.futures.as_completed, waking every WAIT_POLL_S.
+
+    The kernel hands a process-wide SIGINT to any thread that does not block it (the pool's own), and
+    Python runs the handler on the main thread at its next bytecode: an untimed wait slept through a
+    Ctrl-C until the next landing ended. The order is completion order, as as_completed's.
+    """
+    pending = set(futures)
+    while pending:
+        done, pending = wait(pending, timeout=WAIT_POLL_S, return_when=FIRST_COMPLETED)
+        yield from done
+
+
+def result_of(future: Future):
+    """future.result(), waking every WAIT_POLL_S so that a Ctrl-C is raised at once (see completed_in_turn)."""
+    while not future.done():
+        wait([future], timeout=WAIT_POLL_S)
+    return future.result()
 
 
 _CONNECTED: list[str] = []         # the address this process initialised Ray with

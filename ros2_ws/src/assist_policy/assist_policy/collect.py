@@ -36,7 +36,7 @@ import torch
 from tqdm import tqdm
 
 from .actor import Actor
-from .cluster import connect_ray, cpu_cores, ignore_ctrl_c, process_context, ray_cpus
+from .cluster import result_of, connect_ray, cpu_cores, ignore_ctrl_c, process_context, ray_cpus
 from .env import EnvConfig, LandingAssistEnv, run_episode
 from .latent import make_latent_fn
 from .scripted import NEAREST_PAD_VARIANTS, ScriptedOracle, make_nearest_pad
@@ -276,7 +276,7 @@ class LandingPool:
     def result(self, handle) -> FlownLanding | dict:
         """The landing `handle` names, once flown (a worker's error is raised here)."""
         if isinstance(handle, Future):
-            return handle.result()
+            return result_of(handle)
         from ray.exceptions import RayTaskError
         try:
             return self._ray.get(handle)

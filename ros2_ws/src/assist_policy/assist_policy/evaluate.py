@@ -58,7 +58,7 @@ import json
 import logging
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -72,7 +72,7 @@ from assist_sim.pilots import PILOT_NAMES
 
 from .bags.bagio import BagError
 from .bags.episode import record_landing
-from .cluster import connect_ray, cpu_cores, ignore_ctrl_c, process_context, ray_cpus
+from .cluster import completed_in_turn, connect_ray, cpu_cores, ignore_ctrl_c, process_context, ray_cpus
 from .cli import add_dataclass_args, check_settings, parse_dataclass_args, setting
 from .damper import DamperConfig
 from .env import EnvConfig, LandingAssistEnv, run_episode
@@ -609,7 +609,7 @@ def fly_plan(args: EvalArgs, results: LandingLog) -> dict[str, list[dict]]:
                                          initargs=(args,)) as pool:
                     futures = {pool.submit(_worker_fly, t): t for t in todo}
                     try:
-                        for fut in as_completed(futures):
+                        for fut in completed_in_turn(futures):
                             task = futures[fut]
                             exc = fut.exception()
                             if exc is not None and not isinstance(exc, ValueError):

@@ -205,3 +205,49 @@ def test_ctrl_c_stops_a_run_on_workers_quietly_and_it_resumes(tmp_path):
     step = load_checkpoint(tmp_path / 'r')[0]['step']
     train(TrainArgs(resume=str(tmp_path / 'r'), total_steps=step + 200, workers=1))
     assert load_checkpoint(tmp_path / 'r')[0]['step'] >= step + 200
+
+
+@pytest.mark.parametrize('waiting', ['completed_in_turn', 'result_of'])
+def test_a_ctrl_c_taken_by_another_thread_is_raised_while_waiting_for_workers(waiting):
+    """The kernel may hand the terminal's SIGINT to any thread of the process (the pool's); the main
+    thread, waiting for a landing, must raise it within a poll period, not when the landing ends."""
+    import signal
+    import threading
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+
+    from assist_policy import cluster
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    sent = []
+
+    def to_this_thread():
+        sent.append(time.monotonic())
+        signal.pthread_kill(threading.get_ident(), signal.SIGINT)
+    with ThreadPoolExecutor(1) as pool:
+        landing = pool.submit(time.sleep, 4.0)
+        threading.Timer(0.3, to_this_thread).start()
+        try:
+            with pytest.raises(KeyboardInterrupt):
+                if waiting == 'result_of':
+                    cluster.result_of(landing)
+                else:
+                    list(cluster.completed_in_turn([landing]))
+            assert time.monotonic() - sent[0] < 2.0
+        finally:
+            signal.signal(signal.SIGINT, previous)
+
+
+def test_completed_in_turn_yields_each_future_once_in_completion_order():
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+
+    from assist_policy import cluster
+    with ThreadPoolExecutor(3) as pool:
+        futures = [pool.submit(time.sleep, s) for s in (0.6, 0.05, 0.3)]
+        order = [futures.index(f) for f in cluster.completed_in_turn(futures)]
+    assert order == [1, 2, 0]
+    with ThreadPoolExecutor(1) as pool:
+        failing = pool.submit(int, 'x')
+        assert list(cluster.completed_in_turn([failing])) == [failing]
+        with pytest.raises(ValueError):
+            cluster.result_of(failing)

@@ -32,6 +32,9 @@ from .core.scene_markers import scene_markers
 from .core.world import LandingWorld
 from .scene_msgs import scene_marker_array
 
+#: close(): how long the sim thread may take to finish its step.
+SIM_THREAD_STOP_S = 2.0
+
 PARAMS = {
     'seed': Param(0, 'Seed of the scene and episode sequence; same seed, same episodes.', min=0, max=2**31 - 1),
     'real_time_factor': Param(1.0, 'Sim speed: 1.0 = wall clock, 10.0 = ten times faster, 0 = as fast as possible '
@@ -380,7 +383,10 @@ class SimNode(Node):
         """Stop the sim thread and release the world and MAVLink endpoint."""
         self._stop.set()
         if self._thread.is_alive():
-            self._thread.join(timeout=2.0)
+            self._thread.join(timeout=SIM_THREAD_STOP_S)
+            if self._thread.is_alive():
+                self.get_logger().warning(f'sim thread still in a step {SIM_THREAD_STOP_S:g} s after the stop; '
+                                          'closing the world under it')
         if self.vehicle is not None:
             self.vehicle.close()
         if hasattr(self.runner, 'close'):
