@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rclpy
+import rclpy.duration
 import torch
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import TwistStamped
@@ -147,6 +148,26 @@ def test_pilot_frame_and_speed_norm(make):
     assert n.node.diag.get('rejected_pilot_range') == 1
     n.inputs(u=(0.0, 1.0, 0.0), frame='')                           # no frame: body frame
     assert n.node.diag.get('rejected_pilot') == 2
+
+
+def test_pilot_commands_arriving_late_still_fly(make):
+    # a starved CPU or a slow link delivers every pilot command 0.8 s after its stamp (> pilot_timeout_s)
+    n = make()
+    stamp = n.node.get_clock().now() - rclpy.duration.Duration(seconds=0.8)
+    od = Odometry()
+    od.pose.pose.position.z = 2.0
+    subs = list(n.node.subscriptions)
+    subs[0].callback(od)
+    tw = TwistStamped()
+    tw.header.stamp, tw.header.frame_id = stamp.to_msg(), 'base_link'
+    tw.twist.linear.x, tw.twist.linear.z = 0.4, -0.3
+    subs[1].callback(tw)
+    np.testing.assert_allclose(n.tick(), [0.4, 0.0, -0.3])          # no latent: V = u, the late u
+    assert n.node.diag.get('pilot_late') == 1 and n.node.diag.get('rejected_pilot') == 0
+    assert float(n.node.diag._values['pilot_latency_s']) >= 0.8
+    tw.header.stamp = (n.node.get_clock().now() - rclpy.duration.Duration(seconds=5.0)).to_msg()
+    subs[1].callback(tw)                                            # beyond pilot_max_latency_s: refused
+    assert n.node.diag.get('rejected_pilot_stale_stamp') == 1
 
 
 def test_runtime_parameters_are_validated_and_applied(make):

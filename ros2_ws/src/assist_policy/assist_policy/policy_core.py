@@ -4,7 +4,8 @@ Safety rules (ARCHITECTURE.md, "Timing and safety rules"):
 * every input is range-checked where it enters (finite, plausible magnitude, right size, right
   frame); a bad one raises ``InputRejected`` (a ValueError with a short reason key), is counted in
   ``rejections`` and never replaces the last good value;
-* pilot command older than pilot_timeout_s (or never received) -> u = 0;
+* no pilot command arrived within pilot_timeout_s (or none ever) -> u = 0; a command that arrives late (stamped
+  up to pilot_max_latency_s before its arrival) is still the pilot's latest and is flown (counted in late_pilot);
 * scene feature (latent / goal / image) or odometry stale or absent -> relinquish: no a, V = u;
 * non-finite actor output is rejected (counted, V = u), never reaches V;
 * any exception inside a step relinquishes (V = u, reason key ``step_error``), never escapes;
@@ -76,8 +77,13 @@ class PolicyCoreConfig:
     mode: str = 'latent'
     blend_threshold: float = node_param(DEFAULT_THRESHOLD, 'blend_threshold', 'Agent actions with |a| at or below '
                                         'this (m/s) are ignored: V = u.', min=0.0, max=10.0)
-    pilot_timeout_s: float = node_param(0.5, 'pilot_timeout_s', 'Pilot command older than this counts as absent (u '
-                                        '= 0).', min=0.0, max=10.0, min_exclusive=True)
+    pilot_timeout_s: float = node_param(0.5, 'pilot_timeout_s', 'No pilot command arrived for this long (s): the '
+                                        'pilot counts as absent (u = 0).', min=0.0, max=10.0, min_exclusive=True)
+    # a late pilot link (a starved CPU, a slow radio) still carries the pilot's latest command: flown, counted
+    pilot_max_latency_s: float = node_param(2.0, 'pilot_max_latency_s', 'A pilot command that arrives up to this '
+                                            'long after its header stamp (s) is still the pilot\'s latest command '
+                                            '(flown, counted as late beyond pilot_timeout_s); an older one is '
+                                            'rejected as stale.', min=0.0, max=10.0, min_exclusive=True)
     feature_timeout_s: float = node_param(0.5, 'latent_timeout_s', 'Latent (or image) older than this: the '
                                           'assistant relinquishes (V = u).', min=0.0, max=10.0, min_exclusive=True)
     odom_timeout_s: float = node_param(0.5, 'odom_timeout_s', 'Odometry older than this: the assistant relinquishes '
@@ -125,8 +131,8 @@ class PolicyCoreConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= MIN_SPEED_LIMIT_MPS):
                 raise ValueError(f'PolicyCoreConfig.{name} must be a finite number >= {MIN_SPEED_LIMIT_MPS}, got {v!r}')
-        for name in ('pilot_timeout_s', 'feature_timeout_s', 'odom_timeout_s', 'max_input_mps', 'max_odom_speed_mps',
-                     'max_position_m', 'max_latent_abs'):
+        for name in ('pilot_timeout_s', 'pilot_max_latency_s', 'feature_timeout_s', 'odom_timeout_s', 'max_input_mps',
+                     'max_odom_speed_mps', 'max_position_m', 'max_latent_abs'):
             _positive(name, getattr(self, name))
         m = self.depth_pose_match_s
         if not (isinstance(m, (int, float)) and math.isfinite(m) and m >= 0):
@@ -176,7 +182,10 @@ class PolicyCore:
         if self.builder.dim != int(self.meta['vec_dim']):
             raise ValueError(f'{actor_path}: actor expects {self.meta["vec_dim"]} inputs, the {self.mode.value} '
                              f'observation has {self.builder.dim}')
-        self._pilot: tuple[float, np.ndarray] | None = None
+        self._pilot: tuple[float, np.ndarray] | None = None   # (arrival, command)
+        self._pilot_stamp: float | None = None      # header stamp of the held pilot command
+        self.pilot_latency_s = 0.0                  # arrival - stamp of the latest accepted pilot command (s)
+        self.late_pilot = 0                         # pilot commands accepted later than pilot_timeout_s after stamping
         self._odom: tuple[float, np.ndarray, np.ndarray] | None = None
         self._attitude: np.ndarray | None = None   # odom -> base_link quaternion (x, y, z, w); None: level, heading 0
         self._feature: tuple[float, np.ndarray] | None = None
@@ -259,9 +268,29 @@ class PolicyCore:
             raise self._reject(f'{what}_stamp', f'{what}: stamp {t!r} is not finite')
         return t
 
-    def set_pilot(self, t: float, u: np.ndarray, frame_id: str = '') -> None:
-        """Latest pilot command (m/s, body frame); InputRejected when malformed, too fast or in another frame."""
+    def set_pilot(self, t: float, u: np.ndarray, frame_id: str = '', stamp: float | None = None) -> None:
+        """Latest pilot command (m/s, body frame) that arrived at `t`, stamped `stamp` (None: unstamped).
+
+        The pilot counts as present while commands keep arriving (pilot_timeout_s from the latest arrival), however
+        late each is: one stamped more than pilot_timeout_s before its arrival is flown and counted in
+        ``late_pilot`` (a starved CPU or a slow link delays every command, and dropping them all would leave the
+        vehicle with no pilot at all); one stamped more than pilot_max_latency_s before it, or before the command
+        already held while that one is fresh (another publisher's older command), is rejected. InputRejected also
+        when malformed, too fast or in another frame.
+        """
         t = self._stamp('pilot', t)
+        latency = 0.0
+        if stamp is not None:
+            stamp = self._stamp('pilot', stamp)
+            latency = t - stamp
+            if latency > self.cfg.pilot_max_latency_s:
+                raise self._reject('pilot_stale_stamp', f'pilot command stamped {latency:.3f} s before it arrived '
+                                                        f'(pilot_max_latency_s {self.cfg.pilot_max_latency_s:g} s)')
+            held = self._pilot_stamp
+            if (held is not None and stamp < held and self._pilot is not None
+                    and self._fresh(self._pilot[0], t, self.cfg.pilot_timeout_s)):
+                raise self._reject('pilot_out_of_order', f'pilot command stamped {held - stamp:.3f} s before the '
+                                                         'one already held')
         if frame_id not in ('', self.cfg.body_frame):
             raise self._reject('pilot_frame', f'pilot command in frame {frame_id!r}, expected '
                                               f'{self.cfg.body_frame!r}')
@@ -271,6 +300,10 @@ class PolicyCore:
             raise self._reject('pilot_range', f'pilot command {u.tolist()} ({speed:.3g} m/s) faster than '
                                               f'max_input_speed {self.cfg.max_input_mps:g} m/s')
         self._pilot = (t, u)
+        self._pilot_stamp = stamp
+        self.pilot_latency_s = latency
+        if latency > self.cfg.pilot_timeout_s:
+            self.late_pilot += 1
 
     def set_odom(self, t: float, position: np.ndarray, velocity: np.ndarray,
                  orientation: np.ndarray | None = None, stamp: float | None = None) -> None:

@@ -234,9 +234,17 @@ class PolicyNode(Node):
             self.core.set_odom(t, [p.x, p.y, p.z], [v.x, v.y, v.z], [q.x, q.y, q.z, q.w], stamp)
 
     def _on_pilot(self, msg: TwistStamped) -> None:
+        # dated by its arrival: the pilot is present while commands keep coming, however late (policy_core.set_pilot)
         with self._lock:
-            t, _ = self._dated('pilot', msg, self.core.cfg.pilot_timeout_s)
-            self.core.set_pilot(t, twist_to_array(msg), msg.header.frame_id)
+            _, stamp = self._dated('pilot', msg, self.core.cfg.pilot_max_latency_s)
+            late_before = self.core.late_pilot
+            self.core.set_pilot(self._now(), twist_to_array(msg), msg.header.frame_id, stamp)
+        if self.core.late_pilot > late_before:
+            self.diag.count('pilot_late')
+            self.diag.set('pilot_latency_s', round(self.core.pilot_latency_s, 3))
+            self._warn('pilot_late', f'pilot commands arrive late ({self.core.pilot_latency_s:.2f} s after their '
+                                     f'stamp, pilot_timeout_s {self.core.cfg.pilot_timeout_s:g} s): flown as the '
+                                     'pilot\'s latest command')
 
     def _on_latent(self, msg: Float32MultiArray) -> None:
         with self._lock:
