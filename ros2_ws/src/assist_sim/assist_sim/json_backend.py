@@ -349,7 +349,7 @@ class JsonSimRunner:
                 # the judge starts at takeoff; so does the episode clock here: arming SITL takes tens
                 # of seconds on the ground, which must not count against max_episode_s
                 self._airborne = True
-                w._episode_start = w.time
+                w.episode_time = 0.0
             if w.done and not was_done:
                 w.result.assisted = self._agent_seen
                 out_landing = w.result

@@ -222,6 +222,7 @@ class QuadJsonModel:
         p.applyExternalTorque(vid, -1, tau_world.tolist(), p.WORLD_FRAME, physicsClientId=cid)
         p.stepSimulation(physicsClientId=cid)
         w.time += dt
+        w.episode_time += dt
         lin_after, _ = p.getBaseVelocity(vid, physicsClientId=cid)
         # IMU specific force = a - g, from the velocity change over the step (as ArduPilot's
         # pybullet example does), so contact forces are felt too; g = (0, 0, -9.81) in ENU

@@ -143,7 +143,9 @@ class LandingWorld:
         self.goal_index = 0
         self.episode = -1
         self.time = 0.0
-        self._episode_start = 0.0
+        # seconds since the episode started, summed from zero: never `time - start`, whose rounding depends on
+        # how long the world has run (a landing's duration_s then depended on the landings flown before it)
+        self.episode_time = 0.0
         self._rng = np.random.default_rng(seed)
         self._noise = np.zeros(3)
         self._cmd_world = np.zeros(3)
@@ -284,7 +286,7 @@ class LandingWorld:
         self._bc.resetBasePositionAndOrientation(self._vehicle, start.tolist(), [0, 0, 0, 1])
         self._bc.resetBaseVelocity(self._vehicle, [0, 0, 0], [0, 0, 0])
         self.episode += 1
-        self._episode_start = self.time
+        self.episode_time = 0.0
         self._noise = np.zeros(3)
         self._cmd_world = np.zeros(3)
         self._yaw_target = 0.0
@@ -437,6 +439,7 @@ class LandingWorld:
             p.applyExternalTorque(vid, -1, torque.tolist(), p.WORLD_FRAME, physicsClientId=cid)
         p.stepSimulation(physicsClientId=cid)
         self.time += self._tick_dt
+        self.episode_time += self._tick_dt
         self._judge(lin)
 
     # ------------------------------------------------------------------ judge
@@ -486,7 +489,7 @@ class LandingWorld:
             else:
                 self._finish('edge', None, 'resting on something that is not a pad')
             return
-        if self.time - self._episode_start >= j.max_episode_s:
+        if self.episode_time >= j.max_episode_s:
             self._finish('timeout', None, f'no landing within {j.max_episode_s:.0f} s')
 
     def _finish(self, outcome: str, landed_index: int | None, reason: str) -> None:
@@ -498,7 +501,7 @@ class LandingWorld:
             episode=self.episode, goal_index=self.goal_index, landed_index=landed_index,
             nearest_index=nearest, error_m=float(dists[self.goal_index]),
             nearest_error_m=float(dists[nearest]), success=outcome == 'success',
-            crash=outcome == 'crash', duration_s=float(self.time - self._episode_start),
+            crash=outcome == 'crash', duration_s=float(self.episode_time),
             outcome=outcome, reason=reason)
         _LOG.debug('episode %d finished: %s (%s)', self.episode, outcome, reason)
 
