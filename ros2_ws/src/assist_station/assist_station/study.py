@@ -20,9 +20,11 @@ one gets its own name).
 from __future__ import annotations
 
 import csv
+import errno
 import hashlib
 import io
 import json
+import logging
 import math
 import os
 import re
@@ -40,8 +42,10 @@ from assist_common.atomic import write_text_atomic
 CONDITIONS = ('unassisted', 'assisted')
 PHASES = ('consent', 'practice', 'block1', 'sus1', 'block2', 'sus2', 'survey', 'done')
 PRACTICE_BLOCK = 0
-PARTICIPANT_ID = re.compile(r'^[A-Za-z0-9][A-Za-z0-9_-]{0,31}$')
+PARTICIPANT_ID = re.compile(r'[A-Za-z0-9][A-Za-z0-9_-]{0,31}')        # the whole ID (fullmatch: no trailing newline)
 MAX_CONFIG_BYTES = 256 * 1024
+EVENT_START = '{"t": "'         # how every protocol.log line begins (json.dumps of an entry whose first key is t)
+_LOG = logging.getLogger('assist_station.study')
 
 # The System Usability Scale (Brooke 1996), item order fixed: odd items positive, even items negative.
 SUS_ITEMS = (
@@ -225,7 +229,7 @@ def _is_int(v: Any) -> bool:
 # ----------------------------------------------------------------------------------------- protocol rules
 def check_participant_id(pid: Any) -> str:
     """A usable participant ID (1-32 of A-Z a-z 0-9 _ -, starting alphanumeric) or StudyError."""
-    if not isinstance(pid, str) or not PARTICIPANT_ID.match(pid):
+    if not isinstance(pid, str) or not PARTICIPANT_ID.fullmatch(pid):
         raise StudyError('participant ID: 1-32 letters, digits, _ or -, starting with a letter or digit')
     return pid
 
@@ -233,7 +237,7 @@ def check_participant_id(pid: Any) -> str:
 def first_condition(pid: str) -> str:
     """The condition of block 1 (counterbalanced): an odd trailing number starts unassisted, an even one
     assisted; an ID without a trailing number by the parity of its SHA-256."""
-    m = re.search(r'(\d+)$', pid)
+    m = re.search(r'(\d+)\Z', pid)
     n = int(m.group(1)) if m else hashlib.sha256(pid.encode()).digest()[0]
     return 'unassisted' if n % 2 == 1 else 'assisted'
 
@@ -327,120 +331,234 @@ def _csv_value(v: Any) -> str:
     return str(v)
 
 
+def _split_log_line(line: str) -> tuple[dict[str, Any] | None, str]:
+    """(the event a protocol.log line holds, or None; the bytes before it that are no event).
+
+    A write cut short (crash, full disk) leaves a fragment without its newline; an event appended after it
+    by a version that did not start a fresh line shares its line: that event is kept, the fragment skipped.
+    """
+    try:
+        return json.loads(line), ''
+    except ValueError:
+        pass
+    start = line.find(EVENT_START, 1)
+    while start != -1:
+        try:
+            return json.loads(line[start:]), line[:start]
+        except ValueError:
+            start = line.find(EVENT_START, start + 1)
+    return None, line
+
+
 class ParticipantStore:
-    """One participant's directory: study file, landings.csv, survey.json, protocol.log, bags/."""
+    """One participant's directory: study file, landings.csv, survey.json, protocol.log, bags/.
+
+    The store reads and writes only inside the study directory: a participant directory, file or bags/
+    that is a symbolic link is refused (StudyError), and files are opened without following links.
+    """
 
     def __init__(self, root: str | Path, pid: str, cfg: StudyConfig, config_text: str):
         self.pid = check_participant_id(pid)
         self.cfg = cfg
-        self.dir = Path(root) / pid
-        self.dir.mkdir(parents=True, exist_ok=True)
+        self.root = Path(root)
+        self.dir = self.root / pid
         self.bags = self.dir / 'bags'
-        copy = self.dir / 'study.yaml'
-        if copy.exists():
-            try:
-                previous = StudyConfig.from_text(copy.read_text(encoding='utf-8'), str(copy))
-            except (OSError, UnicodeDecodeError) as exc:
-                raise StudyError(f'{copy}: cannot read: {exc}') from None
-            if previous != cfg:
-                raise StudyError(f'participant {pid} was run with a different study file ({copy}); use another '
-                                 'participant ID or study directory')
-        else:
-            write_text_atomic(copy, config_text)
         self.landings_path = self.dir / 'landings.csv'
         self.survey_path = self.dir / 'survey.json'
         self.log_path = self.dir / 'protocol.log'
+        self.created = not os.path.lexists(self.dir)      # this store made the directory (discard() may remove it)
+        try:
+            self._open(config_text)
+        except BaseException:
+            if self.created:
+                self.discard()
+            raise
+
+    def _open(self, config_text: str) -> None:
+        self._check_dir()
+        self.dir.mkdir(parents=True, exist_ok=True)
+        copy = self._plain(self.dir / 'study.yaml')
+        if copy.exists():
+            try:
+                previous = StudyConfig.from_text(self._read(copy).decode('utf-8'), str(copy))
+            except (OSError, UnicodeDecodeError) as exc:
+                raise StudyError(f'{copy}: cannot read: {exc}') from None
+            if previous != self.cfg:
+                raise StudyError(f'participant {self.pid} was run with a different study file ({copy}); use another '
+                                 'participant ID or study directory')
+        else:
+            write_text_atomic(copy, config_text)
+        self.events = self._load_events()
         self.rows = self._load_rows()
         self.survey = self._load_survey()
-        self.events = self._load_events()
+
+    def discard(self) -> None:
+        """Remove the directory this store created (nothing else was in it: a begin that was not accepted)."""
+        for name in ('study.yaml', 'protocol.log'):
+            path = self.dir / name
+            if path.is_file() and not path.is_symlink():
+                path.unlink()
+        try:
+            self.dir.rmdir()
+        except FileNotFoundError:
+            pass
+        except OSError as exc:
+            _LOG.warning('%s: left in place (%s)', self.dir, exc.strerror or exc)
+
+    # ---------------------------------------------------------------- paths
+    def _check_dir(self) -> None:
+        if self.dir.is_symlink():
+            raise StudyError(f'{self.dir}: participant directory is a symbolic link; the study store reads and '
+                             f'writes only inside {self.root}')
+        if os.path.lexists(self.dir) and not self.dir.is_dir():
+            raise StudyError(f'{self.dir}: not a directory')
+
+    def _plain(self, path: Path) -> Path:
+        """`path` (in this participant's directory) if neither it nor the directory is a symbolic link."""
+        self._check_dir()
+        if path.is_symlink():
+            raise StudyError(f'{path}: a symbolic link; the study store reads and writes only plain files inside '
+                             f'{self.root}')
+        return path
+
+    def _fd(self, path: Path, flags: int) -> int:
+        """os.open without following a link (a link put there since the check is refused too)."""
+        try:
+            return os.open(self._plain(path), flags | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+        except OSError as exc:
+            if exc.errno == errno.ELOOP:
+                raise StudyError(f'{path}: a symbolic link; the study store reads and writes only plain files '
+                                 f'inside {self.root}') from None
+            raise
+
+    def _read(self, path: Path) -> bytes:
+        with os.fdopen(self._fd(path, os.O_RDONLY), 'rb') as fh:
+            return fh.read()
+
+    def _cut(self, path: Path, size: int) -> None:
+        """Truncate `path` to `size` bytes (a torn last line), fsynced."""
+        fd = self._fd(path, os.O_WRONLY)
+        try:
+            os.ftruncate(fd, size)
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+    def _append(self, path: Path, data: bytes) -> None:
+        """Append `data` (whole lines) fsynced, on a fresh line; a failed write is taken back (file as before)."""
+        fd = self._fd(path, os.O_RDWR | os.O_APPEND | os.O_CREAT)
+        try:
+            size = os.fstat(fd).st_size
+            if size and os.pread(fd, 1, size - 1) != b'\n':
+                data = b'\n' + data          # the last line was cut short: it must not swallow this one
+            try:
+                view = memoryview(data)
+                while view:
+                    view = view[os.write(fd, view):]
+                os.fsync(fd)
+            except OSError:
+                try:                         # a full disk: take the partial line back, the file stays whole
+                    os.ftruncate(fd, size)
+                except OSError as exc:
+                    _LOG.warning('%s: a partial line could not be taken back (%s); it is skipped when read',
+                                 path, exc.strerror or exc)
+                raise
+        finally:
+            os.close(fd)
 
     # ---------------------------------------------------------------- reading
     def _load_rows(self) -> list[dict[str, str]]:
-        if not self.landings_path.exists():
+        path = self._plain(self.landings_path)
+        if not path.exists():
             return []
-        raw = self.landings_path.read_bytes()
+        raw = self._read(path)
         if raw and not raw.endswith(b'\n'):        # a row cut by a crash mid-write was never recorded: drop it
             cut = raw.rfind(b'\n') + 1
-            with open(self.landings_path, 'r+b') as fh:
-                fh.truncate(cut)
-                os.fsync(fh.fileno())
+            self._cut(path, cut)
             self.log('torn_row_dropped', bytes=len(raw) - cut)
             raw = raw[:cut]
         reader = csv.DictReader(io.StringIO(raw.decode('utf-8')))
         if reader.fieldnames is not None and tuple(reader.fieldnames) != LANDING_COLUMNS:
-            raise StudyError(f'{self.landings_path}: columns differ from this station\'s; not appending to it')
-        return list(reader)
+            raise StudyError(f'{path}: columns differ from this station\'s; not appending to it')
+        rows = []
+        for row in reader:
+            if None in row or None in row.values():     # a row an interrupted write cut short: never recorded
+                _LOG.warning('%s line %d: skipped a landing row cut short by an interrupted write', path,
+                             reader.line_num)
+                continue
+            rows.append(row)
+        return rows
 
     def _load_survey(self) -> dict[str, Any]:
-        if not self.survey_path.exists():
+        path = self._plain(self.survey_path)
+        if not path.exists():
             return {'participant': self.pid, 'sus': {}, 'survey': None}
         try:
-            data = json.loads(self.survey_path.read_text(encoding='utf-8'))
+            data = json.loads(self._read(path).decode('utf-8'))
         except (OSError, ValueError) as exc:
-            raise StudyError(f'{self.survey_path}: unreadable ({exc}); not overwriting it') from None
+            raise StudyError(f'{path}: unreadable ({exc}); not overwriting it') from None
         if not isinstance(data, dict) or not isinstance(data.get('sus'), dict):
-            raise StudyError(f'{self.survey_path}: not a survey file; not overwriting it')
+            raise StudyError(f'{path}: not a survey file; not overwriting it')
         return data
 
     def _load_events(self) -> list[dict[str, Any]]:
-        if not self.log_path.exists():
+        path = self._plain(self.log_path)
+        if not path.exists():
             return []
+        raw = self._read(path)
+        torn = 0
+        if raw and not raw.endswith(b'\n'):        # an event cut by a crash mid-write did not complete: drop it
+            cut = raw.rfind(b'\n') + 1
+            torn = len(raw) - cut
+            self._cut(path, cut)
+            raw = raw[:cut]
+            _LOG.warning('%s: dropped %d bytes of a last line cut short by an interrupted write', path, torn)
         events = []
-        for line in self.log_path.read_text(encoding='utf-8', errors='replace').splitlines():
-            try:
-                e = json.loads(line)
-            except ValueError:
-                continue                              # a torn last line: the event it held did not complete
+        for n, line in enumerate(raw.decode('utf-8', errors='replace').splitlines(), 1):
+            e, fragment = _split_log_line(line)
+            if fragment.strip():
+                _LOG.warning('%s line %d: skipped %d bytes of an event cut short by an interrupted write', path, n,
+                             len(fragment.encode('utf-8')))
             if isinstance(e, dict) and isinstance(e.get('event'), str):
                 events.append(e)
+        self.events = events
+        if torn:
+            self.log('torn_event_dropped', bytes=torn)
         return events
 
     # ---------------------------------------------------------------- writing
     def log(self, event: str, **data: Any) -> None:
-        """Append one protocol event (fsynced JSON line)."""
+        """Append one protocol event (fsynced JSON line); a failed write leaves the file as it was."""
         entry = {'t': time.strftime('%Y-%m-%dT%H:%M:%S', time.gmtime()) + f'.{int(time.time() * 1000) % 1000:03d}Z',
                  'event': event, **data}
-        with open(self.log_path, 'a', encoding='utf-8') as fh:
-            fh.write(json.dumps(entry, default=str) + '\n')
-            fh.flush()
-            os.fsync(fh.fileno())
+        self._append(self.log_path, (json.dumps(entry, default=str) + '\n').encode('utf-8'))
         if hasattr(self, 'events'):
             self.events.append(entry)
 
     def append_row(self, row: dict[str, Any]) -> dict[str, str]:
         """Append one landing row (header first on a new file), fsynced; returns it as stored."""
-        new = not self.landings_path.exists() or self.landings_path.stat().st_size == 0
+        path = self._plain(self.landings_path)
+        new = not path.exists() or path.stat().st_size == 0
         buf = io.StringIO()
         writer = csv.DictWriter(buf, fieldnames=LANDING_COLUMNS, lineterminator='\n')
         if new:
             writer.writeheader()
         stored = {k: _csv_value(row.get(k)) for k in LANDING_COLUMNS}
         writer.writerow(stored)
-        with open(self.landings_path, 'a', encoding='utf-8', newline='') as fh:
-            size = fh.tell()
-            try:
-                fh.write(buf.getvalue())
-                fh.flush()
-                os.fsync(fh.fileno())
-            except OSError:
-                try:                            # a full disk: take the partial row back, the file stays whole
-                    fh.truncate(size)
-                except OSError:
-                    pass                        # dropped as a torn row when the participant is opened again
-                raise
+        self._append(path, buf.getvalue().encode('utf-8'))
         self.rows.append(stored)
         return stored
 
     def save_survey(self, survey: dict[str, Any]) -> None:
         """Write `survey` to survey.json atomically, then hold it (a failed write changes nothing)."""
-        write_text_atomic(self.survey_path, json.dumps(survey, indent=1) + '\n')
+        write_text_atomic(self._plain(self.survey_path), json.dumps(survey, indent=1) + '\n')
         self.survey = survey
 
     def new_bag_path(self, name: str) -> Path:
         """A bag directory name under bags/ that does not exist yet (a repeated landing gets _2, _3, ...)."""
-        self.bags.mkdir(exist_ok=True)
+        self._plain(self.bags).mkdir(exist_ok=True)
         path, k = self.bags / name, 1
-        while path.exists():
+        while os.path.lexists(path):
             k += 1
             path = self.bags / f'{name}_{k}'
         return path
@@ -450,7 +568,10 @@ class ParticipantStore:
 class StudySession:
     """Where one participant stands in the protocol (derived from their files) and the steps that move it on.
 
-    Thread-safe. Steps out of order raise StudyError (the page shows the text; nothing is written).
+    Thread-safe. Steps out of order raise StudyError (the page shows the text; nothing is written). A step
+    whose own write fails (OSError, e.g. a full disk) is not taken: state and files stay as they were and the
+    step can be tried again. Where the step's data was saved but its protocol.log line afterwards was not,
+    the step stands and ``take_log_problem()`` says what is missing from the log.
     """
 
     def __init__(self, cfg: StudyConfig, config_text: str, root: str | Path, pid: str):
@@ -462,9 +583,31 @@ class StudySession:
         self._lock = threading.RLock()
         self.active: LandingSpec | None = None
         self.last_feedback: dict[str, Any] | None = None
-        self.store.log('session_opened', phase=self.phase, order=self.order, landings=len(self.store.rows))
+        self._log_problem: str | None = None
+        try:
+            self.store.log('session_opened', phase=self.phase, order=self.order, landings=len(self.store.rows))
+        except BaseException:
+            if self.store.created:
+                self.store.discard()
+            raise
 
     # ---------------------------------------------------------------- state
+    def _note(self, event: str, **data: Any) -> None:
+        """Log an event that follows a step already saved elsewhere: a failed write does not undo the step."""
+        try:
+            self.store.log(event, **data)
+        except (OSError, StudyError) as exc:
+            why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+            problem = f'protocol.log event {event} not written ({why})'
+            _LOG.error('participant %s: %s', self.pid, problem)
+            self._log_problem = problem if self._log_problem is None else f'{self._log_problem}; {problem}'
+
+    def take_log_problem(self) -> str | None:
+        """What the last steps could not write to protocol.log (their data is saved), once; None if nothing."""
+        with self._lock:
+            problem, self._log_problem = self._log_problem, None
+            return problem
+
     def _count(self, block: int) -> int:
         return sum(1 for r in self.store.rows if r['block'] == str(block))
 
@@ -515,10 +658,10 @@ class StudySession:
             if self.active is not None:
                 raise StudyError(f'landing {self.active.name} is still in flight')
             spec = self.next_landing()
-            self.active = spec
-            self.last_feedback = None
             self.store.log('landing_started', landing=spec.name, block=spec.block, condition=spec.condition,
                            trial=spec.trial, goal_index=spec.goal_index, bag=bag)
+            self.active = spec              # only once logged: a failed write leaves no landing in flight
+            self.last_feedback = None
             return spec
 
     def abort_landing(self, why: str) -> LandingSpec | None:
@@ -526,7 +669,7 @@ class StudySession:
         with self._lock:
             spec, self.active = self.active, None
             if spec is not None:
-                self.store.log('landing_aborted', landing=spec.name, why=why)
+                self._note('landing_aborted', landing=spec.name, why=why)
             return spec
 
     def record_landing(self, landing: dict[str, Any], *, start_pad: int | None, episode: int | None,
@@ -552,10 +695,10 @@ class StudySession:
                 'recorded_utc': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
             }
             stored = self.store.append_row(row)
-            self.active = None
-            self.store.log('landing_recorded', landing=spec.name, outcome=row['outcome'], episode=episode)
+            self.active = None              # the row is saved: the landing is recorded whatever the log says
+            self._note('landing_recorded', landing=spec.name, outcome=row['outcome'], episode=episode)
             if spec.block == PRACTICE_BLOCK and self._count(PRACTICE_BLOCK) >= self.cfg.practice_landings:
-                self.store.log('practice_done', why='all practice landings flown')
+                self._note('practice_done', why='all practice landings flown')
             return stored
 
     def stop_practice(self) -> None:
@@ -578,7 +721,7 @@ class StudySession:
             survey = json.loads(json.dumps(self.store.survey))
             survey['sus'][str(block)] = {'condition': block_condition(self.pid, block), 'answers': a, 'score': score}
             self.store.save_survey(survey)
-            self.store.log('sus', block=block, score=score)
+            self._note('sus', block=block, score=score)
             return score
 
     def submit_survey(self, answers: Any) -> None:
@@ -589,8 +732,8 @@ class StudySession:
             survey = json.loads(json.dumps(self.store.survey))
             survey['survey'] = check_survey(answers)
             self.store.save_survey(survey)
-            self.store.log('survey')
-            self.store.log('done')
+            self._note('survey')
+            self._note('done')
 
     # ---------------------------------------------------------------- page
     def view(self) -> dict[str, Any]:

@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 import queue
 import re
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -35,12 +36,15 @@ from std_srvs.srv import Trigger
 from assist_common.frames import heading, rotate_xy
 
 from .station_core import StudyMessage
-from .study import PRACTICE_BLOCK, LandingSpec, StudyConfig, StudyError, StudySession, practice_feedback
+from .study import (PRACTICE_BLOCK, LandingSpec, StudyConfig, StudyError, StudySession, check_participant_id,
+                    practice_feedback)
 
 EPISODE_RE = re.compile(r'^episode (\d+): goal pad (\d+)')
 SERVICE_WAIT_S = 10.0          # a node's parameter service / /sim/reset not answering this long: the step fails
 BAG_WARMUP_S = 0.6             # the landing's bag subscribes before the episode starts
 BAG_TAIL_S = 0.5               # ... and keeps recording this long after the result
+INBOX_SIZE = 64                # page steps waiting for the node's timer at most (more are dropped)
+WARNING_PERIOD_S = 5.0         # the same refusal is logged at most once per this long (the rest counted)
 
 
 def _same_file(a: str, b: str) -> bool:
@@ -48,6 +52,26 @@ def _same_file(a: str, b: str) -> bool:
     if not a or not b:
         return a == b
     return Path(a).expanduser().resolve() == Path(b).expanduser().resolve()
+
+
+class _Warnings:
+    """At most one log line per key per `period_s` (thread-safe); a line says how many were held back."""
+
+    def __init__(self, period_s: float):
+        self.period_s = period_s
+        self._last: dict[str, float] = {}
+        self._held: dict[str, int] = {}
+        self._lock = threading.Lock()
+
+    def __call__(self, key: str) -> int | None:
+        """None: hold this line back; else log it, with this many held back since the last one."""
+        now = time.monotonic()
+        with self._lock:
+            if now - self._last.get(key, -math.inf) < self.period_s:
+                self._held[key] = self._held.get(key, 0) + 1
+                return None
+            self._last[key] = now
+            return self._held.pop(key, 0)
 
 
 class _Call:
@@ -68,7 +92,11 @@ class StudyDriver:
         self.root.mkdir(parents=True, exist_ok=True)
         self._publish_view, self._push_event = publish_view, push_event
         self.session: StudySession | None = None
-        self.inbox: queue.Queue[StudyMessage | tuple[str, Any]] = queue.Queue(maxsize=64)
+        self.inbox: queue.Queue[StudyMessage | tuple[str, Any]] = queue.Queue(maxsize=INBOX_SIZE)
+        self._warnings = _Warnings(WARNING_PERIOD_S)
+        self._begin_lock = threading.Lock()
+        self._begin_pending = False      # a begin waits in the inbox: more begins are refused until it is handled
+        self._begin_duplicates = 0
         self._calls: list[_Call] = []
         self.sim_params = node.create_client(SetParameters, f'{sim_node}/set_parameters')
         self.policy_params = node.create_client(SetParameters, f'{policy_node}/set_parameters')
@@ -91,14 +119,40 @@ class StudyDriver:
         self._close_at = math.inf
         self._view_dirty = True
         self.error: str | None = None
+        self.save_error: str | None = None      # the last step could not be saved (shown until a step is)
 
     # ------------------------------------------------------------------ inputs (any thread)
     def submit(self, msg: StudyMessage) -> None:
-        """A study step from the pilot page (web server thread): queued for the node's timer."""
+        """A study step from the pilot page (web server thread): queued for the node's timer.
+
+        One begin at a time: while one waits, more are refused (the first with one page error and one line).
+        """
+        if msg.action == 'begin':
+            with self._begin_lock:
+                duplicate = self._begin_pending
+                if duplicate:
+                    self._begin_duplicates += 1
+                    first = self._begin_duplicates == 1
+                self._begin_pending = True
+            if duplicate:
+                if first:
+                    self._push_event({'type': 'study_error', 'message': 'a participant is being opened already; '
+                                                                        'more begin steps are refused until it is'})
+                    self._warn('begin_duplicate', 'study: begin refused: another begin is waiting')
+                return
         try:
             self.inbox.put_nowait(msg)
         except queue.Full:
-            self.node.get_logger().warning('study: more than 64 page steps waiting; this one is dropped')
+            if msg.action == 'begin':
+                with self._begin_lock:
+                    self._begin_pending = False
+            self._warn('inbox_full', f'study: more than {INBOX_SIZE} page steps waiting; {msg.action} dropped')
+
+    def _warn(self, key: str, text: str) -> None:
+        """A warning line, at most one per `key` per WARNING_PERIOD_S (with how many were held back)."""
+        held = self._warnings(key)
+        if held is not None:
+            self.node.get_logger().warning(text + (f' ({held} more like it not logged)' if held else ''))
 
     def page_lost(self) -> None:
         """The pilot page went away (web server thread)."""
@@ -151,13 +205,20 @@ class StudyDriver:
                 continue
             try:
                 self._step(msg)
+                self.save_error = None
             except StudyError as exc:
                 self._push_event({'type': 'study_error', 'message': str(exc)})
-                self.node.get_logger().warning(f'study: {exc}')
+                self._warn(f'refused {msg.action}', f'study: {msg.action} refused: {exc}')
             except OSError as exc:          # a full or read-only disk: nothing half written, the step not taken
-                self._push_event({'type': 'study_error', 'message': f'could not save ({exc.strerror or exc}); '
-                                                                   'tell the experimenter'})
+                self.save_error = (f'could not save ({exc.strerror or exc}): {msg.action} was not taken and nothing '
+                                   'was lost; tell the experimenter, then try again')
+                self._push_event({'type': 'study_error', 'message': self.save_error})
                 self.node.get_logger().error(f'study: {msg.action} not saved: {exc}')
+            finally:
+                if msg.action == 'begin':
+                    with self._begin_lock:
+                        self._begin_pending, self._begin_duplicates = False, 0
+            self._report_log_problem()
             self._view_dirty = True
         now = time.monotonic()
         if self.stage == 'waiting_graph':
@@ -177,26 +238,47 @@ class StudyDriver:
     def view(self) -> dict[str, Any]:
         """The page's study view (phase, texts, counters); a participant ID prompt when none is open."""
         if self.session is None:
-            return {'type': 'study', 'phase': 'participant', 'study': self.cfg.name,
-                    'intro': self.cfg.intro_text}
+            v = {'type': 'study', 'phase': 'participant', 'study': self.cfg.name, 'intro': self.cfg.intro_text}
+            if self.save_error:
+                v['error'] = self.save_error
+            return v
         v = self.session.view()
         v['stage'] = self.stage          # in_flight comes from the session: a landing is active exactly then
-        if self.error:
-            v['error'] = self.error
+        if self.error or self.save_error:
+            v['error'] = self.error or self.save_error
         return v
+
+    def _report_log_problem(self) -> None:
+        """A step saved whose protocol.log line was not: the operator and the page hear it (the step stands)."""
+        problem = None if self.session is None else self.session.take_log_problem()
+        if problem:
+            self.node.get_logger().error(f'study: {self.session.pid}: {problem}; the step itself is saved')
+            self._push_event({'type': 'study_error', 'message': f'saved, but {problem}; tell the experimenter'})
 
     # ------------------------------------------------------------------ steps
     def _step(self, msg: StudyMessage) -> None:
         action, data = msg.action, msg.data
         if action == 'begin':
-            if self.stage not in ('idle', 'closing'):
-                raise StudyError('a landing is in flight; finish it first')
+            pid = check_participant_id(data.get('participant'))
+            if self.session is not None:            # one participant at a time, until they are done
+                if self.session.pid == pid:
+                    raise StudyError(f'participant {pid} is open already')
+                if self.stage not in ('idle', 'closing'):
+                    raise StudyError('a landing is in flight; finish it first')
+                phase = self.session.phase
+                if phase != 'done':
+                    raise StudyError(f'participant {self.session.pid} has not finished (at {phase}); the station '
+                                     'takes the next participant once they are done, or after a restart')
+            session = StudySession(self.cfg, self.text, self.root, pid)
             self._close_bag()
             self.stage = 'idle'
-            self.session = StudySession(self.cfg, self.text, self.root, data.get('participant'))
+            self.session = session
             self.error = None
+            with self._begin_lock:
+                refused = self._begin_duplicates
             self.node.get_logger().info(f'study: participant {self.session.pid} at {self.session.phase} '
-                                        f'({self.session.order})')
+                                        f'({self.session.order})'
+                                        + (f'; {refused} duplicate begin step(s) refused' if refused else ''))
             return
         if self.session is None:
             raise StudyError('enter a participant ID first')
@@ -340,6 +422,7 @@ class StudyDriver:
         except (StudyError, OSError) as exc:
             self._fail(f'landing not recorded: {exc}')
             return False
+        self._report_log_problem()          # the row is saved: recorded, even where its log line is missing
         if spec.block == PRACTICE_BLOCK:
             fb = practice_feedback(landing, self.pads, self.last_xy)
             self.session.last_feedback = fb
@@ -371,6 +454,7 @@ class StudyDriver:
     def _abort(self, why: str) -> None:
         if self.session is not None and self.session.active is not None:
             self.session.abort_landing(why)
+            self._report_log_problem()
         self._calls.clear()
         self._close_bag()
         self.stage = 'idle'

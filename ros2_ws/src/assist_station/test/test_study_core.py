@@ -1,6 +1,8 @@
 """User-study protocol core: study file, counterbalancing, questionnaires, participant files, resume."""
 import csv
+import errno
 import json
+import os
 
 import numpy as np
 import pytest
@@ -272,3 +274,138 @@ def test_simulate_study_refuses_bad_arguments_before_any_work(tmp_path, capsys, 
         simulate_study.main(['--out', str(tmp_path / 'o'), *argv])
     assert exit_.value.code == 2 and needle in capsys.readouterr().err
     assert not (tmp_path / 'o').exists()
+
+
+def _no_space(fd):
+    raise OSError(errno.ENOSPC, 'No space left on device')
+
+
+def test_a_full_disk_at_start_landing_leaves_no_landing_in_flight_and_a_retry_starts_it(tmp_path, monkeypatch):
+    s = StudySession(CFG, TEXT, tmp_path, 'P01')
+    s.consent()
+    log = tmp_path / 'P01' / 'protocol.log'
+    before = log.read_bytes()
+    monkeypatch.setattr(os, 'fsync', _no_space)
+    with pytest.raises(OSError) as err:
+        s.start_landing(bag='practice_00')
+    assert err.value.errno == errno.ENOSPC
+    monkeypatch.undo()
+    assert s.active is None and s.view()['in_flight'] is False
+    assert log.read_bytes() == before                          # the partial line is taken back
+    spec = s.start_landing(bag='practice_00')                  # space is back: the same landing starts
+    assert spec.name == 'practice_00' and s.active == spec
+    s.record_landing(landing(spec.goal_index), start_pad=None, episode=1, bag='practice_00')
+    events = [json.loads(line)['event'] for line in log.read_text().splitlines()]
+    assert events.count('landing_started') == 1 and events[-1] == 'landing_recorded'
+
+
+def test_a_torn_protocol_line_does_not_swallow_the_event_after_it(tmp_path):
+    s = StudySession(CFG, TEXT, tmp_path, 'P01')
+    s.consent()
+    fly(s)
+    log = tmp_path / 'P01' / 'protocol.log'
+    with open(log, 'a') as fh:
+        fh.write('{"t": "2024-01-01T00:00:00.000Z", "event": "landing_sta')       # a crash cut this event
+    s.stop_practice()                                          # appended after the torn line (same store)
+    assert s.phase == 'block1'
+    fly(s)
+    s2 = StudySession(CFG, TEXT, tmp_path, 'P01')              # restart: practice_done must still be read
+    assert s2.phase == 'block1' and s2.next_landing().trial == 1
+    lines = log.read_text().splitlines()
+    torn = lines.index('{"t": "2024-01-01T00:00:00.000Z", "event": "landing_sta')     # on a line of its own
+    assert json.loads(lines[torn + 1])['event'] == 'practice_done'
+
+
+def test_an_event_already_glued_to_a_torn_line_is_read_and_a_torn_tail_is_dropped(tmp_path, caplog):
+    s = StudySession(CFG, TEXT, tmp_path, 'P01')
+    s.consent()
+    fly(s)
+    log = tmp_path / 'P01' / 'protocol.log'
+    done = json.dumps({'t': '2024-01-01T00:00:01.000Z', 'event': 'practice_done', 'why': 'participant stopped'})
+    glued, tail = '{"t": "2024-01-01T00:00:00.000Z", "event": "lan', '{"t": "2024-01-01T00:00:02.000Z", "ev'
+    with open(log, 'a') as fh:
+        fh.write(glued + done + '\n')            # what an appender that did not start a fresh line left
+        fh.write(tail)                            # and a torn last line
+    with caplog.at_level('WARNING', logger='assist_station.study'):
+        s2 = StudySession(CFG, TEXT, tmp_path, 'P01')
+    assert s2.phase == 'block1'
+    warned = [r.getMessage() for r in caplog.records]
+    assert any(f'skipped {len(glued)} bytes' in m for m in warned) and any(f'dropped {len(tail)} bytes' in m
+                                                                           for m in warned)
+    text = log.read_text()
+    assert text.endswith('\n') and '"ev\n' not in text and '"ev{' not in text
+    assert [json.loads(line)['event'] for line in text.splitlines()[-2:]] == ['torn_event_dropped', 'session_opened']
+
+
+def test_a_saved_row_whose_log_line_fails_is_recorded_and_the_problem_reported(tmp_path, monkeypatch):
+    s = StudySession(CFG, TEXT, tmp_path, 'P01')
+    s.consent()
+    spec = s.start_landing()
+    real_log = s.store.log
+
+    def log_fails_for_recorded(event, **data):
+        if event in ('landing_recorded', 'practice_done'):
+            raise OSError(errno.ENOSPC, 'No space left on device')
+        real_log(event, **data)
+    monkeypatch.setattr(s.store, 'log', log_fails_for_recorded)
+    row = s.record_landing(landing(spec.goal_index), start_pad=None, episode=4, bag=None)
+    assert row['trial'] == '0' and s.active is None and s.next_landing().trial == 1
+    problem = s.take_log_problem()
+    assert 'landing_recorded not written (No space left on device)' in problem
+    assert s.take_log_problem() is None
+    assert len(rows(tmp_path / 'P01' / 'landings.csv')) == 1
+
+
+@pytest.mark.parametrize('pid', ['S01\n', 'S01\r', ' S01', 'S01 '])
+def test_ids_with_surrounding_whitespace_are_refused(tmp_path, pid):
+    with pytest.raises(StudyError, match='participant ID'):
+        StudySession(CFG, TEXT, tmp_path, pid)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_symlinked_participant_directory_is_refused(tmp_path):
+    root, outside = tmp_path / 'study', tmp_path / 'elsewhere'
+    root.mkdir()
+    outside.mkdir()
+    (root / 'P01').symlink_to(outside)
+    with pytest.raises(StudyError, match='symbolic link'):
+        StudySession(CFG, TEXT, root, 'P01')
+    assert list(outside.iterdir()) == []
+
+
+@pytest.mark.parametrize('name', ['protocol.log', 'landings.csv', 'survey.json', 'study.yaml', 'bags'])
+def test_a_symlinked_file_in_a_participant_directory_is_refused(tmp_path, name):
+    root, outside = tmp_path / 'study', tmp_path / 'elsewhere'
+    s = StudySession(CFG, TEXT, root, 'P01')
+    s.consent()
+    fly(s)
+    outside.mkdir()
+    target = outside / name
+    if name == 'bags':
+        target.mkdir()
+    else:
+        target.write_text('outside\n')
+    path = root / 'P01' / name
+    if path.is_dir():
+        path.rmdir()
+    elif path.exists():
+        path.unlink()
+    path.symlink_to(target)
+    with pytest.raises(StudyError, match='symbolic link'):
+        StudySession(CFG, TEXT, root, 'P01').store.new_bag_path('block1_00')
+    if name == 'bags':
+        assert list(target.iterdir()) == []
+    else:
+        assert target.read_text() == 'outside\n'
+
+
+def test_a_file_replaced_by_a_symlink_while_open_is_not_written_through(tmp_path):
+    root, outside = tmp_path / 'study', tmp_path / 'elsewhere.log'
+    s = StudySession(CFG, TEXT, root, 'P01')
+    outside.write_text('outside\n')
+    log = root / 'P01' / 'protocol.log'
+    log.unlink()
+    log.symlink_to(outside)
+    with pytest.raises(StudyError, match='symbolic link'):
+        s.consent()
+    assert outside.read_text() == 'outside\n' and s.phase == 'consent'
