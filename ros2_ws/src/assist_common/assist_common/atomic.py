@@ -132,7 +132,7 @@ def committed_dir(path: str | Path) -> Path | None:
     return old if old.is_dir() else None
 
 
-_TMP_RE = re.compile(r'^\..+' + re.escape(TMP_MARK) + r'(\d+)(\.[^.]+)?$')
+_TMP_RE = re.compile(r'\..+' + re.escape(TMP_MARK) + r'(\d+)(\.[^.]+)?')     # fullmatch: the whole name
 
 
 def _alive(pid: int) -> bool:
@@ -152,7 +152,7 @@ def remove_stale_temporaries(directory: str | Path) -> list[Path]:
     """
     gone = []
     for p in sorted(Path(directory).glob(f'.*{TMP_MARK}*')):
-        m = _TMP_RE.match(p.name)
+        m = _TMP_RE.fullmatch(p.name)
         if m is None or (int(m.group(1)) != os.getpid() and _alive(int(m.group(1)))):
             continue
         _remove(p)

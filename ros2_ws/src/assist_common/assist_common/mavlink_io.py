@@ -31,8 +31,8 @@ mavlink = mavutil.mavlink
 NETWORK_SCHEMES = ('udpin', 'udpout', 'tcp', 'tcpin')
 ENDPOINT_FORMS = "udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, tcpin:HOST:PORT or a serial device under /dev"
 _LABEL = r'[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?'
-_HOST_RE = re.compile(rf'^(?=.{{1,253}}$){_LABEL}(?:\.{_LABEL})*$')
-_DEV_RE = re.compile(r'^/dev/[A-Za-z0-9._/+-]+$')
+_HOST_RE = re.compile(rf'(?=.{{1,253}}\Z){_LABEL}(?:\.{_LABEL})*')    # fullmatch: no trailing newline
+_DEV_RE = re.compile(r'/dev/[A-Za-z0-9._/+-]+')                   # fullmatch
 SIGNING_KEY_BYTES = 32
 # MAVLink signing timestamps count 10 us units since 2015-01-01 00:00:00 UTC.
 SIGNING_EPOCH_S = 1420070400
@@ -66,7 +66,7 @@ def parse_endpoint(url: str) -> Endpoint:
     if not isinstance(url, str) or not url:
         raise ValueError(f'empty MAVLink endpoint; use {ENDPOINT_FORMS}')
     if url.startswith('/'):
-        if not _DEV_RE.match(url) or '/../' in url + '/' or '/./' in url + '/' or '//' in url:
+        if not _DEV_RE.fullmatch(url) or '/../' in url + '/' or '/./' in url + '/' or '//' in url:
             raise ValueError(f'serial endpoint {url!r} is not a plain device path under /dev; use {ENDPOINT_FORMS}')
         return Endpoint('serial', device=url)
     scheme, _, rest = url.partition(':')
@@ -81,7 +81,7 @@ def parse_endpoint(url: str) -> Endpoint:
     try:
         ipaddress.IPv4Address(host)
     except ValueError:
-        if not _HOST_RE.match(host):
+        if not _HOST_RE.fullmatch(host):
             raise ValueError(f'MAVLink endpoint {url!r}: {host!r} is neither an IPv4 address nor a host name') from None
     return Endpoint(scheme, host=host, port=port)
 

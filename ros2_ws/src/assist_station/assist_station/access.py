@@ -23,8 +23,8 @@ from collections.abc import Iterable
 LOOPBACK_NAMES = ('127.0.0.1', 'localhost', '::1')
 WILDCARD_BINDS = ('', '0.0.0.0', '::')
 DEFAULT_PORTS = {'http': 80, 'https': 443}
-_HOST_RE = re.compile(r'^(?:\[(?P<v6>[0-9A-Fa-f:.]+)\]|(?P<name>[A-Za-z0-9._-]+))(?::(?P<port>[0-9]{1,5}))?$')
-_ORIGIN_RE = re.compile(r'^(?P<scheme>[A-Za-z][A-Za-z0-9+.-]*)://(?P<host>[^/?#@\s]+)$')
+_HOST_RE = re.compile(r'(?:\[(?P<v6>[0-9A-Fa-f:.]+)\]|(?P<name>[A-Za-z0-9._-]+))(?::(?P<port>[0-9]{1,5}))?')
+_ORIGIN_RE = re.compile(r'(?P<scheme>[A-Za-z][A-Za-z0-9+.-]*)://(?P<host>[^/?#@\s]+)')   # both: fullmatch
 
 HostPort = tuple[str, int]
 
@@ -42,7 +42,7 @@ def canonical_host(host: str) -> str:
 
 def parse_host(text: str, default_port: int = 80) -> HostPort:
     """A Host header value (``name[:port]``, ``[v6][:port]``) -> (canonical host, port); ValueError if malformed."""
-    m = _HOST_RE.match(text.strip()) if len(text) <= 300 else None
+    m = _HOST_RE.fullmatch(text.strip()) if len(text) <= 300 else None
     if m is None:
         raise ValueError('malformed host')
     host = m.group('v6') or m.group('name')
@@ -59,7 +59,7 @@ def parse_host(text: str, default_port: int = 80) -> HostPort:
 
 def parse_origin(text: str) -> HostPort:
     """An Origin header value (``http://host[:port]``) -> (canonical host, port); ValueError otherwise."""
-    m = _ORIGIN_RE.match(text.strip()) if len(text) <= 300 else None
+    m = _ORIGIN_RE.fullmatch(text.strip()) if len(text) <= 300 else None
     if m is None:
         raise ValueError('malformed origin')
     scheme = m.group('scheme').lower()
