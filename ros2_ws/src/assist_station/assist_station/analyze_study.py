@@ -3,10 +3,35 @@
     analyze_study study_data/* --out study_analysis
     analyze_study study_sim/S01 study_sim/S02 --out /tmp/a --trajectories 4
 
-Reads each participant directory the station (or simulate_study) wrote: landings.csv, survey.json and
-bags/. Landings of the two blocks count (practice does not); a landing that ended on the pad the
-vehicle started above (``started_on_pad``, the paper's "immediately landing on the starting
-platform") is excluded and counted per condition.
+Reads each participant directory the station (or simulate_study) wrote: study.yaml, landings.csv,
+survey.json and bags/. Landings of the two blocks count (practice does not); a landing that ended on
+the pad the vehicle started above (``started_on_pad``, the paper's "immediately landing on the
+starting platform") is excluded and counted per condition.
+
+Every value is checked against the study file and the protocol before it counts; what fails is left
+out, one line each on stderr, and counted per reason in summary.json (``validation``) and in the
+tables' first lines:
+
+* the study file: the one most participant directories hold as study.yaml (ties: the first given),
+  or --study; a participant that ran another sequence, scene, pad count or assistant is left out,
+  as is one without study.yaml when --study is not given;
+* a participant directory is named after its participant (the station's layout): a name that is not
+  a participant ID, or the same participant twice, is left out;
+* landings.csv rows (study blocks; practice rows are not analysed): the participant, the block's
+  condition and order (the participant's counterbalanced order), the trial number (within the
+  sequence) and its goal pad (the sequence's), finite errors within ``--max-error-m`` (the arena),
+  the nearest pad's error no larger than the goal pad's, pad indices within the study's pads, an
+  outcome the simulator writes that agrees with success and crash, ``assist_live`` (when recorded)
+  agreeing with the condition, a plain bag name; a row written twice counts once, two different rows
+  for one landing do not count. A torn last row (cut mid-write), a malformed CSV row (wrong number
+  of fields, a field over the csv module's size limit) or a row that is not UTF-8 is skipped;
+  a file without the station's columns, over 16 MB or unreadable leaves the participant out;
+* survey.json: an object of the station's shape; each SUS entry's block (1 or 2) and condition
+  (the participant's order), its ten answers (1-5) and score (0-100, the answers' score), and the
+  concluding survey's 21 answers within each question's scale; a bad entry (or the whole file, when
+  it is not an object, not UTF-8 JSON, or another participant's) is not used.
+
+What is computed from the rows that pass:
 
 * Table I, specified and nearest platform: success rate (specified: all legs on the goal pad;
   nearest: all legs on any pad, i.e. the pad nearest to where it landed), median and mean error, and
@@ -14,8 +39,9 @@ platform") is excluded and counted per condition.
   nearest pad's centre), unassisted vs assisted.
 * Two-sample tests at the 99 % level (statistic and p for each; * in the table where p < 0.01):
   McNemar on success, paired by participant and trial (statsmodels; exact binomial when fewer than 25
-  discordant pairs), Mood's median test (scipy), Welch's t-test on the mean (scipy), and the F-test
-  of equal variances (variance ratio against scipy's F distribution, two-sided).
+  discordant pairs; landings without their pair are counted as ``unpaired``), Mood's median test
+  (scipy), Welch's t-test on the mean (scipy), and the F-test of equal variances (variance ratio
+  against scipy's F distribution, two-sided).
 * The multivariable regression (statsmodels OLS) of a landing's error on three binary variables:
   assisted, first half (block 1) and experienced (a participant's mean self-rating on experience
   questions 2, 3, 5 and 6 at or above the threshold that makes a third of the participants
@@ -31,28 +57,40 @@ platform") is excluded and counted per condition.
 * Goal inference (assisted landings): the share that ended nearest to the goal pad, and the share
   of those that succeeded (the paper: 79.34 % and 93.34 %).
 
-Writes OUT/summary.json, OUT/table.txt, OUT/table.md, OUT/violin.png (Fig. 6), OUT/experience.png
-(Fig. 8) and OUT/trajectories.png (Fig. 7: chosen landings' /odom tracks from their bags, both
-conditions of the same trials). Existing outputs in OUT are never overwritten (the tool refuses).
+Writes OUT/summary.json (strict JSON: a figure that is not defined is null), OUT/table.txt,
+OUT/table.md, OUT/violin.png (Fig. 6), OUT/experience.png (Fig. 8) and OUT/trajectories.png (Fig. 7:
+chosen landings' /odom tracks from their bags, both conditions of the same trials). Existing outputs
+in OUT are never overwritten, nor is anything written through a symbolic link there: the tool refuses
+before any work, and each file is published only where nothing (not even a dangling link) stands.
+
+Exit status: 0 when the analysis was written (rows, files or participants left out are reported, not
+fatal), 1 when nothing could be analysed or an output cannot be written (what was written stays),
+2 for bad arguments.
 """
 from __future__ import annotations
 
 import argparse
 import csv
+import io
 import json
 import logging
 import math
+import os
 import sys
-from dataclasses import dataclass
+import tempfile
+from collections import Counter
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from assist_common.atomic import fsync_dir
 from assist_common.frames import heading, rotate_xy
 from assist_policy.cli import add_dataclass_args, parse_dataclass_args, setting
 
-from .study import CONDITIONS, EXPERIENCE_QUESTIONS, LANDING_COLUMNS, StudyError
+from .study import (CONDITIONS, EXPERIENCE_QUESTIONS, LANDING_COLUMNS, PARTICIPANT_ID, StudyConfig, StudyError,
+                    block_condition, check_survey, check_sus, order_name, sus_score)
 
 log = logging.getLogger('analyze_study')
 ALPHA = 0.01
@@ -65,6 +103,35 @@ SUS_PERCENTILES = ((0.0, 0.0), (51.6, 14.0), (51.7, 15.0), (62.6, 34.0), (62.7, 
 JUMP_M = 1.0          # an /odom step longer than this between two messages is a reset (teleport)
 COLORS = {'unassisted': '#1f77b4', 'assisted': '#2ca02c'}
 
+# what the data are checked against
+OUTCOMES = ('success', 'wrong_pad', 'edge', 'crash', 'timeout')     # the simulator's landing outcomes
+PROTOCOL_FIELDS = ('scene_seed', 'sequence', 'n_pads', 'assistant_mode', 'policy_model', 'encoder_model')
+SUS_BLOCKS = ('1', '2')
+SUS_MAX = 100.0
+SUS_STEP = 2.5                          # ten 1-5 answers give scores in steps of 2.5
+STORED_TOLERANCE_M = 1e-3               # landings.csv stores metres with four decimals
+MAX_DURATION_S = 24 * 3600.0
+MAX_LANDINGS_BYTES = 16 * 1024 * 1024   # a study's landings.csv holds a few dozen rows of ~200 bytes
+MAX_SURVEY_BYTES = 1024 * 1024
+MAX_DETAILS = 200                       # excluded rows listed one by one (log and summary.json); the rest counted
+SHOWN_CHARS = 60                        # a value from a file is quoted (repr) at most this long
+
+# why a study row is left out (summary.json validation.rows_excluded keys)
+R_TORN = 'torn last row'
+R_MALFORMED = 'malformed CSV row'
+R_ENCODING = 'not UTF-8'
+R_PARTICIPANT = "another participant's row"
+R_BLOCK = 'block not 0, 1 or 2'
+R_CONDITION = "condition or order contradicts the participant's order"
+R_TRIAL = 'trial outside the sequence'
+R_GOAL = "goal pad differs from the sequence's"
+R_VALUE = 'unreadable or out-of-range value'
+R_ERROR = 'error not finite or outside the arena'
+R_OUTCOME = 'outcome inconsistent with success, crash or errors'
+R_LIVE = 'assist_live contradicts the condition'
+R_DUPLICATE = 'duplicate row'
+R_CONFLICT = 'conflicting rows for one landing'
+
 
 @dataclass
 class AnalyzeArgs:
@@ -73,11 +140,17 @@ class AnalyzeArgs:
     out: str = setting('study_analysis', nonempty=True)
     trajectories: int = setting(3, ge=0, le=50)
     plots: bool = True
+    study: str = ''
+    max_error_m: float = setting(50.0, gt=0.0, le=10000.0)
 
 
 HELP = {'out': 'directory for summary.json, the tables and the figures (created; existing outputs are refused)',
         'trajectories': 'participants whose landings Fig. 7 draws (both conditions of one trial each; 0: no figure)',
-        'plots': 'draw the figures'}
+        'plots': 'draw the figures',
+        'study': 'study file the data are checked against (default: the study.yaml most participant directories '
+                 'hold)',
+        'max_error_m': 'largest credible landing error (m): the arena\'s extent (the simulator\'s 5-pad room is '
+                       'under 40 m corner to corner); larger errors are left out as invalid'}
 
 
 # ----------------------------------------------------------------------------------------- loading
@@ -85,10 +158,10 @@ def _bool(text: str) -> bool | None:
     return {'true': True, 'false': False}.get(text.strip().lower())
 
 
-def _float(text: str) -> float | None:
+def _float(text: Any) -> float | None:
     try:
         v = float(text)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         return None
     return v if math.isfinite(v) else None
 
@@ -98,6 +171,17 @@ def _int(text: str) -> int | None:
         return int(text)
     except (TypeError, ValueError):
         return None
+
+
+def _number(v: Any) -> bool:
+    """A finite JSON number (not a bool)."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _shown(v: Any) -> str:
+    """A value from a file as it may appear in a log line: repr, cut short."""
+    text = repr(v)
+    return text if len(text) <= SHOWN_CHARS else text[:SHOWN_CHARS - 3] + '...'
 
 
 @dataclass
@@ -111,47 +195,352 @@ class Participant:
     survey: dict[str, Any] | None
 
 
-def load_participant(path: Path) -> Participant:
-    """Read a participant directory; StudyError (one line) when it is not one."""
-    lpath = path / 'landings.csv'
-    if not lpath.is_file():
-        raise StudyError(f'{path}: no landings.csv (not a participant directory)')
-    with open(lpath, encoding='utf-8', newline='') as fh:
-        reader = csv.DictReader(fh)
-        if reader.fieldnames is None or not set(LANDING_COLUMNS) <= set(reader.fieldnames):
-            raise StudyError(f'{lpath}: missing columns {sorted(set(LANDING_COLUMNS) - set(reader.fieldnames or []))}')
-        raw = list(reader)
-    rows, pid = [], None
-    for i, r in enumerate(raw, start=2):
+@dataclass
+class Validation:
+    """What the analysis left out and why: rows counted per reason, files and participants one line each."""
+
+    rows: Counter = field(default_factory=Counter)
+    files: list[str] = field(default_factory=list)
+    participants: list[str] = field(default_factory=list)
+    details: list[str] = field(default_factory=list)
+    details_left_off: int = 0
+
+    def row(self, where: str, reason: str, detail: str = '') -> None:
+        """Count one excluded row; the first MAX_DETAILS are logged and listed."""
+        self.rows[reason] += 1
+        self._note(f'{where}: {reason}' + (f' ({detail})' if detail else '') + '; row left out')
+
+    def file(self, where: str, why: str) -> None:
+        """One file (or one entry of it) that is not used."""
+        line = f'{where}: {why}; not used'
+        self.files.append(line)
+        log.warning('%s', line)
+
+    def participant(self, where: str, why: str) -> None:
+        """One participant directory that is left out."""
+        line = f'{where}: {why}; participant left out'
+        self.participants.append(line)
+        log.warning('%s', line)
+
+    def _note(self, line: str) -> None:
+        if len(self.details) < MAX_DETAILS:
+            self.details.append(line)
+            log.warning('%s', line)
+        else:
+            if not self.details_left_off:
+                log.warning('more rows left out: counted in summary.json (validation.rows_excluded), not listed')
+            self.details_left_off += 1
+
+    def as_dict(self) -> dict[str, Any]:
+        """summary.json's ``validation`` entry."""
+        return {'rows_excluded': dict(sorted(self.rows.items())), 'rows_excluded_total': sum(self.rows.values()),
+                'files_excluded': list(self.files), 'participants_excluded': list(self.participants),
+                'rows_listed': list(self.details), 'rows_not_listed': self.details_left_off}
+
+
+def protocol_of(cfg: StudyConfig) -> tuple:
+    """The settings that define what a study measures (two participants are comparable when these agree)."""
+    return tuple(getattr(cfg, f) for f in PROTOCOL_FIELDS)
+
+
+def _protocol_difference(cfg: StudyConfig, ref: StudyConfig) -> str:
+    return ', '.join(f for f in PROTOCOL_FIELDS if getattr(cfg, f) != getattr(ref, f))
+
+
+def read_csv_rows(path: Path, val: Validation, where: str) -> tuple[list[str], list[tuple[int, list[str]]]]:
+    """(header, [(line, fields)]) of a CSV file; torn, malformed and non-UTF-8 rows are counted in `val` and
+    skipped. StudyError (one line) when the file as a whole cannot be used."""
+    try:
+        size = path.stat().st_size
+        if size > MAX_LANDINGS_BYTES:
+            raise StudyError(f'{path}: {size} bytes, more than a study writes ({MAX_LANDINGS_BYTES} at most)')
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise StudyError(f'{path}: cannot read ({exc.strerror or exc})') from None
+    if raw and not raw.endswith(b'\n'):            # a row cut mid-write (the station drops it on resume)
+        cut = raw.rfind(b'\n') + 1
+        if cut:
+            line = raw.count(b'\n', 0, cut) + 1
+            val.row(f'{where} line {line}', R_TORN, f'{len(raw) - cut} bytes without a line end')
+        raw = raw[:cut]
+    text = raw.decode('utf-8', errors='surrogateescape')
+    reader = csv.reader(io.StringIO(text, newline=''), strict=True)
+    header: list[str] | None = None
+    rows: list[tuple[int, list[str]]] = []
+    while True:
+        start = reader.line_num + 1
+        try:
+            fields_ = next(reader)
+        except StopIteration:
+            break
+        except csv.Error as exc:
+            if header is None:
+                raise StudyError(f'{path}: the header is not CSV ({exc})') from None
+            val.row(f'{where} line {start}', R_MALFORMED, str(exc))
+            continue
+        if not fields_:
+            continue                                # a blank line
+        utf8 = not any('\udc80' <= ch <= '\udcff' for f in fields_ for ch in f)
+        if header is None:
+            if not utf8:
+                raise StudyError(f'{path}: the header is not UTF-8')
+            header = fields_
+            missing = [c for c in LANDING_COLUMNS if c not in header]
+            if missing or len(set(header)) != len(header):
+                raise StudyError(f'{path}: not the station\'s columns (missing {", ".join(missing) or "none"}'
+                                 f'{", some twice" if len(set(header)) != len(header) else ""})')
+            continue
+        if not utf8:
+            val.row(f'{where} line {start}', R_ENCODING)
+        elif len(fields_) != len(header):
+            val.row(f'{where} line {start}', R_MALFORMED, f'{len(fields_)} fields, the header has {len(header)}')
+        else:
+            rows.append((start, fields_))
+    if header is None:
+        raise StudyError(f'{path}: empty (no header)')
+    return header, rows
+
+
+def _optional_int(text: str, lo: int, hi: int) -> tuple[bool, int | None]:
+    """(valid, value) of an optional integer field in lo..hi-1 ('' is None)."""
+    if text == '':
+        return True, None
+    v = _int(text)
+    return (v is not None and lo <= v < hi), v
+
+
+def check_row(r: dict[str, str], pid: str, cfg: StudyConfig, max_error_m: float) -> tuple[str | None, str]:
+    """(reason, detail) why a study-block row of participant `pid` cannot count (None: it can)."""
+    if r['participant'] != pid:
+        return R_PARTICIPANT, f"participant {_shown(r['participant'])}"
+    block = _int(r['block'])
+    expected = block_condition(pid, block) if block in (1, 2) else None
+    if r['condition'] != expected or r['order'] not in ('', order_name(pid)):
+        return R_CONDITION, (f"block {block} is {_shown(r['condition'])}, order {_shown(r['order'])}; {pid} flies "
+                             f'{expected} in block {block} ({order_name(pid)})')
+    trial = _int(r['trial'])
+    if trial is None or not 0 <= trial < len(cfg.sequence):
+        return R_TRIAL, f"trial {_shown(r['trial'])}, the sequence has {len(cfg.sequence)}"
+    if _int(r['goal_index']) != cfg.sequence[trial]:
+        return R_GOAL, f"goal pad {_shown(r['goal_index'])}, the sequence's trial {trial} is {cfg.sequence[trial]}"
+    for name in ('success', 'crash', 'started_on_pad'):
+        if _bool(r[name]) is None:
+            return R_VALUE, f'{name} {_shown(r[name])}'
+    for name in ('landed_index', 'nearest_index', 'start_pad'):
+        ok, _ = _optional_int(r[name], 0, cfg.n_pads)
+        if not ok:
+            return R_VALUE, f'{name} {_shown(r[name])} (pads 0..{cfg.n_pads - 1})'
+    ok, _ = _optional_int(r['episode'], 0, 2 ** 63)
+    if not ok:
+        return R_VALUE, f"episode {_shown(r['episode'])}"
+    if r['duration_s'] != '':
+        d = _float(r['duration_s'])
+        if d is None or not 0.0 <= d <= MAX_DURATION_S:
+            return R_VALUE, f"duration_s {_shown(r['duration_s'])}"
+    if r['assist_live'] != '' and _bool(r['assist_live']) is None:
+        return R_VALUE, f"assist_live {_shown(r['assist_live'])}"
+    bag = r['bag']
+    if bag in ('.', '..') or any(c in bag for c in '/\\\0'):
+        return R_VALUE, f'bag {_shown(bag)} (a name under bags/)'
+    err = _float(r['error_m'])
+    nerr = _float(r['nearest_error_m']) if r['nearest_error_m'] != '' else err
+    for name, v in (('error_m', err), ('nearest_error_m', nerr)):
+        if v is None or not 0.0 <= v <= max_error_m:
+            return R_ERROR, f'{name} {_shown(r[name])} (0-{max_error_m:g} m)'
+    outcome, success, crash = r['outcome'], _bool(r['success']), _bool(r['crash'])
+    if (outcome not in OUTCOMES or success != (outcome == 'success') or crash != (outcome == 'crash')
+            or (success and _int(r['landed_index']) != cfg.sequence[trial])
+            or nerr > err + STORED_TOLERANCE_M):
+        return R_OUTCOME, (f"outcome {_shown(outcome)}, success {r['success']}, crash {r['crash']}, landed_index "
+                           f"{_shown(r['landed_index'])}, error_m {err:g}, nearest_error_m {nerr:g}")
+    live = _bool(r['assist_live']) if r['assist_live'] != '' else None
+    if live is not None and live != (r['condition'] == 'assisted'):
+        return R_LIVE, f"assist_live {r['assist_live']} in a {r['condition']} block"
+    return None, ''
+
+
+def load_rows(path: Path, pid: str, cfg: StudyConfig, val: Validation, max_error_m: float) -> list[dict[str, Any]]:
+    """The study-block rows of `pid`'s landings.csv that pass every check (see the module's doc); the others are
+    counted in `val`. StudyError when the file cannot be used at all."""
+    where = f'{pid}/landings.csv'
+    header, raw_rows = read_csv_rows(path, val, where)
+    passed: dict[tuple[int, int], list[tuple[int, dict[str, str]]]] = {}
+    for line, fields_ in raw_rows:
+        r = dict(zip(header, fields_))
         block = _int(r['block'])
+        if block == 0:
+            continue                                    # practice: not analysed
         if block not in (1, 2):
+            val.row(f'{where} line {line}', R_BLOCK, f"block {_shown(r['block'])}")
             continue
-        err, nerr = _float(r['error_m']), _float(r['nearest_error_m'])
-        success, trial = _bool(r['success']), _int(r['trial'])
-        if r['condition'] not in CONDITIONS or err is None or success is None or trial is None:
-            log.warning('%s line %d: unusable row skipped', lpath, i)
+        reason, detail = check_row(r, pid, cfg, max_error_m)
+        if reason is not None:
+            val.row(f'{where} line {line}', reason, detail)
             continue
-        pid = pid or r['participant']
-        rows.append({'pid': r['participant'], 'block': block, 'condition': r['condition'], 'trial': trial,
-                     'goal_index': _int(r['goal_index']), 'landed_index': _int(r['landed_index']),
+        passed.setdefault((block, int(r['trial'])), []).append((line, r))
+    rows = []
+    for (block, trial), same in sorted(passed.items()):
+        first_line, r = same[0]
+        others = same[1:]
+        if any(o != r for _, o in others):
+            for line, _ in same:
+                val.row(f'{where} line {line}', R_CONFLICT, f'block {block} trial {trial} is on lines '
+                        + ', '.join(str(n) for n, _ in same))
+            continue
+        for line, _ in others:
+            val.row(f'{where} line {line}', R_DUPLICATE, f'same as line {first_line}')
+        err = float(r['error_m'])
+        rows.append({'pid': pid, 'block': block, 'condition': r['condition'], 'trial': trial,
+                     'goal_index': int(r['goal_index']), 'landed_index': _int(r['landed_index']),
                      'nearest_index': _int(r['nearest_index']), 'error_m': err,
-                     'nearest_error_m': nerr if nerr is not None else err, 'success': success,
-                     'crash': bool(_bool(r['crash'])), 'outcome': r['outcome'],
-                     'started_on_pad': bool(_bool(r['started_on_pad'])), 'bag': r.get('bag') or ''})
+                     'nearest_error_m': float(r['nearest_error_m']) if r['nearest_error_m'] != '' else err,
+                     'success': bool(_bool(r['success'])), 'crash': bool(_bool(r['crash'])), 'outcome': r['outcome'],
+                     'started_on_pad': bool(_bool(r['started_on_pad'])), 'bag': r['bag'], 'line': first_line})
+    return rows
+
+
+def _refuse_constant(name: str) -> None:
+    raise ValueError(f'{name} is not a JSON number')
+
+
+def load_answers(path: Path, pid: str, val: Validation) -> tuple[dict[str, float], dict[str, Any] | None]:
+    """(SUS score per condition, the concluding survey's answers or None) from survey.json; what does not pass
+    the station's own checks (study.check_sus, check_survey, the participant's order) is reported in `val`."""
+    where = f'{pid}/survey.json'
+    try:
+        if path.stat().st_size > MAX_SURVEY_BYTES:
+            val.file(where, f'larger than {MAX_SURVEY_BYTES} bytes')
+            return {}, None
+        data = json.loads(path.read_bytes().decode('utf-8'), parse_constant=_refuse_constant)
+    except OSError as exc:
+        val.file(where, f'cannot read ({exc.strerror or exc})')
+        return {}, None
+    except UnicodeDecodeError:
+        val.file(where, 'not UTF-8')
+        return {}, None
+    except (ValueError, RecursionError) as exc:
+        val.file(where, f'not JSON ({str(exc).splitlines()[0][:120]})')
+        return {}, None
+    if not isinstance(data, dict):
+        val.file(where, f'a JSON {type(data).__name__}, not the station\'s object')
+        return {}, None
+    if 'participant' in data and data['participant'] != pid:
+        val.file(where, f"answers of participant {_shown(data['participant'])}")
+        return {}, None
+    sus: dict[str, float] = {}
+    entries = data.get('sus', {})
+    if not isinstance(entries, dict):
+        val.file(f'{where} sus', f'a JSON {type(entries).__name__}, not an object keyed by block')
+        entries = {}
+    for block, entry in entries.items():
+        why = _sus_problem(pid, block, entry)
+        if why:
+            val.file(f'{where} sus block {_shown(block)}', why)
+            continue
+        score = sus_score(entry['answers']) if 'answers' in entry else float(entry['score'])
+        sus[entry['condition']] = float(score)
+    survey = data.get('survey')
+    if survey is not None:
+        try:
+            survey = check_survey(survey)
+        except StudyError as exc:
+            val.file(f'{where} survey', str(exc))
+            survey = None
+    return sus, survey
+
+
+def _sus_problem(pid: str, block: Any, entry: Any) -> str | None:
+    """Why one survey.json SUS entry cannot be used (None: it can)."""
+    if block not in SUS_BLOCKS:
+        return 'SUS is asked after block 1 or 2 only'
+    if not isinstance(entry, dict):
+        return f'a JSON {type(entry).__name__}, not an object'
+    expected = block_condition(pid, int(block))
+    if entry.get('condition') != expected:
+        return f"condition {_shown(entry.get('condition'))}, {pid} flies {expected} in block {block}"
+    score = entry.get('score')
+    if 'answers' in entry:
+        try:
+            answers = check_sus(entry['answers'])
+        except StudyError as exc:
+            return str(exc)
+        if score is not None and not (_number(score) and abs(score - sus_score(answers)) < 1e-9):
+            return f'score {_shown(score)} is not the answers\' score {sus_score(answers):g}'
+        return None
+    if not (_number(score) and 0.0 <= score <= SUS_MAX and float(score / SUS_STEP).is_integer()):
+        return f'score {_shown(score)}: a SUS score is 0-{SUS_MAX:g} in steps of {SUS_STEP:g}'
+    return None
+
+
+def load_participant(path: Path, pid: str, cfg: StudyConfig, val: Validation,
+                     max_error_m: float = AnalyzeArgs.max_error_m) -> Participant:
+    """Participant `pid`'s checked rows and answers from directory `path`; StudyError (one line) when its
+    landings.csv cannot be used at all."""
+    rows = load_rows(path / 'landings.csv', pid, cfg, val, max_error_m)
     sus: dict[str, float] = {}
     survey = None
-    spath = path / 'survey.json'
-    if spath.is_file():
+    if (path / 'survey.json').exists():
+        sus, survey = load_answers(path / 'survey.json', pid, val)
+    return Participant(pid, path, rows, sus, survey)
+
+
+def load_study(dirs: list[Path], args: AnalyzeArgs, val: Validation) -> list[Participant]:
+    """Every usable participant of `dirs`, checked against one study file (see the module's doc); the rest is
+    reported in `val`. StudyError when --study cannot be read."""
+    found: list[tuple[Path, str, StudyConfig | None]] = []
+    seen: dict[str, Path] = {}
+    for d in dirs:
+        pid = Path(os.path.abspath(d)).name
+        if not d.is_dir():
+            val.participant(str(d), 'not a directory')
+            continue
+        if not (d / 'landings.csv').exists():
+            val.participant(str(d), 'no landings.csv (not a participant directory)')
+            continue
+        if not PARTICIPANT_ID.fullmatch(pid):
+            val.participant(str(d), f'{_shown(pid)} is not a participant ID (a directory is named after its '
+                                    'participant)')
+            continue
+        if pid in seen:
+            val.participant(str(d), f'participant {pid} is given twice (also {seen[pid]})')
+            continue
+        seen[pid] = d
+        cfg = None
+        if (d / 'study.yaml').exists():
+            try:
+                cfg, _ = StudyConfig.load(d / 'study.yaml')
+            except StudyError as exc:
+                val.participant(str(d), str(exc))
+                continue
+        found.append((d, pid, cfg))
+    if args.study:
+        ref, _ = StudyConfig.load(args.study)
+    else:
+        protocols = Counter(protocol_of(c) for _, _, c in found if c is not None)
+        if not protocols:
+            for d, _, _ in found:
+                val.participant(str(d), 'no study.yaml (give --study FILE)')
+            return []
+        top = protocols.most_common(1)[0][0]
+        ref = next(c for _, _, c in found if c is not None and protocol_of(c) == top)
+    parts = []
+    for d, pid, cfg in found:
+        if cfg is None and not args.study:
+            val.participant(str(d), 'no study.yaml (give --study FILE)')
+            continue
+        if cfg is not None and protocol_of(cfg) != protocol_of(ref):
+            val.participant(str(d), f'ran another study file ({_protocol_difference(cfg, ref)} differ)')
+            continue
         try:
-            data = json.loads(spath.read_text(encoding='utf-8'))
-        except ValueError as exc:
-            raise StudyError(f'{spath}: not JSON ({exc})') from None
-        for entry in (data.get('sus') or {}).values():
-            ok = isinstance(entry, dict) and entry.get('condition') in CONDITIONS
-            if ok and _float(entry.get('score')) is not None:
-                sus[entry['condition']] = float(entry['score'])
-        survey = data.get('survey') if isinstance(data.get('survey'), dict) else None
-    return Participant(pid or path.name, path, rows, sus, survey)
+            p = load_participant(d, pid, ref, val, args.max_error_m)
+        except StudyError as exc:
+            val.participant(str(d), str(exc))
+            continue
+        if not p.rows and not p.sus:
+            val.participant(str(d), 'no study landing or SUS answer passes the checks')
+            continue
+        parts.append(p)
+    return parts
 
 
 # ----------------------------------------------------------------------------------------- statistics
@@ -320,6 +709,7 @@ def analyze(parts: list[Participant]) -> dict[str, Any]:
         pairs = [(index[(pid, t, 'unassisted')], index[(pid, t, 'assisted')])
                  for (pid, t, c) in index if c == 'unassisted' and (pid, t, 'assisted') in index]
         dest['mcnemar'] = mcnemar_test(pairs)
+        dest['mcnemar']['unpaired'] = len(index) - 2 * len(pairs)      # the other condition's landing is missing
         dest.update(two_sample_tests(np.array([r[key] for r in by['unassisted']], dtype=float),
                                      np.array([r[key] for r in by['assisted']], dtype=float)))
     ratings = experience_ratings(parts)
@@ -400,14 +790,17 @@ def render_tables(summary: dict[str, Any]) -> tuple[str, str]:
     text = [f"User study: {summary['participants']} participants, {summary['landings']['unassisted']} unassisted and "
             f"{summary['landings']['assisted']} assisted landings (excluded: {summary['excluded']['unassisted']} "
             f"unassisted, {summary['excluded']['assisted']} assisted, ended on the starting platform)"]
+    text += validation_lines(summary.get('validation'))
+    md = text + ['', '| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head)]
     text += ['  '.join(c.ljust(w) for c, w in zip(r, widths)) for r in [head] + rows]
-    md = [text[0], '', '| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head)]
     md += ['| ' + ' | '.join(r) + ' |' for r in rows]
     notes = ['* significantly more favourable (p < 0.01)']
     for name, key in (('McNemar (success)', 'mcnemar'), ("Mood's median test", 'mood_median'),
                       ("Welch's t-test", 't'), ('F-test (variance)', 'f')):
         t = summary['tests'][key]
-        notes.append(f'{name}: statistic {_num(t["statistic"])}, p {_num(t["p"], 4)}')
+        notes.append(f'{name}: statistic {_num(t["statistic"])}, p {_num(t["p"], 4)}'
+                     + (f" ({t['pairs']} pairs; {t['unpaired']} landings without their pair)" if key == 'mcnemar'
+                        else ''))
     reg = summary['regression']
     notes.append('Regression of error (m): ' + ', '.join(
         f"{k} {_num(reg[k]['coef'])} (p {_num(reg[k]['p'], 4)})" for k in ('assisted', 'first_half', 'experienced')))
@@ -421,6 +814,18 @@ def render_tables(summary: dict[str, Any]) -> tuple[str, str]:
     notes.append(f"Goal inferred (assisted landings ended nearest the goal pad): {_pct(gi['rate'])}; of those "
                  f"successful: {_pct(gi['success_given_inferred'])}")
     return '\n'.join(text + [''] + notes) + '\n', '\n'.join(md + [''] + [f'- {n}' for n in notes]) + '\n'
+
+
+def validation_lines(validation: dict[str, Any] | None) -> list[str]:
+    """The tables' lines saying what was left out as invalid (nothing when nothing was)."""
+    if not validation:
+        return []
+    out = []
+    if validation['rows_excluded_total']:
+        out.append(f"Left out as invalid: {validation['rows_excluded_total']} rows (" + ', '.join(
+            f'{n} {reason}' for reason, n in validation['rows_excluded'].items()) + ')')
+    out += [f'Left out: {line}' for line in validation['participants_excluded'] + validation['files_excluded']]
+    return out
 
 
 def _num(v: float | None, digits: int = 2) -> str:
@@ -442,11 +847,15 @@ def _pct(v: float | None) -> str:
 
 # ----------------------------------------------------------------------------------------- figures
 def _save(fig: Any, path: Path, dpi: int = 120) -> None:
-    """Write a figure as PNG and free it."""
+    """Write a figure as the new PNG file `path` (write_new) and free it."""
     import matplotlib.pyplot as plt
     fig.tight_layout()
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
+    buf = io.BytesIO()
+    try:
+        fig.savefig(buf, dpi=dpi, format='png')
+    finally:
+        plt.close(fig)
+    write_new(path, buf.getvalue())
 
 
 def plot_violin(parts: list[Participant], path: Path) -> None:
@@ -572,37 +981,71 @@ def plot_trajectories(parts: list[Participant], n: int, path: Path) -> int:
 
 
 # ----------------------------------------------------------------------------------------- main
-def run(dirs: list[Path], args: AnalyzeArgs) -> dict[str, Any]:
-    """Analyse the participant directories into args.out; returns the summary."""
-    out = Path(args.out)
-    taken = [name for name in OUTPUTS if (out / name).exists()]
+def check_outputs(out: Path) -> None:
+    """StudyError unless none of the outputs stands in `out` (a file, a directory or a symbolic link, even one
+    that points nowhere: writing through it would land outside `out`)."""
+    taken = [name for name in OUTPUTS if os.path.lexists(out / name)]
     if taken:
         raise StudyError(f'{out}: {", ".join(taken)} exist already; not overwriting (use another --out)')
-    parts = []
-    for d in dirs:
-        if not d.is_dir():
-            log.warning('%s: not a directory, skipped', d)
-            continue
-        if not (d / 'landings.csv').exists():
-            log.warning('%s: no landings.csv, skipped', d)
-            continue
-        parts.append(load_participant(d))
+    if os.path.lexists(out) and not out.is_dir():
+        raise StudyError(f'{out}: not a directory')
+
+
+def write_new(path: Path, data: bytes) -> None:
+    """Write `data` as the new file `path` (crash-safe: a hidden temporary, fsynced, then published under the
+    name only where nothing stands, not even a dangling link; never follows or replaces one). StudyError when
+    something is there, OSError when the disk refuses."""
+    from assist_policy.bags.bagio import BagError, publish_new
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f'.{path.name}.', suffix='.tmp')
+    try:
+        with os.fdopen(fd, 'wb') as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    try:
+        publish_new(Path(tmp), path)
+    except BagError as exc:
+        raise StudyError(str(exc)) from None
+    fsync_dir(path.parent)
+
+
+def strict_json(value: Any) -> Any:
+    """`value` with every non-finite float (a statistic that is not defined on these data) as None."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: strict_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [strict_json(v) for v in value]
+    return value
+
+
+def run(dirs: list[Path], args: AnalyzeArgs) -> dict[str, Any]:
+    """Analyse the participant directories into args.out; returns the summary. StudyError when nothing can be
+    analysed or an output exists already (nothing is written then)."""
+    out = Path(args.out)
+    check_outputs(out)
+    val = Validation()
+    parts = load_study(dirs, args, val)
     if not parts:
-        raise StudyError('no participant directory with landings.csv among the arguments')
-    pids = [p.pid for p in parts]
-    if len(set(pids)) != len(pids):
-        raise StudyError(f'a participant appears twice: {sorted({p for p in pids if pids.count(p) > 1})}')
+        why = '; '.join(val.participants) or 'no participant directory among the arguments'
+        raise StudyError(f'nothing to analyse: {why}')
     summary = analyze(parts)
+    summary['validation'] = val.as_dict()
+    summary = strict_json(summary)
     text, md = render_tables(summary)
     out.mkdir(parents=True, exist_ok=True)
-    (out / 'table.txt').write_text(text, encoding='utf-8')
-    (out / 'table.md').write_text(md, encoding='utf-8')
+    write_new(out / 'table.txt', text.encode('utf-8'))
+    write_new(out / 'table.md', md.encode('utf-8'))
     if args.plots:
         plot_violin(parts, out / 'violin.png')
         plot_experience(summary, out / 'experience.png')
         if args.trajectories:
             summary['trajectory_panels'] = plot_trajectories(parts, args.trajectories, out / 'trajectories.png')
-    (out / 'summary.json').write_text(json.dumps(summary, indent=1) + '\n', encoding='utf-8')
+    write_new(out / 'summary.json', (json.dumps(summary, indent=1, allow_nan=False) + '\n').encode('utf-8'))
     return summary
 
 
@@ -619,7 +1062,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         summary = run(pre.dirs, args)
     except (StudyError, OSError) as exc:
-        print(f'error: {exc}', file=sys.stderr)
+        print(f'error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}', file=sys.stderr)
         return 1
     text, _ = render_tables(summary)
     print(text, end='')

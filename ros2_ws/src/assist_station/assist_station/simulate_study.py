@@ -30,12 +30,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from assist_common.atomic import write_text_atomic
+from assist_common.settings import SettingsError
 from assist_policy.cli import add_dataclass_args, parse_dataclass_args, setting
 from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 from .participant import DEFAULT_FAMILIES, Participant, Profile, draw_profiles
-from .study import StudyConfig, StudyError
+from .study import PARTICIPANT_ID, StudyConfig, StudyError
 
 log = logging.getLogger('simulate_study')
 STATION_STARTUP_S = 60.0
@@ -59,6 +60,25 @@ class SimulateArgs:
     id_prefix: str = setting('S', nonempty=True)
     only: tuple[str, ...] = ()
 
+    def check_relations(self) -> None:
+        """The participant IDs --id-prefix and --participants make are IDs the study accepts."""
+        try:
+            participant_ids(self)
+        except StudyError as exc:
+            raise SettingsError(f'--id-prefix {exc}') from None
+
+
+def participant_ids(args: SimulateArgs) -> list[str]:
+    """The simulated participants' IDs, <prefix>01, <prefix>02, ...; StudyError unless each is a participant ID
+    (1-32 letters, digits, _ or -, starting with a letter or digit: never a path, so each directory stays
+    under --out)."""
+    ids = [f'{args.id_prefix}{i + 1:02d}' for i in range(args.participants)]
+    bad = [pid for pid in (ids[:1] + ids[-1:]) if not PARTICIPANT_ID.fullmatch(pid)]
+    if bad:
+        raise StudyError(f'{args.id_prefix!r} makes the participant ID {bad[0]!r}; participant IDs are 1-32 '
+                         'letters, digits, _ or -, starting with a letter or digit')
+    return ids
+
 
 HELP = {
     'out': 'directory of the participants\' directories (created; existing participants resume or are skipped)',
@@ -72,7 +92,8 @@ HELP = {
     'browser_participants': 'the first N participants use the station page in headless Chromium',
     'record_bags': 'record a bag per landing (the study file\'s record_bags; false saves disk for big runs)',
     'domain_id': 'ROS_DOMAIN_ID of the graph (0: pick a free one)',
-    'id_prefix': 'participant IDs are <prefix>01, <prefix>02, ... (odd numbers start unassisted)',
+    'id_prefix': 'participant IDs are <prefix>01, <prefix>02, ... (odd numbers start unassisted); letters, digits, '
+                 '_ or -, starting with a letter or digit, the IDs at most 32 characters',
     'only': 'fly only these participant IDs of the --participants drawn (e.g. a second graph sharing the work; '
             'give each run its own IDs)',
 }
@@ -199,6 +220,7 @@ def run_browser_participant(url: str, profile: Profile, rtf: float, work: Path, 
 
 def simulate(args: SimulateArgs) -> list[dict]:
     """Run the simulated study; returns one summary per participant."""
+    ids = participant_ids(args)                 # before anything is written: no directory outside --out
     out = Path(args.out)
     sim_dir = out / '.simulation'
     sim_dir.mkdir(parents=True, exist_ok=True)
@@ -207,6 +229,8 @@ def simulate(args: SimulateArgs) -> list[dict]:
     domain = args.domain_id or pick_domain_id()
     params = graph_params(cfg, args, study_path, out, free_tcp_port())
     profiles = draw_profiles(args.participants, args.seed, tuple(args.families), args.practice, args.id_prefix)
+    if [p.pid for p in profiles] != ids:
+        raise StudyError(f'drawn participant IDs {[p.pid for p in profiles]} are not {ids}')
     if args.only:
         profiles = [p for p in profiles if p.pid in args.only]
     graph = StudyGraph(params, domain, sim_dir / ('logs' if not args.only else f'logs_{"_".join(args.only)}'))
@@ -263,7 +287,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f'--families: unknown pilot {", ".join(bad)} (choose from {", ".join(PILOT_NAMES)})')
     if args.browser_participants > args.participants:
         parser.error('--browser-participants must be at most --participants')
-    drawn = {f'{args.id_prefix}{i + 1:02d}' for i in range(args.participants)}
+    drawn = set(participant_ids(args))
     unknown = sorted(set(args.only) - drawn)
     if unknown:
         parser.error(f'--only: {", ".join(unknown)} not among the {args.participants} participants '

@@ -30,6 +30,7 @@ DATA = {
                           (0.25, 0.25, 'success', 0)],
 }
 GOALS = (2, 1, 3, 0)
+STUDY_YAML = 'sequence: [2, 1, 3, 0]\npractice_landings: 1\n'      # the study file as run, in each directory
 EXCLUDED = ('P03', 'unassisted', 3)        # ended on the starting platform
 
 
@@ -38,6 +39,7 @@ def write_participants(root):
     for pid, first, exp, sus_un, sus_as in PEOPLE:
         d = root / pid
         d.mkdir()
+        (d / 'study.yaml').write_text(STUDY_YAML)
         second = 'assisted' if first == 'unassisted' else 'unassisted'
         with open(d / 'landings.csv', 'w', newline='') as fh:
             w = csv.DictWriter(fh, fieldnames=LANDING_COLUMNS, lineterminator='\n')
@@ -53,7 +55,7 @@ def write_participants(root):
                                 'nearest_error_m': nerr, 'success': str(outcome == 'success').lower(),
                                 'crash': str(outcome == 'crash').lower(), 'outcome': outcome,
                                 'started_on_pad': str((pid, cond, t) == EXCLUDED).lower()})
-        survey = {str(q['id']): ([] if q['kind'] == 'multi' else 3) for q in SURVEY}
+        survey = {str(q['id']): ([] if q['kind'] == 'multi' else 1) for q in SURVEY}
         for q, a in zip((2, 3, 5, 6), exp):
             survey[str(q)] = a
         (d / 'survey.json').write_text(json.dumps({
@@ -207,7 +209,7 @@ def test_experienced_is_the_third_closest_to_a_third_with_ties():
 
 def test_cli_errors_are_one_line(tmp_path, capsys):
     assert an.main([str(tmp_path), '--out', str(tmp_path / 'o')]) == 1
-    assert 'no participant directory' in capsys.readouterr().err
+    assert 'nothing to analyse' in capsys.readouterr().err
     with pytest.raises(SystemExit) as exit_:
         an.main([str(tmp_path), '--trajectories', '-1'])
     assert exit_.value.code == 2
