@@ -148,11 +148,11 @@ class StudyDriver:
                     self._begin_pending = False
             self._warn('inbox_full', f'study: more than {INBOX_SIZE} page steps waiting; {msg.action} dropped')
 
-    def _warn(self, key: str, text: str) -> None:
-        """A warning line, at most one per `key` per WARNING_PERIOD_S (with how many were held back)."""
+    def _warn(self, key: str, text: str, level: str = 'warning') -> None:
+        """A log line, at most one per `key` per WARNING_PERIOD_S (with how many were held back)."""
         held = self._warnings(key)
         if held is not None:
-            self.node.get_logger().warning(text + (f' ({held} more like it not logged)' if held else ''))
+            getattr(self.node.get_logger(), level)(text + (f' ({held} more like it not logged)' if held else ''))
 
     def page_lost(self) -> None:
         """The pilot page went away (web server thread)."""
@@ -213,7 +213,7 @@ class StudyDriver:
                 self.save_error = (f'could not save ({exc.strerror or exc}): {msg.action} was not taken and nothing '
                                    'was lost; tell the experimenter, then try again')
                 self._push_event({'type': 'study_error', 'message': self.save_error})
-                self.node.get_logger().error(f'study: {msg.action} not saved: {exc}')
+                self._warn(f'not saved {msg.action}', f'study: {msg.action} not saved: {exc}', 'error')
             finally:
                 if msg.action == 'begin':
                     with self._begin_lock:
