@@ -76,8 +76,9 @@ import json
 import logging
 import math
 import os
+import re
+import secrets
 import sys
-import tempfile
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -114,6 +115,7 @@ MAX_DURATION_S = 24 * 3600.0
 MAX_LANDINGS_BYTES = 16 * 1024 * 1024   # a study's landings.csv holds a few dozen rows of ~200 bytes
 MAX_SURVEY_BYTES = 1024 * 1024
 MAX_DETAILS = 200                       # excluded rows listed one by one (log and summary.json); the rest counted
+INTEGER = re.compile(r'-?[0-9]{1,18}')
 SHOWN_CHARS = 60                        # a value from a file is quoted (repr) at most this long
 
 # why a study row is left out (summary.json validation.rows_excluded keys)
@@ -167,10 +169,10 @@ def _float(text: Any) -> float | None:
 
 
 def _int(text: str) -> int | None:
-    try:
-        return int(text)
-    except (TypeError, ValueError):
+    """A decimal integer as the station writes it ('-'? digits, at most 18 of them), else None."""
+    if not isinstance(text, str) or not INTEGER.fullmatch(text):
         return None
+    return int(text)
 
 
 def _number(v: Any) -> bool:
@@ -996,7 +998,8 @@ def write_new(path: Path, data: bytes) -> None:
     name only where nothing stands, not even a dangling link; never follows or replaces one). StudyError when
     something is there, OSError when the disk refuses."""
     from assist_policy.bags.bagio import BagError, publish_new
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f'.{path.name}.', suffix='.tmp')
+    tmp = path.with_name(f'.{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp')
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, 'O_NOFOLLOW', 0), 0o666)   # umask applies
     try:
         with os.fdopen(fd, 'wb') as fh:
             fh.write(data)

@@ -233,6 +233,15 @@ def test_rows_of_another_participant_and_trials_outside_the_sequence_are_said(da
     assert any('S01/landings.csv line' in line and "'S02'" in line for line in s['validation']['rows_listed'])
 
 
+def test_integers_must_be_written_as_the_station_writes_them(data, tmp_path):
+    rows = read_rows(data / 'S01')
+    rows[row_index(rows, 2, 3)]['trial'] = '0_3'                 # int() would take it as 3
+    rows[row_index(rows, 2, 2)]['nearest_index'] = ' 0'
+    write_rows(data / 'S01', rows)
+    s = analyse(data, tmp_path)
+    assert s['validation']['rows_excluded'] == {an.R_TRIAL: 1, an.R_VALUE: 1}
+
+
 def test_directory_not_named_after_its_participant_is_left_out(data, tmp_path):
     (data / 'S04').rename(data / 'S06')                          # S04's files under S06's name
     s = an.run([data / p for p in ('S01', 'S02', 'S03', 'S06')],
@@ -340,6 +349,7 @@ def test_write_new_never_follows_or_replaces_what_stands(tmp_path):
     an.write_new(tmp_path / 'new.txt', b'new')
     assert not outside.exists() and (tmp_path / 'kept.txt').read_text() == 'results'
     assert (tmp_path / 'new.txt').read_text() == 'new'
+    assert (tmp_path / 'new.txt').stat().st_mode == (tmp_path / 'kept.txt').stat().st_mode    # the umask's mode
     assert sorted(p.name for p in tmp_path.iterdir()) == ['kept.txt', 'new.txt', 'summary.json']
 
 
