@@ -186,6 +186,12 @@ def _shown(v: Any) -> str:
     return text if len(text) <= SHOWN_CHARS else text[:SHOWN_CHARS - 3] + '...'
 
 
+def _printable(line: str) -> str:
+    """`line` with every character that is not printable (newlines, controls, undecodable bytes) escaped, so a
+    name or value from a file can neither forge a log line nor break the tables' encoding."""
+    return line if line.isprintable() else ''.join(c if c.isprintable() else ascii(c)[1:-1] for c in line)
+
+
 @dataclass
 class Participant:
     """One participant's landings (study blocks only) and answers."""
@@ -210,17 +216,17 @@ class Validation:
     def row(self, where: str, reason: str, detail: str = '') -> None:
         """Count one excluded row; the first MAX_DETAILS are logged and listed."""
         self.rows[reason] += 1
-        self._note(f'{where}: {reason}' + (f' ({detail})' if detail else '') + '; row left out')
+        self._note(_printable(f'{where}: {reason}' + (f' ({detail})' if detail else '') + '; row left out'))
 
     def file(self, where: str, why: str) -> None:
         """One file (or one entry of it) that is not used."""
-        line = f'{where}: {why}; not used'
+        line = _printable(f'{where}: {why}; not used')
         self.files.append(line)
         log.warning('%s', line)
 
     def participant(self, where: str, why: str) -> None:
         """One participant directory that is left out."""
-        line = f'{where}: {why}; participant left out'
+        line = _printable(f'{where}: {why}; participant left out')
         self.participants.append(line)
         log.warning('%s', line)
 
@@ -446,7 +452,7 @@ def load_answers(path: Path, pid: str, val: Validation) -> tuple[dict[str, float
         try:
             survey = check_survey(survey)
         except StudyError as exc:
-            val.file(f'{where} survey', str(exc))
+            val.file(where, str(exc))
             survey = None
     return sus, survey
 

@@ -305,6 +305,17 @@ def test_survey_of_another_shape_is_left_out(clean, data, tmp_path, content, nee
     assert s['landings'] == clean[1]['landings'] and s['sus']['assisted']['n'] == 3
 
 
+def test_names_from_files_and_directories_cannot_forge_lines(data, tmp_path):
+    set_survey(data / 'S02', lambda s: s['survey'].update({'x\nERROR forged\udcff': 1}))
+    odd = data / os.fsdecode(b'S\xff\nx')                     # a directory name that is not UTF-8
+    shutil.copytree(data / 'S04', odd)
+    s = an.run([data / p for p in PIDS] + [odd], an.AnalyzeArgs(out=str(tmp_path / 'out'), plots=False))
+    lines = s['validation']['files_excluded'] + s['validation']['participants_excluded']
+    assert len(lines) == 2 and all(line.isprintable() for line in lines), lines
+    assert '\\n' in lines[0] and 'S\\udcff\\nx' in lines[1]
+    assert (tmp_path / 'out' / 'table.txt').read_text().count('\n') == len(an.render_tables(s)[0].splitlines())
+
+
 def test_cli_goes_on_past_bad_files_and_exits_zero(data, tmp_path, capsys):
     (data / 'S02' / 'survey.json').write_text('[]')
     rows = read_rows(data / 'S01')
