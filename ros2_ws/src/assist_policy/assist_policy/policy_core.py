@@ -13,9 +13,10 @@ Safety rules (ARCHITECTURE.md, "Timing and safety rules"):
   oscillation damper, pilot override, pad recall, blending, floor guard, wall rule, speed clamp; the env and
   replay_assist run the same chain); the depth-reading stages need a depth image (``set_depth``) no older
   than feature_timeout_s; the guards also act when the actor did not run (V = u);
-* flights (``flight.FlightMonitor``): an odometry jump, a landing (at rest while the command descends) or a
-  take-off after one ends the flight, and ``reset`` does explicitly: the action history, every stage's
-  memory and the odometry poses are dropped (counted in ``flight_resets`` by reason).
+* flights (``flight.FlightMonitor``): the vehicle's landed state (``set_landed_state``, it wins where known), an
+  odometry jump, a landing or a take-off after one ends the flight, and ``reset`` does explicitly
+  (``request_reset``: at most one per flight_reset_min_interval_s): the action history, every stage's memory
+  and the odometry poses are dropped (counted in ``flight_resets`` by reason, the why in ``last_reset_detail``).
 """
 from __future__ import annotations
 
@@ -36,7 +37,7 @@ from .actions import scale_action
 from .assistant import Assistant, AssistantConfig, DepthFrame, StepContext
 from .blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS, MIN_SPEED_LIMIT_MPS, clamp_velocity
 from .damper import DamperConfig
-from .flight import FlightConfig, FlightMonitor
+from .flight import FlightConfig, FlightMonitor, surface_clearance
 from .observation import Condition, ObservationBuilder, image_feature, oracle_feature
 from .override import OverrideConfig
 from .poses import PoseHistory
@@ -203,6 +204,7 @@ class PolicyCore:
         self.flight = FlightMonitor(c.flight or FlightConfig())
         self.flight_resets: Counter[str] = Counter()    # flight boundaries seen, per reason (flight.REASONS)
         self.last_reset: tuple[float, str] | None = None   # (odometry time, reason) of the latest
+        self.last_reset_detail = ''                 # why the latest boundary (FlightMonitor.last_detail, or the caller)
         self._odom_stamp = -math.inf                # sensor stamp of the latest odometry
         self._flight_start: float | None = None     # sensor time of the latest boundary: older depth frames are refused
         self._last_vz = 0.0                         # vertical command flown in the last step (flight monitor)
@@ -324,10 +326,12 @@ class PolicyCore:
             if not 0.9 < n < 1.1:
                 raise self._reject('odom_orientation', f'odometry orientation {q.tolist()} is not a unit quaternion')
             q = q / n
+        if stamp < self._odom_stamp:
+            self._flight_start = None   # the clock stepped back: the last boundary's time means nothing on it
         self._odom_stamp = stamp
-        boundary = self.flight.update(stamp, p, v, self._last_vz)
+        boundary = self.flight.update(stamp, p, v, self._last_vz, now=t)
         if boundary is not None:
-            self._forget(stamp, boundary)
+            self._forget(stamp, boundary, self.flight.last_detail)
         self._odom, self._attitude = (t, p, v), q
         self._poses.add(stamp, p, q)
 
@@ -375,16 +379,40 @@ class PolicyCore:
             raise self._reject('depth_before_flight', f'depth frame stamped {stamp:.3f} s, before the flight began '
                                                       f'({self._flight_start:.3f} s)')
         depth = depth.astype(np.float32)
-        self._depth = (t, np.where(np.isfinite(depth) & (depth >= 0) & (depth <= MAX_DEPTH_M), depth, 0.0))
+        depth = np.where(np.isfinite(depth) & (depth >= 0) & (depth <= MAX_DEPTH_M), depth, 0.0)
+        self._depth = (t, depth)
         self._depth_stamp = stamp
+        clearance = surface_clearance(depth, self.guard.cfg.camera_offset_m)
+        if clearance is not None:               # the flight monitor's evidence of what lies below
+            self.flight.observe_surface(stamp, clearance)
+
+    def set_landed_state(self, t: float, state: int) -> None:
+        """The vehicle's own MAV_LANDED_STATE (/uav/landed_state) at clock time `t` (the clock of `step`); it wins
+        over the odometry rules while known; InputRejected when not 0-4."""
+        t = self._stamp('landed_state', t)
+        try:
+            boundary = self.flight.vehicle_state(t, state)
+        except ValueError as exc:
+            raise self._reject('landed_state_range', str(exc)) from None
+        if boundary is not None:
+            self._forget(t, boundary, self.flight.last_detail)
+
+    def request_reset(self, now: float) -> tuple[bool, str]:
+        """policy_node's ~/reset at clock time `now`: (honoured, message); at most one per
+        flight_reset_min_interval_s, sooner calls are refused (counted in ``flight.resets_refused``)."""
+        refused = self.flight.request_reset(now)
+        if refused is not None:
+            return False, refused
+        self.reset('service')
+        return True, "assistant reset: the flight's memories are forgotten"
 
     def reset(self, reason: str = 'service') -> None:
         """Forget the flight (an explicit boundary: policy_node's ~/reset): action history, the stages' memories,
         the odometry poses; counted in `flight_resets` under `reason`."""
         self.flight.reset()
-        self._forget(self._odom_stamp, reason)
+        self._forget(self._odom_stamp, reason, '~/reset' if reason == 'service' else reason)
 
-    def _forget(self, t: float, reason: str) -> None:
+    def _forget(self, t: float, reason: str, detail: str = '') -> None:
         """Drop everything that belongs to the current flight (flight boundary `reason` at odometry time `t`)."""
         self.builder.reset()
         self.assistant.reset()
@@ -398,7 +426,8 @@ class PolicyCore:
         self._flight_start = float(t)
         self.flight_resets[reason] += 1
         self.last_reset = (float(t), reason)
-        log.info('assistant reset: %s', reason)
+        self.last_reset_detail = detail
+        log.info('assistant reset: %s (%s)', reason, detail)
 
     # ------------------------------------------------------------- step
     def _fresh(self, stamp: float | None, now: float, timeout: float) -> bool:

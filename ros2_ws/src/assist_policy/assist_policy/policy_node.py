@@ -35,7 +35,7 @@ from nav_msgs.msg import Odometry
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from sensor_msgs.msg import Image
-from std_msgs.msg import Float32MultiArray
+from std_msgs.msg import Float32MultiArray, UInt8
 from std_srvs.srv import Trigger
 
 from assist_common.images import decode_color, decode_depth
@@ -44,7 +44,7 @@ from assist_common.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, STA
                                       fill_twist, realtime_priority_param, run_node, twist_to_array)
 
 from . import settings
-from .flight import REASONS as FLIGHT_REASONS
+from .flight import REASONS as FLIGHT_REASONS, LandedState
 from .observation import Condition
 from .policy_core import InputRejected, PolicyCore, PolicyCoreConfig, PolicyOutput, default_model_path
 from .poses import header_seconds
@@ -165,6 +165,9 @@ class PolicyNode(Node):
         # every mode: the floor guard reads the depth image (end_to_end also feeds it to the actor)
         self.create_subscription(Image, '/camera/depth/image_raw', self._guard('depth', self._on_depth),
                                  SENSOR_QOS, callback_group=inputs)
+        # the vehicle's own landed state (the bridge's, from EXTENDED_SYS_STATE) wins over the odometry rules
+        self.create_subscription(UInt8, '/uav/landed_state', self._guard('landed_state', self._on_landed_state),
+                                 LATCHED_QOS, callback_group=inputs)
         self.create_service(Trigger, '~/reset', self._on_reset, callback_group=inputs)
         self._on_latent_steps = mode == 'latent' and bool(self.p['step_on_latent'])
         self._last_latent_step = -1e9           # node-clock time of the last latent-driven step
@@ -262,11 +265,18 @@ class PolicyNode(Node):
         with self._lock:
             self.core.set_goal([msg.point.x, msg.point.y, msg.point.z])   # not a flight boundary
 
-    def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        """~/reset: forget the current flight (counted in /diagnostics flight_reset_service)."""
+    def _on_landed_state(self, msg: UInt8) -> None:
         with self._lock:
-            self.core.reset('service')
-        response.success, response.message = True, 'assistant reset: the flight\'s memories are forgotten'
+            self.core.set_landed_state(self._now(), int(msg.data))
+
+    def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """~/reset: forget the current flight (counted in /diagnostics flight_reset_service); at most one call per
+        flight_reset_min_interval_s, sooner ones are answered success=false (counted: flight_reset_refused)."""
+        with self._lock:
+            response.success, response.message = self.core.request_reset(self._now())
+        if not response.success:
+            self.diag.set('flight_reset_refused', self.core.flight.resets_refused)
+            self._warn('flight_reset_refused', f'~/reset {response.message}')
         return response
 
     def _on_rgb(self, msg: Image) -> None:
@@ -337,10 +347,15 @@ class PolicyNode(Node):
         for reason in FLIGHT_REASONS:
             self.diag.set(f'flight_reset_{reason}', self.core.flight_resets[reason])
         last = self.core.last_reset
-        self.diag.set('last_flight_reset', 'none' if last is None else f'{last[1]} at {last[0]:.2f} s')
+        why = self.core.last_reset_detail
+        self.diag.set('last_flight_reset', 'none' if last is None else f'{last[1]} at {last[0]:.2f} s ({why})')
+        self.diag.set('flight_reset_refused', self.core.flight.resets_refused)
+        self.diag.set('flight_state', self.core.flight.phase.value)
+        report = self.core.flight.vehicle_report
+        self.diag.set('landed_state', 'none' if report is None else LandedState(report).name)
         if last is not None and last != self._reported_reset:
             self._reported_reset = last
-            self.get_logger().info(f'assistant reset ({last[1]}): the flight\'s memories are forgotten')
+            self.get_logger().info(f'assistant reset ({last[1]}: {why}): the flight\'s memories are forgotten')
         if out.key in FAULT_KEYS:
             self._consecutive_faults += 1
             self.diag.count(f'fault_{out.key}')

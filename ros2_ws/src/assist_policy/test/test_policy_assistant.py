@@ -79,15 +79,21 @@ def test_flight_monitor_boundaries():
     assert m.update(0.10, [4.0, 2.0, 5.0], [0, 0, 0], 0.0) == 'odom_jump'     # teleported (sim reset, EKF reset)
     # a hover (command not descending) is not a landing, however long
     assert all(m.update(0.1 + 0.05 * k, [4.0, 2.0, 5.0], [0, 0, 0], 0.0) is None for k in range(1, 60))
-    # at rest while the command descends: landed after rest_s
-    seen = [m.update(3.1 + 0.05 * k, [4.0, 2.0, 5.0], [0, 0, 0.01], -0.3) for k in range(30)]
-    assert seen.index('landed') == 20 and seen.count('landed') == 1 and m.landed
-    assert m.update(5.0, [4.0, 2.0, 5.2], [0, 0, 0.5], 0.5) is None           # lifting, not yet 0.3 m
-    assert m.update(5.5, [4.0, 2.0, 5.4], [0, 0, 0.5], 0.5) == 'takeoff'
-    # an autopilot starting on the ground: its first take-off is a boundary
+    # coming down onto a surface (0.5 m/s from 5 m to 1 m) and at rest there while the command descends: landed
+    # about rest_s after touchdown (a rest with no descent before it, like the hover above, is not)
+    seen = [m.update(3.05 + 0.05 * k, [4.0, 2.0, max(5.0 - 0.025 * k, 1.0)], [0, 0, -0.5 if k < 160 else 0.0], -0.3)
+            for k in range(200)]
+    assert seen.count('landed') == 1 and 160 < seen.index('landed') <= 182 and m.landed
+    # a 0.3 m lift is no take-off; a climb past flight_takeoff_climb_m (0.5 m) is
+    assert all(m.update(13.05 + 0.05 * k, [4.0, 2.0, 1.0 + min(0.03 * k, 0.3)], [0, 0, 0.6], 0.6) is None
+               for k in range(40))
+    seen = [m.update(15.05 + 0.05 * k, [4.0, 2.0, 1.3 + 0.03 * k], [0, 0, 0.6], 0.6) for k in range(20)]
+    assert seen.count('takeoff') == 1 and not m.landed
+    # an autopilot starting on the ground (at rest low for a rest window): its first take-off is a boundary
     g = FlightMonitor()
-    assert g.update(0.0, [0, 0, 0.02], [0, 0, 0], 0.0) is None and g.landed
-    assert g.update(1.0, [0, 0, 0.5], [0, 0, 0.6], 0.5) == 'takeoff'
+    assert all(g.update(0.05 * k, [0, 0, 0.02], [0, 0, 0], 0.0) is None for k in range(25)) and g.landed
+    climb = [g.update(1.25 + 0.05 * k, [0, 0, 0.02 + 0.03 * k], [0, 0, 0.6], 0.6) for k in range(30)]
+    assert climb.count('takeoff') == 1
     off = FlightMonitor(FlightConfig(enabled=False))
     off.update(0.0, [0, 0, 3.0], [0, 0, 0], 0.0)
     assert off.update(0.05, [9.0, 0, 3.0], [0, 0, 0], 0.0) is None
