@@ -6,7 +6,8 @@ One step = one control period of the world (1/control_hz s):
      the assistant's non-learned stages then act on it in their one order, the chain policy_node runs
      (``assistant.Assistant``: oscillation damper, pilot override, pad recall, blending, floor guard, wall
      rule, speed clamp); a rule left None in EnvConfig (``safety``, ``override``, ``recall``, ``damper``) is
-     off; the flight monitor (``flight.FlightMonitor``) applies policy_node's flight boundaries;
+     off; the flight monitor (``flight.FlightMonitor``) applies policy_node's flight boundaries (the odometry
+     rules: the simulation reports no landed state, and its camera evidence is not read);
   2. the vehicle flies V_t, the chain's command (within policy_node's speed limits when assisted; the
      unassisted pilot flies u_t as it is), with the world's turbulence;
   3. the pilot updates its goal estimate with the applied assistance (a_t if |a_t| > threshold,

@@ -10,8 +10,10 @@ boundary returns its reason (``REASONS``) and leaves the why in ``last_detail``.
 UNDEFINED, and no older than ``landed_state_timeout_s`` on the clock it was given with), ON_GROUND is a landing
 (``vehicle_landed``), TAKEOFF or IN_AIR after it a take-off (``vehicle_takeoff``), and the odometry landing and
 take-off rules below wait. The first report only says where the flight stands (no boundary). A report that goes
-stale (the bridge re-publishes every EXTENDED_SYS_STATE it receives, 2 Hz) hands the decision back to odometry.
-The env (simulation) has no such report and uses the odometry rules only.
+stale hands the decision back to odometry: a publisher that sends every report it receives keeps it current (and
+one that falls silent, a lost link, goes stale); with one that sends only changes, the changes still end and begin
+flights, and between them the odometry rules run too (a boundary is never counted twice: a report that finds the
+flight where odometry already put it is none). The env (simulation) has no such report: odometry rules only.
 
 **Odometry rules** (``update``, once per odometry sample; times are the samples' stamps):
 
@@ -40,8 +42,9 @@ The env (simulation) has no such report and uses the odometry rules only.
   slow EKF drift is no climb, nor is a 0.3 m wander.
 * start (and after a jump): the first full rest window at rest below ``ground_altitude_m`` finds the vehicle
   landed (an autopilot starts on the ground), anything else flying; no boundary.
-* a clock that steps back restarts the windows from the first sample after the step (a landing is then seen
-  ``rest_s`` later, not ``rest_s`` plus the step).
+* a clock that steps back (a stamp older than the last) counts as one sample period: the times held are moved
+  back by the step and the windows go on from there, so a landing is seen when it would have been, not after the
+  clock has made up the step.
 
 ``~/reset`` on policy_node (``reason`` 'service', at most one per ``reset_min_interval_s``: ``request_reset``)
 and the env's ``reset`` (a new episode: 'episode') are the explicit boundaries. ``/sim/goal`` is not one: the
