@@ -109,7 +109,7 @@ class Rig:
         self.clock = FakeClock()
         self.port = free_udp_port()
         self.odoms = []
-        self.bridge = MavlinkBridge(BridgeConfig(connection=f'udpin:127.0.0.1:{self.port}', link_timeout_s=1e6,
+        self.bridge = MavlinkBridge(BridgeConfig(connection=f'udpin:127.0.0.1:{self.port}', link_timeout_s=30.0,
                                                  max_speed_mps=2.0),
                                     clock=self.clock, on_odometry=self.odoms.append)
         self.socks = {}

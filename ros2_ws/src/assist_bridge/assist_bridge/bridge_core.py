@@ -22,7 +22,12 @@ What it does, as ArduCopter needs it:
   GUIDED before arming a disarmed vehicle) do, each asked for through a service;
 - safety: non-finite commands and telemetry rejected and counted, velocity_scale, per-axis and
   total speed clamps (changeable at run time through set_limits);
-- arm / disarm / takeoff / land / set_mode as COMMAND_LONG, waiting for the honest COMMAND_ACK.
+- arm / disarm / takeoff / land / set_mode as COMMAND_LONG, waiting for the honest COMMAND_ACK;
+- the vehicle's landed state (EXTENDED_SYS_STATE) handed on at the first report and at each change
+  (`on_landed_state`); a value outside MAV_LANDED_STATE is refused and counted;
+- nothing handed to it can end the link: a message that cannot be packed (a value that does not fit
+  its field) or written is not sent, counted (`tx_errors`) and logged, throttled; every configured
+  value is range-checked on creation (`setting(...)` rules, assist_common.settings).
 """
 from __future__ import annotations
 
@@ -47,6 +52,7 @@ from assist_common.mavlink_io import (COPTER_MODE_NAMES, COPTER_MODES, FORCE_ARM
                                       parse_endpoint, refresh_signing_timestamp)
 
 from assist_common import frames
+from assist_common.settings import SettingsError, check_settings, flag, setting
 
 _LOG = logging.getLogger(__name__)
 mavlink = mavutil.mavlink
@@ -63,6 +69,11 @@ TYPE_MASK_VELOCITY_YAW_RATE = (TYPE_MASK_VELOCITY_YAW & ~mavlink.POSITION_TARGET
     | mavlink.POSITION_TARGET_TYPEMASK_YAW_IGNORE
 
 RESULT_NAMES = {k: v.name.replace('MAV_RESULT_', '') for k, v in mavlink.enums['MAV_RESULT'].items()}
+# MAV_LANDED_STATE values EXTENDED_SYS_STATE may carry (UNDEFINED 0 ... LANDING 4); anything else is refused
+LANDED_STATES = {k: v.name.replace('MAV_LANDED_STATE_', '') for k, v in mavlink.enums['MAV_LANDED_STATE'].items()
+                 if not v.name.endswith('_ENUM_END')}
+# what packing or writing a message can raise: a value that does not fit its field, a dead serial port
+SEND_ERRORS = (struct_error, OverflowError, ValueError, TypeError, OSError)
 LIMIT_FIELDS = ('velocity_scale', 'max_speed_x_mps', 'max_speed_y_mps', 'max_climb_mps', 'max_descent_mps',
                 'max_speed_mps')
 
@@ -78,57 +89,81 @@ def result_name(result: int | None) -> str:
     return RESULT_NAMES.get(int(result), str(result))
 
 
+def check_config(obj) -> None:
+    """SettingsError (one line naming the field) unless every field of dataclass `obj` follows its type and
+    `setting(...)` rule (assist_common.settings.check_settings, which also runs obj.check_relations())."""
+    try:
+        check_settings(obj)
+    except SettingsError as exc:
+        text = str(exc)
+        for f in dataclasses.fields(obj):
+            if text.startswith(flag(f.name) + ' '):      # check_settings names command-line flags
+                raise SettingsError(f'{f.name} {text[len(flag(f.name)) + 1:]}') from None
+        raise
+
+
 @dataclass
 class BridgeConfig:
-    """Everything the bridge needs; node parameters map 1:1 onto these fields."""
+    """Everything the bridge needs; node parameters map 1:1 onto these fields (defaults and ranges from here).
+
+    Every range is checked on creation (SettingsError, a ValueError): each value that reaches MAVLink
+    fits its field, so no setting can make a message unpackable.
+    """
 
     connection: str = 'udpin:127.0.0.1:14550'   # loopback: a remote sender cannot reach it
-    baud: int = 57600                      # serial links only
-    source_system: int = 255
-    source_component: int = 191            # MAV_COMP_ID_ONBOARD_COMPUTER
-    target_system: int = 1                 # 0: lock onto the first autopilot's system id
-    target_component: int = 1              # 0: lock onto the first autopilot's component id
+    baud: int = setting(57600, ge=1200, le=12000000)            # serial links only
+    source_system: int = setting(255, ge=1, le=255)
+    source_component: int = setting(191, ge=1, le=255)          # MAV_COMP_ID_ONBOARD_COMPUTER
+    target_system: int = setting(1, ge=0, le=255)               # 0: lock onto the first autopilot's system id
+    target_component: int = setting(1, ge=0, le=255)            # 0: lock onto the first autopilot's component id
     signing_key_file: str = ''             # MAVLink 2 signing key (32 raw bytes or 64 hex); '' = unsigned
     address_relock: bool = True            # after a declared loss, same ids from the same host on a new port
-    velocity_scale: float = 1.0            # the paper halves the output on the real vehicle: 0.5
-    max_speed_x_mps: float = 2.0           # per-axis clamps (body FLU, after scaling)
-    max_speed_y_mps: float = 2.0
-    max_climb_mps: float = 1.0
-    max_descent_mps: float = 1.0
-    max_speed_mps: float = 2.5             # total speed clamp
-    command_timeout_s: float = 0.5         # no command for this long -> zero velocity
-    setpoint_rate_hz: float = 10.0         # rate of the current setpoint (+ <= 1 immediate send per period)
-    link_timeout_s: float = 2.0            # no autopilot HEARTBEAT for this long -> link lost
-    link_lost_setpoint_rate_hz: float = 2.0   # zero-velocity setpoints while the link is lost
-    heartbeat_rate_hz: float = 1.0         # our own HEARTBEAT
-    odom_rate_hz: float = 30.0             # LOCAL_POSITION_NED + ATTITUDE requested at this rate
-    status_rate_hz: float = 2.0            # EXTENDED_SYS_STATE, SYS_STATUS
-    stream_request_period_s: float = 5.0   # re-ask for streams while no position arrives
-    ack_timeout_s: float = 3.0
-    takeoff_altitude_m: float = 2.0
-    takeoff_done_margin_m: float = 0.15    # climb done within this of the target altitude
-    max_messages_per_poll: int = 1000
-    error_log_period_s: float = 5.0        # receive-loop errors: one line per kind per period
+    velocity_scale: float = setting(1.0, gt=0.0, le=1.0)        # the paper halves the output on the real vehicle
+    max_speed_x_mps: float = setting(2.0, gt=0.0, le=20.0)      # per-axis clamps (body FLU, after scaling)
+    max_speed_y_mps: float = setting(2.0, gt=0.0, le=20.0)
+    max_climb_mps: float = setting(1.0, gt=0.0, le=10.0)
+    max_descent_mps: float = setting(1.0, gt=0.0, le=10.0)
+    max_speed_mps: float = setting(2.5, gt=0.0, le=25.0)        # total speed clamp
+    command_timeout_s: float = setting(0.5, ge=0.05, le=5.0)    # no command for this long -> zero velocity
+    setpoint_rate_hz: float = setting(10.0, ge=1.0, le=50.0)    # current setpoint (+ <= 1 immediate send per period)
+    link_timeout_s: float = setting(2.0, ge=0.5, le=30.0)       # no autopilot HEARTBEAT for this long -> link lost
+    link_lost_setpoint_rate_hz: float = setting(2.0, ge=0.5, le=10.0)   # zero velocity while the link is lost
+    heartbeat_rate_hz: float = setting(1.0, ge=0.2, le=10.0)    # our own HEARTBEAT
+    odom_rate_hz: float = setting(30.0, ge=1.0, le=200.0)       # LOCAL_POSITION_NED + ATTITUDE requested at this rate
+    status_rate_hz: float = setting(2.0, ge=0.1, le=50.0)       # EXTENDED_SYS_STATE, SYS_STATUS
+    stream_request_period_s: float = setting(5.0, ge=0.5, le=600.0)   # re-ask for streams while no position
+    ack_timeout_s: float = setting(3.0, ge=0.1, le=60.0)
+    takeoff_altitude_m: float = setting(2.0, gt=0.0, le=100.0)
+    takeoff_done_margin_m: float = setting(0.15, ge=0.0, le=1.0)   # climb done within this of the target altitude
+    max_messages_per_poll: int = setting(1000, ge=1, le=100000)
+    error_log_period_s: float = setting(5.0, gt=0.0, le=3600.0)   # errors: one line per kind per period
     allow_force_disarm: bool = False       # /uav/force_disarm stops the motors even in flight: sim/SITL only
 
     def __post_init__(self) -> None:
-        positive = ('max_speed_x_mps', 'max_speed_y_mps', 'max_climb_mps', 'max_descent_mps',
-                    'max_speed_mps', 'command_timeout_s', 'setpoint_rate_hz', 'link_timeout_s',
-                    'link_lost_setpoint_rate_hz', 'heartbeat_rate_hz', 'odom_rate_hz', 'status_rate_hz',
-                    'ack_timeout_s', 'takeoff_altitude_m', 'error_log_period_s')
-        for name in positive:
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f'{name} must be a positive finite number, got {v!r}')
-        if not (isinstance(self.velocity_scale, (int, float)) and math.isfinite(self.velocity_scale)
-                and 0.0 < self.velocity_scale <= 1.0):
-            raise ValueError(f'velocity_scale must be in (0, 1], got {self.velocity_scale!r}')
-        for name, lo in (('target_system', 0), ('target_component', 0), ('source_system', 1),
-                         ('source_component', 1)):
-            v = getattr(self, name)
-            if not (isinstance(v, int) and lo <= v <= 255):
-                raise ValueError(f'{name} must be an integer {lo}-255, got {v!r}')
+        check_config(self)
         parse_endpoint(self.connection)    # ValueError naming the accepted forms
+
+
+@dataclass(frozen=True)
+class EkfOrigin:
+    """The EKF origin sent as SET_GPS_GLOBAL_ORIGIN (node parameter `ekf_origin`); ranges checked on creation."""
+
+    latitude_deg: float = setting(0.0, ge=-90.0, le=90.0)
+    longitude_deg: float = setting(0.0, ge=-180.0, le=180.0)
+    altitude_m: float = setting(0.0, ge=-500.0, le=10000.0)     # AMSL: below the Dead Sea shore to above Everest
+
+    def __post_init__(self) -> None:
+        check_config(self)
+
+    @classmethod
+    def from_list(cls, values: Sequence[float]) -> EkfOrigin | None:
+        """[latitude, longitude, altitude] -> EkfOrigin; [0.0] -> None (not sent); ValueError otherwise."""
+        values = list(values)
+        if values == [0.0]:
+            return None
+        if len(values) != 3:
+            raise ValueError(f'must be [latitude deg, longitude deg, altitude m] or [0.0], got {values}')
+        return cls(*values)
 
 
 def limit_velocity(v_flu: Sequence[float], cfg: BridgeConfig) -> np.ndarray:
@@ -190,7 +225,7 @@ class VehicleStatus:
     mode: str = 'UNKNOWN'
     armed: bool = False
     system_status: int = 0
-    landed_state: int = 0
+    landed_state: int | None = None      # MAV_LANDED_STATE from EXTENDED_SYS_STATE; None until one arrives
     position_ned: np.ndarray | None = None
     velocity_ned: np.ndarray | None = None
     last_position: float | None = None
@@ -204,12 +239,17 @@ class MavlinkBridge:
     def __init__(self, cfg: BridgeConfig, clock: Callable[[], float] = time.monotonic,
                  on_odometry: Callable[[Odometry], None] | None = None,
                  on_statustext: Callable[[int, str], None] | None = None,
-                 on_link: Callable[[bool, str], None] | None = None):
+                 on_link: Callable[[bool, str], None] | None = None,
+                 on_landed_state: Callable[[int], None] | None = None):
+        """`on_landed_state(state)` is called from the receive thread with the first MAV_LANDED_STATE the
+        vehicle reports and with every change; the other callbacks likewise with odometry, STATUSTEXT and
+        link changes."""
         self.cfg = cfg
         self._clock = clock
         self._on_odometry = on_odometry
         self._on_statustext = on_statustext
         self._on_link = on_link
+        self._on_landed_state = on_landed_state
         self._boot = clock()
         key = None
         if cfg.signing_key_file:
@@ -453,8 +493,17 @@ class MavlinkBridge:
                 self.status.attitude = (float(msg.roll), float(msg.pitch), float(msg.yaw))
                 self.status.rates_frd = np.array(vals[3:], dtype=float)
         elif mtype == 'EXTENDED_SYS_STATE':
+            state = int(msg.landed_state)
+            if state not in LANDED_STATES:
+                self.counters['rx_bad_landed_state'] += 1
+                raise ValueError(f'landed_state {state} is not a MAV_LANDED_STATE (0-{max(LANDED_STATES)})')
             with self._lock:
-                self.status.landed_state = int(msg.landed_state)
+                changed = state != self.status.landed_state
+                self.status.landed_state = state
+            if changed:
+                _LOG.info('vehicle landed state %s', LANDED_STATES[state])
+                if self._on_landed_state is not None:
+                    self._on_landed_state(state)
         elif mtype == 'COMMAND_ACK':
             with self._ack_cond:
                 self._acks[int(msg.command)] = (int(msg.result), now)
@@ -491,9 +540,19 @@ class MavlinkBridge:
             self._on_link(up, why)
 
     # ------------------------------------------------------------------ sending
-    def _send(self, fn_name: str, *args) -> None:
-        with self._send_lock:
-            getattr(self.conn.mav, fn_name)(*args)
+    def _send(self, fn_name: str, *args) -> bool:
+        """Pack and send one message; False (counted as tx_errors, logged throttled) when it cannot be packed
+        or written: no value handed to the bridge can end it."""
+        try:
+            with self._send_lock:
+                getattr(self.conn.mav, fn_name)(*args)
+        except SEND_ERRORS as exc:
+            self.counters['tx_errors'] += 1
+            name = fn_name.removesuffix('_send')
+            self._throttled.log(logging.ERROR, f'tx:{name}', 'cannot send %s (not sent, counted as tx_errors): '
+                                '%s: %s', name.upper(), type(exc).__name__, exc)
+            return False
+        return True
 
     def _target(self) -> tuple[int, int]:
         peer = self.peer
@@ -507,20 +566,21 @@ class MavlinkBridge:
             up = self.status.link_up
         if not up:
             return False
-        self._send('vision_position_estimate_send', est.usec, est.x, est.y, est.z, est.roll, est.pitch, est.yaw,
-                   list(est.covariance), est.reset_counter)
-        return True
+        return self._send('vision_position_estimate_send', est.usec, est.x, est.y, est.z, est.roll, est.pitch,
+                          est.yaw, list(est.covariance), est.reset_counter)
 
     def set_ekf_origin(self, lat_deg: float, lon_deg: float, alt_m: float) -> bool:
-        """SET_GPS_GLOBAL_ORIGIN: the EKF's origin, which external navigation without GPS needs (link up only)."""
+        """SET_GPS_GLOBAL_ORIGIN: the EKF's origin, which external navigation without GPS needs (link up only).
+
+        The values are range-checked as EkfOrigin (SettingsError, a ValueError); False when not sent."""
+        origin = EkfOrigin(lat_deg, lon_deg, alt_m)
         with self._lock:
             up = self.status.link_up
         if not up:
             return False
         system, _ = self._target()
-        self._send('set_gps_global_origin_send', system, int(round(lat_deg * 1e7)), int(round(lon_deg * 1e7)),
-                   int(round(alt_m * 1000)))
-        return True
+        return self._send('set_gps_global_origin_send', system, int(round(origin.latitude_deg * 1e7)),
+                          int(round(origin.longitude_deg * 1e7)), int(round(origin.altitude_m * 1000)))
 
     def request_streams(self) -> None:
         """Ask the autopilot for the telemetry the bridge uses (both ways ArduPilot understands)."""
@@ -621,8 +681,9 @@ class MavlinkBridge:
         else:
             sp = dict(coordinate_frame=mavlink.MAV_FRAME_LOCAL_NED, type_mask=TYPE_MASK_VELOCITY_YAW_RATE,
                       vx=0.0, vy=0.0, vz=0.0, yaw=0.0)
-        self._send('set_position_target_local_ned_send', self.time_boot_ms(), ts, tc, sp['coordinate_frame'],
-                   sp['type_mask'], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, sp['yaw'], 0.0)
+        if not self._send('set_position_target_local_ned_send', self.time_boot_ms(), ts, tc, sp['coordinate_frame'],
+                          sp['type_mask'], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, sp['yaw'], 0.0):
+            return
         self.last_setpoint = sp
         self._sent_velocity = np.zeros(3)
         self.counters['setpoints_link_lost'] += 1
@@ -665,8 +726,9 @@ class MavlinkBridge:
                       math.degrees(frames.yaw_enu_to_ned(self._hold_yaw_enu)))
         sp = velocity_setpoint(v, self._hold_yaw_enu)
         ts, tc = self._target()
-        self._send('set_position_target_local_ned_send', self.time_boot_ms(), ts, tc, sp['coordinate_frame'],
-                   sp['type_mask'], 0.0, 0.0, 0.0, sp['vx'], sp['vy'], sp['vz'], 0.0, 0.0, 0.0, sp['yaw'], 0.0)
+        if not self._send('set_position_target_local_ned_send', self.time_boot_ms(), ts, tc, sp['coordinate_frame'],
+                          sp['type_mask'], 0.0, 0.0, 0.0, sp['vx'], sp['vy'], sp['vz'], 0.0, 0.0, 0.0, sp['yaw'], 0.0):
+            return False
         self.last_setpoint = sp
         self._sent_velocity = v.copy()
         self.counters['setpoints_sent'] += 1
@@ -686,7 +748,8 @@ class MavlinkBridge:
         with self._ack_cond:
             self._acks.pop(int(command), None)
         ts, tc = self._target()
-        self._send('command_long_send', ts, tc, int(command), 0, *p)
+        if not self._send('command_long_send', ts, tc, int(command), 0, *p):
+            return None                 # could not be sent (counted, logged): no ACK will come
         deadline = time.monotonic() + timeout
         with self._ack_cond:
             while True:
@@ -833,7 +896,8 @@ class MavlinkBridge:
             st = self.status
             peer = self.peer
             return dict(link='up' if st.link_up else ('lost' if st.ever_connected else 'waiting'),
-                        mode=st.mode, armed=st.armed, landed_state=int(st.landed_state),
+                        mode=st.mode, armed=st.armed,
+                        landed_state='UNKNOWN' if st.landed_state is None else LANDED_STATES[st.landed_state],
                         taking_off=self._takeoff_until_alt is not None,
                         command_live=self._cmd_time is not None
                         and self._clock() - self._cmd_time <= self.cfg.command_timeout_s,

@@ -13,14 +13,21 @@ that wait on a one-thread worker pool, so /cmd_vel is never held up behind a ser
 Service queues: each /uav/* service takes up to SERVICE_QUEUE_DEPTH requests at once; at most
 max_pending_commands vehicle commands wait for the worker, and any call beyond that is answered
 at once with success=false ('busy'), so every request gets an answer.
+
+No message ends the node: every timer and subscription callback that packs or sends MAVLink runs
+guarded (an exception is counted as `callback_errors` and logged, throttled), and the core counts a
+message it cannot pack as `tx_errors` instead of raising. Parameter defaults and ranges come from
+the core's config dataclasses (BridgeConfig, VisionConfig, EkfOrigin), checked at start-up.
 """
 from __future__ import annotations
 
 import concurrent.futures
+import dataclasses
 import logging
 import math
 import threading
 import time
+from collections.abc import Callable
 
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseStamped, TwistStamped
@@ -30,91 +37,133 @@ from rclpy._rclpy_pybind11 import RCLError
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
+from std_msgs.msg import UInt8
 from std_srvs.srv import Trigger
 
 from assist_common.constants import ACCEPTED_CMD_FRAMES
-from assist_common.ros_common import (RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError, declare_parameters,
-                                      exit_process, forward_logging, run_node, stamp_to_sec, twist_to_array)
+from assist_common.mavlink_io import ThrottledLog
+from assist_common.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError,
+                                      declare_parameters, exit_process, forward_logging, run_node, stamp_to_sec,
+                                      twist_to_array)
+from assist_common.settings import RULE_KEY
 
-from .bridge_core import LIMIT_FIELDS, BridgeConfig, MavlinkBridge, Odometry as CoreOdometry
+from .bridge_core import LIMIT_FIELDS, BridgeConfig, EkfOrigin, MavlinkBridge, Odometry as CoreOdometry
 from .vision import VisionConfig, VisionForwarder
+
+_LOG = logging.getLogger(__name__)
 
 SERVICE_QUEUE_DEPTH = 100   # requests each /uav/* service holds before DDS drops the oldest
 SERVICE_QOS = QoSProfile(depth=SERVICE_QUEUE_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
                          history=HistoryPolicy.KEEP_LAST)
 
+LANDED_STATE_TOPIC = '/uav/landed_state'
+# VisionConfig field -> node parameter
+VISION_PARAMS = {'rate_hz': 'vision_rate_hz', 'max_age_s': 'vision_max_age_s', 'max_ahead_s': 'vision_max_ahead_s',
+                 'position_sigma_m': 'vision_position_sigma_m', 'angle_sigma_rad': 'vision_angle_sigma_rad',
+                 'reset_jump_m': 'vision_reset_jump_m', 'max_jump_m': 'vision_max_jump_m',
+                 'reset_confirm_poses': 'vision_reset_confirm_poses', 'max_position_m': 'vision_max_position_m',
+                 'max_pose_rate_hz': 'vision_max_pose_rate_hz'}
+
+
+def config_param(cls: type, field_name: str, description: str, dynamic: bool = False) -> Param:
+    """The node parameter of config field `cls.field_name`: its default and its setting() range, one source."""
+    f = next(f for f in dataclasses.fields(cls) if f.name == field_name)
+    rule = f.metadata.get(RULE_KEY)
+    if rule is None:
+        return Param(f.default, description, dynamic=dynamic)
+    if rule.lt is not None:
+        raise TypeError(f'{cls.__name__}.{field_name}: a node parameter range has no exclusive maximum')
+    low = rule.gt if rule.gt is not None else rule.ge
+    return Param(f.default, description, min=low, max=rule.le, min_exclusive=rule.gt is not None, dynamic=dynamic)
+
+
+def _bridge(name: str, description: str, dynamic: bool = False) -> Param:
+    return config_param(BridgeConfig, name, description, dynamic)
+
+
+def _vision(name: str, description: str) -> Param:
+    return config_param(VisionConfig, name, description)
+
+
+_ORIGIN_RULES = {f.name: f.metadata[RULE_KEY] for f in dataclasses.fields(EkfOrigin)}
+
 # Parameters marked dynamic can be changed with `ros2 param set` (validated, applied at once);
 # the others are read-only (the set is refused).
-_SPEED = dict(min=0.0, min_exclusive=True, dynamic=True)
-_V = VisionConfig()
 PARAMS = {
-    'connection': Param('udpin:127.0.0.1:14550', "Autopilot endpoint: 'udpin:HOST:PORT' (listen; loopback by "
-                        "default), 'udpout:HOST:PORT', 'tcp:HOST:PORT' (SITL serves tcp:127.0.0.1:5760), "
-                        "'tcpin:HOST:PORT', or a serial device under /dev such as '/dev/ttyACM0' (baud from "
-                        "'baud'). Anything else is refused."),
-    'baud': Param(57600, 'Serial baud rate (serial connections only; 115200 for USB, 57600/921600 for TELEM).',
-                  min=1200, max=12000000),
-    'target_system': Param(1, 'MAVLink system id of the autopilot (SYSID_THISMAV); 0 = lock onto the first '
-                           "autopilot heard. Other systems are ignored and counted.", min=0, max=255),
-    'target_component': Param(1, 'MAVLink component id of the autopilot; 0 = the first autopilot heard.',
-                              min=0, max=255),
-    'source_system': Param(255, 'Our MAVLink system id (ArduPilot accepts commands from SYSID_MYGCS = 255 by '
-                           'default).', min=1, max=255),
-    'source_component': Param(191, 'Our MAVLink component id (191 = onboard computer).', min=1, max=255),
-    'signing_key_file': Param('', 'MAVLink 2 signing key file (32 raw bytes or 64 hex characters, mode 600); '
-                              'empty = unsigned. With a key, unsigned or badly signed frames are dropped and counted.'),
-    'address_relock': Param(True, 'After a declared link loss, accept the same vehicle ids from the same host on '
-                            'a new UDP port (a restarted SITL or stand-in gets a new port); false = the first '
-                            'address for the life of the node.'),
-    'velocity_scale': Param(1.0, 'Commanded velocity is multiplied by this (0, 1]; use 0.5 on the real vehicle, '
-                            'as in the paper. Changeable at run time.', min=0.0, max=1.0, min_exclusive=True,
-                            dynamic=True),
-    'max_speed_x_mps': Param(2.0, 'Clamp of the forward/back speed after scaling (m/s). Changeable at run time.',
-                             max=20.0, **_SPEED),
-    'max_speed_y_mps': Param(2.0, 'Clamp of the left/right speed after scaling (m/s). Changeable at run time.',
-                             max=20.0, **_SPEED),
-    'max_climb_mps': Param(1.0, 'Clamp of the climb speed (m/s). Changeable at run time.', max=10.0, **_SPEED),
-    'max_descent_mps': Param(1.0, 'Clamp of the descent speed (m/s). Changeable at run time.', max=10.0, **_SPEED),
-    'max_speed_mps': Param(2.5, 'Clamp of the total speed (m/s). Changeable at run time.', max=25.0, **_SPEED),
-    'setpoint_rate_hz': Param(10.0, 'Rate of the velocity setpoint (the latest command), plus at most one '
-                              'immediate send of a changed command per period (ArduCopter GUID_TIMEOUT is 3 s).',
-                              min=1.0, max=50.0),
-    'command_timeout_s': Param(0.5, '/cmd_vel older than this counts as absent: zero velocity is sent.',
-                               min=0.05, max=5.0),
-    'link_timeout_s': Param(2.0, 'No autopilot HEARTBEAT for this long: link lost, zero velocity sent.',
-                            min=0.5, max=30.0),
-    'link_lost_setpoint_rate_hz': Param(2.0, 'Rate of the zero-velocity setpoints sent while the link is lost '
-                                        '(it may be lost one way only).', min=0.5, max=10.0),
-    'odom_rate_hz': Param(30.0, 'Rate requested for LOCAL_POSITION_NED and ATTITUDE (drives /odom; the sim '
-                          'stand-in sends at most one per 20 Hz physics step).', min=1.0, max=200.0),
-    'status_rate_hz': Param(2.0, 'Rate requested for EXTENDED_SYS_STATE and SYS_STATUS.', min=0.1, max=50.0),
-    'takeoff_altitude_m': Param(2.0, 'Altitude above the ground for /uav/takeoff (m).', min=0.0, max=100.0,
-                                min_exclusive=True),
-    'ack_timeout_s': Param(3.0, 'How long a service waits for the COMMAND_ACK.', min=0.1, max=60.0),
-    'allow_force_disarm': Param(False, 'Let /uav/force_disarm disarm even when the autopilot thinks it is flying '
-                                       '(a motor kill): for simulation episodes only (ardupilot_sitl.launch.py '
-                                       'sets it); otherwise the service refuses.'),
+    'connection': _bridge('connection', "Autopilot endpoint: 'udpin:HOST:PORT' (listen; loopback by default), "
+                          "'udpout:HOST:PORT', 'tcp:HOST:PORT' (SITL serves tcp:127.0.0.1:5760), 'tcpin:HOST:PORT', "
+                          "or a serial device under /dev such as '/dev/ttyACM0' (baud from 'baud'). Anything else is "
+                          'refused.'),
+    'baud': _bridge('baud', 'Serial baud rate (serial connections only; 115200 for USB, 57600/921600 for TELEM).'),
+    'target_system': _bridge('target_system', 'MAVLink system id of the autopilot (SYSID_THISMAV); 0 = lock onto the '
+                             'first autopilot heard. Other systems are ignored and counted.'),
+    'target_component': _bridge('target_component', 'MAVLink component id of the autopilot; 0 = the first autopilot '
+                                'heard.'),
+    'source_system': _bridge('source_system', 'Our MAVLink system id (ArduPilot accepts commands from SYSID_MYGCS = '
+                             '255 by default).'),
+    'source_component': _bridge('source_component', 'Our MAVLink component id (191 = onboard computer).'),
+    'signing_key_file': _bridge('signing_key_file', 'MAVLink 2 signing key file (32 raw bytes or 64 hex characters, '
+                                'mode 600); empty = unsigned. With a key, unsigned or badly signed frames are dropped '
+                                'and counted.'),
+    'address_relock': _bridge('address_relock', 'After a declared link loss, accept the same vehicle ids from the '
+                              'same host on a new UDP port (a restarted SITL or stand-in gets a new port); false = the '
+                              'first address for the life of the node.'),
+    'velocity_scale': _bridge('velocity_scale', 'Commanded velocity is multiplied by this; use 0.5 on the real '
+                              'vehicle, as in the paper. Changeable at run time.', dynamic=True),
+    'max_speed_x_mps': _bridge('max_speed_x_mps', 'Clamp of the forward/back speed after scaling (m/s). Changeable '
+                               'at run time.', dynamic=True),
+    'max_speed_y_mps': _bridge('max_speed_y_mps', 'Clamp of the left/right speed after scaling (m/s). Changeable at '
+                               'run time.', dynamic=True),
+    'max_climb_mps': _bridge('max_climb_mps', 'Clamp of the climb speed (m/s). Changeable at run time.', dynamic=True),
+    'max_descent_mps': _bridge('max_descent_mps', 'Clamp of the descent speed (m/s). Changeable at run time.',
+                               dynamic=True),
+    'max_speed_mps': _bridge('max_speed_mps', 'Clamp of the total speed (m/s). Changeable at run time.', dynamic=True),
+    'setpoint_rate_hz': _bridge('setpoint_rate_hz', 'Rate of the velocity setpoint (the latest command), plus at most '
+                                'one immediate send of a changed command per period (ArduCopter GUID_TIMEOUT is 3 s).'),
+    'command_timeout_s': _bridge('command_timeout_s', '/cmd_vel older than this counts as absent: zero velocity is '
+                                 'sent.'),
+    'link_timeout_s': _bridge('link_timeout_s', 'No autopilot HEARTBEAT for this long: link lost, zero velocity sent.'),
+    'link_lost_setpoint_rate_hz': _bridge('link_lost_setpoint_rate_hz', 'Rate of the zero-velocity setpoints sent '
+                                          'while the link is lost (it may be lost one way only).'),
+    'odom_rate_hz': _bridge('odom_rate_hz', 'Rate requested for LOCAL_POSITION_NED and ATTITUDE (drives /odom; the sim '
+                            'stand-in sends at most one per 20 Hz physics step).'),
+    'status_rate_hz': _bridge('status_rate_hz', 'Rate requested for EXTENDED_SYS_STATE (drives /uav/landed_state) and '
+                              'SYS_STATUS.'),
+    'takeoff_altitude_m': _bridge('takeoff_altitude_m', 'Altitude above the ground for /uav/takeoff (m).'),
+    'ack_timeout_s': _bridge('ack_timeout_s', 'How long a service waits for the COMMAND_ACK.'),
+    'allow_force_disarm': _bridge('allow_force_disarm', 'Let /uav/force_disarm disarm even when the autopilot thinks '
+                                  'it is flying (a motor kill): for simulation episodes only (ardupilot_sitl.launch.py '
+                                  'sets it); otherwise the service refuses.'),
     'max_pending_commands': Param(4, 'Vehicle commands (/uav/* calls) queued at most; further calls are '
                                   "answered at once with success=false, 'busy'.", min=1, max=SERVICE_QUEUE_DEPTH),
     'auto_guided': Param(False, 'Removed: the bridge never changes the flight mode on its own. Call /uav/guided '
                          '(or select GUIDED on the transmitter). true is refused at start-up.'),
     'mocap_topic': Param('', 'geometry_msgs/PoseStamped of the vehicle in an ENU world frame from a motion-capture '
-                         'driver, forwarded as VISION_POSITION_ESTIMATE (external navigation); empty = off.'),
-    'vision_rate_hz': Param(_V.rate_hz, 'VISION_POSITION_ESTIMATE rate at most (ArduPilot wants >= 4 Hz).',
-                            min=4.0, max=100.0),
-    'vision_max_age_s': Param(_V.max_age_s, 'Poses older than this (stamp vs wall clock) are not sent.',
-                              min=0.01, max=2.0),
-    'vision_max_ahead_s': Param(_V.max_ahead_s, 'Pose stamps further in the future than this are refused.',
-                                min=0.0, max=1.0),
-    'vision_position_sigma_m': Param(_V.position_sigma_m, 'Position noise of the mocap (1 sigma, m): the '
-                                     'covariance sent.', min=0.0, max=10.0, min_exclusive=True),
-    'vision_angle_sigma_rad': Param(_V.angle_sigma_rad, 'Attitude noise of the mocap (1 sigma, rad).', min=0.0,
-                                    max=1.0, min_exclusive=True),
-    'vision_reset_jump_m': Param(_V.reset_jump_m, 'A jump larger than this between consecutive poses counts as a '
-                                 'reset (reset_counter + 1).', min=0.01, max=100.0),
-    'ekf_origin': Param([0.0], 'EKF origin [latitude deg, longitude deg, altitude m] sent as SET_GPS_GLOBAL_ORIGIN '
-                        'once the link is up (external navigation without GPS needs one); [0.0] = not sent.',
-                        item_type=float),
+                         'driver, forwarded as VISION_POSITION_ESTIMATE (external navigation); empty = off. One '
+                         'source is forwarded at a time (see vision_reset_confirm_poses).'),
+    'vision_rate_hz': _vision('rate_hz', 'VISION_POSITION_ESTIMATE rate at most (ArduPilot wants >= 4 Hz).'),
+    'vision_max_age_s': _vision('max_age_s', 'Poses older than this (stamp vs wall clock) are not sent; a source '
+                                'silent this long may be replaced by another.'),
+    'vision_max_ahead_s': _vision('max_ahead_s', 'Pose stamps further in the future than this are refused.'),
+    'vision_position_sigma_m': _vision('position_sigma_m', 'Position noise of the mocap (1 sigma, m): the covariance '
+                                       'sent.'),
+    'vision_angle_sigma_rad': _vision('angle_sigma_rad', 'Attitude noise of the mocap (1 sigma, rad).'),
+    'vision_reset_jump_m': _vision('reset_jump_m', 'A confirmed jump larger than this between consecutive poses is a '
+                                   're-initialised mocap frame (reset_counter + 1).'),
+    'vision_max_jump_m': _vision('max_jump_m', 'A jump larger than this between consecutive poses is refused '
+                                 '(until the stream has been refused for vision_max_age_s: then it starts over).'),
+    'vision_reset_confirm_poses': _vision('reset_confirm_poses', 'Consecutive poses that must continue from a jump '
+                                          'before it counts as a reset; poses before that are held, and dropped if '
+                                          'the old track comes back (an outlier or a second publisher).'),
+    'vision_max_position_m': _vision('max_position_m', 'Poses farther than this from the mocap origin (m) are '
+                                     'refused.'),
+    'vision_max_pose_rate_hz': _vision('max_pose_rate_hz', 'Pose stamps closer together than 1/this are refused.'),
+    'ekf_origin': Param([0.0], 'EKF origin [latitude deg, longitude deg, altitude m AMSL] sent as '
+                        'SET_GPS_GLOBAL_ORIGIN once the link is up (external navigation without GPS needs one); '
+                        f"[0.0] = not sent. Accepted: latitude {_ORIGIN_RULES['latitude_deg'].ge:g} to "
+                        f"{_ORIGIN_RULES['latitude_deg'].le:g}, longitude {_ORIGIN_RULES['longitude_deg'].ge:g} to "
+                        f"{_ORIGIN_RULES['longitude_deg'].le:g}, altitude {_ORIGIN_RULES['altitude_m'].ge:g} to "
+                        f"{_ORIGIN_RULES['altitude_m'].le:g} m.", item_type=float),
     'odom_frame': Param('odom', 'World frame id of /odom (ENU).'),
     'base_frame': Param('base_link', 'Body frame id of /odom and the accepted /cmd_vel frame (FLU).'),
 }
@@ -134,19 +183,33 @@ class MavlinkBridgeNode(Node):
             raise StartupError('mavlink_bridge_node: auto_guided was removed: the bridge never changes the flight '
                                'mode on its own; call /uav/guided instead')
         self.diag = Diagnostics(self)
+        self._throttled = ThrottledLog(_LOG, 5.0)
         keys = set(BridgeConfig.__dataclass_fields__) & set(self.p)
         try:
             self.cfg = BridgeConfig(**{k: self.p[k] for k in keys})
         except (ValueError, TypeError) as exc:
             raise StartupError(f'mavlink_bridge_node: bad parameter: {exc}') from exc
         try:
-            self.bridge = MavlinkBridge(self.cfg, on_odometry=self._on_odometry, on_statustext=self._on_statustext)
+            self.ekf_origin = EkfOrigin.from_list(self.p['ekf_origin'])
+        except (ValueError, TypeError) as exc:
+            raise StartupError(f"mavlink_bridge_node: parameter 'ekf_origin' {exc}") from exc
+        vision_cfg = None
+        if self.p['mocap_topic']:
+            try:
+                vision_cfg = VisionConfig(**{f: self.p[name] for f, name in VISION_PARAMS.items()})
+            except (ValueError, TypeError) as exc:
+                raise StartupError(f'mavlink_bridge_node: bad parameter: vision_{exc}') from exc
+        # published from the receive thread: made before the bridge exists, so before it can call back
+        self.pub_odom = self.create_publisher(Odometry, '/odom', SENSOR_QOS)
+        self.pub_landed = self.create_publisher(UInt8, LANDED_STATE_TOPIC, LATCHED_QOS)
+        try:
+            self.bridge = MavlinkBridge(self.cfg, on_odometry=self._on_odometry, on_statustext=self._on_statustext,
+                                        on_landed_state=self._on_landed_state)
         except ValueError as exc:          # signing key file
             raise StartupError(f'mavlink_bridge_node: {exc}') from exc
         except ConnectionError as exc:
             raise StartupError(f'mavlink_bridge_node: {exc}') from exc
-        self.pub_odom = self.create_publisher(Odometry, '/odom', SENSOR_QOS)
-        self.create_subscription(TwistStamped, '/cmd_vel', self._on_cmd, RELIABLE_QOS)
+        self.create_subscription(TwistStamped, '/cmd_vel', self._guard('/cmd_vel', self._on_cmd), RELIABLE_QOS)
         # one worker: vehicle commands run one at a time, in the order they were asked for
         self._workers = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix='uav-service')
         self._pending = 0
@@ -161,19 +224,15 @@ class MavlinkBridgeNode(Node):
             self.create_service(Trigger, f'/uav/{name}', self._srv(name, action), qos_profile=SERVICE_QOS,
                                 callback_group=services)
         self.vision = None
-        if self.p['mocap_topic']:
-            self.vision = VisionForwarder(VisionConfig(
-                rate_hz=self.p['vision_rate_hz'], max_age_s=self.p['vision_max_age_s'],
-                max_ahead_s=self.p['vision_max_ahead_s'], position_sigma_m=self.p['vision_position_sigma_m'],
-                angle_sigma_rad=self.p['vision_angle_sigma_rad'], reset_jump_m=self.p['vision_reset_jump_m']))
+        self._mocap_warned: set[str] = set()      # one-time warnings about the mocap stream given
+        if vision_cfg is not None:
+            self.vision = VisionForwarder(vision_cfg)
             self.vision_lock = threading.Lock()
-            self.create_subscription(PoseStamped, self.p['mocap_topic'], self._on_mocap, SENSOR_QOS)
-            self.create_timer(0.5 / self.p['vision_rate_hz'], self._send_vision)
-        origin = list(self.p['ekf_origin'])
-        if origin != [0.0] and (len(origin) != 3 or not (-90 <= origin[0] <= 90 and -180 <= origin[1] <= 180)):
-            raise StartupError(f'mavlink_bridge_node: ekf_origin must be [latitude, longitude, altitude], got {origin}')
-        self.origin_sent = origin == [0.0]
-        self.create_timer(1.0, self._update_diagnostics)
+            self.create_subscription(PoseStamped, self.p['mocap_topic'], self._guard('mocap', self._on_mocap),
+                                     SENSOR_QOS)
+            self.create_timer(0.5 / vision_cfg.rate_hz, self._guard('vision', self._send_vision))
+        self.origin_sent = self.ekf_origin is None
+        self.create_timer(1.0, self._guard('diagnostics', self._update_diagnostics))
         self.bridge.start()
         self.get_logger().info(f"waiting for the vehicle heartbeat on '{self.cfg.connection}' "
                                f"(system {self.cfg.target_system or 'any'}, "
@@ -186,7 +245,30 @@ class MavlinkBridgeNode(Node):
             return
         self.cfg = self.bridge.set_limits(**limits)   # ValueError refuses the set
 
+    def _guard(self, what: str, fn: Callable[..., None]) -> Callable[..., None]:
+        """`fn` as a timer or subscription callback whose exceptions are counted and logged, never fatal."""
+        def guarded(*args) -> None:
+            try:
+                fn(*args)
+            except Exception as exc:  # noqa: BLE001 - nothing between the pilot and the vehicle may end the node
+                self.diag.count('callback_errors')
+                self._throttled.log(logging.ERROR, f'callback:{what}:{type(exc).__name__}',
+                                    '%s callback failed (counted as callback_errors; continuing): %s: %s', what,
+                                    type(exc).__name__, exc)
+        return guarded
+
     # ------------------------------------------------------------------ callbacks from the core
+    def _on_landed_state(self, state: int) -> None:
+        """The vehicle's MAV_LANDED_STATE (first report and each change; the core refused any other value)."""
+        if not self.context.ok():
+            return
+        try:
+            self.pub_landed.publish(UInt8(data=int(state)))
+        except RCLError:
+            if self.context.ok():
+                raise
+            return
+        self.diag.count('landed_state_published')
     def _on_odometry(self, o: CoreOdometry) -> None:
         if not self.context.ok():       # Ctrl-C: the context is gone before close() stops the link thread
             return
@@ -224,8 +306,31 @@ class MavlinkBridgeNode(Node):
         pos, q = msg.pose.position, msg.pose.orientation
         with self.vision_lock:
             why = self.vision.offer(stamp_to_sec(msg.header.stamp), (pos.x, pos.y, pos.z),
-                                    (q.x, q.y, q.z, q.w), time.time())
-        self.diag.count('mocap_in' if why is None else f'mocap_rejected_{why}')
+                                    (q.x, q.y, q.z, q.w), time.time(), source=msg.header.frame_id)
+            events = dict(self.vision.events)
+            source = self.vision.source
+        if why is None:
+            self.diag.count('mocap_in')
+        else:
+            self.diag.count(f'mocap_rejected_{why}')
+            self._throttled.log(logging.WARNING, f'mocap:{why}', 'mocap pose refused (%s): frame %r, position '
+                                '(%.6g, %.6g, %.6g); counted as mocap_rejected_%s', why, msg.header.frame_id,
+                                pos.x, pos.y, pos.z, why)
+        for key, value in events.items():
+            self.diag.set(f'mocap_{key}', value)
+        if why == 'other_source' or events.get('track_returned', 0) >= 2:
+            self._warn_mocap('interleaved', f"mocap: poses on {self.p['mocap_topic']} come from more than one "
+                             f'source (another frame_id, or jumps away from the track and back): forwarding only '
+                             f'the track of frame {source!r}; the others are refused and counted '
+                             '(mocap_rejected_other_source, mocap_rejected_jump_unconfirmed, mocap_track_returned)')
+
+    def _warn_mocap(self, key: str, text: str) -> None:
+        """Log a mocap problem once and keep it on /diagnostics (`mocap_warning`)."""
+        if key in self._mocap_warned:
+            return
+        self._mocap_warned.add(key)
+        self.diag.set('mocap_warning', text)
+        self.get_logger().warning(text)
 
     def _send_vision(self) -> None:
         with self.vision_lock:
@@ -297,12 +402,23 @@ class MavlinkBridgeNode(Node):
             self.diag.set(k, v)
         for k, v in list(self.bridge.counters.items()):
             self.diag.set(k, v)
+        if self.vision is not None:
+            publishers = self.count_publishers(self.p['mocap_topic'])
+            self.diag.set('mocap_publishers', publishers)
+            if publishers > 1:
+                self._warn_mocap('publishers', f"mocap: {publishers} publishers on {self.p['mocap_topic']}: only one "
+                                 'track is forwarded (the first; see vision_reset_confirm_poses), the other poses are '
+                                 'refused and counted')
         if snap['link'] == 'up' and not self.origin_sent:
-            lat, lon, alt = self.p['ekf_origin']
-            self.origin_sent = self.bridge.set_ekf_origin(lat, lon, alt)
+            o = self.ekf_origin
+            self.origin_sent = self.bridge.set_ekf_origin(o.latitude_deg, o.longitude_deg, o.altitude_m)
             if self.origin_sent:
-                self.get_logger().info(f'EKF origin sent: {lat:.7f}, {lon:.7f}, {alt:.1f} m')
-        if snap['link'] == 'up':
+                self.get_logger().info(f'EKF origin sent: {o.latitude_deg:.7f}, {o.longitude_deg:.7f}, '
+                                       f'{o.altitude_m:.1f} m')
+        if snap['link'] == 'up' and self._mocap_warned:
+            self.diag.status(DiagnosticStatus.WARN, f"{snap['mode']} {'armed' if snap['armed'] else 'disarmed'}; "
+                             'mocap from more than one source (see mocap_warning)')
+        elif snap['link'] == 'up':
             self.diag.status(DiagnosticStatus.OK, f"{snap['mode']} {'armed' if snap['armed'] else 'disarmed'}")
         elif snap['link'] == 'lost':
             self.diag.status(DiagnosticStatus.ERROR, f'link lost ({self.cfg.connection})')
