@@ -84,7 +84,7 @@ def test_relay_and_decoder_restore_the_pair_with_its_headers(ros, start_node, wa
     # a corrupt payload: counted by the decoder, which goes on decoding
     junk = CompressedImage()
     junk.format = '16UC1; compressedDepth png'
-    junk.data = b'\x01\x00\x00\x00' + bytes(8) + b'\x89PNG not really'
+    junk.data = b'\x01\x00\x00\x00' + bytes(8) + b'\x89PNG\r\n\x1a\n not really'   # a PNG signature, no IHDR
     for _ in range(3):
         bad.publish(junk)
         time.sleep(0.05)

@@ -240,23 +240,27 @@ def test_onboard_with_a_realsense_camera(ros, launch, tmp_path):
     """camera:=realsense: the driver's topics (/camera/camera/..., 640x480 rgb8 and aligned 16UC1 at 30 Hz)
     reach the contract's names through the launch file's remappings, the image relay sends them at the
     encoder's size, and the bridge (config/bridge_real.yaml) starts on `connection`; Ctrl-C ends all three."""
-    import cv2
-    import numpy as np
     from sensor_msgs.msg import CompressedImage
 
+    from assist_bridge.image_link import LinkError, decode_color, decode_depth
     from assist_bridge.image_relay import PARAMS as RELAY
     Diag, Twist, Odom, Clock, Image, Floats = _types()
     size = (RELAY['height'].default, RELAY['width'].default)
 
-    def jpeg_at_encoder_size(msg) -> bool:
-        img = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_COLOR)
-        return img is not None and img.shape[:2] == size
+    def at_encoder_size(decode):
+        """A payload that the base station's decoder reads (format, codec, header) at the encoder's size."""
+        def check(msg) -> bool:
+            try:
+                return decode(msg.data, msg.format).shape[:2] == size
+            except LinkError:
+                return False
+        return check
     lau = launch('assist_bridge', 'onboard.launch.py', 'camera:=realsense',
                  f'connection:=udpin:127.0.0.1:{free_udp_port()}', prefixes=(realsense_prefix(tmp_path),))
     wait_for_topics(ros, {'/camera/color/image_raw': (Image, lambda m: (m.width, m.encoding) == (640, 'rgb8')),
                           '/camera/depth/image_raw': (Image, lambda m: (m.width, m.encoding) == (640, '16UC1')),
-                          '/camera/color/image_raw/compressed': (CompressedImage, jpeg_at_encoder_size),
-                          '/camera/depth/image_raw/compressedDepth': (CompressedImage, lambda m: '16UC1' in m.format),
+                          '/camera/color/image_raw/compressed': (CompressedImage, at_encoder_size(decode_color)),
+                          '/camera/depth/image_raw/compressedDepth': (CompressedImage, at_encoder_size(decode_depth)),
                           '/diagnostics': (Diag, from_node('mavlink_bridge_node'))}, lau)
     assert_clean_exit(lau.ctrl_c(), lau.output(), nodes=3)
 

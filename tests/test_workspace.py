@@ -66,6 +66,7 @@ def imported_top_level(paths, skip_testing: bool = False) -> set[str]:
 
 # Python module -> the package.xml key that provides it (ROS packages map to themselves)
 DEPENDENCY_KEYS = {'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'yaml': 'python3-yaml', 'cv2': 'python3-opencv',
+                   'PIL': 'python3-pil',
                    'torch': 'python3-torch', 'pybullet': 'python3-pybullet-pip', 'pymavlink': 'python3-pymavlink-pip',
                    'gymnasium': 'python3-gymnasium-pip', 'rosbags': 'python3-rosbags-pip', 'aiohttp': 'python3-aiohttp',
                    'tqdm': 'python3-tqdm', 'matplotlib': 'python3-matplotlib', 'onnxruntime': 'python3-onnxruntime-pip'}

@@ -3,8 +3,13 @@
 Subscribes `<colour topic>/compressed` (JPEG) and `<depth topic>/compressedDepth` (16-bit PNG) and
 publishes sensor_msgs/Image rgb8 on the colour topic and 16UC1 (millimetres) on the depth topic, each with
 the header it came with (the camera's stamp and frame_id), so encoder_node and policy_node judge a frame's
-age from the camera, radio delay included. A payload it cannot read (wrong format, corrupt, larger than
-4096 px a side) is counted on /diagnostics by reason and logged once per reason; the node keeps going.
+age from the camera, radio delay included. Only the codec the `format` declares is decoded, and only after
+its header is read (image_link.decode_color / decode_depth). A payload it refuses is counted on /diagnostics
+as `rejected_<color|depth>_<reason>` and logged once per reason; the node keeps going. Reasons: `bad_format`
+(the `format` is not image_transport's for that topic, or names another codec or encoding), `codec_mismatch`
+(the data is not the declared codec: a TIFF, BMP or WebP labelled PNG, a PNG labelled JPEG), `too_large`
+(over 8 MiB compressed), `bad_size` (its header announces more than 4096 px a side) and `bad_payload`
+(a header or image data that cannot be read, a depth image that is not 16-bit greyscale).
 """
 from __future__ import annotations
 

@@ -11,17 +11,28 @@ depth as lossless 16-bit PNG in millimetres. The payloads follow ROS image_trans
   compressed_depth_image_transport's 12-byte ConfigHeader (int32 compression format, PNG = 1; float32
   depthParam[2], unused for 16UC1) followed by the PNG of the uint16 millimetre image.
 
+Decoding (the base station) trusts nothing in a payload: the `format` is parsed as image_transport writes it
+(assist_common.images.parse_compressed_format), the data must start with the declared codec's signature,
+and Pillow's reader for that codec alone reads the header (PNG's IHDR; JPEG's frame header, stray and fill
+bytes skipped) and decodes. A payload of another codec (TIFF, BMP, WebP, a PNG labelled JPEG), over
+DecodeLimits (8 MiB, 4096 px a side in its header) or whose header cannot be read is refused before a pixel
+is decoded.
+
 Shrinking: colour with area averaging (what the encoder does to a big frame), depth by nearest neighbour
 (averaging would invent depths between a pad's top and the floor). Depth beyond 65.535 m, negative, NaN
 or infinite becomes 0, the contract's "no reading".
 """
 from __future__ import annotations
 
+import io
 import struct
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from PIL import ImageFile, JpegImagePlugin, PngImagePlugin
+
+from assist_common.images import BadFrame, CompressedFormat, parse_compressed_format
 
 COLOR_FORMAT = 'rgb8; jpeg compressed bgr8'
 DEPTH_FORMAT = '16UC1; compressedDepth png'
@@ -29,7 +40,11 @@ COLOR_SUFFIX = '/compressed'
 DEPTH_SUFFIX = '/compressedDepth'
 _DEPTH_HEADER = struct.Struct('<iff')          # compressed_depth_image_transport ConfigHeader
 _PNG_FORMAT = 1                                 # its compressionFormat enum: INV_DEPTH 0, PNG 1, RVL 2
-MAX_SIDE_PX = 4096                              # a decoded image larger than this is refused (a hostile payload)
+# the codecs a payload may be in: each one's signature, and Pillow's reader for it (never another codec's)
+_MAGIC = {'png': b'\x89PNG\r\n\x1a\n', 'jpeg': b'\xff\xd8'}
+_READERS = {'png': PngImagePlugin.PngImageFile, 'jpeg': JpegImagePlugin.JpegImageFile}
+# the encodings a colour payload may say it came from ('' = a bare "jpeg"/"png" format)
+COLOR_RAW_ENCODINGS = frozenset({'', 'rgb8', 'bgr8', 'rgba8', 'bgra8', 'mono8'})
 
 
 class LinkError(ValueError):
@@ -38,6 +53,17 @@ class LinkError(ValueError):
     def __init__(self, reason: str, detail: str):
         super().__init__(f'{reason}: {detail}')
         self.reason = reason
+
+
+@dataclass(frozen=True)
+class DecodeLimits:
+    """What the base station decodes at most: bigger payloads are refused before a pixel is decoded."""
+
+    max_side_px: int = 4096                     # image width or height in the codec's header
+    max_payload_bytes: int = 8 * 1024 * 1024    # compressed size (a 64x64 pair is ~2 kB)
+
+
+LIMITS = DecodeLimits()
 
 
 @dataclass
@@ -90,77 +116,94 @@ def encode_depth(depth_mm: np.ndarray, png_level: int) -> bytes:
     return _DEPTH_HEADER.pack(_PNG_FORMAT, 0.0, 0.0) + buf.tobytes()
 
 
-def _imdecode(data: bytes, flags: int, what: str) -> np.ndarray:
-    """OpenCV's decode of a PNG/JPEG payload; LinkError for an empty, corrupt or oversized one."""
+def _parse(fmt: str, transport: str) -> CompressedFormat:
+    """parse_compressed_format, its refusal as a LinkError."""
+    try:
+        return parse_compressed_format(fmt, transport)
+    except BadFrame as exc:
+        raise LinkError(exc.reason, exc.detail) from None
+
+
+def _payload(data, what: str, limits: DecodeLimits) -> bytes:
+    """The message's payload as bytes, refused unread (not even copied) when over the byte limit."""
+    if len(data) > limits.max_payload_bytes:
+        raise LinkError('too_large', f'{what}: {len(data)} bytes, more than {limits.max_payload_bytes}')
+    return bytes(data)
+
+
+def _open(data: bytes, codec: str, what: str, limits: DecodeLimits) -> ImageFile.ImageFile:
+    """The header of a payload of the declared codec, read by that codec's parser alone; LinkError if unusable.
+
+    Nothing is decoded here: Pillow's PNG / JPEG readers parse the signature and the headers up to the image
+    data (PNG: IHDR and the chunks before IDAT; JPEG: every marker segment up to the first scan, skipping fill
+    and stray bytes as libjpeg does), so a payload of another codec, or one announcing more than the size
+    limit, is refused before a pixel buffer exists."""
     if not data:
         raise LinkError('bad_payload', f'{what}: empty payload')
-    _image_size(data, what)
+    if not data.startswith(_MAGIC[codec]):
+        kind = next((name for name, magic in _MAGIC.items() if data.startswith(magic)), 'neither PNG nor JPEG')
+        raise LinkError('codec_mismatch', f'{what}: declared {codec}, the data is {kind} (starts {data[:8]!r})')
     try:
-        img = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
-    except cv2.error as exc:
-        raise LinkError('bad_payload', f'{what}: {str(exc).strip().splitlines()[-1][:120]}') from None
-    return _check_size(img, what)
-
-
-def _check_size(img: np.ndarray | None, what: str) -> np.ndarray:
-    if img is None:
-        raise LinkError('bad_payload', f'{what}: not a readable image')
-    if img.shape[0] > MAX_SIDE_PX or img.shape[1] > MAX_SIDE_PX:
-        raise LinkError('bad_size', f'{what}: {img.shape[1]}x{img.shape[0]} is larger than {MAX_SIDE_PX} px a side')
+        img = _READERS[codec](io.BytesIO(data))
+    except (SyntaxError, OSError, ValueError, EOFError) as exc:
+        raise LinkError('bad_payload', f'{what}: unreadable {codec} header ({str(exc)[:120]})') from None
+    width, height = img.size
+    if width > limits.max_side_px or height > limits.max_side_px:
+        img.close()
+        raise LinkError('bad_size', f'{what}: {width}x{height} is larger than {limits.max_side_px} px a side')
+    if not img.tile:
+        img.close()
+        raise LinkError('bad_payload', f'{what}: {codec} header with no image data after it')
     return img
 
 
-def _jpeg_size(data: bytes) -> tuple[int, int] | None:
-    """(width, height) from a JPEG's start-of-frame segment, or None when there is none."""
-    i = 2
-    while i + 9 <= len(data):
-        if data[i] != 0xFF:
-            return None
-        marker = data[i + 1]
-        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:      # no length field
-            i += 2
-            continue
-        length = struct.unpack('>H', data[i + 2:i + 4])[0]
-        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
-            h, w = struct.unpack('>HH', data[i + 5:i + 9])
-            return w, h
-        i += 2 + length
-    return None
+def _pixels(img: ImageFile.ImageFile, what: str) -> np.ndarray:
+    """Decode an opened payload (its header already checked) -> read-only array; LinkError if the data is bad."""
+    try:
+        with img:
+            img.load()
+            return np.asarray(img)
+    except (SyntaxError, OSError, ValueError, EOFError) as exc:
+        raise LinkError('bad_payload', f'{what}: {str(exc)[:120]}') from None
 
 
-def _image_size(data: bytes, what: str) -> None:
-    """Refuse a PNG/JPEG whose header announces more than MAX_SIDE_PX a side, before decoding it."""
-    size = None
-    if data[:8] == b'\x89PNG\r\n\x1a\n' and len(data) >= 24:
-        size = struct.unpack('>II', data[16:24])
-    elif data[:2] == b'\xff\xd8':
-        size = _jpeg_size(data)
-    if size is not None and (size[0] > MAX_SIDE_PX or size[1] > MAX_SIDE_PX):
-        raise LinkError('bad_size', f'{what}: {size[0]}x{size[1]} is larger than {MAX_SIDE_PX} px a side')
+def decode_color(data: bytes, fmt: str, limits: DecodeLimits = LIMITS) -> np.ndarray:
+    """Colour payload (format ``[<encoding>; ]<jpeg|png>[ compressed ...]``) -> (H,W,3) uint8 RGB, read-only.
+
+    Only the codec `fmt` declares is decoded; a payload of another codec, one over the limits, or a format
+    that is not image_transport's `compressed` one raises LinkError (reason bad_format, codec_mismatch,
+    too_large, bad_size or bad_payload)."""
+    parsed = _parse(fmt, 'compressed')
+    if parsed.raw_encoding not in COLOR_RAW_ENCODINGS:
+        raise LinkError('bad_format', f'colour format {fmt!r}: encoding {parsed.raw_encoding!r} is not a colour '
+                                      f'one (want one of {sorted(e for e in COLOR_RAW_ENCODINGS if e)})')
+    img = _open(_payload(data, 'colour', limits), parsed.codec, 'colour', limits)
+    if img.mode not in ('RGB', 'L'):
+        img.close()
+        raise LinkError('bad_payload', f'colour: a {img.mode} {parsed.codec} image, want RGB or greyscale')
+    rgb = _pixels(img, 'colour')
+    if rgb.ndim == 2:
+        rgb = np.repeat(rgb[..., None], 3, axis=2)
+        rgb.flags.writeable = False
+    return rgb
 
 
-def decode_color(data: bytes, fmt: str) -> np.ndarray:
-    """JPEG (or PNG) payload of COLOR_FORMAT -> (H,W,3) uint8 RGB."""
-    if 'jpeg' not in fmt and 'png' not in fmt:
-        raise LinkError('bad_format', f'colour format {fmt!r} (want {COLOR_FORMAT!r})')
-    img = _imdecode(bytes(data), cv2.IMREAD_COLOR, 'colour')
-    return img[..., ::-1].copy()
-
-
-def decode_depth(data: bytes, fmt: str) -> np.ndarray:
-    """DEPTH_FORMAT payload -> (H,W) uint16 millimetres."""
-    if 'compressedDepth' not in fmt or not fmt.startswith('16UC1'):
+def decode_depth(data: bytes, fmt: str, limits: DecodeLimits = LIMITS) -> np.ndarray:
+    """DEPTH_FORMAT payload -> (H,W) uint16 millimetres, read-only; LinkError (as decode_color) if unusable."""
+    parsed = _parse(fmt, 'compressedDepth')
+    if parsed.codec != 'png' or parsed.raw_encoding not in ('16UC1', ''):
         raise LinkError('bad_format', f'depth format {fmt!r} (want {DEPTH_FORMAT!r})')
-    data = bytes(data)
+    data = _payload(data, 'depth', limits)
     if len(data) <= _DEPTH_HEADER.size:
         raise LinkError('bad_payload', f'depth: {len(data)} bytes, no room for the header and an image')
     kind, _, _ = _DEPTH_HEADER.unpack_from(data)
     if kind != _PNG_FORMAT:
         raise LinkError('bad_format', f'depth compression format {kind} (want PNG = {_PNG_FORMAT})')
-    img = _imdecode(data[_DEPTH_HEADER.size:], cv2.IMREAD_UNCHANGED, 'depth')
-    if img.dtype != np.uint16 or img.ndim != 2:
-        raise LinkError('bad_payload', f'depth: a {img.dtype} image with shape {img.shape}, want 16-bit, one channel')
-    return img
+    img = _open(data[_DEPTH_HEADER.size:], 'png', 'depth', limits)
+    if img.mode != 'I;16':
+        img.close()
+        raise LinkError('bad_payload', f'depth: a {img.mode} PNG, want 16-bit greyscale (one channel)')
+    return _pixels(img, 'depth')
 
 
 def pack_pair(rgb: np.ndarray, depth_m: np.ndarray, cfg: LinkConfig) -> tuple[bytes, bytes]:

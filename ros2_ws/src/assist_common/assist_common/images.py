@@ -3,9 +3,14 @@
 Every consumer of camera images (encoder_node, policy_node's floor guard and rules) decodes through here, so
 a big-endian 16UC1 frame or a padded row reads the same everywhere; what cannot be read raises ``BadFrame``
 with a short reason key (counted by the node).
+
+The `format` field of sensor_msgs/CompressedImage is read here too (``parse_compressed_format``), the one
+parser every consumer of compressed images uses.
 """
 from __future__ import annotations
 
+import re
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -15,11 +20,11 @@ DEPTH_ENCODINGS = {'32FC1': np.float32, '16UC1': np.uint16}
 
 
 class BadFrame(ValueError):
-    """A frame that cannot be encoded; `reason` is a short diagnostics key."""
+    """A frame that cannot be encoded; `reason` is a short diagnostics key, `detail` what was wrong."""
 
     def __init__(self, reason: str, detail: str):
         super().__init__(f'{reason}: {detail}')
-        self.reason = reason
+        self.reason, self.detail = reason, detail
 
 
 def _as_array(data: Any, height: int, width: int, step: int, channels: int, dtype,
@@ -73,3 +78,51 @@ def decode_depth(data: Any, encoding: str, height: int, width: int, step: int,
     with np.errstate(invalid='ignore'):
         depth[~(depth >= 0) | ~np.isfinite(depth)] = 0.0
     return depth
+
+
+# ROS image_transport's compressed transports and the codecs each may name in a CompressedImage `format`
+COMPRESSED_CODECS = {'compressed': ('jpeg', 'png'), 'compressedDepth': ('png', 'rvl')}
+_TOKEN = re.compile(r'[A-Za-z0-9_]+')      # a sensor_msgs image encoding name (rgb8, 16UC1, bayer_rggb8, ...)
+
+
+@dataclass(frozen=True)
+class CompressedFormat:
+    """A CompressedImage `format`, parsed: the transport, its codec and the image encodings it names."""
+
+    transport: str                 # 'compressed' or 'compressedDepth'
+    codec: str                     # 'jpeg' / 'png' (compressed), 'png' / 'rvl' (compressedDepth)
+    raw_encoding: str = ''         # the image's encoding before compression ('rgb8', '16UC1'); '' if not named
+    compressed_encoding: str = ''  # the pixel format inside the codec ('bgr8'); '' if not named
+
+
+def parse_compressed_format(fmt: str, transport: str) -> CompressedFormat:
+    """A CompressedImage `format` of `transport` as ROS image_transport writes it -> CompressedFormat.
+
+    Accepted, exactly (surrounding blanks ignored): the bare codec of old publishers (``jpeg``, ``png``;
+    ``png``, ``rvl`` for compressedDepth), ``<raw>; <jpeg|png> compressed[ <pixel format>]`` (compressed) and
+    ``<raw>; compressedDepth[ <png|rvl>]`` (compressedDepth; no codec is PNG, as image_transport before RVL
+    wrote it). Anything else (an empty or unknown codec, another transport, extra words) raises
+    ``BadFrame('bad_format', ...)``: the codec decides which decoder may run, so it is never guessed."""
+    if transport not in COMPRESSED_CODECS:
+        raise ValueError(f'transport {transport!r} (want one of {sorted(COMPRESSED_CODECS)})')
+    codecs = COMPRESSED_CODECS[transport]
+    text = str(fmt).strip()
+    if ';' not in text:
+        if text in codecs:
+            return CompressedFormat(transport, text)
+        raise BadFrame('bad_format', f'{transport} format {fmt!r} names no known codec (want one of {codecs})')
+    raw, rest = (part.strip() for part in text.split(';', 1))
+    words = rest.split()
+    if not _TOKEN.fullmatch(raw):
+        raise BadFrame('bad_format', f'{transport} format {fmt!r}: {raw!r} is not an image encoding')
+    if transport == 'compressed':
+        if len(words) not in (2, 3) or words[1] != 'compressed' or words[0] not in codecs:
+            raise BadFrame('bad_format', f'format {fmt!r} (want "<encoding>; <{"|".join(codecs)}> compressed'
+                                         f'[ <encoding>]")')
+        packed = words[2] if len(words) == 3 else ''
+        if packed and not _TOKEN.fullmatch(packed):
+            raise BadFrame('bad_format', f'format {fmt!r}: {packed!r} is not an image encoding')
+        return CompressedFormat(transport, words[0], raw, packed)
+    if not 1 <= len(words) <= 2 or words[0] != 'compressedDepth' or (len(words) == 2 and words[1] not in codecs):
+        raise BadFrame('bad_format', f'format {fmt!r} (want "<encoding>; compressedDepth[ <{"|".join(codecs)}>]")')
+    return CompressedFormat(transport, words[1] if len(words) == 2 else 'png', raw)
