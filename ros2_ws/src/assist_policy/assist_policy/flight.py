@@ -189,7 +189,7 @@ class FlightMonitor:
         self._vehicle: tuple[float, int] | None = None   # (clock time, MAV_LANDED_STATE) of the latest report
         self._last_service: float | None = None         # clock time of the latest ~/reset honoured
         self.resets_refused = 0                          # ~/reset calls refused by the rate limit
-        self.clock_steps = 0                             # odometry stamps that stepped back (windows restarted)
+        self.clock_steps = 0                             # odometry stamps that stepped back (times re-dated)
         self.last_detail = ''                            # why the latest boundary
         self.reset()
 

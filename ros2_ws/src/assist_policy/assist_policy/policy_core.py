@@ -326,10 +326,11 @@ class PolicyCore:
             if not 0.9 < n < 1.1:
                 raise self._reject('odom_orientation', f'odometry orientation {q.tolist()} is not a unit quaternion')
             q = q / n
-        if stamp < self._odom_stamp:
-            self._flight_start = None   # the clock stepped back: the last boundary's time means nothing on it
         self._odom_stamp = stamp
+        steps = self.flight.clock_steps
         boundary = self.flight.update(stamp, p, v, self._last_vz, now=t)
+        if self.flight.clock_steps != steps:
+            self._flight_start = None   # the clock stepped back: the last boundary's time means nothing on it
         if boundary is not None:
             self._forget(stamp, boundary, self.flight.last_detail)
         self._odom, self._attitude = (t, p, v), q

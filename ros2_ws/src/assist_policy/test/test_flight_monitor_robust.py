@@ -232,3 +232,18 @@ def test_policy_core_camera_vetoes_a_landing_its_odometry_would_make(tmp_path):
         core.set_pilot(tk, [0, 0, -0.5])
         assert core.step(tk).velocity[2] == pytest.approx(-0.5)   # the command flown descends throughout
     assert sum(core.flight_resets.values()) == 0 and not core.flight.landed
+
+
+def test_policy_core_after_a_clock_step_back_takes_depth_frames_again(tmp_path):
+    """A boundary dates the flight's start (older depth frames are refused); a clock that steps back behind that
+    date must not blind the floor guard until the clock makes the step up."""
+    core = PolicyCore(_helpers.constant_actor(tmp_path / 'a.pt', [0.0, 0.0, 0.0]),
+                      PolicyCoreConfig(mode='latent'))
+    core.set_odom(100.0, [0, 0, 3.0], [0, 0, 0])
+    core.set_odom(100.05, [5.0, 0, 3.0], [0, 0, 0])          # a jump: the flight starts at 100.05 s
+    assert core.flight_resets['odom_jump'] == 1
+    with pytest.raises(InputRejected):
+        core.set_depth(100.06, np.full((64, 64), 2.95, np.float32), stamp=100.0)
+    core.set_odom(10.0, [5.0, 0, 3.0], [0, 0, 0])            # the clock steps back 90 s
+    core.set_depth(10.01, np.full((64, 64), 2.95, np.float32), stamp=10.0)   # taken, not 'before the flight'
+    assert core.rejections['depth_before_flight'] == 1 and core.flight.clock_steps == 1
