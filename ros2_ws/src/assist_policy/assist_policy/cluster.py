@@ -2,16 +2,27 @@
 
 Ray is an optional dependency (requirements.txt installs it; ``pip install "ray==2.60.0"`` elsewhere),
 imported only when a command is given ``--ray``.
+
+Also what a run on workers needs around them: one run per output directory (`hold_directory`), workers that
+end with the process that started them, even when it is SIGKILLed (`exit_with_parent`), and one line, not a
+traceback, when a worker dies (`WorkerDied`).
 """
 from __future__ import annotations
 
+import ctypes
+import fcntl
 import logging
 import multiprocessing
 import os
 import signal
 import socket
+import sys
+import threading
+import time
 from collections.abc import Iterable, Iterator
-from concurrent.futures import FIRST_COMPLETED, Future, wait
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from contextlib import contextmanager
+from pathlib import Path
 from types import ModuleType
 
 log = logging.getLogger(__name__)
@@ -19,6 +30,10 @@ log = logging.getLogger(__name__)
 RAY_PIN = 'ray==2.60.0'
 #: The main process's longest uninterrupted wait for its workers: a Ctrl-C is raised within this (completed_in_turn).
 WAIT_POLL_S = 0.1
+#: How long the address of --ray has to accept a connection, and then to answer as a gRPC server does.
+RAY_PROBE_TIMEOUT_S = 5.0
+#: A worker whose parent is gone notices within this, where the kernel does not end it at once (exit_with_parent).
+PARENT_POLL_S = 1.0
 
 
 def cpu_cores() -> int:
@@ -29,6 +44,111 @@ def cpu_cores() -> int:
 def process_context() -> multiprocessing.context.BaseContext:
     """The start method for worker processes: spawn (a fresh interpreter: no forked torch or pybullet state)."""
     return multiprocessing.get_context('spawn')
+
+
+class DirectoryBusy(RuntimeError):
+    """Another run holds the directory (hold_directory)."""
+
+
+class WorkerDied(RuntimeError):
+    """A worker process of a local pool died (killed, out of memory, crashed): the run cannot go on."""
+
+
+class RayUnreachable(ValueError):
+    """--ray names an address where no Ray cluster can be reached (or Ray is missing, or cannot start)."""
+
+
+def _holder(fd: int) -> str:
+    """The pid a lock file holds, as text ('unknown' when it holds none yet)."""
+    try:
+        text = os.pread(fd, 32, 0).decode('ascii', 'replace').strip()
+    except OSError:
+        return 'unknown'
+    return text if text.isdigit() else 'unknown'
+
+
+@contextmanager
+def hold_directory(directory: str | Path, tool: str, instead: str) -> Iterator[Path]:
+    """Hold `directory` (created if missing) for one run of `tool`: an exclusive lock (fcntl.flock) on the file
+    .<tool>.lock in it, which names this process, for the block; the file is removed at the end (a SIGKILLed
+    run leaves it unlocked: the kernel drops the lock with the process).
+
+    DirectoryBusy (one line: the directory, the holder's pid and `instead`, what to do) when another process
+    holds it: two runs writing the same files would each remove or overwrite what the other wrote.
+    """
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    lock = directory / f'.{tool}.lock'
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = _holder(fd)
+            os.close(fd)
+            raise DirectoryBusy(f'{directory} is in use by another {tool} run (pid {holder}): {instead}') from None
+        except BaseException:
+            os.close(fd)
+            raise
+        try:           # the holder before us may have removed the file as we locked it: then lock the new one
+            same = os.path.samestat(os.fstat(fd), os.stat(lock))
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f'{os.getpid()}\n'.encode('ascii'), 0)
+        yield directory
+    finally:
+        lock.unlink(missing_ok=True)        # while still held: a run that comes next locks a new file
+        os.close(fd)
+
+
+def _exit_status(code: int) -> str:
+    """A process exit code in words."""
+    if code < 0:
+        try:
+            return f'killed by {signal.Signals(-code).name}'
+        except ValueError:
+            return f'killed by signal {-code}'
+    return f'exit status {code}'
+
+
+def worker_died(pool: ProcessPoolExecutor) -> str:
+    """'a worker process died (pid N, killed by SIGKILL)': which of `pool`'s workers ended and how, as far as the
+    pool still knows (call before it is shut down)."""
+    procs = dict(getattr(pool, '_processes', None) or {})      # the executor's own table of its workers
+    ended = [(pid, p.exitcode) for pid, p in procs.items() if p.exitcode not in (None, 0)]
+    # the pool SIGTERMs the others once one is gone: the first cause is the one that is not its SIGTERM
+    ended.sort(key=lambda e: e[1] == -signal.SIGTERM)
+    if not ended:
+        return 'a worker process died (its exit status is unknown)'
+    pid, code = ended[0]
+    return f'a worker process died (pid {pid}, {_exit_status(code)})'
+
+
+def exit_with_parent(parent_pid: int) -> None:
+    """In a worker process: end it when its parent, `parent_pid`, dies, even by SIGKILL (nothing else would: a
+    worker waiting for work sleeps forever). On Linux the kernel kills it at once (PR_SET_PDEATHSIG, sent when
+    the parent's thread that started it ends: start a pool from a thread that outlives it); elsewhere, and as a
+    fallback, a watchdog thread ends it within PARENT_POLL_S of being handed to another parent."""
+    if sys.platform.startswith('linux'):
+        pr_set_pdeathsig = 1
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(pr_set_pdeathsig, int(signal.SIGKILL), 0, 0, 0) != 0:
+            log.warning('prctl(PR_SET_PDEATHSIG) failed (%s): this worker ends within %.0f s of its parent',
+                        os.strerror(ctypes.get_errno()), PARENT_POLL_S)
+    if os.getppid() != parent_pid:          # it died before the kernel was told
+        os._exit(1)
+    threading.Thread(target=_watch_parent, args=(parent_pid,), name='parent-watchdog', daemon=True).start()
+
+
+def _watch_parent(parent_pid: int) -> None:
+    while os.getppid() == parent_pid:
+        time.sleep(PARENT_POLL_S)
+    os._exit(1)
 
 
 def ignore_ctrl_c() -> None:
@@ -60,29 +180,68 @@ def result_of(future: Future):
 _CONNECTED: list[str] = []         # the address this process initialised Ray with
 
 
+# HTTP/2's client connection preface and an empty SETTINGS frame (RFC 9113, 3.4 and 6.5): a gRPC server, as Ray's
+# GCS (HOST:6379) and its client server (ray://HOST:10001) are, answers with a SETTINGS frame of its own at once
+_H2_PREFACE = b'PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n' + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
+_H2_SETTINGS = 4
+
+
+def probe_ray(host: str, port: int, timeout_s: float = RAY_PROBE_TIMEOUT_S) -> None:
+    """Check that host:port is a gRPC server, as Ray's endpoints are, within about 2 x `timeout_s` (Ray itself
+    retries an address that does not answer as Ray for minutes, deaf to Ctrl-C); RayUnreachable (the reason,
+    one line) if not. Each wait is a socket timeout in this thread: a Ctrl-C interrupts it."""
+    try:
+        conn = socket.create_connection((host, port), timeout=timeout_s)
+    except OSError as exc:
+        raise RayUnreachable(f'{host}:{port}: {exc}') from None
+    with conn:
+        try:
+            conn.sendall(_H2_PREFACE)
+            head = b''
+            while len(head) < 9:            # a frame header: length (3 bytes), type, flags, stream id (4)
+                chunk = conn.recv(9 - len(head))
+                if not chunk:
+                    break
+                head += chunk
+        except TimeoutError:
+            raise RayUnreachable(f'{host}:{port} accepts connections but is not a Ray cluster: no gRPC answer '
+                                 f'within {timeout_s:g} s') from None
+        except OSError as exc:
+            raise RayUnreachable(f'{host}:{port} is not a Ray cluster: {exc}') from None
+    if len(head) < 9 or head[3] != _H2_SETTINGS or int.from_bytes(head[5:9], 'big') & 0x7FFFFFFF:
+        said = f'it answered {head[:40]!r}' if head else 'it closed the connection'
+        raise RayUnreachable(f'{host}:{port} is not a Ray cluster: {said}, not gRPC')
+
+
 def connect_ray(address: str) -> ModuleType:
     """The ray module, initialised for `address` ('auto': a local instance; HOST:6379 or ray://HOST:10001: an
-    existing cluster); ValueError (one line) when ray is missing, the cluster cannot be started or reached, or
-    this process already uses Ray at another address (a Ray instance already up for `address` is reused)."""
+    existing cluster); RayUnreachable (one line) when ray is missing, the cluster cannot be started or reached,
+    the address answers but not as Ray does (probe_ray), or this process already uses Ray at another address (a
+    Ray instance already up for `address` is reused)."""
     try:
         import ray
     except ImportError as exc:
-        raise ValueError(f'--ray needs the ray package ({exc}); pip install "{RAY_PIN}"') from None
+        raise RayUnreachable(f'--ray needs the ray package ({exc}); pip install "{RAY_PIN}"') from None
     if address != 'auto':
         host, _, port = address.removeprefix('ray://').rpartition(':')
-        try:                          # Ray retries an unreachable address for minutes: ask the socket first
-            socket.create_connection((host or '127.0.0.1', int(port)), timeout=5.0).close()
-        except (OSError, ValueError) as exc:
-            raise ValueError(f'--ray {address}: cannot start or reach Ray: {exc}') from None
+        try:
+            port_number = int(port)
+        except ValueError:
+            raise RayUnreachable(f'--ray {address}: cannot start or reach Ray: expected HOST:PORT or '
+                                 'ray://HOST:PORT') from None
+        try:
+            probe_ray(host or '127.0.0.1', port_number)
+        except RayUnreachable as exc:
+            raise RayUnreachable(f'--ray {address}: cannot start or reach Ray: {exc}') from None
     if ray.is_initialized():
         if _CONNECTED and _CONNECTED[-1] != address:
-            raise ValueError(f'--ray {address}: this process already uses Ray at {_CONNECTED[-1]}')
+            raise RayUnreachable(f'--ray {address}: this process already uses Ray at {_CONNECTED[-1]}')
         return ray
     try:
         ray.init(address=None if address == 'auto' else address, include_dashboard=False, log_to_driver=False,
                  configure_logging=False)
     except (ConnectionError, RuntimeError, ValueError) as exc:
-        raise ValueError(f'--ray {address}: cannot start or reach Ray: {exc}') from None
+        raise RayUnreachable(f'--ray {address}: cannot start or reach Ray: {exc}') from None
     _CONNECTED.append(address)
     return ray
 

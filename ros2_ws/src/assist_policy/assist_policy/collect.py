@@ -25,10 +25,12 @@ from __future__ import annotations
 
 import itertools
 import logging
+import os
 import sys
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,7 +38,8 @@ import torch
 from tqdm import tqdm
 
 from .actor import Actor
-from .cluster import result_of, connect_ray, cpu_cores, ignore_ctrl_c, process_context, ray_cpus
+from .cluster import (WorkerDied, connect_ray, cpu_cores, exit_with_parent, ignore_ctrl_c, process_context, ray_cpus,
+                      result_of, worker_died)
 from .env import EnvConfig, LandingAssistEnv, run_episode
 from .latent import make_latent_fn
 from .scripted import NEAREST_PAD_VARIANTS, ScriptedOracle, make_nearest_pad
@@ -230,9 +233,11 @@ class LandingWorker:
 _WORKER: LandingWorker | None = None
 
 
-def _process_start(env_cfg: EnvConfig, demo_policy: str) -> None:
-    """Worker process initialiser: Ctrl-C left to the parent, logging, one torch thread, the worker."""
+def _process_start(env_cfg: EnvConfig, demo_policy: str, parent_pid: int) -> None:
+    """Worker process initialiser: gone with its parent `parent_pid`, Ctrl-C left to the parent, logging, one torch
+    thread, the worker."""
     global _WORKER
+    exit_with_parent(parent_pid)
     ignore_ctrl_c()
     logging.basicConfig(level=logging.WARNING, format='%(levelname)s %(name)s: %(message)s')
     _WORKER = LandingWorker(env_cfg, demo_policy)
@@ -245,8 +250,10 @@ def _process_fly(task: LandingTask, weights: ActorWeights | None) -> FlownLandin
 class LandingPool:
     """N LandingWorkers in local processes (spawned) or as Ray actors; tasks submitted, results taken in order.
 
-    `workers` 0: one per CPU core (local) or per CPU of the Ray cluster. ValueError (one line) when Ray is
-    asked for and cannot be reached. Use as a context manager, or call close().
+    `workers` 0: one per CPU core (local) or per CPU of the Ray cluster. RayUnreachable (a ValueError, one line)
+    when Ray is asked for and cannot be reached; WorkerDied (one line) from submit or result once a local worker
+    process has died. Local workers end with this process, even a SIGKILLed one (cluster.exit_with_parent: keep
+    the pool in a thread that outlives it, the main thread). Use as a context manager, or call close().
     """
 
     def __init__(self, env_cfg: EnvConfig, demo_policy: str, workers: int, ray_address: str = '') -> None:
@@ -261,14 +268,17 @@ class LandingPool:
             where = f'Ray ({ray_address})'
         else:
             self._pool = ProcessPoolExecutor(self.workers, mp_context=process_context(), initializer=_process_start,
-                                             initargs=(env_cfg, demo_policy))
+                                             initargs=(env_cfg, demo_policy, os.getpid()))
             where = 'local processes'
         log.info('flying training landings on %d workers (%s)', self.workers, where)
 
     def submit(self, task: LandingTask, weights: ActorWeights | None = None):
         """Start flying `task`; a handle for `result`."""
         if self._pool is not None:
-            return self._pool.submit(_process_fly, task, weights)
+            try:
+                return self._pool.submit(_process_fly, task, weights)
+            except BrokenProcessPool:
+                raise WorkerDied(worker_died(self._pool)) from None
         actor = self._actors[self._next % len(self._actors)]
         self._next += 1
         return actor.fly.remote(task, weights)
@@ -276,7 +286,10 @@ class LandingPool:
     def result(self, handle) -> FlownLanding | dict:
         """The landing `handle` names, once flown (a worker's error is raised here)."""
         if isinstance(handle, Future):
-            return result_of(handle)
+            try:
+                return result_of(handle)
+            except BrokenProcessPool:
+                raise WorkerDied(worker_died(self._pool)) from None
         from ray.exceptions import RayTaskError
         try:
             return self._ray.get(handle)

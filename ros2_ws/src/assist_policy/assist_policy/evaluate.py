@@ -47,7 +47,10 @@ one-process run either way, and a progress bar shows the run.
 Results are crash-safe: landings go to <out>/landings.partial.csv as they are flown (the run's
 settings beside it in landings.partial.json); an earlier landings.csv stays untouched until the run
 ends, when the complete table replaces it in one rename. Re-running an interrupted evaluation with
-the same settings reuses the landings already flown.
+the same settings reuses the landings already flown. One run at a time per --out: a second one started on
+the same directory exits with status 2 naming the run that holds it (<out>/.evaluate.lock, removed at the
+end). A worker process that dies (killed, out of memory) stops the run with one line and status 1; the
+landings flown so far are kept for the re-run. Workers end with the evaluate process, even a SIGKILLed one.
 """
 from __future__ import annotations
 
@@ -56,9 +59,11 @@ import csv
 import dataclasses
 import json
 import logging
+import os
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -72,7 +77,8 @@ from assist_sim.pilots import PILOT_NAMES
 
 from .bags.bagio import BagError
 from .bags.episode import record_landing
-from .cluster import completed_in_turn, connect_ray, cpu_cores, ignore_ctrl_c, process_context, ray_cpus
+from .cluster import (DirectoryBusy, RayUnreachable, WorkerDied, completed_in_turn, connect_ray, cpu_cores,
+                      exit_with_parent, hold_directory, ignore_ctrl_c, process_context, ray_cpus, worker_died)
 from .cli import add_dataclass_args, check_settings, parse_dataclass_args, setting
 from .damper import DamperConfig
 from .env import EnvConfig, LandingAssistEnv, run_episode
@@ -419,7 +425,6 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
     if args.pilot not in PILOT_NAMES:
         raise ValueError(f'unknown pilot {args.pilot!r}; choose from {", ".join(PILOT_NAMES)}')
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     rows_by_cond: dict[str, list[dict]] = {}
     for path in args.from_csv:      # a landing (condition, beta, seed) seen again replaces the earlier one
         for cond, rows in read_landings(path).items():
@@ -429,19 +434,23 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
     for cond in () if args.from_csv else args.conditions:
         if cond not in CONDITIONS + BASELINES:
             raise ValueError(f'unknown condition {cond!r}; choose from {CONDITIONS + BASELINES}')
-    results = None if args.from_csv else LandingLog(out, {k: v for k, v in dataclasses.asdict(args).items()
-                                                          if k not in RUN_ONLY})
-    try:
-        if not args.from_csv:
-            rows_by_cond.update(fly_plan(args, results))
-    finally:
+    # one run per directory: another one's LandingLog would remove or rewrite this one's landings as it flies
+    with hold_directory(out, 'evaluate', 'wait for it to end, or choose another --out'):
+        if args.ray and not args.from_csv:
+            connect_ray(args.ray)           # an address that is not Ray: refused before the landings file is touched
+        results = None if args.from_csv else LandingLog(out, {k: v for k, v in dataclasses.asdict(args).items()
+                                                              if k not in RUN_ONLY})
+        try:
+            if not args.from_csv:
+                rows_by_cond.update(fly_plan(args, results))
+        finally:
+            if results is not None:
+                results.close()
         if results is not None:
-            results.close()
-    if results is not None:
-        results.commit(rows_by_cond)
-    elif rows_by_cond:
-        write_landings(out / 'landings.csv', rows_by_cond)
-    return write_results(out, rows_by_cond, args.plot)
+            results.commit(rows_by_cond)
+        elif rows_by_cond:
+            write_landings(out / 'landings.csv', rows_by_cond)
+        return write_results(out, rows_by_cond, args.plot)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -499,10 +508,11 @@ class LandingFlyer:
 _FLYER: LandingFlyer | None = None
 
 
-def _worker_start(args: EvalArgs) -> None:
-    """Worker process initialiser: Ctrl-C left to the parent, one torch thread (the workers are the
-    parallelism), a flyer."""
+def _worker_start(args: EvalArgs, parent_pid: int) -> None:
+    """Worker process initialiser: gone with its parent `parent_pid`, Ctrl-C left to the parent, one torch thread
+    (the workers are the parallelism), a flyer."""
     global _FLYER
+    exit_with_parent(parent_pid)
     ignore_ctrl_c()
     torch.set_num_threads(1)
     logging.basicConfig(level=logging.WARNING, format='%(levelname)s %(name)s: %(message)s')
@@ -606,15 +616,19 @@ def fly_plan(args: EvalArgs, results: LandingLog) -> dict[str, list[dict]]:
             else:
                 log.info('flying %d landings on %d processes', len(todo), workers)
                 with ProcessPoolExecutor(workers, mp_context=process_context(), initializer=_worker_start,
-                                         initargs=(args,)) as pool:
-                    futures = {pool.submit(_worker_fly, t): t for t in todo}
+                                         initargs=(args, os.getpid())) as pool:
+                    futures: dict = {}
                     try:
+                        futures.update((pool.submit(_worker_fly, t), t) for t in todo)
                         for fut in completed_in_turn(futures):
                             task = futures[fut]
                             exc = fut.exception()
                             if exc is not None and not isinstance(exc, ValueError):
                                 raise exc
                             landed(task, None if exc else fut.result(), exc)
+                    except BrokenProcessPool:
+                        raise WorkerDied(f'{worker_died(pool)}; the landings flown so far are kept in '
+                                         f'{results.partial}: re-running the same command resumes') from None
                     except BaseException:
                         for fut in futures:
                             fut.cancel()
@@ -674,7 +688,10 @@ def main(argv: list[str] | None = None) -> int:
     args, _ = parse_dataclass_args(parser, EvalArgs, argv)      # a bad value: one error line, exit 2, nothing run
     try:
         summary = evaluate(args)
-    except (OSError, ValueError, BagError) as exc:
+    except (DirectoryBusy, RayUnreachable) as exc:      # the --out or --ray given cannot be used now
+        print(f'error: {exc}', file=sys.stderr)
+        return 2
+    except (OSError, ValueError, BagError, WorkerDied) as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 1
     if not summary:

@@ -16,6 +16,11 @@ replay.npz: the full training state, written as one unit: a crash leaves the pre
 the new one, never a mix), actor_last.pt / actor_best.pt: shippable actors (``td3.load_actor``).
 On --resume, metrics.csv and eval.csv rows written after the checkpoint are dropped (they are
 flown again). Every file is written via a temporary file renamed into place (``assist_common.atomic``).
+One run at a time per run directory: a second train_td3 on it (a new run of the same name, or a
+--resume) exits with status 2 naming the process that holds it (<run>/.train_td3.lock, removed at the
+end); so does a --ray address where no Ray cluster answers. A worker process that dies (killed, out of
+memory) stops the run with one line and status 1 that says how to resume it; workers end with the
+train_td3 process, even a SIGKILLed one.
 """
 from __future__ import annotations
 
@@ -45,6 +50,7 @@ from assist_sim.pilots import HELDOUT_FAMILIES, TRAIN_FAMILIES
 
 from .cli import (SettingsError, add_dataclass_args, check_settings, exit_error, flag, parse_dataclass_args,
                   setting)
+from .cluster import DirectoryBusy, RayUnreachable, WorkerDied, hold_directory
 from .collect import (DEMO_POLICIES, ActorWeights, LandingPool, LandingTask, collect_demos,
                       make_env)
 from .env import EnvConfig, LandingAssistEnv, RewardConfig, run_episode
@@ -367,9 +373,7 @@ def prepare_run(args: TrainArgs, given: Collection[str] | None = None) -> TrainA
         args = resumed_args(args, given)
     else:
         run_dir = Path(args.runs_dir) / args.name
-        if (run_dir / 'config.json').exists() or committed_dir(run_dir / CHECKPOINT_DIR) is not None:
-            raise SettingsError(f'{run_dir} already holds a run: continue it with --resume {run_dir} or choose '
-                                'another --name')
+        check_new_run_dir(run_dir)
         if run_dir.exists() and not run_dir.is_dir():
             raise SettingsError(f'{run_dir} exists and is not a directory')
         for name, paths in (('preload', args.preload), ('init_actor', [args.init_actor] if args.init_actor else []),
@@ -381,6 +385,13 @@ def prepare_run(args: TrainArgs, given: Collection[str] | None = None) -> TrainA
         raise SettingsError(f'--encoder-path {args.encoder_path}: no such file')
     training_device(args.device)      # --device cuda without a GPU: refused before any work
     return args
+
+
+def check_new_run_dir(run_dir: Path) -> None:
+    """SettingsError (one line) when `run_dir` already holds a run (its config.json or a checkpoint)."""
+    if (run_dir / 'config.json').exists() or committed_dir(run_dir / CHECKPOINT_DIR) is not None:
+        raise SettingsError(f'{run_dir} already holds a run: continue it with --resume {run_dir} or choose '
+                            'another --name')
 
 
 def save_checkpoint(run_dir: Path, agent: TD3, buffer: ReplayBuffer | None, step: int, episode: int,
@@ -452,15 +463,25 @@ def train(args: TrainArgs, given: Collection[str] | None = None) -> Path:
     """Train (or resume) a run; returns the run directory.
 
     `given`: the flags of the command line (see `resumed_args`). SettingsError before anything is
-    written for bad settings (`prepare_run`); ValueError for a damaged checkpoint or an unreachable
-    --ray cluster. With `args.workers` other than 1 (or `args.ray`) the landings are flown by a
-    LandingPool's workers (assist_policy.collect), closed when training ends.
+    written for bad settings (`prepare_run`), RayUnreachable for a --ray address where no Ray cluster
+    answers, DirectoryBusy when another process runs in the run directory, ValueError for a damaged
+    checkpoint, WorkerDied when a worker process dies. With `args.workers` other than 1 (or `args.ray`)
+    the landings are flown by a LandingPool's workers (assist_policy.collect), closed when training ends.
     """
     args = prepare_run(args, given)
     pool = (LandingPool(env_config_from(args), args.demo_policy, args.workers, args.ray)
             if args.workers != 1 or args.ray else None)
+    run_dir = Path(args.resume) if args.resume else Path(args.runs_dir) / args.name
     try:
-        return _train(args, pool)
+        # one run per directory: two would write the same metrics, checkpoints and actors over each other
+        with hold_directory(run_dir, 'train_td3', 'wait for it to end, or choose another --name'):
+            if not args.resume:
+                check_new_run_dir(run_dir)      # again, held: a run started since prepare_run looked
+            try:
+                return _train(args, pool)
+            except WorkerDied as exc:
+                raise WorkerDied(f'{exc}; continue the run from its last checkpoint with: train_td3 --resume '
+                                 f'{run_dir}') from None
     finally:
         if pool is not None:
             pool.close()
@@ -723,7 +744,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with logging_redirect_tqdm():       # log lines above the progress bars, not through them
             run_dir = train(args)
-    except (ValueError, OSError) as exc:     # damaged checkpoint, an actor that does not fit, disk full
+    except (DirectoryBusy, RayUnreachable, SettingsError) as exc:    # the run directory or --ray cannot be used
+        exit_error(parser.prog, exc, 2)
+    except (ValueError, OSError, WorkerDied) as exc:     # damaged checkpoint, an actor that does not fit, disk full
         log.debug('train_td3 failed', exc_info=True)
         exit_error(parser.prog, exc, 1)
     print(f'run directory: {run_dir}')

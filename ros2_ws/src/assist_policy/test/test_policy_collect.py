@@ -124,10 +124,10 @@ def test_ray_at_an_address_nobody_serves_is_one_error_line(tmp_path, capsys):
     pytest.importorskip('ray', reason='ray is in requirements.txt; this runs wherever make test installed it')
     with pytest.raises(SystemExit) as exc:
         main(['--runs-dir', str(tmp_path), '--name', 'r', '--ray', '127.0.0.1:1', '--total-steps', '10'])
-    assert exc.value.code == 1
+    assert exc.value.code == 2
     err = capsys.readouterr().err
     assert 'cannot start or reach Ray' in err and 'Traceback' not in err
-    assert not (tmp_path / 'r' / 'metrics.csv').exists()
+    assert not (tmp_path / 'r').exists()                     # refused before the run directory is made
 
 
 def test_ray_actors_fly_what_a_local_worker_flies(local_ray):
@@ -144,13 +144,11 @@ def test_ray_actors_fly_what_a_local_worker_flies(local_ray):
 
 
 def test_a_second_ray_address_in_one_process_is_refused(local_ray):
-    import socket
-
     from assist_policy.cluster import connect_ray
     assert connect_ray('auto') is local_ray                        # the instance up for 'auto' is reused
-    with socket.create_server(('127.0.0.1', 0)) as server:         # something answers there, but not our Ray
-        with pytest.raises(ValueError, match='already uses Ray at auto'):
-            connect_ray(f'127.0.0.1:{server.getsockname()[1]}')
+    gcs = local_ray.get_runtime_context().gcs_address              # a Ray answers there, but under another name
+    with pytest.raises(ValueError, match='already uses Ray at auto'):
+        connect_ray(gcs)
 
 
 def _group_of(pid: int) -> int | None:

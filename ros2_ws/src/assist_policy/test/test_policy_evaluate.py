@@ -133,10 +133,13 @@ def test_a_local_ray_instance_flies_the_rows_of_one_process(tmp_path, local_ray)
     assert main(['--out', str(tmp_path / 'ray'), '--ray', 'auto', *flags]) == 0
     assert local_ray.is_initialized() and local_ray.cluster_resources().get('CPU', 0) >= 1
     assert (tmp_path / 'one' / 'landings.csv').read_text() == (tmp_path / 'ray' / 'landings.csv').read_text()
+    from assist_policy.cluster import probe_ray
+    host, _, port = local_ray.get_runtime_context().gcs_address.rpartition(':')
+    probe_ray(host, int(port))                  # Ray's own GCS answers the probe that refuses a port that is not Ray
 
 
 def test_ray_at_an_address_nobody_serves_is_one_error_line(tmp_path, capsys):
     pytest.importorskip('ray', reason='ray is in requirements.txt; this runs wherever make test installed it')
     code = main(['--out', str(tmp_path / 'x'), '--ray', '127.0.0.1:1', '--conditions', 'unassisted', '--betas', '0',
                  '--landings', '1', '--plot', 'false'])
-    assert code == 1 and 'cannot start or reach Ray' in capsys.readouterr().err
+    assert code == 2 and 'cannot start or reach Ray' in capsys.readouterr().err
