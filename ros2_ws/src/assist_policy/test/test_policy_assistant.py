@@ -133,32 +133,74 @@ def test_policy_core_forgets_the_flight_at_an_odometry_jump_and_on_request(tmp_p
     assert core.flight_resets['service'] == 1 and len(core.builder.history) == 0
 
 
-# Rows evaluate wrote before the chain existed (the env then chained the stages by hand), on these seeds: the
-# chain must fly them identically. Held-out pilots with the override, recall and damper all acting, and the bare
-# end-to-end actor.
-BEFORE = {
-    ('latent+guard+override+recall+damper', 'mix', 2024): ('keyboard', '0.1313', 'success', '33.58', '0.351',
-                                                            '0.006', '0.079'),
-    ('latent+guard+override+recall+damper', 'mix', 3024): ('bang_bang', '0.0578', 'success', '16.72', '0.275',
-                                                            '0.119', '0.137'),
-    ('end_to_end', 'paper', 2024): ('paper', '0.3405', 'success', '20.25', '0.0', '0.0', '0.0'),
-}
+def _hand_chained_row(condition: str, pilot: str, rules: bool, seed: int, beta: float) -> dict:
+    """One landing flown by driving the env step by step here, the assistant's rules configured by hand (the
+    shipped actor; the CM-VAE for latent): the row evaluate should write for it."""
+    import torch
+
+    from assist_policy.actor import load_actor
+    from assist_policy.damper import DamperConfig
+    from assist_policy.env import EnvConfig, LandingAssistEnv
+    from assist_policy.latent import make_latent_fn
+    from assist_policy.override import OverrideConfig
+    from assist_policy.policy_core import default_model_path
+    from assist_policy.recall import RecallConfig
+    from assist_policy.safety import SafetyConfig
+    actor, meta = load_actor(default_model_path(condition))
+    cfg = EnvConfig(condition=condition, alpha=0.5, max_episode_s=60.0, max_speed=tuple(meta['max_speed']),
+                    latent_dim=int(meta['latent_dim']), pilot_family=pilot,
+                    safety=SafetyConfig() if rules else None, override=OverrideConfig() if rules else None,
+                    recall=RecallConfig() if rules else None, damper=DamperConfig() if rules else None,
+                    feature_lags_s=tuple(meta['feature_lags_s']), memory_displacement=meta['memory_displacement'])
+    env = LandingAssistEnv(cfg, latent_fn=make_latent_fn()[0]) if condition == 'latent' else LandingAssistEnv(cfg)
+    try:
+        obs, info = env.reset(seed=seed, options={'beta': beta})
+        counts = dict.fromkeys(('active', 'guard', 'walls', 'override', 'recall', 'damper'), 0)
+        steps = 0
+        while True:
+            with torch.no_grad():
+                act = actor(torch.as_tensor(obs).unsqueeze(0))[0].numpy().astype(float)
+            obs, _, term, trunc, step = env.step(act)
+            steps += 1
+            for key in counts:
+                counts[key] += int(step[key])
+            if term or trunc:
+                break
+        res = step['result']
+    finally:
+        env.close()
+    share = {key: str(round(n / steps, 3)) for key, n in counts.items()}
+    return {'pilot': info['pilot'], 'scene_seed': str(info['scene_seed']), 'goal_index': str(res['goal_index']),
+            'aimed_index': str(info['aimed_index']), 'error_m': str(round(float(res['error_m']), 4)),
+            'outcome': res['outcome'], 'duration_s': str(round(float(res['duration_s']), 2)),
+            'active_fraction': share['active'], 'guard_fraction': share['guard'], 'wall_fraction': share['walls'],
+            'override_fraction': share['override'], 'recall_fraction': share['recall'],
+            'damper_fraction': share['damper']}
 
 
-@pytest.mark.timeout(600)
+@pytest.mark.timeout(900)
 def test_evaluate_rows_identical_to_the_hand_chained_env(tmp_path: Path):
-    runs = {'mix': EvalArgs(out=str(tmp_path / 'mix'), conditions=('latent',), betas=(0.0, 0.25), landings=1,
-                            pilot='mix', plot=False),
-            'paper': EvalArgs(out=str(tmp_path / 'paper'), conditions=('end_to_end',), betas=(0.0,), landings=1,
-                              pilot='paper', plot=False, safety=False, override=False, recall=False, damper=False)}
-    got = {}
-    for pilot, args in runs.items():
+    """evaluate's rows (its plan, seeds, pilot mix, rules as policy_node runs them, rounding) are the env driven step
+    by step by hand on the same landings, both run here: held-out pilots with the override, recall and damper
+    acting, and the bare end-to-end actor."""
+    runs = {'mix': (EvalArgs(out=str(tmp_path / 'mix'), conditions=('latent',), betas=(0.0, 0.25), landings=1,
+                             pilot='mix', plot=False), True),
+            'paper': (EvalArgs(out=str(tmp_path / 'paper'), conditions=('end_to_end',), betas=(0.0,), landings=1,
+                               pilot='paper', plot=False, safety=False, override=False, recall=False, damper=False),
+                      False)}
+    acted = dict.fromkeys(('override_fraction', 'recall_fraction', 'damper_fraction'), 0.0)
+    for pilot, (args, rules) in runs.items():
         evaluate(args)
-        for r in csv.DictReader(open(Path(args.out) / 'landings.csv', encoding='utf-8')):
-            got[(r['condition'], pilot, int(r['seed']))] = (r['pilot'], r['error_m'], r['outcome'], r['duration_s'],
-                                                           r['override_fraction'], r['recall_fraction'],
-                                                           r['damper_fraction'])
-    assert got == BEFORE
+        rows = list(csv.DictReader(open(Path(args.out) / 'landings.csv', encoding='utf-8')))
+        assert [(r['beta'], int(r['seed'])) for r in rows] == [(str(b), 2024 + 1000 * i) for i, b in
+                                                               enumerate(args.betas)]
+        for r in rows:
+            hand = _hand_chained_row(args.conditions[0], pilot, rules, int(r['seed']), float(r['beta']))
+            assert {k: r[k] for k in hand} == hand, (pilot, r['seed'])
+            if rules:
+                for key in acted:
+                    acted[key] += float(r[key])
+    assert all(v > 0 for v in acted.values()), acted        # the rules under test did act on these landings
 
 
 def test_policy_node_loads_the_actor_without_the_training_code():
