@@ -23,7 +23,7 @@ What it does, as ArduCopter needs it:
 - safety: non-finite commands and telemetry rejected and counted, velocity_scale, per-axis and
   total speed clamps (changeable at run time through set_limits);
 - arm / disarm / takeoff / land / set_mode as COMMAND_LONG, waiting for the honest COMMAND_ACK;
-- the vehicle's landed state (EXTENDED_SYS_STATE) handed on at the first report and at each change
+- the vehicle's landed state (EXTENDED_SYS_STATE) handed on at every report (changes logged)
   (`on_landed_state`); a value outside MAV_LANDED_STATE is refused and counted;
 - nothing handed to it can end the link: a message that cannot be packed (a value that does not fit
   its field) or written is not sent, counted (`tx_errors`) and logged, throttled; every configured
@@ -241,9 +241,9 @@ class MavlinkBridge:
                  on_statustext: Callable[[int, str], None] | None = None,
                  on_link: Callable[[bool, str], None] | None = None,
                  on_landed_state: Callable[[int], None] | None = None):
-        """`on_landed_state(state)` is called from the receive thread with the first MAV_LANDED_STATE the
-        vehicle reports and with every change; the other callbacks likewise with odometry, STATUSTEXT and
-        link changes."""
+        """`on_landed_state(state)` is called from the receive thread with every MAV_LANDED_STATE the vehicle
+        reports (at status_rate_hz: a consumer can tell a current state from one a lost link left behind); the
+        other callbacks likewise with odometry, STATUSTEXT and link changes."""
         self.cfg = cfg
         self._clock = clock
         self._on_odometry = on_odometry
@@ -502,8 +502,8 @@ class MavlinkBridge:
                 self.status.landed_state = state
             if changed:
                 _LOG.info('vehicle landed state %s', LANDED_STATES[state])
-                if self._on_landed_state is not None:
-                    self._on_landed_state(state)
+            if self._on_landed_state is not None:       # every report: its arrival says the state is current
+                self._on_landed_state(state)
         elif mtype == 'COMMAND_ACK':
             with self._ack_cond:
                 self._acks[int(msg.command)] = (int(msg.result), now)

@@ -259,7 +259,7 @@ class MavlinkBridgeNode(Node):
 
     # ------------------------------------------------------------------ callbacks from the core
     def _on_landed_state(self, state: int) -> None:
-        """The vehicle's MAV_LANDED_STATE (first report and each change; the core refused any other value)."""
+        """The vehicle's MAV_LANDED_STATE, at each report (the core refused any other value)."""
         if not self.context.ok():
             return
         try:
