@@ -206,3 +206,28 @@ def test_replay_a_folder_of_bags(landing, override_landing, tmp_path, capsys):
     assert replay_main([str(folder)]) == 1                       # outputs exist: never overwritten
     assert '0 of 2 bags replayed' in capsys.readouterr().out
     assert replay_main([str(folder), '--summary', str(tmp_path / 's.json')]) == 2
+
+
+def test_replay_ends_the_flight_where_the_vehicle_reported_it_landed(landing, tmp_path):
+    """A bag with the vehicle's /uav/landed_state: replay feeds it to the flight monitor as policy_node does."""
+    from assist_policy.bags import msgs
+    from assist_policy.bags.bagio import CONTRACT_TOPICS
+    bag, _ = landing
+    assert replay(bag, ReplayConfig()).info['flight_resets'].get('vehicle_landed', 0) == 0
+    copy = tmp_path / 'with_landed_state'
+    with BagReader(bag) as r:
+        start, end = r.start_ns, r.end_ns
+        mid = start + (end - start) // 2
+        w = BagWriter(copy)
+        for name, info in r.topics.items():
+            w.add_topic(name, info.msgtype, info.qos)
+        w.add_topic('/uav/landed_state', *CONTRACT_TOPICS['/uav/landed_state'])
+        for key, value in (r.metadata.get('custom_data') or {}).items():
+            w.custom_data[key] = value
+        with w:
+            for topic, t, raw in r.messages():
+                w.write(topic, t, raw)
+            landed = msgs.T('std_msgs/msg/UInt8')
+            w.write_msg('/uav/landed_state', start, landed(data=2))       # in the air
+            w.write_msg('/uav/landed_state', mid, landed(data=1))         # on the ground
+    assert replay(copy, ReplayConfig()).info['flight_resets'].get('vehicle_landed', 0) == 1

@@ -86,6 +86,7 @@ CONTRACT_TOPICS: dict[str, tuple[str, Qos]] = {
     '/assist/depth_denoised': ('sensor_msgs/msg/Image', SENSOR),
     '/assist/agent_cmd': ('geometry_msgs/msg/TwistStamped', RELIABLE),
     '/cmd_vel': ('geometry_msgs/msg/TwistStamped', RELIABLE),
+    '/uav/landed_state': ('std_msgs/msg/UInt8', LATCHED),
     '/sim/goal': ('geometry_msgs/msg/PointStamped', LATCHED),
     '/sim/landing': ('std_msgs/msg/String', LANDING),
     '/sim/scene': ('visualization_msgs/msg/MarkerArray', LATCHED),

@@ -68,7 +68,7 @@ log = logging.getLogger(__name__)
 
 RGB, DEPTH, ODOM, PILOT = '/camera/color/image_raw', '/camera/depth/image_raw', '/odom', '/pilot/cmd_vel'
 LATENT, AGENT, CMD, GOAL = '/assist/latent', '/assist/agent_cmd', '/cmd_vel', '/sim/goal'
-PAD, DIAG = '/assist/pad_estimate', '/diagnostics'
+PAD, DIAG, LANDED = '/assist/pad_estimate', '/diagnostics', '/uav/landed_state'
 FRAME_MEMORY = 40          # recent camera frames kept for the latents that follow them (2 s at 20 Hz)
 SAME_CLOCK_NS = 1_000_000_000   # a /cmd_vel stamp this close to its receive time is on the recorder's clock
 MAX_RATE_HZ = 1000.0            # --rate-hz limit (policy_node runs at most 200 Hz)
@@ -301,7 +301,7 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
         missing = [t for t in need if t not in r.topics]
         if missing:
             raise BagError(f'{bag}: lacks {", ".join(missing)}: cannot re-run the {mode} assistant')
-        used = need + [t for t in (AGENT, CMD, LATENT, PAD) if t in r.topics and t not in need]
+        used = need + [t for t in (AGENT, CMD, LATENT, PAD, LANDED) if t in r.topics and t not in need]
         r.check_definitions(used)
         import torch  # heavy: only once the bag is known to be good
 
@@ -451,6 +451,8 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
                     elif topic == PILOT:
                         pilot_msgs.append((now, msgs.twist_linear(msg), msg.header.frame_id))
                         core.set_pilot(now, msgs.twist_linear(msg), msg.header.frame_id)
+                    elif topic == LANDED:            # the vehicle's own landed state: a flight boundary
+                        core.set_landed_state(now, int(msg.data))
                     elif topic == GOAL and mode == 'oracle':
                         core.set_goal(msgs.point(msg))
                         core.reset()          # as policy_node does: a new goal is a new episode
@@ -543,7 +545,7 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
         for i, a in zip(steps_of.get(key, []), recs):
             res.rec_agent[i] = a
         unpaired += max(0, len(recs) - len(steps_of.get(key, [])))
-    res.info.update(counts, agent_cmd_unpaired=unpaired)
+    res.info.update(counts, agent_cmd_unpaired=unpaired, flight_resets=dict(core.flight_resets))
     if encode is not None and counts['latent_frames_missing'] + counts['latent_frames_rejected']:
         log.warning('%d recorded latents had no frame in the bag and %d frames were rejected on re-encoding: those '
                     'latents were not replayed', counts['latent_frames_missing'], counts['latent_frames_rejected'])
