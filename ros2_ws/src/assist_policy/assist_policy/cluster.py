@@ -13,6 +13,7 @@ import ctypes
 import fcntl
 import logging
 import multiprocessing
+import multiprocessing.connection
 import os
 import signal
 import socket
@@ -32,6 +33,8 @@ RAY_PIN = 'ray==2.60.0'
 WAIT_POLL_S = 0.1
 #: How long the address of --ray has to accept a connection, and then to answer as a gRPC server does.
 RAY_PROBE_TIMEOUT_S = 5.0
+#: How long a dead worker's exit status may take to be known (worker_died).
+EXIT_STATUS_WAIT_S = 2.0
 #: A worker whose parent is gone notices within this, where the kernel does not end it at once (exit_with_parent).
 PARENT_POLL_S = 1.0
 
@@ -116,10 +119,23 @@ def _exit_status(code: int) -> str:
     return f'exit status {code}'
 
 
+def _has_ended(process: multiprocessing.process.BaseProcess) -> bool:
+    """Whether a process has ended (its sentinel is ready), without waiting."""
+    try:
+        return bool(multiprocessing.connection.wait([process.sentinel], timeout=0))
+    except (OSError, ValueError):       # already closed
+        return True
+
+
 def worker_died(pool: ProcessPoolExecutor) -> str:
     """'a worker process died (pid N, killed by SIGKILL)': which of `pool`'s workers ended and how, as far as the
     pool still knows (call before it is shut down)."""
     procs = dict(getattr(pool, '_processes', None) or {})      # the executor's own table of its workers
+    # a process's sentinel fires as it exits, a moment before the kernel has its exit status to give
+    deadline = time.monotonic() + EXIT_STATUS_WAIT_S
+    while (any(p.exitcode is None and _has_ended(p) for p in procs.values())
+           and time.monotonic() < deadline):
+        time.sleep(0.01)
     ended = [(pid, p.exitcode) for pid, p in procs.items() if p.exitcode not in (None, 0)]
     # the pool SIGTERMs the others once one is gone: the first cause is the one that is not its SIGTERM
     ended.sort(key=lambda e: e[1] == -signal.SIGTERM)
