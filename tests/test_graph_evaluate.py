@@ -85,3 +85,15 @@ def test_a_failing_run_stops_its_nodes(domain_id, tmp_path, started_pids):
     assert len(started_pids) == 2 and not any(_alive(p) for p in started_pids)
     assert (tmp_path / 'eval' / 'landings.partial.json').is_file()      # resumable, nothing committed
     assert not (tmp_path / 'eval' / 'landings.csv').exists()
+
+
+def test_a_second_run_on_a_held_out_is_refused_before_any_node_starts(tmp_path, started_pids, capsys):
+    from assist_policy.cluster import hold_directory
+    out = tmp_path / 'eval'
+    with hold_directory(out, 'evaluate_graph', 'wait'):          # another run holds --out
+        code = graph_eval.main(['--out', str(out), '--conditions', 'unassisted', '--betas', '0.5',
+                                '--landings', '1', '--plot', 'false'])
+    assert code == 2 and started_pids == []
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f'error: {out} is in use by another evaluate_graph run (pid ')
+    assert sorted(p.name for p in out.iterdir()) == []          # nothing written, the lock file gone with the holder

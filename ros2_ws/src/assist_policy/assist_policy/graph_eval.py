@@ -27,8 +27,9 @@ and end in sim time (approximate); aimed_index from sim_pilot_node's goal_estima
 
 Writes <out>/landings.csv, summary.csv, paired.txt, error_vs_beta.png as `evaluate` does (crash-safe and
 resumable the same way: an interrupted run flies only the landings still missing) and every node's log
-under <out>/nodes/. The graph must keep up with the sim: each landing's policy coverage (control steps
-the policy ran / sim steps) is logged and a warning printed below 90 %; lower --real-time-factor then.
+under <out>/nodes/. One run at a time per <out> (a second exits 2 naming the holder's pid). The graph must
+keep up with the sim: each landing's policy coverage (control steps the policy ran / sim steps) is logged and a
+warning printed below 90 %; lower --real-time-factor then.
 Children are stopped with SIGINT (SIGKILL after a timeout) on the way out, Ctrl-C and errors included,
 and die with this process (PR_SET_PDEATHSIG) if it is killed.
 """
@@ -67,6 +68,7 @@ from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
 
 from .cli import add_dataclass_args, check_settings, parse_dataclass_args, setting
+from .cluster import DirectoryBusy, hold_directory
 from .episodes_plan import LandingPlan, evaluation_plans
 from .evaluate import (
     CONDITIONS,
@@ -553,8 +555,13 @@ def evaluate_graph(args: GraphEvalArgs) -> dict[str, dict]:
             raise ValueError(f'unknown condition {cond!r}; the graph flies {", ".join(CONDITIONS)}')
     if not 0 <= args.domain_id <= 232:
         raise ValueError(f'--domain-id {args.domain_id} out of range (0 = pick one, or 1-232)')
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    # one run per --out: a second would fly the same landings and remove the first's partial file
+    with hold_directory(args.out, 'evaluate_graph', 'wait for it to end, or choose another --out') as out:
+        return _fly_all(args, out)
+
+
+def _fly_all(args: GraphEvalArgs, out: Path) -> dict[str, dict]:
+    """evaluate_graph's work on the held output directory `out`."""
     settings = {k: v for k, v in dataclasses.asdict(args).items()
                 if k not in ('out', 'plot', 'domain_id', 'landing_timeout_s', 'startup_timeout_s')}
     results = LandingLog(out, {'graph': True, **settings})
@@ -601,6 +608,9 @@ def main(argv: list[str] | None = None) -> int:
         print('interrupted: the graph was stopped; landings flown so far are in '
               f'{args.out}/landings.partial.csv (re-run to go on)', file=sys.stderr)
         return 130
+    except DirectoryBusy as exc:          # another run holds --out
+        print(f'error: {exc}', file=sys.stderr)
+        return 2
     except (OSError, ValueError, GraphError) as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 1
