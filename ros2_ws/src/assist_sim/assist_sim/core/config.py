@@ -9,6 +9,10 @@ from collections.abc import Mapping
 
 import yaml
 
+from assist_common.touchdown import TouchdownConfig
+
+from .arducopter import ArduCopterConfig
+
 
 @dataclass
 class SceneConfig:
@@ -105,6 +109,7 @@ class JudgeConfig:
     settle_time_s: float = 0.5         # ...for this long while touching something
     arm_height_m: float = 0.3          # the judge starts once base_link has been above floor + this
     max_episode_s: float = 90.0        # then the episode ends as a timeout
+    autopilot_confirm_s: float = 3.0   # arducopter plant: how long after a touchdown result its land detector may take
 
 
 @dataclass
@@ -114,12 +119,17 @@ class WorldConfig:
     physics_hz: int = 240
     control_hz: int = 20
     gravity_mps2: float = 9.81
+    # velocity-mode plant: 'ideal' (the `controller` loop) or 'arducopter' (ArduCopter GUIDED as the
+    # bridge flies it: `arducopter` dynamics and land detector, setpoints through the `touchdown` envelope)
+    flight_controller: str = 'ideal'
     scene: SceneConfig = field(default_factory=SceneConfig)
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     controller: ControllerConfig = field(default_factory=ControllerConfig)
     turbulence: TurbulenceConfig = field(default_factory=TurbulenceConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
     judge: JudgeConfig = field(default_factory=JudgeConfig)
+    arducopter: ArduCopterConfig = field(default_factory=ArduCopterConfig)
+    touchdown: TouchdownConfig = field(default_factory=TouchdownConfig)
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any] | None) -> WorldConfig:

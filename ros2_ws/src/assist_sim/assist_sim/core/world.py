@@ -10,7 +10,10 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from assist_common.frames import R_BODY_FROM_OPTICAL, yaw_rotation
+from assist_common.settings import SettingsError, check_settings
+from assist_common.touchdown import TouchdownEnvelope
 
+from .arducopter import FLIGHT_CONTROLLERS, GuidedVelocityModel
 from .config import WorldConfig
 from .quiet import quiet_output
 from .render import SceneRenderer
@@ -76,6 +79,9 @@ class LandingResult:
     assisted: bool = False
     outcome: str = 'success'        # success | wrong_pad | edge | crash | timeout
     reason: str = ''
+    # flight_controller arducopter: whether its land detector declared the landing within the
+    # judge's autopilot_confirm_s after the result (None on the ideal plant or for no touchdown)
+    autopilot_landed: bool | None = None
 
     def to_dict(self) -> dict:
         """Plain dict with JSON-friendly values."""
@@ -123,6 +129,20 @@ class LandingWorld:
             raise ValueError('physics_hz must be a multiple of control_hz')
         if self.cfg.camera.renderer not in RENDERERS:
             raise ValueError(f'camera.renderer must be one of {RENDERERS}, got {self.cfg.camera.renderer!r}')
+        if self.cfg.flight_controller not in FLIGHT_CONTROLLERS:
+            raise ValueError(f'flight_controller must be one of {FLIGHT_CONTROLLERS}, '
+                             f'got {self.cfg.flight_controller!r}')
+        # ArduCopter's GUIDED response and the touchdown envelope the bridge applies (None: the ideal loop)
+        self._fc: GuidedVelocityModel | None = None
+        self._touchdown: TouchdownEnvelope | None = None
+        if self.cfg.flight_controller == 'arducopter':
+            self._fc = GuidedVelocityModel(self.cfg.arducopter, self.cfg.gravity_mps2)
+            try:
+                check_settings(self.cfg.touchdown)
+            except (SettingsError, ValueError) as exc:
+                flag_name, _, why = str(exc).partition(' ')
+                raise ValueError(f"touchdown.{flag_name.removeprefix('--').replace('-', '_')} {why}") from None
+            self._touchdown = TouchdownEnvelope(self.cfg.touchdown)
         self._gui = bool(gui)
         with quiet_output(stderr=not gui):  # ... and `argv[0]=` on every connect (GUI: keep X errors)
             self._bc = BulletClient(p.GUI if gui else p.DIRECT)
@@ -295,6 +315,9 @@ class LandingWorld:
         self._settle_timer = 0.0
         self._was_touching = False
         self.result = None
+        if self._fc is not None:
+            self._fc.reset(start, np.zeros(3), landed=not airborne)
+            self._touchdown.reset()
         return self.state
 
     @property
@@ -326,6 +349,23 @@ class LandingWorld:
     def set_armed(self, armed: bool) -> None:
         """Arm (thrust on) or disarm (no thrust: the vehicle falls or rests)."""
         self._armed = bool(armed)
+
+    @property
+    def flight_controller(self):
+        """The ArduCopter plant's model (`core.arducopter.GuidedVelocityModel`), None on the ideal plant."""
+        return self._fc
+
+    @property
+    def touchdown(self) -> TouchdownEnvelope | None:
+        """The touchdown envelope the ArduCopter plant's setpoints pass through (None on the ideal plant)."""
+        return self._touchdown
+
+    def takeoff(self) -> None:
+        """ArduCopter plant: leave its landed state (a take-off command); nothing on the ideal plant."""
+        if self._fc is not None and self._fc.landed:
+            st = self.state
+            self._fc.takeoff(st.position, st.velocity)
+            self._touchdown.reset()
 
     def set_yaw_target(self, yaw: float) -> None:
         """Heading the attitude controller turns to (rate-limited); 0 by default."""
@@ -383,10 +423,38 @@ class LandingWorld:
         elif frame != 'world':
             raise ValueError(f"frame must be 'body' or 'world', got {frame!r}")
         self._cmd_world = self._clamp_command(cmd)
+        if self._fc is not None:
+            self._command_autopilot(np.asarray(pos))
         self._update_turbulence(np.asarray(pos), n / self.cfg.physics_hz)
+        had_result = self.result is not None
         for _ in range(n):
             self._physics_tick()
+        if self._fc is not None and not had_result and self.result is not None:
+            self._confirm_autopilot_landing()
         return self.state
+
+    def _command_autopilot(self, pos: np.ndarray) -> None:
+        """ArduCopter plant: the setpoint through the touchdown envelope (the downward range as a
+        rangefinder reads it); a climb setpoint while landed stands for the take-off command."""
+        fc = self._fc
+        if fc.landed and self._cmd_world[2] > self.cfg.touchdown.abort_climb_mps:
+            self.takeoff()
+        self._cmd_world = self._touchdown.apply(self._cmd_world, self._height_above_surface(pos))
+        fc.command(self._cmd_world)
+
+    def _confirm_autopilot_landing(self) -> None:
+        """After a touchdown result, fly on (same setpoint, no camera) until ArduCopter's land detector
+        declares the landing or `judge.autopilot_confirm_s` passes; record which in the result."""
+        res = self.result
+        if res.outcome == 'timeout' or res.reason in ('tipped over', 'fell below the crash height') \
+                or res.reason.startswith('impact'):
+            return
+        steps = int(round(self.cfg.judge.autopilot_confirm_s * self.cfg.physics_hz))
+        for _ in range(steps):
+            if self._fc.landed:
+                break
+            self._physics_tick()
+        res.autopilot_landed = bool(self._fc.landed)
 
     def _clamp_command(self, v: np.ndarray) -> np.ndarray:
         c = self.cfg.controller
@@ -411,7 +479,15 @@ class LandingWorld:
         cid, vid, c, g = self._cid, self._vehicle, self.cfg.controller, self.cfg.gravity_mps2
         pos, orn = p.getBasePositionAndOrientation(vid, physicsClientId=cid)
         lin, ang = p.getBaseVelocity(vid, physicsClientId=cid)
-        if self._armed:
+        tilt_target = (0.0, 0.0, 1.0)
+        if self._armed and self._fc is not None:
+            # ArduCopter plant: its model gives the acceleration; the airframe leans to produce it
+            m = self._mass
+            a = self._fc.tick(pos, lin, self._tick_dt, touching=self._was_touching, disturbance=self._noise)
+            fx, fy, fz = m * a[0], m * a[1], max(m * (a[2] + g), 0.0)
+            tilt_target = tuple(self._fc.thrust_direction())
+            p.applyExternalForce(vid, -1, (fx, fy, fz), pos, p.WORLD_FRAME, physicsClientId=cid)
+        elif self._armed:
             tx, ty, tz = self._cmd_world + self._noise
             m = self._mass
             if self._was_touching and self._cmd_world[2] <= 0.0:
@@ -425,13 +501,15 @@ class LandingWorld:
                 az = min(max(c.kp_z * (tz - lin[2]), -c.max_accel_z_mps2), c.max_accel_z_mps2)
                 fx, fy, fz = m * ax, m * ay, max(m * (az + g), 0.0)
             p.applyExternalForce(vid, -1, (fx, fy, fz), pos, p.WORLD_FRAME, physicsClientId=cid)
-            # attitude hold: level, with the commanded heading (rate-limited yaw)
+        if self._armed:
+            # attitude hold: the thrust direction (level on the ideal plant), commanded heading (rate-limited yaw)
             r = p.getMatrixFromQuaternion(orn)
             yaw = math.atan2(r[3], r[0])
             yaw_err = (self._yaw_target - yaw + math.pi) % (2 * math.pi) - math.pi
             yaw_rate_cmd = min(max(2.0 * yaw_err, -c.yaw_rate_max_rad_s), c.yaw_rate_max_rad_s)
-            # tilt error = body z axis x world z axis
-            ex, ey = r[5], -r[2]
+            # tilt error = body z axis x target z axis (x, y components)
+            t0, t1, t2 = tilt_target
+            ex, ey = r[5] * t2 - r[8] * t1, r[8] * t0 - r[2] * t2
             kp, kd = c.attitude_kp, c.attitude_kd
             alpha_w = np.array([kp * ex - kd * ang[0], kp * ey - kd * ang[1], kd * (yaw_rate_cmd - ang[2])])
             rot = np.array(r).reshape(3, 3)

@@ -1,0 +1,69 @@
+"""Touchdown envelope: the last decimetres of a descent end in a landing the autopilot detects.
+
+ArduCopter declares a landing only after about a second of descent demand with no large lean request
+and a quiet airframe; a vehicle that touches a pad while the pilot or the assistant still asks for
+sideways speed slides on the pad top and keeps flying. So, once the downward range (base_link to the
+surface below, as a downward rangefinder reads it) is below `engage_range_m` and the command descends,
+the velocity setpoint becomes a plain vertical descent at `descent_mps` with no horizontal part, until
+the command climbs (`abort_climb_mps`: the pilot takes it back up) or the range grows past
+`release_range_m`. The bridge applies it to every setpoint it sends to ArduPilot; the simulator's
+ArduCopter plant applies the same class, so both plants end a landing the same way.
+
+Pure Python; frames: any frame whose z axis is vertical (ENU world or a yaw-only body frame).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .settings import setting
+
+
+@dataclass
+class TouchdownConfig:
+    """When the envelope takes over a descent and how it finishes it."""
+
+    enabled: bool = setting(True)
+    engage_range_m: float = setting(0.40, gt=0.0, le=5.0)     # range below which a descent is finished vertically
+    release_range_m: float = setting(0.60, gt=0.0, le=10.0)   # range above which it lets go again
+    descent_mps: float = setting(0.5, gt=0.0, le=2.0)         # final descent (ArduCopter LAND_SPEED-like)
+    engage_descent_mps: float = setting(0.15, ge=0.0, le=2.0)  # a command descending faster than this engages it
+    abort_climb_mps: float = setting(0.3, gt=0.0, le=5.0)     # a command climbing faster than this lets go
+
+    def check_relations(self) -> None:
+        """The release range lies above the engage range."""
+        if self.release_range_m <= self.engage_range_m:
+            raise ValueError(f'release_range_m ({self.release_range_m}) must exceed engage_range_m '
+                             f'({self.engage_range_m})')
+
+
+class TouchdownEnvelope:
+    """Stateful filter on velocity setpoints (module docstring); `engaged` says whether it holds the descent."""
+
+    def __init__(self, cfg: TouchdownConfig | None = None):
+        self.cfg = cfg or TouchdownConfig()
+        self.cfg.check_relations()
+        self.engaged = False
+        self.engagements = 0            # times it took over a descent
+
+    def reset(self) -> None:
+        """Forget the current descent (a new flight)."""
+        self.engaged = False
+
+    def apply(self, command, range_m: float | None) -> np.ndarray:
+        """The setpoint to send for `command` (vx, vy, vz) at downward range `range_m` (None/NaN: unknown)."""
+        cmd = np.asarray(command, dtype=float).reshape(3)
+        c = self.cfg
+        if not c.enabled:
+            return cmd
+        known = range_m is not None and math.isfinite(range_m)
+        if self.engaged and (cmd[2] > c.abort_climb_mps or not known or range_m > c.release_range_m):
+            self.engaged = False
+        elif not self.engaged and known and range_m < c.engage_range_m and cmd[2] < -c.engage_descent_mps:
+            self.engaged = True
+            self.engagements += 1
+        if not self.engaged:
+            return cmd
+        return np.array([0.0, 0.0, -c.descent_mps])

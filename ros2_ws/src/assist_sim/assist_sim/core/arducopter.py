@@ -1,0 +1,290 @@
+"""ArduCopter's GUIDED velocity response as a plant of the fast simulator (`flight_controller: arducopter`).
+
+Written from ArduCopter's documented behaviour (the position-controller and land-detector pages of the
+ArduPilot wiki, the parameter reference) and fitted to logs of real ArduCopter SITL flying our airframe
+(``test/fixtures/guided``); it is a behavioural model, not a port of ArduPilot's code. Per axis group
+(horizontal as one 2-D vector, vertical on its own):
+
+1. **Setpoint delay.** A velocity setpoint reaches the controller ``setpoint_delay_s`` after it was sent.
+2. **Shaping.** The controller's target velocity moves towards the setpoint along an acceleration- and
+   jerk-limited trajectory: a square-root controller on the velocity error (gain jerk/accel, so the demand
+   decelerates smoothly into the setpoint) gives the wanted acceleration, limited to ``accel_*``; the
+   target acceleration moves towards it at no more than ``jerk_*``.
+3. **Path hold.** The target position is the integral of the target velocity; a vehicle that lags is
+   pulled back onto that path (square-root controller with gain ``pos_*_p``), so it catches up after a
+   lag (``path_hold: false`` resets the target position to the vehicle's each tick instead).
+4. **Tracking.** The demanded acceleration = target acceleration + ``vel_*_p`` x (target velocity + path
+   correction - velocity), horizontally limited by the lean angle (g tan ``lean_max_deg``); the vehicle's
+   acceleration follows it with a first-order lag (``attitude_tc_s`` horizontally, the time the airframe
+   takes to lean; ``throttle_tc_s`` vertically). The airframe leans by the angle its acceleration needs,
+   so the camera tilts with it (the encoder's levelling undoes it).
+5. **Land detector.** After first contact with a descent demanded, a landing is declared once, for
+   ``land_detect_s`` without a break: the demand is still a descent, the lean it asks for is below
+   ``land_lean_max_deg``, the vehicle's acceleration is below ``land_accel_max_mps2`` and its vertical
+   speed below ``land_vz_max_mps``. A sideways command at contact keeps it flying (it slides on the pad
+   top). Once landed the motors idle and setpoints are ignored until ``takeoff()``.
+
+Pure numpy, no pybullet: `GuidedVelocityModel.tick` turns (setpoint, state) into a world acceleration;
+`LandingWorld` applies it as a force on the airframe, and `simulate` integrates it as a point mass
+(for fitting and for the fixture tests).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from assist_common.settings import RULE_KEY, SettingsError, check_settings, setting
+
+FLIGHT_CONTROLLERS = ('ideal', 'arducopter')
+LAND_ACCEL_FILTER_HZ = 1.0     # the land detector's acceleration is low-passed at this cut-off
+
+
+@dataclass
+class ArduCopterConfig:
+    """GUIDED velocity-control model; defaults are ArduCopter's parameters, lags fitted to SITL logs."""
+
+    setpoint_delay_s: float = setting(0.05, ge=0.0, le=0.5)    # MAVLink + scheduler latency before use
+    accel_xy_mps2: float = setting(2.5, ge=0.2, le=10.0)       # WPNAV_ACCEL
+    jerk_xy_mps3: float = setting(5.0, ge=0.5, le=50.0)        # PSC_JERK_XY
+    accel_z_mps2: float = setting(1.0, ge=0.2, le=5.0)         # WPNAV_ACCEL_Z
+    jerk_z_mps3: float = setting(5.0, ge=0.5, le=50.0)         # PSC_JERK_Z
+    pos_xy_p: float = setting(1.0, ge=0.0, le=5.0)             # PSC_POSXY_P (1/s)
+    vel_xy_p: float = setting(2.0, ge=0.1, le=10.0)            # PSC_VELXY_P (1/s)
+    pos_z_p: float = setting(1.0, ge=0.0, le=5.0)              # PSC_POSZ_P (1/s)
+    vel_z_p: float = setting(5.0, ge=0.1, le=20.0)             # PSC_VELZ_P (1/s)
+    path_hold: bool = setting(True)                            # GUID_OPTIONS bit 4 clear: the path is held
+    lean_max_deg: float = setting(30.0, ge=5.0, le=60.0)       # ANGLE_MAX: horizontal accel <= g tan(this)
+    attitude_tc_s: float = setting(0.20, ge=0.01, le=1.0)      # lean (horizontal accel) follows its demand
+    throttle_tc_s: float = setting(0.10, ge=0.01, le=1.0)      # vertical accel follows its demand
+    land_detect_s: float = setting(1.0, ge=0.1, le=5.0)        # LAND_DETECTOR_TRIGGER_SEC-like
+    land_accel_max_mps2: float = setting(1.0, ge=0.1, le=5.0)  # LAND_DETECTOR_ACCEL_MAX
+    land_vz_max_mps: float = setting(1.0, ge=0.1, le=3.0)      # vertical speed below this
+    land_lean_max_deg: float = setting(15.0, ge=1.0, le=45.0)  # a larger lean request blocks the detector
+    idle_thrust_fraction: float = setting(0.05, ge=0.0, le=0.5)  # of hover thrust once landed (ground idle)
+
+    def validate(self) -> None:
+        """ValueError naming the first setting outside its range (`arducopter.<name> ...`)."""
+        try:
+            check_settings(self)
+        except SettingsError as exc:
+            flag_name, _, why = str(exc).partition(' ')
+            raise ValueError(f"arducopter.{flag_name.removeprefix('--').replace('-', '_')} {why}") from None
+
+
+# the fields `randomised` varies (the dynamics; thresholds of the land detector stay ArduCopter's)
+RANDOMISED_FIELDS = ('setpoint_delay_s', 'accel_xy_mps2', 'jerk_xy_mps3', 'accel_z_mps2', 'jerk_z_mps3',
+                     'pos_xy_p', 'vel_xy_p', 'pos_z_p', 'vel_z_p', 'attitude_tc_s', 'throttle_tc_s')
+
+
+def randomised(cfg: ArduCopterConfig, rng: np.random.Generator, spread: float = 0.3) -> ArduCopterConfig:
+    """A copy with each dynamic setting scaled by a uniform factor in [1 - spread, 1 + spread] (clipped to range)."""
+    if not 0.0 <= spread < 1.0:
+        raise ValueError(f'spread must be in [0, 1), got {spread}')
+    rules = {f.name: f.metadata[RULE_KEY] for f in dataclasses.fields(ArduCopterConfig)}
+    changes = {}
+    for name in RANDOMISED_FIELDS:
+        r = rules[name]
+        changes[name] = float(np.clip(getattr(cfg, name) * rng.uniform(1 - spread, 1 + spread), r.ge, r.le))
+    return dataclasses.replace(cfg, **changes)
+
+
+def sqrt_controller(error: float, gain: float, limit: float, dt: float) -> float:
+    """Square-root controller: linear (gain x error) near zero, sqrt(2 limit |error|)-shaped beyond,
+    never overshooting the error within one step of dt."""
+    if gain <= 0.0:
+        out = math.copysign(math.sqrt(2.0 * limit * abs(error)), error) if limit > 0.0 else 0.0
+    elif limit <= 0.0:
+        out = gain * error
+    else:
+        linear = limit / (gain * gain)
+        if abs(error) > linear:
+            out = math.copysign(math.sqrt(2.0 * limit * (abs(error) - 0.5 * linear)), error)
+        else:
+            out = gain * error
+    if dt > 0.0 and abs(out) > abs(error) / dt:
+        out = error / dt
+    return out
+
+
+def _sqrt_vec(error: np.ndarray, gain: float, limit: float, dt: float) -> np.ndarray:
+    """`sqrt_controller` on the length of a vector, along its direction."""
+    n = float(np.linalg.norm(error))
+    if n < 1e-12:
+        return np.zeros_like(error)
+    return error * (sqrt_controller(n, gain, limit, dt) / n)
+
+
+def _limit(v: np.ndarray, limit: float) -> np.ndarray:
+    n = float(np.linalg.norm(v))
+    return v * (limit / n) if n > limit > 0.0 else v
+
+
+class _Shaper:
+    """Acceleration- and jerk-limited target velocity (and its integrated path) for one axis group."""
+
+    def __init__(self, dim: int):
+        self.vel = np.zeros(dim)
+        self.acc = np.zeros(dim)
+        self.pos = np.zeros(dim)
+
+    def reset(self, pos: np.ndarray, vel: np.ndarray) -> None:
+        self.pos, self.vel, self.acc = pos.copy(), vel.copy(), np.zeros_like(vel)
+
+    def update(self, setpoint: np.ndarray, accel: float, jerk: float, dt: float) -> None:
+        want = _limit(_sqrt_vec(setpoint - self.vel, jerk / accel, jerk, dt), accel)
+        self.acc = self.acc + _limit(want - self.acc, jerk * dt)
+        self.pos = self.pos + self.vel * dt + 0.5 * self.acc * dt * dt
+        self.vel = self.vel + self.acc * dt
+
+
+class GuidedVelocityModel:
+    """ArduCopter GUIDED velocity control (module docstring): setpoint + vehicle state -> acceleration."""
+
+    def __init__(self, cfg: ArduCopterConfig | None = None, gravity_mps2: float = 9.81):
+        self.cfg = cfg or ArduCopterConfig()
+        self.cfg.validate()
+        self.g = float(gravity_mps2)
+        self._xy = _Shaper(2)
+        self._z = _Shaper(1)
+        self._queue: deque[tuple[float, np.ndarray]] = deque()
+        self._setpoint = np.zeros(3)
+        self.accel = np.zeros(3)          # the vehicle's acceleration from thrust (world, without gravity)
+        self.demand = np.zeros(3)         # the demanded acceleration before the lags
+        self.time = 0.0
+        self.landed = False
+        self.touched = False              # contact seen since the last take-off
+        self._land_timer = 0.0
+        self.landed_at: float | None = None
+        self._last_vel: np.ndarray | None = None
+        self._acc_filtered = np.zeros(3)
+
+    def reset(self, position, velocity, landed: bool = False) -> None:
+        """Start from this state (hovering with the setpoint at the current velocity, or landed)."""
+        pos = np.asarray(position, dtype=float)
+        vel = np.asarray(velocity, dtype=float)
+        self._xy.reset(pos[:2], vel[:2])
+        self._z.reset(pos[2:], vel[2:])
+        self._queue.clear()
+        self._setpoint = vel.copy()
+        self.accel = np.zeros(3)
+        self.demand = np.zeros(3)
+        self.time = 0.0
+        self.landed = bool(landed)
+        self.touched = bool(landed)
+        self._land_timer = 0.0
+        self.landed_at = None
+        self._last_vel: np.ndarray | None = None
+        self._acc_filtered = np.zeros(3)
+
+    def takeoff(self, position, velocity) -> None:
+        """Leave the landed state (ArduCopter: a take-off command); the path starts where the vehicle is."""
+        self.reset(position, velocity, landed=False)
+
+    def command(self, setpoint) -> None:
+        """A new velocity setpoint (world ENU, m/s), used `setpoint_delay_s` from now."""
+        sp = np.asarray(setpoint, dtype=float).reshape(3)
+        if not np.all(np.isfinite(sp)):
+            raise ValueError(f'setpoint must be 3 finite numbers, got {sp.tolist()}')
+        self._queue.append((self.time + self.cfg.setpoint_delay_s, sp.copy()))
+
+    @property
+    def setpoint(self) -> np.ndarray:
+        """The setpoint the controller is using now (after the delay)."""
+        return self._setpoint.copy()
+
+    @property
+    def lean_rad(self) -> float:
+        """Lean angle the current horizontal acceleration needs."""
+        return math.atan2(float(np.linalg.norm(self.accel[:2])), self.g + float(self.accel[2]))
+
+    def thrust_direction(self) -> np.ndarray:
+        """Unit vector of the thrust (world): the airframe's body z axis."""
+        v = np.array([self.accel[0], self.accel[1], self.g + self.accel[2]])
+        n = float(np.linalg.norm(v))
+        return v / n if n > 1e-9 else np.array([0.0, 0.0, 1.0])
+
+    def tick(self, position, velocity, dt: float, touching: bool = False,
+             disturbance=None) -> np.ndarray:
+        """Advance dt; return the world acceleration the thrust gives (without gravity; idle when landed).
+
+        `touching`: the airframe is in contact with something (the land detector's evidence, as
+        ArduCopter's motors-at-lower-limit is); `disturbance`: a velocity added to the tracked target
+        (the world's turbulence)."""
+        c = self.cfg
+        self.time += dt
+        while self._queue and self._queue[0][0] <= self.time + 1e-12:
+            self._setpoint = self._queue.popleft()[1]
+        if self.landed:
+            self.accel = np.array([0.0, 0.0, (c.idle_thrust_fraction - 1.0) * self.g])
+            self.demand = self.accel.copy()
+            return self.accel.copy()
+        pos = np.asarray(position, dtype=float)
+        vel = np.asarray(velocity, dtype=float)
+        self._xy.update(self._setpoint[:2], c.accel_xy_mps2, c.jerk_xy_mps3, dt)
+        self._z.update(self._setpoint[2:], c.accel_z_mps2, c.jerk_z_mps3, dt)
+        if not c.path_hold:
+            self._xy.pos, self._z.pos = pos[:2].copy(), pos[2:].copy()
+        dist = np.zeros(3) if disturbance is None else np.asarray(disturbance, dtype=float)
+        corr_xy = _sqrt_vec(self._xy.pos - pos[:2], c.pos_xy_p, c.accel_xy_mps2, dt)
+        corr_z = _sqrt_vec(self._z.pos - pos[2:], c.pos_z_p, c.accel_z_mps2, dt)
+        d_xy = self._xy.acc + c.vel_xy_p * (self._xy.vel + corr_xy + dist[:2] - vel[:2])
+        d_xy = _limit(d_xy, self.g * math.tan(math.radians(c.lean_max_deg)))
+        d_z = self._z.acc + c.vel_z_p * (self._z.vel + corr_z + dist[2:] - vel[2:])
+        d_z = np.clip(d_z, -self.g, None)           # no negative thrust
+        self.demand = np.concatenate([d_xy, d_z])
+        a_xy = self.accel[:2] + (1.0 - math.exp(-dt / c.attitude_tc_s)) * (d_xy - self.accel[:2])
+        a_z = self.accel[2:] + (1.0 - math.exp(-dt / c.throttle_tc_s)) * (d_z - self.accel[2:])
+        self.accel = np.concatenate([a_xy, a_z])
+        self._detect_landing(vel, touching, dt)
+        return self.accel.copy()
+
+    def _detect_landing(self, vel: np.ndarray, touching: bool, dt: float) -> None:
+        c = self.cfg
+        if self._last_vel is not None and dt > 0.0:     # measured acceleration, low-passed at 1 Hz
+            k = 1.0 - math.exp(-dt * 2.0 * math.pi * LAND_ACCEL_FILTER_HZ)
+            self._acc_filtered += k * ((vel - self._last_vel) / dt - self._acc_filtered)
+        self._last_vel = vel.copy()
+        descending = self._setpoint[2] < 0.0
+        self.touched = self.touched or (touching and descending)
+        if not self.touched:
+            return
+        lean_request = math.atan2(float(np.linalg.norm(self.demand[:2])), self.g)
+        quiet = (descending and touching and lean_request < math.radians(c.land_lean_max_deg)
+                 and abs(float(vel[2])) < c.land_vz_max_mps
+                 and float(np.linalg.norm(self._acc_filtered)) < c.land_accel_max_mps2)
+        self._land_timer = self._land_timer + dt if quiet else 0.0
+        if self._land_timer >= c.land_detect_s:
+            self.landed = True
+            self.landed_at = self.time
+
+
+def simulate(cfg: ArduCopterConfig, t: np.ndarray, setpoints: np.ndarray, velocity0=None,
+             position0=None, substeps: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """Point-mass response to a setpoint sequence: velocity and position (N, 3) at the times `t`.
+
+    `setpoints[i]` is the setpoint sent at `t[i]` (held until the next); the model is stepped at
+    `substeps` x the sample rate. Used to fit the model to SITL logs and to test it against them."""
+    t = np.asarray(t, dtype=float)
+    sp = np.asarray(setpoints, dtype=float).reshape(-1, 3)
+    if len(t) != len(sp) or len(t) < 2:
+        raise ValueError('t and setpoints must have the same length >= 2')
+    model = GuidedVelocityModel(cfg)
+    vel = np.zeros(3) if velocity0 is None else np.asarray(velocity0, dtype=float).copy()
+    pos = np.zeros(3) if position0 is None else np.asarray(position0, dtype=float).copy()
+    model.reset(pos, vel)
+    out_v = np.zeros((len(t), 3))
+    out_p = np.zeros((len(t), 3))
+    out_v[0], out_p[0] = vel, pos
+    for i in range(1, len(t)):
+        model.command(sp[i - 1])
+        h = (t[i] - t[i - 1]) / substeps
+        for _ in range(substeps):
+            a = model.tick(pos, vel, h)
+            pos = pos + vel * h + 0.5 * a * h * h
+            vel = vel + a * h
+        out_v[i], out_p[i] = vel, pos
+    return out_v, out_p
