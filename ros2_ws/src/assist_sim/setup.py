@@ -28,6 +28,7 @@ setup(
         'console_scripts': [
             'sim_node = assist_sim.entry_points:sim_node',
             'sim_pilot_node = assist_sim.entry_points:sim_pilot_node',
+            'sitl_identify = assist_sim.entry_points:sitl_identify',
         ],
     },
 )

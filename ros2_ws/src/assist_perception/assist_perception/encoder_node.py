@@ -32,7 +32,7 @@ from assist_common.ros_common import (SENSOR_QOS, STAMP_TOLERANCE_S, Diagnostics
                                       realtime_priority_param, run_node, stamp_problem, stamp_to_sec)
 
 from .encoder_core import BadFrame, LatentEncoder, LatestOnly, StampPairer, decode_color, decode_depth
-from .level import AttitudeBuffer, level_frame, level_rotation, tilt_deg
+from .level import DEFAULT_MIN_TILT_DEG, AttitudeBuffer, level_frame, level_rotation, tilt_deg
 from .model import ModelLoadError
 from .noise import apply_depth_noise, frame_rng
 from .onnx_backend import BACKENDS
@@ -74,7 +74,8 @@ PARAMS = {
     'camera_info_topic': Param('/camera/color/camera_info', 'Intrinsics for level_camera (sensor_msgs/CameraInfo).'),
     'attitude_max_offset_s': Param(0.1, 'level_camera: an attitude sample must be this close to the frame stamp.',
                                    min=0.0, max=5.0, min_exclusive=True),
-    'level_min_tilt_deg': Param(0.5, 'level_camera: frames tilted less than this pass unchanged.', min=0.0, max=45.0),
+    'level_min_tilt_deg': Param(DEFAULT_MIN_TILT_DEG, 'level_camera: frames tilted less than this pass unchanged.',
+                                min=0.0, max=45.0),
     'warn_period_s': Param(5.0, 'Minimum seconds between repeated bad-frame warnings (settable at run time).',
                            min=0.0, max=3600.0, dynamic=True),
 }

@@ -26,6 +26,9 @@ import numpy as np
 from assist_common.frames import R_BODY_FROM_OPTICAL, unit_quat_to_matrix, yaw_rotation
 
 
+DEFAULT_MIN_TILT_DEG = 0.5      # frames tilted less than this pass unchanged (encoder_node, the env)
+
+
 def level_rotation(q_world_from_base) -> np.ndarray:
     """R (level optical <- tilted optical) for a base_link attitude quaternion (x, y, z, w) in odom."""
     r_wb = unit_quat_to_matrix(q_world_from_base)

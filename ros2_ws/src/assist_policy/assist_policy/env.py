@@ -160,7 +160,11 @@ class LandingAssistEnv(gym.Env):
             return oracle_feature(self.world.goal_position, pos)
         frame = self._frame = self.world.render()
         if self.condition is Condition.LATENT:
-            return np.asarray(self.latent_fn(frame.rgb, frame.depth), dtype=float).reshape(-1)
+            if self.world.flight_controller is not None:    # the airframe leans: the encoder levels (as deployed)
+                mu = self.latent_fn(frame.rgb, frame.depth, level=(frame.K, self.world.state.quaternion))
+            else:
+                mu = self.latent_fn(frame.rgb, frame.depth)
+            return np.asarray(mu, dtype=float).reshape(-1)
         return image_feature(frame.rgb, frame.depth).reshape(-1)
 
     def _obs(self) -> np.ndarray:

@@ -73,6 +73,8 @@ from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 from assist_common.atomic import CsvLog, atomic_path, truncate_csv, write_text_atomic
+from assist_sim.core.arducopter import FLIGHT_CONTROLLERS
+from assist_sim.core.config import WorldConfig
 from assist_sim.pilots import PILOT_NAMES
 
 from .bags.bagio import BagError
@@ -131,6 +133,7 @@ class EvalArgs:
     from_csv: tuple[str, ...] = ()
     record_dir: str = ''
     workers: int = setting(0, ge=0, le=1024)      # 0: one per CPU core (a short run: fewer, see worker_count)
+    flight_controller: str = setting('ideal', choices=FLIGHT_CONTROLLERS)
     ray: str = ''                                  # '' local processes; 'auto' a local Ray instance; or an address
 
 # Settings that change how a run is carried out, not which landings it flies (not part of the resume key).
@@ -166,6 +169,9 @@ HELP = {
            '(--workers). Needs the optional ray package',
     'workers': 'processes flying landings side by side (0: one per CPU core, one per 8 landings for a short run); '
                'every landing is flown from its own seed, so the rows are those of a one-process run',
+    'flight_controller': 'the plant that follows the velocity commands: ideal (the sim\'s own velocity loop) or '
+                         'arducopter (ArduCopter GUIDED as the bridge flies it: assist_sim.core.arducopter, with '
+                         'the touchdown envelope; the camera leans with the airframe and the encoder levels it)',
     'record_dir': 'save every landing as a rosbag2 bag (the graph\'s topics and types) in this directory, '
                   'named <condition>_beta<beta>_seed<seed>: replay_assist / plot_flight take any of them',
 }
@@ -173,7 +179,7 @@ HELP = {
 LANDING_FIELDS = ['condition', 'beta', 'seed', 'scene_seed', 'goal_index', 'landed_index', 'nearest_index',
                   'aimed_index', 'error_m', 'nearest_error_m', 'outcome', 'success', 'crash', 'duration_s',
                   'active_fraction', 'pilot', 'guard_fraction', 'override_fraction', 'recall_fraction',
-                  'damper_fraction', 'wall_fraction']
+                  'damper_fraction', 'wall_fraction', 'autopilot_landed']
 _BOOL = {'True': True, 'False': False}
 
 
@@ -193,6 +199,7 @@ def read_landings(path: str | Path) -> dict[str, list[dict]]:
                            success=_BOOL[r['success']], crash=_BOOL[r['crash']],
                            active_fraction=float(r.get('active_fraction') or 0.0),
                            goal_index=int(r['goal_index']),
+                           autopilot_landed=_BOOL.get(r.get('autopilot_landed') or '', None),
                            **{k: None if r.get(k) in (None, '') else int(r[k])
                               for k in ('seed', 'landed_index', 'nearest_index', 'aimed_index')})
             except (KeyError, ValueError) as exc:
@@ -257,14 +264,16 @@ def write_landings(path: Path, rows_by_cond: dict[str, list[dict]]) -> None:
 
 def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: float, alpha: float,
                 pilot: str = 'paper', safety: SafetyConfig | None = None, override: OverrideConfig | None = None,
-                recall: RecallConfig | None = None, damper: DamperConfig | None = None):
+                recall: RecallConfig | None = None, damper: DamperConfig | None = None,
+                flight_controller: str = 'ideal'):
     """(env, policy) for one condition; policy(obs) -> raw action, None for unassisted (override etc.: learned only)."""
+    world = WorldConfig(flight_controller=flight_controller)
     if condition == 'unassisted':
         return LandingAssistEnv(EnvConfig(condition='none', alpha=alpha, max_episode_s=max_episode_s,
-                                          pilot_family=pilot)), None
+                                          pilot_family=pilot, world=world)), None
     if condition in BASELINES:
         env = LandingAssistEnv(EnvConfig(condition='oracle', alpha=alpha, max_episode_s=max_episode_s,
-                                         pilot_family=pilot, safety=safety))
+                                         pilot_family=pilot, safety=safety, world=world))
         script = (ScriptedOracle() if condition == 'scripted_oracle' else
                   make_nearest_pad(condition[len('scripted_'):]))
         return env, lambda obs: script.raw_action(env)
@@ -273,7 +282,7 @@ def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: fl
     cfg = EnvConfig(condition=condition, alpha=alpha, max_episode_s=max_episode_s,
                     max_speed=tuple(meta.get('max_speed', (1.0, 1.0, 0.6))),
                     latent_dim=int(meta.get('latent_dim', 0)), pilot_family=pilot, safety=safety, override=override,
-                    recall=recall, damper=damper,
+                    recall=recall, damper=damper, world=world,
                     feature_lags_s=tuple(meta['feature_lags_s']), memory_displacement=meta['memory_displacement'])
     if condition == 'latent':
         latent_fn, dim = make_latent_fn(encoder_path or None)
@@ -301,7 +310,8 @@ def run_landing(env: LandingAssistEnv, policy, seed: int, beta: float) -> dict:
             'pilot': res['pilot'], 'guard_fraction': round(res['guard_fraction'], 3),
             'override_fraction': round(res['override_fraction'], 3),
             'recall_fraction': round(res['recall_fraction'], 3),
-            'damper_fraction': round(res['damper_fraction'], 3), 'wall_fraction': round(res['wall_fraction'], 3)}
+            'damper_fraction': round(res['damper_fraction'], 3), 'wall_fraction': round(res['wall_fraction'], 3),
+            'autopilot_landed': '' if res.get('autopilot_landed') is None else bool(res['autopilot_landed'])}
 
 
 def summarize(rows: list[dict]) -> dict:
@@ -323,7 +333,11 @@ def summarize(rows: list[dict]) -> dict:
             'active_fraction': float(np.mean([r['active_fraction'] for r in rows])),
             'misaimed': float(np.mean(misaimed)) if known_aim else float('nan'),
             'misaimed_success': (float(np.mean([r['success'] for r, m in zip(rows, misaimed) if m]))
-                                 if any(misaimed) else float('nan'))}
+                                 if any(misaimed) else float('nan')),
+            # arducopter plant: of the touchdowns, the share its land detector declared (nan on the ideal plant)
+            'autopilot_landed': (float(np.mean([bool(r['autopilot_landed']) for r in checked]))
+                                 if (checked := [r for r in rows if r.get('autopilot_landed') not in (None, '')])
+                                 else float('nan'))}
 
 
 def mean_se(d: np.ndarray) -> tuple[float, float]:
@@ -491,7 +505,7 @@ class LandingFlyer:
                                                SafetyConfig() if a.safety else None,
                                                OverrideConfig() if on['override'] else None,
                                                RecallConfig() if on['recall'] else None,
-                                               DamperConfig() if on['damper'] else None)
+                                               DamperConfig() if on['damper'] else None, a.flight_controller)
         env, policy = self.made[task.cond]
         row = (record_landing(run_landing, env, policy, task.seed, task.beta, task.name, a.record_dir)
                if a.record_dir else run_landing(env, policy, task.seed, task.beta))

@@ -56,6 +56,7 @@ import rclpy
 import rclpy.signals
 from assist_common.constants import BLEND_THRESHOLD_MPS
 from assist_common.ros_common import LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, stamp_to_sec
+from assist_sim.core.arducopter import FLIGHT_CONTROLLERS
 from assist_sim.pilots import PILOT_NAMES
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, TwistStamped
@@ -124,6 +125,7 @@ class GraphEvalArgs:
     landing_timeout_s: float = setting(300.0, gt=0.0, le=86_400.0)
     startup_timeout_s: float = setting(180.0, gt=0.0, le=3600.0)
     policy_params: tuple[str, ...] = ()
+    flight_controller: str = setting('ideal', choices=FLIGHT_CONTROLLERS)
     plot: bool = True
 
 
@@ -131,6 +133,8 @@ HELP = {
     'out': 'output directory (landings.csv, summary.csv, paired.txt, error_vs_beta.png, nodes/*.log)',
     'conditions': 'any of unassisted latent oracle end_to_end (policy_node modes; evaluate\'s names)',
     'betas': 'pilot skills (landing k at beta index b: seed + 1000 b + k, as evaluate)',
+    'flight_controller': 'sim_node flight_controller: ideal or arducopter (ArduCopter GUIDED as the bridge flies it; '
+                         'encoder_node then levels the leaning camera, level_camera true)',
     'landings': 'landings per beta and condition',
     'pilot': 'simulated pilot: paper or an assist_sim.pilots family or population (mix: a held-out family per landing)',
     'latent_model': 'policy_node model_path for latent (default: the shipped actor)',
@@ -403,7 +407,7 @@ def node_params(args: GraphEvalArgs, cond: str, plans: list[LandingPlan], on: di
     nodes = {
         'sim_node': {'seed': int(args.seed), 'real_time_factor': float(args.real_time_factor), 'auto_reset': True,
                      'episode_seeds': [p.scene_seed for p in plans], 'episode_timeout_s': float(args.max_episode_s),
-                     'camera_rate_hz': 20.0},
+                     'camera_rate_hz': 20.0, 'flight_controller': args.flight_controller},
         'sim_pilot_node': {'use_sim_time': True, 'alpha': float(args.alpha), 'pilot': args.pilot,
                            'blend_threshold': BLEND_THRESHOLD_MPS, 'episode_seeds': [p.pilot_seed for p in plans],
                            'episode_betas': [float(p.beta) for p in plans],
@@ -419,7 +423,8 @@ def node_params(args: GraphEvalArgs, cond: str, plans: list[LandingPlan], on: di
         policy['model_path'] = str(Path(model).resolve())
     nodes['policy_node'] = policy
     if cond == 'latent':
-        enc = {'use_sim_time': True, 'depth_noise': bool(args.depth_noise), 'noise_seed': int(plans[0].noise_seed)}
+        enc = {'use_sim_time': True, 'depth_noise': bool(args.depth_noise), 'noise_seed': int(plans[0].noise_seed),
+               'level_camera': args.flight_controller != 'ideal'}     # the airframe leans: level, as deployed
         if args.encoder_path:
             enc['model_path'] = str(Path(args.encoder_path).resolve())
         nodes['encoder_node'] = enc
@@ -469,7 +474,8 @@ def landing_row(listener: Listener, data: dict, seed: int, plan: LandingPlan, na
            'outcome': data['outcome'], 'success': bool(data['success']), 'crash': bool(data['crash']),
            'duration_s': round(duration, 2), 'active_fraction': round(min(active, 1.0), 3),
            'pilot': pilot_values.get('pilot', plan.pilot_family_resolved),
-           **{k: round(min(v, 1.0), 3) for k, v in fractions.items()}}
+           **{k: round(min(v, 1.0), 3) for k, v in fractions.items()},
+           'autopilot_landed': '' if data.get('autopilot_landed') is None else bool(data['autopilot_landed'])}
     return row, coverage
 
 

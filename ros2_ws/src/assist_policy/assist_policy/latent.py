@@ -41,8 +41,12 @@ class LatentFn:
 
     def __init__(self, encoder, depth_noise: bool, seed: int):
         from assist_perception.encoder_core import BadFrame
+        from assist_perception.level import DEFAULT_MIN_TILT_DEG, level_frame, level_rotation, tilt_deg
         from assist_perception.noise import apply_depth_noise, frame_rng
         self._encoder, self._apply_noise, self._frame_rng = encoder, apply_depth_noise, frame_rng
+        self._level_frame, self._level_rotation, self._tilt_deg = level_frame, level_rotation, tilt_deg
+        self.level_min_tilt_deg = DEFAULT_MIN_TILT_DEG     # encoder_node's level_camera default
+        self.levelled = 0
         self._bad_frame = BadFrame
         self.depth_noise = bool(depth_noise)
         self.seed = int(seed)
@@ -57,14 +61,22 @@ class LatentFn:
         self._rng = np.random.default_rng(key)
         self._mu = np.zeros(self.latent_dim)
 
-    def __call__(self, rgb: np.ndarray, depth: np.ndarray, stamp_ns: int | None = None) -> np.ndarray:
+    def __call__(self, rgb: np.ndarray, depth: np.ndarray, stamp_ns: int | None = None,
+                 level: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """The encoder mean of this frame (the previous one if the encoder rejects the frame); `stamp_ns`: the
-        frame's noise from (seed, stamp) as encoder_node draws it, else from the landing's generator."""
+        frame's noise from (seed, stamp) as encoder_node draws it, else from the landing's generator;
+        `level` = (K, base_link quaternion): re-render a tilted frame as a level camera would see it, after the
+        noise, as encoder_node's level_camera does (an airframe that leans, e.g. the ArduCopter plant)."""
         if self.depth_noise:
             rng = self._rng if stamp_ns is None else self._frame_rng(self.seed, stamp_ns)
             d = self._apply_noise(depth, rng, rgb=rgb if np.shape(rgb)[:2] == np.shape(depth) else None)
         else:
             d = depth
+        if level is not None:
+            r = self._level_rotation(level[1])
+            if self._tilt_deg(r) >= self.level_min_tilt_deg:
+                rgb, d = self._level_frame(rgb, d, level[0], r)
+                self.levelled += 1
         self.last_input = (rgb, d)      # evaluate --record-dir saves it
         try:
             self._mu = np.asarray(self._encoder.encode(rgb, d, want_xyz=False).mu, dtype=float)

@@ -26,6 +26,7 @@ from assist_common.ros_common import (LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, SE
                                       StartupError, declare_parameters, executor_param, exit_process, forward_logging,
                                       run_node, sec_to_stamp, twist_to_array)
 
+from .core.arducopter import FLIGHT_CONTROLLERS
 from .core.config import WorldConfig
 from .core.runner import RunnerConfig, SimRunner, StepOutput
 from .core.scene_markers import scene_markers
@@ -55,6 +56,11 @@ PARAMS = {
     'physics': Param('velocity', 'velocity: the velocity-tracking controller (training/evaluation); ardupilot_json: '
                                  'rigid-body quad flown by ArduPilot SITL motor outputs over its JSON interface.',
                      choices=('velocity', 'ardupilot_json')),
+    'flight_controller': Param('ideal', 'physics velocity: the plant that follows /cmd_vel. ideal: the sim\'s own '
+                                        'velocity loop; arducopter: ArduCopter GUIDED as the bridge flies it '
+                                        '(assist_sim.core.arducopter: shaped, lagged response, leaning airframe, '
+                                        'land detector; setpoints through the touchdown envelope). Tuned in '
+                                        'world_config (arducopter:, touchdown:).', choices=FLIGHT_CONTROLLERS),
     'json_host': Param('127.0.0.1', 'ardupilot_json: UDP address the physics backend listens on for SITL.'),
     'json_port': Param(9002, 'ardupilot_json: UDP port for SITL (--model JSON:<host> sends to 9002).',
                        min=1, max=65535),
@@ -124,12 +130,20 @@ class SimNode(Node):
             raise StartupError(f"sim_node: real_time_factor {self.p['real_time_factor']:g} cannot apply: as a "
                                'MAVLink vehicle (mavlink_url set) the sim runs at wall-clock speed (1.0)')
         self.json_mode = self.p['physics'] == 'ardupilot_json'
+        cfg.flight_controller = str(self.p['flight_controller'])
+        if cfg.flight_controller != 'ideal' and (self.json_mode or self.mavlink):
+            raise StartupError(f"sim_node: flight_controller {cfg.flight_controller} models the autopilot in "
+                               'physics velocity; with physics ardupilot_json or mavlink_url the autopilot is real '
+                               '(leave flight_controller ideal)')
         if self.json_mode and self.mavlink:
             raise StartupError('sim_node: physics ardupilot_json and mavlink_url are exclusive (SITL is the vehicle)')
         if self.json_mode and self.p['episode_seeds']:
             raise StartupError('sim_node: episode_seeds cannot apply with physics ardupilot_json (its episodes follow '
                                'seed); leave episode_seeds empty')
-        self.world = LandingWorld(cfg, seed=int(self.p['seed']), gui=bool(self.p['gui']))
+        try:
+            self.world = LandingWorld(cfg, seed=int(self.p['seed']), gui=bool(self.p['gui']))
+        except ValueError as exc:       # e.g. an ArduCopter-model setting of world_config out of range
+            raise StartupError(f'sim_node: {exc}') from exc
         runner_cfg = RunnerConfig(
             camera_rate_hz=float(self.p['camera_rate_hz']), auto_reset=bool(self.p['auto_reset']),
             reset_delay_s=float(self.p['reset_delay_s']), cmd_timeout_s=float(self.p['cmd_timeout_s']),
