@@ -1,0 +1,65 @@
+"""The touchdown envelope: a descent's last decimetres become a vertical descent the autopilot detects."""
+import math
+
+import numpy as np
+import pytest
+
+from assist_common.settings import SettingsError, check_settings
+from assist_common.touchdown import TouchdownConfig, TouchdownEnvelope
+
+
+def test_high_up_commands_pass_unchanged():
+    env = TouchdownEnvelope()
+    cmd = np.array([0.8, -0.3, -0.6])
+    assert np.array_equal(env.apply(cmd, 2.0), cmd)
+    assert not env.engaged
+
+
+def test_a_low_descent_becomes_vertical_at_the_final_descent_speed():
+    cfg = TouchdownConfig()
+    env = TouchdownEnvelope(cfg)
+    out = env.apply([0.7, 0.4, -0.8], cfg.engage_range_m - 0.05)
+    assert out.tolist() == [0.0, 0.0, -cfg.descent_mps]
+    assert env.engaged and env.engagements == 1
+    # it holds while the range stays below the release range, whatever the sideways command
+    assert env.apply([1.0, -1.0, 0.0], cfg.release_range_m - 0.01).tolist() == [0.0, 0.0, -cfg.descent_mps]
+
+
+def test_hovering_low_or_climbing_low_does_not_engage():
+    cfg = TouchdownConfig()
+    env = TouchdownEnvelope(cfg)
+    low = cfg.engage_range_m - 0.1
+    assert env.apply([0.5, 0.0, 0.0], low).tolist() == [0.5, 0.0, 0.0]
+    assert env.apply([0.5, 0.0, -0.5 * cfg.engage_descent_mps], low).tolist()[0] == 0.5
+    assert env.apply([0.5, 0.0, 0.4], low).tolist() == [0.5, 0.0, 0.4]
+    assert not env.engaged
+
+
+def test_a_climb_command_or_a_lost_range_lets_go():
+    cfg = TouchdownConfig()
+    env = TouchdownEnvelope(cfg)
+    env.apply([0.0, 0.0, -1.0], 0.2)
+    assert env.engaged
+    out = env.apply([0.3, 0.0, cfg.abort_climb_mps + 0.1], 0.2)
+    assert not env.engaged and out.tolist() == [0.3, 0.0, cfg.abort_climb_mps + 0.1]
+    env.apply([0.0, 0.0, -1.0], 0.2)
+    assert env.engaged
+    assert env.apply([0.2, 0.0, -1.0], math.nan).tolist() == [0.2, 0.0, -1.0]   # unknown range: the command
+    assert not env.engaged
+    assert env.apply([0.2, 0.0, -1.0], None).tolist() == [0.2, 0.0, -1.0]
+
+
+def test_disabled_is_a_pass_through_and_reset_forgets():
+    env = TouchdownEnvelope(TouchdownConfig(enabled=False))
+    assert env.apply([0.5, 0.5, -1.0], 0.15).tolist() == [0.5, 0.5, -1.0]
+    on = TouchdownEnvelope()
+    on.apply([0.0, 0.0, -1.0], 0.2)
+    on.reset()
+    assert not on.engaged
+
+
+def test_settings_out_of_range_or_inconsistent_are_refused():
+    with pytest.raises(SettingsError, match='descent-mps'):
+        check_settings(TouchdownConfig(descent_mps=-0.5))
+    with pytest.raises(ValueError, match='release_range_m'):
+        TouchdownEnvelope(TouchdownConfig(engage_range_m=0.5, release_range_m=0.4))
