@@ -92,7 +92,7 @@ def test_path_hold_pulls_a_lagging_vehicle_back_onto_the_path():
         pos, vel = np.zeros(3), np.zeros(3)
         for k in range(int(8.0 / 0.01)):
             m.command([1.0, 0.0, 0.0]) if k % 5 == 0 else None
-            a = m.tick(pos, vel, 0.01)
+            a = np.array(m.tick(pos, vel, 0.01))
             if 200 <= k < 300:            # held: no motion for a second
                 vel = np.zeros(3)
                 continue

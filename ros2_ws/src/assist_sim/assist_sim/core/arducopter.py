@@ -110,35 +110,50 @@ def sqrt_controller(error: float, gain: float, limit: float, dt: float) -> float
     return out
 
 
-def _sqrt_vec(error: np.ndarray, gain: float, limit: float, dt: float) -> np.ndarray:
-    """`sqrt_controller` on the length of a vector, along its direction."""
-    n = float(np.linalg.norm(error))
+def _sqrt2(ex: float, ey: float, gain: float, limit: float, dt: float) -> tuple[float, float]:
+    """`sqrt_controller` on the length of a 2-D vector, along its direction."""
+    n = math.hypot(ex, ey)
     if n < 1e-12:
-        return np.zeros_like(error)
-    return error * (sqrt_controller(n, gain, limit, dt) / n)
+        return 0.0, 0.0
+    k = sqrt_controller(n, gain, limit, dt) / n
+    return ex * k, ey * k
 
 
-def _limit(v: np.ndarray, limit: float) -> np.ndarray:
-    n = float(np.linalg.norm(v))
-    return v * (limit / n) if n > limit > 0.0 else v
+def _limit2(x: float, y: float, limit: float) -> tuple[float, float]:
+    n = math.hypot(x, y)
+    if n > limit > 0.0:
+        return x * limit / n, y * limit / n
+    return x, y
 
 
 class _Shaper:
-    """Acceleration- and jerk-limited target velocity (and its integrated path) for one axis group."""
+    """Acceleration- and jerk-limited target velocity (and its integrated path) for one axis group.
 
-    def __init__(self, dim: int):
-        self.vel = np.zeros(dim)
-        self.acc = np.zeros(dim)
-        self.pos = np.zeros(dim)
+    Horizontal: a 2-D vector (x, y); vertical: one axis (y unused). Plain floats: it runs at the physics rate."""
 
-    def reset(self, pos: np.ndarray, vel: np.ndarray) -> None:
-        self.pos, self.vel, self.acc = pos.copy(), vel.copy(), np.zeros_like(vel)
+    def __init__(self, planar: bool):
+        self.planar = planar
+        self.px = self.py = self.vx = self.vy = self.ax = self.ay = 0.0
 
-    def update(self, setpoint: np.ndarray, accel: float, jerk: float, dt: float) -> None:
-        want = _limit(_sqrt_vec(setpoint - self.vel, jerk / accel, jerk, dt), accel)
-        self.acc = self.acc + _limit(want - self.acc, jerk * dt)
-        self.pos = self.pos + self.vel * dt + 0.5 * self.acc * dt * dt
-        self.vel = self.vel + self.acc * dt
+    def reset(self, pos: tuple[float, float], vel: tuple[float, float]) -> None:
+        self.px, self.py = pos
+        self.vx, self.vy = vel
+        self.ax = self.ay = 0.0
+
+    def update(self, sx: float, sy: float, accel: float, jerk: float, dt: float) -> None:
+        if self.planar:
+            wx, wy = _sqrt2(sx - self.vx, sy - self.vy, jerk / accel, jerk, dt)
+            wx, wy = _limit2(wx, wy, accel)
+            dx, dy = _limit2(wx - self.ax, wy - self.ay, jerk * dt)
+        else:
+            w = min(max(sqrt_controller(sx - self.vx, jerk / accel, jerk, dt), -accel), accel)
+            dx, dy = min(max(w - self.ax, -jerk * dt), jerk * dt), 0.0
+        self.ax += dx
+        self.ay += dy
+        self.px += self.vx * dt + 0.5 * self.ax * dt * dt
+        self.py += self.vy * dt + 0.5 * self.ay * dt * dt
+        self.vx += self.ax * dt
+        self.vy += self.ay * dt
 
 
 class GuidedVelocityModel:
@@ -148,37 +163,28 @@ class GuidedVelocityModel:
         self.cfg = cfg or ArduCopterConfig()
         self.cfg.validate()
         self.g = float(gravity_mps2)
-        self._xy = _Shaper(2)
-        self._z = _Shaper(1)
-        self._queue: deque[tuple[float, np.ndarray]] = deque()
-        self._setpoint = np.zeros(3)
-        self.accel = np.zeros(3)          # the vehicle's acceleration from thrust (world, without gravity)
-        self.demand = np.zeros(3)         # the demanded acceleration before the lags
-        self.time = 0.0
-        self.landed = False
-        self.touched = False              # contact seen since the last take-off
-        self._land_timer = 0.0
-        self.landed_at: float | None = None
-        self._last_vel: np.ndarray | None = None
-        self._acc_filtered = np.zeros(3)
+        self._xy = _Shaper(planar=True)
+        self._z = _Shaper(planar=False)
+        self._queue: deque[tuple[float, tuple[float, float, float]]] = deque()
+        self.reset((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
 
     def reset(self, position, velocity, landed: bool = False) -> None:
         """Start from this state (hovering with the setpoint at the current velocity, or landed)."""
-        pos = np.asarray(position, dtype=float)
-        vel = np.asarray(velocity, dtype=float)
-        self._xy.reset(pos[:2], vel[:2])
-        self._z.reset(pos[2:], vel[2:])
+        px, py, pz = (float(v) for v in position)
+        vx, vy, vz = (float(v) for v in velocity)
+        self._xy.reset((px, py), (vx, vy))
+        self._z.reset((pz, 0.0), (vz, 0.0))
         self._queue.clear()
-        self._setpoint = vel.copy()
-        self.accel = np.zeros(3)
-        self.demand = np.zeros(3)
+        self._sp = (vx, vy, vz)
+        self._acc = (0.0, 0.0, 0.0)            # the vehicle's acceleration from thrust (world, without gravity)
+        self._demand = (0.0, 0.0, 0.0)         # the demanded acceleration before the lags
         self.time = 0.0
         self.landed = bool(landed)
-        self.touched = bool(landed)
+        self.touched = bool(landed)            # contact with a descent demanded since the last take-off
         self._land_timer = 0.0
-        self.landed_at = None
-        self._last_vel: np.ndarray | None = None
-        self._acc_filtered = np.zeros(3)
+        self.landed_at: float | None = None
+        self._last_vel: tuple[float, float, float] | None = None
+        self._acc_filtered = [0.0, 0.0, 0.0]
 
     def takeoff(self, position, velocity) -> None:
         """Leave the landed state (ArduCopter: a take-off command); the path starts where the vehicle is."""
@@ -186,29 +192,41 @@ class GuidedVelocityModel:
 
     def command(self, setpoint) -> None:
         """A new velocity setpoint (world ENU, m/s), used `setpoint_delay_s` from now."""
-        sp = np.asarray(setpoint, dtype=float).reshape(3)
-        if not np.all(np.isfinite(sp)):
-            raise ValueError(f'setpoint must be 3 finite numbers, got {sp.tolist()}')
-        self._queue.append((self.time + self.cfg.setpoint_delay_s, sp.copy()))
+        sp = tuple(float(v) for v in np.asarray(setpoint, dtype=float).reshape(3))
+        if not all(math.isfinite(v) for v in sp):
+            raise ValueError(f'setpoint must be 3 finite numbers, got {list(sp)}')
+        self._queue.append((self.time + self.cfg.setpoint_delay_s, sp))
 
     @property
     def setpoint(self) -> np.ndarray:
         """The setpoint the controller is using now (after the delay)."""
-        return self._setpoint.copy()
+        return np.array(self._sp)
+
+    @property
+    def accel(self) -> np.ndarray:
+        """The vehicle's acceleration from thrust (world, without gravity)."""
+        return np.array(self._acc)
+
+    @property
+    def demand(self) -> np.ndarray:
+        """The demanded acceleration, before the attitude and throttle lags."""
+        return np.array(self._demand)
 
     @property
     def lean_rad(self) -> float:
         """Lean angle the current horizontal acceleration needs."""
-        return math.atan2(float(np.linalg.norm(self.accel[:2])), self.g + float(self.accel[2]))
+        ax, ay, az = self._acc
+        return math.atan2(math.hypot(ax, ay), self.g + az)
 
-    def thrust_direction(self) -> np.ndarray:
+    def thrust_direction(self) -> tuple[float, float, float]:
         """Unit vector of the thrust (world): the airframe's body z axis."""
-        v = np.array([self.accel[0], self.accel[1], self.g + self.accel[2]])
-        n = float(np.linalg.norm(v))
-        return v / n if n > 1e-9 else np.array([0.0, 0.0, 1.0])
+        ax, ay, az = self._acc
+        z = self.g + az
+        n = math.sqrt(ax * ax + ay * ay + z * z)
+        return (ax / n, ay / n, z / n) if n > 1e-9 else (0.0, 0.0, 1.0)
 
     def tick(self, position, velocity, dt: float, touching: bool = False,
-             disturbance=None) -> np.ndarray:
+             disturbance=None) -> tuple[float, float, float]:
         """Advance dt; return the world acceleration the thrust gives (without gravity; idle when landed).
 
         `touching`: the airframe is in contact with something (the land detector's evidence, as
@@ -216,46 +234,53 @@ class GuidedVelocityModel:
         (the world's turbulence)."""
         c = self.cfg
         self.time += dt
-        while self._queue and self._queue[0][0] <= self.time + 1e-12:
-            self._setpoint = self._queue.popleft()[1]
+        q = self._queue
+        while q and q[0][0] <= self.time + 1e-12:
+            self._sp = q.popleft()[1]
         if self.landed:
-            self.accel = np.array([0.0, 0.0, (c.idle_thrust_fraction - 1.0) * self.g])
-            self.demand = self.accel.copy()
-            return self.accel.copy()
-        pos = np.asarray(position, dtype=float)
-        vel = np.asarray(velocity, dtype=float)
-        self._xy.update(self._setpoint[:2], c.accel_xy_mps2, c.jerk_xy_mps3, dt)
-        self._z.update(self._setpoint[2:], c.accel_z_mps2, c.jerk_z_mps3, dt)
+            self._acc = self._demand = (0.0, 0.0, (c.idle_thrust_fraction - 1.0) * self.g)
+            return self._acc
+        px, py, pz = position[0], position[1], position[2]
+        vx, vy, vz = velocity[0], velocity[1], velocity[2]
+        sx, sy, sz = self._sp
+        xy, zz = self._xy, self._z
+        xy.update(sx, sy, c.accel_xy_mps2, c.jerk_xy_mps3, dt)
+        zz.update(sz, 0.0, c.accel_z_mps2, c.jerk_z_mps3, dt)
         if not c.path_hold:
-            self._xy.pos, self._z.pos = pos[:2].copy(), pos[2:].copy()
-        dist = np.zeros(3) if disturbance is None else np.asarray(disturbance, dtype=float)
-        corr_xy = _sqrt_vec(self._xy.pos - pos[:2], c.pos_xy_p, c.accel_xy_mps2, dt)
-        corr_z = _sqrt_vec(self._z.pos - pos[2:], c.pos_z_p, c.accel_z_mps2, dt)
-        d_xy = self._xy.acc + c.vel_xy_p * (self._xy.vel + corr_xy + dist[:2] - vel[:2])
-        d_xy = _limit(d_xy, self.g * math.tan(math.radians(c.lean_max_deg)))
-        d_z = self._z.acc + c.vel_z_p * (self._z.vel + corr_z + dist[2:] - vel[2:])
-        d_z = np.clip(d_z, -self.g, None)           # no negative thrust
-        self.demand = np.concatenate([d_xy, d_z])
-        a_xy = self.accel[:2] + (1.0 - math.exp(-dt / c.attitude_tc_s)) * (d_xy - self.accel[:2])
-        a_z = self.accel[2:] + (1.0 - math.exp(-dt / c.throttle_tc_s)) * (d_z - self.accel[2:])
-        self.accel = np.concatenate([a_xy, a_z])
-        self._detect_landing(vel, touching, dt)
-        return self.accel.copy()
+            xy.px, xy.py, zz.px = px, py, pz
+        nx, ny, nz = (0.0, 0.0, 0.0) if disturbance is None else (disturbance[0], disturbance[1], disturbance[2])
+        cx, cy = _sqrt2(xy.px - px, xy.py - py, c.pos_xy_p, c.accel_xy_mps2, dt)
+        cz = sqrt_controller(zz.px - pz, c.pos_z_p, c.accel_z_mps2, dt)
+        dx = xy.ax + c.vel_xy_p * (xy.vx + cx + nx - vx)
+        dy = xy.ay + c.vel_xy_p * (xy.vy + cy + ny - vy)
+        dx, dy = _limit2(dx, dy, self.g * math.tan(math.radians(c.lean_max_deg)))
+        dz = max(zz.ax + c.vel_z_p * (zz.vx + cz + nz - vz), -self.g)     # no negative thrust
+        self._demand = (dx, dy, dz)
+        kxy = 1.0 - math.exp(-dt / c.attitude_tc_s)
+        kz = 1.0 - math.exp(-dt / c.throttle_tc_s)
+        ax, ay, az = self._acc
+        self._acc = (ax + kxy * (dx - ax), ay + kxy * (dy - ay), az + kz * (dz - az))
+        self._detect_landing(vx, vy, vz, touching, dt)
+        return self._acc
 
-    def _detect_landing(self, vel: np.ndarray, touching: bool, dt: float) -> None:
+    def _detect_landing(self, vx: float, vy: float, vz: float, touching: bool, dt: float) -> None:
         c = self.cfg
+        f = self._acc_filtered
         if self._last_vel is not None and dt > 0.0:     # measured acceleration, low-passed at 1 Hz
             k = 1.0 - math.exp(-dt * 2.0 * math.pi * LAND_ACCEL_FILTER_HZ)
-            self._acc_filtered += k * ((vel - self._last_vel) / dt - self._acc_filtered)
-        self._last_vel = vel.copy()
-        descending = self._setpoint[2] < 0.0
+            lx, ly, lz = self._last_vel
+            f[0] += k * ((vx - lx) / dt - f[0])
+            f[1] += k * ((vy - ly) / dt - f[1])
+            f[2] += k * ((vz - lz) / dt - f[2])
+        self._last_vel = (vx, vy, vz)
+        descending = self._sp[2] < 0.0
         self.touched = self.touched or (touching and descending)
         if not self.touched:
             return
-        lean_request = math.atan2(float(np.linalg.norm(self.demand[:2])), self.g)
+        lean_request = math.atan2(math.hypot(self._demand[0], self._demand[1]), self.g)
         quiet = (descending and touching and lean_request < math.radians(c.land_lean_max_deg)
-                 and abs(float(vel[2])) < c.land_vz_max_mps
-                 and float(np.linalg.norm(self._acc_filtered)) < c.land_accel_max_mps2)
+                 and abs(vz) < c.land_vz_max_mps
+                 and math.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2]) < c.land_accel_max_mps2)
         self._land_timer = self._land_timer + dt if quiet else 0.0
         if self._land_timer >= c.land_detect_s:
             self.landed = True
@@ -283,7 +308,7 @@ def simulate(cfg: ArduCopterConfig, t: np.ndarray, setpoints: np.ndarray, veloci
         model.command(sp[i - 1])
         h = (t[i] - t[i - 1]) / substeps
         for _ in range(substeps):
-            a = model.tick(pos, vel, h)
+            a = np.array(model.tick(pos, vel, h))
             pos = pos + vel * h + 0.5 * a * h * h
             vel = vel + a * h
         out_v[i], out_p[i] = vel, pos
