@@ -29,6 +29,7 @@ setup(
             'sim_node = assist_sim.entry_points:sim_node',
             'sim_pilot_node = assist_sim.entry_points:sim_pilot_node',
             'sitl_identify = assist_sim.entry_points:sitl_identify',
+            'fit_guided = assist_sim.entry_points:fit_guided',
         ],
     },
 )

@@ -5,3 +5,4 @@ from assist_common.console import TOOL_INTERRUPTED, quiet_main
 sim_node = quiet_main('assist_sim.sim_node')
 sim_pilot_node = quiet_main('assist_sim.sim_pilot_node')
 sitl_identify = quiet_main('assist_sim.sitl_identify', TOOL_INTERRUPTED)
+fit_guided = quiet_main('assist_sim.guided_fit', TOOL_INTERRUPTED)
