@@ -38,6 +38,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from assist_sim.core.arducopter import randomised
 from assist_sim.core.config import WorldConfig
 from assist_common.frames import quat_to_matrix
 from assist_sim.core.world import LandingWorld
@@ -93,6 +94,10 @@ class EnvConfig:
     encoder_path: str = ''                           # CM-VAE weights (latent condition)
     pilot_family: str = 'paper'                      # assist_sim.pilots name: a family, 'mix' or 'train_mix'
     paper_share: float = 0.0                         # chance per landing of the paper pilot instead (training)
+    # plant randomisation (training): chance per landing of the ArduCopter plant (else the world's own), its
+    # dynamics scaled by uniform factors in [1 - spread, 1 + spread] (assist_sim.core.arducopter.randomised)
+    arducopter_share: float = 0.0
+    arducopter_spread: float = 0.0
     safety: SafetyConfig | None = None               # floor guard on the blended command (None: off)
     override: OverrideConfig | None = None           # pilot override on the agent action (None: off)
     recall: RecallConfig | None = None               # pad recall on the agent action (None: off)
@@ -196,6 +201,7 @@ class LandingAssistEnv(gym.Env):
                                 np.random.default_rng(int(rng.integers(2**31))), pads=self.world.pad_top_centers)
         self.pilot.reset(self.world.goal_position, st.position)
         noise_seed = int(rng.integers(2**31))      # drawn after the scene and pilot: they are unchanged by it
+        plant = self._draw_plant(rng)               # drawn last: runs without it keep their landings
         latent_reset = getattr(self.latent_fn, 'reset', None)
         if latent_reset is not None:
             latent_reset(noise_seed)             # the camera noise of this landing depends on its seed only
@@ -209,7 +215,20 @@ class LandingAssistEnv(gym.Env):
         self.episode_return = 0.0
         return self._obs(), {'alpha': self.pilot.alpha, 'beta': beta, 'scene_seed': scene_seed,
                              'goal_index': self.world.goal_index, 'aimed_index': self.aimed_index(),
-                             'pilot': self.pilot.name, 'pilot_params': dict(self.pilot.params)}
+                             'pilot': self.pilot.name, 'pilot_params': dict(self.pilot.params), 'plant': plant}
+
+    def _draw_plant(self, rng: np.random.Generator) -> str:
+        """This landing's plant: the world's own unless `arducopter_share` draws the (randomised) ArduCopter one."""
+        if self.cfg.arducopter_share <= 0.0:
+            return 'arducopter' if self.world.flight_controller is not None else 'ideal'
+        if rng.uniform() >= self.cfg.arducopter_share:
+            self.world.set_flight_controller(self.cfg.world.flight_controller)
+            return self.cfg.world.flight_controller
+        cfg = self.cfg.world.arducopter
+        if self.cfg.arducopter_spread > 0.0:
+            cfg = randomised(cfg, rng, self.cfg.arducopter_spread)
+        self.world.set_flight_controller('arducopter', cfg)
+        return 'arducopter'
 
     def aimed_index(self) -> int:
         """Pad nearest (horizontally) to the pilot's current goal estimate: the pad it is heading for."""

@@ -120,6 +120,8 @@ class TrainArgs:
     floor_descent_weight: float = setting(0.0, ge=0.0, le=1e6)
     feature_lags_s: tuple[float, ...] = setting((), gt=0.0, le=MAX_FEATURE_LAG_S, max_len=MAX_FEATURE_LAGS)
     memory_displacement: bool = False
+    arducopter_share: float = setting(0.0, ge=0.0, le=1.0)
+    arducopter_spread: float = setting(0.0, ge=0.0, lt=1.0)
     workers: int = setting(1, ge=0, le=1024)
     ray: str = ''
 
@@ -203,6 +205,10 @@ HELP = {
                'assist_policy.collect',
     'ray': 'run the env workers as actors on a Ray cluster at this address (ray://HOST:10001 or HOST:6379; auto: '
            'a local instance) instead of local processes; needs the optional ray package',
+    'arducopter_share': 'share of the landings (drawn per landing) flown on the ArduCopter GUIDED plant '
+                        '(assist_sim.core.arducopter) instead of the ideal velocity loop',
+    'arducopter_spread': 'on those landings, scale each of the ArduCopter model\'s dynamic settings by a uniform '
+                         'factor in [1 - spread, 1 + spread] (0.3: +-30 %%)',
     'safety': 'fly with the floor guard (assist_policy.safety) on, as policy_node does by default',
     'override': 'fly with the pilot override (assist_policy.override) on, as policy_node does by default; '
                 'TD3 transitions store the actor\'s action, so while the override acts the critic sees it as '
@@ -225,6 +231,7 @@ def env_config_from(args: TrainArgs) -> EnvConfig:
     return EnvConfig(condition=args.condition, alpha=args.alpha, max_episode_s=args.max_episode_s,
                      encoder_path=args.encoder_path, pilot_family=args.pilot, paper_share=args.paper_share,
                      feature_lags_s=tuple(args.feature_lags_s), memory_displacement=bool(args.memory_displacement),
+                     arducopter_share=float(args.arducopter_share), arducopter_spread=float(args.arducopter_spread),
                      safety=SafetyConfig() if args.safety else None,
                      override=OverrideConfig() if args.override else None,
                      reward=RewardConfig(landing_weight=args.landing_weight,

@@ -136,13 +136,7 @@ class LandingWorld:
         self._fc: GuidedVelocityModel | None = None
         self._touchdown: TouchdownEnvelope | None = None
         if self.cfg.flight_controller == 'arducopter':
-            self._fc = GuidedVelocityModel(self.cfg.arducopter, self.cfg.gravity_mps2)
-            try:
-                check_settings(self.cfg.touchdown)
-            except (SettingsError, ValueError) as exc:
-                flag_name, _, why = str(exc).partition(' ')
-                raise ValueError(f"touchdown.{flag_name.removeprefix('--').replace('-', '_')} {why}") from None
-            self._touchdown = TouchdownEnvelope(self.cfg.touchdown)
+            self._fc, self._touchdown = self._arducopter(self.cfg.arducopter)
         self._gui = bool(gui)
         with quiet_output(stderr=not gui):  # ... and `argv[0]=` on every connect (GUI: keep X errors)
             self._bc = BulletClient(p.GUI if gui else p.DIRECT)
@@ -359,6 +353,28 @@ class LandingWorld:
     def touchdown(self) -> TouchdownEnvelope | None:
         """The touchdown envelope the ArduCopter plant's setpoints pass through (None on the ideal plant)."""
         return self._touchdown
+
+    def _arducopter(self, cfg) -> tuple[GuidedVelocityModel, TouchdownEnvelope]:
+        """The ArduCopter plant's model and envelope (ValueError naming a setting out of range)."""
+        model = GuidedVelocityModel(cfg, self.cfg.gravity_mps2)
+        try:
+            check_settings(self.cfg.touchdown)
+        except (SettingsError, ValueError) as exc:
+            flag_name, _, why = str(exc).partition(' ')
+            raise ValueError(f"touchdown.{flag_name.removeprefix('--').replace('-', '_')} {why}") from None
+        return model, TouchdownEnvelope(self.cfg.touchdown)
+
+    def set_flight_controller(self, name: str, arducopter=None) -> None:
+        """Fly the rest of this episode on another plant ('ideal' or 'arducopter' with these `ArduCopterConfig`
+        settings, default the world config's), starting from the current state (training draws it per landing)."""
+        if name not in FLIGHT_CONTROLLERS:
+            raise ValueError(f'flight_controller must be one of {FLIGHT_CONTROLLERS}, got {name!r}')
+        if name == 'ideal':
+            self._fc = self._touchdown = None
+            return
+        self._fc, self._touchdown = self._arducopter(arducopter if arducopter is not None else self.cfg.arducopter)
+        st = self.state
+        self._fc.reset(st.position, st.velocity, landed=not self._armed)
 
     def takeoff(self) -> None:
         """ArduCopter plant: leave its landed state (a take-off command); nothing on the ideal plant."""
