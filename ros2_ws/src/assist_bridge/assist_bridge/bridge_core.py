@@ -25,6 +25,11 @@ What it does, as ArduCopter needs it:
 - arm / disarm / takeoff / land / set_mode as COMMAND_LONG, waiting for the honest COMMAND_ACK;
 - the vehicle's landed state (EXTENDED_SYS_STATE) handed on at every report (changes logged)
   (`on_landed_state`); a value outside MAV_LANDED_STATE is refused and counted;
+- touchdown envelope (assist_common.touchdown): the latest downward range from DISTANCE_SENSOR
+  (orientation PITCH_270, within the sensor's own min/max, younger than `range_timeout_s`; anything
+  else is an unknown range) goes with every velocity setpoint through TouchdownEnvelope, which turns a
+  descent below `engage_range_m` into a vertical descent so ArduCopter's land detector declares the
+  landing; it is reset when the vehicle disarms or takes off again after reporting ON_GROUND;
 - nothing handed to it can end the link: a message that cannot be packed (a value that does not fit
   its field) or written is not sent, counted (`tx_errors`) and logged, throttled; every configured
   value is range-checked on creation (`setting(...)` rules, assist_common.settings).
@@ -53,6 +58,7 @@ from assist_common.mavlink_io import (COPTER_MODE_NAMES, COPTER_MODES, FORCE_ARM
 
 from assist_common import frames
 from assist_common.settings import SettingsError, check_settings, flag, setting
+from assist_common.touchdown import TouchdownConfig, TouchdownEnvelope
 
 _LOG = logging.getLogger(__name__)
 mavlink = mavutil.mavlink
@@ -74,6 +80,8 @@ LANDED_STATES = {k: v.name.replace('MAV_LANDED_STATE_', '') for k, v in mavlink.
                  if not v.name.endswith('_ENUM_END')}
 # what packing or writing a message can raise: a value that does not fit its field, a dead serial port
 SEND_ERRORS = (struct_error, OverflowError, ValueError, TypeError, OSError)
+# DISTANCE_SENSOR.orientation of a rangefinder looking straight down (RNGFNDn_ORIENT 25)
+RANGE_DOWN = mavlink.MAV_SENSOR_ROTATION_PITCH_270
 LIMIT_FIELDS = ('velocity_scale', 'max_speed_x_mps', 'max_speed_y_mps', 'max_climb_mps', 'max_descent_mps',
                 'max_speed_mps')
 
@@ -131,6 +139,8 @@ class BridgeConfig:
     heartbeat_rate_hz: float = setting(1.0, ge=0.2, le=10.0)    # our own HEARTBEAT
     odom_rate_hz: float = setting(30.0, ge=1.0, le=200.0)       # LOCAL_POSITION_NED + ATTITUDE requested at this rate
     status_rate_hz: float = setting(2.0, ge=0.1, le=50.0)       # EXTENDED_SYS_STATE, SYS_STATUS
+    range_rate_hz: float = setting(20.0, ge=1.0, le=50.0)       # DISTANCE_SENSOR (downward range) requested
+    range_timeout_s: float = setting(0.5, gt=0.0, le=5.0)       # an older downward range counts as unknown
     stream_request_period_s: float = setting(5.0, ge=0.5, le=600.0)   # re-ask for streams while no position
     ack_timeout_s: float = setting(3.0, ge=0.1, le=60.0)
     takeoff_altitude_m: float = setting(2.0, gt=0.0, le=100.0)
@@ -181,6 +191,17 @@ def limit_velocity(v_flu: Sequence[float], cfg: BridgeConfig) -> np.ndarray:
     if n > cfg.max_speed_mps:
         v *= cfg.max_speed_mps / n
     return v
+
+
+def downward_range_m(distance_m: float, min_m: float, max_m: float, orientation: int) -> float | None:
+    """The downward range a rangefinder reading gives: None (unknown) unless the sensor faces down and the
+    reading is finite and within the sensor's own [min, max]."""
+    values = (distance_m, min_m, max_m)
+    if int(orientation) != RANGE_DOWN or not all(math.isfinite(v) for v in values):
+        return None
+    if not min_m <= distance_m <= max_m:
+        return None
+    return float(distance_m)
 
 
 def velocity_setpoint(v_flu: Sequence[float], yaw_enu: float) -> dict:
@@ -240,11 +261,17 @@ class MavlinkBridge:
                  on_odometry: Callable[[Odometry], None] | None = None,
                  on_statustext: Callable[[int, str], None] | None = None,
                  on_link: Callable[[bool, str], None] | None = None,
-                 on_landed_state: Callable[[int], None] | None = None):
+                 on_landed_state: Callable[[int], None] | None = None,
+                 touchdown: TouchdownConfig | None = None):
         """`on_landed_state(state)` is called from the receive thread with every MAV_LANDED_STATE the vehicle
         reports (at status_rate_hz: a consumer can tell a current state from one a lost link left behind); the
-        other callbacks likewise with odometry, STATUSTEXT and link changes."""
+        other callbacks likewise with odometry, STATUSTEXT and link changes. `touchdown` configures the
+        envelope every setpoint passes through (default TouchdownConfig(); range-checked here)."""
         self.cfg = cfg
+        touchdown = TouchdownConfig() if touchdown is None else touchdown
+        check_config(touchdown)
+        self.touchdown = TouchdownEnvelope(touchdown)
+        self._range: tuple[float, float] | None = None     # (downward range m, receive time) of the latest reading
         self._clock = clock
         self._on_odometry = on_odometry
         self._on_statustext = on_statustext
@@ -272,6 +299,7 @@ class MavlinkBridge:
         self.status = VehicleStatus()
         self.peer: VehiclePeer | None = None
         self.counters: collections.Counter[str] = collections.Counter()
+        self.counters['touchdown_engaged'] = 0     # on /diagnostics from the start
         self.statustexts: collections.deque[tuple[float, int, str]] = collections.deque(maxlen=50)
         self._throttled = ThrottledLog(_LOG, cfg.error_log_period_s, clock)
         self._cmd = np.zeros(3)
@@ -460,6 +488,7 @@ class MavlinkBridge:
                 if was_armed and not st.armed:
                     self._hold_yaw_enu = None
                     self._takeoff_until_alt = None
+                    self.touchdown.reset()          # the next flight starts a new descent
                 came_up = not st.link_up
                 st.link_up = True
                 self._hb_mode, self._hb_armed = st.mode, st.armed
@@ -498,12 +527,18 @@ class MavlinkBridge:
                 self.counters['rx_bad_landed_state'] += 1
                 raise ValueError(f'landed_state {state} is not a MAV_LANDED_STATE (0-{max(LANDED_STATES)})')
             with self._lock:
-                changed = state != self.status.landed_state
+                previous = self.status.landed_state
+                changed = state != previous
                 self.status.landed_state = state
+                if previous == mavlink.MAV_LANDED_STATE_ON_GROUND and state in (
+                        mavlink.MAV_LANDED_STATE_TAKEOFF, mavlink.MAV_LANDED_STATE_IN_AIR):
+                    self.touchdown.reset()          # landed, then took off: a new flight
             if changed:
                 _LOG.info('vehicle landed state %s', LANDED_STATES[state])
             if self._on_landed_state is not None:       # every report: its arrival says the state is current
                 self._on_landed_state(state)
+        elif mtype == 'DISTANCE_SENSOR':
+            self._on_distance_sensor(msg, now)
         elif mtype == 'COMMAND_ACK':
             with self._ack_cond:
                 self._acks[int(msg.command)] = (int(msg.result), now)
@@ -516,6 +551,43 @@ class MavlinkBridge:
                 self.statustexts.append((now, int(msg.severity), text))
             if self._on_statustext is not None:
                 self._on_statustext(int(msg.severity), text)
+
+    def _on_distance_sensor(self, msg, now: float) -> None:
+        """Keep the latest downward range (cm on the wire); a reading outside the sensor's own limits makes
+        the range unknown, a sensor that does not face down is ignored (both counted)."""
+        if int(msg.orientation) != RANGE_DOWN:
+            self.counters['range_not_down'] += 1
+            return
+        rng = downward_range_m(msg.current_distance * 0.01, msg.min_distance * 0.01, msg.max_distance * 0.01,
+                               msg.orientation)
+        with self._lock:
+            if rng is None:
+                self.counters['range_out_of_limits'] += 1
+                self._range = None
+            else:
+                self.counters['range_received'] += 1
+                self._range = (rng, now)
+
+    def downward_range(self, now: float | None = None) -> float | None:
+        """The latest downward range (m), or None when unknown (none, invalid, or older than range_timeout_s)."""
+        now = self._clock() if now is None else now
+        with self._lock:
+            if self._range is None or now - self._range[1] > self.cfg.range_timeout_s:
+                return None
+            return self._range[0]
+
+    def _touchdown_locked(self, v: np.ndarray, now: float) -> np.ndarray:
+        """`v` (body FLU, z up) through the touchdown envelope at the current downward range."""
+        rng = self.downward_range(now)
+        before = self.touchdown.engagements
+        out = self.touchdown.apply(v, rng)
+        if self.touchdown.engagements != before:
+            self.counters['touchdown_engaged'] += 1
+            _LOG.info('touchdown: range %.2f m, command (%.2f, %.2f, %.2f) m/s -> vertical descent at %.2f m/s',
+                      rng, v[0], v[1], v[2], self.touchdown.cfg.descent_mps)
+        if self.touchdown.engaged:      # the descent clamp still holds
+            out[2] = max(float(out[2]), -self.cfg.max_descent_mps)
+        return out
 
     def _odometry_locked(self) -> Odometry:
         st = self.status
@@ -596,7 +668,8 @@ class MavlinkBridge:
         for mid, hz in ((mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, c.odom_rate_hz),
                         (mavlink.MAVLINK_MSG_ID_ATTITUDE, c.odom_rate_hz),
                         (mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, c.status_rate_hz),
-                        (mavlink.MAVLINK_MSG_ID_SYS_STATUS, c.status_rate_hz)):
+                        (mavlink.MAVLINK_MSG_ID_SYS_STATUS, c.status_rate_hz),
+                        (mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR, c.range_rate_hz)):
             self._send('command_long_send', ts, tc, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, float(mid), 1e6 / hz,
                        0, 0, 0, 0, 0)
         self.counters['stream_requests'] += 1
@@ -675,14 +748,16 @@ class MavlinkBridge:
             return
         self._next_lost_setpoint = now + 1.0 / self.cfg.link_lost_setpoint_rate_hz
         ts, tc = self._target()
+        v = self._touchdown_locked(np.zeros(3), now)     # the range is stale by now: zero, in practice
         if self._hold_yaw_enu is not None or st.attitude is not None:
             yaw_enu = self._hold_yaw_enu if self._hold_yaw_enu is not None else frames.yaw_ned_to_enu(st.attitude[2])
-            sp = velocity_setpoint(np.zeros(3), yaw_enu)
-        else:
+            sp = velocity_setpoint(v, yaw_enu)
+        else:       # no heading known: rotation-free, so only a vertical part can be sent as is
             sp = dict(coordinate_frame=mavlink.MAV_FRAME_LOCAL_NED, type_mask=TYPE_MASK_VELOCITY_YAW_RATE,
-                      vx=0.0, vy=0.0, vz=0.0, yaw=0.0)
+                      vx=0.0, vy=0.0, vz=float(-v[2]), yaw=0.0)
         if not self._send('set_position_target_local_ned_send', self.time_boot_ms(), ts, tc, sp['coordinate_frame'],
-                          sp['type_mask'], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, sp['yaw'], 0.0):
+                          sp['type_mask'], 0.0, 0.0, 0.0, sp['vx'], sp['vy'], sp['vz'], 0.0, 0.0, 0.0, sp['yaw'],
+                          0.0):
             return
         self.last_setpoint = sp
         self._sent_velocity = np.zeros(3)
@@ -724,7 +799,7 @@ class MavlinkBridge:
             self._hold_yaw_enu = frames.yaw_ned_to_enu(st.attitude[2])
             _LOG.info('holding heading %.1f deg (NED) while flying velocity setpoints',
                       math.degrees(frames.yaw_enu_to_ned(self._hold_yaw_enu)))
-        sp = velocity_setpoint(v, self._hold_yaw_enu)
+        sp = velocity_setpoint(self._touchdown_locked(v, now), self._hold_yaw_enu)
         ts, tc = self._target()
         if not self._send('set_position_target_local_ned_send', self.time_boot_ms(), ts, tc, sp['coordinate_frame'],
                           sp['type_mask'], 0.0, 0.0, 0.0, sp['vx'], sp['vy'], sp['vz'], 0.0, 0.0, 0.0, sp['yaw'], 0.0):
@@ -901,7 +976,9 @@ class MavlinkBridge:
                         taking_off=self._takeoff_until_alt is not None,
                         command_live=self._cmd_time is not None
                         and self._clock() - self._cmd_time <= self.cfg.command_timeout_s,
-                        vehicle=peer.describe() if peer else 'none', signing=self.signing)
+                        vehicle=peer.describe() if peer else 'none', signing=self.signing,
+                        touchdown=('engaged' if self.touchdown.engaged else 'idle') if self.touchdown.cfg.enabled
+                        else 'off', range_m='unknown' if (rng := self.downward_range()) is None else round(rng, 3))
 
     def wait_heartbeat(self, timeout: float) -> bool:
         """Block until the autopilot's heartbeat is seen (receive thread must run) or timeout."""

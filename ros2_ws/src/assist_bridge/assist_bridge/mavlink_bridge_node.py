@@ -17,7 +17,8 @@ at once with success=false ('busy'), so every request gets an answer.
 No message ends the node: every timer and subscription callback that packs or sends MAVLink runs
 guarded (an exception is counted as `callback_errors` and logged, throttled), and the core counts a
 message it cannot pack as `tx_errors` instead of raising. Parameter defaults and ranges come from
-the core's config dataclasses (BridgeConfig, VisionConfig, EkfOrigin), checked at start-up.
+the core's config dataclasses (BridgeConfig, VisionConfig, EkfOrigin, and assist_common's TouchdownConfig
+as the `touchdown_*` parameters), checked at start-up.
 """
 from __future__ import annotations
 
@@ -46,8 +47,9 @@ from assist_common.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Dia
                                       declare_parameters, exit_process, forward_logging, run_node, stamp_to_sec,
                                       twist_to_array)
 from assist_common.settings import RULE_KEY
+from assist_common.touchdown import TouchdownConfig
 
-from .bridge_core import LIMIT_FIELDS, BridgeConfig, EkfOrigin, MavlinkBridge, Odometry as CoreOdometry
+from .bridge_core import LIMIT_FIELDS, BridgeConfig, EkfOrigin, MavlinkBridge, Odometry as CoreOdometry, check_config
 from .vision import VisionConfig, VisionForwarder
 
 _LOG = logging.getLogger(__name__)
@@ -63,6 +65,8 @@ VISION_PARAMS = {'rate_hz': 'vision_rate_hz', 'max_age_s': 'vision_max_age_s', '
                  'reset_jump_m': 'vision_reset_jump_m', 'max_jump_m': 'vision_max_jump_m',
                  'reset_confirm_poses': 'vision_reset_confirm_poses', 'max_position_m': 'vision_max_position_m',
                  'max_pose_rate_hz': 'vision_max_pose_rate_hz'}
+# TouchdownConfig field -> node parameter
+TOUCHDOWN_PARAMS = {f.name: f'touchdown_{f.name}' for f in dataclasses.fields(TouchdownConfig)}
 
 
 def config_param(cls: type, field_name: str, description: str, dynamic: bool = False) -> Param:
@@ -83,6 +87,10 @@ def _bridge(name: str, description: str, dynamic: bool = False) -> Param:
 
 def _vision(name: str, description: str) -> Param:
     return config_param(VisionConfig, name, description)
+
+
+def _touchdown(name: str, description: str) -> Param:
+    return config_param(TouchdownConfig, name, description)
 
 
 _ORIGIN_RULES = {f.name: f.metadata[RULE_KEY] for f in dataclasses.fields(EkfOrigin)}
@@ -129,6 +137,25 @@ PARAMS = {
                             'stand-in sends at most one per 20 Hz physics step).'),
     'status_rate_hz': _bridge('status_rate_hz', 'Rate requested for EXTENDED_SYS_STATE (drives /uav/landed_state) and '
                               'SYS_STATUS.'),
+    'range_rate_hz': _bridge('range_rate_hz', 'Rate requested for DISTANCE_SENSOR: the downward rangefinder '
+                             '(RNGFNDn_ORIENT 25) the touchdown envelope uses.'),
+    'range_timeout_s': _bridge('range_timeout_s', 'A downward range older than this counts as unknown (so do readings '
+                               "outside the sensor's own min/max and sensors not facing down): the touchdown envelope "
+                               'then lets the command through.'),
+    'touchdown_enabled': _touchdown('enabled', 'Touchdown envelope on every velocity setpoint: once the downward range '
+                                    'is below touchdown_engage_range_m and the command descends, the vehicle descends '
+                                    'vertically at touchdown_descent_mps, so ArduCopter detects the landing instead of '
+                                    'sliding on the pad top.'),
+    'touchdown_engage_range_m': _touchdown('engage_range_m', 'Downward range (base_link to the surface below, m) '
+                                           'under which a descending command becomes a vertical descent.'),
+    'touchdown_release_range_m': _touchdown('release_range_m', 'Downward range (m) above which the envelope lets go '
+                                            'again (must exceed touchdown_engage_range_m).'),
+    'touchdown_descent_mps': _touchdown('descent_mps', 'Vertical descent speed while the envelope holds the descent '
+                                        '(m/s; max_descent_mps still clamps it).'),
+    'touchdown_engage_descent_mps': _touchdown('engage_descent_mps', 'A command descending faster than this (m/s) '
+                                               'engages the envelope.'),
+    'touchdown_abort_climb_mps': _touchdown('abort_climb_mps', 'A command climbing faster than this (m/s) releases '
+                                            'the envelope (the pilot takes the vehicle back up).'),
     'takeoff_altitude_m': _bridge('takeoff_altitude_m', 'Altitude above the ground for /uav/takeoff (m).'),
     'ack_timeout_s': _bridge('ack_timeout_s', 'How long a service waits for the COMMAND_ACK.'),
     'allow_force_disarm': _bridge('allow_force_disarm', 'Let /uav/force_disarm disarm even when the autopilot thinks '
@@ -193,6 +220,11 @@ class MavlinkBridgeNode(Node):
             self.ekf_origin = EkfOrigin.from_list(self.p['ekf_origin'])
         except (ValueError, TypeError) as exc:
             raise StartupError(f"mavlink_bridge_node: parameter 'ekf_origin' {exc}") from exc
+        try:
+            touchdown_cfg = TouchdownConfig(**{f: self.p[name] for f, name in TOUCHDOWN_PARAMS.items()})
+            check_config(touchdown_cfg)
+        except (ValueError, TypeError) as exc:
+            raise StartupError(f'mavlink_bridge_node: bad parameter: touchdown_{exc}') from exc
         vision_cfg = None
         if self.p['mocap_topic']:
             try:
@@ -204,7 +236,7 @@ class MavlinkBridgeNode(Node):
         self.pub_landed = self.create_publisher(UInt8, LANDED_STATE_TOPIC, LATCHED_QOS)
         try:
             self.bridge = MavlinkBridge(self.cfg, on_odometry=self._on_odometry, on_statustext=self._on_statustext,
-                                        on_landed_state=self._on_landed_state)
+                                        on_landed_state=self._on_landed_state, touchdown=touchdown_cfg)
         except ValueError as exc:          # signing key file
             raise StartupError(f'mavlink_bridge_node: {exc}') from exc
         except ConnectionError as exc:

@@ -123,7 +123,7 @@ def test_node_parameters_take_default_and_range_from_the_config(cls, names):
         low = rule.gt if rule.gt is not None else rule.ge
         assert (param.min, param.max, param.min_exclusive) == (low, rule.le, rule.gt is not None), field_name
         checked += 1
-    assert checked == (len(names) if names else 19)
+    assert checked == (len(names) if names else 21)
 
 
 # ---------------------------------------------------------------------- landed state

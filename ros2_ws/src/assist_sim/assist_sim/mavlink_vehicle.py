@@ -6,8 +6,10 @@ arming with pre-arm refusal until the EKF has a position estimate, MAV_CMD_NAV_T
 LAND mode with disarm on touchdown, SET_POSITION_TARGET_LOCAL_NED velocity targets (LOCAL_NED and
 BODY_(OFFSET_)NED frames) that expire after GUID_TIMEOUT, WP_YAW_BEHAVIOR (face the direction of
 travel when yaw and yaw rate are left free), COMMAND_ACK with honest results, STATUSTEXT, and the
-telemetry a bridge needs at rates set by MAV_CMD_SET_MESSAGE_INTERVAL or REQUEST_DATA_STREAM,
-and MAVLink 2 signing with a key file (the bridge's format: 32 raw bytes or 64 hex characters).
+telemetry a bridge needs at rates set by MAV_CMD_SET_MESSAGE_INTERVAL or REQUEST_DATA_STREAM
+(DISTANCE_SENSOR: a downward rangefinder reading the world's height_above_surface, as RNGFND1 does in
+our SITL parameter file), and MAVLink 2 signing with a key file (the bridge's format: 32 raw bytes or
+64 hex characters).
 
 Telemetry goes out from `step`, so no message is sent faster than the step rate: sim_node steps at
 its physics control rate (20 Hz), and a request for 30 Hz gets 20 Hz (ArduPilot likewise caps
@@ -70,13 +72,14 @@ TELEMETRY = {
     mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 'LOCAL_POSITION_NED',
     mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 'GLOBAL_POSITION_INT',
     mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 'EXTENDED_SYS_STATE',
+    mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR: 'DISTANCE_SENSOR',
 }
 STREAM_GROUPS = {
     mavlink.MAV_DATA_STREAM_EXTENDED_STATUS: (mavlink.MAVLINK_MSG_ID_SYS_STATUS,),
     mavlink.MAV_DATA_STREAM_POSITION: (mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
                                        mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED),
     mavlink.MAV_DATA_STREAM_EXTRA1: (mavlink.MAVLINK_MSG_ID_ATTITUDE,),
-    mavlink.MAV_DATA_STREAM_EXTRA3: (mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE,),
+    mavlink.MAV_DATA_STREAM_EXTRA3: (mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE, mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR),
 }
 STREAM_GROUPS[mavlink.MAV_DATA_STREAM_ALL] = tuple(m for g in list(STREAM_GROUPS.values()) for m in g)
 
@@ -110,6 +113,8 @@ class MavlinkVehicleConfig:
     home_lon_deg: float = 149.165230
     home_alt_m: float = 584.0
     battery_voltage_v: float = 16.2
+    rangefinder_min_m: float = 0.05          # RNGFND1_MIN / _MAX of the downward rangefinder (DISTANCE_SENSOR)
+    rangefinder_max_m: float = 15.0
     # Streams sent without being asked (message name -> interval s); ArduPilot's default is none.
     default_intervals_s: dict[str, float] = field(default_factory=dict)
     max_messages_per_step: int = 1000        # bound on incoming messages handled per step
@@ -638,5 +643,11 @@ class MavlinkVehicle:
                                          int(rel * 1000), int(v[0] * 100), int(v[1] * 100), int(v[2] * 100), hdg)
         elif mid == mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
             mav.extended_sys_state_send(mavlink.MAV_VTOL_STATE_UNDEFINED, self.landed_state())
+        elif mid == mavlink.MAVLINK_MSG_ID_DISTANCE_SENSOR:
+            # ArduPilot sends what the sensor reads, in cm, with its limits (outside them: out of range)
+            cm = int(round(min(max(float(st.height_above_surface), 0.0), 655.0) * 100.0))
+            mav.distance_sensor_send(tb, int(round(self.cfg.rangefinder_min_m * 100.0)),
+                                     int(round(self.cfg.rangefinder_max_m * 100.0)), cm,
+                                     mavlink.MAV_DISTANCE_SENSOR_LASER, 0, mavlink.MAV_SENSOR_ROTATION_PITCH_270, 255)
         self._count(f'tx_{TELEMETRY[mid]}')
 

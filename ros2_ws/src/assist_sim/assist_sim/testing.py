@@ -90,10 +90,11 @@ class KinematicWorld:
 
     @property
     def state(self) -> SimpleNamespace:
-        """position, velocity (ENU), quaternion (x, y, z, w), angular_velocity, yaw, time."""
+        """position, velocity (ENU), quaternion (x, y, z, w), angular_velocity, yaw, time, height_above_surface."""
         q = np.array([0.0, 0.0, math.sin(self.yaw / 2), math.cos(self.yaw / 2)])
         return SimpleNamespace(position=self.pos.copy(), velocity=self.vel.copy(), quaternion=q,
-                               angular_velocity=np.zeros(3), yaw=self.yaw, time=0.0)
+                               angular_velocity=np.zeros(3), yaw=self.yaw, time=0.0,
+                               height_above_surface=float(self.pos[2]))
 
     def step(self, cmd_flu, dt: float | None = None) -> SimpleNamespace:
         """Fly `cmd_flu` (m/s, body FLU) for `dt` seconds."""
