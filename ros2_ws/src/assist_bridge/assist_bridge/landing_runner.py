@@ -4,20 +4,24 @@ Thin rclpy shell over assist_bridge.landing_runner_core: for each episode announ
 /sim/goal it calls /uav/guided and /uav/arm (retried while the autopilot refuses, e.g. until the
 EKF has re-converged after the sim's teleport), then /uav/takeoff; the pilot (sim_pilot_node or a
 person on teleop_keyboard / the pilot station) and the assistant then fly the landing; on the
-result from /sim/landing it calls /uav/land (LAND disarms on the ground, so the sim starts the next
-episode). Results are logged, optionally written to a CSV, and summarised; with `episodes` > 0 the
-process exits 0 when they are flown (1 if the autopilot never arms).
+result from /sim/landing it waits up to `autopilot_confirm_s` for /uav/landed_state ON_GROUND (the
+autopilot's own landing verdict, recorded as `autopilot_landed`), then calls /uav/land (LAND disarms
+on the ground, so the sim starts the next episode). Results are logged, optionally written to a CSV
+(a file with other columns is refused at start-up, never appended to), and summarised; with
+`episodes` > 0 the process exits 0 when they are flown (1 if the autopilot never arms).
 """
 from __future__ import annotations
 
+import csv
 import json
 import math
 import time
+from pathlib import Path
 
 from geometry_msgs.msg import PointStamped
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from std_msgs.msg import String
+from std_msgs.msg import String, UInt8
 from std_srvs.srv import Trigger
 
 from assist_common.atomic import CsvLog
@@ -25,6 +29,7 @@ from assist_common.ros_common import (LANDING_QOS, LATCHED_QOS, Diagnostics, Par
                                       exit_process, forward_logging, run_node)
 
 from .landing_runner_core import LandingRunnerCore, RunnerConfig, RunnerState
+from .mavlink_bridge_node import LANDED_STATE_TOPIC
 
 PARAMS = {
     'episodes': Param(0, 'Landings to fly; 0: until stopped. The process exits 0 when they are flown.',
@@ -44,11 +49,30 @@ PARAMS = {
     'disarm_timeout_s': Param(20.0, 'No next episode this long after a landing (the autopilot never detected it, '
                                     'e.g. resting on a pad edge): call /uav/force_disarm (the bridge refuses '
                                     'unless its allow_force_disarm is set); 0: never.', min=0.0, max=3600.0),
-    'results_file': Param('', 'CSV file for the landing results (appended; empty: log only).'),
+    'autopilot_confirm_s': Param(RunnerConfig.autopilot_confirm_s, 'After a touchdown result, wait up to this '
+                                 'long for /uav/landed_state ON_GROUND (the autopilot\'s land detector) before '
+                                 'calling /uav/land; recorded as autopilot_landed true/false (empty for a timeout, '
+                                 'a crash in the air, or no landed state heard); 0: do not wait.',
+                                 min=0.0, max=60.0),
+    'results_file': Param('', 'CSV file for the landing results (appended; empty: log only). An existing file '
+                              'with other columns is refused.'),
 }
 _CALL_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 _CSV_FIELDS = ('episode', 'goal_index', 'landed_index', 'error_m', 'success', 'crash', 'outcome', 'reason',
-               'duration_s', 'assisted')
+               'duration_s', 'assisted', 'autopilot_landed')
+
+
+def results_header_problem(path: str | Path, fields: tuple[str, ...] = _CSV_FIELDS) -> str | None:
+    """Why rows with `fields` cannot be appended to the CSV at `path` (its header differs); None if they can."""
+    path = Path(path)
+    if not path.exists() or path.stat().st_size == 0:
+        return None
+    with path.open(newline='', encoding='utf-8') as fh:
+        header = next(csv.reader(fh), [])
+    if tuple(header) == tuple(fields):
+        return None
+    return (f"results_file {str(path)!r} has the columns {','.join(header)}; landing_runner writes "
+            f"{','.join(fields)}: give a new file (nothing was written)")
 
 
 class LandingRunner(Node):
@@ -65,11 +89,15 @@ class LandingRunner(Node):
                                land_after_touchdown=bool(self.p['land_after_touchdown']),
                                reboot_after_s=float(self.p['reboot_after_s']),
                                reboot_after_crash=bool(self.p['reboot_after_crash']),
-                               disarm_timeout_s=float(self.p['disarm_timeout_s']))
+                               disarm_timeout_s=float(self.p['disarm_timeout_s']),
+                               autopilot_confirm_s=float(self.p['autopilot_confirm_s']))
         except ValueError as exc:
             raise StartupError(str(exc)) from exc
         self.core = LandingRunnerCore(cfg)
+        if self.p['results_file'] and (problem := results_header_problem(self.p['results_file'])):
+            raise StartupError(f'landing_runner: {problem}')
         self.csv = CsvLog(self.p['results_file'], list(_CSV_FIELDS)) if self.p['results_file'] else None
+        self._written = 0               # results handed to the CSV so far
         self.diag = Diagnostics(self)
         self.exit_code: int | None = None
         self._future = None
@@ -79,6 +107,7 @@ class LandingRunner(Node):
                     for n in ('guided', 'arm', 'takeoff', 'land', 'reboot', 'force_disarm')}
         self.create_subscription(PointStamped, '/sim/goal', self._on_goal, LATCHED_QOS)
         self.create_subscription(String, '/sim/landing', self._on_landing, LANDING_QOS)
+        self.create_subscription(UInt8, LANDED_STATE_TOPIC, self._on_landed_state, LATCHED_QOS)
         self.create_timer(0.1, self._tick)
         self.get_logger().info(f"landing_runner: {cfg.episodes or 'unlimited'} episodes; waiting for /sim/goal")
 
@@ -100,12 +129,27 @@ class LandingRunner(Node):
             self.get_logger().warning(f'rejected /sim/landing ({exc}): {msg.data[:80]!r}')
             return
         self.core.on_landing(result, time.monotonic())
-        if self.csv is not None:
-            self.csv.write({k: result.get(k, '') for k in _CSV_FIELDS})
-        self.diag.set('landings', str(len(self.core.stats.results)))
+        self._write_results()
+
+    def _on_landed_state(self, msg: UInt8) -> None:
+        self.core.on_landed_state(int(msg.data), time.monotonic())
+        self._write_results()
+
+    def _write_results(self) -> None:
+        """Hand the results recorded since the last call (with the autopilot's verdict) to the CSV."""
+        results = self.core.stats.results
+        for result in results[self._written:]:
+            if self.csv is not None:
+                self.csv.write({k: result.get(k, '') for k in _CSV_FIELDS})
+            if isinstance(result.get('autopilot_landed'), bool):
+                self.diag.count('autopilot_landed' if result['autopilot_landed'] else 'autopilot_not_landed')
+        self._written = len(results)
+        self.diag.set('landings', str(self._written))
 
     def close(self) -> None:
-        """Close the results file (run_node calls this on the way out)."""
+        """Record a result still waiting for its verdict, close the results file (run_node calls this)."""
+        self.core.flush(time.monotonic())
+        self._write_results()
         if self.csv is not None:
             self.csv.close()
 
@@ -132,6 +176,7 @@ class LandingRunner(Node):
                                       throttle_duration_sec=10.0)
             return
         name = self.core.poll(now)
+        self._write_results()           # a verdict that timed out in poll
         if name is not None and not self.uav[name].service_is_ready():
             self.core.on_answer(name, False, f'/uav/{name} not offered by the bridge', now)
         elif name is not None:

@@ -3,9 +3,11 @@
 In MAVLink / ArduPilot-SITL set-ups every landing episode starts landed and disarmed, so somebody
 has to put the vehicle in the air before the pilot (simulated or human) and the assistant can fly
 the landing: GUIDED, arm (retried until the EKF accepts it), take off; then wait for the landing
-judge's result on /sim/landing, and make sure the vehicle is disarmed so the simulator starts the
-next episode (LAND disarms on the ground). `LandingRunnerCore` is that sequence as a state machine
-driven by `poll(now)`; the node (landing_runner.py) turns its requests into /uav/* service calls.
+judge's result on /sim/landing, wait up to `autopilot_confirm_s` for the autopilot's own verdict
+(/uav/landed_state ON_GROUND: ArduCopter's land detector declared the landing) and record it as
+`autopilot_landed`, and make sure the vehicle is disarmed so the simulator starts the next episode
+(LAND disarms on the ground). `LandingRunnerCore` is that sequence as a state machine driven by
+`poll(now)`; the node (landing_runner.py) turns its requests into /uav/* service calls.
 Times are seconds on a steady clock (the arm retries wait for the autopilot, not for sim time).
 """
 from __future__ import annotations
@@ -25,6 +27,7 @@ class RunnerState(enum.Enum):
     ARMING = 'arming'               # GUIDED + arm, retried while the autopilot refuses
     TAKING_OFF = 'taking_off'       # takeoff requested
     FLYING = 'flying'               # the pilot flies; waiting for the landing result
+    CONFIRMING = 'confirming'       # landing result in; waiting for the autopilot's ON_GROUND before LAND
     DONE = 'done'                   # all episodes flown
     FAILED = 'failed'               # the autopilot kept refusing for arm_give_up_s
 
@@ -41,6 +44,7 @@ class RunnerConfig:
     reboot_after_s: float = 120.0     # still refused this long into an episode: reboot the autopilot once; 0: never
     reboot_after_crash: bool = False  # reboot before the episode after a crash (SITL's EKF may not survive one)
     disarm_timeout_s: float = 20.0    # no next episode this long after the landing's LAND: force-disarm; 0: never
+    autopilot_confirm_s: float = 3.0  # after a touchdown result, wait this long for ON_GROUND before LAND; 0: don't
 
     def __post_init__(self) -> None:
         if int(self.episodes) < 0:
@@ -49,10 +53,22 @@ class RunnerConfig:
             v = float(getattr(self, name))
             if not math.isfinite(v) or v <= 0.0:
                 raise ValueError(f'{name} must be finite and > 0, got {v}')
-        for name in ('reboot_after_s', 'disarm_timeout_s'):
+        for name in ('reboot_after_s', 'disarm_timeout_s', 'autopilot_confirm_s'):
             v = float(getattr(self, name))
             if not math.isfinite(v) or v < 0.0:
                 raise ValueError(f'{name} must be finite and >= 0, got {v}')
+
+
+# MAV_LANDED_STATE_ON_GROUND: the autopilot's land detector declared the vehicle landed
+ON_GROUND = 1
+# results with no touchdown for the autopilot to confirm (as the simulator's ArduCopter plant judges them)
+AIR_CRASH_REASONS = ('tipped over', 'fell below the crash height')
+
+
+def touched_down(result: dict) -> bool:
+    """Whether a /sim/landing result is a touchdown the autopilot can confirm (not a timeout or a crash in the air)."""
+    reason = str(result.get('reason') or '')
+    return result.get('outcome') != 'timeout' and reason not in AIR_CRASH_REASONS and not reason.startswith('impact')
 
 
 @dataclass
@@ -71,8 +87,12 @@ class RunnerStats:
         errs = [float(r['error_m']) for r in self.results
                 if isinstance(r.get('error_m'), (int, float)) and math.isfinite(float(r['error_m']))]
         mean = f'{sum(errs) / len(errs):.3f} m' if errs else 'n/a'
-        return (f'{n} landings: success {ok}/{n} ({100.0 * ok / n:.1f} %), crash {crash}/{n} '
+        text = (f'{n} landings: success {ok}/{n} ({100.0 * ok / n:.1f} %), crash {crash}/{n} '
                 f'({100.0 * crash / n:.1f} %), mean error {mean}')
+        verdicts = [r['autopilot_landed'] for r in self.results if isinstance(r.get('autopilot_landed'), bool)]
+        if verdicts:
+            text += f', autopilot landed {sum(verdicts)}/{len(verdicts)}'
+        return text
 
 
 class LandingRunnerCore:
@@ -93,6 +113,9 @@ class LandingRunnerCore:
         self._rebooted = False
         self._reboot_next = False
         self._landed_at: float | None = None
+        self._pending: dict | None = None           # a landing result waiting for the autopilot's verdict
+        self._confirm_until = 0.0
+        self._heard_landed_state = False           # the autopilot reported a landed state during this episode
         self.failure: str | None = None
 
     # inputs -------------------------------------------------------------------------------------
@@ -104,23 +127,54 @@ class LandingRunnerCore:
         self._goal_pending = True
 
     def on_landing(self, result: dict, now: float) -> None:
-        """A landing result from the judge: the episode is over."""
+        """A landing result from the judge: the episode is over once the autopilot's verdict is in.
+
+        A touchdown waits up to autopilot_confirm_s for ON_GROUND (recorded as autopilot_landed true/false)
+        before LAND is requested; a timeout, a crash in the air, autopilot_confirm_s 0 or an autopilot that
+        reported no landed state this episode records '' (no verdict) and goes on at once."""
+        if self._pending is not None:          # a second result before the verdict on the first
+            self._record(self._pending, '', now)
         if self.state not in (RunnerState.FLYING, RunnerState.TAKING_OFF):
             _LOG.warning('landing result while %s (episode %s): recorded anyway', self.state.value,
                          result.get('episode'))
-        self.stats.results.append(result)
         self._reboot_next = self.cfg.reboot_after_crash and bool(result.get('crash'))
-        _LOG.info('landing %d: %s, error %s m (%s)', len(self.stats.results), result.get('outcome'),
-                  _fmt(result.get('error_m')), result.get('reason'))
-        self._queue = ['land'] if self.cfg.land_after_touchdown else []
         self._takeoff_at = None
+        self._goal_pending = False              # the next episode is announced by the next new goal
+        self._queue = []
+        if self.cfg.autopilot_confirm_s > 0 and self._heard_landed_state and touched_down(result):
+            self._pending = dict(result)
+            self._confirm_until = now + self.cfg.autopilot_confirm_s
+            self.state = RunnerState.CONFIRMING
+        else:
+            self._record(result, '', now)
+
+    def on_landed_state(self, state: int, now: float) -> None:
+        """A MAV_LANDED_STATE report from the autopilot (/uav/landed_state, at every report)."""
+        self._heard_landed_state = True
+        if self.state == RunnerState.CONFIRMING and int(state) == ON_GROUND:
+            self._record(self._pending, now <= self._confirm_until, now)   # late (poll not run yet): not in time
+
+    def flush(self, now: float) -> None:
+        """Record a result still waiting for its verdict (the runner stops): autopilot_landed ''."""
+        if self._pending is not None:
+            self._record(self._pending, '', now)
+
+    def _record(self, result: dict, autopilot_landed: bool | str, now: float) -> None:
+        """Keep `result` with the autopilot's verdict, then LAND and the next episode (or done)."""
+        self._pending = None
+        result = dict(result, autopilot_landed=autopilot_landed)
+        self.stats.results.append(result)
+        _LOG.info('landing %d: %s, error %s m (%s), autopilot landed: %s', len(self.stats.results),
+                  result.get('outcome'), _fmt(result.get('error_m')), result.get('reason'),
+                  'n/a' if autopilot_landed == '' else ('yes' if autopilot_landed else
+                                                        f'no ON_GROUND within {self.cfg.autopilot_confirm_s:.1f} s'))
+        self._queue = ['land'] if self.cfg.land_after_touchdown else []
         self._landed_at = now
         if self.cfg.episodes and len(self.stats.results) >= self.cfg.episodes:
             self.state = RunnerState.DONE
             _LOG.info('all %d episodes flown: %s', self.cfg.episodes, self.stats.summary())
         else:
             self.state = RunnerState.WAIT_EPISODE
-            self._goal_pending = False      # the next episode is announced by the next new goal
 
     def on_answer(self, name: str, success: bool, message: str, now: float) -> None:
         """The answer (or a timeout, success False) of the service call `poll` asked for."""
@@ -159,6 +213,8 @@ class LandingRunnerCore:
     # output -------------------------------------------------------------------------------------
     def poll(self, now: float) -> str | None:
         """The /uav/* service to call now (None: nothing to do); one call at a time."""
+        if self.state == RunnerState.CONFIRMING and now >= self._confirm_until:
+            self._record(self._pending, False, now)
         if self._in_flight is not None or self.state == RunnerState.FAILED:
             return None
         if self.state == RunnerState.WAIT_EPISODE and not self._goal_pending and self._landed_at is not None \
@@ -172,6 +228,7 @@ class LandingRunnerCore:
         if self.state == RunnerState.WAIT_EPISODE and self._goal_pending and not self._queue:
             self._goal_pending = False
             self._landed_at = None
+            self._heard_landed_state = False
             self.state = RunnerState.ARMING
             self.episode_started = now
             self._rebooted = self._reboot_next
