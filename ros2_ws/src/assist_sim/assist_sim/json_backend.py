@@ -252,6 +252,14 @@ class JsonSimRunner:
     has disarmed (all motors at minimum PWM) for `reset_delay_s`, by teleporting the airframe and
     rebuilding the scene. A /sim/reset while the motors spin is deferred until they stop. The
     episode clock (duration_s, the judge's max_episode_s) starts at takeoff, when the judge arms.
+
+    Episodes are counted by landings and resets, not by SITL restarts: a landing result (then the
+    automatic reset) or a /sim/reset starts the next episode k + 1, in the scene `cfg.episode_seeds[k + 1]`
+    (past the list's end, or without one, the world's own sequence), while a SITL restart before the
+    landing (a reboot after a crash or a refused arming) starts episode k again, with the same number
+    and, with episode_seeds, the same scene. So an evaluation plan's scenes come in the same order
+    whatever restarts a run needs. A SITL restart while airborne ends the landing as a timeout ('SITL
+    restarted in flight'): the vehicle is back on the ground at the start spot, so it cannot go on.
     """
 
     def __init__(self, world: LandingWorld, cfg: RunnerConfig | None = None,
@@ -273,6 +281,8 @@ class JsonSimRunner:
         self._airborne = False
         self.episodes_finished = 0
         self.commands_rejected = 0
+        self._aborted = None              # the landing a SITL restart in flight ended (reported by step())
+        self._episode_index = -1          # the current episode's number: index into cfg.episode_seeds
 
     # -------------------------------------------------------------- interface shared with SimRunner
     @property
@@ -312,9 +322,16 @@ class JsonSimRunner:
             return self.world.state
         return self._reset_now(seed)
 
-    def _reset_now(self, seed: int | None = None) -> VehicleState:
+    def _reset_now(self, seed: int | None = None, advance: bool = True) -> VehicleState:
+        """Start the next episode (`advance`) or the current one again (a SITL restart before its landing)."""
         x0, y0 = self.json_cfg.start_xy_m
+        if advance or self._episode_index < 0:
+            self._episode_index += 1
+        k = self._episode_index
+        if seed is None and k < len(self.cfg.episode_seeds):
+            seed = int(self.cfg.episode_seeds[k])
         state = self.world.reset(seed, start_position=(x0, y0, 0.0), airborne=False)
+        self.world.episode = k          # not counting SITL restarts (see the class docstring)
         self.model.reset()
         self._agent_seen = False
         self._landed_at = None
@@ -325,7 +342,14 @@ class JsonSimRunner:
         return state
 
     def _on_sitl_restart(self) -> None:
-        self._reset_now()
+        w = self.world
+        if self._airborne and not w.done:        # the landing cannot go on: it ends here, reported by step()
+            w._finish('timeout', None, 'SITL restarted in flight')
+            w.result.assisted = self._agent_seen
+            self._aborted = w.result
+            self.episodes_finished += 1
+            _LOG.warning('episode %d ended: SITL restarted in flight', w.episode)
+        self._reset_now(advance=w.done)           # before its landing: the same episode again
 
     def step(self, fly=None) -> StepOutput:
         """Serve SITL for one control period (or until it is silent for poll_timeout_s)."""
@@ -340,6 +364,8 @@ class JsonSimRunner:
                 break
             if ev == 'restart':          # on_restart already reset the vehicle before this frame
                 new_episode = True
+                if self._aborted is not None:
+                    out_landing, self._aborted = self._aborted, None
             if ev not in ('step', 'restart'):
                 if time.monotonic() >= wall_end:
                     break

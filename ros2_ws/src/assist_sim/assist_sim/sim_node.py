@@ -74,8 +74,10 @@ PARAMS = {
                                     'time).', min=0.0, max=50.0, min_exclusive=True, dynamic=True),
     'turbulence': Param(True, 'Ground-effect turbulence on the target velocity.'),
     'episode_seeds': Param((), 'Scene seed of episode 0, 1, 2, ... in order (every reset, automatic or /sim/reset, '
-                               'starts the next; an evaluation plan, e.g. assist_policy.graph_eval); past its end, or '
-                               'empty, the episodes follow seed.', min=0, max=2**31 - 1, item_type=int),
+                               'starts the next; with physics ardupilot_json episode k is the one after k landing '
+                               'results, so a SITL restart before the landing flies the same scene again; an '
+                               'evaluation plan, e.g. assist_policy.graph_eval); past its end, or empty, the episodes '
+                               'follow seed.', min=0, max=2**31 - 1, item_type=int),
     'scene_seed': Param(-1, 'Scene seed of every episode started from now on (-1: episode_seeds, then seed); a user '
                             'study flies one scene throughout (settable at run time).', min=-1, max=2**31 - 1,
                         dynamic=True),
@@ -137,9 +139,6 @@ class SimNode(Node):
                                '(leave flight_controller ideal)')
         if self.json_mode and self.mavlink:
             raise StartupError('sim_node: physics ardupilot_json and mavlink_url are exclusive (SITL is the vehicle)')
-        if self.json_mode and self.p['episode_seeds']:
-            raise StartupError('sim_node: episode_seeds cannot apply with physics ardupilot_json (its episodes follow '
-                               'seed); leave episode_seeds empty')
         try:
             self.world = LandingWorld(cfg, seed=int(self.p['seed']), gui=bool(self.p['gui']))
         except ValueError as exc:       # e.g. an ArduCopter-model setting of world_config out of range
