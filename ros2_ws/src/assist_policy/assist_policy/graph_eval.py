@@ -32,10 +32,23 @@ keep up with the sim: each landing's policy coverage (control steps the policy r
 warning printed below 90 %; lower --real-time-factor then.
 Children are stopped with SIGINT (SIGKILL after a timeout) on the way out, Ctrl-C and errors included,
 and die with this process (PR_SET_PDEATHSIG) if it is killed.
+
+`--autopilot sitl` flies the landings on real ArduCopter SITL (docs/ardupilot-sitl-json.md): per condition it
+starts `--sitl-binary` (`--model JSON:127.0.0.1 --wipe -I<instance> --speedup <s>`, parameters from
+`--sitl-defaults`: ArduPilot's copter.parm, then assist_sim's ardupilot_json_quad.parm), sim_node as its JSON
+physics (udp 9002 + 10 * instance, `episode_seeds` from the plan: SITL restarts do not shift the scenes),
+mavlink_bridge_node (tcp 5760 + 10 * instance), landing_runner (arms, takes off and lands each landing; its
+results file in nodes/<condition>/ gives the rows' autopilot_landed), the pilot starting each landing at 1.5 m and
+encoder_node with level_camera. `--sitl-connection` flies a SITL already running instead. When SITL dies, goes
+silent or never arms, the condition's graph and SITL are started afresh for the landings still missing
+(`--sitl-restarts` times). SITL sets the pace (`--sitl-speedup`; --real-time-factor is not used):
+
+    evaluate_graph --autopilot sitl --conditions unassisted oracle --betas 0.5 --landings 3 --seed 11
 """
 from __future__ import annotations
 
 import argparse
+import csv
 import dataclasses
 import json
 import logging
@@ -65,6 +78,7 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
 
@@ -92,11 +106,24 @@ POLICY_COUNTERS = {'guard_fraction': 'floor_guard_engaged', 'wall_fraction': 'wa
                    'damper_fraction': 'oscillation_damper_engaged'}
 RULE_PARAMS = {'override': 'pilot_override', 'recall': 'pad_recall', 'damper': 'oscillation_damper'}
 AUTO_DOMAINS = range(200, 233)          # 233+ overflow Fast DDS's default UDP ports
+AUTOPILOTS = ('none', 'sitl')
+# ArduPilot SITL (AP_HAL_SITL/SITL_cmdline.cpp): -I N moves SERIAL0 (tcp 5760) and the JSON physics port (SIM_OUT_PORT
+# 9002, where --model JSON sends its servo frames) up by 10 N each
+SITL_MAVLINK_PORT = 5760
+SITL_JSON_PORT = 9002
+SITL_PORT_STRIDE = 10
+PEERS_SITL_BINARY = Path('/work/peers/ardupilot/build/sitl/bin/arducopter')
+SITL_START_ALTITUDE_M = 1.5             # the pilot starts each landing after landing_runner's takeoff climb
+SITL_RUNNER_RESULTS = 'landing_runner'  # <log_dir>/landing_runner-<start time>.csv: the runner's results
+RUNNER_VERDICT_WAIT_S = 10.0            # landing_runner writes a row after the autopilot's verdict (3 s at most)
 # the sim starts slowly while the other nodes' subscriptions match its publishers and their first inferences
 # warm up (at full speed the first landing lost ~15 % of its policy steps), then runs at --real-time-factor
 WARMUP_RTF = 0.5
 WARMUP_WALL_S = 3.0
 _EVAL = EvalArgs()
+# how a run is carried out, not what it measures: a resumed run may change them
+RUN_ONLY_ARGS = ('out', 'plot', 'domain_id', 'landing_timeout_s', 'startup_timeout_s', 'sitl_binary', 'sitl_defaults',
+                 'sitl_instance', 'sitl_connection', 'sitl_preload', 'sitl_restarts')
 
 
 @dataclass
@@ -126,6 +153,14 @@ class GraphEvalArgs:
     startup_timeout_s: float = setting(180.0, gt=0.0, le=3600.0)
     policy_params: tuple[str, ...] = ()
     flight_controller: str = setting('ideal', choices=FLIGHT_CONTROLLERS)
+    autopilot: str = setting('none', choices=AUTOPILOTS)
+    sitl_binary: str = ''
+    sitl_defaults: tuple[str, ...] = ()
+    sitl_instance: int = setting(0, ge=0, le=50)
+    sitl_speedup: float = setting(1.0, gt=0.0, le=100.0)
+    sitl_connection: str = ''
+    sitl_preload: str = ''
+    sitl_restarts: int = setting(2, ge=0, le=100)
     plot: bool = True
 
 
@@ -154,6 +189,18 @@ HELP = {
     'startup_timeout_s': 'wall seconds the nodes may take to come up',
     'policy_params': 'extra policy_node parameters, name:=value (e.g. floor_guard_wall_radius_m:=0.0); rows keep '
                      'their names, the settings file records them',
+    'autopilot': 'none: the sim flies the commands (--flight-controller); sitl: real ArduCopter SITL flies them '
+                 '(sim_node as its JSON physics, mavlink_bridge_node, landing_runner; --real-time-factor unused)',
+    'sitl_binary': f'arducopter SITL binary started per condition (default {PEERS_SITL_BINARY} if it exists)',
+    'sitl_defaults': 'SITL --defaults parameter files, in order (default: <ardupilot>/Tools/autotest/default_params/'
+                     'copter.parm of the binary\'s checkout, then assist_sim\'s config/ardupilot_json_quad.parm)',
+    'sitl_instance': 'SITL -I instance: MAVLink tcp:127.0.0.1:5760+10*I, JSON physics udp 9002+10*I',
+    'sitl_speedup': 'SITL --speedup (sim seconds per wall second; the graph must keep up: watch the coverage)',
+    'sitl_connection': 'MAVLink address of a SITL already running (started with --model JSON:127.0.0.1 and the '
+                       'instance\'s JSON port); empty: evaluate_graph starts its own, wiped, per condition',
+    'sitl_preload': 'LD_PRELOAD for the SITL process (e.g. a shim that binds its ports to loopback)',
+    'sitl_restarts': 'times a condition\'s graph (its own SITL included) is started afresh for the landings still '
+                     'missing after SITL died, went silent or never armed',
 }
 
 
@@ -215,15 +262,30 @@ class NodeGroup:
                                                   start_new_session=True)
         log.info('started %s (pid %d, domain %d)', executable, self.procs[executable].pid, self.domain_id)
 
+    def start_process(self, name: str, cmd: list[str], cwd: Path, env: dict[str, str] | None = None) -> None:
+        """Start a program that is not a node (SITL) in `cwd`, logged to <log_dir>/<name>.log; stopped with the rest.
+
+        Not in a session of its own and no setpriv: ArduPilot SITL exits by itself once its parent (this process)
+        is gone."""
+        cwd.mkdir(parents=True, exist_ok=True)
+        fh = open(self.log_dir / f'{name}.log', 'a', encoding='utf-8')  # closed in stop()
+        fh.write(f'$ (cd {cwd}) {" ".join(cmd)}\n')
+        fh.flush()
+        self._logs[name] = fh
+        self.procs[name] = subprocess.Popen(cmd, cwd=cwd, env=dict(os.environ, **(env or {})), stdout=fh,
+                                            stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                            process_group=0)
+        log.info('started %s (pid %d)', name, self.procs[name].pid)
+
     def tail(self, executable: str, chars: int = 1500) -> str:
         """The end of a node's log."""
         path = self.log_dir / f'{executable}.log'
         return path.read_text(encoding='utf-8', errors='replace')[-chars:] if path.exists() else ''
 
-    def check(self) -> None:
-        """GraphError if a node has exited."""
+    def check(self, done_ok: tuple[str, ...] = ()) -> None:
+        """GraphError if a node has exited (those in `done_ok` may exit with status 0)."""
         for name, proc in self.procs.items():
-            if proc.poll() is not None:
+            if proc.poll() is not None and not (name in done_ok and proc.returncode == 0):
                 raise GraphError(f'{name} exited with code {proc.returncode}:\n{self.tail(name)}')
 
     def stop(self, timeout_s: float = 10.0) -> None:
@@ -261,7 +323,7 @@ class NodeGroup:
 class Listener:
     """rclpy node in this process: landings, episode starts, scenes, agent commands and diagnostics."""
 
-    def __init__(self, domain_id: int):
+    def __init__(self, domain_id: int, clock: bool = False):
         self.ctx = Context()
         rclpy.init(context=self.ctx, domain_id=domain_id, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
         self.node = Node('graph_eval_listener', context=self.ctx)
@@ -269,6 +331,9 @@ class Listener:
         self.landings: dict[int, dict] = {}
         self.goal_stamps: list[float] = []             # sim time each episode started (/sim/goal stamp)
         self.scenes: list[np.ndarray] = []             # pad top centres of each episode
+        self.scene_stamps: list[float] = []            # sim time of each /sim/scene
+        self.now = 0.0                                 # latest /clock (clock=True)
+        self.landing_stamps: dict[int, float] = {}     # episode -> /clock when its landing came (clock=True)
         self.agent: list[tuple[float, float]] = []     # (sim stamp, |a|) of /assist/agent_cmd
         self.policy_diag: list[tuple[float, dict[str, float]]] = []
         self.pilot_diag: dict[int, dict[str, str]] = {}   # episodes counter -> values (first seen)
@@ -278,6 +343,8 @@ class Listener:
         n.create_subscription(MarkerArray, '/sim/scene', self._on_scene, LATCHED_QOS)
         n.create_subscription(TwistStamped, '/assist/agent_cmd', self._on_agent, RELIABLE_QOS)
         n.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, 100)
+        if clock:   # SITL: episodes start on the ground, so a landing's window is read back from its end
+            n.create_subscription(Clock, '/clock', self._on_clock, 10)
         self.executor = SingleThreadedExecutor(context=self.ctx)
         self.executor.add_node(n)
         self.thread = threading.Thread(target=self._spin, name='graph_eval_listener', daemon=True)
@@ -294,6 +361,11 @@ class Listener:
         data = json.loads(msg.data)
         with self.lock:
             self.landings[int(data['episode'])] = data
+            self.landing_stamps[int(data['episode'])] = self.now
+
+    def _on_clock(self, msg) -> None:
+        with self.lock:
+            self.now = max(self.now, stamp_to_sec(msg.clock))
 
     def _on_goal(self, msg) -> None:
         with self.lock:
@@ -305,6 +377,13 @@ class Listener:
         if tops:
             with self.lock:
                 self.scenes.append(np.array([tops[k] for k in sorted(tops)], dtype=float))
+                self.scene_stamps.append(stamp_to_sec(msg.markers[0].header.stamp))
+
+    def scene_at(self, t: float) -> np.ndarray | None:
+        """Pad top centres of the last /sim/scene stamped at or before sim time t (None: none yet)."""
+        with self.lock:
+            found = [pads for stamp, pads in zip(self.scene_stamps, self.scenes) if stamp <= t + 1e-6]
+        return found[-1] if found else None
 
     def _on_agent(self, msg) -> None:
         a = msg.twist.linear
@@ -402,8 +481,15 @@ def pick_domain_id() -> int:
 
 
 # ----------------------------------------------------------------------------------------- one condition
-def node_params(args: GraphEvalArgs, cond: str, plans: list[LandingPlan], on: dict[str, bool]) -> dict[str, dict]:
-    """Parameters of every node of `cond`'s graph, for these landings in order."""
+def sitl_ports(instance: int) -> tuple[int, int]:
+    """(MAVLink SERIAL0 tcp port, JSON physics udp port) of SITL instance `instance` (its -I)."""
+    return SITL_MAVLINK_PORT + SITL_PORT_STRIDE * instance, SITL_JSON_PORT + SITL_PORT_STRIDE * instance
+
+
+def node_params(args: GraphEvalArgs, cond: str, plans: list[LandingPlan], on: dict[str, bool],
+                runner_results: str = '') -> dict[str, dict]:
+    """Parameters of every node of `cond`'s graph, for these landings in order (`runner_results`: landing_runner's
+    results_file with --autopilot sitl)."""
     nodes = {
         'sim_node': {'seed': int(args.seed), 'real_time_factor': float(args.real_time_factor), 'auto_reset': True,
                      'episode_seeds': [p.scene_seed for p in plans], 'episode_timeout_s': float(args.max_episode_s),
@@ -413,6 +499,18 @@ def node_params(args: GraphEvalArgs, cond: str, plans: list[LandingPlan], on: di
                            'episode_betas': [float(p.beta) for p in plans],
                            'episode_pilots': [p.pilot_family for p in plans]},
     }
+    sitl = args.autopilot == 'sitl'
+    if sitl:
+        # SITL flies the airframe: sim_node is its JSON physics (lock-step, SITL's --speedup sets the pace);
+        # episodes start landed, landing_runner arms / takes off / lands them, the pilot starts after the climb
+        mav_port, json_port = sitl_ports(args.sitl_instance)
+        sim = nodes['sim_node']
+        del sim['real_time_factor'], sim['flight_controller']
+        sim.update(physics='ardupilot_json', json_port=json_port)
+        nodes['mavlink_bridge_node'] = {'use_sim_time': True, 'allow_force_disarm': True,
+                                        'connection': args.sitl_connection or f'tcp:127.0.0.1:{mav_port}'}
+        nodes['landing_runner'] = {'episodes': len(plans), 'reboot_after_crash': True, 'results_file': runner_results}
+        nodes['sim_pilot_node']['start_altitude_m'] = SITL_START_ALTITUDE_M
     if cond == 'unassisted':
         nodes['sim_node']['camera_rate_hz'] = 0.0       # nothing looks at the camera
         return nodes
@@ -424,7 +522,7 @@ def node_params(args: GraphEvalArgs, cond: str, plans: list[LandingPlan], on: di
     nodes['policy_node'] = policy
     if cond == 'latent':
         enc = {'use_sim_time': True, 'depth_noise': bool(args.depth_noise), 'noise_seed': int(plans[0].noise_seed),
-               'level_camera': args.flight_controller != 'ideal'}     # the airframe leans: level, as deployed
+               'level_camera': sitl or args.flight_controller != 'ideal'}     # the airframe leans: level, as deployed
         if args.encoder_path:
             enc['model_path'] = str(Path(args.encoder_path).resolve())
         nodes['encoder_node'] = enc
@@ -442,16 +540,25 @@ def ready_topics(cond: str) -> dict[str, str]:
 
 
 def landing_row(listener: Listener, data: dict, seed: int, plan: LandingPlan, name: str,
-                assisted: bool) -> tuple[dict, float]:
-    """evaluate's row of one landing from its /sim/landing JSON and what the listener saw; (row, policy coverage)."""
+                assisted: bool, sitl: bool = False) -> tuple[dict, float]:
+    """evaluate's row of one landing from its /sim/landing JSON and what the listener saw; (row, policy coverage).
+
+    `sitl`: episodes start on the ground and their clock at takeoff, and SITL restarts publish extra scenes, so the
+    landing's window ends at the /clock its result came with and its scene is the last one before the window."""
     ep = int(data['episode'])
     duration = float(data['duration_s'])
     steps = max(1, round(duration * CONTROL_HZ))
     with listener.lock:
-        t0 = listener.goal_stamps[ep] if ep < len(listener.goal_stamps) else None
-        pads = listener.scenes[ep] if ep < len(listener.scenes) else None
+        if sitl:
+            end = listener.landing_stamps.get(ep)
+            t0 = None if end is None else end - duration
+        else:
+            t0 = listener.goal_stamps[ep] if ep < len(listener.goal_stamps) else None
+            pads = listener.scenes[ep] if ep < len(listener.scenes) else None
         pilot_values = listener.pilot_diag.get(ep + 1, {})
         agent = list(listener.agent) if assisted else []
+    if sitl:
+        pads = None if t0 is None else listener.scene_at(t0)
     active, coverage = 0.0, 1.0
     fractions = {k: 0.0 for k in POLICY_COUNTERS}
     if assisted and t0 is not None:
@@ -479,41 +586,127 @@ def landing_row(listener: Listener, data: dict, seed: int, plan: LandingPlan, na
     return row, coverage
 
 
+def json_quad_parm() -> Path:
+    """assist_sim's ardupilot_json_quad.parm: the installed share/assist_sim/config, else the source checkout's."""
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        installed = Path(get_package_share_directory('assist_sim')) / 'config' / 'ardupilot_json_quad.parm'
+        if installed.is_file():
+            return installed
+    except (ImportError, LookupError, OSError, ValueError):
+        pass                                  # no ament index (editable install): the source checkout
+    import assist_sim
+    return Path(assist_sim.__file__).resolve().parents[1] / 'config' / 'ardupilot_json_quad.parm'
+
+
+def sitl_binary(args: GraphEvalArgs) -> Path:
+    """The SITL binary to start: --sitl-binary, else the peers build; ValueError when there is none."""
+    if args.sitl_binary:
+        path = Path(args.sitl_binary).expanduser()
+        if not (path.is_file() and os.access(path, os.X_OK)):
+            raise ValueError(f'--sitl-binary {args.sitl_binary}: not an executable file')
+        return path.resolve()
+    if PEERS_SITL_BINARY.is_file():
+        return PEERS_SITL_BINARY
+    raise ValueError(f'--autopilot sitl needs --sitl-binary (an arducopter SITL build; {PEERS_SITL_BINARY} is absent) '
+                     'or --sitl-connection of a SITL already running')
+
+
+def sitl_defaults(args: GraphEvalArgs, binary: Path) -> list[Path]:
+    """SITL's --defaults files: --sitl-defaults, else the checkout's copter.parm and ardupilot_json_quad.parm."""
+    files = [Path(f).expanduser() for f in args.sitl_defaults] or [
+        binary.parents[3] / 'Tools' / 'autotest' / 'default_params' / 'copter.parm', json_quad_parm()]
+    for f in files:
+        if not f.is_file():
+            raise ValueError(f'SITL parameter file {f} not found (--sitl-defaults)')
+    return [f.resolve() for f in files]
+
+
+def sitl_command(args: GraphEvalArgs) -> list[str]:
+    """arducopter's command line: JSON physics at 127.0.0.1, --speedup, -I, wiped parameters from the defaults."""
+    binary = sitl_binary(args)
+    return [str(binary), '--model', 'JSON:127.0.0.1', '--speedup', f'{args.sitl_speedup:g}',
+            f'-I{args.sitl_instance}', '--defaults', ','.join(str(f) for f in sitl_defaults(args, binary)),
+            '--wipe', '--serial0', 'tcp:0']        # tcp:0: boots without waiting for a MAVLink client
+
+
+def check_sitl_args(args: GraphEvalArgs) -> None:
+    """ValueError (one line) for --autopilot sitl settings that cannot fly."""
+    if args.autopilot != 'sitl':
+        return
+    if args.flight_controller != 'ideal':
+        raise ValueError(f'--flight-controller {args.flight_controller} models the autopilot; with --autopilot sitl '
+                         'the autopilot is real: leave it ideal')
+    if not args.sitl_connection:
+        sitl_command(args)
+    if args.sitl_preload and not Path(args.sitl_preload).is_file():
+        raise ValueError(f'--sitl-preload {args.sitl_preload}: no such file')
+
+
+def runner_verdict(path: Path, episode: int, wait_s: float) -> bool | str:
+    """autopilot_landed of `episode` in landing_runner's results file ('' when it has no such column or row);
+    waits up to `wait_s` (wall) for the row: the runner writes it after the autopilot's verdict."""
+    end = time.monotonic() + wait_s
+    while True:
+        if path.exists():
+            with path.open(newline='', encoding='utf-8') as fh:
+                rows = [r for r in csv.DictReader(fh) if r.get('episode') == str(episode)]
+            if rows:
+                value = rows[-1].get('autopilot_landed', '')
+                return {'True': True, 'False': False}.get(value or '', '')
+        if time.monotonic() > end:
+            return ''
+        time.sleep(0.2)
+
+
 def fly_condition(args: GraphEvalArgs, cond: str, name: str, on: dict[str, bool],
                   todo: list[tuple[int, LandingPlan]], domain_id: int, log_dir: Path,
-                  results: LandingLog) -> list[dict]:
-    """Start `cond`'s graph, fly the landings `todo` in order as consecutive episodes, write each row; stop
-    the graph."""
+                  results: LandingLog, rows: list[dict] | None = None) -> list[dict]:
+    """Start `cond`'s graph, fly the landings `todo` in order as consecutive episodes, write each row (also
+    appended to `rows`); stop the graph."""
     plans = [p for _, p in todo]
-    params = node_params(args, cond, plans, on)
-    listener = Listener(domain_id)
-    rows: list[dict] = []
+    sitl = args.autopilot == 'sitl'
+    runner_csv = log_dir / f'{SITL_RUNNER_RESULTS}-{time.strftime("%Y%m%d-%H%M%S")}.csv'
+    params = node_params(args, cond, plans, on, str(runner_csv) if sitl else '')
+    listener = Listener(domain_id, clock=sitl)
+    rows = [] if rows is None else rows
+    n_before = len(rows)
     try:
         with NodeGroup(domain_id, log_dir) as group:
             remaps = {'/cmd_vel': '/pilot/cmd_vel'} if cond == 'unassisted' else None
+            topics = ready_topics(cond)
+            if sitl:    # SITL and its physics first: the EKF converges while the models load
+                if not args.sitl_connection:
+                    group.start_process('arducopter', sitl_command(args), log_dir / 'sitl',
+                                        {'LD_PRELOAD': args.sitl_preload} if args.sitl_preload else None)
+                group.start('sim_node', params['sim_node'])
+                group.start('mavlink_bridge_node', params['mavlink_bridge_node'], remaps=remaps)
+                topics['mavlink_bridge_node'] = '/uav/landed_state'
             for node in ('encoder_node', 'policy_node', 'sim_pilot_node'):
                 if node in params:
                     group.start(node, params[node], extra=args.policy_params if node == 'policy_node' else ())
             end = time.monotonic() + args.startup_timeout_s
-            topics = ready_topics(cond)
             while not all(listener.publishers(t) > 0 for t in topics.values()):
                 group.check()
                 if time.monotonic() > end:
                     late = [n for n, t in topics.items() if listener.publishers(t) == 0]
                     raise GraphError(f'{", ".join(late)} not up after {args.startup_timeout_s:.0f} s')
                 time.sleep(0.2)
-            warmup = args.real_time_factor == 0 or args.real_time_factor > WARMUP_RTF
-            sim_params = dict(params['sim_node'], real_time_factor=WARMUP_RTF) if warmup else params['sim_node']
-            group.start('sim_node', sim_params, remaps=remaps)   # last: no episode starts unflown
             t_start = time.monotonic()
-            if warmup:
-                while not listener.goal_stamps:
-                    group.check()
-                    if time.monotonic() - t_start > args.startup_timeout_s:
-                        raise GraphError(f'sim_node not up after {args.startup_timeout_s:.0f} s')
-                    time.sleep(0.1)
-                time.sleep(WARMUP_WALL_S)
-                listener.set_sim_real_time_factor(args.real_time_factor)
+            if sitl:
+                group.start('landing_runner', params['landing_runner'])   # last: it starts the first landing
+            else:
+                warmup = args.real_time_factor == 0 or args.real_time_factor > WARMUP_RTF
+                sim_params = dict(params['sim_node'], real_time_factor=WARMUP_RTF) if warmup else params['sim_node']
+                group.start('sim_node', sim_params, remaps=remaps)   # last: no episode starts unflown
+                if warmup:
+                    while not listener.goal_stamps:
+                        group.check()
+                        if time.monotonic() - t_start > args.startup_timeout_s:
+                            raise GraphError(f'sim_node not up after {args.startup_timeout_s:.0f} s')
+                        time.sleep(0.1)
+                    time.sleep(WARMUP_WALL_S)
+                    listener.set_sim_real_time_factor(args.real_time_factor)
             last = time.monotonic()
             for i, (seed, plan) in enumerate(todo):
                 while True:
@@ -521,35 +714,45 @@ def fly_condition(args: GraphEvalArgs, cond: str, name: str, on: dict[str, bool]
                         data = listener.landings.get(i)
                     if data is not None:
                         break
-                    group.check()
+                    group.check(done_ok=('landing_runner',))
                     if time.monotonic() - last > args.landing_timeout_s:
                         raise GraphError(f'no landing {i} within {args.landing_timeout_s:.0f} s (wall); '
                                          f'sim_node:\n{group.tail("sim_node")}')
                     time.sleep(0.1)
+                wall = time.monotonic() - last
                 last = time.monotonic()
-                row, coverage = landing_row(listener, data, seed, plan, name, cond != 'unassisted')
+                row, coverage = landing_row(listener, data, seed, plan, name, cond != 'unassisted', sitl)
+                if sitl:
+                    row['autopilot_landed'] = runner_verdict(runner_csv, int(data['episode']),
+                                                             RUNNER_VERDICT_WAIT_S)
                 if cond != 'unassisted' and not data.get('assisted', False):
                     log.warning('%s landing %d (seed %d): sim_node saw no /assist/agent_cmd', name, i, seed)
                 if coverage < 0.9:
                     log.warning('%s landing %d (seed %d): the policy ran %.0f %% of the control steps: the graph '
-                                'did not keep up (lower --real-time-factor)', name, i, seed, 100 * coverage)
-                log.info('%s %d/%d seed %d beta %.2f %s: %s error %.2f m, %.1f s%s', name, i + 1, len(todo), seed,
-                         plan.beta, row['pilot'], row['outcome'], row['error_m'], row['duration_s'],
-                         '' if cond == 'unassisted' else f', policy coverage {100 * coverage:.0f} %')
+                                'did not keep up (lower --%s)', name, i, seed, 100 * coverage,
+                                'sitl-speedup' if sitl else 'real-time-factor')
+                log.info('%s %d/%d seed %d beta %.2f %s: %s (%s) error %.2f m, %.1f s, %.0f s wall%s%s', name, i + 1,
+                         len(todo), seed, plan.beta, row['pilot'], row['outcome'], data.get('reason', ''),
+                         row['error_m'], row['duration_s'], wall,
+                         '' if cond == 'unassisted' else f', policy coverage {100 * coverage:.0f} %',
+                         f", autopilot landed {row['autopilot_landed']}" if sitl else '')
                 results.write(row)
                 results.sync()
                 rows.append(row)
                 ep = int(data['episode'])
                 with listener.lock:
                     started = listener.goal_stamps[ep] if ep < len(listener.goal_stamps) else None
+                if sitl:
+                    started = listener.landing_stamps.get(ep, 0.0) - float(data['duration_s'])
                 if started is not None:
                     listener.forget_before(started + float(data['duration_s']))
+            flown = rows[n_before:]
             log.info('%s: %d landings in %.0f s wall (%.1f sim s per wall s)', name, len(todo),
                      time.monotonic() - t_start,
-                     sum(r['duration_s'] for r in rows) / max(1e-6, time.monotonic() - t_start))
+                     sum(r['duration_s'] for r in flown) / max(1e-6, time.monotonic() - t_start))
     finally:
         listener.close()
-    return rows
+    return rows[n_before:]
 
 
 # ----------------------------------------------------------------------------------------- run
@@ -561,6 +764,7 @@ def evaluate_graph(args: GraphEvalArgs) -> dict[str, dict]:
             raise ValueError(f'unknown condition {cond!r}; the graph flies {", ".join(CONDITIONS)}')
     if not 0 <= args.domain_id <= 232:
         raise ValueError(f'--domain-id {args.domain_id} out of range (0 = pick one, or 1-232)')
+    check_sitl_args(args)
     # one run per --out: a second would fly the same landings and remove the first's partial file
     with hold_directory(args.out, 'evaluate_graph', 'wait for it to end, or choose another --out') as out:
         return _fly_all(args, out)
@@ -568,8 +772,7 @@ def evaluate_graph(args: GraphEvalArgs) -> dict[str, dict]:
 
 def _fly_all(args: GraphEvalArgs, out: Path) -> dict[str, dict]:
     """evaluate_graph's work on the held output directory `out`."""
-    settings = {k: v for k, v in dataclasses.asdict(args).items()
-                if k not in ('out', 'plot', 'domain_id', 'landing_timeout_s', 'startup_timeout_s')}
+    settings = {k: v for k, v in dataclasses.asdict(args).items() if k not in RUN_ONLY_ARGS}
     results = LandingLog(out, {'graph': True, **settings})
     planned = evaluation_plans(args.seed, tuple(args.betas), args.landings, args.pilot, args.alpha)
     domain_id = args.domain_id or pick_domain_id()
@@ -581,10 +784,23 @@ def _fly_all(args: GraphEvalArgs, out: Path) -> dict[str, dict]:
             done = {seed: results.flown(name, float(p.beta), seed) for seed, p in planned}
             todo = [(seed, p) for seed, p in planned if done[seed] is None]
             t0 = time.monotonic()
-            if todo:
+            flown: list[dict] = []
+            starts = 0
+            while todo:
                 log.info('%s: flying %d landings through the graph on ROS_DOMAIN_ID %d', name, len(todo), domain_id)
-                flown = fly_condition(args, cond, name, on, todo, domain_id, out / 'nodes' / name, results)
+                try:
+                    fly_condition(args, cond, name, on, todo, domain_id, out / 'nodes' / name, results, flown)
+                except GraphError as exc:
+                    # SITL died, went silent or never armed: the landings still missing get a fresh graph and
+                    # SITL; the plan's scenes and pilots go with them (episode_seeds), so they stay paired
+                    starts += 1
+                    if args.autopilot != 'sitl' or starts > args.sitl_restarts:
+                        raise
+                    log.warning('%s: %s', name, exc)
+                    log.warning('%s: starting the graph afresh for the landings still missing (%d of %d '
+                                '--sitl-restarts)', name, starts, args.sitl_restarts)
                 done.update({r['seed']: r for r in flown})
+                todo = [(seed, p) for seed, p in todo if done[seed] is None]
             rows_by_cond[name] = [done[seed] for seed, _ in planned]
             log.info('%s: %d landings in %.0f s', name, len(planned), time.monotonic() - t0)
     finally:
