@@ -187,3 +187,40 @@ def test_runner_verdict_reads_the_landing_runner_results_file(tmp_path):
     old = tmp_path / 'old.csv'                                   # a runner without the column
     old.write_text('episode,goal_index,outcome\n0,2,success\n', encoding='utf-8')
     assert runner_verdict(old, 0, 0.0) == ''
+
+
+def _row(name: str, seed: int, plan) -> dict:
+    return {'condition': name, 'beta': float(plan.beta), 'seed': seed, 'scene_seed': plan.scene_seed, 'goal_index': 0,
+            'landed_index': 0, 'nearest_index': 0, 'aimed_index': 0, 'error_m': 0.1, 'nearest_error_m': 0.1,
+            'outcome': 'success', 'success': True, 'crash': False, 'duration_s': 20.0, 'active_fraction': 0.0,
+            'pilot': 'paper', 'guard_fraction': 0.0, 'override_fraction': 0.0, 'recall_fraction': 0.0,
+            'damper_fraction': 0.0, 'wall_fraction': 0.0, 'autopilot_landed': True}
+
+
+@pytest.mark.parametrize('autopilot', ['sitl', 'none'])
+def test_a_graph_that_fails_mid_series_is_started_afresh_for_the_missing_landings_with_sitl(
+        tmp_path, monkeypatch, autopilot):
+    import assist_policy.graph_eval as graph_eval
+    calls = []
+
+    def fake_fly(args, cond, name, on, todo, domain_id, log_dir, results, rows):
+        calls.append([seed for seed, _ in todo])
+        for k, (seed, plan) in enumerate(todo):
+            if len(calls) == 1 and k == 1:       # SITL went silent during the second landing
+                raise graph_eval.GraphError('no landing 1 within 300 s (wall)')
+            row = _row(name, seed, plan)
+            results.write(row)
+            rows.append(row)
+        return rows
+    monkeypatch.setattr(graph_eval, 'fly_condition', fake_fly)
+    monkeypatch.setattr(graph_eval, 'check_sitl_args', lambda args: None)
+    args = GraphEvalArgs(out=str(tmp_path / 'eval'), autopilot=autopilot, conditions=('unassisted',), betas=(0.5,),
+                         landings=3, seed=11, domain_id=73, plot=False, sitl_restarts=1)
+    if autopilot == 'none':                      # the simulator's graph does not stall: an error ends the run
+        with pytest.raises(graph_eval.GraphError):
+            graph_eval.evaluate_graph(args)
+        assert calls == [[11, 12, 13]]
+        return
+    summary = graph_eval.evaluate_graph(args)
+    assert calls == [[11, 12, 13], [12, 13]]     # the plan's landings still missing, in order
+    assert summary['unassisted']['n'] == 3
