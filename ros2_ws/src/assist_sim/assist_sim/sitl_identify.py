@@ -111,7 +111,7 @@ PRE_ROLL_S = 1.0          # zero velocity at the start of every sequence (steady
 RANDOM_SEEDS = {'random_a': 101, 'random_b': 202, 'random_c': 303}   # held-out pilot-like sequences
 
 
-def _random_pilot(seed: int, hz: float, seconds: float = 20.0) -> np.ndarray:
+def _random_pilot(seed: int, hz: float, seconds: float = 18.0) -> np.ndarray:
     """Piecewise-constant pilot-like commands (holds 0.2-2 s, x/y within +-1.5, z within -1.0..+0.8 m/s),
     redrawn (same seed stream) until the commanded path stays within 3 m horizontally and 1.2 m vertically."""
     rng = np.random.default_rng(seed)
@@ -123,8 +123,8 @@ def _random_pilot(seed: int, hz: float, seconds: float = 20.0) -> np.ndarray:
             v = np.array([rng.uniform(-1.5, 1.5), rng.uniform(-1.5, 1.5), rng.uniform(-1.0, 0.8)])
             v[rng.random(3) < 0.3] = 0.0             # pilots often leave an axis alone
             v = np.round(v, 2)
-            b.hold(v, min(hold, seconds - t))
-            t += hold
+            b.hold(v, hold)
+            t += round(hold * hz) / hz
         b.hold((0, 0, 0), 3.0)
         table = b.array()
         path = np.cumsum(table, axis=0) / hz
@@ -157,12 +157,13 @@ def build_sequences(hz: float = 20.0) -> dict[str, Sequence]:
         knots_t = (0.0, 4.0, 5.0, 13.0, 14.0, 18.0)
         knots_v = (0.0, 1.2, 1.2, -1.2, -1.2, 0.0)
         return np.array([np.interp(t, knots_t, knots_v), 0.0, 0.0])
-    add('ramp_x', 'east ramp 0 -> 1.2 m/s in 4 s, hold 1 s, -> -1.2 in 8 s, hold 1 s, -> 0 in 4 s', (0.0, 0.0),
+    add('ramp_x', 'east ramp 0 -> 1.2 m/s in 4 s, hold 1 s, -> -1.2 in 8 s, hold 1 s, -> 0 in 4 s', (-3.0, 0.0),
         _Builder(hz).hold(z, PRE_ROLL_S).sampled(ramp, 18.0).hold(z, 3.0))
 
     def square(half: float):
         return lambda t: np.array([1.0 if int(math.floor(t / half + 1e-9)) % 2 == 0 else -1.0, 0.0, 0.0])
-    add('square_x_0p25', 'east square wave +-1 m/s, half-period 0.25 s, 8 s, then 0', (0.0, 0.0),
+    # ArduCopter's jerk-limited shaping turns the fast square wave into a drift of ~0.7 m/s east: start west
+    add('square_x_0p25', 'east square wave +-1 m/s, half-period 0.25 s, 8 s, then 0', (-4.0, 0.0),
         _Builder(hz).hold(z, PRE_ROLL_S).sampled(square(0.25), 8.0).hold(z, 3.0))
     add('square_x_1', 'east square wave +-1 m/s, half-period 1 s, 10 s, then 0', (0.0, 0.0),
         _Builder(hz).hold(z, PRE_ROLL_S).sampled(square(1.0), 10.0).hold(z, 3.0))
@@ -200,6 +201,7 @@ class IdentifyConfig:
     touchdown_trials: int = setting(2, ge=0, le=10)       # straight descents (no lateral command)
     touchdown_lateral_mps: float = setting(0.5, ge=0.0, le=1.5)   # one more descent with this east command; 0: none
     touchdown_descent_mps: float = setting(0.5, gt=0.0, le=1.5)
+    touchdown_release: bool = True                        # and one whose east command goes to 0 at contact
     touchdown_wait_s: float = setting(10.0, gt=0.0, le=60.0)      # after contact, for ON_GROUND
     ext_state_hz: float = setting(50.0, ge=10.0, le=100.0)        # EXTENDED_SYS_STATE request rate
     sitl_defaults: str = ('Tools/autotest/default_params/copter.parm,'
@@ -241,15 +243,17 @@ def output_files(cfg: IdentifyConfig) -> list[str]:
     names = [f'{n}.csv' for n in cfg.selected()]
     trials = touchdown_trials(cfg)
     if trials:
-        names += [f'touchdown_{t}.csv' for t, _ in trials] + ['touchdown.csv']
+        names += [f'touchdown_{t[0]}.csv' for t in trials] + ['touchdown.csv']
     return names
 
 
-def touchdown_trials(cfg: IdentifyConfig) -> list[tuple[str, float]]:
-    """(trial name, east command at contact) of the touchdown series."""
-    trials = [(f'vertical_{i + 1}', 0.0) for i in range(cfg.touchdown_trials)]
+def touchdown_trials(cfg: IdentifyConfig) -> list[tuple[str, float, bool]]:
+    """(trial name, east command at contact, whether it goes to 0 at contact) of the touchdown series."""
+    trials = [(f'vertical_{i + 1}', 0.0, False) for i in range(cfg.touchdown_trials)]
     if cfg.touchdown_lateral_mps > 0:
-        trials.append(('lateral', cfg.touchdown_lateral_mps))
+        trials.append(('lateral', cfg.touchdown_lateral_mps, False))
+        if cfg.touchdown_release:
+            trials.append(('lateral_release', cfg.touchdown_lateral_mps, True))
     return trials
 
 
@@ -466,10 +470,12 @@ class Identifier:
             self.step_once()
         return until is not None and until()
 
-    def set_setpoint(self, fn: Callable[[float], tuple[str, np.ndarray] | None] | None) -> None:
-        """New setpoint source; its first setpoint goes out on the next physics step."""
+    def set_setpoint(self, fn: Callable[[float], tuple[str, np.ndarray] | None] | None,
+                     start: float | None = None) -> None:
+        """New setpoint source; setpoints go out every 1/command_hz from physics time `start` (default:
+        the next physics step)."""
         self.setpoint = fn
-        self._next_cmd_t = self.t
+        self._next_cmd_t = self.t if start is None else start
 
     def command(self, cmd: int, params: list[float], timeout_s: float = 3.0) -> int | None:
         """COMMAND_LONG and its COMMAND_ACK result (None: no ACK within `timeout_s` physics seconds)."""
@@ -489,6 +495,8 @@ class Identifier:
                                                    autoreconnect=False)
         if not self.spin(30.0, lambda: self.hb is not None):
             raise SitlError(f'no heartbeat from ArduCopter on {self.cfg.connection}')
+        if self.armed:
+            raise SitlError('ArduCopter is armed already (flown before this run?): restart SITL for a clean start')
         self.mav.target_system = self.hb.get_srcSystem()
         self.mav.target_component = self.hb.get_srcComponent()
         m = self.mavlink
@@ -498,10 +506,14 @@ class Identifier:
             if r != m.MAV_RESULT_ACCEPTED:
                 raise SitlError(f'SET_MESSAGE_INTERVAL {msg_id} at {hz:g} Hz: result {r}')
         self.command(m.MAV_CMD_REQUEST_MESSAGE, [float(m.MAVLINK_MSG_ID_AUTOPILOT_VERSION)])
-        for name in REPORTED_PARAMS:
-            self.mav.mav.param_request_read_send(self.mav.target_system, self.mav.target_component,
-                                                 name.encode('ascii'), -1)
-        self.spin(2.0, lambda: len(self.params) >= len(REPORTED_PARAMS))
+        for _ in range(3):                 # PARAM_VALUE replies can be dropped when many are asked at once
+            for name in REPORTED_PARAMS:
+                if name not in self.params:
+                    self.mav.mav.param_request_read_send(self.mav.target_system, self.mav.target_component,
+                                                         name.encode('ascii'), -1)
+                    self.spin(0.05)
+            if self.spin(2.0, lambda: all(n in self.params for n in REPORTED_PARAMS)):
+                break
         missing = [n for n in REPORTED_PARAMS if n not in self.params]
         if missing:
             _LOG.warning('parameters not reported: %s', ', '.join(missing))
@@ -536,8 +548,10 @@ class Identifier:
         r = self.command(m.MAV_CMD_NAV_TAKEOFF, [0, 0, 0, 0, 0, 0, rel])
         if r != m.MAV_RESULT_ACCEPTED:
             raise SitlError(f'takeoff refused (result {r})')
-        if not self.spin(40.0, lambda: self._state()[0][2] > cfg.altitude_m - 0.1):
-            raise SitlError('takeoff did not reach the hover altitude in 40 s')
+        # ArduCopter ends its takeoff ~0.1 m short of the target; goto() then holds the exact altitude
+        if not self.spin(40.0, lambda: self._state()[0][2] > cfg.altitude_m - 0.3):
+            raise SitlError(f'takeoff did not reach the hover altitude in 40 s: base_link at '
+                            f'{self._state()[0][2]:.2f} m, ArduCopter says {self.ap_pos[2]:.2f} m (ENU z)')
         _LOG.info('took off: %.2f m at SITL time %.1f s', self._state()[0][2], self.t)
 
     def goto(self, xy, hover_s: float) -> None:
@@ -558,31 +572,34 @@ class Identifier:
         """Hover at the start spot, then send the sequence's setpoints; its rows (t from the first setpoint)."""
         self.goto(seq.start_xy, self.cfg.hover_s)
         hz = self.cfg.command_hz
-        t0 = self.t
+        t0 = self.t + self.runner.model.dt      # the next physics step: first setpoint and first row
         self.recorder = _Recorder(t0=t0)
         zero = np.zeros(3)
 
         def sp(t: float):
             k = int(math.floor((t - t0) * hz + 1e-6))
             return ('vel', seq.commands[k] if k < seq.n else zero)
-        self.set_setpoint(sp)
+        self.set_setpoint(sp, t0)
         self.spin(seq.n / hz - 0.5 / self.cfg.log_hz)
         rows, self.recorder = self.recorder.rows, None
         self.set_setpoint(lambda t: ('vel', zero))
         return rows
 
-    def touchdown(self, lateral_mps: float) -> tuple[dict, list[tuple]]:
-        """Descend onto the floor (east command `lateral_mps` below 1 m); contact and ON_GROUND times."""
+    def touchdown(self, lateral_mps: float, release: bool = False) -> tuple[dict, list[tuple]]:
+        """Descend onto the floor (east command `lateral_mps` below 1 m, back to 0 at contact if `release`);
+        contact and ON_GROUND times."""
         cfg, m = self.cfg, self.mavlink
         self.goto((0.0, 0.0), cfg.hover_s)
-        t0 = self.t
+        t0 = self.t + self.runner.model.dt
         self.recorder = _Recorder(t0=t0, touchdown=True)
         res = {'contact': None, 'on_ground': None, 'ground_before_contact': None, 'v_contact': None}
         descent = cfg.touchdown_descent_mps
 
         def sp(t: float):
-            low = self._state()[0][2] < 1.0 or res['contact'] is not None
-            return ('vel', np.array([lateral_mps if low else 0.0, 0.0, -descent]))
+            touched = res['contact'] is not None
+            low = self._state()[0][2] < 1.0 or touched
+            east = lateral_mps if low and not (release and touched) else 0.0
+            return ('vel', np.array([east, 0.0, -descent]))
 
         def watch() -> None:
             if res['contact'] is None and self.world._legs_touching():
@@ -594,7 +611,7 @@ class Identifier:
                     res['ground_before_contact'] = self.t
                 elif res['contact'] is not None and res['on_ground'] is None:
                     res['on_ground'] = self.t
-        self.set_setpoint(sp)
+        self.set_setpoint(sp, t0)
         self.on_step = watch
         try:
             if not self.spin(40.0, lambda: res['contact'] is not None):
@@ -661,13 +678,14 @@ def run(cfg: IdentifyConfig) -> int:
                              [f'start_enu: {seq.start_xy[0]:g},{seq.start_xy[1]:g},{cfg.altitude_m:g}'])
             write_text_atomic(out / f'{name}.csv', fixture_text(header, COLUMNS + EXTRA_COLUMNS, rows))
         summary = []
-        for i, (trial, lateral) in enumerate(touchdown_trials(cfg)):
+        for i, (trial, lateral, release) in enumerate(touchdown_trials(cfg)):
             if i > 0 or not ident.armed:
                 ident.arm_and_takeoff()
-            res, rows = ident.touchdown(lateral)
+            res, rows = ident.touchdown(lateral, release)
             tc, tg, tb = res['contact'], res['on_ground'], res['ground_before_contact']
             v = res['v_contact']
-            row = {'trial': trial, 'lateral_cmd_mps': lateral, 'descent_cmd_mps': cfg.touchdown_descent_mps,
+            row = {'trial': trial, 'lateral_cmd_mps': lateral, 'lateral_released_at_contact': int(release),
+                   'descent_cmd_mps': cfg.touchdown_descent_mps,
                    't_contact_s': tc, 't_on_ground_s': tg,
                    'delay_s': (tg - tc) if tg is not None else None,
                    'on_ground_came': int(tg is not None),
@@ -677,7 +695,8 @@ def run(cfg: IdentifyConfig) -> int:
             summary.append(row)
             header = _header(cfg, ident, f'touchdown_{trial}',
                              f'descend at {cfg.touchdown_descent_mps:g} m/s onto the floor, east command '
-                             f'{lateral:g} m/s below 1 m; contact = a leg touches (our physics), '
+                             f'{lateral:g} m/s below 1 m{", 0 from contact on" if release else ""}; '
+                             'contact = a leg touches (our physics), '
                              'ap_landed_state = EXTENDED_SYS_STATE.landed_state (1 ON_GROUND, 2 IN_AIR)',
                              ['start_enu: 0,0,' + f'{cfg.altitude_m:g}'])
             write_text_atomic(out / f'touchdown_{trial}.csv',
@@ -692,8 +711,9 @@ def run(cfg: IdentifyConfig) -> int:
 
 
 def _touchdown_text(cfg: IdentifyConfig, ident: Identifier, summary: list) -> str:
-    cols = ('trial', 'lateral_cmd_mps', 'descent_cmd_mps', 't_contact_s', 't_on_ground_s', 'delay_s',
-            'on_ground_came', 'on_ground_before_contact', 'vel_contact_z', 'vel_contact_xy', 'cmd_contact_x')
+    cols = ('trial', 'lateral_cmd_mps', 'lateral_released_at_contact', 'descent_cmd_mps', 't_contact_s',
+            't_on_ground_s', 'delay_s', 'on_ground_came', 'on_ground_before_contact', 'vel_contact_z',
+            'vel_contact_xy', 'cmd_contact_x')
     header = _header(cfg, ident, 'touchdown', 'touchdown series summary: times in s from the start of each '
                      'trial\'s record (touchdown_<trial>.csv t_s); delay = ON_GROUND - first contact; '
                      'nan = never came', [])

@@ -54,7 +54,7 @@ def test_existing_fixtures_are_not_overwritten_without_force(capsys, tmp_path):
 def test_output_files_follow_the_selection():
     cfg = si.IdentifyConfig(out='o', sequences='step_x_pos,chirp_x', touchdown_trials=1, touchdown_lateral_mps=0.5)
     assert si.output_files(cfg) == ['step_x_pos.csv', 'chirp_x.csv', 'touchdown_vertical_1.csv',
-                                    'touchdown_lateral.csv', 'touchdown.csv']
+                                    'touchdown_lateral.csv', 'touchdown_lateral_release.csv', 'touchdown.csv']
     none = si.IdentifyConfig(out='o', sequences='step_z', touchdown_trials=0, touchdown_lateral_mps=0.0)
     assert si.output_files(none) == ['step_z.csv']
 
@@ -71,7 +71,8 @@ def test_sequences_start_in_hover_stay_in_the_envelope_and_come_to_rest():
         assert np.all(c[-20:] == 0), s.name                        # ends at rest
         assert np.abs(c[:, :2]).max() <= 1.5 and -1.5 <= c[:, 2].min() and c[:, 2].max() <= 1.0, s.name
         path = np.cumsum(c, axis=0) / 20                           # commanded displacement
-        assert np.abs(path[:, :2]).max() <= 4.5 and np.abs(path[:, 2]).max() <= 2.5, s.name
+        # open floor: the identification scene has walls 10 m and pads 15 m from the start spot
+        assert np.abs(path[:, :2] + s.start_xy).max() <= 5.0 and np.abs(path[:, 2]).max() <= 2.5, s.name
     sq = seqs['square_x_0p25'].commands[pre:pre + 20, 0]
     assert list(sq[:10]) == [1, 1, 1, 1, 1, -1, -1, -1, -1, -1]     # 0.25 s = 5 setpoints per half-period
 
