@@ -836,8 +836,10 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, ValueError, GraphError) as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 1
+    pace = (f'ArduCopter SITL speedup {args.sitl_speedup:g}' if args.autopilot == 'sitl'
+            else f'real_time_factor {args.real_time_factor:g}')
     print(f'graph: pilot {args.pilot}, alpha {args.alpha}, betas {" ".join(f"{b:g}" for b in args.betas)}, '
-          f'{args.landings} landings each, seed {args.seed}, real_time_factor {args.real_time_factor:g}, '
+          f'{args.landings} landings each, seed {args.seed}, {pace}, '
           f'{time.monotonic() - t0:.0f} s wall')
     print_results(summary, args.out, ', nodes/')
     return 0
