@@ -3,7 +3,7 @@
 The logs are the CSV fixtures `sitl_identify` writes (one command sequence per file: time, the velocity
 setpoint sent, the vehicle's true velocity and position, ENU). The model is run as a point mass on each
 file's setpoints from its first velocity (`arducopter.simulate`) and its velocity compared with the log.
-Files whose name starts with `heldout` are never fitted: they only test the fit.
+Files whose name starts with `random` (the pilot-like random sequences) are never fitted: they only test it.
 
     fit_guided --fixtures ros2_ws/src/assist_sim/test/fixtures/guided --out runs/guided_fit
 
@@ -16,6 +16,7 @@ import argparse
 import csv
 import dataclasses
 import logging
+import re
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,7 +32,7 @@ from .core.arducopter import ArduCopterConfig, simulate
 log = logging.getLogger(__name__)
 
 COLUMNS = ('t_s', 'cmd_x', 'cmd_y', 'cmd_z', 'vel_x', 'vel_y', 'vel_z')
-HELD_OUT_PREFIX = 'heldout'
+HELD_OUT_PREFIX = 'random'
 # what is fitted by default: the lags and gains that are not ArduCopter parameters with known defaults
 DEFAULT_FIT = ('setpoint_delay_s', 'attitude_tc_s', 'throttle_tc_s', 'vel_xy_p', 'vel_z_p')
 
@@ -43,8 +44,17 @@ class Fixture:
     name: str
     header: dict[str, str]
     t: np.ndarray        # (N,) s from the sequence start
-    cmd: np.ndarray      # (N, 3) setpoint sent at t
+    cmd: np.ndarray      # (N, 3) the setpoint last sent at t
     vel: np.ndarray      # (N, 3) the vehicle's velocity at t
+    command_hz: float = 0.0  # setpoints were sent on this grid from t = 0 (0: at every sample)
+
+    def sends(self) -> tuple[np.ndarray, np.ndarray]:
+        """(send times, setpoints): the setpoint stream as sent (on the command grid, from the logged values)."""
+        if self.command_hz <= 0.0:
+            return self.t, self.cmd
+        k = np.floor(self.t * self.command_hz + 1e-6).astype(int)
+        first = np.concatenate([[True], k[1:] != k[:-1]])       # the first log sample after each send
+        return k[first] / self.command_hz, self.cmd[first]
 
     @property
     def held_out(self) -> bool:
@@ -53,7 +63,8 @@ class Fixture:
 
 
 def load_fixture(path: str | Path) -> Fixture:
-    """Read one fixture CSV (`# key: value` header lines, then the columns); ValueError naming the file if malformed."""
+    """Read one fixture CSV (`# key: value` header lines, then the columns; the `setpoints` line names the
+    command rate, e.g. '... 20 Hz'); ValueError naming the file if malformed."""
     path = Path(path)
     header: dict[str, str] = {}
     rows: list[str] = []
@@ -74,7 +85,9 @@ def load_fixture(path: str | Path) -> Fixture:
         raise ValueError(f'{path}: bad value: {exc}') from exc
     if len(data) < 10 or not np.all(np.isfinite(data)) or np.any(np.diff(data[:, 0]) <= 0):
         raise ValueError(f'{path}: needs >= 10 rows of finite values with increasing time')
-    return Fixture(path.stem, header, data[:, 0] - data[0, 0], data[:, 1:4], data[:, 4:7])
+    rate = re.search(r'([0-9.]+) Hz', header.get('setpoints', ''))
+    return Fixture(path.stem, header, data[:, 0] - data[0, 0], data[:, 1:4], data[:, 4:7],
+                   float(rate.group(1)) if rate else 0.0)
 
 
 def load_fixtures(folder: str | Path) -> list[Fixture]:
@@ -87,7 +100,8 @@ def load_fixtures(folder: str | Path) -> list[Fixture]:
 
 def response(cfg: ArduCopterConfig, fx: Fixture) -> np.ndarray:
     """The model's velocity (N, 3) on a fixture's setpoints, from its first logged velocity."""
-    v, _ = simulate(cfg, fx.t, fx.cmd, velocity0=fx.vel[0])
+    send_t, send_sp = fx.sends()
+    v, _ = simulate(cfg, fx.t, send_sp, velocity0=fx.vel[0], command_times=send_t)
     return v
 
 

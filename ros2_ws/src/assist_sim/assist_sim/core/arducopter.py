@@ -14,15 +14,17 @@ ArduPilot wiki, the parameter reference) and fitted to logs of real ArduCopter S
    pulled back onto that path (square-root controller with gain ``pos_*_p``), so it catches up after a
    lag (``path_hold: false`` resets the target position to the vehicle's each tick instead).
 4. **Tracking.** The demanded acceleration = target acceleration + ``vel_*_p`` x (target velocity + path
-   correction - velocity), horizontally limited by the lean angle (g tan ``lean_max_deg``); the vehicle's
-   acceleration follows it with a first-order lag (``attitude_tc_s`` horizontally, the time the airframe
-   takes to lean; ``throttle_tc_s`` vertically). The airframe leans by the angle its acceleration needs,
-   so the camera tilts with it (the encoder's levelling undoes it).
+   correction - velocity), plus horizontally the integral of that error (``vel_xy_i``), horizontally
+   limited by the lean angle (g tan ``lean_max_deg``); the vehicle's acceleration follows it with a
+   first-order lag (``attitude_tc_s`` horizontally, the time the airframe takes to lean; ``throttle_tc_s``
+   vertically). The airframe leans by the angle its acceleration needs, so the camera tilts with it (the
+   encoder's levelling undoes it).
 5. **Land detector.** After first contact with a descent demanded, a landing is declared once, for
-   ``land_detect_s`` without a break: the demand is still a descent, the lean it asks for is below
-   ``land_lean_max_deg``, the vehicle's acceleration is below ``land_accel_max_mps2`` and its vertical
-   speed below ``land_vz_max_mps``. A sideways command at contact keeps it flying (it slides on the pad
-   top). Once landed the motors idle and setpoints are ignored until ``takeoff()``.
+   ``land_detect_s`` without a break: the demand is still a descent with no sideways setpoint (at most
+   ``land_setpoint_xy_max_mps``), the lean it asks for is below ``land_lean_max_deg``, the vehicle's
+   acceleration is below ``land_accel_max_mps2`` and its vertical speed below ``land_vz_max_mps``. A
+   sideways command at contact keeps it flying (it slides on the pad top). Once landed the motors idle
+   and setpoints are ignored until ``takeoff()``.
 
 Pure numpy, no pybullet: `GuidedVelocityModel.tick` turns (setpoint, state) into a world acceleration;
 `LandingWorld` applies it as a force on the airframe, and `simulate` integrates it as a point mass
@@ -47,23 +49,33 @@ LAND_ACCEL_FILTER_HZ = 1.0     # the land detector's acceleration is low-passed 
 class ArduCopterConfig:
     """GUIDED velocity-control model; defaults are ArduCopter's parameters, lags fitted to SITL logs."""
 
-    setpoint_delay_s: float = setting(0.05, ge=0.0, le=0.5)    # MAVLink + scheduler latency before use
-    accel_xy_mps2: float = setting(2.5, ge=0.2, le=10.0)       # WPNAV_ACCEL
-    jerk_xy_mps3: float = setting(5.0, ge=0.5, le=50.0)        # PSC_JERK_XY
+    # The shaping limits are ArduCopter's parameters; the loop gains and lags are effective values fitted with
+    # fit_guided to real SITL flying our airframe (test/fixtures/guided; the model lumps ArduCopter's
+    # acceleration, attitude and rate loops into them, so they differ from the PSC_* defaults they stand for).
+    setpoint_delay_s: float = setting(0.048, ge=0.0, le=0.5)   # fitted: MAVLink + scheduler latency
+    accel_xy_mps2: float = setting(2.51, ge=0.2, le=10.0)      # WPNAV_ACCEL 2.5 (fitted 2.51)
+    jerk_xy_mps3: float = setting(5.25, ge=0.5, le=50.0)       # PSC_JERK_XY 5 (fitted 5.25)
     accel_z_mps2: float = setting(1.0, ge=0.2, le=5.0)         # WPNAV_ACCEL_Z
-    jerk_z_mps3: float = setting(5.0, ge=0.5, le=50.0)         # PSC_JERK_Z
+    jerk_z_mps3: float = setting(7.38, ge=0.5, le=50.0)        # PSC_JERK_Z 5 (fitted 7.38 with the throttle lag)
     pos_xy_p: float = setting(1.0, ge=0.0, le=5.0)             # PSC_POSXY_P (1/s)
-    vel_xy_p: float = setting(2.0, ge=0.1, le=10.0)            # PSC_VELXY_P (1/s)
+    vel_xy_p: float = setting(1.84, ge=0.1, le=10.0)           # PSC_VELXY_P 2 (fitted 1.84, 1/s)
+    vel_xy_i: float = setting(1.0, ge=0.0, le=10.0)            # PSC_VELXY_I (1/s^2): persistent errors wind it up
+    vel_xy_imax_mps2: float = setting(10.0, ge=0.0, le=20.0)   # PSC_VELXY_IMAX (1000 cm/s^2)
     pos_z_p: float = setting(1.0, ge=0.0, le=5.0)              # PSC_POSZ_P (1/s)
-    vel_z_p: float = setting(5.0, ge=0.1, le=20.0)             # PSC_VELZ_P (1/s)
+    vel_z_p: float = setting(1.81, ge=0.1, le=20.0)            # fitted (PSC_VELZ_P 5 with the acceleration loop)
     path_hold: bool = setting(True)                            # GUID_OPTIONS bit 4 clear: the path is held
     lean_max_deg: float = setting(30.0, ge=5.0, le=60.0)       # ANGLE_MAX: horizontal accel <= g tan(this)
-    attitude_tc_s: float = setting(0.20, ge=0.01, le=1.0)      # lean (horizontal accel) follows its demand
-    throttle_tc_s: float = setting(0.10, ge=0.01, le=1.0)      # vertical accel follows its demand
-    land_detect_s: float = setting(1.0, ge=0.1, le=5.0)        # LAND_DETECTOR_TRIGGER_SEC-like
+    attitude_tc_s: float = setting(0.087, ge=0.01, le=1.0)     # fitted: lean (horizontal accel) follows its demand
+    throttle_tc_s: float = setting(0.119, ge=0.01, le=1.0)     # fitted: vertical accel follows its demand
+    # contact to the landing being declared when all is quiet: ArduCopter's 1 s trigger after its throttle has
+    # wound down to the lower limit (1.62-1.67 s on SITL at 0.5 m/s: fixtures/guided/touchdown.csv)
+    land_detect_s: float = setting(1.45, ge=0.1, le=5.0)
     land_accel_max_mps2: float = setting(1.0, ge=0.1, le=5.0)  # LAND_DETECTOR_ACCEL_MAX
     land_vz_max_mps: float = setting(1.0, ge=0.1, le=3.0)      # vertical speed below this
     land_lean_max_deg: float = setting(15.0, ge=1.0, le=45.0)  # a larger lean request blocks the detector
+    # a sideways setpoint faster than this at contact blocks it too (SITL: 0.5 m/s held after contact was
+    # never declared landed; released at contact, declared as a vertical touchdown)
+    land_setpoint_xy_max_mps: float = setting(0.1, ge=0.0, le=2.0)
     idle_thrust_fraction: float = setting(0.05, ge=0.0, le=0.5)  # of hover thrust once landed (ground idle)
 
     def validate(self) -> None:
@@ -173,6 +185,7 @@ class GuidedVelocityModel:
         px, py, pz = (float(v) for v in position)
         vx, vy, vz = (float(v) for v in velocity)
         self._xy.reset((px, py), (vx, vy))
+        self._ix = self._iy = 0.0              # the horizontal velocity loop's integrator (m/s^2)
         self._z.reset((pz, 0.0), (vz, 0.0))
         self._queue.clear()
         self._sp = (vx, vy, vz)
@@ -251,8 +264,11 @@ class GuidedVelocityModel:
         nx, ny, nz = (0.0, 0.0, 0.0) if disturbance is None else (disturbance[0], disturbance[1], disturbance[2])
         cx, cy = _sqrt2(xy.px - px, xy.py - py, c.pos_xy_p, c.accel_xy_mps2, dt)
         cz = sqrt_controller(zz.px - pz, c.pos_z_p, c.accel_z_mps2, dt)
-        dx = xy.ax + c.vel_xy_p * (xy.vx + cx + nx - vx)
-        dy = xy.ay + c.vel_xy_p * (xy.vy + cy + ny - vy)
+        ex, ey = xy.vx + cx + nx - vx, xy.vy + cy + ny - vy
+        self._ix, self._iy = _limit2(self._ix + c.vel_xy_i * ex * dt, self._iy + c.vel_xy_i * ey * dt,
+                                     c.vel_xy_imax_mps2)
+        dx = xy.ax + c.vel_xy_p * ex + self._ix
+        dy = xy.ay + c.vel_xy_p * ey + self._iy
         dx, dy = _limit2(dx, dy, self.g * math.tan(math.radians(c.lean_max_deg)))
         dz = max(zz.ax + c.vel_z_p * (zz.vx + cz + nz - vz), -self.g)     # no negative thrust
         self._demand = (dx, dy, dz)
@@ -279,6 +295,7 @@ class GuidedVelocityModel:
             return
         lean_request = math.atan2(math.hypot(self._demand[0], self._demand[1]), self.g)
         quiet = (descending and touching and lean_request < math.radians(c.land_lean_max_deg)
+                 and math.hypot(self._sp[0], self._sp[1]) <= c.land_setpoint_xy_max_mps
                  and abs(vz) < c.land_vz_max_mps
                  and math.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2]) < c.land_accel_max_mps2)
         self._land_timer = self._land_timer + dt if quiet else 0.0
@@ -288,15 +305,17 @@ class GuidedVelocityModel:
 
 
 def simulate(cfg: ArduCopterConfig, t: np.ndarray, setpoints: np.ndarray, velocity0=None,
-             position0=None, substeps: int = 8) -> tuple[np.ndarray, np.ndarray]:
+             position0=None, substeps: int = 8, command_times=None) -> tuple[np.ndarray, np.ndarray]:
     """Point-mass response to a setpoint sequence: velocity and position (N, 3) at the times `t`.
 
-    `setpoints[i]` is the setpoint sent at `t[i]` (held until the next); the model is stepped at
-    `substeps` x the sample rate. Used to fit the model to SITL logs and to test it against them."""
+    `setpoints[k]` is sent at `command_times[k]` (default: `t`, one setpoint per sample, held until the
+    next); the model is stepped `substeps` times per sample interval. Used to fit the model to SITL logs
+    and to test it against them."""
     t = np.asarray(t, dtype=float)
     sp = np.asarray(setpoints, dtype=float).reshape(-1, 3)
-    if len(t) != len(sp) or len(t) < 2:
-        raise ValueError('t and setpoints must have the same length >= 2')
+    sent = t if command_times is None else np.asarray(command_times, dtype=float)
+    if len(t) < 2 or len(sent) != len(sp):
+        raise ValueError('need >= 2 output times and one send time per setpoint')
     model = GuidedVelocityModel(cfg)
     vel = np.zeros(3) if velocity0 is None else np.asarray(velocity0, dtype=float).copy()
     pos = np.zeros(3) if position0 is None else np.asarray(position0, dtype=float).copy()
@@ -304,12 +323,16 @@ def simulate(cfg: ArduCopterConfig, t: np.ndarray, setpoints: np.ndarray, veloci
     out_v = np.zeros((len(t), 3))
     out_p = np.zeros((len(t), 3))
     out_v[0], out_p[0] = vel, pos
+    k, now = 0, t[0]
     for i in range(1, len(t)):
-        model.command(sp[i - 1])
         h = (t[i] - t[i - 1]) / substeps
         for _ in range(substeps):
+            while k < len(sent) and sent[k] <= now + 1e-9:
+                model.command(sp[k])
+                k += 1
             a = np.array(model.tick(pos, vel, h))
             pos = pos + vel * h + 0.5 * a * h * h
             vel = vel + a * h
+            now += h
         out_v[i], out_p[i] = vel, pos
     return out_v, out_p
