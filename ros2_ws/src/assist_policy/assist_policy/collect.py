@@ -42,12 +42,12 @@ from .cluster import (WorkerDied, connect_ray, cpu_cores, exit_with_parent, igno
                       result_of, worker_died)
 from .env import EnvConfig, LandingAssistEnv, run_episode
 from .latent import make_latent_fn
-from .scripted import NEAREST_PAD_VARIANTS, ScriptedOracle, make_nearest_pad
+from .scripted import LEAD_S, NEAREST_PAD_VARIANTS, ScriptedConfig, ScriptedOracle, make_nearest_pad
 from .td3 import OUNoise, ReplayBuffer
 
 log = logging.getLogger(__name__)
 
-DEMO_POLICIES = ('oracle', *NEAREST_PAD_VARIANTS, 'init_actor')
+DEMO_POLICIES = ('oracle', 'oracle_lead', *NEAREST_PAD_VARIANTS, 'init_actor')
 _VERSIONS = itertools.count(1)
 
 
@@ -68,6 +68,8 @@ def demonstrator(demo_policy: str, max_speed) -> ScriptedOracle | None:
         return None
     if demo_policy == 'oracle':
         return ScriptedOracle(max_speed=max_speed)
+    if demo_policy == 'oracle_lead':
+        return ScriptedOracle(ScriptedConfig(lead_s=LEAD_S), max_speed=max_speed)
     return make_nearest_pad(demo_policy, max_speed=max_speed)
 
 

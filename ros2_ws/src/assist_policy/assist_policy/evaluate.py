@@ -90,7 +90,7 @@ from .policy_core import default_model_path
 from .override import OverrideConfig
 from .recall import RecallConfig
 from .safety import SafetyConfig
-from .scripted import NEAREST_PAD_VARIANTS, ScriptedOracle, make_nearest_pad
+from .scripted import LEAD_S, NEAREST_PAD_VARIANTS, ScriptedConfig, ScriptedOracle, make_nearest_pad
 from .actor import load_actor
 
 log = logging.getLogger(__name__)
@@ -98,7 +98,7 @@ log = logging.getLogger(__name__)
 CONDITIONS = ('unassisted', 'latent', 'oracle', 'end_to_end')
 # hand-written assistants (reference only): the oracle script and every named nearest-pad teacher
 # (scripted.NEAREST_PAD_VARIANTS: _yield yields to a held key, _gentle does not hurry the pilot's descent)
-BASELINES = ('scripted_oracle', *(f'scripted_{v}' for v in NEAREST_PAD_VARIANTS))
+BASELINES = ('scripted_oracle', 'scripted_oracle_lead', *(f'scripted_{v}' for v in NEAREST_PAD_VARIANTS))
 PAPER = {'unassisted': '0.67 +- 0.40', 'end_to_end': '0.37 +- 0.33', 'latent': '0.25 +- 0.15',
          'oracle': '0.10 +- 0.07'}
 
@@ -275,6 +275,7 @@ def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: fl
         env = LandingAssistEnv(EnvConfig(condition='oracle', alpha=alpha, max_episode_s=max_episode_s,
                                          pilot_family=pilot, safety=safety, world=world))
         script = (ScriptedOracle() if condition == 'scripted_oracle' else
+                  ScriptedOracle(ScriptedConfig(lead_s=LEAD_S)) if condition == 'scripted_oracle_lead' else
                   make_nearest_pad(condition[len('scripted_'):]))
         return env, lambda obs: script.raw_action(env)
     path = Path(model) if model else default_model_path(condition)
