@@ -580,7 +580,7 @@ class MavlinkBridge:
         """`v` (body FLU, z up) through the touchdown envelope at the current downward range."""
         rng = self.downward_range(now)
         before = self.touchdown.engagements
-        out = self.touchdown.apply(v, rng)
+        out = self.touchdown.apply(v, rng, now)
         if self.touchdown.engagements != before:
             self.counters['touchdown_engaged'] += 1
             _LOG.info('touchdown: range %.2f m, command (%.2f, %.2f, %.2f) m/s -> vertical descent at %.2f m/s',

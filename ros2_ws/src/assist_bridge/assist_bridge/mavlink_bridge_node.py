@@ -156,6 +156,12 @@ PARAMS = {
                                                'engages the envelope.'),
     'touchdown_abort_climb_mps': _touchdown('abort_climb_mps', 'A command climbing faster than this (m/s) releases '
                                             'the envelope (the pilot takes the vehicle back up).'),
+    'touchdown_commit_range_m': _touchdown('commit_range_m', 'Downward range (m) at or below which the legs are '
+                                           'down (0.12 m landed): the touchdown is committed (below '
+                                           'touchdown_engage_range_m).'),
+    'touchdown_commit_s': _touchdown('commit_s', 'A committed touchdown holds the vertical descent this long whatever '
+                                     'is commanded (ArduCopter declares a landing ~1.65 s after contact); 0: never '
+                                     'commits.'),
     'takeoff_altitude_m': _bridge('takeoff_altitude_m', 'Altitude above the ground for /uav/takeoff (m).'),
     'ack_timeout_s': _bridge('ack_timeout_s', 'How long a service waits for the COMMAND_ACK.'),
     'allow_force_disarm': _bridge('allow_force_disarm', 'Let /uav/force_disarm disarm even when the autopilot thinks '

@@ -6,7 +6,10 @@ sideways speed slides on the pad top and keeps flying. So, once the downward ran
 surface below, as a downward rangefinder reads it) is below `engage_range_m` and the command descends,
 the velocity setpoint becomes a plain vertical descent at `descent_mps` with no horizontal part, until
 the command climbs (`abort_climb_mps`: the pilot takes it back up) or the range grows past
-`release_range_m`. The bridge applies it to every setpoint it sends to ArduPilot; the simulator's
+`release_range_m`. Once the range reads the legs down (`commit_range_m`) the touchdown is committed: for
+`commit_s` the descent holds whatever is commanded (a climb included), long enough for ArduCopter to declare
+the landing (~1.65 s after contact on SITL), so a pilot's hop after the legs touched does not undo a landing
+that has happened. The bridge applies it to every setpoint it sends to ArduPilot; the simulator's
 ArduCopter plant applies the same class, so both plants end a landing the same way.
 
 Pure Python; frames: any frame whose z axis is vertical (ENU world or a yaw-only body frame).
@@ -31,11 +34,16 @@ class TouchdownConfig:
     descent_mps: float = setting(0.5, gt=0.0, le=2.0)         # final descent (ArduCopter LAND_SPEED-like)
     engage_descent_mps: float = setting(0.15, ge=0.0, le=2.0)  # a command descending faster than this engages it
     abort_climb_mps: float = setting(0.3, gt=0.0, le=5.0)     # a command climbing faster than this lets go
+    commit_range_m: float = setting(0.16, gt=0.0, le=2.0)     # at or below this range the legs are down (0.12 landed)
+    commit_s: float = setting(3.0, ge=0.0, le=30.0)           # a committed touchdown holds this long; 0: never commits
 
     def check_relations(self) -> None:
-        """The release range lies above the engage range."""
+        """The ranges are ordered: commit < engage < release."""
         if self.release_range_m <= self.engage_range_m:
             raise ValueError(f'release_range_m ({self.release_range_m}) must exceed engage_range_m '
+                             f'({self.engage_range_m})')
+        if self.commit_range_m >= self.engage_range_m:
+            raise ValueError(f'commit_range_m ({self.commit_range_m}) must be below engage_range_m '
                              f'({self.engage_range_m})')
 
 
@@ -47,17 +55,31 @@ class TouchdownEnvelope:
         self.cfg.check_relations()
         self.engaged = False
         self.engagements = 0            # times it took over a descent
+        self.commits = 0                # touchdowns it committed
+        self._committed_until: float | None = None
 
     def reset(self) -> None:
         """Forget the current descent (a new flight)."""
         self.engaged = False
+        self._committed_until = None
 
-    def apply(self, command, range_m: float | None) -> np.ndarray:
-        """The setpoint to send for `command` (vx, vy, vz) at downward range `range_m` (None/NaN: unknown)."""
+    @property
+    def committed(self) -> bool:
+        """A touchdown is being held (until `commit_s` after the legs came down)."""
+        return self._committed_until is not None
+
+    def apply(self, command, range_m: float | None, now: float | None = None) -> np.ndarray:
+        """The setpoint to send for `command` (vx, vy, vz) at downward range `range_m` (None/NaN: unknown) at
+        time `now` (s, any monotonic clock; None: no touchdown is committed)."""
         cmd = np.asarray(command, dtype=float).reshape(3)
         c = self.cfg
         if not c.enabled:
             return cmd
+        descent = np.array([0.0, 0.0, -c.descent_mps])
+        if self._committed_until is not None:
+            if now is not None and now < self._committed_until:
+                return descent
+            self._committed_until = None
         known = range_m is not None and math.isfinite(range_m)
         if self.engaged and (cmd[2] > c.abort_climb_mps or not known or range_m > c.release_range_m):
             self.engaged = False
@@ -66,4 +88,7 @@ class TouchdownEnvelope:
             self.engagements += 1
         if not self.engaged:
             return cmd
-        return np.array([0.0, 0.0, -c.descent_mps])
+        if known and now is not None and c.commit_s > 0.0 and range_m <= c.commit_range_m:
+            self._committed_until = now + c.commit_s
+            self.commits += 1
+        return descent

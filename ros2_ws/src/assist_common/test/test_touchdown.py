@@ -63,3 +63,29 @@ def test_settings_out_of_range_or_inconsistent_are_refused():
         check_settings(TouchdownConfig(descent_mps=-0.5))
     with pytest.raises(ValueError, match='release_range_m'):
         TouchdownEnvelope(TouchdownConfig(engage_range_m=0.5, release_range_m=0.4))
+
+
+def test_a_touchdown_with_the_legs_down_holds_the_descent_for_commit_s_whatever_is_commanded():
+    cfg = TouchdownConfig()
+    env = TouchdownEnvelope(cfg)
+    env.apply([0.3, 0.0, -0.6], 0.3, now=10.0)
+    assert env.engaged and not env.committed
+    env.apply([0.0, 0.0, -0.6], cfg.commit_range_m - 0.02, now=10.5)     # the legs are down
+    assert env.committed and env.commits == 1
+    climb = [0.8, 0.0, 1.0]                    # the pilot hops: held down until commit_s has passed
+    assert env.apply(climb, 0.12, now=10.5 + cfg.commit_s - 0.05).tolist() == [0.0, 0.0, -cfg.descent_mps]
+    assert env.apply(climb, math.nan, now=10.5 + cfg.commit_s - 0.01).tolist() == [0.0, 0.0, -cfg.descent_mps]
+    out = env.apply(climb, 0.12, now=10.5 + cfg.commit_s + 0.01)
+    assert out.tolist() == climb and not env.engaged and not env.committed
+
+
+def test_without_a_clock_or_with_commit_s_zero_nothing_is_committed():
+    env = TouchdownEnvelope()
+    env.apply([0.0, 0.0, -0.6], 0.13)
+    assert env.engaged and not env.committed
+    assert env.apply([0.0, 0.0, 1.0], 0.13).tolist() == [0.0, 0.0, 1.0]
+    off = TouchdownEnvelope(TouchdownConfig(commit_s=0.0))
+    off.apply([0.0, 0.0, -0.6], 0.13, now=1.0)
+    assert not off.committed
+    with pytest.raises(ValueError, match='commit_range_m'):
+        TouchdownEnvelope(TouchdownConfig(commit_range_m=0.45))

@@ -455,7 +455,7 @@ class LandingWorld:
         fc = self._fc
         if fc.landed and self._cmd_world[2] > self.cfg.touchdown.abort_climb_mps:
             self.takeoff()
-        self._cmd_world = self._touchdown.apply(self._cmd_world, self._height_above_surface(pos))
+        self._cmd_world = self._touchdown.apply(self._cmd_world, self._height_above_surface(pos), self.episode_time)
         fc.command(self._cmd_world)
 
     def _confirm_autopilot_landing(self) -> None:
