@@ -124,7 +124,7 @@ def test_a_sideways_descent_ends_vertical_and_shows_on_diagnostics(ros, start_no
         steps = world.flown()
         last_high = max(k for k, (z, _) in enumerate(steps) if z > td.release_range_m + 0.1)
         high = [cmd for z, cmd in steps[:last_high + 1] if z > td.release_range_m + 0.1]
-        low = [cmd for z, cmd in steps[last_high:] if 0.06 < z < td.engage_range_m / 2]
+        low = [cmd for z, cmd in steps[last_high:] if 0.06 < z < td.commit_range_m - 0.02]   # legs about to touch
         assert high and low
         assert np.allclose(high[-1], COMMAND, atol=1e-6), high[-1]       # flown as commanded up there
         for cmd in low:                                                   # straight down in the last decimetres

@@ -156,6 +156,8 @@ PARAMS = {
                                                'engages the envelope.'),
     'touchdown_abort_climb_mps': _touchdown('abort_climb_mps', 'A command climbing faster than this (m/s) releases '
                                             'the envelope (the pilot takes the vehicle back up).'),
+    'touchdown_lateral_max_mps': _touchdown('lateral_max_mps', 'Sideways speed (m/s) left to the command during the '
+                                            'final descent (none once the legs are down).'),
     'touchdown_commit_range_m': _touchdown('commit_range_m', 'Downward range (m) at or below which the legs are '
                                            'down (0.12 m landed): the touchdown is committed (below '
                                            'touchdown_engage_range_m).'),

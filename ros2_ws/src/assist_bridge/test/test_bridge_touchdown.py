@@ -30,6 +30,12 @@ FORWARD = mavlink.MAV_SENSOR_ROTATION_NONE
 SIDEWAYS_DESCENT = [0.5, 0.3, -0.4]         # body FLU: forward, left, down (what slides on a pad top)
 
 
+def final_descent(cmd, td) -> list[float]:
+    """The final-descent setpoint for `cmd`: its sideways part limited to lateral_max_mps, the steady descent."""
+    k = min(1.0, td.lateral_max_mps / float(np.hypot(cmd[0], cmd[1])))
+    return [cmd[0] * k, cmd[1] * k, -td.descent_mps]
+
+
 class FakeClock:
     def __init__(self):
         self.t = 100.0
@@ -111,20 +117,25 @@ def test_a_descent_below_the_engage_range_goes_out_vertical_and_a_climb_releases
     r.range_cm(80)                                  # above the engage range: the command as given
     r.bridge.set_command(SIDEWAYS_DESCENT)
     np.testing.assert_allclose(r.sent_flu(), SIDEWAYS_DESCENT, atol=1e-12)
-    r.range_cm(30)                                  # 0.30 m < engage_range_m
-    np.testing.assert_allclose(r.next_scheduled(), [0.0, 0.0, -td.descent_mps], atol=1e-12)
+    r.range_cm(30)                                  # 0.30 m < engage_range_m: the final descent
+    np.testing.assert_allclose(r.next_scheduled(), final_descent(SIDEWAYS_DESCENT, td), atol=1e-12)
     snap = r.bridge.snapshot()
     assert snap['touchdown'] == 'engaged' and snap['range_m'] == pytest.approx(0.30)
     assert r.bridge.counters['touchdown_engaged'] == 1
     r.range_cm(20)
-    np.testing.assert_allclose(r.next_scheduled(), [0.0, 0.0, -td.descent_mps], atol=1e-12)
+    np.testing.assert_allclose(r.next_scheduled(), final_descent(SIDEWAYS_DESCENT, td), atol=1e-12)
     assert r.bridge.counters['touchdown_engaged'] == 1       # one descent, one engagement
     r.bridge.set_command([0.2, 0.0, 0.5])          # the pilot climbs away: released, sent as commanded
     np.testing.assert_allclose(r.sent_flu(), [0.2, 0.0, 0.5], atol=1e-12)
     assert r.bridge.snapshot()['touchdown'] == 'idle'
     r.bridge.set_command(SIDEWAYS_DESCENT)         # descends again: a second engagement
-    np.testing.assert_allclose(r.next_scheduled(), [0.0, 0.0, -td.descent_mps], atol=1e-12)
+    np.testing.assert_allclose(r.next_scheduled(), final_descent(SIDEWAYS_DESCENT, td), atol=1e-12)
     assert r.bridge.counters['touchdown_engaged'] == 2
+    r.range_cm(14)                                  # the legs are down: nothing sideways, the touchdown held
+    np.testing.assert_allclose(r.next_scheduled(), [0.0, 0.0, -td.descent_mps], atol=1e-12)
+    r.bridge.set_command([0.2, 0.0, 0.5])          # a hop after the legs touched does not undo the landing
+    np.testing.assert_allclose(r.next_scheduled(), [0.0, 0.0, -td.descent_mps], atol=1e-12)
+    assert r.bridge.touchdown.committed
 
 
 def test_the_vertical_descent_keeps_to_max_descent_mps(rig):
@@ -132,7 +143,7 @@ def test_the_vertical_descent_keeps_to_max_descent_mps(rig):
     assert r.bridge.touchdown.cfg.descent_mps > 0.3
     r.range_cm(30)
     r.bridge.set_command([0.5, 0.0, -1.0])
-    np.testing.assert_allclose(r.sent_flu(), [0.0, 0.0, -0.3], atol=1e-12)
+    np.testing.assert_allclose(r.sent_flu(), [r.bridge.touchdown.cfg.lateral_max_mps, 0.0, -0.3], atol=1e-12)
 
 
 @pytest.mark.parametrize('reading, counter', [
@@ -168,7 +179,8 @@ def test_a_stale_or_invalid_reading_releases_an_engaged_envelope(rig):
     np.testing.assert_allclose(r.next_scheduled(), SIDEWAYS_DESCENT, atol=1e-12)
     assert r.bridge.snapshot()['touchdown'] == 'idle'
     r.range_cm(30)                                  # a fresh reading engages it again ...
-    np.testing.assert_allclose(r.next_scheduled()[:2], [0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(r.next_scheduled(), final_descent(SIDEWAYS_DESCENT, r.bridge.touchdown.cfg),
+                               atol=1e-12)
     r.range_cm(2)                                   # ... an invalid one (below the sensor's minimum) releases it
     np.testing.assert_allclose(r.next_scheduled(), SIDEWAYS_DESCENT, atol=1e-12)
     assert r.bridge.counters['touchdown_engaged'] == 2
@@ -312,7 +324,7 @@ def test_a_sideways_descent_onto_the_stand_in_ends_vertical():
         steps = world.flown()
         last_high = max(k for k, (z, _) in enumerate(steps) if z > td.release_range_m + 0.1)
         high = [cmd for z, cmd in steps[:last_high + 1] if z > td.release_range_m + 0.1]
-        low = [cmd for z, cmd in steps[last_high:] if 0.06 < z < td.engage_range_m / 2]   # the final descent
+        low = [cmd for z, cmd in steps[last_high:] if 0.06 < z < td.commit_range_m - 0.02]   # legs about to touch
         assert high and low
         # above the envelope the vehicle flew the command (sideways), in its last decimetres straight down
         assert np.allclose(high[-1], command, atol=1e-9), high[-1]

@@ -2,15 +2,23 @@
 
 ArduCopter declares a landing only after about a second of descent demand with no large lean request
 and a quiet airframe; a vehicle that touches a pad while the pilot or the assistant still asks for
-sideways speed slides on the pad top and keeps flying. So, once the downward range (base_link to the
-surface below, as a downward rangefinder reads it) is below `engage_range_m` and the command descends,
-the velocity setpoint becomes a plain vertical descent at `descent_mps` with no horizontal part, until
-the command climbs (`abort_climb_mps`: the pilot takes it back up) or the range grows past
-`release_range_m`. Once the range reads the legs down (`commit_range_m`) the touchdown is committed: for
-`commit_s` the descent holds whatever is commanded (a climb included), long enough for ArduCopter to declare
-the landing (~1.65 s after contact on SITL), so a pilot's hop after the legs touched does not undo a landing
-that has happened. The bridge applies it to every setpoint it sends to ArduPilot; the simulator's
-ArduCopter plant applies the same class, so both plants end a landing the same way.
+sideways speed slides on the pad top and keeps flying. The envelope acts on the downward range (base_link
+to the surface below, as a downward rangefinder reads it) in two bands:
+
+* **final descent** (range below `engage_range_m` while the command descends, until it climbs faster than
+  `abort_climb_mps` or the range grows past `release_range_m`): the descent becomes a steady
+  `descent_mps`, and the sideways command is kept but limited to `lateral_max_mps`, so the pilot or the
+  assistant can still centre the vehicle (a vehicle that comes over a pad's edge low is not pinned there)
+  while little sideways speed is left at contact;
+* **touchdown** (range at or below `commit_range_m`: the legs are down or a few centimetres off, the command
+  not climbing): no sideways part, the steady descent, and, given the time, the touchdown is committed:
+  for `commit_s` the descent holds whatever is commanded (a climb included), long enough for ArduCopter to
+  declare the landing (~1.65 s after contact on SITL), so a pilot's hop after the legs touched does not
+  undo a landing that has happened.
+
+An unknown range (none, stale, out of the sensor's limits) passes the command through. The bridge applies
+the envelope to every setpoint it sends to ArduPilot; the simulator's ArduCopter plant applies the same
+class, so both plants end a landing the same way.
 
 Pure Python; frames: any frame whose z axis is vertical (ENU world or a yaw-only body frame).
 """
@@ -29,11 +37,12 @@ class TouchdownConfig:
     """When the envelope takes over a descent and how it finishes it."""
 
     enabled: bool = setting(True)
-    engage_range_m: float = setting(0.40, gt=0.0, le=5.0)     # range below which a descent is finished vertically
+    engage_range_m: float = setting(0.40, gt=0.0, le=5.0)     # range below which a descent becomes the final one
     release_range_m: float = setting(0.60, gt=0.0, le=10.0)   # range above which it lets go again
     descent_mps: float = setting(0.5, gt=0.0, le=2.0)         # final descent (ArduCopter LAND_SPEED-like)
     engage_descent_mps: float = setting(0.15, ge=0.0, le=2.0)  # a command descending faster than this engages it
     abort_climb_mps: float = setting(0.3, gt=0.0, le=5.0)     # a command climbing faster than this lets go
+    lateral_max_mps: float = setting(0.3, ge=0.0, le=5.0)     # sideways speed left to the command in the final descent
     commit_range_m: float = setting(0.16, gt=0.0, le=2.0)     # at or below this range the legs are down (0.12 landed)
     commit_s: float = setting(3.0, ge=0.0, le=30.0)           # a committed touchdown holds this long; 0: never commits
 
@@ -81,14 +90,26 @@ class TouchdownEnvelope:
                 return descent
             self._committed_until = None
         known = range_m is not None and math.isfinite(range_m)
-        if self.engaged and (cmd[2] > c.abort_climb_mps or not known or range_m > c.release_range_m):
+        if not known or cmd[2] > c.abort_climb_mps:
             self.engaged = False
-        elif not self.engaged and known and range_m < c.engage_range_m and cmd[2] < -c.engage_descent_mps:
+            return cmd
+        if range_m <= c.commit_range_m:                      # the legs are down: finish the landing
+            if not self.engaged:
+                self.engaged = True
+                self.engagements += 1
+            if now is not None and c.commit_s > 0.0:
+                self._committed_until = now + c.commit_s
+                self.commits += 1
+            return descent
+        if self.engaged and range_m > c.release_range_m:
+            self.engaged = False
+        elif not self.engaged and range_m < c.engage_range_m and cmd[2] < -c.engage_descent_mps:
             self.engaged = True
             self.engagements += 1
         if not self.engaged:
             return cmd
-        if known and now is not None and c.commit_s > 0.0 and range_m <= c.commit_range_m:
-            self._committed_until = now + c.commit_s
-            self.commits += 1
-        return descent
+        out = descent.copy()
+        speed = math.hypot(cmd[0], cmd[1])
+        scale = min(1.0, c.lateral_max_mps / speed) if speed > 0.0 else 0.0
+        out[:2] = cmd[:2] * scale
+        return out

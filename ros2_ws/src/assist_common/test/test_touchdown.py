@@ -15,20 +15,30 @@ def test_high_up_commands_pass_unchanged():
     assert not env.engaged
 
 
-def test_a_low_descent_becomes_vertical_at_the_final_descent_speed():
+def test_a_low_descent_becomes_the_final_descent_with_little_sideways_speed_then_vertical_at_touchdown():
     cfg = TouchdownConfig()
     env = TouchdownEnvelope(cfg)
     out = env.apply([0.7, 0.4, -0.8], cfg.engage_range_m - 0.05)
-    assert out.tolist() == [0.0, 0.0, -cfg.descent_mps]
+    assert out[2] == -cfg.descent_mps and env.engaged and env.engagements == 1
+    assert np.hypot(out[0], out[1]) == pytest.approx(cfg.lateral_max_mps)     # limited, same direction
+    assert out[0] / out[1] == pytest.approx(0.7 / 0.4)
+    # a small correction passes as it is; the final descent holds while below the release range
+    assert env.apply([0.1, -0.05, 0.0], cfg.release_range_m - 0.01).tolist() == [0.1, -0.05, -cfg.descent_mps]
+    # legs down: nothing sideways at all
+    assert env.apply([1.0, -1.0, -0.5], cfg.commit_range_m).tolist() == [0.0, 0.0, -cfg.descent_mps]
+
+
+def test_legs_down_finishes_the_landing_even_for_a_level_command():
+    cfg = TouchdownConfig()
+    env = TouchdownEnvelope(cfg)
+    assert env.apply([0.4, 0.0, 0.0], cfg.commit_range_m - 0.01).tolist() == [0.0, 0.0, -cfg.descent_mps]
     assert env.engaged and env.engagements == 1
-    # it holds while the range stays below the release range, whatever the sideways command
-    assert env.apply([1.0, -1.0, 0.0], cfg.release_range_m - 0.01).tolist() == [0.0, 0.0, -cfg.descent_mps]
 
 
 def test_hovering_low_or_climbing_low_does_not_engage():
     cfg = TouchdownConfig()
     env = TouchdownEnvelope(cfg)
-    low = cfg.engage_range_m - 0.1
+    low = cfg.engage_range_m - 0.1          # above the legs-down range
     assert env.apply([0.5, 0.0, 0.0], low).tolist() == [0.5, 0.0, 0.0]
     assert env.apply([0.5, 0.0, -0.5 * cfg.engage_descent_mps], low).tolist()[0] == 0.5
     assert env.apply([0.5, 0.0, 0.4], low).tolist() == [0.5, 0.0, 0.4]

@@ -69,7 +69,7 @@ class ArduCopterConfig:
     throttle_tc_s: float = setting(0.119, ge=0.01, le=1.0)     # fitted: vertical accel follows its demand
     # contact to the landing being declared when all is quiet: ArduCopter's 1 s trigger after its throttle has
     # wound down to the lower limit (1.62-1.67 s on SITL at 0.5 m/s: fixtures/guided/touchdown.csv)
-    land_detect_s: float = setting(1.45, ge=0.1, le=5.0)
+    land_detect_s: float = setting(1.37, ge=0.1, le=5.0)
     land_accel_max_mps2: float = setting(1.0, ge=0.1, le=5.0)  # LAND_DETECTOR_ACCEL_MAX
     land_vz_max_mps: float = setting(1.0, ge=0.1, le=3.0)      # vertical speed below this
     land_lean_max_deg: float = setting(15.0, ge=1.0, le=45.0)  # a larger lean request blocks the detector
@@ -77,6 +77,9 @@ class ArduCopterConfig:
     # never declared landed; released at contact, declared as a vertical touchdown)
     land_setpoint_xy_max_mps: float = setting(0.1, ge=0.0, le=2.0)
     idle_thrust_fraction: float = setting(0.05, ge=0.0, le=0.5)  # of hover thrust once landed (ground idle)
+    # on a surface with a descent demanded the throttle winds down to ground idle over this (the detector wants
+    # it at its lower limit; with it the airframe stops pushing sideways: SITL stopped within 3 cm of contact)
+    ground_spool_down_s: float = setting(0.6, ge=0.05, le=5.0)
 
     def validate(self) -> None:
         """ValueError naming the first setting outside its range (`arducopter.<name> ...`)."""
@@ -186,6 +189,7 @@ class GuidedVelocityModel:
         vx, vy, vz = (float(v) for v in velocity)
         self._xy.reset((px, py), (vx, vy))
         self._ix = self._iy = 0.0              # the horizontal velocity loop's integrator (m/s^2)
+        self._ground_s = 0.0                   # time on a surface with a descent demanded
         self._z.reset((pz, 0.0), (vz, 0.0))
         self._queue.clear()
         self._sp = (vx, vy, vz)
@@ -271,11 +275,20 @@ class GuidedVelocityModel:
         dy = xy.ay + c.vel_xy_p * ey + self._iy
         dx, dy = _limit2(dx, dy, self.g * math.tan(math.radians(c.lean_max_deg)))
         dz = max(zz.ax + c.vel_z_p * (zz.vx + cz + nz - vz), -self.g)     # no negative thrust
+        self._ground_s = self._ground_s + dt if touching and sz < 0.0 else 0.0
+        if self._ground_s > 0.0:                  # blocked descent: the throttle winds down to ground idle
+            w = min(1.0, self._ground_s / c.ground_spool_down_s)
+            dz = (1.0 - w) * dz + w * (c.idle_thrust_fraction - 1.0) * self.g
         self._demand = (dx, dy, dz)
         kxy = 1.0 - math.exp(-dt / c.attitude_tc_s)
         kz = 1.0 - math.exp(-dt / c.throttle_tc_s)
         ax, ay, az = self._acc
-        self._acc = (ax + kxy * (dx - ax), ay + kxy * (dy - ay), az + kz * (dz - az))
+        az = az + kz * (dz - az)
+        # the horizontal force is the thrust leaned over: no more than (g + a_z) tan(lean_max), so a vehicle
+        # whose thrust winds down on the ground stops pushing sideways (SITL: it stops within 3 cm of contact)
+        ax, ay = _limit2(ax + kxy * (dx - ax), ay + kxy * (dy - ay),
+                         max(self.g + az, 0.0) * math.tan(math.radians(c.lean_max_deg)))
+        self._acc = (ax, ay, az)
         self._detect_landing(vx, vy, vz, touching, dt)
         return self._acc
 
