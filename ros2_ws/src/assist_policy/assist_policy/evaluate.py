@@ -69,6 +69,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import yaml
 from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
@@ -134,6 +135,7 @@ class EvalArgs:
     record_dir: str = ''
     workers: int = setting(0, ge=0, le=1024)      # 0: one per CPU core (a short run: fewer, see worker_count)
     flight_controller: str = setting('ideal', choices=FLIGHT_CONTROLLERS)
+    world_config: str = ''                         # YAML of WorldConfig fields (e.g. the SITL start); '' = defaults
     ray: str = ''                                  # '' local processes; 'auto' a local Ray instance; or an address
 
 # Settings that change how a run is carried out, not which landings it flies (not part of the resume key).
@@ -172,6 +174,9 @@ HELP = {
     'flight_controller': 'the plant that follows the velocity commands: ideal (the sim\'s own velocity loop) or '
                          'arducopter (ArduCopter GUIDED as the bridge flies it: assist_sim.core.arducopter, with '
                          'the touchdown envelope; the camera leans with the airframe and the encoder levels it)',
+    'world_config': 'YAML file of assist_sim WorldConfig fields for the landing world (sim_node\'s world_config), '
+                    'e.g. assist_sim/config/world_sitl_start.yaml: every landing starts where the SITL landing '
+                    'series starts (over the start spot at take-off altitude); --flight-controller still applies',
     'record_dir': 'save every landing as a rosbag2 bag (the graph\'s topics and types) in this directory, '
                   'named <condition>_beta<beta>_seed<seed>: replay_assist / plot_flight take any of them',
 }
@@ -265,9 +270,10 @@ def write_landings(path: Path, rows_by_cond: dict[str, list[dict]]) -> None:
 def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: float, alpha: float,
                 pilot: str = 'paper', safety: SafetyConfig | None = None, override: OverrideConfig | None = None,
                 recall: RecallConfig | None = None, damper: DamperConfig | None = None,
-                flight_controller: str = 'ideal'):
+                flight_controller: str = 'ideal', world_config: str = ''):
     """(env, policy) for one condition; policy(obs) -> raw action, None for unassisted (override etc.: learned only)."""
-    world = WorldConfig(flight_controller=flight_controller)
+    world = WorldConfig.from_yaml(world_config) if world_config else WorldConfig()
+    world.flight_controller = flight_controller
     if condition == 'unassisted':
         return LandingAssistEnv(EnvConfig(condition='none', alpha=alpha, max_episode_s=max_episode_s,
                                           pilot_family=pilot, world=world)), None
@@ -439,6 +445,11 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
     check_settings(args)
     if args.pilot not in PILOT_NAMES:
         raise ValueError(f'unknown pilot {args.pilot!r}; choose from {", ".join(PILOT_NAMES)}')
+    if args.world_config:           # unreadable or with an unknown field: refused before anything flies
+        try:
+            WorldConfig.from_yaml(args.world_config)
+        except (OSError, ValueError, TypeError, yaml.YAMLError) as exc:
+            raise ValueError(f'--world-config {args.world_config}: {exc}') from None
     out = Path(args.out)
     rows_by_cond: dict[str, list[dict]] = {}
     for path in args.from_csv:      # a landing (condition, beta, seed) seen again replaces the earlier one
@@ -506,7 +517,8 @@ class LandingFlyer:
                                                SafetyConfig() if a.safety else None,
                                                OverrideConfig() if on['override'] else None,
                                                RecallConfig() if on['recall'] else None,
-                                               DamperConfig() if on['damper'] else None, a.flight_controller)
+                                               DamperConfig() if on['damper'] else None, a.flight_controller,
+                                               a.world_config)
         env, policy = self.made[task.cond]
         row = (record_landing(run_landing, env, policy, task.seed, task.beta, task.name, a.record_dir)
                if a.record_dir else run_landing(env, policy, task.seed, task.beta))
