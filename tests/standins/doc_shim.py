@@ -229,6 +229,21 @@ def check_service(args: list[str]) -> int:
     return _fail('ros2', args, f'no node creates the service {name} ({kind})')
 
 
+def check_sitl_series(args: list[str]) -> int:
+    """`evaluate_graph --autopilot sitl` needs ArduPilot SITL (checked by hand): its arguments parse and validate."""
+    import argparse
+
+    from assist_policy.cli import add_dataclass_args, parse_dataclass_args
+    from assist_policy.graph_eval import HELP, GraphEvalArgs
+    parser = argparse.ArgumentParser(prog='evaluate_graph')
+    add_dataclass_args(parser, GraphEvalArgs, HELP)
+    try:
+        parse_dataclass_args(parser, GraphEvalArgs, args)
+    except SystemExit as exc:
+        return _fail('evaluate_graph', args, f'arguments refused (exit {exc.code})')
+    return _log('evaluate_graph', args, 'unavailable', 0, 'ArduPilot SITL: checked by hand')
+
+
 def main(argv: list[str]) -> int:
     """Dispatch on the program name."""
     program, args = Path(argv[0]).name, argv[1:]
@@ -250,6 +265,8 @@ def main(argv: list[str]) -> int:
         return _log(program, args, 'run', subprocess.call([sys.executable, *args]))
     if program == 'sim_vehicle.py':
         return _log(program, args, 'unavailable', 0)
+    if program == 'evaluate_graph' and (_values(args, '--autopilot') or [])[:1] == ['sitl']:
+        return check_sitl_series(args)
     if program in NODES:
         if any(a in ('-h', '--help', '--version') for a in args):
             return _log(program, args, 'run', subprocess.call([str(REAL_BIN / program), *args],
