@@ -5,8 +5,8 @@ and a quiet airframe; a vehicle that touches a pad while the pilot or the assist
 sideways speed slides on the pad top and keeps flying. The envelope acts on the downward range (base_link
 to the surface below, as a downward rangefinder reads it) in two bands:
 
-* **final descent** (range below `engage_range_m` while the command descends, until it climbs faster than
-  `abort_climb_mps` or the range grows past `release_range_m`): the descent becomes a steady
+* **final descent** (range below `engage_range_m` while the command descends, until it stops descending, climbs
+  faster than `abort_climb_mps` or the range grows past `release_range_m`): the descent becomes a steady
   `descent_mps`, and the sideways command is kept but limited to `lateral_max_mps`, so the pilot or the
   assistant can still centre the vehicle (a vehicle that comes over a pad's edge low is not pinned there)
   while little sideways speed is left at contact;
@@ -101,8 +101,8 @@ class TouchdownEnvelope:
                 self._committed_until = now + c.commit_s
                 self.commits += 1
             return descent
-        if self.engaged and range_m > c.release_range_m:
-            self.engaged = False
+        if self.engaged and (range_m > c.release_range_m or cmd[2] >= -c.engage_descent_mps):
+            self.engaged = False          # up and away, or the command stopped descending (e.g. a floor guard)
         elif not self.engaged and range_m < c.engage_range_m and cmd[2] < -c.engage_descent_mps:
             self.engaged = True
             self.engagements += 1

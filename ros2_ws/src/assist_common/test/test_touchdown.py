@@ -22,8 +22,8 @@ def test_a_low_descent_becomes_the_final_descent_with_little_sideways_speed_then
     assert out[2] == -cfg.descent_mps and env.engaged and env.engagements == 1
     assert np.hypot(out[0], out[1]) == pytest.approx(cfg.lateral_max_mps)     # limited, same direction
     assert out[0] / out[1] == pytest.approx(0.7 / 0.4)
-    # a small correction passes as it is; the final descent holds while below the release range
-    assert env.apply([0.1, -0.05, 0.0], cfg.release_range_m - 0.01).tolist() == [0.1, -0.05, -cfg.descent_mps]
+    # a small correction passes as it is; the final descent holds while the command descends
+    assert env.apply([0.1, -0.05, -0.3], cfg.release_range_m - 0.01).tolist() == [0.1, -0.05, -cfg.descent_mps]
     # legs down: nothing sideways at all
     assert env.apply([1.0, -1.0, -0.5], cfg.commit_range_m).tolist() == [0.0, 0.0, -cfg.descent_mps]
 
@@ -99,3 +99,13 @@ def test_without_a_clock_or_with_commit_s_zero_nothing_is_committed():
     assert not off.committed
     with pytest.raises(ValueError, match='commit_range_m'):
         TouchdownEnvelope(TouchdownConfig(commit_range_m=0.45))
+
+
+def test_a_command_that_stops_descending_in_the_final_descent_is_let_go():
+    """A floor guard that stops a descent over the floor low down is obeyed, not overruled into a floor landing."""
+    cfg = TouchdownConfig()
+    env = TouchdownEnvelope(cfg)
+    env.apply([0.2, 0.0, -0.3], 0.35, now=1.0)
+    assert env.engaged
+    assert env.apply([0.2, 0.0, 0.0], 0.30, now=1.05).tolist() == [0.2, 0.0, 0.0]
+    assert not env.engaged and not env.committed
