@@ -144,6 +144,16 @@ def check_settings(obj: Any) -> None:
         relations()
 
 
+def check_section(obj: Any, section: str) -> None:
+    """`check_settings` for a settings object nested in a config file: ValueError naming `section.field` (not a
+    --flag) and why, e.g. `arducopter.accel_xy_mps2 must be <= 10, got 99.0`."""
+    try:
+        check_settings(obj)
+    except ValueError as exc:       # SettingsError, or a relation between fields
+        name, _, why = str(exc).partition(' ')
+        raise ValueError(f"{section}.{name.removeprefix('--').replace('-', '_')} {why}") from None
+
+
 def exit_error(prog: str, problem: BaseException | str, status: int) -> typing.NoReturn:
     """Write one `<prog>: error: ...` line to stderr and exit with `status` (2: bad arguments, 1: the run failed)."""
     text = str(problem).strip()

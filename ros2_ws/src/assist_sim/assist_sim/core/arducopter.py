@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from assist_common.settings import RULE_KEY, SettingsError, check_settings, setting
+from assist_common.settings import RULE_KEY, check_section, setting
 
 FLIGHT_CONTROLLERS = ('ideal', 'arducopter')
 LAND_ACCEL_FILTER_HZ = 1.0     # the land detector's acceleration is low-passed at this cut-off
@@ -83,11 +83,7 @@ class ArduCopterConfig:
 
     def validate(self) -> None:
         """ValueError naming the first setting outside its range (`arducopter.<name> ...`)."""
-        try:
-            check_settings(self)
-        except SettingsError as exc:
-            flag_name, _, why = str(exc).partition(' ')
-            raise ValueError(f"arducopter.{flag_name.removeprefix('--').replace('-', '_')} {why}") from None
+        check_section(self, 'arducopter')
 
 
 # the fields `randomised` varies (the dynamics; thresholds of the land detector stay ArduCopter's)

@@ -10,7 +10,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from assist_common.frames import R_BODY_FROM_OPTICAL, yaw_rotation
-from assist_common.settings import SettingsError, check_settings
+from assist_common.settings import check_section
 from assist_common.touchdown import TouchdownEnvelope
 
 from .arducopter import FLIGHT_CONTROLLERS, GuidedVelocityModel
@@ -357,11 +357,7 @@ class LandingWorld:
     def _arducopter(self, cfg) -> tuple[GuidedVelocityModel, TouchdownEnvelope]:
         """The ArduCopter plant's model and envelope (ValueError naming a setting out of range)."""
         model = GuidedVelocityModel(cfg, self.cfg.gravity_mps2)
-        try:
-            check_settings(self.cfg.touchdown)
-        except (SettingsError, ValueError) as exc:
-            flag_name, _, why = str(exc).partition(' ')
-            raise ValueError(f"touchdown.{flag_name.removeprefix('--').replace('-', '_')} {why}") from None
+        check_section(self.cfg.touchdown, 'touchdown')
         return model, TouchdownEnvelope(self.cfg.touchdown)
 
     def set_flight_controller(self, name: str, arducopter=None) -> None:
@@ -501,7 +497,7 @@ class LandingWorld:
             m = self._mass
             a = self._fc.tick(pos, lin, self._tick_dt, touching=self._was_touching, disturbance=self._noise)
             fx, fy, fz = m * a[0], m * a[1], max(m * (a[2] + g), 0.0)
-            tilt_target = tuple(self._fc.thrust_direction())
+            tilt_target = self._fc.thrust_direction()
             p.applyExternalForce(vid, -1, (fx, fy, fz), pos, p.WORLD_FRAME, physicsClientId=cid)
         elif self._armed:
             tx, ty, tz = self._cmd_world + self._noise
