@@ -15,29 +15,11 @@ from std_srvs.srv import Trigger
 from assist_common.mavlink_io import mavlink
 from assist_common.ros_common import LATCHED_QOS, RELIABLE_QOS, fill_twist
 from assist_common.touchdown import TouchdownConfig
-from assist_sim.testing import KinematicWorld, VehicleThread, free_udp_port
+from assist_sim.testing import RecordingWorld, VehicleThread, free_udp_port
 
 pytestmark = pytest.mark.graph
 ON_GROUND = mavlink.MAV_LANDED_STATE_ON_GROUND
 COMMAND = [0.3, 0.2, -0.2]                  # body FLU: forward, left, slowly down
-
-
-class RecordingWorld(KinematicWorld):
-    """KinematicWorld that keeps (height before the step, commanded body FLU velocity) of every step."""
-
-    def __init__(self, **kw):
-        super().__init__(**kw)
-        self.lock = threading.Lock()
-        self.steps: list[tuple[float, np.ndarray]] = []
-
-    def step(self, cmd_flu, dt=None):
-        with self.lock:
-            self.steps.append((float(self.pos[2]), np.array(cmd_flu, dtype=float)))
-        return super().step(cmd_flu, dt)
-
-    def flown(self) -> list[tuple[float, np.ndarray]]:
-        with self.lock:
-            return list(self.steps)
 
 
 class Probe:

@@ -5,7 +5,6 @@ on a take-off after ON_GROUND; the node declares the TouchdownConfig fields as t
 import dataclasses
 import math
 import os
-import threading
 import time
 
 import numpy as np
@@ -18,7 +17,7 @@ from assist_bridge.bridge_core import RANGE_DOWN, BridgeConfig, MavlinkBridge, d
 from assist_bridge.mavlink_bridge_node import PARAMS, TOUCHDOWN_PARAMS
 from assist_common.settings import RULE_KEY
 from assist_common.touchdown import TouchdownConfig
-from assist_sim.testing import KinematicWorld, VehicleThread, free_udp_port
+from assist_sim.testing import RecordingWorld, VehicleThread, free_udp_port
 
 mavlink = mavutil.mavlink
 GUIDED = 4                                  # ArduCopter custom_mode
@@ -269,24 +268,6 @@ def test_a_release_range_below_the_engage_range_is_refused():
 
 
 # ---------------------------------------------------------------------- against the sim's ArduCopter stand-in
-class RecordingWorld(KinematicWorld):
-    """KinematicWorld that keeps (height before the step, commanded body FLU velocity) of every step."""
-
-    def __init__(self, **kw):
-        super().__init__(**kw)
-        self.lock = threading.Lock()
-        self.steps: list[tuple[float, np.ndarray]] = []
-
-    def step(self, cmd_flu, dt=None):
-        with self.lock:
-            self.steps.append((float(self.pos[2]), np.array(cmd_flu, dtype=float)))
-        return super().step(cmd_flu, dt)
-
-    def flown(self) -> list[tuple[float, np.ndarray]]:
-        with self.lock:
-            return list(self.steps)
-
-
 def wait_for(pred, timeout=20.0, what='condition'):
     """Poll pred() until true; the timeout only bounds a hang, it is not the assertion."""
     deadline = time.monotonic() + timeout

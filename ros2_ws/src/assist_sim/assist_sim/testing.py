@@ -242,3 +242,22 @@ class SilentAutopilot:
         for t in self._threads:
             t.join(timeout=1.0)
         self.conn.close()
+
+
+class RecordingWorld(KinematicWorld):
+    """KinematicWorld that keeps (height before the step, commanded body FLU velocity) of every step."""
+
+    def __init__(self, **kw):
+        super().__init__(**kw)
+        self.lock = threading.Lock()
+        self.steps: list[tuple[float, np.ndarray]] = []
+
+    def step(self, cmd_flu, dt=None):
+        with self.lock:
+            self.steps.append((float(self.pos[2]), np.array(cmd_flu, dtype=float)))
+        return super().step(cmd_flu, dt)
+
+    def flown(self) -> list[tuple[float, np.ndarray]]:
+        """Every step so far: (height before it, commanded body FLU velocity)."""
+        with self.lock:
+            return list(self.steps)
