@@ -75,7 +75,12 @@ def demonstrator(demo_policy: str, max_speed) -> ScriptedOracle | None:
 
 @dataclass(frozen=True)
 class ActorWeights:
-    """A snapshot of the learner's actor that a worker can fly (CPU tensors; `version` names the snapshot)."""
+    """A snapshot of the learner's actor that a worker can fly (`version` names the snapshot).
+
+    The weights travel as numpy arrays, pickled by value: torch tensors would cross to a worker
+    process as shared-memory file descriptors, whose hand-over a worker killed mid-way turns into a
+    traceback from multiprocessing's resource-sharer thread in the learner.
+    """
 
     meta: dict
     state: dict
@@ -84,7 +89,7 @@ class ActorWeights:
     @classmethod
     def of(cls, actor: torch.nn.Module, meta: dict) -> ActorWeights:
         """Snapshot `actor` (its architecture in `meta`, as TD3.meta holds it)."""
-        return cls(dict(meta), {k: v.detach().cpu().clone() for k, v in actor.state_dict().items()},
+        return cls(dict(meta), {k: v.detach().cpu().numpy().copy() for k, v in actor.state_dict().items()},
                    next(_VERSIONS))
 
     def policy(self) -> Callable[[np.ndarray], np.ndarray]:
@@ -92,7 +97,7 @@ class ActorWeights:
         m = self.meta
         actor = Actor(m['vec_dim'], m['act_dim'], hidden=tuple(m['hidden']), image=m['image'],
                       image_channels=tuple(m['image_channels']))
-        actor.load_state_dict(self.state)
+        actor.load_state_dict({k: torch.from_numpy(v) for k, v in self.state.items()})
         actor.eval()
 
         @torch.no_grad()

@@ -249,3 +249,29 @@ def test_completed_in_turn_yields_each_future_once_in_completion_order():
         assert list(cluster.completed_in_turn([failing])) == [failing]
         with pytest.raises(ValueError):
             cluster.result_of(failing)
+
+
+def test_actor_weights_cross_to_a_worker_by_value_without_handing_over_file_descriptors():
+    # torch tensors pickled for another process travel as shared-memory file descriptors through
+    # multiprocessing's resource sharer, whose hand-over a worker killed mid-way turned into a
+    # traceback in the learner; the snapshot is pickled by value instead (a fresh interpreter, so no
+    # other test has started the sharer)
+    code = '''
+import torch
+from multiprocessing import resource_sharer
+from multiprocessing.reduction import ForkingPickler
+import pickle
+from assist_policy.collect import ActorWeights
+from assist_policy.td3 import TD3, TD3Config
+agent = TD3(5, 3, TD3Config(hidden=(8, 8)), seed=3)
+w = ActorWeights.of(agent.actor, agent.meta)
+data = bytes(ForkingPickler.dumps(w))
+back = pickle.loads(data)
+same = back.policy()([0.1] * 5).tolist() == w.policy()([0.1] * 5).tolist()
+print(resource_sharer._resource_sharer._listener is None, same)
+'''
+    import subprocess
+    import sys
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ['True', 'True'], out.stdout
