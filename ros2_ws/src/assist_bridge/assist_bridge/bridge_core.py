@@ -15,7 +15,9 @@ What it does, as ArduCopter needs it:
   copter holds its heading) at `setpoint_rate_hz`, plus at most one immediate send of a changed
   command between two scheduled sends (so at most twice that rate whatever comes in); after
   `command_timeout_s` without a command it sends zero velocity; no setpoints while disarmed,
-  during a takeoff climb (a velocity target would cancel it) or outside GUIDED;
+  during a takeoff climb (a velocity target would cancel it; the climb ends when the vehicle reports
+  IN_AIR after TAKEOFF, reaches the takeoff altitude less `takeoff_done_margin_m`, or runs out of time)
+  or outside GUIDED;
 - link loss: zero velocity when the loss is declared and at `link_lost_setpoint_rate_hz` while
   it lasts (the link may be one-way), never the pilot's command;
 - never changes the flight mode on its own: only set_mode / guided / land / arm (which selects
@@ -533,6 +535,14 @@ class MavlinkBridge:
                 if previous == mavlink.MAV_LANDED_STATE_ON_GROUND and state in (
                         mavlink.MAV_LANDED_STATE_TAKEOFF, mavlink.MAV_LANDED_STATE_IN_AIR):
                     self.touchdown.reset()          # landed, then took off: a new flight
+                if (self._takeoff_until_alt is not None and previous == mavlink.MAV_LANDED_STATE_TAKEOFF
+                        and state == mavlink.MAV_LANDED_STATE_IN_AIR):
+                    # ArduCopter's own word that its takeoff reached the target: the altitude threshold
+                    # is measured from where the EKF put the ground at the takeoff command, which is off
+                    # while the estimate still converges (a vehicle moved on the ground, a baro drift)
+                    _LOG.info('takeoff complete (the vehicle reports IN_AIR at %.2f m); velocity setpoints resume',
+                              self._altitude_locked())
+                    self._takeoff_until_alt = None
             if changed:
                 _LOG.info('vehicle landed state %s', LANDED_STATES[state])
             if self._on_landed_state is not None:       # every report: its arrival says the state is current
@@ -763,11 +773,15 @@ class MavlinkBridge:
         self._sent_velocity = np.zeros(3)
         self.counters['setpoints_link_lost'] += 1
 
+    def _altitude_locked(self) -> float:
+        """Height above the EKF origin from the last LOCAL_POSITION_NED (-inf before one came)."""
+        st = self.status
+        return -float(st.position_ned[2]) if st.position_ned is not None else -math.inf
+
     def _check_takeoff_locked(self, now: float) -> None:
         if self._takeoff_until_alt is None:
             return
-        st = self.status
-        alt = -float(st.position_ned[2]) if st.position_ned is not None else -math.inf
+        alt = self._altitude_locked()
         if alt >= self._takeoff_until_alt:
             _LOG.info('takeoff complete at %.2f m; velocity setpoints resume', alt)
             self._takeoff_until_alt = None

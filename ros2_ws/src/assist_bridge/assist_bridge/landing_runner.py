@@ -1,8 +1,9 @@
 """landing_runner: fly landing episodes on an autopilot (ArduCopter SITL or the sim's MAVLink vehicle).
 
 Thin rclpy shell over assist_bridge.landing_runner_core: for each episode announced by a new
-/sim/goal it calls /uav/guided and /uav/arm (retried while the autopilot refuses, e.g. until the
-EKF has re-converged after the sim's teleport), then /uav/takeoff; the pilot (sim_pilot_node or a
+/sim/goal it waits until /odom has been still for `settle_s` (an estimate still converging, as SITL's EKF
+after the sim moved the vehicle to the next start spot, would misplace the takeoff and the approach), calls
+/uav/guided and /uav/arm (retried while the autopilot refuses), then /uav/takeoff; the pilot (sim_pilot_node or a
 person on teleop_keyboard / the pilot station) and the assistant then fly the landing; on the
 result from /sim/landing it waits up to `autopilot_confirm_s` for /uav/landed_state ON_GROUND (the
 autopilot's own landing verdict, recorded as `autopilot_landed`), then calls /uav/land (LAND disarms
@@ -19,14 +20,15 @@ import time
 from pathlib import Path
 
 from geometry_msgs.msg import PointStamped
+from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String, UInt8
 from std_srvs.srv import Trigger
 
 from assist_common.atomic import CsvLog
-from assist_common.ros_common import (LANDING_QOS, LATCHED_QOS, Diagnostics, Param, StartupError, declare_parameters,
-                                      exit_process, forward_logging, run_node)
+from assist_common.ros_common import (LANDING_QOS, LATCHED_QOS, SENSOR_QOS, Diagnostics, Param, StartupError,
+                                      declare_parameters, exit_process, forward_logging, run_node)
 
 from .landing_runner_core import LandingRunnerCore, RunnerConfig, RunnerState
 from .mavlink_bridge_node import LANDED_STATE_TOPIC
@@ -54,6 +56,12 @@ PARAMS = {
                                  'calling /uav/land; recorded as autopilot_landed true/false (empty for a timeout, '
                                  'a crash in the air, or no landed state heard); 0: do not wait.',
                                  min=0.0, max=60.0),
+    'settle_s': Param(RunnerConfig.settle_s, 'Arm only once /odom has been still this long (speed at most '
+                      'settle_speed_mps, position within settle_drift_m); 0: arm without /odom.', min=0.0, max=60.0),
+    'settle_speed_mps': Param(RunnerConfig.settle_speed_mps, 'Fastest /odom speed that counts as still.',
+                              min=0.001, max=1.0),
+    'settle_drift_m': Param(RunnerConfig.settle_drift_m, 'Farthest /odom position change within settle_s that '
+                            'counts as still.', min=0.001, max=1.0),
     'results_file': Param('', 'CSV file for the landing results (appended; empty: log only). An existing file '
                               'with other columns is refused.'),
 }
@@ -90,7 +98,10 @@ class LandingRunner(Node):
                                reboot_after_s=float(self.p['reboot_after_s']),
                                reboot_after_crash=bool(self.p['reboot_after_crash']),
                                disarm_timeout_s=float(self.p['disarm_timeout_s']),
-                               autopilot_confirm_s=float(self.p['autopilot_confirm_s']))
+                               autopilot_confirm_s=float(self.p['autopilot_confirm_s']),
+                               settle_s=float(self.p['settle_s']),
+                               settle_speed_mps=float(self.p['settle_speed_mps']),
+                               settle_drift_m=float(self.p['settle_drift_m']))
         except ValueError as exc:
             raise StartupError(str(exc)) from exc
         self.core = LandingRunnerCore(cfg)
@@ -108,6 +119,7 @@ class LandingRunner(Node):
         self.create_subscription(PointStamped, '/sim/goal', self._on_goal, LATCHED_QOS)
         self.create_subscription(String, '/sim/landing', self._on_landing, LANDING_QOS)
         self.create_subscription(UInt8, LANDED_STATE_TOPIC, self._on_landed_state, LATCHED_QOS)
+        self.create_subscription(Odometry, '/odom', self._on_odometry, SENSOR_QOS)
         self.create_timer(0.1, self._tick)
         self.get_logger().info(f"landing_runner: {cfg.episodes or 'unlimited'} episodes; waiting for /sim/goal")
 
@@ -130,6 +142,10 @@ class LandingRunner(Node):
             return
         self.core.on_landing(result, time.monotonic())
         self._write_results()
+
+    def _on_odometry(self, msg: Odometry) -> None:
+        p, v = msg.pose.pose.position, msg.twist.twist.linear
+        self.core.on_odometry((p.x, p.y, p.z), (v.x, v.y, v.z), time.monotonic())
 
     def _on_landed_state(self, msg: UInt8) -> None:
         self.core.on_landed_state(int(msg.data), time.monotonic())

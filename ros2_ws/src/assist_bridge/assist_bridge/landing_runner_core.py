@@ -2,7 +2,8 @@
 
 In MAVLink / ArduPilot-SITL set-ups every landing episode starts landed and disarmed, so somebody
 has to put the vehicle in the air before the pilot (simulated or human) and the assistant can fly
-the landing: GUIDED, arm (retried until the EKF accepts it), take off; then wait for the landing
+the landing: GUIDED, arm (once the vehicle's odometry has been still for `settle_s`, retried until the
+EKF accepts it), take off; then wait for the landing
 judge's result on /sim/landing, wait up to `autopilot_confirm_s` for the autopilot's own verdict
 (/uav/landed_state ON_GROUND: ArduCopter's land detector declared the landing) and record it as
 `autopilot_landed`, and make sure the vehicle is disarmed so the simulator starts the next episode
@@ -45,6 +46,12 @@ class RunnerConfig:
     reboot_after_crash: bool = False  # reboot before the episode after a crash (SITL's EKF may not survive one)
     disarm_timeout_s: float = 20.0    # no next episode this long after the landing's LAND: force-disarm; 0: never
     autopilot_confirm_s: float = 3.0  # after a touchdown result, wait this long for ON_GROUND before LAND; 0: don't
+    # arm only once /odom has been still this long (speed <= settle_speed_mps, position within settle_drift_m):
+    # an estimate still moving (SITL's EKF re-converging after the sim moved the vehicle to the next start
+    # spot) would put the takeoff's ground, and the first metres of the approach, where the vehicle is not
+    settle_s: float = 1.0             # 0: arm without waiting for the odometry
+    settle_speed_mps: float = 0.05
+    settle_drift_m: float = 0.05
 
     def __post_init__(self) -> None:
         if int(self.episodes) < 0:
@@ -53,10 +60,14 @@ class RunnerConfig:
             v = float(getattr(self, name))
             if not math.isfinite(v) or v <= 0.0:
                 raise ValueError(f'{name} must be finite and > 0, got {v}')
-        for name in ('reboot_after_s', 'disarm_timeout_s', 'autopilot_confirm_s'):
+        for name in ('reboot_after_s', 'disarm_timeout_s', 'autopilot_confirm_s', 'settle_s'):
             v = float(getattr(self, name))
             if not math.isfinite(v) or v < 0.0:
                 raise ValueError(f'{name} must be finite and >= 0, got {v}')
+        for name in ('settle_speed_mps', 'settle_drift_m'):
+            v = float(getattr(self, name))
+            if not math.isfinite(v) or v <= 0.0:
+                raise ValueError(f'{name} must be finite and > 0, got {v}')
 
 
 # MAV_LANDED_STATE_ON_GROUND: the autopilot's land detector declared the vehicle landed
@@ -117,6 +128,10 @@ class LandingRunnerCore:
         self._confirm_until = 0.0
         self._heard_landed_state = False           # the autopilot reported a landed state during this episode
         self.failure: str | None = None
+        self._still_since: float | None = None      # /odom still (settle_*) since then, at _still_position
+        self._still_position: tuple[float, float, float] | None = None
+        self._last_odometry: float | None = None
+        self._settle_logged = False
 
     # inputs -------------------------------------------------------------------------------------
     def on_goal(self, key: object, now: float) -> None:
@@ -147,6 +162,28 @@ class LandingRunnerCore:
             self.state = RunnerState.CONFIRMING
         else:
             self._record(result, '', now)
+
+    def on_odometry(self, position, velocity, now: float) -> None:
+        """An /odom sample (position in odom, velocity in any frame); non-finite samples are ignored."""
+        pos = tuple(float(v) for v in position)
+        speed = math.sqrt(sum(float(v) ** 2 for v in velocity))
+        if not (all(math.isfinite(v) for v in pos) and math.isfinite(speed)):
+            return
+        self._last_odometry = now
+        moved = (self._still_position is not None
+                 and math.dist(pos, self._still_position) > self.cfg.settle_drift_m)
+        if speed > self.cfg.settle_speed_mps or moved:
+            self._still_since, self._still_position = None, None
+        if self._still_since is None:
+            self._still_since, self._still_position = now, pos
+
+    def odometry_settled(self, now: float) -> bool:
+        """Whether /odom has been still for settle_s, up to now (always true with settle_s 0)."""
+        if self.cfg.settle_s <= 0:
+            return True
+        return (self._still_since is not None and self._last_odometry is not None
+                and now - self._last_odometry <= self.cfg.settle_s
+                and self._last_odometry - self._still_since >= self.cfg.settle_s)
 
     def on_landed_state(self, state: int, now: float) -> None:
         """A MAV_LANDED_STATE report from the autopilot (/uav/landed_state, at every report)."""
@@ -258,6 +295,12 @@ class LandingRunnerCore:
             self._queue = ['land']
         if not self._queue or now < self._not_before:
             return None
+        if self._queue[0] == 'arm' and not self.odometry_settled(now):
+            if not self._settle_logged:
+                _LOG.info('waiting for the odometry to settle (still for %.1f s) before arming', self.cfg.settle_s)
+                self._settle_logged = True
+            return None
+        self._settle_logged = False
         self._in_flight = self._queue.pop(0)
         return self._in_flight
 

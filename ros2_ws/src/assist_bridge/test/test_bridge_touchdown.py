@@ -363,3 +363,42 @@ def test_the_node_refuses_a_release_range_below_the_engage_range_in_one_line(mak
     with pytest.raises(StartupError) as err:
         make_node(touchdown_engage_range_m=0.5, touchdown_release_range_m=0.4)
     assert 'touchdown_release_range_m' in str(err.value) and '\n' not in str(err.value)
+
+
+def test_the_takeoff_climb_ends_when_the_vehicle_reports_in_air_even_below_the_altitude_threshold(rig):
+    # an EKF still converging at the takeoff command (a vehicle moved on the ground) puts the ground 0.5 m
+    # up: the altitude threshold is then out of reach, and ArduCopter's TAKEOFF -> IN_AIR ends the climb
+    import threading
+    r = rig()
+    r.ap.mav.local_position_ned_send(0, 0.0, 0.0, -0.5, 0.0, 0.0, 0.0)
+    r.deliver(1)
+    r.landed_state(ON_GROUND)
+    result = []
+    t = threading.Thread(target=lambda: result.append(r.bridge.takeoff(2.0)))
+    t.start()
+    try:
+        deadline = time.monotonic() + 10.0
+        while not r.bridge.snapshot()['taking_off']:
+            assert time.monotonic() < deadline, 'takeoff never started'
+            time.sleep(0.002)
+        r.ap.mav.command_ack_send(mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_RESULT_ACCEPTED)
+        r.deliver(1)
+    finally:
+        t.join(10.0)
+    assert result and result[0][0], result
+    r.bridge.set_command([0.5, 0.0, 0.0])
+    r.landed_state(TAKEOFF)
+    r.ap.mav.local_position_ned_send(0, 0.0, 0.0, -1.9, 0.0, 0.0, 0.0)   # 1.9 m < 0.5 + 2.0 - margin
+    r.deliver(1)
+    sent = r.bridge.counters['setpoints_sent']
+    r.clock.t += 1.0
+    r.bridge.tick()
+    assert r.bridge.snapshot()['taking_off'] and r.bridge.counters['setpoints_sent'] == sent   # still climbing
+    r.landed_state(IN_AIR)                       # ArduCopter: the takeoff reached its target
+    assert not r.bridge.snapshot()['taking_off']
+    r.bridge.set_command([0.5, 0.0, 0.0])        # the pilot's next command goes out
+    np.testing.assert_allclose(r.sent_flu(), [0.5, 0.0, 0.0], atol=1e-12)
+    assert r.bridge.counters['setpoints_sent'] == sent + 1
+    r.landed_state(TAKEOFF)                      # a TAKEOFF report after the climb ended changes nothing
+    r.landed_state(IN_AIR)
+    assert not r.bridge.snapshot()['taking_off']

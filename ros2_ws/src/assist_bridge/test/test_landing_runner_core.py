@@ -4,6 +4,11 @@ import pytest
 from assist_bridge.landing_runner_core import LandingRunnerCore, RunnerConfig, RunnerState
 
 
+def sequencing(**kw) -> RunnerConfig:
+    """The runner's settings for the sequencing tests: arming does not wait for /odom (tested on its own)."""
+    return RunnerConfig(**{'settle_s': 0.0, **kw})
+
+
 def answer(core, now, ok=True, msg='ACCEPTED'):
     """Poll once and answer the requested call; returns its name."""
     name = core.poll(now)
@@ -18,7 +23,7 @@ def landing(ep, success=True, crash=False, error=0.1):
 
 
 def test_two_episodes_with_arm_retries_then_done():
-    core = LandingRunnerCore(RunnerConfig(episodes=2, arm_retry_s=5.0))
+    core = LandingRunnerCore(sequencing(episodes=2, arm_retry_s=5.0))
     assert core.poll(0.0) is None                        # no goal yet: nothing to do
     core.on_goal(('g', 1), 0.0)
     assert answer(core, 0.0) == 'guided'
@@ -47,7 +52,7 @@ def test_two_episodes_with_arm_retries_then_done():
 
 
 def test_takeoff_refused_goes_back_to_arming():
-    core = LandingRunnerCore(RunnerConfig(episodes=1, arm_retry_s=2.0))
+    core = LandingRunnerCore(sequencing(episodes=1, arm_retry_s=2.0))
     core.on_goal('a', 0.0)
     answer(core, 0.0), answer(core, 0.0)
     assert answer(core, 0.0, ok=False, msg='takeoff: FAILED') == 'takeoff'
@@ -57,7 +62,7 @@ def test_takeoff_refused_goes_back_to_arming():
 
 
 def test_gives_up_when_the_autopilot_never_arms():
-    core = LandingRunnerCore(RunnerConfig(episodes=0, arm_retry_s=1.0, arm_give_up_s=10.0))
+    core = LandingRunnerCore(sequencing(episodes=0, arm_retry_s=1.0, arm_give_up_s=10.0))
     core.on_goal('a', 0.0)
     t = 0.0
     while core.state != RunnerState.FAILED and t < 30.0:
@@ -72,7 +77,7 @@ def test_gives_up_when_the_autopilot_never_arms():
 
 
 def test_flight_timeout_requests_land_once():
-    core = LandingRunnerCore(RunnerConfig(flight_timeout_s=60.0))
+    core = LandingRunnerCore(sequencing(flight_timeout_s=60.0))
     core.on_goal('a', 0.0)
     for _ in range(3):
         answer(core, 0.0)
@@ -86,7 +91,7 @@ def test_flight_timeout_requests_land_once():
 
 
 def test_one_call_at_a_time_and_stray_answers_ignored():
-    core = LandingRunnerCore(RunnerConfig())
+    core = LandingRunnerCore(sequencing())
     core.on_goal('a', 0.0)
     assert core.poll(0.0) == 'guided'
     assert core.poll(0.0) is None                        # guided still in flight
@@ -97,7 +102,7 @@ def test_one_call_at_a_time_and_stray_answers_ignored():
 
 
 def test_no_land_after_touchdown_when_disabled():
-    core = LandingRunnerCore(RunnerConfig(land_after_touchdown=False))
+    core = LandingRunnerCore(sequencing(land_after_touchdown=False))
     core.on_goal('a', 0.0)
     for _ in range(3):
         answer(core, 0.0)
@@ -113,7 +118,7 @@ def test_bad_config_refused(kwargs):
 
 
 def test_reboots_once_when_arming_is_refused_too_long():
-    core = LandingRunnerCore(RunnerConfig(arm_retry_s=2.0, arm_give_up_s=100.0, reboot_after_s=20.0))
+    core = LandingRunnerCore(sequencing(arm_retry_s=2.0, arm_give_up_s=100.0, reboot_after_s=20.0))
     core.on_goal('a', 0.0)
     calls = []
     t = 0.0
@@ -131,7 +136,7 @@ def test_reboots_once_when_arming_is_refused_too_long():
 
 
 def test_reboot_before_the_episode_after_a_crash_only():
-    core = LandingRunnerCore(RunnerConfig(reboot_after_crash=True))
+    core = LandingRunnerCore(sequencing(reboot_after_crash=True))
     core.on_goal('a', 0.0)
     assert [answer(core, 0.0) for _ in range(3)] == ['guided', 'arm', 'takeoff']
     core.on_landing(landing(0, success=False, crash=True), 10.0)
@@ -148,7 +153,7 @@ def test_reboot_before_the_episode_after_a_crash_only():
 
 def landed_runner(result: dict, t: float = 30.0) -> LandingRunnerCore:
     """A runner (disarm_timeout_s 20) that flew one episode and asked for LAND after `result` at `t`."""
-    core = LandingRunnerCore(RunnerConfig(disarm_timeout_s=20.0))
+    core = LandingRunnerCore(sequencing(disarm_timeout_s=20.0))
     core.on_goal('a', 0.0)
     assert [answer(core, 0.0) for _ in range(3)] == ['guided', 'arm', 'takeoff']
     core.on_landing(result, t)
@@ -170,3 +175,54 @@ def test_no_force_disarm_when_the_next_episode_comes_in_time():
     core.on_goal('b', 36.0)
     assert [answer(core, 36.0 + i) for i in range(3)] == ['guided', 'arm', 'takeoff']
     assert all(core.poll(t) is None for t in (60.0, 100.0))    # flying: no force-disarm
+
+
+def test_arming_waits_until_the_odometry_has_been_still_for_settle_s():
+    # after the sim moves the vehicle to the next start spot, SITL's EKF slides its estimate there at up to
+    # ~0.5 m/s for a few seconds: arming and taking off meanwhile misplaces the takeoff and the approach
+    core = LandingRunnerCore(RunnerConfig(settle_s=1.0, settle_speed_mps=0.05, settle_drift_m=0.05))
+    core.on_goal('a', 0.0)
+    assert answer(core, 0.0) == 'guided'
+    assert core.poll(0.1) is None                        # no /odom yet: no arming
+    t, x = 0.1, 3.0
+    while x > 0.0:                                       # the estimate converges at 0.5 m/s
+        core.on_odometry((x, 2.0, 0.5), (-0.5, 0.0, 0.0), t)
+        assert core.poll(t) is None, t
+        t, x = round(t + 0.05, 2), x - 0.025
+    t_still = t
+    while t < t_still + 0.95:                            # still, but not for settle_s yet
+        core.on_odometry((0.0, 0.0, 0.0), (0.01, 0.0, 0.0), t)
+        assert core.poll(t) is None, t
+        t = round(t + 0.05, 2)
+    core.on_odometry((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), t_still + 1.0)
+    assert answer(core, t_still + 1.0) == 'arm'
+    assert core.state == RunnerState.TAKING_OFF
+
+
+def test_a_slow_drift_restarts_the_settle_window_and_stale_odometry_never_counts_as_settled():
+    core = LandingRunnerCore(RunnerConfig(settle_s=1.0, settle_speed_mps=0.05, settle_drift_m=0.05))
+    core.on_goal('a', 0.0)
+    answer(core, 0.0)
+    for k in range(61):                                  # reported still, yet moving 0.1 m/s: 0.05 m every 0.5 s
+        t = 0.05 * k
+        core.on_odometry((0.1 * t, 0.0, 0.0), (0.0, 0.0, 0.0), t)
+        assert core.poll(t) is None, t
+    assert core.state == RunnerState.ARMING and not core.odometry_settled(3.0)
+    # still for 1 s, then silent: not settled once the last sample is older than settle_s
+    for k in range(21):
+        core.on_odometry((1.0, 0.0, 0.0), (0.0, 0.0, 0.0), 10.0 + 0.05 * k)
+    assert core.odometry_settled(11.0)
+    assert not core.odometry_settled(12.5)
+    core.on_odometry((float('nan'), 0.0, 0.0), (0.0, 0.0, 0.0), 12.5)   # ignored, no fresher sample
+    assert not core.odometry_settled(12.5)
+    assert core.poll(12.5) is None
+
+
+def test_settle_s_0_arms_without_odometry_and_bad_settle_settings_are_refused():
+    core = LandingRunnerCore(RunnerConfig(settle_s=0.0))
+    core.on_goal('a', 0.0)
+    assert [answer(core, 0.0) for _ in range(3)] == ['guided', 'arm', 'takeoff']
+    for bad in (dict(settle_s=-1.0), dict(settle_s=float('nan')), dict(settle_speed_mps=0.0),
+                dict(settle_drift_m=float('inf'))):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            RunnerConfig(**bad)

@@ -28,7 +28,7 @@ def landing(ep=0, outcome='success', reason='landed', crash=False):
 
 def flying(confirm_s=3.0, **cfg) -> LandingRunnerCore:
     """A runner whose vehicle has armed, taken off and reports being in the air."""
-    core = LandingRunnerCore(RunnerConfig(autopilot_confirm_s=confirm_s, **cfg))
+    core = LandingRunnerCore(RunnerConfig(autopilot_confirm_s=confirm_s, **{'settle_s': 0.0, **cfg}))
     core.on_goal('a', 0.0)
     core.on_landed_state(ON_GROUND, 0.0)
     assert [answer(core, 0.0) for _ in range(3)] == ['guided', 'arm', 'takeoff']
@@ -89,7 +89,7 @@ def test_touchdowns_wait_for_the_verdict(result):
 
 
 def test_no_wait_without_landed_state_reports_or_with_a_zero_wait():
-    core = LandingRunnerCore(RunnerConfig(autopilot_confirm_s=3.0))
+    core = LandingRunnerCore(RunnerConfig(autopilot_confirm_s=3.0, settle_s=0.0))
     core.on_goal('a', 0.0)
     assert [answer(core, 0.0) for _ in range(3)] == ['guided', 'arm', 'takeoff']
     core.on_landing(landing(), 20.0)                                 # this autopilot reports no landed state
