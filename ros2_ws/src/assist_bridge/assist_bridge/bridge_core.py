@@ -59,7 +59,7 @@ from assist_common.mavlink_io import (COPTER_MODE_NAMES, COPTER_MODES, FORCE_ARM
                                       parse_endpoint, refresh_signing_timestamp)
 
 from assist_common import frames
-from assist_common.settings import SettingsError, check_settings, flag, setting
+from assist_common.settings import check_named, setting
 from assist_common.touchdown import TouchdownConfig, TouchdownEnvelope
 
 _LOG = logging.getLogger(__name__)
@@ -97,19 +97,6 @@ def result_name(result: int | None) -> str:
     if result is None:
         return 'NO_ACK'
     return RESULT_NAMES.get(int(result), str(result))
-
-
-def check_config(obj) -> None:
-    """SettingsError (one line naming the field) unless every field of dataclass `obj` follows its type and
-    `setting(...)` rule (assist_common.settings.check_settings, which also runs obj.check_relations())."""
-    try:
-        check_settings(obj)
-    except SettingsError as exc:
-        text = str(exc)
-        for f in dataclasses.fields(obj):
-            if text.startswith(flag(f.name) + ' '):      # check_settings names command-line flags
-                raise SettingsError(f'{f.name} {text[len(flag(f.name)) + 1:]}') from None
-        raise
 
 
 @dataclass
@@ -152,7 +139,7 @@ class BridgeConfig:
     allow_force_disarm: bool = False       # /uav/force_disarm stops the motors even in flight: sim/SITL only
 
     def __post_init__(self) -> None:
-        check_config(self)
+        check_named(self)
         parse_endpoint(self.connection)    # ValueError naming the accepted forms
 
 
@@ -165,7 +152,7 @@ class EkfOrigin:
     altitude_m: float = setting(0.0, ge=-500.0, le=10000.0)     # AMSL: below the Dead Sea shore to above Everest
 
     def __post_init__(self) -> None:
-        check_config(self)
+        check_named(self)
 
     @classmethod
     def from_list(cls, values: Sequence[float]) -> EkfOrigin | None:
@@ -271,7 +258,7 @@ class MavlinkBridge:
         envelope every setpoint passes through (default TouchdownConfig(); range-checked here)."""
         self.cfg = cfg
         touchdown = TouchdownConfig() if touchdown is None else touchdown
-        check_config(touchdown)
+        check_named(touchdown)
         self.touchdown = TouchdownEnvelope(touchdown)
         self._range: tuple[float, float] | None = None     # (downward range m, receive time) of the latest reading
         self._clock = clock

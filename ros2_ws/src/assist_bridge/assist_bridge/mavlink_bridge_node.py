@@ -46,10 +46,10 @@ from assist_common.mavlink_io import ThrottledLog
 from assist_common.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError,
                                       declare_parameters, exit_process, forward_logging, run_node, stamp_to_sec,
                                       twist_to_array)
-from assist_common.settings import RULE_KEY
+from assist_common.settings import RULE_KEY, check_named
 from assist_common.touchdown import TouchdownConfig
 
-from .bridge_core import LIMIT_FIELDS, BridgeConfig, EkfOrigin, MavlinkBridge, Odometry as CoreOdometry, check_config
+from .bridge_core import LIMIT_FIELDS, BridgeConfig, EkfOrigin, MavlinkBridge, Odometry as CoreOdometry
 from .vision import VisionConfig, VisionForwarder
 
 _LOG = logging.getLogger(__name__)
@@ -233,7 +233,7 @@ class MavlinkBridgeNode(Node):
             raise StartupError(f"mavlink_bridge_node: parameter 'ekf_origin' {exc}") from exc
         try:
             touchdown_cfg = TouchdownConfig(**{f: self.p[name] for f, name in TOUCHDOWN_PARAMS.items()})
-            check_config(touchdown_cfg)
+            check_named(touchdown_cfg)
         except (ValueError, TypeError) as exc:
             raise StartupError(f'mavlink_bridge_node: bad parameter: touchdown_{exc}') from exc
         vision_cfg = None

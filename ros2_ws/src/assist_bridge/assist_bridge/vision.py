@@ -41,9 +41,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from assist_common.frames import attitude_enu_flu_to_ned_frd, enu_to_ned, unit_quat_to_matrix
-from assist_common.settings import SettingsError, setting
+from assist_common.settings import SettingsError, check_named, setting
 
-from .bridge_core import check_config
 
 
 @dataclass
@@ -62,7 +61,7 @@ class VisionConfig:
     max_pose_rate_hz: float = setting(1000.0, ge=10.0, le=10000.0)  # stamps closer than 1/this: refused
 
     def __post_init__(self) -> None:
-        check_config(self)
+        check_named(self)
 
     def check_relations(self) -> None:
         """Rules between fields (check_settings calls it)."""

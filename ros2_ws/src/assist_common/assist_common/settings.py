@@ -144,14 +144,17 @@ def check_settings(obj: Any) -> None:
         relations()
 
 
-def check_section(obj: Any, section: str) -> None:
-    """`check_settings` for a settings object nested in a config file: ValueError naming `section.field` (not a
-    --flag) and why, e.g. `arducopter.accel_xy_mps2 must be <= 10, got 99.0`."""
+def check_named(obj: Any, section: str = '') -> None:
+    """`check_settings` naming the field as code and config files do, not as a --flag: SettingsError
+    `field why` (e.g. `max_speed_x_mps must be <= 20, got 99.0`), or `section.field why` for a settings object
+    nested in a config file (`arducopter.accel_xy_mps2 must be <= 10, got 99.0`); a relation between
+    fields (check_relations, naming its first field) likewise."""
     try:
         check_settings(obj)
     except ValueError as exc:       # SettingsError, or a relation between fields
         name, _, why = str(exc).partition(' ')
-        raise ValueError(f"{section}.{name.removeprefix('--').replace('-', '_')} {why}") from None
+        name = name.removeprefix('--').replace('-', '_')
+        raise SettingsError(f"{section + '.' if section else ''}{name} {why}") from None
 
 
 def exit_error(prog: str, problem: BaseException | str, status: int) -> typing.NoReturn:

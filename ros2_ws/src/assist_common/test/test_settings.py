@@ -5,8 +5,8 @@ import dataclasses
 
 import pytest
 
-from assist_common.settings import (Rule, SettingsError, check_settings, exit_error, flag, load_yaml_settings,
-                                    parse_settings, setting)
+from assist_common.settings import (Rule, SettingsError, check_named, check_settings, exit_error, flag,
+                                    load_yaml_settings, parse_settings, setting)
 
 
 @dataclasses.dataclass
@@ -90,3 +90,13 @@ def test_exit_error_is_one_line(capsys):
         exit_error('prog', FileNotFoundError(2, 'No such file or directory', '/x/y'), 1)
     assert ex.value.code == 1
     assert capsys.readouterr().err == "prog: error: [Errno 2] No such file or directory: '/x/y'\n"
+
+
+def test_check_named_names_the_field_as_code_and_config_files_do():
+    with pytest.raises(SettingsError, match=r'^rate_hz must be <= 200, got 999.0$'):
+        check_named(Demo(rate_hz=999.0))
+    with pytest.raises(SettingsError, match=r'^demo\.rate_hz must be <= 200, got 999.0$'):
+        check_named(Demo(rate_hz=999.0), 'demo')
+    with pytest.raises(SettingsError, match=r'^demo\.count must not exceed --rate-hz$'):    # a relation
+        check_named(Demo(rate_hz=2.0, count=3), 'demo')
+    check_named(Demo(), 'demo')

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from assist_common.settings import RULE_KEY, check_section, setting
+from assist_common.settings import RULE_KEY, check_named, setting
 
 FLIGHT_CONTROLLERS = ('ideal', 'arducopter')
 LAND_ACCEL_FILTER_HZ = 1.0     # the land detector's acceleration is low-passed at this cut-off
@@ -83,7 +83,7 @@ class ArduCopterConfig:
 
     def validate(self) -> None:
         """ValueError naming the first setting outside its range (`arducopter.<name> ...`)."""
-        check_section(self, 'arducopter')
+        check_named(self, 'arducopter')
 
 
 # the fields `randomised` varies (the dynamics; thresholds of the land detector stay ArduCopter's)

@@ -10,7 +10,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from assist_common.frames import R_BODY_FROM_OPTICAL, yaw_rotation
-from assist_common.settings import check_section
+from assist_common.settings import check_named
 from assist_common.touchdown import TouchdownEnvelope
 
 from .arducopter import FLIGHT_CONTROLLERS, GuidedVelocityModel
@@ -357,7 +357,7 @@ class LandingWorld:
     def _arducopter(self, cfg) -> tuple[GuidedVelocityModel, TouchdownEnvelope]:
         """The ArduCopter plant's model and envelope (ValueError naming a setting out of range)."""
         model = GuidedVelocityModel(cfg, self.cfg.gravity_mps2)
-        check_section(self.cfg.touchdown, 'touchdown')
+        check_named(self.cfg.touchdown, 'touchdown')
         return model, TouchdownEnvelope(self.cfg.touchdown)
 
     def set_flight_controller(self, name: str, arducopter=None) -> None:
