@@ -266,6 +266,9 @@ class LandingRunnerCore:
             self._goal_pending = False
             self._landed_at = None
             self._heard_landed_state = False
+            # still for settle_s from the announcement on: before it the vehicle rested where the last landing
+            # ended, and the estimate starts sliding to the new start spot only once the sim has moved it there
+            self._still_since, self._still_position = None, None
             self.state = RunnerState.ARMING
             self.episode_started = now
             self._rebooted = self._reboot_next
