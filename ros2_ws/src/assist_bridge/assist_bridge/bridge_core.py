@@ -577,12 +577,7 @@ class MavlinkBridge:
         """`v` (body FLU, z up) through the touchdown envelope at the current downward range."""
         rng = self.downward_range(now)
         before = self.touchdown.engagements
-        st = self.status
-        speed = None                    # the vehicle's own horizontal speed (EKF), if current
-        if st.velocity_ned is not None and st.last_position is not None \
-                and now - st.last_position <= self.cfg.range_timeout_s:
-            speed = math.hypot(float(st.velocity_ned[0]), float(st.velocity_ned[1]))
-        out = self.touchdown.apply(v, rng, now, speed)
+        out = self.touchdown.apply(v, rng, now)
         if self.touchdown.engagements != before:
             self.counters['touchdown_engaged'] += 1
             _LOG.info('touchdown: range %.2f m, command (%.2f, %.2f, %.2f) m/s -> vertical descent at %.2f m/s',

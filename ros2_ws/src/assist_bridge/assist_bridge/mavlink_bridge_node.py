@@ -164,9 +164,6 @@ PARAMS = {
     'touchdown_commit_s': _touchdown('commit_s', 'A committed touchdown holds the vertical descent this long whatever '
                                      'is commanded (ArduCopter declares a landing ~1.65 s after contact); 0: never '
                                      'commits.'),
-    'touchdown_hold_speed_mps': _touchdown('hold_speed_mps', 'While the vehicle moves sideways faster than this '
-                                           '(m/s, its own velocity from LOCAL_POSITION_NED) the final descent waits at '
-                                           'its height: a vehicle crossing a pad low is not lowered onto its edge.'),
     'takeoff_altitude_m': _bridge('takeoff_altitude_m', 'Altitude above the ground for /uav/takeoff (m).'),
     'ack_timeout_s': _bridge('ack_timeout_s', 'How long a service waits for the COMMAND_ACK.'),
     'allow_force_disarm': _bridge('allow_force_disarm', 'Let /uav/force_disarm disarm even when the autopilot thinks '

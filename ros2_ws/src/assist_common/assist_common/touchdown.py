@@ -9,9 +9,7 @@ to the surface below, as a downward rangefinder reads it) in two bands:
   faster than `abort_climb_mps` or the range grows past `release_range_m`): the descent becomes a steady
   `descent_mps`, and the sideways command is kept but limited to `lateral_max_mps`, so the pilot or the
   assistant can still centre the vehicle (a vehicle that comes over a pad's edge low is not pinned there)
-  while little sideways speed is left at contact; while the vehicle itself still moves sideways faster than
-  `hold_speed_mps` (its autopilot brakes over about a second), the descent waits at the current height
-  instead, so a vehicle crossing a pad low is not lowered onto the pad's edge as it slides off it;
+  while little sideways speed is left at contact;
 * **touchdown** (range at or below `commit_range_m`: the legs are down or a few centimetres off, the command
   not climbing): no sideways part, the steady descent, and, given the time, the touchdown is committed:
   for `commit_s` the descent holds whatever is commanded (a climb included), long enough for ArduCopter to
@@ -47,7 +45,6 @@ class TouchdownConfig:
     lateral_max_mps: float = setting(0.3, ge=0.0, le=5.0)     # sideways speed left to the command in the final descent
     commit_range_m: float = setting(0.16, gt=0.0, le=2.0)     # at or below this range the legs are down (0.12 landed)
     commit_s: float = setting(3.0, ge=0.0, le=30.0)           # a committed touchdown holds this long; 0: never commits
-    hold_speed_mps: float = setting(0.5, gt=0.0, le=5.0)      # faster sideways: the final descent waits
 
     def check_relations(self) -> None:
         """The ranges are ordered: commit < engage < release."""
@@ -80,11 +77,9 @@ class TouchdownEnvelope:
         """A touchdown is being held (until `commit_s` after the legs came down)."""
         return self._committed_until is not None
 
-    def apply(self, command, range_m: float | None, now: float | None = None,
-              speed_mps: float | None = None) -> np.ndarray:
+    def apply(self, command, range_m: float | None, now: float | None = None) -> np.ndarray:
         """The setpoint to send for `command` (vx, vy, vz) at downward range `range_m` (None/NaN: unknown) at
-        time `now` (s, any monotonic clock; None: no touchdown is committed), the vehicle moving sideways at
-        `speed_mps` (its measured horizontal speed; None/NaN: unknown, the final descent never waits)."""
+        time `now` (s, any monotonic clock; None: no touchdown is committed)."""
         cmd = np.asarray(command, dtype=float).reshape(3)
         c = self.cfg
         if not c.enabled:
@@ -114,8 +109,6 @@ class TouchdownEnvelope:
         if not self.engaged:
             return cmd
         out = descent.copy()
-        if speed_mps is not None and math.isfinite(speed_mps) and speed_mps > c.hold_speed_mps:
-            out[2] = 0.0                  # still sliding: brake at this height first
         speed = math.hypot(cmd[0], cmd[1])
         scale = min(1.0, c.lateral_max_mps / speed) if speed > 0.0 else 0.0
         out[:2] = cmd[:2] * scale

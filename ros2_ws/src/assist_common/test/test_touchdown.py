@@ -109,18 +109,3 @@ def test_a_command_that_stops_descending_in_the_final_descent_is_let_go():
     assert env.engaged
     assert env.apply([0.2, 0.0, 0.0], 0.30, now=1.05).tolist() == [0.2, 0.0, 0.0]
     assert not env.engaged and not env.committed
-
-
-def test_the_final_descent_waits_at_its_height_while_the_vehicle_still_slides_sideways():
-    # a vehicle crossing a pad low at 1.5 m/s (its autopilot brakes over about a second): lowering it there
-    # put its legs on the pad's edge as it slid off (SITL: a crash beside the pad); it brakes first
-    env = TouchdownEnvelope(TouchdownConfig(hold_speed_mps=0.5))
-    cmd = [1.0, 0.0, -0.4]
-    np.testing.assert_allclose(env.apply(cmd, 0.35, 0.0, speed_mps=1.5), [0.3, 0.0, 0.0], atol=1e-12)
-    assert env.engaged
-    np.testing.assert_allclose(env.apply(cmd, 0.35, 0.1, speed_mps=0.6), [0.3, 0.0, 0.0], atol=1e-12)
-    np.testing.assert_allclose(env.apply(cmd, 0.35, 0.2, speed_mps=0.4), [0.3, 0.0, -0.5], atol=1e-12)
-    # an unknown speed never holds the descent; the legs down finish the landing whatever the speed
-    np.testing.assert_allclose(env.apply(cmd, 0.30, 0.3, speed_mps=None), [0.3, 0.0, -0.5], atol=1e-12)
-    np.testing.assert_allclose(env.apply(cmd, 0.30, 0.4, speed_mps=float('nan')), [0.3, 0.0, -0.5], atol=1e-12)
-    np.testing.assert_allclose(env.apply(cmd, 0.14, 0.5, speed_mps=1.5), [0.0, 0.0, -0.5], atol=1e-12)

@@ -451,9 +451,7 @@ class LandingWorld:
         fc = self._fc
         if fc.landed and self._cmd_world[2] > self.cfg.touchdown.abort_climb_mps:
             self.takeoff()
-        vel = self._bc.getBaseVelocity(self._vehicle)[0]
-        self._cmd_world = self._touchdown.apply(self._cmd_world, self._height_above_surface(pos), self.episode_time,
-                                                math.hypot(vel[0], vel[1]))
+        self._cmd_world = self._touchdown.apply(self._cmd_world, self._height_above_surface(pos), self.episode_time)
         fc.command(self._cmd_world)
 
     def _confirm_autopilot_landing(self) -> None:
