@@ -1,6 +1,7 @@
 """Shared rclpy plumbing for every node in the workspace (parameters, QoS, diagnostics, main)."""
 from __future__ import annotations
 
+import ctypes
 import faulthandler
 import gc
 import importlib.metadata
@@ -522,6 +523,13 @@ SPIN_STOP_TIMEOUT_S = 5.0
 SHUTDOWN_STACKS_S = 8.0
 #: exit_process: flushing and exiting taking this long writes every thread's stack and exits with code 1.
 EXIT_STACKS_S = 5.0
+#: After a stop signal, the node's destruction (rcl_node_fini, which deletes the middleware's participant) and the
+#: context's shutdown taking this long write every thread's stack and end the process with run_node's exit code
+#: (TeardownDeadline): 10x a slow destruction on a loaded machine (0.1-0.3 s), and with the stop and close()
+#: before it still inside launch's 5 s from SIGINT to SIGTERM.
+TEARDOWN_DEADLINE_S = 3.0
+#: TeardownDeadline: time between the stack dump and the exit, for the dump to be written first.
+TEARDOWN_DUMP_LEAD_S = 0.5
 STOP_POLL_S = 0.1
 #: The main thread's longest uninterrupted wait while a node spins: a stop signal taken by another thread is
 #: acted on within this (spin_off_main_thread).
@@ -707,7 +715,12 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
     executor spins off the main thread (spin_off_main_thread), so a Ctrl-C never lands inside a
     callback, and the node's close() (if it has one) runs on the thread its callbacks ran on.
     SIGINT and SIGTERM stop the executor first and shut the context down last (rclpy's own signal
-    handlers are not installed), so what a callback or close() logs meanwhile still reaches /rosout. A
+    handlers are not installed), so what a callback or close() logs meanwhile still reaches /rosout.
+    After a stop signal the node's destruction and the context's shutdown run under a TeardownDeadline:
+    should the middleware's teardown hang (it holds the GIL), every thread's stack goes to stderr and
+    the process ends with the code run_node would return, TEARDOWN_DEADLINE_S after the destruction
+    began, instead of waiting for launch's SIGKILL; the node then leaves the graph only when its peers'
+    discovery lease on it runs out. A
     StartupError raised by `factory` (nodes wrap bad parameters, missing models and unreachable
     endpoints in it) is reported as one clear line on stderr and gives exit code 1, no traceback.
     Python `logging` records go to the node's logger (/rosout).
@@ -725,6 +738,8 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
     handler = forward_logging(None)
     node = None
     code = 0
+    stop_signal = False                 # SIGINT/SIGTERM ended the node: the process is going down
+    deadline: TeardownDeadline | None = None
     closed = threading.Event()
 
     def close_node() -> None:
@@ -748,7 +763,9 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
     except StartupError as exc:
         sys.stderr.write(f'error: {exc}\n')
         code = 1
-    except (KeyboardInterrupt, ExternalShutdownException):
+    except KeyboardInterrupt:           # SIGINT or SIGTERM (the handlers installed above)
+        stop_signal = True
+    except ExternalShutdownException:
         pass
     except RuntimeError:                # RCLError is one too
         # A Ctrl-C that lands while rclpy is inside C++ (take_message, the events executor) surfaces
@@ -761,14 +778,20 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
         # Going down: another Ctrl-C (a second key press, or launch's SIGINT/SIGTERM to a node that is
         # already exiting) must not interrupt the clean-up with a KeyboardInterrupt traceback.
         _going_down()
-        if node is not None:
-            if not closed.is_set():     # never spun (start-up failed), or the executor never came back
-                close_node()
-            handler.attach(None)
-            node.destroy_node()
-        if rclpy.ok():
-            rclpy.try_shutdown()
-        faulthandler.cancel_dump_traceback_later()
+        try:
+            if node is not None:
+                if not closed.is_set():     # never spun (start-up failed), or the executor never came back
+                    close_node()
+                handler.attach(None)
+                if stop_signal:
+                    deadline = TeardownDeadline.arm(TEARDOWN_DEADLINE_S, code)
+                node.destroy_node()
+            if rclpy.ok():
+                rclpy.try_shutdown()
+        finally:
+            if deadline is not None:
+                deadline.cancel()
+            faulthandler.cancel_dump_traceback_later()
     return code
 
 
@@ -808,3 +831,88 @@ def _going_down() -> None:
         faulthandler.dump_traceback_later(SHUTDOWN_STACKS_S, file=sys.stderr)
     except (AttributeError, ValueError, OSError, RuntimeError) as exc:   # no usable stderr (closed, replaced)
         logging.getLogger(__name__).debug('no stack dump on a stuck shutdown: %s', exc)
+
+
+class _SigEvent(ctypes.Structure):
+    """glibc's struct sigevent (64 bytes): the fields SIGEV_THREAD uses, the rest of its union as padding."""
+
+    _fields_ = [('sigev_value', ctypes.c_void_p), ('sigev_signo', ctypes.c_int), ('sigev_notify', ctypes.c_int),
+                ('sigev_notify_function', ctypes.c_void_p), ('sigev_notify_attributes', ctypes.c_void_p),
+                ('_pad', ctypes.c_byte * 32)]
+
+
+class _TimeSpec(ctypes.Structure):
+    _fields_ = [('tv_sec', ctypes.c_long), ('tv_nsec', ctypes.c_long)]
+
+
+class _ITimerSpec(ctypes.Structure):
+    _fields_ = [('it_interval', _TimeSpec), ('it_value', _TimeSpec)]
+
+
+_SIGEV_THREAD = 2      # <signal.h>: the expiry calls sigev_notify_function(sigev_value) on a new thread
+
+
+class TeardownDeadline:
+    """Ends the process with a given exit code unless cancelled in time, even while a thread holds the GIL.
+
+    rclpy's Node.destroy_node ends in rcl_node_fini, which for a process's last node deletes the
+    middleware's participant (Fast DDS joins its threads there), all of it holding the GIL: should it
+    never return (seen in CI: sim_node after launch's SIGINT, its main thread in destroy_node until
+    launch's SIGKILL), no Python code of the process can run again, so neither a timed wait on another
+    thread nor a signal handler can bound it. A POSIX timer whose expiry calls libc's _exit(code) on a
+    thread of its own (SIGEV_THREAD) needs no GIL; faulthandler's watchdog writes every thread's stack
+    TEARDOWN_DUMP_LEAD_S before. An _exit runs no clean-up: the caller flushes what it wrote (arm
+    flushes sys.stdout and sys.stderr). Without timer_create (not glibc) only the stacks are written.
+    """
+
+    def __init__(self, timer: ctypes.c_void_p | None, libc: ctypes.CDLL | None) -> None:
+        self._timer, self._libc = timer, libc
+
+    @classmethod
+    def arm(cls, seconds: float, code: int) -> TeardownDeadline:
+        """Stacks to stderr after `seconds`, then _exit(`code`) TEARDOWN_DUMP_LEAD_S later, unless cancel()ed."""
+        for stream in (sys.stdout, sys.stderr):     # an _exit flushes nothing
+            try:
+                stream.flush()
+            except (OSError, ValueError, AttributeError):
+                pass
+        try:
+            faulthandler.dump_traceback_later(seconds, file=sys.stderr)
+        except (AttributeError, ValueError, OSError, RuntimeError) as exc:   # no usable stderr
+            logging.getLogger(__name__).debug('no stack dump on a stuck teardown: %s', exc)
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            create, settime = libc.timer_create, libc.timer_settime
+        except (OSError, AttributeError) as exc:
+            logging.getLogger(__name__).debug('no exit deadline on a stuck teardown: %s', exc)
+            return cls(None, None)
+        create.argtypes = [ctypes.c_int, ctypes.POINTER(_SigEvent), ctypes.POINTER(ctypes.c_void_p)]
+        settime.argtypes = [ctypes.c_void_p, ctypes.c_int, ctypes.POINTER(_ITimerSpec), ctypes.c_void_p]
+        libc.timer_delete.argtypes = [ctypes.c_void_p]
+        event = _SigEvent(sigev_value=int(code), sigev_notify=_SIGEV_THREAD,
+                          sigev_notify_function=ctypes.cast(libc._exit, ctypes.c_void_p).value)
+        timer = ctypes.c_void_p()
+        if create(time.CLOCK_MONOTONIC, ctypes.byref(event), ctypes.byref(timer)) != 0:
+            logging.getLogger(__name__).debug('no exit deadline on a stuck teardown: timer_create errno %d',
+                                              ctypes.get_errno())
+            return cls(None, None)
+        at = seconds + TEARDOWN_DUMP_LEAD_S
+        spec = _ITimerSpec(it_value=_TimeSpec(int(at), int((at % 1.0) * 1e9)))
+        if settime(timer, 0, ctypes.byref(spec), None) != 0:
+            libc.timer_delete(timer)
+            logging.getLogger(__name__).debug('no exit deadline on a stuck teardown: timer_settime errno %d',
+                                              ctypes.get_errno())
+            return cls(None, None)
+        return cls(timer, libc)
+
+    @property
+    def armed(self) -> bool:
+        """True while the exit is pending (False where the platform gave no timer, or once cancelled)."""
+        return self._timer is not None
+
+    def cancel(self) -> None:
+        """The teardown finished: neither the stacks nor the exit."""
+        faulthandler.cancel_dump_traceback_later()
+        if self._timer is not None:
+            self._libc.timer_delete(self._timer)
+            self._timer = None
