@@ -70,7 +70,8 @@ def ros(domain_id):
     """rclpy context on the private domain with one probe node spinning in the background."""
     import rclpy
     from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.exceptions import InvalidHandle
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.node import Node
 
     ctx = Context()
@@ -79,9 +80,24 @@ def ros(domain_id):
     # single-threaded: rclpy 7.1's MultiThreadedExecutor burns CPU (and the GIL) on bookkeeping
     executor = SingleThreadedExecutor(context=ctx)
     executor.add_node(node)
-    thread = threading.Thread(target=executor.spin, daemon=True)
+    stop = threading.Event()
+
+    def spin() -> None:
+        # Tests destroy their subscriptions from their own thread while this one spins; one the executor
+        # holds at that moment raises InvalidHandle here ('destruction was requested'), which ended a plain
+        # executor.spin and left every later wait in the test to run into its timeout.
+        while not stop.is_set() and ctx.ok():
+            try:
+                executor.spin_once(timeout_sec=0.1)
+            except InvalidHandle:
+                continue
+            except ExternalShutdownException:
+                return
+    thread = threading.Thread(target=spin, daemon=True)
     thread.start()
     yield node
+    stop.set()
+    thread.join(5.0)
     executor.shutdown()
     node.destroy_node()
     rclpy.shutdown(context=ctx)
