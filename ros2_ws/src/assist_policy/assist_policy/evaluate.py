@@ -46,7 +46,9 @@ one-process run either way, and a progress bar shows the run.
 
 Results are crash-safe: landings go to <out>/landings.partial.csv as they are flown (the run's
 settings beside it in landings.partial.json); an earlier landings.csv stays untouched until the run
-ends, when the complete table replaces it in one rename. Re-running an interrupted evaluation with
+ends, when the complete table replaces it in one rename, keeping the earlier file's conditions this run did
+not fly (a second run adds a condition to the same --out; a condition flown again replaces its rows; a
+landings.csv that is not a landings table is refused before anything flies). Re-running an interrupted evaluation with
 the same settings reuses the landings already flown. One run at a time per --out: a second one started on
 the same directory exits with status 2 naming the run that holds it (<out>/.evaluate.lock, removed at the
 end). A worker process that dies (killed, out of memory) stops the run with one line and status 1; the
@@ -232,6 +234,16 @@ class LandingLog:
             self.partial.unlink(missing_ok=True)
             write_text_atomic(self.settings_file, json.dumps(settings, sort_keys=True))
         self.csv = CsvLog(self.partial, LANDING_FIELDS)
+        # a landings.csv of an earlier run into this --out: its other conditions are kept at commit (read now,
+        # so a file that is not a landings table is refused before anything flies, and never overwritten)
+        self.earlier: dict[str, list[dict]] = {}
+        if self.path.exists():
+            try:
+                self.earlier = read_landings(self.path)
+            except (ValueError, KeyError, UnicodeDecodeError) as exc:
+                self.csv.close()
+                raise ValueError(f'{self.path} is not a landings table ({exc}): move it away or choose another '
+                                 '--out') from None
 
     def flown(self, condition: str, beta: float, seed: int) -> dict | None:
         """The row of a landing an interrupted run already flew, or None."""
@@ -249,13 +261,20 @@ class LandingLog:
         """Close the partial file (kept for a resume)."""
         self.csv.close()
 
-    def commit(self, rows_by_cond: dict[str, list[dict]]) -> None:
-        """Replace landings.csv with the complete table (if any landing was flown); drop the partial files."""
+    def commit(self, rows_by_cond: dict[str, list[dict]]) -> dict[str, list[dict]]:
+        """Write landings.csv: this run's conditions, and those of an earlier landings.csv in the same --out
+        that this run did not fly (kept as they were; a condition flown again is replaced). Drops the partial
+        files; returns the whole table."""
         self.close()
+        kept = {c: rows for c, rows in self.earlier.items() if c not in rows_by_cond}
+        table = {**kept, **rows_by_cond}
         if rows_by_cond:        # nothing evaluated: an earlier landings.csv is kept as it is
-            write_landings(self.path, rows_by_cond)
+            if kept:
+                log.info('%s: kept the earlier landings of %s', self.path, ', '.join(kept))
+            write_landings(self.path, table)
         self.partial.unlink(missing_ok=True)
         self.settings_file.unlink(missing_ok=True)
+        return table
 
 
 def write_landings(path: Path, rows_by_cond: dict[str, list[dict]]) -> None:
@@ -473,7 +492,7 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
             if results is not None:
                 results.close()
         if results is not None:
-            results.commit(rows_by_cond)
+            rows_by_cond = results.commit(rows_by_cond)
         elif rows_by_cond:
             write_landings(out / 'landings.csv', rows_by_cond)
         return write_results(out, rows_by_cond, args.plot)

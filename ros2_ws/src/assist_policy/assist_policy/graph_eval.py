@@ -805,8 +805,7 @@ def _fly_all(args: GraphEvalArgs, out: Path) -> dict[str, dict]:
             log.info('%s: %d landings in %.0f s', name, len(planned), time.monotonic() - t0)
     finally:
         results.close()
-    results.commit(rows_by_cond)
-    return write_results(out, rows_by_cond, args.plot)
+    return write_results(out, results.commit(rows_by_cond), args.plot)
 
 
 def _raise_interrupt(signum, frame) -> None:

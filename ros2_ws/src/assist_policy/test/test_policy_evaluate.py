@@ -143,3 +143,28 @@ def test_ray_at_an_address_nobody_serves_is_one_error_line(tmp_path, capsys):
     code = main(['--out', str(tmp_path / 'x'), '--ray', '127.0.0.1:1', '--conditions', 'unassisted', '--betas', '0',
                  '--landings', '1', '--plot', 'false'])
     assert code == 2 and 'cannot start or reach Ray' in capsys.readouterr().err
+
+
+def test_a_second_run_into_the_same_out_keeps_the_first_runs_other_conditions(tmp_path):
+    # adding a condition to a finished run (evaluate_graph's SITL series do this) replaced its landings.csv,
+    # losing the first run's landings; a condition flown again replaces only its own rows
+    run = dict(out=str(tmp_path), betas=(0.5,), landings=2, max_episode_s=2.0, plot=False)
+    evaluate(EvalArgs(conditions=('unassisted', 'scripted_oracle'), **run))
+    first = {r['condition']: r for r in csv.DictReader(open(tmp_path / 'landings.csv'))}
+    summary = evaluate(EvalArgs(conditions=('scripted_nearest_pad', 'scripted_oracle'), **run))
+    rows = list(csv.DictReader(open(tmp_path / 'landings.csv')))
+    assert sorted({r['condition'] for r in rows}) == ['scripted_nearest_pad+guard', 'scripted_oracle+guard',
+                                                      'unassisted']
+    assert len(rows) == 6                                   # scripted_oracle's two landings once, not twice
+    assert {r['condition']: r for r in rows}['unassisted'] == first['unassisted']
+    assert set(summary) == {'unassisted', 'scripted_oracle+guard', 'scripted_nearest_pad+guard'}
+    assert 'unassisted' in (tmp_path / 'summary.csv').read_text()
+
+
+def test_an_out_whose_landings_csv_is_not_a_landings_table_is_refused_before_anything_flies(tmp_path):
+    (tmp_path / 'landings.csv').write_text('my,own\nnotes,here\n')
+    with pytest.raises(ValueError, match='is not a landings table'):
+        evaluate(EvalArgs(out=str(tmp_path), conditions=('unassisted',), betas=(0.5,), landings=1, plot=False))
+    assert (tmp_path / 'landings.csv').read_text() == 'my,own\nnotes,here\n'
+    assert not (tmp_path / 'landings.partial.csv').exists() or \
+        (tmp_path / 'landings.partial.csv').read_text().count('\n') <= 1
