@@ -44,15 +44,15 @@ Landings are independent tasks keyed by (condition, beta, seed), flown from thei
 flies them on N processes, `--ray ADDRESS` (or auto) as tasks on a Ray cluster, with the rows of a
 one-process run either way, and a progress bar shows the run.
 
-Results are crash-safe: landings go to <out>/landings.partial.csv as they are flown (the run's
-settings beside it in landings.partial.json); an earlier landings.csv stays untouched until the run
-ends, when the complete table replaces it in one rename, keeping the earlier file's conditions this run did
-not fly (a second run adds a condition to the same --out; a condition flown again replaces its rows; a
-landings.csv that is not a landings table is refused before anything flies). Re-running an interrupted evaluation with
-the same settings reuses the landings already flown. One run at a time per --out: a second one started on
-the same directory exits with status 2 naming the run that holds it (<out>/.evaluate.lock, removed at the
-end). A worker process that dies (killed, out of memory) stops the run with one line and status 1; the
-landings flown so far are kept for the re-run. Workers end with the evaluate process, even a SIGKILLed one.
+Results are crash-safe: landings go to <out>/landings.partial.csv as they are flown (the run's settings beside
+it in landings.partial.json); an earlier landings.csv stays untouched until the run ends, when the complete
+table replaces it in one rename, keeping the earlier file's conditions this run did not fly (a second run adds
+a condition to the same --out; a condition flown again replaces its rows; a landings.csv that is not a
+landings table is replaced, with a warning when the run starts). Re-running an interrupted evaluation with the
+same settings reuses the landings already flown. One run at a time per --out: a second one started on the same
+directory exits with status 2 naming the run that holds it (<out>/.evaluate.lock, removed at the end). A
+worker process that dies (killed, out of memory) stops the run with one line and status 1; the landings flown
+so far are kept for the re-run. Workers end with the evaluate process, even a SIGKILLed one.
 """
 from __future__ import annotations
 
@@ -234,16 +234,13 @@ class LandingLog:
             self.partial.unlink(missing_ok=True)
             write_text_atomic(self.settings_file, json.dumps(settings, sort_keys=True))
         self.csv = CsvLog(self.partial, LANDING_FIELDS)
-        # a landings.csv of an earlier run into this --out: its other conditions are kept at commit (read now,
-        # so a file that is not a landings table is refused before anything flies, and never overwritten)
+        # a landings.csv of an earlier run into this --out: its other conditions are kept at commit
         self.earlier: dict[str, list[dict]] = {}
         if self.path.exists():
             try:
                 self.earlier = read_landings(self.path)
             except (ValueError, KeyError, UnicodeDecodeError) as exc:
-                self.csv.close()
-                raise ValueError(f'{self.path} is not a landings table ({exc}): move it away or choose another '
-                                 '--out') from None
+                log.warning('%s is not a landings table (%s): this run replaces it when it ends', self.path, exc)
 
     def flown(self, condition: str, beta: float, seed: int) -> dict | None:
         """The row of a landing an interrupted run already flew, or None."""
