@@ -261,13 +261,14 @@ class LandingLog:
     def commit(self, rows_by_cond: dict[str, list[dict]]) -> dict[str, list[dict]]:
         """Write landings.csv: this run's conditions, and those of an earlier landings.csv in the same --out
         that this run did not fly (kept as they were; a condition flown again is replaced). Drops the partial
-        files; returns the whole table."""
+        files; returns the table written (empty when nothing was flown: an earlier landings.csv stays as it is)."""
         self.close()
-        kept = {c: rows for c, rows in self.earlier.items() if c not in rows_by_cond}
-        table = {**kept, **rows_by_cond}
-        if rows_by_cond:        # nothing evaluated: an earlier landings.csv is kept as it is
+        table: dict[str, list[dict]] = {}
+        if rows_by_cond:
+            kept = {c: rows for c, rows in self.earlier.items() if c not in rows_by_cond}
             if kept:
                 log.info('%s: kept the earlier landings of %s', self.path, ', '.join(kept))
+            table = {**kept, **rows_by_cond}
             write_landings(self.path, table)
         self.partial.unlink(missing_ok=True)
         self.settings_file.unlink(missing_ok=True)
