@@ -97,7 +97,9 @@ def render_table(table: dict, runs: Runs) -> str:
             cells += format_cell(cell, table['style'], runs, bold)
         lines.append('| ' + ' | '.join(cells) + ' |')
     if table.get('recorded'):
-        lines += ['', f"(Figures as measured and recorded in [{Path(table['recorded']).name}]"
+        computed = any(isinstance(cell, dict) and 'run' in cell for row in table['rows'] for cell in row['cells'])
+        which = ('Rows without a per-landing file in docs/results/runs: figures' if computed else 'Figures')
+        lines += ['', f"({which} as measured and recorded in [{Path(table['recorded']).name}]"
                       f"({Path(table['recorded']).relative_to('docs')}); the per-landing files were not kept: the "
                       'command below re-runs the measurement.)']
     return '\n'.join(lines)
