@@ -6,7 +6,7 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
-PKGS := assist_common assist_sim assist_perception assist_policy assist_bridge assist_station
+PKGS := assist_common assist_sim assist_perception assist_policy assist_bags assist_lab assist_bridge assist_station
 PKG_INPUTS := $(foreach p,$(PKGS),ros2_ws/src/$(p)/setup.py ros2_ws/src/$(p)/setup.cfg ros2_ws/src/$(p)/package.xml)
 # Nodes in tests run on a private DDS domain so they never meet anyone else's graph.
 export ROS_DOMAIN_ID ?= 42
@@ -34,7 +34,7 @@ $(STAMP): requirements.txt $(PKG_INPUTS)
 	@touch $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m assist_policy.demo
+	$(PY) -m assist_lab.demo
 
 # The pilot station's browser test needs Chromium + ChromeDriver (Debian packages; apt-get as root, else sudo).
 browser:

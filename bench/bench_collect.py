@@ -19,11 +19,11 @@ LANDINGS = 40
 def run() -> list[dict]:
     """Measure and return rows (name, value, unit, target)."""
     from assist_policy.actor import load_actor
-    from assist_policy.cluster import cpu_cores
-    from assist_policy.collect import ActorWeights, LandingPool, LandingTask, collect_demos, make_env
-    from assist_policy.env import EnvConfig
+    from assist_lab.cluster import cpu_cores
+    from assist_lab.collect import ActorWeights, LandingPool, LandingTask, collect_demos, make_env
+    from assist_lab.env import EnvConfig
     from assist_policy.policy_core import default_model_path
-    from assist_policy.td3 import ReplayBuffer
+    from assist_lab.td3 import ReplayBuffer
 
     torch.set_num_threads(1)
     actor, meta = load_actor(default_model_path('latent'))

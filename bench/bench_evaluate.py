@@ -22,8 +22,8 @@ def _cpu_s() -> float:
 
 def _ray_rows(tmp: Path, n: int, local_rate: float) -> list[dict]:
     """The same plan as Ray tasks on a local Ray instance (started before the clock: a cluster is up already)."""
-    from assist_policy.cluster import connect_ray
-    from assist_policy.evaluate import EvalArgs, evaluate
+    from assist_lab.cluster import connect_ray
+    from assist_lab.evaluate import EvalArgs, evaluate
     try:
         ray = connect_ray('auto')
     except ValueError as exc:
@@ -43,8 +43,8 @@ def run() -> list[dict]:
     """Measure and return rows (name, value, unit, target)."""
     import torch
 
-    from assist_policy.cluster import cpu_cores
-    from assist_policy.evaluate import EvalArgs, evaluate
+    from assist_lab.cluster import cpu_cores
+    from assist_lab.evaluate import EvalArgs, evaluate
 
     torch.set_num_threads(1)
     cores = cpu_cores()

@@ -95,7 +95,7 @@ def tilt_effect() -> list[dict]:
     """CM-VAE pad estimate error vs camera tilt (median over scenes and random tilt directions)."""
     from scipy.spatial.transform import Rotation
 
-    from assist_perception.dataset import pad_label
+    from assist_lab.cmvae_dataset import pad_label
     from assist_perception.encoder_core import LatentEncoder
     from assist_perception.level import level_frame, level_rotation
 

@@ -30,7 +30,7 @@ def _rate(fn, n: int, device: torch.device) -> float:
 
 def _learner_rows(condition: str, image: bool, device: str, n_update: int, n_bc: int) -> list[dict]:
     from assist_policy.observation import IMAGE_SHAPE, vector_dim
-    from assist_policy.td3 import TD3, ReplayBuffer, TD3Config
+    from assist_lab.td3 import TD3, ReplayBuffer, TD3Config
 
     vec = vector_dim(condition, 10 if condition == 'latent' else 0)
     obs_dim = vec + (int(np.prod(IMAGE_SHAPE)) if image else 0)

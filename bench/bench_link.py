@@ -17,7 +17,7 @@ def run() -> list[dict]:
     import torch
 
     from assist_bridge.image_link import COLOR_FORMAT, DEPTH_FORMAT, LinkConfig, decode_color, decode_depth, pack_pair
-    from assist_perception.dataset import DatasetConfig, load_frames, make_dataset
+    from assist_lab.cmvae_dataset import DatasetConfig, load_frames, make_dataset
     from assist_perception.encoder_core import LatentEncoder
 
     torch.set_num_threads(1)

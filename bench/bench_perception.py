@@ -65,7 +65,7 @@ def _backend_ratio(n: int = 120, pause_s: float = 0.05) -> dict[str, float]:
 
 def _dataset_rate(frames: int = 300) -> float:
     """make_dataset frames/s (render + label + compress) on a small set."""
-    from assist_perception.dataset import DatasetConfig, make_dataset
+    from assist_lab.cmvae_dataset import DatasetConfig, make_dataset
 
     with tempfile.TemporaryDirectory() as tmp:
         cfg = DatasetConfig(out_dir=tmp, frames=frames, scenes_per_shard=2)

@@ -16,9 +16,9 @@ def _rate(fn, n: int) -> float:
 
 def run() -> list[dict]:
     """Measure and return rows (name, value, unit, target)."""
-    from assist_policy.env import EnvConfig, LandingAssistEnv
+    from assist_lab.env import EnvConfig, LandingAssistEnv
     from assist_policy.observation import vector_dim
-    from assist_policy.td3 import TD3, ReplayBuffer, TD3Config
+    from assist_lab.td3 import TD3, ReplayBuffer, TD3Config
 
     torch.set_num_threads(1)
     rows = []
@@ -53,7 +53,7 @@ def run() -> list[dict]:
     rows.append({'name': 'env steps (oracle, sim physics 240 Hz)', 'value': sps, 'unit': 'steps/s',
                  'target': '> 20 (real time)'})
     try:
-        from assist_policy.latent import make_latent_fn
+        from assist_perception.latent import make_latent_fn
         latent_fn, dim = make_latent_fn()
     except ValueError:
         return rows   # no shipped CM-VAE: the latent rows need it

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from assist_policy.actor import load_actor, save_actor
-from assist_policy.td3 import TD3, ReplayBuffer, TD3Config
+from assist_lab.td3 import TD3, ReplayBuffer, TD3Config
 
 ARCH_KEYS = ('vec_dim', 'act_dim', 'image', 'hidden', 'image_channels')
 

@@ -56,13 +56,13 @@ def cmvae(args: argparse.Namespace) -> dict:
     """Card metrics of the shipped CM-VAE on the held-out frames rendered by each renderer."""
     import yaml
 
-    from assist_perception.dataset import DatasetConfig, FrameSet, render_scene
-    from assist_perception.evaluate import compute_metrics
+    from assist_lab.cmvae_dataset import DatasetConfig, FrameSet, render_scene
+    from assist_lab.cmvae_evaluate import compute_metrics
     from assist_perception.model import load_model
 
     torch.set_num_threads(1)
     ds = DatasetConfig(**yaml.safe_load(
-        (ROOT / 'ros2_ws/src/assist_perception/config/make_dataset.yaml').read_text(encoding='utf-8')))
+        (ROOT / 'ros2_ws/src/assist_lab/config/make_dataset.yaml').read_text(encoding='utf-8')))
     n_scenes = -(-ds.frames // ds.frames_per_scene)
     scenes = heldout_scenes(n_scenes, 0.05, 0)[:args.scenes]
     model = load_model(ROOT / 'models' / 'cmvae.pt', torch.device('cpu'))
@@ -116,9 +116,9 @@ def cmvae(args: argparse.Namespace) -> dict:
 
 def actors(args: argparse.Namespace) -> dict:
     """Landings of the shipped actors with the selected renderers (rows kept for `compare`)."""
-    from assist_policy.env import LandingAssistEnv
-    from assist_policy.evaluate import EvalArgs, make_policy, run_landing
-    from assist_policy.latent import make_latent_fn
+    from assist_lab.env import LandingAssistEnv
+    from assist_lab.evaluate import EvalArgs, make_policy, run_landing
+    from assist_perception.latent import make_latent_fn
 
     torch.set_num_threads(1)
     defaults = EvalArgs()
@@ -145,7 +145,7 @@ def actors(args: argparse.Namespace) -> dict:
 
 def paired_summary(rows: dict) -> dict:
     """Per condition: evaluate.summarize for each renderer and the paired differences."""
-    from assist_policy.evaluate import summarize
+    from assist_lab.evaluate import summarize
 
     res = {}
     for cond, by_r in rows.items():

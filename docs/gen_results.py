@@ -33,7 +33,7 @@ class Runs:
 
     def rows(self, run: str, condition: str) -> list[dict]:
         """The landings of `condition` in run `run` (KeyError with the reason when absent)."""
-        from assist_policy.evaluate import read_landings
+        from assist_lab.evaluate import read_landings
         if run not in self._rows:
             self._rows[run] = read_landings(self.root / run / 'landings.csv')
         if condition not in self._rows[run]:
@@ -42,7 +42,7 @@ class Runs:
 
     def metrics(self, run: str, condition: str) -> dict:
         """n, mean, std, median, success, crash of one condition of a run (evaluate's summarize)."""
-        from assist_policy.evaluate import summarize
+        from assist_lab.evaluate import summarize
         s = summarize(self.rows(run, condition))
         return {'n': s['n'], 'mean': s['error_mean'], 'std': s['error_std'], 'median': s['error_median'],
                 'success': s['specified_success'], 'crash': s['crash_rate']}

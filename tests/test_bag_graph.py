@@ -17,8 +17,8 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosgraph_msgs.msg import Clock
 
-from assist_policy.bags import msgs
-from assist_policy.bags.bagio import LATCHED, RELIABLE, SENSOR, BagReader
+from assist_bags import msgs
+from assist_bags.bagio import LATCHED, RELIABLE, SENSOR, BagReader
 
 pytestmark = pytest.mark.graph
 BIN = Path(sys.executable).parent

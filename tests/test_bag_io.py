@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import yaml
 
-from assist_policy.bags import msgs
-from assist_policy.bags.bagio import CONTRACT_TOPICS, BagError, BagReader, BagWriter
+from assist_bags import msgs
+from assist_bags.bagio import CONTRACT_TOPICS, BagError, BagReader, BagWriter
 
 FIXTURES = Path(__file__).parent / 'fixtures' / 'rosbag2'
 BIN = Path(sys.executable).parent
@@ -191,7 +191,7 @@ def test_cli_one_line_error_on_damaged_bag(damaged, tmp_path, tool, case):
 
 
 def test_play_clock_and_remaps():
-    from assist_policy.bags.play_core import PlayClock, parse_remaps
+    from assist_bags.play_core import PlayClock, parse_remaps
     c = PlayClock(first_ns=5_000_000_000, start_wall=100.0, rate=2.0)
     assert c.due(5_000_000_000) == 100.0 and c.due(7_000_000_000) == pytest.approx(101.0)
     assert c.bag_time(101.0) == 7_000_000_000

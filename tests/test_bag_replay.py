@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from assist_policy import evaluate
-from assist_policy.bags import plot
-from assist_policy.bags.bagio import BagReader, BagWriter
-from assist_policy.bags.episode import DEPTH_NOISE_KEY, landing_bag_name
-from assist_policy.bags.replay import ReplayConfig, replay, rules_on, summarize, write_outputs
+from assist_lab import evaluate
+from assist_bags import plot
+from assist_bags.bagio import BagReader, BagWriter
+from assist_lab.landing_bags import DEPTH_NOISE_KEY, landing_bag_name
+from assist_bags.replay import ReplayConfig, replay, rules_on, summarize, write_outputs
 
 BIN = Path(sys.executable).parent
 BARE = ['--safety', 'false', '--override', 'false', '--recall', 'false', '--damper', 'false']   # the actor alone
@@ -192,7 +192,7 @@ def test_replay_a_folder_of_bags(landing, override_landing, tmp_path, capsys):
     one line each; a second run refuses to overwrite and says so per bag (exit 1)."""
     import shutil
 
-    from assist_policy.bags.replay import main as replay_main
+    from assist_bags.replay import main as replay_main
     folder = tmp_path / 'bags'
     folder.mkdir()
     for bag, _ in (landing, override_landing):
@@ -210,8 +210,8 @@ def test_replay_a_folder_of_bags(landing, override_landing, tmp_path, capsys):
 
 def test_replay_ends_the_flight_where_the_vehicle_reported_it_landed(landing, tmp_path):
     """A bag with the vehicle's /uav/landed_state: replay feeds it to the flight monitor as policy_node does."""
-    from assist_policy.bags import msgs
-    from assist_policy.bags.bagio import CONTRACT_TOPICS
+    from assist_bags import msgs
+    from assist_bags.bagio import CONTRACT_TOPICS
     bag, _ = landing
     assert replay(bag, ReplayConfig()).info['flight_resets'].get('vehicle_landed', 0) == 0
     copy = tmp_path / 'with_landed_state'

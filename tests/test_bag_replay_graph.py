@@ -24,8 +24,8 @@ from geometry_msgs.msg import TwistStamped
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 
-from assist_policy.bags.bagio import PARAMS_KEY, BagReader
-from assist_policy.bags.replay import ReplayConfig, pair_latents, replay, summarize
+from assist_bags.bagio import PARAMS_KEY, BagReader
+from assist_bags.replay import ReplayConfig, pair_latents, replay, summarize
 
 pytestmark = pytest.mark.graph
 REPO = Path(__file__).resolve().parents[1]

@@ -16,7 +16,7 @@ def test_results_and_model_metrics_are_generated_from_the_results_files():
 
 
 def test_computed_cells_are_evaluates_own_summary():
-    from assist_policy.evaluate import read_landings, summarize
+    from assist_lab.evaluate import read_landings, summarize
     rows = read_landings(REPO / 'docs/results/runs/cmp_mix_graph/landings.csv')['latent+guard+override+recall+damper']
     s = summarize(rows)
     text = (REPO / 'docs' / 'results.md').read_text()

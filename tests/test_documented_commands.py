@@ -35,7 +35,7 @@ GROUPS = [['README.md', 'ros2_ws/src/assist_sim/README.md', 'ros2_ws/src/assist_
            'ros2_ws/src/assist_station/README.md', 'bench/README.md', 'docs/deployment.md'],
           ['ros2_ws/src/assist_perception/README.md'],
           ['models/cmvae.md'],
-          ['ros2_ws/src/assist_policy/README.md', 'docs/bags.md'],
+          ['ros2_ws/src/assist_lab/README.md', 'ros2_ws/src/assist_policy/README.md', 'docs/bags.md'],
           ['docs/results.md'],
           ['models/td3_latent_actor.md', 'models/td3_oracle_actor.md', 'models/td3_end_to_end_actor.md']]
 DOCUMENTS = [doc for group in GROUPS for doc in group]

@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 import rclpy
 from assist_common.ros_common import RELIABLE_QOS, stamp_to_sec
-from assist_policy import graph_eval
-from assist_policy.episodes_plan import landing_plan
-from assist_policy.evaluate import read_landings
+from assist_lab import graph_eval
+from assist_lab.episodes_plan import landing_plan
+from assist_lab.evaluate import read_landings
 from assist_sim.core.world import LandingWorld
 from geometry_msgs.msg import TwistStamped
 from rclpy.context import Context

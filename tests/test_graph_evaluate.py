@@ -1,4 +1,4 @@
-"""evaluate_graph: evaluate's landings flown through the real node graph (assist_policy.graph_eval).
+"""evaluate_graph: evaluate's landings flown through the real node graph (assist_lab.graph_eval).
 
 Five consecutive assisted landings (latent mode, shipped models, paper pilot, five betas), one graph never
 restarted between them: most reach the goal pad, none is a timeout that never left the start, each is the
@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from assist_policy import graph_eval
-from assist_policy.episodes_plan import landing_plan
-from assist_policy.evaluate import read_landings
+from assist_lab import graph_eval
+from assist_lab.episodes_plan import landing_plan
+from assist_lab.evaluate import read_landings
 from assist_sim.core.world import LandingWorld
 
 REPO = Path(__file__).resolve().parents[1]
@@ -88,7 +88,7 @@ def test_a_failing_run_stops_its_nodes(domain_id, tmp_path, started_pids):
 
 
 def test_a_second_run_on_a_held_out_is_refused_before_any_node_starts(tmp_path, started_pids, capsys):
-    from assist_policy.cluster import hold_directory
+    from assist_lab.cluster import hold_directory
     out = tmp_path / 'eval'
     with hold_directory(out, 'evaluate_graph', 'wait'):          # another run holds --out
         code = graph_eval.main(['--out', str(out), '--conditions', 'unassisted', '--betas', '0.5',

@@ -9,8 +9,8 @@ import threading
 import numpy as np
 import pytest
 
-from assist_policy.episodes_plan import evaluation_plans
-from assist_policy.graph_eval import (GraphEvalArgs, check_sitl_args, node_params, runner_verdict, sitl_command,
+from assist_lab.episodes_plan import evaluation_plans
+from assist_lab.graph_eval import (GraphEvalArgs, check_sitl_args, node_params, runner_verdict, sitl_command,
                                       sitl_ports)
 from assist_sim.core.config import WorldConfig
 from assist_sim.core.runner import RunnerConfig
@@ -200,7 +200,7 @@ def _row(name: str, seed: int, plan) -> dict:
 @pytest.mark.parametrize('autopilot', ['sitl', 'none'])
 def test_a_graph_that_fails_mid_series_is_started_afresh_for_the_missing_landings_with_sitl(
         tmp_path, monkeypatch, autopilot):
-    import assist_policy.graph_eval as graph_eval
+    import assist_lab.graph_eval as graph_eval
     calls = []
 
     def fake_fly(args, cond, name, on, todo, domain_id, log_dir, results, rows):

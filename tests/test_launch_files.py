@@ -180,7 +180,7 @@ def test_bridge_launch(ros, launch):
 
 def test_sim_mavlink_launch(ros, launch):
     Diag, Twist, Odom, Clock, Image, Floats = _types()
-    lau = launch('assist_bridge', 'sim_mavlink.launch.py', f'port:={free_udp_port()}', 'seed:=1')
+    lau = launch('assist_lab', 'sim_mavlink.launch.py', f'port:={free_udp_port()}', 'seed:=1')
     # /odom here comes from the bridge (vehicle telemetry over MAVLink): the link is up
     wait_for_topics(ros, {'/odom': (Odom, None), '/camera/color/image_raw': (Image, None),
                           '/diagnostics': (Diag, from_node('mavlink_bridge_node'))}, lau)
@@ -277,7 +277,7 @@ def test_station_launch_unassisted(ros, launch):
 @pytest.mark.parametrize('symlink', [False, True], ids=['plain', 'symlink'])
 def test_assist_launch_latent(ros, launch, symlink):
     Diag, Twist, Odom, Clock, Image, Floats = _types()
-    lau = launch('assist_policy', 'assist.launch.py', 'mode:=latent', 'alpha:=1', symlink=symlink)
+    lau = launch('assist_lab', 'assist.launch.py', 'mode:=latent', 'alpha:=1', symlink=symlink)
     wait_for_topics(ros, {'/pilot/cmd_vel': (Twist, None), '/assist/latent': (Floats, None),
                           '/assist/agent_cmd': (Twist, None), '/cmd_vel': (Twist, None)}, lau)
     # the installed shipped models, found through the ament index
@@ -295,7 +295,7 @@ def launch_errors(out: str) -> list[str]:
 
 def test_a_dead_required_node_ends_the_launch_with_the_reason(ros, launch):
     Diag, Twist, Odom, Clock, Image, Floats = _types()
-    lau = launch('assist_bridge', 'sim_mavlink.launch.py', f'port:={free_udp_port()}')
+    lau = launch('assist_lab', 'sim_mavlink.launch.py', f'port:={free_udp_port()}')
     wait_for_topics(ros, {'/odom': (Odom, None)}, lau)      # both up, the link too
     pid = int(re.search(r'\[sim_node-1\]: process started with pid \[(\d+)\]', lau.output()).group(1))
     os.kill(pid, signal.SIGKILL)                              # the sim crashes
@@ -313,7 +313,7 @@ def test_a_node_failing_at_start_up_is_one_line_and_exit_1(launch, tmp_path):
     taken = tmp_path / 'flight'
     taken.mkdir()
     (taken / 'keep.txt').write_text('an earlier recording')
-    lau = launch('assist_policy', 'assist.launch.py', f'record:={taken}', 'real_time_factor:=2')
+    lau = launch('assist_lab', 'assist.launch.py', f'record:={taken}', 'real_time_factor:=2')
     code = lau.wait(START_TIMEOUT_S)
     out = lau.output()
     assert code == 1, out[-4000:]
@@ -329,7 +329,7 @@ def test_a_node_failing_at_start_up_is_one_line_and_exit_1(launch, tmp_path):
 
 
 def test_ctrl_c_during_start_up_leaves_no_traceback(launch, loading_heavy_libraries):
-    lau = launch('assist_policy', 'assist.launch.py', 'mode:=latent', 'real_time_factor:=2')
+    lau = launch('assist_lab', 'assist.launch.py', 'mode:=latent', 'real_time_factor:=2')
     end = time.monotonic() + START_TIMEOUT_S
     pids: list[int] = []
     while time.monotonic() < end:           # until every node is inside its imports (rclpy, torch, pybullet)
@@ -359,9 +359,9 @@ def test_every_launch_argument_is_described(colcon_workspace):
 def test_launch_arguments_are_never_evaluated_as_code(launch, tmp_path):
     marker = tmp_path / 'pwned'
     payload = f"__import__('pathlib').Path('{marker}').touch()"
-    lau = launch('assist_policy', 'assist.launch.py', f"mode:=latent' == 'latent' or {payload} or '")
+    lau = launch('assist_lab', 'assist.launch.py', f"mode:=latent' == 'latent' or {payload} or '")
     assert lau.wait(START_TIMEOUT_S) == 1        # not one of latent / oracle / end_to_end
     assert 'is not valid' in lau.output() and 'process started' not in lau.output()
-    lau = launch('assist_bridge', 'sim_mavlink.launch.py', f"port:=1' + str({payload}) + '")
+    lau = launch('assist_lab', 'sim_mavlink.launch.py', f"port:=1' + str({payload}) + '")
     lau.wait(START_TIMEOUT_S)
     assert not marker.exists(), lau.output()[-4000:]

@@ -4,8 +4,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from assist_policy.env import run_episode
-from assist_policy.evaluate import make_policy
+from assist_lab.env import run_episode
+from assist_lab.evaluate import make_policy
 
 REPO = Path(__file__).resolve().parents[1]
 SEED = 777_000           # unseen: the cards use seed 2024 (evaluate) and 12345 (train_td3's evaluations)

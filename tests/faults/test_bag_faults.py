@@ -18,8 +18,8 @@ import pytest
 import yaml
 from rosbags.rosbag2 import Writer
 
-from assist_policy.bags import bagio, msgs, plot, replay
-from assist_policy.bags.bagio import CONTRACT_TOPICS, BagError, BagReader, BagWriter
+from assist_bags import bagio, msgs, plot, replay
+from assist_bags.bagio import CONTRACT_TOPICS, BagError, BagReader, BagWriter
 
 BIN = Path(sys.executable).parent
 T0 = 1_000_000_000

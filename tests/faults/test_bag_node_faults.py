@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from assist_policy.bags import msgs
-from assist_policy.bags.bagio import CONTRACT_TOPICS, BagReader, BagWriter
+from assist_bags import msgs
+from assist_bags.bagio import CONTRACT_TOPICS, BagReader, BagWriter
 
 pytestmark = pytest.mark.graph
 BIN = Path(sys.executable).parent
@@ -51,7 +51,7 @@ def record(out: Path, *flags: str, inject_after: int | None = None) -> subproces
                 raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
             return real(self, *args)
         Writer.write = write
-        from assist_policy.bags.record_node import main
+        from assist_bags.record_node import main
         main(sys.argv[1:])
     ''')
     return subprocess.Popen([sys.executable, '-c', code, str(out), '--topics', '/camera/depth/image_raw',

@@ -24,11 +24,11 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from assist_perception import dataset, evaluate
-from assist_perception import train as ctrain
+from assist_lab import cmvae_dataset as dataset, cmvae_evaluate as evaluate
+from assist_lab import cmvae_train as ctrain
 from assist_common.settings import RULE_KEY, SettingsError, flag
 from assist_perception.model import load_model
-from assist_policy import train as ptrain
+from assist_lab import train as ptrain
 
 # command -> (entry point, settings dataclass, module and name of the function that does the work)
 CLIS = {

@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 import torch
 
-from assist_perception import train as train_mod
-from assist_perception.dataset import DatasetConfig, load_frames, make_dataset
-from assist_perception.train import TrainConfig, train
+from assist_lab import cmvae_train as train_mod
+from assist_lab.cmvae_dataset import DatasetConfig, load_frames, make_dataset
+from assist_lab.cmvae_train import TrainConfig, train
 
 BIN = Path(sys.executable).parent
 

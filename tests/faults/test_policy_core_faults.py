@@ -20,7 +20,7 @@ from assist_policy.actions import scale_action, unscale_action
 from assist_policy.blending import blend
 from assist_policy.observation import ActionHistory, ObservationBuilder, build_vector, vector_dim
 from assist_policy.policy_core import InputRejected, PolicyCore, PolicyCoreConfig
-from assist_policy.td3 import Actor, save_actor
+from assist_lab.td3 import Actor, save_actor
 
 LATENT = 10
 SETTINGS = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture,
@@ -319,7 +319,7 @@ def test_nan_max_speed_reaching_the_core_relinquishes_instead_of_crashing(actor_
 
 @pytest.fixture(scope='module')
 def e2e_file(tmp_path_factory):
-    from assist_policy.td3 import TD3, TD3Config
+    from assist_lab.td3 import TD3, TD3Config
     agent = TD3(vector_dim('end_to_end'), 3, TD3Config(hidden=(8,), image_channels=(4, 4, 4, 4)), image=True)
     path = tmp_path_factory.mktemp('e2e') / 'e2e.pt'
     save_actor(agent.actor, {**agent.meta, 'condition': 'end_to_end', 'latent_dim': 0,

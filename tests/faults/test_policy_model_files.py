@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from assist_policy.observation import vector_dim
 from assist_policy.policy_core import PolicyCore, PolicyCoreConfig
-from assist_policy.td3 import Actor, load_actor
+from assist_lab.td3 import Actor, load_actor
 
 SETTINGS = settings(max_examples=120, deadline=None,
                     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])

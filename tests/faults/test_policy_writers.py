@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 import torch
 
-from assist_policy.td3 import ReplayBuffer
-from assist_policy.train import TrainArgs, load_checkpoint, train
+from assist_lab.td3 import ReplayBuffer
+from assist_lab.train import TrainArgs, load_checkpoint, train
 
 BIN = Path(sys.executable).parent
 TINY = dict(start_steps=100, checkpoint_every_steps=100, eval_every_episodes=1000, hidden=(32, 32),
@@ -144,7 +144,7 @@ def test_evaluate_killed_keeps_earlier_results_and_resumes(tmp_path):
 
 
 def test_evaluate_with_nothing_to_fly_keeps_earlier_results(tmp_path):
-    from assist_policy.evaluate import EvalArgs, evaluate
+    from assist_lab.evaluate import EvalArgs, evaluate
     (tmp_path / 'landings.csv').write_text('earlier results\n')
     assert evaluate(EvalArgs(out=str(tmp_path), conditions=('latent',), latent_model=str(tmp_path / 'no.pt'),
                              betas=(0.0,), landings=1)) == {}

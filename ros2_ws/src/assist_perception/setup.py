@@ -26,15 +26,12 @@ setup(
     zip_safe=True,
     maintainer='Assisted landing maintainers',
     maintainer_email='maintainers@assist-landing.dev',
-    description='Depth noise model, RGB-D dataset generation, denoising CM-VAE and the encoder node',
+    description='Depth noise model, the denoising CM-VAE and the encoder node',
     license='Apache-2.0',
     tests_require=['pytest'],
     entry_points={
         'console_scripts': [
             'encoder_node = assist_perception.entry_points:encoder_node',
-            'make_dataset = assist_perception.entry_points:make_dataset',
-            'train_cmvae = assist_perception.entry_points:train_cmvae',
-            'evaluate_cmvae = assist_perception.entry_points:evaluate_cmvae',
         ],
     },
 )

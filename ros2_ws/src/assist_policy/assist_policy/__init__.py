@@ -1,1 +1,1 @@
-"""Observation building, blending rule, TD3 assistant training and evaluation against simulated pilots, policy node."""
+"""The assistant a vehicle runs: observation, the learned actor, the non-learned stages and policy_node."""

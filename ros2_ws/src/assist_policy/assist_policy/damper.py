@@ -3,13 +3,13 @@
 Why: a pilot who reacts late (choice reaction 0.35-0.6 s plus a video link's latency) and flies keys at a
 fixed speed overshoots its aim, reverses, and overshoots again the other way: a pilot-induced oscillation
 (PIO), the classic failure of a delayed human closing a fast loop. It circles its aim 0.5-1 m either side
-and never stays inside its own "I am above it" radius long enough to descend. Traced (the delay family,
-beta 1, landing 10014): 60 s of +-0.9 m swings over the goal pad with the learned actor inactive
-(|a| under the blending threshold, so V = u), then a timeout; unassisted, the same pilots time out as
-often. The cure for a PIO is a lower loop gain: while one is detected, the agent's horizontal action
-becomes a velocity damper, a_xy = -gain v_xy (base_link, clipped to the actor's range), so the blended
-V_xy = (u_xy - gain v_xy) / 2 and a held key moves the vehicle at about u / (2 + gain): each overshoot
-is that much shorter and the pilot settles over its aim and descends.
+and never stays inside its own "I am above it" radius long enough to descend: delay pilots (beta 1) can
+swing +-0.9 m over the goal pad until the 60 s timeout with the learned actor inactive (|a| under the
+blending threshold, so V = u), and unassisted they time out as often. The cure for a PIO is a lower loop
+gain: while one is detected, the agent's horizontal action becomes a velocity damper, a_xy = -gain v_xy
+(base_link, clipped to the actor's range), so the blended V_xy = (u_xy - gain v_xy) / 2 and a held key
+moves the vehicle at about u / (2 + gain): each overshoot is that much shorter and the pilot settles over
+its aim and descends.
 
 Detection, from what the actor observes (the pilot's command) and odometry: a reversal is the pilot's
 mean horizontal command over the last ``mean_s`` pointing against (negative dot product) its mean over
@@ -19,15 +19,14 @@ once, when that test turns true (it stays true for about ``gap_s`` after each re
 across a pad: the vehicle's path between the last two reversals passes within ``cross_radius_m`` of a
 mapped pad's centre (the pad recall's map) and the vehicle is still within ``near_m`` of it. Why the pad:
 a damper's action points against the motion, and a pilot reads an assistant's push as a hint where the
-goal is (the paper's conformance); traced, key-confused pilots mid-transit (a spell of a flipped key
-and its end are two reversals) were slowed and talked back onto the pad behind them (held-out seed 99
-landing 2112: goal estimate 12.0 -> 10.3 m, a wrong-pad landing). Swinging across a pad, the pilot is
-trying to settle over it. A pilot who leaves that pad is let go once the vehicle has been getting farther
-from it for ``leave_s`` (an overshoot moves away for about a quarter of a swing, ~1 s; traced, a keyboard
-pilot's late correction off the wrong pad was damped for 4 s, read as "go back", and landed there: seed
-555 landing 2574). The rule stays out while the pilot commands a descent (the pad recall's
-touchdown centring and the actor handle the last metre) and when the damper action is under the blending
-threshold (the vehicle nearly still: the assistant relinquishes as before).
+goal is (the paper's conformance); key-confused pilots mid-transit (a spell of a flipped key and its end
+are two reversals) would be slowed and talked back onto the pad behind them, a wrong-pad landing.
+Swinging across a pad, the pilot is trying to settle over it. A pilot who leaves that pad is let go once
+the vehicle has been getting farther from it for ``leave_s`` (an overshoot moves away for about a quarter
+of a swing, ~1 s), because a keyboard pilot's late correction off the wrong pad, damped for longer (4 s),
+reads the push as "go back" and lands there. The rule stays out while the pilot commands a descent (the
+pad recall's touchdown centring and the actor handle the last metre) and when the damper action is under
+the blending threshold (the vehicle nearly still: the assistant relinquishes, V = u).
 
 Pure numpy; no rclpy.
 """

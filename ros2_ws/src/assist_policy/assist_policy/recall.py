@@ -3,10 +3,9 @@
 Why: the learned assistant knows about a pad only while the encoder sees one (its feature memory
 covers a couple of seconds). A pilot who overshoots the last pad, or sets down between pads, descends
 over bare floor with no pad in view, and there the actor is almost inactive or points nowhere in
-particular (the first failure seen with pilots it never trained with: "the assistant is almost inactive
-there"); the floor guard then stops the descent, and the landing times out hovering over the floor. The
-nearest-pad reference, which knows the true pad positions, pulls such a pilot back onto the pad it
-passed.
+particular (pilots it never trained with fail this way); the floor guard then stops the descent, and the
+landing times out hovering over the floor. The nearest-pad reference, which knows the true pad
+positions, pulls such a pilot back onto the pad it passed.
 
 Map (``PadMap``): every depth frame is back-projected into odom with the camera's pose (odometry
 position and attitude, camera ``camera_offset_m`` below base_link on the body z axis, optical frame as
@@ -48,27 +47,28 @@ more than ``scout_back_mps`` toward the pad behind (it knows the pad is there); 
 pilot stops descending or leaves, another rule acts) goes on when the rule acts again, from the same
 spot within the same distance: one look per pad, except that a recall farther from the pad than the
 scout ever steered it by more than ``scout_margin_m`` (the pilot took the vehicle on, e.g. under the
-pilot override's long push) starts a new look from there. Why (traced with the held-out glide family):
-a pilot who passed the first pad at transit speed and descended short of the second (its aim misjudged
-in depth, as the paper's novices do) was taken 2.4 m back to the first pad, 1.9 m from the second; the
-reference, which knows where every pad is, takes it on to the second. The same signature (a descent past
-a pad, the floor below) is a pilot who overshot the last pad (the case the recall exists for): the scout
-costs that pilot a look of up to ``scout_max_m`` before it goes back. Why the new look (traced with
-low_flyer beta 0, landing 8): a look began as the pilot first descended 2 m past a pad, the long push
-then let the pilot fly on 1.1 m toward its aim, and when it descended there the look was over (the
-ground within reach of where it began had been seen), so it went back 3.1 m to that pad, 1.7 m from the
-goal pad; with a new look from there it finds the goal pad (success, 0.19 m off). Moving the look's
-start along while the pilot creeps on away from the pad was tried and dropped: the scout's own motion
-drags a novice's aim on (the paper's conformance), the pilot creeps after it, and the look chased it
-(low_flyer: 2 landings gained, 4 lost to edges and a wrong pad).
+pilot override's long push) starts a new look from there. Why the scout: a pilot who passes the first
+pad at transit speed and descends short of the second (its aim misjudged in depth, as the paper's
+novices do; the held-out glide family) would be taken back to the first pad (e.g. 2.4 m back, with the
+second 1.9 m ahead); the reference, which knows where every pad is, takes it on to the second. The same
+signature (a descent past a pad, the floor below) is a pilot who overshot the last pad (the case the
+recall exists for): the scout costs that pilot a look of up to ``scout_max_m`` before it goes back. Why
+the new look: a look may begin as a pilot first descends past a pad (e.g. 2 m past it); the long push
+then lets the pilot fly on toward its aim, and when it descends there the ground within reach of where
+the look began has been seen, so without a new look the recall would take it back to that pad, away from
+the goal pad it was nearing (a low_flyer pattern); a new look from there finds the goal pad. The look's
+start is not moved along while the pilot creeps on away from the pad: the scout's own motion drags a
+novice's aim on (the paper's conformance), the pilot creeps after it, and the look would chase it
+(on low_flyer that would gain 2 landings and lose 4 to edges and a wrong pad).
 
 Touchdown (``mode`` 'touchdown', ``touchdown_height_m`` > 0): nearer a mapped pad's centre than
 ``clear_radius_m``, lower than ``touchdown_height_m`` over its top, with the pad seen whole at least once
 and a descent under way (u_z + a_z < 0: the blended V descends while the actor acts), the actor's
 horizontal action is replaced by the same centring action toward the mapped centre; the vertical action
 stays the actor's. Why: below about 1 m over its top a 0.8-1.6 m pad fills the camera's 58 degree view,
-so the encoder sees no edge to place the pad by, and the actor's horizontal action there is noise (traced:
-0.6-1 m/s sideways pushes in the last 0.3 m, sliding key-confused pilots off the edge, 2 of 4 legs on).
+so the encoder sees no edge to place the pad by, and the actor's horizontal action there is noise
+(0.6-1 m/s sideways pushes in the last 0.3 m, enough to slide a key-confused pilot off the edge with 2 of
+4 legs on).
 The map's centre comes from the pad seen whole from higher up (within 8 cm in the tests). The leaving
 test above applies (a pilot moving off the pad at > ``leave_speed_mps`` is let go).
 

@@ -28,11 +28,12 @@ that pad top: a vehicle touching down on a pad is never pushed back up. ``reset`
 Edge rule (``edge_height_m`` > 0, 0.6 m by default): a descent is also held while the legs straddle a
 pad edge (some legs over the floor, some over a pad) with the camera nearer than ``edge_height_m`` to
 that pad: a touchdown there tips the vehicle over (the crashes left with the floor rule alone). It
-watches up to ``edge_watch_m`` of altitude (pads stand up to 1.2 m tall). On by default since the pad
-recall (assist_policy.recall) brings vehicles back to pads from beside them: with both, it turned the
-two tip-overs of 810 held-out landings into a success and an edge landing and changed nothing for the
-worse on the paper pilot (840 landings; docs/experiments/2026-11-pad-recall-and-edge-rule.md). With the actor
-alone (0.5 m, measured before the recall existed) it avoided three crashes and caused three others.
+watches up to ``edge_watch_m`` of altitude (pads stand up to 1.2 m tall). It is on by default because
+the pad recall (assist_policy.recall) brings vehicles back to pads from beside them: with both on, the
+two of 810 held-out landings that tip over without the edge rule become a success and an edge landing,
+and nothing changes for the worse on the paper pilot (840 landings;
+docs/experiments/2026-11-pad-recall-and-edge-rule.md). Without the pad recall (actor alone, edge height
+0.5 m) it avoids as many crashes as it causes (three each).
 
 Wall rule (``wall_radius_m`` > 0, 1.5 m by default; ``assist_policy.walls``): no
 horizontal command toward a wall the camera has seen within that distance (surfaces higher than

@@ -63,8 +63,9 @@ class ScriptedConfig:
     # nearest-pad assistant adds none of its own (a_z = 0, so V_z = u_z / 2 while it centres) instead of
     # pushing down at descend_mps. It still descends for a pilot who hovers low over the pad. The pilot
     # gets twice the time to see that the pad below is the wrong one and leave it, and under the paper's
-    # conformance update its goal estimate is no longer dragged down with the vehicle (which kept the
-    # late_correction pilots from ever noticing). Measured: docs/experiments/2026-11-descent-sparing-teachers.md.
+    # conformance update its goal estimate is not dragged down with the vehicle (a push down drags it, which
+    # keeps the late_correction pilots from ever noticing).
+    # Measured: docs/experiments/2026-11-descent-sparing-teachers.md.
     gentle_descent: bool = False
     # With gentle_descent: below this height over the pad (m) the assistant pushes down again as the
     # reference does, so the last part of the descent is committed and quick. Meant to shorten the slow

@@ -1,11 +1,11 @@
 """Wall guard: the floor guard's second rule, not learned: no command carries the vehicle into a wall it has seen.
 
-Why (traced with the held-out ``cautious`` family, which climbs to look before setting off):
-a novice whose aim lies beyond the last pad flew on toward the room's end wall at 4-5 m, where the
-learned actor, with no pad in view, pushed at full speed (a = (1, 1) m/s) the same way; the vehicle hit
-the wall 0.2 m from it and fell (2 of 110 landings, both "new crashes": alone, the pilot hovered short
-of the wall until the time ran out). The downward camera sees a wall at the edge of its view, as a
-surface standing higher than any landing pad.
+Why: a novice whose aim lies beyond the last pad can fly on toward the room's end wall at 4-5 m (the
+held-out ``cautious`` family climbs to look before setting off), and there the learned actor, with no pad
+in view, may push at full speed (a = (1, 1) m/s) the same way into the wall: a crash the assistant
+causes (alone, the pilot hovers short of the wall until the time runs out; 2 of 110 cautious landings
+without this rule). The downward camera sees a wall at the edge of its view, as a surface standing
+higher than any landing pad.
 
 Map: every depth frame is back-projected into odom (``recall.depth_points``: odometry position and
 attitude, the camera ``camera_offset_m`` below base_link); a frame with at least ``wall_min_points``

@@ -7,23 +7,9 @@ import torch
 
 from assist_policy.observation import vector_dim
 from assist_policy.policy_core import PolicyCore, PolicyCoreConfig
-from assist_policy.td3 import Actor, save_actor
+from assist_policy.actor import Actor, save_actor
+from assist_policy.testing import LATENT, constant_actor
 
-LATENT = 10
-
-
-def constant_actor(path, raw, condition='latent', latent_dim=LATENT):
-    """Actor whose output is the constant tanh^-1-encoded `raw` (zero weights, fixed bias)."""
-    vec = vector_dim(condition, latent_dim)
-    actor = Actor(vec, 3, hidden=(8,))
-    with torch.no_grad():
-        for prm in actor.parameters():
-            prm.zero_()
-        actor.head[-1].bias.copy_(torch.atanh(torch.tensor(raw, dtype=torch.float32)))
-    meta = {'vec_dim': vec, 'act_dim': 3, 'hidden': [8], 'image': False, 'condition': condition,
-            'latent_dim': latent_dim, 'max_speed': [1.0, 1.0, 0.6], 'window_s': 1.0}
-    save_actor(actor, meta, path)
-    return path
 
 
 @pytest.fixture
@@ -109,10 +95,10 @@ def test_oracle_needs_goal_and_mode_mismatch_is_an_error(tmp_path):
 
 
 def test_end_to_end_core_needs_fresh_images(tmp_path):
-    from assist_policy.td3 import TD3, TD3Config
-    agent = TD3(vector_dim('end_to_end'), 3, TD3Config(hidden=(8,), image_channels=(4, 4, 4, 4)), image=True)
-    meta = {**agent.meta, 'condition': 'end_to_end', 'latent_dim': 0, 'max_speed': [1.0, 1.0, 0.6]}
-    save_actor(agent.actor, meta, tmp_path / 'e2e.pt')
+    actor = Actor(vector_dim('end_to_end'), 3, hidden=(8,), image=True, image_channels=(4, 4, 4, 4))
+    meta = {'vec_dim': vector_dim('end_to_end'), 'act_dim': 3, 'image': True, 'hidden': [8],
+            'image_channels': [4, 4, 4, 4], 'condition': 'end_to_end', 'latent_dim': 0, 'max_speed': [1.0, 1.0, 0.6]}
+    save_actor(actor, meta, tmp_path / 'e2e.pt')
     core = PolicyCore(tmp_path / 'e2e.pt', PolicyCoreConfig(mode='end_to_end'))
     feed(core, 1.0, latent=False)
     assert core.step(1.0).agent is None                      # no image yet: relinquish

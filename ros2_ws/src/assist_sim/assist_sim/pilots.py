@@ -35,13 +35,13 @@ Families (``FAMILIES``; the reasoning is in each class's docstring):
 Split (``TRAIN_FAMILIES`` / ``HELDOUT_FAMILIES``): training may use ``paper``, ``delay``, ``tapper``,
 ``depth_bias`` and ``follower``; ``bang_bang``, ``late_correction``, ``key_confusion``, ``ignorer``,
 ``keyboard``, ``glide``, ``low_flyer`` and ``cautious`` are for evaluation only (``cautious``,
-``UNTUNED_FAMILIES``, came after every non-learned rule had been tuned and no rule was tuned to it).
+``UNTUNED_FAMILIES``, is held out from tuning as well: no non-learned rule was tuned against it).
 Population names (``POPULATIONS``): ``mix`` = one of the first five held-out families (``MIX_FAMILIES``)
 drawn uniformly per episode (the held-out evaluation docs/results.md reports), ``approach_mix`` =
-``glide`` or ``low_flyer`` (``APPROACH_FAMILIES``: added later, after they broke an assistant that had
-learned from keyboard families that a descent starts over the aim; kept out of ``mix`` so earlier tables
-stay comparable), ``train_mix`` = one training family drawn per episode (domain randomisation for
-training).
+``glide`` or ``low_flyer`` (``APPROACH_FAMILIES``: pilots that descend before they are over their aim,
+which breaks an assistant that learned from keyboard families that a descent starts over the aim; kept
+out of ``mix`` so that ``mix`` results stay comparable), ``train_mix`` = one training family drawn per
+episode (domain randomisation for training).
 
 ``make_pilot(name, alpha, beta, cfg, rng, pads)`` builds a pilot by name; ``pads`` (the pad top
 centres, known to the env and to sim_pilot_node from /sim/scene) lets ``late_correction`` pick a real
@@ -191,9 +191,10 @@ class CautiousConfig:
     # of pads rather than over them, keeping the aim in view at an angle and away from the other pads,
     # and slides in sideways once level with it; over the aim it descends in stages, stopping after each
     # to check its alignment (hover, horizontal corrections only) before going on. Flight-training advice
-    # for novices reads this way ("gain height to get a picture", "stop, check, descend"). Added in session
-    # 31 as a family no rule was tuned against: the camera sees the ground from higher, a side approach
-    # shows the pads from the edge of the view or not at all, and stage pauses look like hesitation.
+    # for novices reads this way ("gain height to get a picture", "stop, check, descend"). Held out: no rule
+    # was tuned against it. It tests the rules off their tuning: the camera sees the ground from higher, a
+    # side approach shows the pads from the edge of the view or not at all, and stage pauses look like
+    # hesitation.
     look_climb_m: Range = (0.3, 1.2)     # climb over the start height before setting off
     side_probability: float = 0.5        # share of landings flown beside the row
     side_offset_m: Range = (1.2, 2.5)    # the transit line's lateral offset from the aim (sign drawn)
@@ -736,7 +737,7 @@ FAMILIES: dict[str, type[FamilyPilot]] = {cls.name: cls for cls in (
 TRAIN_FAMILIES: tuple[str, ...] = ('paper', 'delay', 'tapper', 'depth_bias', 'follower')
 MIX_FAMILIES: tuple[str, ...] = ('bang_bang', 'late_correction', 'key_confusion', 'ignorer', 'keyboard')
 APPROACH_FAMILIES: tuple[str, ...] = ('glide', 'low_flyer')
-# added after every rule was tuned, evaluated as it came (no rule or actor has been changed for them)
+# held out from tuning too: no rule or actor was tuned or changed for them
 UNTUNED_FAMILIES: tuple[str, ...] = ('cautious',)
 HELDOUT_FAMILIES: tuple[str, ...] = MIX_FAMILIES + APPROACH_FAMILIES + UNTUNED_FAMILIES
 POPULATIONS: dict[str, tuple[str, ...]] = {'mix': MIX_FAMILIES, 'approach_mix': APPROACH_FAMILIES,

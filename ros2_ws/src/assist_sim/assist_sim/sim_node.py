@@ -76,7 +76,7 @@ PARAMS = {
     'episode_seeds': Param((), 'Scene seed of episode 0, 1, 2, ... in order (every reset, automatic or /sim/reset, '
                                'starts the next; with physics ardupilot_json episode k is the one after k landing '
                                'results, so a SITL restart before the landing flies the same scene again; an '
-                               'evaluation plan, e.g. assist_policy.graph_eval); past its end, or empty, the episodes '
+                               'evaluation plan, e.g. assist_lab.graph_eval); past its end, or empty, the episodes '
                                'follow seed.', min=0, max=2**31 - 1, item_type=int),
     'scene_seed': Param(-1, 'Scene seed of every episode started from now on (-1: episode_seeds, then seed); a user '
                             'study flies one scene throughout (settable at run time).', min=-1, max=2**31 - 1,

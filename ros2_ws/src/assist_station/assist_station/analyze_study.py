@@ -88,7 +88,7 @@ import numpy as np
 
 from assist_common.atomic import fsync_dir
 from assist_common.frames import heading, rotate_xy
-from assist_policy.cli import add_dataclass_args, parse_dataclass_args, setting
+from assist_lab.cli import add_dataclass_args, parse_dataclass_args, setting
 
 from .study import (CONDITIONS, EXPERIENCE_QUESTIONS, LANDING_COLUMNS, PARTICIPANT_ID, StudyConfig, StudyError,
                     block_condition, check_survey, check_sus, order_name, sus_score)
@@ -913,7 +913,7 @@ def plot_experience(summary: dict[str, Any], path: Path) -> None:
 def bag_track(bag: Path) -> tuple[np.ndarray, np.ndarray | None]:
     """(N x 3 /odom positions from the episode's start, pad boxes as rows of cx, cy, sx, sy, yaw, or None) of a
     landing's bag."""
-    from assist_policy.bags.bagio import BagReader
+    from assist_bags.bagio import BagReader
     pts, pads = [], None
     with BagReader(bag) as reader:
         topics = [t for t in ('/odom', '/sim/scene') if t in reader.select(None)]
@@ -1003,7 +1003,7 @@ def write_new(path: Path, data: bytes) -> None:
     """Write `data` as the new file `path` (crash-safe: a hidden temporary, fsynced, then published under the
     name only where nothing stands, not even a dangling link; never follows or replaces one). StudyError when
     something is there, OSError when the disk refuses."""
-    from assist_policy.bags.bagio import BagError, publish_new
+    from assist_bags.bagio import BagError, publish_new
     tmp = path.with_name(f'.{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp')
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, 'O_NOFOLLOW', 0), 0o666)   # umask applies
     try:

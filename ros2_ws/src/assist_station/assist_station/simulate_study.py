@@ -31,7 +31,7 @@ from pathlib import Path
 
 from assist_common.atomic import write_text_atomic
 from assist_common.settings import SettingsError
-from assist_policy.cli import add_dataclass_args, parse_dataclass_args, setting
+from assist_lab.cli import add_dataclass_args, parse_dataclass_args, setting
 from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
@@ -157,10 +157,10 @@ def graph_params(cfg: StudyConfig, args: SimulateArgs, study_path: Path, out: Pa
 
 
 class StudyGraph:
-    """The study's node graph as child processes (assist_policy.graph_eval.NodeGroup) on one domain."""
+    """The study's node graph as child processes (assist_lab.graph_eval.NodeGroup) on one domain."""
 
     def __init__(self, params: dict[str, dict], domain_id: int, log_dir: Path):
-        from assist_policy.graph_eval import NodeGroup
+        from assist_lab.graph_eval import NodeGroup
         self.params = params
         self.group = NodeGroup(domain_id, log_dir)
         self.url = f"http://127.0.0.1:{params['pilot_station']['port']}/"
@@ -225,7 +225,7 @@ def simulate(args: SimulateArgs) -> list[dict]:
     sim_dir = out / '.simulation'
     sim_dir.mkdir(parents=True, exist_ok=True)
     cfg, study_path = study_file(args, sim_dir)
-    from assist_policy.graph_eval import pick_domain_id
+    from assist_lab.graph_eval import pick_domain_id
     domain = args.domain_id or pick_domain_id()
     params = graph_params(cfg, args, study_path, out, free_tcp_port())
     profiles = draw_profiles(args.participants, args.seed, tuple(args.families), args.practice, args.id_prefix)

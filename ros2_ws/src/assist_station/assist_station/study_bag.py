@@ -7,8 +7,8 @@ from typing import Any
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from assist_policy.bags.bagio import BagError
-from assist_policy.bags.record_node import BagRecordNode
+from assist_bags.bagio import BagError
+from assist_bags.record_node import BagRecordNode
 
 
 class LandingRecorder(BagRecordNode):

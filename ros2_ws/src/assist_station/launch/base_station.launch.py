@@ -60,7 +60,7 @@ def generate_launch_description():
                    parameters=[os.path.join(share('assist_station'), 'config', 'station.yaml'), clock,
                                {'mode': 'free', 'port': LaunchConfiguration('port')}],
                    condition=IfCondition(EqualsSubstitution(LaunchConfiguration('pilot'), 'station')))
-    record = Node(package='assist_policy', executable='bag_record', name='bag_record', output='screen',
+    record = Node(package='assist_bags', executable='bag_record', name='bag_record', output='screen',
                   parameters=[clock, {'output': ParameterValue(LaunchConfiguration('record'), value_type=str)}],
                   condition=IfCondition(NotEqualsSubstitution(LaunchConfiguration('record'), '')))
     return LaunchDescription(args + [

@@ -5,7 +5,7 @@ ros2 launch assist_station station.launch.py [assisted:=true] [mode:=practice|st
 assisted:=true : sim_node + encoder_node (latent mode) + policy_node + pilot_station (the pilot's
                  /pilot/cmd_vel is blended by the policy into /cmd_vel).
 assisted:=false: sim_node + pilot_station, /pilot/cmd_vel remapped straight onto /cmd_vel.
-sim:=false     : no sim_node (e.g. with assist_bridge's sim_mavlink.launch.py or a real vehicle, where
+sim:=false     : no sim_node (e.g. with assist_lab's sim_mavlink.launch.py or a real vehicle, where
                  /odom comes from mavlink_bridge_node).
 study:=FILE    : run the user study of that study file (config/study.yaml is the paper's) from the page;
                  participants' directories go under study_dir. Needs assisted:=true and assist_mode equal

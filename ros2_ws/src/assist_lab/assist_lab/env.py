@@ -1,0 +1,352 @@
+"""Gymnasium environment: a simulated pilot lands in the LandingWorld, the agent's action is blended in.
+
+One step = one control period of the world (1/control_hz s):
+  1. the agent sees obs_t (scene feature, dynamics, pilot action u_t, 1 s means) and outputs raw
+     action in [-1, 1]^3, scaled to a velocity a_t (``actions.scale_action``);
+     the assistant's non-learned stages then act on it in their one order, the chain policy_node runs
+     (``assistant.Assistant``: oscillation damper, pilot override, pad recall, blending, floor guard, wall
+     rule, speed clamp); a rule left None in EnvConfig (``safety``, ``override``, ``recall``, ``damper``) is
+     off; the flight monitor (``flight.FlightMonitor``) applies policy_node's flight boundaries (the odometry
+     rules: the simulation reports no landed state, and its camera evidence is not read);
+  2. the vehicle flies V_t, the chain's command (within policy_node's speed limits when assisted; the
+     unassisted pilot flies u_t as it is), with the world's turbulence;
+  3. the pilot updates its goal estimate with the applied assistance (a_t if |a_t| > threshold,
+     else 0) and produces u_{t+1}.
+
+Reward (paper, "TD3 implementation"), weights in ``RewardConfig``:
+  (i)   at the end of the episode: -landing_weight * landing error (horizontal distance from the
+        body to the goal pad centre, the judge's error_m), plus optional success/crash terms
+        (0 by default: the paper names only the three terms);
+  (ii)  each step: progress_weight * (d_t - d_{t+1}) when d_{t+1} < progress_radius_m, d = 3-D
+        distance to the true goal's top centre;
+  (iii) each step: -action_weight * |a_t| (m/s);
+  (iv)  optional safety term (not in the paper, 0 by default): each step below floor_descent_height_m
+        with no pad under the vehicle (privileged pad geometry, ``over_pad``), -floor_descent_weight *
+        the flown descent speed (m/s), so descending over bare floor costs more than countering it.
+An episode cut at max_episode_s gets the landing term for where the vehicle is (so stalling a
+landing never pays); trainers treat it as terminal.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass, field
+from typing import Any
+from collections.abc import Callable
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from assist_sim.core.arducopter import randomised
+from assist_sim.core.config import WorldConfig
+from assist_common.frames import quat_to_matrix
+from assist_sim.core.world import LandingWorld
+from assist_sim.pilot import PilotConfig, SimulatedPilot
+from assist_sim.pilots import make_pilot
+
+from assist_policy.actions import DEFAULT_MAX_SPEED, scale_action
+from assist_policy.assistant import Assistant, AssistantConfig, DepthFrame, StepContext
+from assist_policy.blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS
+from assist_policy.damper import DamperConfig
+from assist_policy.flight import FlightConfig, FlightMonitor
+from assist_policy.observation import IMAGE_SHAPE, Condition, ObservationBuilder, image_feature, oracle_feature
+from assist_policy.override import OverrideConfig
+from assist_policy.recall import RecallConfig
+from assist_policy.safety import SafetyConfig
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class RewardConfig:
+    """Weights of the paper's three reward terms (and two optional extras, off by default)."""
+
+    landing_weight: float = 10.0       # per metre of final landing error
+    progress_weight: float = 1.0       # per metre of progress toward the goal near it
+    progress_radius_m: float = 3.0     # progress counts only within this 3-D distance of the goal
+    action_weight: float = 0.02        # per m/s of assistant action, every step
+    success_bonus: float = 0.0         # extra terminal reward on success (not in the paper)
+    crash_penalty: float = 0.0         # extra terminal penalty on a crash (not in the paper)
+    floor_descent_weight: float = 0.0  # per m/s of flown descent over bare floor, every step (not in the paper)
+    floor_descent_height_m: float = 1.5  # the safety term counts below this height above the floor
+    floor_pad_margin_m: float = 0.15   # a pad footprint grown by this (the legs' reach) counts as under
+
+
+@dataclass
+class EnvConfig:
+    """Everything that defines the training / evaluation task."""
+
+    condition: str = 'oracle'                        # latent | oracle | end_to_end | none (unassisted)
+    alpha: float = 0.5                               # pilot conformance
+    beta_range: tuple[float, float] = (0.0, 1.0)     # pilot skill drawn uniformly per episode
+    max_episode_s: float = 60.0                      # truncation (the world's own timeout is longer)
+    blend_threshold: float = DEFAULT_THRESHOLD
+    max_speed: tuple[float, float, float] = DEFAULT_MAX_SPEED
+    # an assisted V is flown within policy_node's limits (max_speed, max_vertical_speed), as deployed (the
+    # world's own clamp is 3 m/s); the unassisted pilot is not limited
+    max_cmd_speed_mps: float = MAX_SPEED_MPS
+    max_cmd_vertical_mps: float = MAX_VERTICAL_MPS
+    window_s: float = 1.0
+    feature_lags_s: tuple[float, ...] = ()           # feature memory (observation.FeatureMemory); () = none
+    memory_displacement: bool = False                # + the displacement since each lagged feature
+    latent_dim: int = 0                              # set from the encoder for the latent condition
+    encoder_path: str = ''                           # CM-VAE weights (latent condition)
+    pilot_family: str = 'paper'                      # assist_sim.pilots name: a family, 'mix' or 'train_mix'
+    paper_share: float = 0.0                         # chance per landing of the paper pilot instead (training)
+    # plant randomisation (training): chance per landing of the ArduCopter plant (else the world's own), its
+    # dynamics scaled by uniform factors in [1 - spread, 1 + spread] (assist_sim.core.arducopter.randomised)
+    arducopter_share: float = 0.0
+    arducopter_spread: float = 0.0
+    safety: SafetyConfig | None = None               # floor guard on the blended command (None: off)
+    override: OverrideConfig | None = None           # pilot override on the agent action (None: off)
+    recall: RecallConfig | None = None               # pad recall on the agent action (None: off)
+    damper: DamperConfig | None = None               # oscillation damper on the agent action (None: off)
+    flight: FlightConfig = field(default_factory=FlightConfig)   # flight boundaries (flight.FlightMonitor)
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    pilot: PilotConfig = field(default_factory=PilotConfig)
+    world: WorldConfig = field(default_factory=WorldConfig)
+
+
+class LandingAssistEnv(gym.Env):
+    """Shared-autonomy landing task with a simulated pilot (see module docstring)."""
+
+    metadata = {'render_modes': []}
+
+    def __init__(self, cfg: EnvConfig | None = None,
+                 latent_fn: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None):
+        super().__init__()
+        self.cfg = cfg or EnvConfig()
+        cond = self.cfg.condition
+        self.unassisted = cond == 'none'
+        self.condition = Condition.ORACLE if self.unassisted else Condition(cond)
+        if self.condition is Condition.LATENT and latent_fn is None:
+            raise ValueError('latent condition needs latent_fn(rgb, depth) -> mu')
+        self.latent_fn = latent_fn
+        self.world = LandingWorld(self.cfg.world)
+        self.builder = ObservationBuilder(self.condition, self.cfg.latent_dim, self.cfg.window_s,
+                                          tuple(self.cfg.feature_lags_s), self.cfg.memory_displacement)
+        self.dt = 1.0 / self.cfg.world.control_hz
+        self.pilot_cfg = self.cfg.pilot
+        self.pilot_cfg.control_hz = float(self.cfg.world.control_hz)
+        vec = self.builder.dim
+        self.image_size = int(np.prod(IMAGE_SHAPE)) if self.condition is Condition.END_TO_END else 0
+        self.observation_space = spaces.Box(-np.inf, np.inf, (self.image_size + vec,), np.float32)
+        self.action_space = spaces.Box(-1.0, 1.0, (3,), np.float32)
+        self.pilot: SimulatedPilot | None = None
+        self.assistant = Assistant(assistant_config(self.cfg))     # the chain policy_node runs
+        self.flight = FlightMonitor(self.cfg.flight)
+        self.flight_resets = 0                           # flight boundaries seen inside episodes (flight.FlightMonitor)
+        self._frame = None
+        self._u = np.zeros(3)
+        self._steps = 0                                  # control steps since reset (the episode clock)
+        self._dist = 0.0
+        self.episode_return = 0.0
+        self.last_command: tuple[np.ndarray, np.ndarray] | None = None   # (a, V) applied in the last step
+
+    @property
+    def pilot_action(self) -> np.ndarray:
+        """The pilot's current command u_t (what the agent observes)."""
+        return self._u.copy()
+
+    @property
+    def elapsed_s(self) -> float:
+        """Episode time: control steps since reset x the control period.
+
+        Counted, not read as world time - reset time: the world's clock runs on across episodes, and
+        the rounding of that difference depends on how long it has run, so a landing's time limit
+        fell one step later or earlier depending on the landings flown before it.
+        """
+        return self._steps * self.dt
+
+    # -------------------------------------------------------------- helpers
+    def _feature(self, pos: np.ndarray) -> np.ndarray:
+        if self.condition is Condition.ORACLE:
+            return oracle_feature(self.world.goal_position, pos)
+        frame = self._frame = self.world.render()
+        if self.condition is Condition.LATENT:
+            if self.world.flight_controller is not None:    # the airframe leans: the encoder levels (as deployed)
+                mu = self.latent_fn(frame.rgb, frame.depth, level=(frame.K, self.world.state.quaternion))
+            else:
+                mu = self.latent_fn(frame.rgb, frame.depth)
+            return np.asarray(mu, dtype=float).reshape(-1)
+        return image_feature(frame.rgb, frame.depth).reshape(-1)
+
+    def _obs(self) -> np.ndarray:
+        st = self.world.state
+        self._frame = None
+        t = self.elapsed_s
+        if self.condition is Condition.END_TO_END:
+            vec = self.builder.build(t, np.zeros(0), st.velocity, st.position[2], self._u)
+            return np.concatenate([self._feature(st.position), vec]).astype(np.float32)
+        return self.builder.build(t, self._feature(st.position), st.velocity, st.position[2], self._u, st.position)
+
+    def _goal_dist(self, pos: np.ndarray) -> float:
+        return float(np.linalg.norm(self.world.goal_position - pos))
+
+    # -------------------------------------------------------------- gym API
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        """New scene, goal, pilot (options: alpha, beta, scene_seed, goal_index, pilot = a pilots name)."""
+        super().reset(seed=seed)
+        options = options or {}
+        rng = self.np_random
+        scene_seed = int(options.get('scene_seed', rng.integers(0, 2**31 - 1)))
+        st = self.world.reset(seed=scene_seed, goal_index=options.get('goal_index'))
+        beta = float(options.get('beta', rng.uniform(*self.cfg.beta_range)))
+        alpha = float(options.get('alpha', self.cfg.alpha))
+        family = str(options.get('pilot', self.cfg.pilot_family))
+        if 'pilot' not in options and self.cfg.paper_share > 0 and rng.uniform() < self.cfg.paper_share:
+            family = 'paper'
+        self.pilot = make_pilot(family, alpha, beta, self.pilot_cfg,
+                                np.random.default_rng(int(rng.integers(2**31))), pads=self.world.pad_top_centers)
+        self.pilot.reset(self.world.goal_position, st.position)
+        noise_seed = int(rng.integers(2**31))      # drawn after the scene and pilot: they are unchanged by it
+        plant = self._draw_plant(rng)               # drawn last: runs without it keep their landings
+        latent_reset = getattr(self.latent_fn, 'reset', None)
+        if latent_reset is not None:
+            latent_reset(noise_seed)             # the camera noise of this landing depends on its seed only
+        self.builder.reset()                       # a new episode is a new flight (the world teleports the vehicle)
+        self.assistant.reset()
+        self.flight.reset()
+        self.last_command = None
+        self._steps = 0
+        self._u = self.pilot.act(st.position, None)
+        self._dist = self._goal_dist(st.position)
+        self.episode_return = 0.0
+        return self._obs(), {'alpha': self.pilot.alpha, 'beta': beta, 'scene_seed': scene_seed,
+                             'goal_index': self.world.goal_index, 'aimed_index': self.aimed_index(),
+                             'pilot': self.pilot.name, 'pilot_params': dict(self.pilot.params), 'plant': plant}
+
+    def _draw_plant(self, rng: np.random.Generator) -> str:
+        """This landing's plant: the world's own unless `arducopter_share` draws the (randomised) ArduCopter one."""
+        if self.cfg.arducopter_share <= 0.0:
+            return 'arducopter' if self.world.flight_controller is not None else 'ideal'
+        if rng.uniform() >= self.cfg.arducopter_share:
+            self.world.set_flight_controller(self.cfg.world.flight_controller)
+            return self.cfg.world.flight_controller
+        cfg = self.cfg.world.arducopter
+        if self.cfg.arducopter_spread > 0.0:
+            cfg = randomised(cfg, rng, self.cfg.arducopter_spread)
+        self.world.set_flight_controller('arducopter', cfg)
+        return 'arducopter'
+
+    def aimed_index(self) -> int:
+        """Pad nearest (horizontally) to the pilot's current goal estimate: the pad it is heading for."""
+        pads = self.world.pad_top_centers
+        return int(np.argmin(np.linalg.norm(pads[:, :2] - self.pilot.goal_estimate[:2], axis=1)))
+
+    def step(self, action):
+        """Blend, fly one control period, update the pilot, score (see module docstring)."""
+        raw = np.asarray(action, dtype=float).reshape(3)
+        if not np.all(np.isfinite(raw)):
+            raise ValueError(f'non-finite action {raw.tolist()}')
+        a = np.zeros(3) if self.unassisted else scale_action(raw, self.cfg.max_speed)
+        t = self.elapsed_s
+        st = self.world.state
+        acted: tuple[str, ...] = ()
+        if self.unassisted:
+            v = self._u.copy()
+            self.builder.record(t, self._u, a)
+        else:
+            # the flight monitor policy_node's core runs (a landing, an odometry jump): the same rule here
+            vz = 0.0 if self.last_command is None else float(self.last_command[1][2])
+            if self.flight.update(t, st.position, st.velocity, vz) is not None:
+                self.flight_resets += 1
+                self.builder.reset()
+                self.assistant.reset()
+            v_body = quat_to_matrix(st.quaternion).T @ st.velocity   # odometry twist, base_link (REP-105)
+            frame = DepthFrame(self._steps, lambda: self.camera_frame().depth, lambda: (st.position, st.quaternion))
+            ctx = StepContext(t, self._u, self.builder.history.means(t)[0], st.position, v_body, st.quaternion,
+                              frame, self.cfg.max_speed)
+            res = self.assistant.step(ctx, a)
+            a, v, acted = res.agent, res.velocity, res.acted
+            self.builder.record(t, self._u, res.applied)
+        active = float(np.linalg.norm(a)) > self.cfg.blend_threshold
+        self.last_command = (a.copy(), np.array(v, dtype=float))    # what was flown (bags record it)
+        st = self.world.step(v)
+        self._steps += 1
+        self._u = self.pilot.act(st.position, a if active else None)
+        r = self.cfg.reward
+        d = self._goal_dist(st.position)
+        reward = -r.action_weight * float(np.linalg.norm(a))
+        if d < r.progress_radius_m:
+            reward += r.progress_weight * (self._dist - d)
+        if (r.floor_descent_weight > 0 and v[2] < 0 and st.position[2] < r.floor_descent_height_m
+                and not over_pad(self.world.scene.pads, st.position[:2], r.floor_pad_margin_m)):
+            reward -= r.floor_descent_weight * float(-v[2])
+        self._dist = d
+        terminated = self.world.done
+        truncated = (not terminated) and self.elapsed_s >= self.cfg.max_episode_s - 0.5 * self.dt
+        overridden, recalled = 'pilot_override' in acted, 'pad_recall' in acted
+        info: dict[str, Any] = {'active': active, 'guard': 'floor_guard' in acted, 'walls': 'wall_guard' in acted,
+                                'override': overridden, 'recall': recalled,
+                                'damper': 'oscillation_damper' in acted and not (overridden or recalled),
+                                'goal_estimate': self.pilot.goal_estimate.copy()}
+        if terminated:
+            res = self.world.result
+            res.assisted = not self.unassisted
+            reward -= r.landing_weight * res.error_m
+            reward += r.success_bonus * float(res.success) - r.crash_penalty * float(res.crash)
+            info['result'] = res.to_dict()
+        elif truncated:
+            # time limit: scored like a landing where it is, so hovering forever never pays
+            pos = st.position
+            dists = np.linalg.norm(self.world.pad_top_centers[:, :2] - pos[:2], axis=1)
+            info['result'] = {'goal_index': self.world.goal_index, 'landed_index': None,
+                              'nearest_index': int(np.argmin(dists)),
+                              'error_m': float(dists[self.world.goal_index]),
+                              'nearest_error_m': float(dists.min()), 'success': False, 'crash': False,
+                              'duration_s': self.elapsed_s, 'outcome': 'timeout',
+                              'assisted': not self.unassisted}
+            reward -= r.landing_weight * info['result']['error_m']
+        self.episode_return += reward
+        return self._obs(), float(reward), bool(terminated), bool(truncated), info
+
+    def camera_frame(self):
+        """This step's camera frame as rendered (clean depth): the encoder's, else rendered on first use
+        (once a step)."""
+        if self._frame is None:
+            self._frame = self.world.render()
+        return self._frame
+
+    def close(self) -> None:
+        """Release the pybullet client."""
+        self.world.close()
+
+
+def assistant_config(cfg: EnvConfig) -> AssistantConfig:
+    """The assistant's settings for an env: a rule left None in `cfg` is off (its defaults, switched off)."""
+    def off(rule, default):
+        return rule if rule is not None else dataclasses.replace(default, enabled=False)
+    return AssistantConfig(cfg.blend_threshold, cfg.max_cmd_speed_mps, cfg.max_cmd_vertical_mps,
+                           off(cfg.safety, SafetyConfig()), off(cfg.override, OverrideConfig()),
+                           off(cfg.recall, RecallConfig()), off(cfg.damper, DamperConfig()))
+
+
+def over_pad(pads, xy: np.ndarray, margin_m: float = 0.0) -> bool:
+    """True if the horizontal point `xy` lies over a pad's yawed footprint grown by `margin_m` on each side."""
+    return any(bool(pad.contains_xy(xy, margin=-margin_m)) for pad in pads)
+
+
+def run_episode(env: LandingAssistEnv, policy, seed: int, options: dict | None = None) -> dict:
+    """Roll out one landing with `policy(obs) -> raw action` (None = unassisted); returns a summary."""
+    obs, info = env.reset(seed=seed, options=options)
+    steps, active, guarded, walled, overridden, recalled, damped = 0, 0, 0, 0, 0, 0, 0
+    while True:
+        act = np.zeros(3) if policy is None else policy(obs)
+        obs, _, term, trunc, step_info = env.step(act)
+        steps += 1
+        active += int(step_info['active'])
+        guarded += int(step_info.get('guard', False))
+        walled += int(step_info.get('walls', False))
+        overridden += int(step_info.get('override', False))
+        recalled += int(step_info.get('recall', False))
+        damped += int(step_info.get('damper', False))
+        if term or trunc:
+            break
+    res = dict(step_info['result'])
+    res.update(beta=info['beta'], alpha=info['alpha'], scene_seed=info['scene_seed'], steps=steps,
+               aimed_index=info['aimed_index'], pilot=info['pilot'], guard_fraction=guarded / steps,
+               wall_fraction=walled / steps, override_fraction=overridden / steps, recall_fraction=recalled / steps,
+               damper_fraction=damped / steps, active_fraction=active / steps, episode_return=env.episode_return)
+    return res

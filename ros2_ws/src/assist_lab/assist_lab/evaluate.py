@@ -1,0 +1,768 @@
+"""evaluate: the paper's simulated-user experiment (Fig. 5 / Table I) in the LandingWorld.
+
+Simulated pilots at alpha = 0.5 and beta = 0, 0.05, ..., 1 land `--landings` times per beta (40 in the
+paper) unassisted and with each assistant (latent, oracle, end_to_end). Landing k at beta index b uses
+the same scene, goal and pilot randomness in every condition (paired comparison; seeded).
+
+    evaluate --out runs/eval_full                       # full experiment, shipped models, as policy_node flies them
+    evaluate --out runs/eval_bare --safety false --override false --recall false --damper false   # bare actors
+    evaluate --landings 4 --betas 0 0.5 1 --conditions unassisted oracle   # quick look
+    evaluate --from-csv runs/eval_a/landings.csv runs/eval_b/landings.csv --out runs/eval_ab   # combine
+
+Writes <out>/landings.csv (one row per landing), <out>/summary.csv, <out>/error_vs_beta.png and
+prints the table: mean +- std error, median, specified-platform success (all legs on the goal),
+nearest-platform success (all legs on the platform nearest to where it stopped, whichever it is),
+crash rate and how often the landed platform was the goal. `misaimed` is the share of landings whose
+pilot set off for another pad (its first goal estimate was nearest a pad other than the goal; the
+column aimed_index), and `misaimed_success` how many of those still ended on the goal: a
+goal-agnostic assistant can only get these right by reading the pilot's corrections.
+
+Pilots other than the paper's: `--pilot <family|mix|train_mix>` flies every landing with a
+pilot of that assist_sim.pilots family (`mix`: a held-out family drawn per landing); the column `pilot`
+names the family flown.
+
+The non-learned rules policy_node runs are on by default here too, as policy_node's defaults for each
+mode, so `evaluate` measures the assistant as
+it is deployed: the floor guard for every assisted condition, the pilot override, pad recall and
+oscillation damper for latent and end_to_end but not for the oracle (it knows the goal: yielding to the
+pilot or steering to the nearest pad only costs it). `--override/--recall/--damper true|false` set them
+for every learned assistant; `--safety false --override false --recall false --damper false` flies the
+bare learned actor, as the paper did. `--safety`: the floor guard (assist_policy.safety) for every
+assisted condition, rows named `<condition>+guard` (so runs with and without it combine with --from-csv);
+`guard_fraction` is the share of steps it acted, `wall_fraction` the share its wall rule
+(assist_policy.walls) stopped an approach to a wall. `--override`: the pilot override
+(assist_policy.override) for the learned assistants (not for the scripted references, which stay as
+defined): rows `<condition>[+guard]+override`, `override_fraction` the share of steps it replaced the
+actor's action. `--recall`: the pad recall (assist_policy.recall) for the learned assistants: rows
+`<condition>[+guard][+override]+recall`, `recall_fraction` the share of steps it steered. `--damper`: the
+oscillation damper (assist_policy.damper) for the learned assistants: rows
+`<condition>[+guard][+override][+recall]+damper`, `damper_fraction` the share of steps it damped.
+
+    evaluate --pilot bang_bang --betas 0 0.25 0.5 0.75 1 --landings 8 --out runs/eval_bang_bang
+
+Landings are independent tasks keyed by (condition, beta, seed), flown from their own seeds: `--workers N`
+flies them on N processes, `--ray ADDRESS` (or auto) as tasks on a Ray cluster, with the rows of a
+one-process run either way, and a progress bar shows the run.
+
+Results are crash-safe: landings go to <out>/landings.partial.csv as they are flown (the run's settings beside
+it in landings.partial.json); an earlier landings.csv stays untouched until the run ends, when the complete
+table replaces it in one rename, keeping the earlier file's conditions this run did not fly (a second run adds
+a condition to the same --out; a condition flown again replaces its rows; a landings.csv that is not a
+landings table is replaced, with a warning when the run starts). Re-running an interrupted evaluation with the
+same settings reuses the landings already flown. One run at a time per --out: a second one started on the same
+directory exits with status 2 naming the run that holds it (<out>/.evaluate.lock, removed at the end). A
+worker process that dies (killed, out of memory) stops the run with one line and status 1; the landings flown
+so far are kept for the re-run. Workers end with the evaluate process, even a SIGKILLed one.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import logging
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+from tqdm import tqdm
+from tqdm.contrib.logging import logging_redirect_tqdm
+
+from assist_common.atomic import CsvLog, atomic_path, truncate_csv, write_text_atomic
+from assist_sim.core.arducopter import FLIGHT_CONTROLLERS
+from assist_sim.core.config import WorldConfig
+from assist_sim.pilots import PILOT_NAMES
+
+from assist_bags.bagio import BagError
+from .landing_bags import record_landing
+from .cluster import (DirectoryBusy, RayUnreachable, WorkerDied, completed_in_turn, connect_ray, cpu_cores,
+                      exit_with_parent, hold_directory, ignore_ctrl_c, process_context, ray_cpus, worker_died)
+from .cli import add_dataclass_args, check_settings, parse_dataclass_args, setting
+from assist_policy.damper import DamperConfig
+from .env import EnvConfig, LandingAssistEnv, run_episode
+from assist_perception.latent import make_latent_fn
+from assist_policy.observation import Condition
+from assist_policy.policy_core import default_model_path
+from assist_policy.override import OverrideConfig
+from assist_policy.recall import RecallConfig
+from assist_policy.safety import SafetyConfig
+from assist_policy.scripted import LEAD_S, NEAREST_PAD_VARIANTS, ScriptedConfig, ScriptedOracle, make_nearest_pad
+from assist_policy.actor import load_actor
+
+log = logging.getLogger(__name__)
+
+CONDITIONS = ('unassisted', 'latent', 'oracle', 'end_to_end')
+# hand-written assistants (reference only): the oracle script and every named nearest-pad teacher
+# (scripted.NEAREST_PAD_VARIANTS: _yield yields to a held key, _gentle does not hurry the pilot's descent)
+BASELINES = ('scripted_oracle', 'scripted_oracle_lead', *(f'scripted_{v}' for v in NEAREST_PAD_VARIANTS))
+PAPER = {'unassisted': '0.67 +- 0.40', 'end_to_end': '0.37 +- 0.33', 'latent': '0.25 +- 0.15',
+         'oracle': '0.10 +- 0.07'}
+
+
+MAX_EVAL_SEED = 2**31 - 1 - 1000 * 1000 - 100_000     # landing seeds (seed + 1000 beta index + k) stay valid
+
+
+@dataclass
+class EvalArgs:
+    """Command-line arguments of evaluate (every field is a --flag)."""
+
+    out: str = setting('runs/eval', nonempty=True)
+    conditions: tuple[str, ...] = setting(CONDITIONS, choices=CONDITIONS + BASELINES, min_len=1)
+    alpha: float = setting(0.5, ge=0.0, le=1.0)
+    betas: tuple[float, ...] = setting(tuple(np.round(np.arange(0.0, 1.0001, 0.05), 2).tolist()), ge=0.0, le=1.0,
+                                       min_len=1)
+    landings: int = setting(40, ge=1, le=100_000)        # 0 would replace an existing landings.csv with nothing
+    seed: int = setting(2024, ge=0, le=MAX_EVAL_SEED)
+    latent_model: str = ''
+    oracle_model: str = ''
+    end_to_end_model: str = ''
+    encoder_path: str = ''
+    max_episode_s: float = setting(60.0, gt=0.0, le=3600.0)
+    plot: bool = True
+    pilot: str = setting('paper', choices=PILOT_NAMES)
+    # the non-learned rules, by default as policy_node flies each mode (false: the bare actor): the floor guard on;
+    # the goal-agnostic three (None) on for latent and end_to_end, off for the oracle, which knows the goal
+    safety: bool = True
+    override: bool | None = None
+    recall: bool | None = None
+    damper: bool | None = None
+    from_csv: tuple[str, ...] = ()
+    record_dir: str = ''
+    workers: int = setting(0, ge=0, le=1024)      # 0: one per CPU core (a short run: fewer, see worker_count)
+    flight_controller: str = setting('ideal', choices=FLIGHT_CONTROLLERS)
+    world_config: str = ''                         # YAML of WorldConfig fields (e.g. the SITL start); '' = defaults
+    ray: str = ''                                  # '' local processes; 'auto' a local Ray instance; or an address
+
+# Settings that change how a run is carried out, not which landings it flies (not part of the resume key).
+RUN_ONLY = ('out', 'plot', 'workers', 'ray')
+
+
+HELP = {
+    'out': 'output directory (landings.csv, summary.csv, error_vs_beta.png)',
+    'conditions': 'any of unassisted latent oracle end_to_end (assistants without a model are skipped); '
+                  'reference baselines: ' + ' '.join(BASELINES),
+    'betas': 'pilot skills to test (paper: 0 to 1 in steps of 0.05)',
+    'landings': 'landings per beta and condition (paper: 40)',
+    'latent_model': 'actor file (default: models/td3_latent_actor.pt)',
+    'oracle_model': 'actor file (default: models/td3_oracle_actor.pt)',
+    'end_to_end_model': 'actor file (default: models/td3_end_to_end_actor.pt)',
+    'encoder_path': 'CM-VAE weights for the latent condition (default: the shipped model)',
+    'pilot': 'simulated pilot: paper (the reference), a family of assist_sim.pilots, mix (a held-out family '
+             'per landing), approach_mix (glide or low_flyer per landing) or train_mix (a training family per '
+             'landing)',
+    'safety': 'apply the floor guard (assist_policy.safety) to every assisted condition (on by default, as '
+              'policy_node; false with the other three: the bare actor, as the paper flew it)',
+    'override': 'apply the pilot override (assist_policy.override) to the learned assistants (latent, oracle, '
+                'end_to_end); unset: as policy_node, on for latent and end_to_end, off for the oracle',
+    'recall': 'apply the pad recall (assist_policy.recall) to the learned assistants (latent, oracle, end_to_end); '
+              'unset: as policy_node, on for latent and end_to_end, off for the oracle',
+    'damper': 'apply the oscillation damper (assist_policy.damper) to the learned assistants (latent, oracle, '
+              'end_to_end); unset: as policy_node, on for latent and end_to_end, off for the oracle',
+    'from_csv': 'fly nothing: combine the landings.csv files of earlier runs (e.g. one condition split '
+                'over processes by --betas; a landing in a later file replaces the same condition, beta '
+                'and seed in an earlier one) into one table, summary.csv and plot',
+    'ray': 'fly the landings as tasks on a Ray cluster at this address (ray://HOST:10001 or HOST:6379; every '
+           'node needs this workspace installed), or auto to start a local Ray instance; empty: local processes '
+           '(--workers). Needs the optional ray package',
+    'workers': 'processes flying landings side by side (0: one per CPU core, one per 8 landings for a short run); '
+               'every landing is flown from its own seed, so the rows are those of a one-process run',
+    'flight_controller': 'the plant that follows the velocity commands: ideal (the sim\'s own velocity loop) or '
+                         'arducopter (ArduCopter GUIDED as the bridge flies it: assist_sim.core.arducopter, with '
+                         'the touchdown envelope; the camera leans with the airframe and the encoder levels it)',
+    'world_config': 'YAML file of assist_sim WorldConfig fields for the landing world (sim_node\'s world_config), '
+                    'e.g. assist_sim/config/world_sitl_start.yaml: every landing starts where the SITL landing '
+                    'series starts (over the start spot at take-off altitude); --flight-controller still applies',
+    'record_dir': 'save every landing as a rosbag2 bag (the graph\'s topics and types) in this directory, '
+                  'named <condition>_beta<beta>_seed<seed>: replay_assist / plot_flight take any of them',
+}
+
+LANDING_FIELDS = ['condition', 'beta', 'seed', 'scene_seed', 'goal_index', 'landed_index', 'nearest_index',
+                  'aimed_index', 'error_m', 'nearest_error_m', 'outcome', 'success', 'crash', 'duration_s',
+                  'active_fraction', 'pilot', 'guard_fraction', 'override_fraction', 'recall_fraction',
+                  'damper_fraction', 'wall_fraction', 'autopilot_landed']
+_BOOL = {'True': True, 'False': False}
+
+
+def read_landings(path: str | Path) -> dict[str, list[dict]]:
+    """Rows of a landings.csv grouped by condition, typed as evaluate writes them; ValueError if malformed."""
+    out: dict[str, list[dict]] = {}
+    with open(path, newline='', encoding='utf-8') as fh:
+        reader = csv.DictReader(fh)
+        missing = {'condition', 'beta', 'goal_index', 'error_m', 'success', 'crash', 'outcome'} - set(
+            reader.fieldnames or ())
+        if missing:
+            raise ValueError(f'{path}: not a landings.csv (missing columns {sorted(missing)})')
+        for n, r in enumerate(reader, start=2):
+            try:
+                row = dict(r, beta=float(r['beta']), error_m=float(r['error_m']),
+                           nearest_error_m=float(r.get('nearest_error_m') or 'nan'),
+                           success=_BOOL[r['success']], crash=_BOOL[r['crash']],
+                           active_fraction=float(r.get('active_fraction') or 0.0),
+                           goal_index=int(r['goal_index']),
+                           autopilot_landed=_BOOL.get(r.get('autopilot_landed') or '', None),
+                           **{k: None if r.get(k) in (None, '') else int(r[k])
+                              for k in ('seed', 'landed_index', 'nearest_index', 'aimed_index')})
+            except (KeyError, ValueError) as exc:
+                raise ValueError(f'{path}:{n}: bad row: {exc!r}') from exc
+            out.setdefault(r['condition'], []).append(row)
+    return out
+
+
+class LandingLog:
+    """landings.csv written crash-safely and resumably (see the module docstring)."""
+
+    def __init__(self, out: Path, settings: dict):
+        self.path, self.partial = out / 'landings.csv', out / 'landings.partial.csv'
+        self.settings_file = out / 'landings.partial.json'
+        self.done: dict[tuple, dict] = {}
+        settings = json.loads(json.dumps(settings, sort_keys=True))     # tuples -> lists, as stored
+        same = (self.partial.exists() and self.settings_file.exists()
+                and json.loads(self.settings_file.read_text(encoding='utf-8')) == settings)
+        if same:
+            truncate_csv(self.partial, lambda row: True)      # drops a row torn by a kill
+            self.done = {(c, r['beta'], r['seed']): r for c, rows in read_landings(self.partial).items()
+                         for r in rows}
+            log.info('resuming: %d landings already flown in %s', len(self.done), self.partial)
+        else:
+            self.partial.unlink(missing_ok=True)
+            write_text_atomic(self.settings_file, json.dumps(settings, sort_keys=True))
+        self.csv = CsvLog(self.partial, LANDING_FIELDS)
+        # a landings.csv of an earlier run into this --out: its other conditions are kept at commit
+        self.earlier: dict[str, list[dict]] = {}
+        if self.path.exists():
+            try:
+                self.earlier = read_landings(self.path)
+            except (ValueError, KeyError, UnicodeDecodeError) as exc:
+                log.warning('%s is not a landings table (%s): this run replaces it when it ends', self.path, exc)
+
+    def flown(self, condition: str, beta: float, seed: int) -> dict | None:
+        """The row of a landing an interrupted run already flew, or None."""
+        return self.done.get((condition, beta, seed))
+
+    def write(self, row: dict) -> None:
+        """Append one landing (flushed)."""
+        self.csv.write(row)
+
+    def sync(self) -> None:
+        """Make the landings written so far durable."""
+        self.csv.sync()
+
+    def close(self) -> None:
+        """Close the partial file (kept for a resume)."""
+        self.csv.close()
+
+    def commit(self, rows_by_cond: dict[str, list[dict]]) -> dict[str, list[dict]]:
+        """Write landings.csv: this run's conditions, and those of an earlier landings.csv in the same --out
+        that this run did not fly (kept as they were; a condition flown again is replaced). Drops the partial
+        files; returns the table written (empty when nothing was flown: an earlier landings.csv stays as it is)."""
+        self.close()
+        table: dict[str, list[dict]] = {}
+        if rows_by_cond:
+            kept = {c: rows for c, rows in self.earlier.items() if c not in rows_by_cond}
+            if kept:
+                log.info('%s: kept the earlier landings of %s', self.path, ', '.join(kept))
+            table = {**kept, **rows_by_cond}
+            write_landings(self.path, table)
+        self.partial.unlink(missing_ok=True)
+        self.settings_file.unlink(missing_ok=True)
+        return table
+
+
+def write_landings(path: Path, rows_by_cond: dict[str, list[dict]]) -> None:
+    """Write a landings.csv in one atomic step."""
+    with atomic_path(path) as tmp, open(tmp, 'w', newline='', encoding='utf-8') as fh:
+        w = csv.DictWriter(fh, fieldnames=LANDING_FIELDS, extrasaction='ignore')
+        w.writeheader()
+        for rows in rows_by_cond.values():
+            w.writerows(rows)
+
+
+def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: float, alpha: float,
+                pilot: str = 'paper', safety: SafetyConfig | None = None, override: OverrideConfig | None = None,
+                recall: RecallConfig | None = None, damper: DamperConfig | None = None,
+                flight_controller: str = 'ideal', world_config: str = ''):
+    """(env, policy) for one condition; policy(obs) -> raw action, None for unassisted (override etc.: learned only)."""
+    world = WorldConfig.from_yaml(world_config) if world_config else WorldConfig()
+    world.flight_controller = flight_controller
+    if condition == 'unassisted':
+        return LandingAssistEnv(EnvConfig(condition='none', alpha=alpha, max_episode_s=max_episode_s,
+                                          pilot_family=pilot, world=world)), None
+    if condition in BASELINES:
+        env = LandingAssistEnv(EnvConfig(condition='oracle', alpha=alpha, max_episode_s=max_episode_s,
+                                         pilot_family=pilot, safety=safety, world=world))
+        script = (ScriptedOracle() if condition == 'scripted_oracle' else
+                  ScriptedOracle(ScriptedConfig(lead_s=LEAD_S)) if condition == 'scripted_oracle_lead' else
+                  make_nearest_pad(condition[len('scripted_'):]))
+        return env, lambda obs: script.raw_action(env)
+    path = Path(model) if model else default_model_path(condition)
+    actor, meta = load_actor(path)
+    cfg = EnvConfig(condition=condition, alpha=alpha, max_episode_s=max_episode_s,
+                    max_speed=tuple(meta.get('max_speed', (1.0, 1.0, 0.6))),
+                    latent_dim=int(meta.get('latent_dim', 0)), pilot_family=pilot, safety=safety, override=override,
+                    recall=recall, damper=damper, world=world,
+                    feature_lags_s=tuple(meta['feature_lags_s']), memory_displacement=meta['memory_displacement'])
+    if condition == 'latent':
+        latent_fn, dim = make_latent_fn(encoder_path or None)
+        if dim != cfg.latent_dim:
+            raise ValueError(f'{path}: trained on a {cfg.latent_dim}-d latent, the encoder gives {dim}')
+        env = LandingAssistEnv(cfg, latent_fn=latent_fn)
+    else:
+        env = LandingAssistEnv(cfg)
+
+    @torch.no_grad()
+    def policy(obs: np.ndarray) -> np.ndarray:
+        return actor(torch.as_tensor(obs).unsqueeze(0))[0].numpy().astype(float)
+    return env, policy
+
+
+def run_landing(env: LandingAssistEnv, policy, seed: int, beta: float) -> dict:
+    """One landing with the given seed and pilot skill; the result row."""
+    res = run_episode(env, policy, seed, {'beta': beta})
+    return {'beta': beta, 'seed': seed, 'scene_seed': res['scene_seed'], 'goal_index': res['goal_index'],
+            'landed_index': res['landed_index'], 'nearest_index': res['nearest_index'],
+            'aimed_index': res['aimed_index'],
+            'error_m': round(float(res['error_m']), 4), 'nearest_error_m': round(float(res['nearest_error_m']), 4),
+            'outcome': res['outcome'], 'success': bool(res['success']), 'crash': bool(res['crash']),
+            'duration_s': round(float(res['duration_s']), 2), 'active_fraction': round(res['active_fraction'], 3),
+            'pilot': res['pilot'], 'guard_fraction': round(res['guard_fraction'], 3),
+            'override_fraction': round(res['override_fraction'], 3),
+            'recall_fraction': round(res['recall_fraction'], 3),
+            'damper_fraction': round(res['damper_fraction'], 3), 'wall_fraction': round(res['wall_fraction'], 3),
+            'autopilot_landed': '' if res.get('autopilot_landed') is None else bool(res['autopilot_landed'])}
+
+
+def summarize(rows: list[dict]) -> dict:
+    """Table I statistics of a set of landing rows."""
+    err = np.array([r['error_m'] for r in rows], dtype=float)
+    landed_clean = [r['outcome'] in ('success', 'wrong_pad') for r in rows]
+    # the pilot's first goal estimate was nearest another pad than its goal (it set off for the wrong one)
+    known_aim = any(r.get('aimed_index') not in (None, '') for r in rows)   # older CSVs lack the column
+    misaimed = [r.get('aimed_index') not in (None, '') and int(r['aimed_index']) != int(r['goal_index'])
+                for r in rows]
+    return {'n': len(rows), 'error_mean': float(err.mean()), 'error_std': float(err.std()),
+            'error_median': float(np.median(err)),
+            'specified_success': float(np.mean([r['success'] for r in rows])),
+            'nearest_success': float(np.mean([c and r['landed_index'] == r['nearest_index']
+                                              for c, r in zip(landed_clean, rows)])),
+            'crash_rate': float(np.mean([r['crash'] for r in rows])),
+            'landed_on_goal': float(np.mean([r['landed_index'] is not None and int(r['landed_index']) ==
+                                             int(r['goal_index']) for r in rows])),
+            'active_fraction': float(np.mean([r['active_fraction'] for r in rows])),
+            'misaimed': float(np.mean(misaimed)) if known_aim else float('nan'),
+            'misaimed_success': (float(np.mean([r['success'] for r, m in zip(rows, misaimed) if m]))
+                                 if any(misaimed) else float('nan')),
+            # arducopter plant: of the touchdowns, the share its land detector declared (nan on the ideal plant)
+            'autopilot_landed': (float(np.mean([bool(r['autopilot_landed']) for r in checked]))
+                                 if (checked := [r for r in rows if r.get('autopilot_landed') not in (None, '')])
+                                 else float('nan'))}
+
+
+def mean_se(d: np.ndarray) -> tuple[float, float]:
+    """Mean of paired differences `d` and its standard error (nan for fewer than two)."""
+    d = np.asarray(d, dtype=float)
+    return float(d.mean()), float(d.std(ddof=1) / np.sqrt(len(d))) if len(d) > 1 else float('nan')
+
+
+def paired_vs_unassisted(rows_by_cond: dict[str, list[dict]], worse_m: float = 0.25) -> dict[str, dict]:
+    """Per condition, against unassisted on the same landings (beta, seed): error and crash differences.
+
+    `delta_error` is the mean of (error - unassisted error) with its standard error `delta_se`;
+    `worse` the share of landings more than `worse_m` worse than unassisted (a new crash counts as worse),
+    `new_crash` the share that crash where the unassisted pilot did not.
+    """
+    base = {(r['beta'], r.get('seed')): r for r in rows_by_cond.get('unassisted', [])}
+    out = {}
+    for cond, rows in rows_by_cond.items():
+        pairs = [(r, base[(r['beta'], r.get('seed'))]) for r in rows
+                 if cond != 'unassisted' and (r['beta'], r.get('seed')) in base]
+        if not pairs:
+            continue
+        d = np.array([r['error_m'] - b['error_m'] for r, b in pairs])
+        new_crash = np.array([r['crash'] and not b['crash'] for r, b in pairs])
+        delta, se = mean_se(d)
+        out[cond] = {'n': len(pairs), 'delta_error': delta, 'delta_se': se,
+                     'worse': float(np.mean((d > worse_m) | new_crash)), 'new_crash': float(new_crash.mean())}
+    return out
+
+
+def format_paired(paired: dict[str, dict]) -> str:
+    """Text table of paired_vs_unassisted."""
+    lines = [f'{"vs unassisted, same landings":<28} {"n":>4} {"d error m (+- se)":>18} {"worse >0.25m":>12} '
+             f'{"new crash":>9}']
+    for cond, p in paired.items():
+        lines.append(f'{cond:<28} {p["n"]:>4} {p["delta_error"]:>+9.3f} +- {p["delta_se"]:<5.3f} '
+                     f'{100 * p["worse"]:>11.1f}% {100 * p["new_crash"]:>8.1f}%')
+    return '\n'.join(lines)
+
+
+def _pct(x: float) -> str:
+    """A share as a 6-wide percentage, or n/a when undefined (e.g. no misaimed landings)."""
+    return f'{"n/a":>6}' if not np.isfinite(x) else f'{100 * x:>5.1f}%'
+
+
+def format_table(summary: dict[str, dict]) -> str:
+    """Fixed-width text table of per-condition summaries (paper: the paper's value for the assistant, rules aside)."""
+    w = max([20, *map(len, summary)])
+    head = (f'{"condition":<{w}} {"n":>4} {"error m (mean+-std)":>20} {"median":>7} {"spec.succ":>9} '
+            f'{"near.succ":>9} {"crash":>6} {"on goal":>7} {"assist%":>7} {"misaim":>6} {"->goal":>6}  paper')
+    lines = [head, '-' * len(head)]
+    for cond, s in summary.items():
+        lines.append(f'{cond:<{w}} {s["n"]:>4} {s["error_mean"]:>11.3f} +- {s["error_std"]:<5.3f} '
+                     f'{s["error_median"]:>7.3f} {100 * s["specified_success"]:>8.1f}% '
+                     f'{100 * s["nearest_success"]:>8.1f}% {100 * s["crash_rate"]:>5.1f}% '
+                     f'{100 * s["landed_on_goal"]:>6.1f}% {100 * s["active_fraction"]:>6.1f}% '
+                     f'{_pct(s["misaimed"])} {_pct(s["misaimed_success"])}  '
+                     f'{PAPER.get(cond.split("+")[0], "")}')
+    return '\n'.join(lines)
+
+
+def plot(rows_by_cond: dict[str, list[dict]], path: Path) -> None:
+    """Against pilot skill beta, per condition: the landing error's median with its inter-quartile band (the
+    error is heavy-tailed, so a mean +- std band would dip below zero), goal-pad success and crash rates."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, (ax, ax_s, ax_c) = plt.subplots(3, 1, figsize=(6.4, 7.2), sharex=True,
+                                         gridspec_kw={'height_ratios': [2, 1, 1]})
+    for cond, rows in rows_by_cond.items():
+        betas = sorted({r['beta'] for r in rows})
+        by_beta = [[r for r in rows if r['beta'] == b] for b in betas]
+        q1, med, q3 = np.array([np.percentile([r['error_m'] for r in rs], [25, 50, 75]) for rs in by_beta]).T
+        line, = ax.plot(betas, med, marker='o', ms=3, label=cond)
+        ax.fill_between(betas, q1, q3, alpha=0.15, color=line.get_color())
+        ax_s.plot(betas, [100 * np.mean([r['success'] for r in rs]) for rs in by_beta], marker='o', ms=3,
+                  color=line.get_color())
+        ax_c.plot(betas, [100 * np.mean([r['crash'] for r in rs]) for rs in by_beta], marker='o', ms=3,
+                  color=line.get_color())
+    ax.set_ylabel('landing error (m)\nmedian, IQR band')
+    ax.set_ylim(bottom=0)
+    ax_s.set_ylabel('goal-pad\nsuccess (%)')
+    ax_c.set_ylabel('crash (%)')
+    for a in (ax_s, ax_c):
+        a.set_ylim(-3, 103)
+    ax_c.set_xlabel('pilot skill beta (alpha = 0.5)')
+    for a in (ax, ax_s, ax_c):
+        a.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120)
+    plt.close(fig)
+
+
+def evaluate(args: EvalArgs) -> dict[str, dict]:
+    """Run the experiment; write CSVs and the plot; return per-condition summaries (SettingsError: a bad value)."""
+    check_settings(args)
+    if args.pilot not in PILOT_NAMES:
+        raise ValueError(f'unknown pilot {args.pilot!r}; choose from {", ".join(PILOT_NAMES)}')
+    if args.world_config:           # unreadable or with an unknown field: refused before anything flies
+        try:
+            WorldConfig.from_yaml(args.world_config)
+        except (OSError, ValueError, TypeError, yaml.YAMLError) as exc:
+            raise ValueError(f'--world-config {args.world_config}: {exc}') from None
+    out = Path(args.out)
+    rows_by_cond: dict[str, list[dict]] = {}
+    for path in args.from_csv:      # a landing (condition, beta, seed) seen again replaces the earlier one
+        for cond, rows in read_landings(path).items():
+            merged = {(r['beta'], r['seed']): r for r in rows_by_cond.get(cond, [])}
+            merged.update({(r['beta'], r['seed']): r for r in rows})
+            rows_by_cond[cond] = sorted(merged.values(), key=lambda r: (r['beta'], r['seed'] or 0))
+    for cond in () if args.from_csv else args.conditions:
+        if cond not in CONDITIONS + BASELINES:
+            raise ValueError(f'unknown condition {cond!r}; choose from {CONDITIONS + BASELINES}')
+    # one run per directory: another one's LandingLog would remove or rewrite this one's landings as it flies
+    with hold_directory(out, 'evaluate', 'wait for it to end, or choose another --out'):
+        if args.ray and not args.from_csv:
+            connect_ray(args.ray)           # an address that is not Ray: refused before the landings file is touched
+        results = None if args.from_csv else LandingLog(out, {k: v for k, v in dataclasses.asdict(args).items()
+                                                              if k not in RUN_ONLY})
+        try:
+            if not args.from_csv:
+                rows_by_cond.update(fly_plan(args, results))
+        finally:
+            if results is not None:
+                results.close()
+        if results is not None:
+            rows_by_cond = results.commit(rows_by_cond)
+        elif rows_by_cond:
+            write_landings(out / 'landings.csv', rows_by_cond)
+        return write_results(out, rows_by_cond, args.plot)
+
+
+@dataclasses.dataclass(frozen=True)
+class LandingTask:
+    """One landing of the plan: condition `cond` (row name `name`) at pilot skill `beta` from `seed`."""
+
+    cond: str
+    name: str
+    beta: float
+    seed: int
+
+
+def landing_plan(args: EvalArgs) -> list[LandingTask]:
+    """Every landing of a run in the one-process order: condition, then beta, then landing (seed + 1000 b + k)."""
+    tasks = []
+    for cond in args.conditions:
+        on = {rule: rule_on(getattr(args, rule), cond) for rule in ('override', 'recall', 'damper')}
+        name = condition_name(cond, args.safety, on)
+        for bi, beta in enumerate(args.betas):
+            tasks += [LandingTask(cond, name, float(beta), args.seed + 1000 * bi + k) for k in range(args.landings)]
+    return tasks
+
+
+class LandingFlyer:
+    """Flies landings in this process: one env and assistant per condition, made on its first landing."""
+
+    def __init__(self, args: EvalArgs) -> None:
+        self.args = args
+        self.made: dict[str, tuple] = {}
+
+    def fly(self, task: LandingTask) -> dict:
+        """The landing's row (ValueError when the condition's assistant cannot be made, e.g. no model)."""
+        a = self.args
+        if task.cond not in self.made:
+            model = getattr(a, f'{task.cond}_model', '') if task.cond in CONDITIONS[1:] else ''
+            on = {rule: rule_on(getattr(a, rule), task.cond) for rule in ('override', 'recall', 'damper')}
+            self.made[task.cond] = make_policy(task.cond, model, a.encoder_path, a.max_episode_s, a.alpha, a.pilot,
+                                               SafetyConfig() if a.safety else None,
+                                               OverrideConfig() if on['override'] else None,
+                                               RecallConfig() if on['recall'] else None,
+                                               DamperConfig() if on['damper'] else None, a.flight_controller,
+                                               a.world_config)
+        env, policy = self.made[task.cond]
+        row = (record_landing(run_landing, env, policy, task.seed, task.beta, task.name, a.record_dir)
+               if a.record_dir else run_landing(env, policy, task.seed, task.beta))
+        row['condition'] = task.name
+        return row
+
+    def close(self) -> None:
+        """Close every env this flyer made."""
+        for env, _ in self.made.values():
+            env.close()
+        self.made.clear()
+
+
+_FLYER: LandingFlyer | None = None
+
+
+def _worker_start(args: EvalArgs, parent_pid: int) -> None:
+    """Worker process initialiser: gone with its parent `parent_pid`, Ctrl-C left to the parent, one torch thread
+    (the workers are the parallelism), a flyer."""
+    global _FLYER
+    exit_with_parent(parent_pid)
+    ignore_ctrl_c()
+    torch.set_num_threads(1)
+    logging.basicConfig(level=logging.WARNING, format='%(levelname)s %(name)s: %(message)s')
+    _FLYER = LandingFlyer(args)
+
+
+def _worker_fly(task: LandingTask) -> dict:
+    return _FLYER.fly(task)
+
+
+# A worker process spends ~5 s importing torch and building its envs (about three landings' worth): with
+# `--workers 0` a run gets another process for every this many landings, up to one per CPU core.
+LANDINGS_PER_AUTO_WORKER = 8
+
+
+def _ray_fly(args: EvalArgs, task: LandingTask) -> dict:
+    """A Ray task: fly one landing with this worker process's flyer (made on its first task for these args)."""
+    global _FLYER
+    if _FLYER is None or _FLYER.args != args:
+        if _FLYER is not None:
+            _FLYER.close()
+        torch.set_num_threads(1)
+        _FLYER = LandingFlyer(args)
+    return _FLYER.fly(task)
+
+
+def _fly_on_ray(args: EvalArgs, todo: list[LandingTask], landed) -> None:
+    """Every task of `todo` as a Ray task; `landed(task, row, error)` as each finishes (in finishing order)."""
+    ray = connect_ray(args.ray)
+    from ray.exceptions import RayTaskError
+    log.info('flying %d landings on Ray (%s, %d CPUs)', len(todo), args.ray, ray_cpus(ray))
+    fly = ray.remote(num_cpus=1)(_ray_fly)
+    args_ref = ray.put(args)
+    pending = {fly.remote(args_ref, t): t for t in todo}
+    try:
+        while pending:
+            done, _ = ray.wait(list(pending), num_returns=1)
+            task = pending.pop(done[0])
+            try:
+                landed(task, ray.get(done[0]), None)
+            except RayTaskError as exc:
+                if not isinstance(exc.cause, ValueError):
+                    raise
+                landed(task, None, exc.cause)
+    finally:
+        for ref in pending:
+            ray.cancel(ref)
+
+
+def worker_count(requested: int, landings: int) -> int:
+    """Processes to fly `landings` with: `requested` (never more than the landings), or for 0 one per CPU core,
+    fewer for a short run (LANDINGS_PER_AUTO_WORKER)."""
+    if requested:
+        return max(1, min(requested, landings))
+    return max(1, min(cpu_cores(), landings // LANDINGS_PER_AUTO_WORKER))
+
+
+def fly_plan(args: EvalArgs, results: LandingLog) -> dict[str, list[dict]]:
+    """Fly every landing of the plan not already in `results` (each written there as it lands), on
+    `args.workers` processes, with a progress bar; the rows per condition in plan order. A condition whose
+    assistant cannot be made is skipped with a warning."""
+    plan = landing_plan(args)
+    rows = {t: results.flown(t.name, t.beta, t.seed) for t in plan}
+    todo = [t for t in plan if rows[t] is None]
+    skipped: set[str] = set()
+    workers = worker_count(args.workers, len(todo))
+    t0 = time.time()
+    last_landed: dict[str, float] = {}      # condition -> when its last landing landed (s after t0)
+    bar = tqdm(total=len(plan), initial=len(plan) - len(todo), desc='evaluate', unit='landing', file=sys.stderr,
+               mininterval=1.0, dynamic_ncols=False, disable=None)
+
+    def landed(task: LandingTask, row: dict | None, exc: Exception | None) -> None:
+        if exc is not None:
+            if task.cond not in skipped:
+                log.warning('skipping %s: %s', task.cond, exc)
+            skipped.add(task.cond)
+            return
+        rows[task] = row
+        results.write(row)
+        last_landed[task.cond] = time.time() - t0
+        bar.update(1)
+
+    with logging_redirect_tqdm():
+        try:
+            if args.ray and todo:
+                _fly_on_ray(args, todo, landed)
+            elif workers == 1:
+                flyer = LandingFlyer(args)
+                try:
+                    for task in todo:
+                        if task.cond in skipped:
+                            continue
+                        try:
+                            row = flyer.fly(task)
+                        except ValueError as exc:
+                            landed(task, None, exc)
+                            continue
+                        landed(task, row, None)
+                finally:
+                    flyer.close()
+            else:
+                log.info('flying %d landings on %d processes', len(todo), workers)
+                with ProcessPoolExecutor(workers, mp_context=process_context(), initializer=_worker_start,
+                                         initargs=(args, os.getpid())) as pool:
+                    futures: dict = {}
+                    try:
+                        futures.update((pool.submit(_worker_fly, t), t) for t in todo)
+                        for fut in completed_in_turn(futures):
+                            task = futures[fut]
+                            exc = fut.exception()
+                            if exc is not None and not isinstance(exc, ValueError):
+                                raise exc
+                            landed(task, None if exc else fut.result(), exc)
+                    except BrokenProcessPool:
+                        raise WorkerDied(f'{worker_died(pool)}; the landings flown so far are kept in '
+                                         f'{results.partial}: re-running the same command resumes') from None
+                    except BaseException:
+                        for fut in futures:
+                            fut.cancel()
+                        raise
+        finally:
+            results.sync()
+            bar.close()
+    out: dict[str, list[dict]] = {}
+    for task in plan:
+        if task.cond not in skipped and rows[task] is not None:
+            out.setdefault(task.name, []).append(rows[task])
+    for cond, seconds in last_landed.items():
+        log.info('%s: last landing landed %.0f s after the start', cond, seconds)
+    return out
+
+
+def write_results(out: Path, rows_by_cond: dict[str, list[dict]], with_plot: bool = True) -> dict[str, dict]:
+    """summary.csv, error_vs_beta.png and paired.txt of a run's landings in `out`; the per-condition summaries."""
+    summary = {c: summarize(r) for c, r in rows_by_cond.items()}
+    with atomic_path(out / 'summary.csv') as tmp, open(tmp, 'w', newline='', encoding='utf-8') as fh:
+        w = csv.writer(fh)
+        keys = ['n', 'error_mean', 'error_std', 'error_median', 'specified_success', 'nearest_success',
+                'crash_rate', 'landed_on_goal', 'active_fraction', 'misaimed', 'misaimed_success']
+        w.writerow(['condition'] + keys)
+        for c, s in summary.items():
+            w.writerow([c] + [round(s[k], 4) for k in keys])
+    if with_plot and rows_by_cond:
+        plot(rows_by_cond, out / 'error_vs_beta.png')
+    paired = paired_vs_unassisted(rows_by_cond)
+    if paired:
+        write_text_atomic(out / 'paired.txt', format_paired(paired) + '\n')
+    return summary
+
+
+def condition_name(cond: str, safety: bool, on: dict[str, bool]) -> str:
+    """A condition's row name: cond, +guard when the floor guard flies with it, +<rule> for each rule in
+    `on` that flies."""
+    return (cond + ('+guard' if safety and cond != 'unassisted' else '')
+            + ''.join(f'+{rule}' for rule, flies in on.items() if flies))
+
+
+def rule_on(flag: bool | None, cond: str) -> bool:
+    """Whether a goal-agnostic rule (override, recall, damper) flies with `cond`: as asked for every learned assistant,
+    else (None) as policy_node's default for its mode: on for latent and end_to_end, off for the oracle."""
+    if cond not in CONDITIONS[1:]:
+        return False
+    return flag if flag is not None else not Condition(cond).knows_goal
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Console entry point: run, print the table."""
+    logging.basicConfig(level=logging.INFO, format='%(levelname)s %(name)s: %(message)s')
+    torch.set_num_threads(1)
+    parser = argparse.ArgumentParser(prog='evaluate', description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_dataclass_args(parser, EvalArgs, HELP)
+    args, _ = parse_dataclass_args(parser, EvalArgs, argv)      # a bad value: one error line, exit 2, nothing run
+    try:
+        summary = evaluate(args)
+    except (DirectoryBusy, RayUnreachable) as exc:      # the --out or --ray given cannot be used now
+        print(f'error: {exc}', file=sys.stderr)
+        return 2
+    except (OSError, ValueError, BagError, WorkerDied) as exc:
+        print(f'error: {exc}', file=sys.stderr)
+        return 1
+    if not summary:
+        print('no condition could be evaluated', file=sys.stderr)
+        return 1
+    if args.from_csv:
+        print(f'combined from {", ".join(args.from_csv)}')
+    else:
+        state = {True: 'on', False: 'off', None: 'on (oracle: off)'}
+        print(f'pilot {args.pilot}, floor guard {"on" if args.safety else "off"}, '
+              f'pilot override {state[args.override]}, '
+              f'pad recall {state[args.recall]}, oscillation damper {state[args.damper]}, '
+              f'alpha {args.alpha}, '
+              f'betas {args.betas[0]}..{args.betas[-1]} ({len(args.betas)}), '
+              f'{args.landings} landings each, seed {args.seed}')
+    print_results(summary, args.out)
+    return 0
+
+
+def print_results(summary: dict[str, dict], out: str, extra: str = '') -> None:
+    """Print the table, the paired comparison (paired.txt, when written) and what was written to `out`."""
+    print(format_table(summary))
+    paired = Path(out) / 'paired.txt'
+    if paired.exists():
+        print(paired.read_text(encoding='utf-8'), end='')
+    print(f'written: {out}/landings.csv, summary.csv, error_vs_beta.png{extra}')
+
+
+if __name__ == '__main__':
+    sys.exit(main())
