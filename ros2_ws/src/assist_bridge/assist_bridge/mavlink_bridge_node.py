@@ -167,8 +167,8 @@ PARAMS = {
     'takeoff_altitude_m': _bridge('takeoff_altitude_m', 'Altitude above the ground for /uav/takeoff (m).'),
     'ack_timeout_s': _bridge('ack_timeout_s', 'How long a service waits for the COMMAND_ACK.'),
     'allow_force_disarm': _bridge('allow_force_disarm', 'Let /uav/force_disarm disarm even when the autopilot thinks '
-                                  "it is flying (a motor kill): for simulation episodes only (assist_lab's ardupilot_sitl.launch.py "
-                                  'sets it); otherwise the service refuses.'),
+                                  'it is flying (a motor kill): for simulation episodes only (assist_lab\'s '
+                                  'ardupilot_sitl.launch.py sets it); otherwise the service refuses.'),
     'max_pending_commands': Param(4, 'Vehicle commands (/uav/* calls) queued at most; further calls are '
                                   "answered at once with success=false, 'busy'.", min=1, max=SERVICE_QUEUE_DEPTH),
     'auto_guided': Param(False, 'Removed: the bridge never changes the flight mode on its own. Call /uav/guided '
