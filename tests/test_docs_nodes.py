@@ -10,7 +10,7 @@ _spec.loader.exec_module(gen_nodes)
 def test_node_parameter_tables_are_in_sync_with_the_code():
     assert gen_nodes.main(['--check']) == 0, 'docs/nodes.md is stale: run python docs/gen_nodes.py'
     text = gen_nodes.OUT.read_text(encoding='utf-8')
-    for exe, module in gen_nodes.NODES.items():
+    for exe, module in gen_nodes.nodes().items():
         params = importlib.import_module(module).PARAMS
         assert f'## {exe}' in text and all(f'| `{name}` |' in text for name in params), exe
 

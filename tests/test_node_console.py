@@ -12,21 +12,19 @@ from pathlib import Path
 
 import pytest
 
+from assist_common.console import node_executables
+
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
-# executable -> (package, module holding its PARAMS)
-NODES = {
-    'sim_node': ('assist_sim', 'assist_sim.sim_node'),
-    'sim_pilot_node': ('assist_sim', 'assist_sim.sim_pilot_node'),
-    'encoder_node': ('assist_perception', 'assist_perception.encoder_node'),
-    'policy_node': ('assist_policy', 'assist_policy.policy_node'),
-    'mavlink_bridge_node': ('assist_bridge', 'assist_bridge.mavlink_bridge_node'),
-    'teleop_keyboard': ('assist_bridge', 'assist_bridge.teleop_keyboard'),
-    'pilot_station': ('assist_station', 'assist_station.pilot_station'),
-    'landing_runner': ('assist_bridge', 'assist_bridge.landing_runner'),
-    'image_relay': ('assist_bridge', 'assist_bridge.image_relay'),
-    'image_decoder': ('assist_bridge', 'assist_bridge.image_decoder'),
-}
+SRC = REPO / 'ros2_ws' / 'src'
+# executable -> (package, module holding its PARAMS): the workspace's node registry
+NODES = node_executables(sorted(p.name for p in SRC.iterdir() if (p / 'package.xml').is_file()))
+
+
+def test_the_registry_holds_every_node_and_no_tool():
+    assert {'sim_node', 'sim_pilot_node', 'encoder_node', 'policy_node', 'mavlink_bridge_node', 'teleop_keyboard',
+            'pilot_station', 'landing_runner', 'image_relay', 'image_decoder', 'bag_record', 'bag_play'} == set(NODES)
+    assert NODES['policy_node'] == ('assist_policy', 'assist_policy.policy_node')
 
 
 @pytest.fixture(scope='module')
@@ -103,16 +101,23 @@ def test_every_console_script_imports_its_module_only_when_run():
         assert callable(importlib.import_module(entry.target).main), target
 
 
-def test_ctrl_c_while_starting_exits_quietly(loading_heavy_libraries):
+def test_ctrl_c_while_starting_exits_quietly(loading_heavy_libraries, tmp_path):
     """A Ctrl-C while a program is still importing (rclpy, torch, pybullet): no traceback; nodes exit 0
     (what run_node returns after a Ctrl-C), command-line tools 130."""
     import signal
     import time
     env = dict(os.environ, ROS_DOMAIN_ID='106')
     tools = ('evaluate', 'train_td3', 'train_cmvae')
+    from assist_bags import msgs
+    from assist_bags.bagio import CONTRACT_TOPICS, BagWriter
+    bag = BagWriter(tmp_path / 'bag')           # bag_play needs a bag to start with
+    bag.add_topic('/cmd_vel', *CONTRACT_TOPICS['/cmd_vel'])
+    bag.write_msg('/cmd_vel', 10**9, msgs.twist_stamped(10**9, (0.0, 0.0, 0.0)))
+    bag.close()
+    args = {'bag_play': [str(tmp_path / 'bag')], 'bag_record': [str(tmp_path / 'recorded')]}
     # teleop_keyboard refuses to start without a terminal (exit 1, racing the signal): it gets a pseudo-terminal
     terminal, tty = os.openpty()
-    procs = {name: subprocess.Popen([str(BIN / name)], env=env, stdout=subprocess.PIPE,
+    procs = {name: subprocess.Popen([str(BIN / name), *args.get(name, [])], env=env, stdout=subprocess.PIPE,
                                     stdin=tty if name == 'teleop_keyboard' else subprocess.DEVNULL,
                                     stderr=subprocess.STDOUT, text=True,
                                     preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))

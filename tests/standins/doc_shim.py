@@ -233,7 +233,7 @@ def check_sitl_series(args: list[str]) -> int:
     """`evaluate_graph --autopilot sitl` needs ArduPilot SITL (checked by hand): its arguments parse and validate."""
     import argparse
 
-    from assist_lab.cli import add_dataclass_args, parse_dataclass_args
+    from assist_common.settings import add_dataclass_args, parse_dataclass_args
     from assist_lab.graph_eval import HELP, GraphEvalArgs
     parser = argparse.ArgumentParser(prog='evaluate_graph')
     add_dataclass_args(parser, GraphEvalArgs, HELP)

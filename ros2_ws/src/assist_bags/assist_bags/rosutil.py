@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import sys
 from typing import Any
 from collections.abc import Mapping
 
@@ -11,7 +12,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 
-from assist_common.ros_common import Param
+from assist_common.ros_common import HELP_FLAGS, VERSION_FLAG, Param, node_help, package_version
 
 
 def message_class(msgtype: str) -> Any | None:
@@ -60,11 +61,25 @@ def ros_qos(profiles: list[Qos], depth: int = 10) -> QoSProfile:
 
 def cli_to_ros_args(prog: str, description: str, params: Mapping[str, Param], argv: list[str],
                     positional: str | None = None) -> list[str]:
-    """argparse front end for a node: --flag per parameter (and --help) -> rclpy args with -p name:=value."""
+    """argparse front end for a node: --flag per parameter -> rclpy args with -p name:=value.
+
+    `--help` and `--version` (before any --ros-args) answer as every node executable does (the parameter table;
+    the package's version) and exit 0 without starting the node.
+    """
     ros_tail: list[str] = []
     if '--ros-args' in argv:
         i = argv.index('--ros-args')
         argv, ros_tail = argv[:i], argv[i:]
+    if any(a in HELP_FLAGS for a in argv):
+        summary = description.strip().splitlines()[0] if description.strip() else ''
+        flags = (f'Each parameter is also a --flag (--{next(iter(params)).replace("_", "-")} VALUE sets '
+                 f'{next(iter(params))})' + (f'; the first argument sets {positional}' if positional else '') + '.')
+        sys.stdout.write(node_help(prog, summary, params) + '\n' + flags + '\n')
+        raise SystemExit(0)
+    if VERSION_FLAG in argv:
+        package = __name__.split('.')[0]
+        sys.stdout.write(f'{prog} ({package}) {package_version(package)}\n')
+        raise SystemExit(0)
     parser = argparse.ArgumentParser(prog=prog, description=description,
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
                                      epilog='Any --ros-args ... after the flags go to rclpy unchanged.')

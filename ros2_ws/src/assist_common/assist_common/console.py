@@ -14,7 +14,7 @@ from __future__ import annotations
 import importlib
 import os
 import signal
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 
 #: Exit code of a ROS node stopped by Ctrl-C: it did what was asked, as run_node returns after a Ctrl-C.
 NODE_INTERRUPTED = 0
@@ -46,5 +46,23 @@ def quiet_main(target: str, interrupted: int = NODE_INTERRUPTED) -> Callable[[],
             return interrupted
     main.__doc__ = f'Run {target}.main(); a Ctrl-C during start-up exits {interrupted} without a traceback.'
     main.target = target
+    main.interrupted = interrupted
     main.__qualname__ = main.__name__ = target.rsplit('.', 1)[-1]
     return main
+
+
+def node_executables(packages: Iterable[str]) -> dict[str, tuple[str, str]]:
+    """The workspace's one registry of nodes: executable -> (package, module defining it), read from each package's
+    `entry_points` module (a quiet_main with NODE_INTERRUPTED is a node; tools exit TOOL_INTERRUPTED)."""
+    nodes: dict[str, tuple[str, str]] = {}
+    for pkg in packages:
+        try:
+            module = importlib.import_module(f'{pkg}.entry_points')
+        except ModuleNotFoundError as exc:
+            if exc.name != f'{pkg}.entry_points':
+                raise
+            continue                                   # a package without executables
+        for name, value in vars(module).items():
+            if callable(value) and getattr(value, 'interrupted', None) == NODE_INTERRUPTED:
+                nodes[name] = (pkg, value.target)
+    return nodes

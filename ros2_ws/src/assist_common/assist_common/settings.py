@@ -2,8 +2,11 @@
 
 Precedence: dataclass default < YAML file (`--config`) < explicit --flags.
 
-Settings rules (one mechanism for every command line of the project; assist_policy's `cli` uses it
-too): a field declared with `setting(default, ge=..., choices=..., ...)` carries a `Rule` in its
+One builder for every command line of the project: `add_dataclass_args` turns each field into a --flag
+(defaults from the class, help from a table), `parse_dataclass_args` parses and checks; `parse_settings`
+adds `--config file.yaml` on top of the same two.
+
+Settings rules: a field declared with `setting(default, ge=..., choices=..., ...)` carries a `Rule` in its
 metadata, and `check_settings` checks every field of a settings object against its type (an int
 is an int, a float is a finite number, a string holds no NUL, a tuple holds items of its type)
 and its Rule, then the object's own `check_relations()` (rules between fields) if it has one. The
@@ -14,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import logging
 import math
 import sys
 import types
@@ -25,7 +29,6 @@ from typing import Any, TypeVar
 import yaml
 
 _T = TypeVar('_T')
-_TYPES = {'int': int, 'float': float, 'str': str, 'bool': bool}
 RULE_KEY = 'settings_rule'
 
 
@@ -177,6 +180,80 @@ def parse_bool(text: str) -> bool:
     raise argparse.ArgumentTypeError(f'expected true/false, got {text!r}')
 
 
+def finite_float(text: str) -> float:
+    """argparse type: a finite float (nan and inf are refused)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'not a number: {text!r}') from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f'not a finite number: {text!r}')
+    return value
+
+
+_UNSET = object()     # marks a flag the command line did not give
+
+
+def _default(f: dataclasses.Field) -> Any:
+    return f.default if f.default is not dataclasses.MISSING else f.default_factory()
+
+
+def add_dataclass_args(parser: argparse.ArgumentParser, cls: type, help_text: dict[str, str] | None = None) -> None:
+    """Add one --flag per field of dataclass `cls` (defaults from the class, help from `help_text`).
+
+    bool fields take true/false (alone: true); tuple and list fields take several values; floats refuse nan/inf.
+    """
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        default = _default(f)
+        hint = hints[f.name]
+        doc = ((help_text or {}).get(f.name, '') + f' (default: {default})').strip()
+        origin = typing.get_origin(hint)
+        if hint is bool or hint == (bool | None):       # an optional bool: left unset, None
+            parser.add_argument(flag(f.name), type=parse_bool, nargs='?', const=True, default=default, help=doc)
+        elif origin in (tuple, list):
+            inner = typing.get_args(hint)[0]
+            parser.add_argument(flag(f.name), type=finite_float if inner is float else inner, nargs='*',
+                                default=default, help=doc)
+        else:
+            if origin in (typing.Union, types.UnionType):      # X | None: the flag gives an X
+                hint = next(a for a in typing.get_args(hint) if a is not type(None))
+            parser.add_argument(flag(f.name), type=finite_float if hint is float else hint, default=default,
+                                help=doc)
+
+
+def _parse_values(parser: argparse.ArgumentParser, cls: type, argv: list[str] | None,
+                  base: dict[str, Any] | None = None) -> tuple[Any, frozenset[str], argparse.Namespace]:
+    names = [f.name for f in dataclasses.fields(cls)]
+    ns = parser.parse_args(argv, namespace=argparse.Namespace(**{n: _UNSET for n in names}))
+    given = frozenset(n for n in names if getattr(ns, n) is not _UNSET)
+    values = dict(base or {})
+    for f in dataclasses.fields(cls):
+        v = getattr(ns, f.name)
+        if v is not _UNSET:
+            values[f.name] = tuple(v) if isinstance(v, list) else v
+        elif f.name not in values:
+            values[f.name] = _default(f)
+        setattr(ns, f.name, values[f.name])
+    obj = cls(**values)
+    try:
+        check_settings(obj)
+    except SettingsError as exc:
+        parser.error(str(exc))
+    return obj, given, ns
+
+
+def parse_dataclass_args(parser: argparse.ArgumentParser, cls: type,
+                         argv: list[str] | None = None) -> tuple[Any, frozenset[str]]:
+    """(checked `cls` instance, names of the fields given on the command line) from `argv`.
+
+    `parser` must hold `add_dataclass_args(parser, cls, ...)`. A value that breaks its field's type or
+    rule (``check_settings``) ends the program like a malformed flag: one `error:` line, status 2.
+    """
+    obj, given, _ = _parse_values(parser, cls, argv)
+    return obj, given
+
+
 def load_yaml_settings(cls: type[_T], path: str | Path) -> dict[str, Any]:
     """Read a YAML mapping of `cls` fields; unknown keys raise ValueError."""
     with open(path, encoding='utf-8') as fh:
@@ -190,45 +267,64 @@ def load_yaml_settings(cls: type[_T], path: str | Path) -> dict[str, Any]:
     return data
 
 
+LOG_FORMAT = '%(asctime)s %(levelname)s %(name)s: %(message)s'
+
+
+@dataclass(frozen=True)
+class CommandLine:
+    """A parsed command line: the checked settings, the fields given as flags, argparse's namespace (positional
+    arguments too) and the parser (its `error` reports a bad combination found later)."""
+
+    settings: Any
+    given: frozenset[str]
+    namespace: argparse.Namespace
+    parser: argparse.ArgumentParser
+
+
+def parse_command(cls: type, prog: str, description: str | None, help_text: dict[str, str] | None = None,
+                  argv: list[str] | None = None, positional: dict[str, dict] | None = None,
+                  log_level: int = logging.INFO) -> CommandLine:
+    """The prologue of a command's main(): logging to stderr, a parser with one --flag per field of `cls`
+    (plus `positional` arguments), parsed and checked (a bad value: one `error:` line, exit 2)."""
+    logging.basicConfig(level=log_level, format=LOG_FORMAT)
+    parser = argparse.ArgumentParser(prog=prog, description=description,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    for name, kw in (positional or {}).items():
+        parser.add_argument(name, **kw)
+    add_dataclass_args(parser, cls, help_text)
+    obj, given, ns = _parse_values(parser, cls, argv)
+    return CommandLine(obj, given, ns, parser)
+
+
 def parse_settings(cls: type[_T], description: str, argv: list[str] | None = None,
                    extra: dict[str, dict] | None = None, prog: str | None = None) -> tuple[_T, argparse.Namespace]:
     """Build `cls` from --config YAML and --flags, checked (`check_settings`); returns (settings, namespace).
 
-    A bad flag, an unreadable or wrong --config file or a value that breaks its rule exits with
-    status 2 and one `error:` line (argparse's `error`) before the caller does any work.
+    Precedence: the dataclass default < the YAML file < the flags given. A bad flag, an unreadable or wrong
+    --config file or a value that breaks its rule exits with status 2 and one `error:` line (argparse's
+    `error`) before the caller does any work.
     """
     ap = argparse.ArgumentParser(prog=prog, description=description)
     ap.add_argument('--config', help=f'YAML file of {cls.__name__} fields')
-    for f in dataclasses.fields(cls):
-        typ = _TYPES[str(f.type)]
-        name = flag(f.name)
-        if typ is bool:
-            ap.add_argument(name, nargs='?', const=True, type=parse_bool, default=None,
-                            help=f'(default {f.default})')
-        else:
-            ap.add_argument(name, type=typ, default=None, help=f'(default {f.default})')
+    add_dataclass_args(ap, cls)
     for name, kw in (extra or {}).items():
         ap.add_argument(name, **kw)
-    args = ap.parse_args(argv)
-    try:
-        values: dict[str, Any] = load_yaml_settings(cls, args.config) if args.config else {}
-    except ValueError as exc:               # not a mapping, unknown settings (the message names the file)
-        ap.error(f'--config: {exc}')
-    except (OSError, yaml.YAMLError) as exc:
-        reason = getattr(exc, 'strerror', None) or (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-        ap.error(f'--config {args.config}: {reason}')
-    for f in dataclasses.fields(cls):
-        v = getattr(args, f.name)
-        if v is not None:
-            values[f.name] = v
-        elif _TYPES[str(f.type)] is float and isinstance(values.get(f.name), str):
-            try:                        # YAML 1.1 reads 1e-3 (no dot) as a string
-                values[f.name] = float(values[f.name])
-            except ValueError:
-                pass                    # check_settings names it
-    cfg = cls(**values)
-    try:
-        check_settings(cfg)
-    except SettingsError as exc:
-        ap.error(str(exc))
+    pre, _ = ap.parse_known_args(argv)
+    values: dict[str, Any] = {}
+    if pre.config:
+        try:
+            values = load_yaml_settings(cls, pre.config)
+        except ValueError as exc:               # not a mapping, unknown settings (the message names the file)
+            ap.error(f'--config: {exc}')
+        except (OSError, yaml.YAMLError) as exc:
+            reason = getattr(exc, 'strerror', None) or (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+            ap.error(f'--config {pre.config}: {reason}')
+        hints = typing.get_type_hints(cls)
+        for name, v in values.items():
+            if hints[name] is float and isinstance(v, str):
+                try:                        # YAML 1.1 reads 1e-3 (no dot) as a string
+                    values[name] = float(v)
+                except ValueError:
+                    pass                    # check_settings names it
+    cfg, _, args = _parse_values(ap, cls, argv, values)
     return cfg, args

@@ -20,11 +20,14 @@ import socket
 import sys
 import threading
 import time
-from collections.abc import Iterable, Iterator
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from pathlib import Path
 from types import ModuleType
+from typing import Any
 
 log = logging.getLogger(__name__)
 
@@ -265,3 +268,129 @@ def connect_ray(address: str) -> ModuleType:
 def ray_cpus(ray: ModuleType) -> int:
     """CPUs the connected Ray cluster offers (at least 1)."""
     return max(1, int(ray.cluster_resources().get('CPU', 0)))
+
+
+_WORKER = None      # in a pool's worker process: the object its tasks run on
+
+
+def _start_worker(make: Callable[[], Any], parent_pid: int) -> None:
+    """Worker process initialiser: gone with its parent `parent_pid`, Ctrl-C left to the parent, warnings logged,
+    the worker object made."""
+    global _WORKER
+    exit_with_parent(parent_pid)
+    ignore_ctrl_c()
+    logging.basicConfig(level=logging.WARNING, format='%(levelname)s %(name)s: %(message)s')
+    _WORKER = make()
+
+
+def _run_task(*args: Any) -> Any:
+    return _WORKER.fly(*args)
+
+
+class _Hosted:
+    """A pool's worker object in a Ray actor."""
+
+    def __init__(self, make: Callable[[], Any]) -> None:
+        self.worker = make()
+
+    def fly(self, *args: Any) -> Any:
+        return self.worker.fly(*args)
+
+
+class WorkerPool:
+    """N workers in local processes (spawned) or Ray actors, each an object `make()` returns with a `fly(*args)`
+    method; tasks submitted, results taken in order (`map`) or as they finish (`completed`).
+
+    The one pool behind evaluate and train_td3's collection. `workers` 0: one per CPU core (local) or per CPU of the
+    Ray cluster. RayUnreachable (a ValueError, one line) when Ray is asked for and cannot be reached; WorkerDied (one
+    line) from submit or result once a local worker process has died; a task's own exception is raised by `result`.
+    Local workers end with this process, even a SIGKILLed one (exit_with_parent). Use as a context manager, or call
+    close(). `make` must pickle (a class or a functools.partial of one).
+    """
+
+    def __init__(self, make: Callable[[], Any], workers: int, ray_address: str = '', what: str = 'landings') -> None:
+        self._ray = connect_ray(ray_address) if ray_address else None
+        self.workers = workers or (ray_cpus(self._ray) if self._ray else cpu_cores())
+        self._next = 0
+        if self._ray is not None:
+            remote = self._ray.remote(num_cpus=1)(_Hosted)
+            self._actors = [remote.remote(make) for _ in range(self.workers)]
+            self._pool = None
+            where = f'Ray ({ray_address})'
+        else:
+            self._pool = ProcessPoolExecutor(self.workers, mp_context=process_context(), initializer=_start_worker,
+                                             initargs=(make, os.getpid()))
+            where = 'local processes'
+        log.info('flying %s on %d workers (%s)', what, self.workers, where)
+
+    @property
+    def ray(self) -> ModuleType | None:
+        """The ray module when the workers are Ray actors, else None."""
+        return self._ray
+
+    def submit(self, *args: Any) -> Any:
+        """Start `worker.fly(*args)` on the next worker; a handle for `result`."""
+        if self._pool is not None:
+            try:
+                return self._pool.submit(_run_task, *args)
+            except BrokenProcessPool:
+                raise WorkerDied(worker_died(self._pool)) from None
+        actor = self._actors[self._next % len(self._actors)]
+        self._next += 1
+        return actor.fly.remote(*args)
+
+    def result(self, handle: Any) -> Any:
+        """What the task `handle` names returned, once done (its exception is raised here)."""
+        if isinstance(handle, Future):
+            try:
+                return result_of(handle)
+            except BrokenProcessPool:
+                raise WorkerDied(worker_died(self._pool)) from None
+        from ray.exceptions import RayTaskError
+        try:
+            return self._ray.get(handle)
+        except RayTaskError as exc:
+            raise exc.cause from None
+
+    def completed(self, handles: Iterable[Any]) -> Iterator[Any]:
+        """The handles in the order their tasks finish (a Ctrl-C is raised within WAIT_POLL_S)."""
+        handles = list(handles)
+        if self._pool is not None:
+            yield from completed_in_turn(handles)
+            return
+        pending = list(handles)
+        while pending:
+            done, pending = self._ray.wait(pending, num_returns=1, timeout=WAIT_POLL_S)
+            yield from done
+
+    def cancel(self, handle: Any) -> None:
+        """Drop a task not yet needed."""
+        if isinstance(handle, Future):
+            handle.cancel()
+        else:
+            self._ray.cancel(handle)
+
+    def map(self, tasks: Iterable[Any], *extra: Any) -> Iterator[Any]:
+        """`fly(task, *extra)` for every task (all submitted at once); results in the tasks' order."""
+        pending = deque(self.submit(t, *extra) for t in tasks)
+        try:
+            while pending:
+                yield self.result(pending[0])
+                pending.popleft()
+        finally:
+            for handle in pending:
+                self.cancel(handle)
+
+    def close(self) -> None:
+        """Stop the workers (tasks not started are dropped)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+        else:
+            for actor in self._actors:
+                self._ray.kill(actor)
+
+    def __enter__(self) -> WorkerPool:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -23,26 +23,22 @@ What more than one worker changes, and what it does not:
 """
 from __future__ import annotations
 
+import functools
 import itertools
 import logging
-import os
 import sys
-from collections import deque
 from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import Future, ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
-from assist_policy.actor import Actor
-from .cluster import (WorkerDied, connect_ray, cpu_cores, exit_with_parent, ignore_ctrl_c, process_context, ray_cpus,
-                      result_of, worker_died)
-from .env import EnvConfig, LandingAssistEnv, run_episode
 from assist_perception.latent import make_latent_fn
+from assist_policy.actor import Actor
 from assist_policy.scripted import LEAD_S, NEAREST_PAD_VARIANTS, ScriptedConfig, ScriptedOracle, make_nearest_pad
+from .cluster import WorkerPool
+from .env import EnvConfig, LandingAssistEnv, run_episode
 from .td3 import OUNoise, ReplayBuffer
 
 log = logging.getLogger(__name__)
@@ -237,105 +233,20 @@ class LandingWorker:
         self.env.close()
 
 
-_WORKER: LandingWorker | None = None
-
-
-def _process_start(env_cfg: EnvConfig, demo_policy: str, parent_pid: int) -> None:
-    """Worker process initialiser: gone with its parent `parent_pid`, Ctrl-C left to the parent, logging, one torch
-    thread, the worker."""
-    global _WORKER
-    exit_with_parent(parent_pid)
-    ignore_ctrl_c()
-    logging.basicConfig(level=logging.WARNING, format='%(levelname)s %(name)s: %(message)s')
-    _WORKER = LandingWorker(env_cfg, demo_policy)
-
-
-def _process_fly(task: LandingTask, weights: ActorWeights | None) -> FlownLanding | dict:
-    return _WORKER.fly(task, weights)
-
-
-class LandingPool:
-    """N LandingWorkers in local processes (spawned) or as Ray actors; tasks submitted, results taken in order.
-
-    `workers` 0: one per CPU core (local) or per CPU of the Ray cluster. RayUnreachable (a ValueError, one line)
-    when Ray is asked for and cannot be reached; WorkerDied (one line) from submit or result once a local worker
-    process has died. Local workers end with this process, even a SIGKILLed one (cluster.exit_with_parent: keep
-    the pool in a thread that outlives it, the main thread). Use as a context manager, or call close().
-    """
+class LandingPool(WorkerPool):
+    """LandingWorkers on `workers` local processes or Ray actors (cluster.WorkerPool): `submit(task, weights)`,
+    `map(tasks, weights)` in the tasks' order. An unknown demonstrator is refused here, not per task."""
 
     def __init__(self, env_cfg: EnvConfig, demo_policy: str, workers: int, ray_address: str = '') -> None:
-        demonstrator(demo_policy, env_cfg.max_speed)          # an unknown demonstrator: refused here, not per task
-        self._ray = connect_ray(ray_address) if ray_address else None
-        self.workers = workers or (ray_cpus(self._ray) if self._ray else cpu_cores())
-        self._next = 0
-        if self._ray is not None:
-            remote = self._ray.remote(num_cpus=1)(LandingWorker)
-            self._actors = [remote.remote(env_cfg, demo_policy) for _ in range(self.workers)]
-            self._pool = None
-            where = f'Ray ({ray_address})'
-        else:
-            self._pool = ProcessPoolExecutor(self.workers, mp_context=process_context(), initializer=_process_start,
-                                             initargs=(env_cfg, demo_policy, os.getpid()))
-            where = 'local processes'
-        log.info('flying training landings on %d workers (%s)', self.workers, where)
-
-    def submit(self, task: LandingTask, weights: ActorWeights | None = None):
-        """Start flying `task`; a handle for `result`."""
-        if self._pool is not None:
-            try:
-                return self._pool.submit(_process_fly, task, weights)
-            except BrokenProcessPool:
-                raise WorkerDied(worker_died(self._pool)) from None
-        actor = self._actors[self._next % len(self._actors)]
-        self._next += 1
-        return actor.fly.remote(task, weights)
-
-    def result(self, handle) -> FlownLanding | dict:
-        """The landing `handle` names, once flown (a worker's error is raised here)."""
-        if isinstance(handle, Future):
-            try:
-                return result_of(handle)
-            except BrokenProcessPool:
-                raise WorkerDied(worker_died(self._pool)) from None
-        from ray.exceptions import RayTaskError
-        try:
-            return self._ray.get(handle)
-        except RayTaskError as exc:
-            raise exc.cause from None
-
-    def cancel(self, handle) -> None:
-        """Drop a landing not yet needed."""
-        if isinstance(handle, Future):
-            handle.cancel()
-        else:
-            self._ray.cancel(handle)
+        demonstrator(demo_policy, env_cfg.max_speed)
+        super().__init__(functools.partial(LandingWorker, env_cfg, demo_policy), workers, ray_address,
+                         'training landings')
 
     def map(self, tasks: Iterable[LandingTask], weights: ActorWeights | None = None) -> Iterator:
-        """Fly every task (all submitted at once); results in the tasks' order."""
-        if self._ray is not None and weights is not None:
-            weights = self._ray.put(weights)
-        pending = deque(self.submit(t, weights) for t in tasks)
-        try:
-            while pending:
-                yield self.result(pending[0])
-                pending.popleft()
-        finally:
-            for handle in pending:
-                self.cancel(handle)
-
-    def close(self) -> None:
-        """Stop the workers."""
-        if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
-        else:
-            for actor in self._actors:
-                self._ray.kill(actor)
-
-    def __enter__(self) -> LandingPool:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
+        """Fly every task (all submitted at once) with `weights` (sent to Ray once); results in the tasks' order."""
+        if self.ray is not None and weights is not None:
+            weights = self.ray.put(weights)
+        return super().map(tasks, weights)
 
 
 def collect_demos(env: LandingAssistEnv, episodes: int, noise: float, seed: int, buffer: ReplayBuffer,

@@ -54,6 +54,7 @@ from assist_policy.observation import IMAGE_SHAPE, Condition, ObservationBuilder
 from assist_policy.override import OverrideConfig
 from assist_policy.recall import RecallConfig
 from assist_policy.safety import SafetyConfig
+from .episodes_plan import landing_plan
 
 log = logging.getLogger(__name__)
 
@@ -190,18 +191,17 @@ class LandingAssistEnv(gym.Env):
         super().reset(seed=seed)
         options = options or {}
         rng = self.np_random
-        scene_seed = int(options.get('scene_seed', rng.integers(0, 2**31 - 1)))
+        plan = landing_plan(rng, options.get('beta'), options.get('pilot', self.cfg.pilot_family),
+                            options.get('alpha', self.cfg.alpha), beta_range=self.cfg.beta_range,
+                            paper_share=self.cfg.paper_share, scene_seed=options.get('scene_seed'),
+                            pilot_named='pilot' in options)
+        scene_seed, beta = plan.scene_seed, plan.beta
         st = self.world.reset(seed=scene_seed, goal_index=options.get('goal_index'))
-        beta = float(options.get('beta', rng.uniform(*self.cfg.beta_range)))
-        alpha = float(options.get('alpha', self.cfg.alpha))
-        family = str(options.get('pilot', self.cfg.pilot_family))
-        if 'pilot' not in options and self.cfg.paper_share > 0 and rng.uniform() < self.cfg.paper_share:
-            family = 'paper'
-        self.pilot = make_pilot(family, alpha, beta, self.pilot_cfg,
-                                np.random.default_rng(int(rng.integers(2**31))), pads=self.world.pad_top_centers)
+        self.pilot = make_pilot(plan.pilot_family, plan.alpha, beta, self.pilot_cfg,
+                                np.random.default_rng(plan.pilot_seed), pads=self.world.pad_top_centers)
         self.pilot.reset(self.world.goal_position, st.position)
-        noise_seed = int(rng.integers(2**31))      # drawn after the scene and pilot: they are unchanged by it
-        plant = self._draw_plant(rng)               # drawn last: runs without it keep their landings
+        noise_seed = plan.noise_seed
+        plant = self._draw_plant(rng)               # drawn after the plan: runs without it keep their landings
         latent_reset = getattr(self.latent_fn, 'reset', None)
         if latent_reset is not None:
             latent_reset(noise_seed)             # the camera noise of this landing depends on its seed only

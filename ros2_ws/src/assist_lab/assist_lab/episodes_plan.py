@@ -1,13 +1,13 @@
-"""What one landing of the evaluation is made of, drawn from its seed exactly as LandingAssistEnv.reset draws it.
+"""What one landing is made of, drawn from its seed: the one place the draw order is written.
 
 ``landing_plan(seed, beta, pilot_family, ...)`` returns the scene seed (``LandingWorld.reset(seed=scene_seed)``
 builds the scene and picks the goal pad from it), the pilot (``make_pilot(pilot_family, alpha, beta, cfg,
 np.random.default_rng(pilot_seed), pads=...)``; for a population such as ``mix`` the family is drawn from that
-generator, ``pilot_family_resolved`` names it) and the depth-noise seed of the landing. The env and the graph
-evaluation (assist_lab.graph_eval, which hands each landing's seeds to sim_node and sim_pilot_node) fly the same
-landing from the same plan.
+generator, ``pilot_family_resolved`` names it) and the depth-noise seed of the landing. LandingAssistEnv.reset
+draws its landing through it, and the graph evaluation (assist_lab.graph_eval, which hands each landing's seeds to
+sim_node and sim_pilot_node) flies the same landing from the same plan.
 
-Draw order from the episode generator (``gymnasium``'s ``np_random`` seeded with `seed`), as env.reset does it:
+Draw order from the episode generator (``gymnasium``'s ``np_random`` seeded with `seed`):
 
 1. ``integers(0, 2**31 - 1)``: the scene seed (drawn even when a scene seed is given: the env's
    ``options.get('scene_seed', rng.integers(...))`` evaluates its default first);
@@ -68,13 +68,13 @@ def landing_plan(seed: int | np.random.Generator | None, beta: float | None = No
                        beta=drawn_beta if beta is None else float(beta), alpha=float(alpha))
 
 
+def landing_seeds(seed: int, betas, landings: int) -> list[tuple[int, float]]:
+    """(seed, beta) of every landing of an evaluation, in its order: landing k at beta index b has seed
+    seed + 1000 b + k (so a run split by beta pairs with the whole run)."""
+    return [(seed + 1000 * bi + k, float(beta)) for bi, beta in enumerate(betas) for k in range(landings)]
+
+
 def evaluation_plans(seed: int, betas: tuple[float, ...], landings: int, pilot_family: str = 'paper',
                      alpha: float = 0.5) -> list[tuple[int, LandingPlan]]:
-    """(seed, plan) of every landing `evaluate` flies, in its order: landing k at beta index b has seed
-    seed + 1000 b + k."""
-    out = []
-    for bi, beta in enumerate(betas):
-        for k in range(landings):
-            s = seed + 1000 * bi + k
-            out.append((s, landing_plan(s, float(beta), pilot_family, alpha)))
-    return out
+    """(seed, plan) of every landing `evaluate` flies, in its order (`landing_seeds`)."""
+    return [(s, landing_plan(s, beta, pilot_family, alpha)) for s, beta in landing_seeds(seed, betas, landings)]

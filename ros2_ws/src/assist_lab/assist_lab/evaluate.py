@@ -56,16 +56,13 @@ so far are kept for the re-run. Workers end with the evaluate process, even a SI
 """
 from __future__ import annotations
 
-import argparse
 import csv
+import functools
 import dataclasses
 import json
 import logging
-import os
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -82,11 +79,11 @@ from assist_sim.pilots import PILOT_NAMES
 
 from assist_bags.bagio import BagError
 from .landing_bags import record_landing
-from .cluster import (DirectoryBusy, RayUnreachable, WorkerDied, completed_in_turn, connect_ray, cpu_cores,
-                      exit_with_parent, hold_directory, ignore_ctrl_c, process_context, ray_cpus, worker_died)
-from .cli import add_dataclass_args, check_settings, parse_dataclass_args, setting
+from .cluster import (DirectoryBusy, RayUnreachable, WorkerDied, WorkerPool, connect_ray, cpu_cores, hold_directory)
+from assist_common.settings import check_settings, parse_command, setting
 from assist_policy.damper import DamperConfig
 from .env import EnvConfig, LandingAssistEnv, run_episode
+from .episodes_plan import landing_seeds
 from assist_perception.latent import make_latent_fn
 from assist_policy.observation import Condition
 from assist_policy.policy_core import default_model_path
@@ -497,7 +494,7 @@ def evaluate(args: EvalArgs) -> dict[str, dict]:
 
 
 @dataclasses.dataclass(frozen=True)
-class LandingTask:
+class PlannedLanding:
     """One landing of the plan: condition `cond` (row name `name`) at pilot skill `beta` from `seed`."""
 
     cond: str
@@ -506,14 +503,14 @@ class LandingTask:
     seed: int
 
 
-def landing_plan(args: EvalArgs) -> list[LandingTask]:
-    """Every landing of a run in the one-process order: condition, then beta, then landing (seed + 1000 b + k)."""
+def plan_tasks(args: EvalArgs) -> list[PlannedLanding]:
+    """Every landing of a run in the one-process order: condition, then beta, then landing (`landing_seeds`)."""
     tasks = []
     for cond in args.conditions:
         on = {rule: rule_on(getattr(args, rule), cond) for rule in ('override', 'recall', 'damper')}
         name = condition_name(cond, args.safety, on)
-        for bi, beta in enumerate(args.betas):
-            tasks += [LandingTask(cond, name, float(beta), args.seed + 1000 * bi + k) for k in range(args.landings)]
+        tasks += [PlannedLanding(cond, name, beta, s)
+                  for s, beta in landing_seeds(args.seed, args.betas, args.landings)]
     return tasks
 
 
@@ -521,10 +518,11 @@ class LandingFlyer:
     """Flies landings in this process: one env and assistant per condition, made on its first landing."""
 
     def __init__(self, args: EvalArgs) -> None:
+        torch.set_num_threads(1)        # one torch thread: the workers are the parallelism
         self.args = args
         self.made: dict[str, tuple] = {}
 
-    def fly(self, task: LandingTask) -> dict:
+    def fly(self, task: PlannedLanding) -> dict:
         """The landing's row (ValueError when the condition's assistant cannot be made, e.g. no model)."""
         a = self.args
         if task.cond not in self.made:
@@ -549,61 +547,9 @@ class LandingFlyer:
         self.made.clear()
 
 
-_FLYER: LandingFlyer | None = None
-
-
-def _worker_start(args: EvalArgs, parent_pid: int) -> None:
-    """Worker process initialiser: gone with its parent `parent_pid`, Ctrl-C left to the parent, one torch thread
-    (the workers are the parallelism), a flyer."""
-    global _FLYER
-    exit_with_parent(parent_pid)
-    ignore_ctrl_c()
-    torch.set_num_threads(1)
-    logging.basicConfig(level=logging.WARNING, format='%(levelname)s %(name)s: %(message)s')
-    _FLYER = LandingFlyer(args)
-
-
-def _worker_fly(task: LandingTask) -> dict:
-    return _FLYER.fly(task)
-
-
 # A worker process spends ~5 s importing torch and building its envs (about three landings' worth): with
 # `--workers 0` a run gets another process for every this many landings, up to one per CPU core.
 LANDINGS_PER_AUTO_WORKER = 8
-
-
-def _ray_fly(args: EvalArgs, task: LandingTask) -> dict:
-    """A Ray task: fly one landing with this worker process's flyer (made on its first task for these args)."""
-    global _FLYER
-    if _FLYER is None or _FLYER.args != args:
-        if _FLYER is not None:
-            _FLYER.close()
-        torch.set_num_threads(1)
-        _FLYER = LandingFlyer(args)
-    return _FLYER.fly(task)
-
-
-def _fly_on_ray(args: EvalArgs, todo: list[LandingTask], landed) -> None:
-    """Every task of `todo` as a Ray task; `landed(task, row, error)` as each finishes (in finishing order)."""
-    ray = connect_ray(args.ray)
-    from ray.exceptions import RayTaskError
-    log.info('flying %d landings on Ray (%s, %d CPUs)', len(todo), args.ray, ray_cpus(ray))
-    fly = ray.remote(num_cpus=1)(_ray_fly)
-    args_ref = ray.put(args)
-    pending = {fly.remote(args_ref, t): t for t in todo}
-    try:
-        while pending:
-            done, _ = ray.wait(list(pending), num_returns=1)
-            task = pending.pop(done[0])
-            try:
-                landed(task, ray.get(done[0]), None)
-            except RayTaskError as exc:
-                if not isinstance(exc.cause, ValueError):
-                    raise
-                landed(task, None, exc.cause)
-    finally:
-        for ref in pending:
-            ray.cancel(ref)
 
 
 def worker_count(requested: int, landings: int) -> int:
@@ -618,7 +564,7 @@ def fly_plan(args: EvalArgs, results: LandingLog) -> dict[str, list[dict]]:
     """Fly every landing of the plan not already in `results` (each written there as it lands), on
     `args.workers` processes, with a progress bar; the rows per condition in plan order. A condition whose
     assistant cannot be made is skipped with a warning."""
-    plan = landing_plan(args)
+    plan = plan_tasks(args)
     rows = {t: results.flown(t.name, t.beta, t.seed) for t in plan}
     todo = [t for t in plan if rows[t] is None]
     skipped: set[str] = set()
@@ -628,7 +574,7 @@ def fly_plan(args: EvalArgs, results: LandingLog) -> dict[str, list[dict]]:
     bar = tqdm(total=len(plan), initial=len(plan) - len(todo), desc='evaluate', unit='landing', file=sys.stderr,
                mininterval=1.0, dynamic_ncols=False, disable=None)
 
-    def landed(task: LandingTask, row: dict | None, exc: Exception | None) -> None:
+    def landed(task: PlannedLanding, row: dict | None, exc: Exception | None) -> None:
         if exc is not None:
             if task.cond not in skipped:
                 log.warning('skipping %s: %s', task.cond, exc)
@@ -641,9 +587,7 @@ def fly_plan(args: EvalArgs, results: LandingLog) -> dict[str, list[dict]]:
 
     with logging_redirect_tqdm():
         try:
-            if args.ray and todo:
-                _fly_on_ray(args, todo, landed)
-            elif workers == 1:
+            if workers == 1 and not args.ray:
                 flyer = LandingFlyer(args)
                 try:
                     for task in todo:
@@ -657,25 +601,22 @@ def fly_plan(args: EvalArgs, results: LandingLog) -> dict[str, list[dict]]:
                         landed(task, row, None)
                 finally:
                     flyer.close()
-            else:
-                log.info('flying %d landings on %d processes', len(todo), workers)
-                with ProcessPoolExecutor(workers, mp_context=process_context(), initializer=_worker_start,
-                                         initargs=(args, os.getpid())) as pool:
-                    futures: dict = {}
+            elif todo:
+                with WorkerPool(functools.partial(LandingFlyer, args), 0 if args.ray else workers, args.ray) as pool:
+                    handles = {pool.submit(t): t for t in todo}
                     try:
-                        futures.update((pool.submit(_worker_fly, t), t) for t in todo)
-                        for fut in completed_in_turn(futures):
-                            task = futures[fut]
-                            exc = fut.exception()
-                            if exc is not None and not isinstance(exc, ValueError):
-                                raise exc
-                            landed(task, None if exc else fut.result(), exc)
-                    except BrokenProcessPool:
-                        raise WorkerDied(f'{worker_died(pool)}; the landings flown so far are kept in '
-                                         f'{results.partial}: re-running the same command resumes') from None
+                        for handle in pool.completed(handles):
+                            try:
+                                row, exc = pool.result(handle), None
+                            except ValueError as err:       # the condition's assistant cannot be made
+                                row, exc = None, err
+                            landed(handles[handle], row, exc)
+                    except WorkerDied as exc:
+                        raise WorkerDied(f'{exc}; the landings flown so far are kept in {results.partial}: '
+                                         're-running the same command resumes') from None
                     except BaseException:
-                        for fut in futures:
-                            fut.cancel()
+                        for handle in handles:
+                            pool.cancel(handle)
                         raise
         finally:
             results.sync()
@@ -724,12 +665,9 @@ def rule_on(flag: bool | None, cond: str) -> bool:
 
 def main(argv: list[str] | None = None) -> int:
     """Console entry point: run, print the table."""
-    logging.basicConfig(level=logging.INFO, format='%(levelname)s %(name)s: %(message)s')
     torch.set_num_threads(1)
-    parser = argparse.ArgumentParser(prog='evaluate', description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_dataclass_args(parser, EvalArgs, HELP)
-    args, _ = parse_dataclass_args(parser, EvalArgs, argv)      # a bad value: one error line, exit 2, nothing run
+    cmd = parse_command(EvalArgs, 'evaluate', __doc__, HELP, argv)   # a bad value: one error line, exit 2, nothing run
+    args = cmd.settings
     try:
         summary = evaluate(args)
     except (DirectoryBusy, RayUnreachable) as exc:      # the --out or --ray given cannot be used now

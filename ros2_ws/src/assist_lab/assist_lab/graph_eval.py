@@ -47,7 +47,6 @@ silent or never arms, the condition's graph and SITL are started afresh for the 
 """
 from __future__ import annotations
 
-import argparse
 import csv
 import dataclasses
 import json
@@ -82,7 +81,7 @@ from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 from visualization_msgs.msg import MarkerArray
 
-from .cli import add_dataclass_args, check_settings, parse_dataclass_args, setting
+from assist_common.settings import check_settings, parse_command, setting
 from .cluster import DirectoryBusy, hold_directory
 from .episodes_plan import LandingPlan, evaluation_plans
 from .evaluate import (
@@ -815,11 +814,8 @@ def _raise_interrupt(signum, frame) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Console entry point: fly, print the table."""
-    logging.basicConfig(level=logging.INFO, format='%(asctime)s %(levelname)s %(name)s: %(message)s')
-    parser = argparse.ArgumentParser(prog='evaluate_graph', description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_dataclass_args(parser, GraphEvalArgs, HELP)
-    args, _ = parse_dataclass_args(parser, GraphEvalArgs, argv)   # a bad value: one error line, exit 2
+    cmd = parse_command(GraphEvalArgs, 'evaluate_graph', __doc__, HELP, argv)   # a bad value: one error line, exit 2
+    args = cmd.settings
     signal.signal(signal.SIGINT, signal.default_int_handler)    # even when started with SIGINT ignored (a `&` job)
     signal.signal(signal.SIGTERM, _raise_interrupt)
     t0 = time.monotonic()

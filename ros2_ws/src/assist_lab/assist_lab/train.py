@@ -24,7 +24,6 @@ train_td3 process, even a SIGKILLed one.
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import logging
@@ -48,11 +47,11 @@ from .curves import plot_curves
 from assist_perception.model import load_training_state, training_device
 from assist_sim.pilots import HELDOUT_FAMILIES, TRAIN_FAMILIES
 
-from .cli import (SettingsError, add_dataclass_args, check_settings, exit_error, flag, parse_dataclass_args,
-                  setting)
+from assist_common.settings import SettingsError, check_settings, exit_error, flag, parse_command, setting
 from .cluster import DirectoryBusy, RayUnreachable, WorkerDied, hold_directory
 from .collect import (DEMO_POLICIES, ActorWeights, LandingPool, LandingTask, collect_demos,
                       make_env)
+from .episodes_plan import landing_seeds
 from .env import EnvConfig, LandingAssistEnv, RewardConfig, run_episode
 from assist_policy.observation import DISPLACEMENT_DIM, MAX_FEATURE_LAG_S, MAX_FEATURE_LAGS, feature_dim
 from assist_policy.override import OverrideConfig
@@ -247,7 +246,7 @@ def evaluate_agent(env: LandingAssistEnv | None, agent: TD3, per_beta: int, seed
                    pool: LandingPool | None = None) -> dict:
     """Deterministic evaluation on fixed seeds over EVAL_BETAS; mean error, success, crash rates (flown in
     `env`, or by `pool`'s workers when given: the same landings; `env` is then not used)."""
-    plan = [(seed + 1000 * bi + k, beta) for bi, beta in enumerate(EVAL_BETAS) for k in range(per_beta)]
+    plan = landing_seeds(seed, EVAL_BETAS, per_beta)
     if pool is None:
         rows = [run_episode(env, agent.act, s, {'beta': beta}) for s, beta in plan]
     else:
@@ -739,11 +738,8 @@ def _train(args: TrainArgs, pool: LandingPool | None) -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     """Console entry point."""
-    logging.basicConfig(level=logging.INFO, format='%(asctime)s %(levelname)s %(name)s: %(message)s')
-    parser = argparse.ArgumentParser(prog='train_td3', description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_dataclass_args(parser, TrainArgs, HELP)
-    args, given = parse_dataclass_args(parser, TrainArgs, argv)
+    cmd = parse_command(TrainArgs, 'train_td3', __doc__, HELP, argv)
+    parser, args, given = cmd.parser, cmd.settings, cmd.given
     try:
         args = prepare_run(args, given)
     except SettingsError as exc:

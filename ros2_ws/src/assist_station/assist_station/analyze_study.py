@@ -69,7 +69,6 @@ fatal), 1 when nothing could be analysed or an output cannot be written (what wa
 """
 from __future__ import annotations
 
-import argparse
 import csv
 import io
 import json
@@ -88,7 +87,7 @@ import numpy as np
 
 from assist_common.atomic import fsync_dir
 from assist_common.frames import heading, rotate_xy
-from assist_lab.cli import add_dataclass_args, parse_dataclass_args, setting
+from assist_common.settings import parse_command, setting
 
 from .study import (CONDITIONS, EXPERIENCE_QUESTIONS, LANDING_COLUMNS, PARTICIPANT_ID, StudyConfig, StudyError,
                     block_condition, check_survey, check_sus, order_name, sus_score)
@@ -1060,16 +1059,12 @@ def run(dirs: list[Path], args: AnalyzeArgs) -> dict[str, Any]:
 
 def main(argv: list[str] | None = None) -> int:
     """Console entry point: analyse, print the table."""
-    logging.basicConfig(level=logging.INFO, format='%(levelname)s %(name)s: %(message)s')
-    parser = argparse.ArgumentParser(prog='analyze_study', description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument('dirs', nargs='+', type=Path, help='participant directories (e.g. study_data/*)')
-    add_dataclass_args(parser, AnalyzeArgs, HELP)
-    ns_argv = sys.argv[1:] if argv is None else list(argv)
-    pre, _ = parser.parse_known_args(ns_argv)
-    args, _ = parse_dataclass_args(parser, AnalyzeArgs, ns_argv)
+    cmd = parse_command(AnalyzeArgs, 'analyze_study', __doc__, HELP, argv,
+                        positional={'dirs': dict(nargs='+', type=Path,
+                                                 help='participant directories (e.g. study_data/*)')})
+    args = cmd.settings
     try:
-        summary = run(pre.dirs, args)
+        summary = run(cmd.namespace.dirs, args)
     except (StudyError, OSError) as exc:
         print(f'error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}', file=sys.stderr)
         return 1

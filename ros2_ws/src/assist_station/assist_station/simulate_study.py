@@ -17,7 +17,6 @@ A participant already done in DIR is skipped, one half done resumes where it sto
 """
 from __future__ import annotations
 
-import argparse
 import asyncio
 import dataclasses
 import json
@@ -31,7 +30,7 @@ from pathlib import Path
 
 from assist_common.atomic import write_text_atomic
 from assist_common.settings import SettingsError
-from assist_lab.cli import add_dataclass_args, parse_dataclass_args, setting
+from assist_common.settings import parse_command, setting
 from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
@@ -276,11 +275,8 @@ def simulate(args: SimulateArgs) -> list[dict]:
 
 def main(argv: list[str] | None = None) -> int:
     """Console entry point."""
-    logging.basicConfig(level=logging.INFO, format='%(asctime)s %(levelname)s %(name)s: %(message)s')
-    parser = argparse.ArgumentParser(prog='simulate_study', description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_dataclass_args(parser, SimulateArgs, HELP)
-    args, _ = parse_dataclass_args(parser, SimulateArgs, argv)
+    cmd = parse_command(SimulateArgs, 'simulate_study', __doc__, HELP, argv)
+    parser, args = cmd.parser, cmd.settings
     from assist_sim.pilots import PILOT_NAMES
     bad = [f for f in args.families if f not in PILOT_NAMES]
     if bad:
