@@ -3,7 +3,6 @@
 Oracle mode needs no encoder; the latent variant adds encoder_node and runs with the shipped CM-VAE
 and latent actor.
 """
-import importlib.util
 import json
 import threading
 from pathlib import Path
@@ -12,14 +11,11 @@ import pytest
 from std_msgs.msg import String
 
 from assist_common.ros_common import LANDING_QOS
+from assist_policy.testing import constant_actor
 
 pytestmark = pytest.mark.graph
 
 REPO = Path(__file__).resolve().parents[1]
-_spec = importlib.util.spec_from_file_location(
-    'policy_core_helpers2', REPO / 'ros2_ws/src/assist_policy/test/test_policy_core.py')
-_helpers = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(_helpers)
 
 
 @pytest.fixture
@@ -39,7 +35,7 @@ def _model(tmp_path):
     if shipped.is_file():
         return shipped
     # no shipped actor yet: an actor that always relinquishes (|a| = 0), still publishing agent_cmd
-    return _helpers.constant_actor(tmp_path / 'zero.pt', [0.0, 0.0, 0.0], condition='oracle', latent_dim=0)
+    return constant_actor(tmp_path / 'zero.pt', [0.0, 0.0, 0.0], condition='oracle', latent_dim=0)
 
 
 def _real(landings):

@@ -1,9 +1,7 @@
 """policy_node in a real graph (subprocess, private domain): blending, stale inputs, NaN handling."""
-import importlib.util
 import math
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,16 +10,11 @@ from nav_msgs.msg import Odometry
 from std_msgs.msg import Float32MultiArray
 
 from assist_common.ros_common import RELIABLE_QOS, SENSOR_QOS
+from assist_policy.testing import LATENT, constant_actor
 
 pytestmark = pytest.mark.graph
 
-_spec = importlib.util.spec_from_file_location(
-    'policy_core_helpers', Path(__file__).resolve().parents[1]
-    / 'ros2_ws/src/assist_policy/test/test_policy_core.py')
-_helpers = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(_helpers)
-constant_actor = _helpers.constant_actor
-LATENT = _helpers.LATENT
+LATENT = LATENT
 
 
 class Probe:

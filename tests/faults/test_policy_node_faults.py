@@ -4,7 +4,6 @@ graph tests run the console script on the test's private domain.
 """
 from __future__ import annotations
 
-import importlib.util
 import math
 import random
 import threading
@@ -25,13 +24,9 @@ from std_msgs.msg import Float32MultiArray
 
 from assist_policy.policy_node import PolicyNode, ReasonThrottle
 from assist_common.ros_common import RELIABLE_QOS, SENSOR_QOS
+from assist_policy.testing import LATENT, constant_actor
 
 REPO = Path(__file__).resolve().parents[2]
-_spec = importlib.util.spec_from_file_location('policy_core_helpers_faults',
-                                               REPO / 'ros2_ws/src/assist_policy/test/test_policy_core.py')
-_helpers = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(_helpers)
-constant_actor, LATENT = _helpers.constant_actor, _helpers.LATENT
 OK, WARN, ERROR = (int.from_bytes(x, 'little') for x in (DiagnosticStatus.OK, DiagnosticStatus.WARN,
                                                           DiagnosticStatus.ERROR))
 

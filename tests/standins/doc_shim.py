@@ -34,12 +34,12 @@ STARTED = time.monotonic()
 
 
 def _node_modules() -> dict[str, str]:
-    """node executable -> module with its PARAMS: docs/gen_nodes.py's list (the one docs/nodes.md is made from)."""
+    """node executable -> module with its PARAMS: the node registry docs/nodes.md is made from (docs/gen_nodes.py)."""
     import importlib.util
     spec = importlib.util.spec_from_file_location('gen_nodes', REPO / 'docs' / 'gen_nodes.py')
     gen_nodes = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(gen_nodes)
-    return {exe: module for exe, module in gen_nodes.NODES.items() if exe not in ('bag_record', 'bag_play')}
+    return {exe: module for exe, module in gen_nodes.nodes().items() if exe not in ('bag_record', 'bag_play')}
 
 
 NODES = _node_modules()

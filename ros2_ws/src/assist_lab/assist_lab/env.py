@@ -280,7 +280,7 @@ class LandingAssistEnv(gym.Env):
         overridden, recalled = 'pilot_override' in acted, 'pad_recall' in acted
         info: dict[str, Any] = {'active': active, 'guard': 'floor_guard' in acted, 'walls': 'wall_guard' in acted,
                                 'override': overridden, 'recall': recalled,
-                                'damper': 'oscillation_damper' in acted and not (overridden or recalled),
+                                'damper': 'oscillation_damper' in acted,
                                 'goal_estimate': self.pilot.goal_estimate.copy()}
         if terminated:
             res = self.world.result

@@ -283,7 +283,7 @@ class StepResult:
     applied: np.ndarray                 # a as it stood at blending (the action history records it)
     key: str                            # the last stage that acted, else assisting / small_action / the input's
     reason: str
-    acted: tuple[str, ...] = ()         # every stage that acted this step, in order
+    acted: tuple[str, ...] = ()         # every stage that acted on what flew this step, in order
 
 
 class Assistant:
@@ -334,6 +334,8 @@ class Assistant:
                 if new is not None:
                     d = new
                     acted.append(stage.key)
+        if DamperStage.key in acted and (OverrideStage.key in acted or RecallStage.key in acted):
+            acted.remove(DamperStage.key)       # its action was replaced: it did not act on what flew
         applied = np.zeros(3) if d.agent is None else d.agent
         d.velocity = blend(ctx.u, applied, c.blend_threshold)
         if d.agent is not None and not d.key:
