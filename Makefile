@@ -52,8 +52,10 @@ netns:
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 
+# Two worker processes (TEST_WORKERS), a test file per worker at a time; each worker has its own DDS domains.
+TEST_WORKERS ?= 2
 test: $(STAMP) browser netns lint
-	$(PY) -m pytest
+	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile
 
 bench: $(STAMP)
 	$(PY) -m bench

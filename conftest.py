@@ -1,7 +1,21 @@
 """Suite-wide fixtures (every test folder in pytest.ini's testpaths)."""
 from __future__ import annotations
 
+import os
+
 import pytest
+
+
+def pytest_configure(config):
+    """Under pytest-xdist each worker gets its own DDS domains: ROS_DOMAIN_ID (the default graph of tests that take
+    it from the environment) and a disjoint slice of the private domains (assist_common.domains), so two workers'
+    graphs never meet."""
+    worker = os.environ.get('PYTEST_XDIST_WORKER')
+    if worker:
+        from assist_common.domains import DOMAIN_IDS_ENV, split_range
+        n, count = int(worker.removeprefix('gw')), int(os.environ.get('PYTEST_XDIST_WORKER_COUNT', '1'))
+        os.environ[DOMAIN_IDS_ENV] = split_range(n, count)
+        os.environ['ROS_DOMAIN_ID'] = str(40 + n)
 
 
 @pytest.fixture(autouse=True)

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import os
-import random
 import shutil
 import subprocess
 import sys
@@ -14,6 +13,7 @@ from collections.abc import Callable
 import pytest
 
 from assist_sim.testing import stop_process
+from assist_common.domains import private_domain_id
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -62,7 +62,7 @@ class NodeProcess:
 @pytest.fixture(scope='module')
 def domain_id() -> int:
     """A private DDS domain for this test module."""
-    return random.Random(os.getpid() ^ time.monotonic_ns()).randint(100, 199)
+    return private_domain_id()
 
 
 @pytest.fixture(scope='module')

@@ -19,6 +19,7 @@ from rosgraph_msgs.msg import Clock
 
 from assist_bags import msgs
 from assist_bags.bagio import LATCHED, RELIABLE, SENSOR, BagReader
+from assist_common.domains import private_domain_id
 
 pytestmark = pytest.mark.graph
 BIN = Path(sys.executable).parent
@@ -165,7 +166,7 @@ def test_play_refuses_bad_input_with_one_line(tmp_path):
              [str(tmp_path / 'c'), '--remap', 'nonsense']]
     for args in cases:
         proc = subprocess.run([str(BIN / 'bag_play'), *args], capture_output=True, text=True, timeout=60,
-                              env=dict(os.environ, ROS_DOMAIN_ID='199'))
+                              env=dict(os.environ, ROS_DOMAIN_ID=str(private_domain_id())))
         assert proc.returncode == 1, (args, proc.stderr)
         assert 'Traceback' not in proc.stderr
         errors = [ln for ln in proc.stderr.splitlines() if ln.startswith('error:')]
@@ -192,7 +193,7 @@ def test_recorder_refuses_bad_input_with_one_line(tmp_path):
              ['--ros-args', '-p', f'output:={tmp_path / "ok2"}', '-p', "topics:=['']"]]
     for args in cases:
         proc = subprocess.run([str(BIN / 'bag_record'), *args], capture_output=True, text=True, timeout=60,
-                              env=dict(os.environ, ROS_DOMAIN_ID='199'))
+                              env=dict(os.environ, ROS_DOMAIN_ID=str(private_domain_id())))
         assert proc.returncode == 1, (args, proc.stderr)
         errors = [ln for ln in proc.stderr.splitlines() if ln.startswith('error:')]
         assert len(errors) == 1 and 'Traceback' not in proc.stderr, proc.stderr

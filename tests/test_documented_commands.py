@@ -24,6 +24,8 @@ from pathlib import Path
 
 import pytest
 
+from assist_common.domains import private_domain_ids
+
 pytestmark = pytest.mark.slow
 
 REPO = Path(__file__).resolve().parents[1]
@@ -97,6 +99,7 @@ def _shim(path: Path, program: str) -> None:
 
 def test_documented_commands_run_as_written(tmp_path):
     log = tmp_path / 'calls.jsonl'
+    domains = private_domain_ids(len(GROUPS))             # a private DDS domain per group
 
     def run_group(index: int) -> list[str]:
         scratch = tmp_path / f'group{index}'
@@ -105,7 +108,7 @@ def test_documented_commands_run_as_written(tmp_path):
         (scratch / 'home').mkdir()
         env = dict(os.environ, PATH=f'{root / ".venv" / "bin"}:{scratch / "shims"}:{os.environ["PATH"]}',
                    HOME=str(scratch / 'home'), DOC_SHIM_REPO=str(REPO), DOC_SHIM_REAL_BIN=str(REAL_BIN),
-                   DOC_SHIM_LOG=str(log), ROS_DOMAIN_ID=str(107 + index), MPLBACKEND='Agg')
+                   DOC_SHIM_LOG=str(log), ROS_DOMAIN_ID=str(domains[index]), MPLBACKEND='Agg')
         env.pop('DISPLAY', None)
         failures = []
         for doc in GROUPS[index]:

@@ -17,6 +17,7 @@ from assist_sim.core.runner import RunnerConfig
 from assist_sim.core.world import LandingWorld
 from assist_sim.json_backend import JsonBackendConfig, JsonSimRunner
 from assist_sim.testing_sitl import SitlStandIn
+from assist_common.domains import private_domain_id
 
 RATE = 400
 SEEDS = (101, 202, 303)
@@ -215,7 +216,7 @@ def test_a_graph_that_fails_mid_series_is_started_afresh_for_the_missing_landing
     monkeypatch.setattr(graph_eval, 'fly_condition', fake_fly)
     monkeypatch.setattr(graph_eval, 'check_sitl_args', lambda args: None)
     args = GraphEvalArgs(out=str(tmp_path / 'eval'), autopilot=autopilot, conditions=('unassisted',), betas=(0.5,),
-                         landings=3, seed=11, domain_id=73, plot=False, sitl_restarts=1)
+                         landings=3, seed=11, domain_id=private_domain_id(), plot=False, sitl_restarts=1)
     if autopilot == 'none':                      # the simulator's graph does not stall: an error ends the run
         with pytest.raises(graph_eval.GraphError):
             graph_eval.evaluate_graph(args)

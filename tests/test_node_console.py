@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from assist_common.console import node_executables
+from assist_common.domains import private_domain_id
 
 REPO = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -30,7 +31,7 @@ def test_the_registry_holds_every_node_and_no_tool():
 @pytest.fixture(scope='module')
 def answers():
     """executable -> (--help process, --version process), all run side by side."""
-    env = dict(os.environ, ROS_DOMAIN_ID='105')
+    env = dict(os.environ, ROS_DOMAIN_ID=str(private_domain_id()))
     procs = {(name, flag): subprocess.Popen([str(BIN / name), flag], env=env, stdin=subprocess.DEVNULL,
                                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
              for name in NODES for flag in ('--help', '--version')}
@@ -106,7 +107,7 @@ def test_ctrl_c_while_starting_exits_quietly(loading_heavy_libraries, tmp_path):
     (what run_node returns after a Ctrl-C), command-line tools 130."""
     import signal
     import time
-    env = dict(os.environ, ROS_DOMAIN_ID='106')
+    env = dict(os.environ, ROS_DOMAIN_ID=str(private_domain_id()))
     tools = ('evaluate', 'train_td3', 'train_cmvae')
     from assist_bags import msgs
     from assist_bags.bagio import CONTRACT_TOPICS, BagWriter

@@ -15,6 +15,7 @@ import textwrap
 from pathlib import Path
 
 import pytest
+from assist_common.domains import private_domain_id
 
 BIN = Path(sys.executable).parent
 BLOCKED = ('assist_sim', 'pybullet')
@@ -61,7 +62,7 @@ def blocked_env(tmp_path_factory):
     (root / 'sitecustomize.py').write_text(SITECUSTOMIZE)
     log = root / 'attempts.log'
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(root), os.environ.get('PYTHONPATH')])),
-               ASSIST_BLOCKED_LOG=str(log), ROS_DOMAIN_ID='104', PYTHONUNBUFFERED='1')
+               ASSIST_BLOCKED_LOG=str(log), ROS_DOMAIN_ID=str(private_domain_id()), PYTHONUNBUFFERED='1')
     return env, log
 
 

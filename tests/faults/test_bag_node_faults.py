@@ -15,11 +15,12 @@ import pytest
 
 from assist_bags import msgs
 from assist_bags.bagio import CONTRACT_TOPICS, BagReader, BagWriter
+from assist_common.domains import private_domain_id
 
 pytestmark = pytest.mark.graph
 BIN = Path(sys.executable).parent
 T0 = 1_000_000_000
-DOMAIN = str(90 + os.getpid() % 10)      # a private DDS domain per test process
+DOMAIN = str(private_domain_id())      # a private DDS domain per test process
 ENV = dict(os.environ, ROS_DOMAIN_ID=DOMAIN, PYTHONUNBUFFERED='1')
 
 

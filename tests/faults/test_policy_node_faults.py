@@ -5,7 +5,6 @@ graph tests run the console script on the test's private domain.
 from __future__ import annotations
 
 import math
-import random
 import threading
 import time
 from pathlib import Path
@@ -25,6 +24,7 @@ from std_msgs.msg import Float32MultiArray
 from assist_policy.policy_node import PolicyNode, ReasonThrottle
 from assist_common.ros_common import RELIABLE_QOS, SENSOR_QOS
 from assist_policy.testing import LATENT, constant_actor
+from assist_common.domains import private_domain_id
 
 REPO = Path(__file__).resolve().parents[2]
 OK, WARN, ERROR = (int.from_bytes(x, 'little') for x in (DiagnosticStatus.OK, DiagnosticStatus.WARN,
@@ -41,7 +41,7 @@ class InProcess:
         params.setdefault('step_on_latent', 'false')     # these tests drive the control step themselves
         for k, v in params.items():
             args += ['-p', f'{k}:={v}']
-        rclpy.init(args=args, context=self.ctx, domain_id=random.randint(100, 199))
+        rclpy.init(args=args, context=self.ctx, domain_id=private_domain_id())
         self.node = PolicyNode(context=self.ctx)
         self.cmds, self.agents = [], []
         self.node.pub_cmd.publish = lambda m: self.cmds.append(_vec(m))

@@ -16,6 +16,7 @@ import pytest
 
 from assist_common.mavlink_io import load_signing_key
 from assist_sim.testing import free_udp_port
+from assist_common.domains import private_domain_id
 
 BIN = Path(sys.executable).parent
 HANG_S = 5.0          # a loader that has not answered by then is blocked in open()
@@ -88,7 +89,7 @@ def test_the_node_exits_at_once_with_one_error_line(fifo, executable, key_param,
     exe = BIN / executable
     if not exe.exists():
         pytest.skip(f'{exe} not installed (run make venv)')
-    env = dict(os.environ, ROS_DOMAIN_ID=str(150 + os.getpid() % 50), PYTHONUNBUFFERED='1')
+    env = dict(os.environ, ROS_DOMAIN_ID=str(private_domain_id()), PYTHONUNBUFFERED='1')
     try:
         done = subprocess.run([str(exe), '--ros-args', '-p', f'{key_param}:={fifo}',
                                '-p', f'{url_param}:=udpin:127.0.0.1:{free_udp_port()}'],

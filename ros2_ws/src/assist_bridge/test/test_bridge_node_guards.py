@@ -3,7 +3,6 @@ timer and subscription that packs or sends MAVLink is guarded), parameters that 
 at start-up (one line, exit status 1), the landed state is published reliable + transient local, and mocap from
 more than one source is said once on /diagnostics."""
 import os
-import random
 import subprocess
 import sys
 import time
@@ -26,6 +25,7 @@ from assist_bridge.mavlink_bridge_node import LANDED_STATE_TOPIC, MavlinkBridgeN
 from assist_bridge.vision import VisionEstimate  # noqa: E402
 from assist_common.ros_common import LATCHED_QOS, StartupError, release_logging  # noqa: E402
 from assist_sim.testing import free_udp_port  # noqa: E402
+from assist_common.domains import private_domain_id  # noqa: E402
 
 BIN = Path(sys.executable).parent
 MOCAP = '/bridge_guard_test/mocap'
@@ -33,7 +33,7 @@ MOCAP = '/bridge_guard_test/mocap'
 
 def _domain() -> int:
     """ROS_DOMAIN_ID when the caller set one, else a private one."""
-    return int(os.environ.get('ROS_DOMAIN_ID') or random.Random(os.getpid() ^ time.monotonic_ns()).randint(101, 199))
+    return int(os.environ.get('ROS_DOMAIN_ID') or private_domain_id())
 
 
 @pytest.fixture

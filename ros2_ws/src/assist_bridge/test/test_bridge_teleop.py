@@ -1,6 +1,5 @@
 """Keyboard teleop: core key logic, and the real node driven by tmux send-keys in a real terminal."""
 import os
-import random
 import shutil
 import subprocess
 import sys
@@ -12,6 +11,7 @@ import numpy as np
 import pytest
 
 from assist_bridge.teleop_core import KeyDecoder, TeleopConfig, TeleopCore
+from assist_common.domains import private_domain_id
 
 BIN = Path(sys.executable).parent
 
@@ -82,7 +82,7 @@ def test_bad_teleop_config():
 
 
 def test_refuses_clearly_without_a_tty():
-    env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(101, 199)))
+    env = dict(os.environ, ROS_DOMAIN_ID=str(private_domain_id()))
     r = subprocess.run([str(BIN / 'teleop_keyboard')], stdin=subprocess.DEVNULL, capture_output=True,
                        text=True, env=env, timeout=60)
     assert r.returncode == 1
@@ -104,7 +104,7 @@ def teleop_tmux(tmp_path):
 
     from assist_common.ros_common import RELIABLE_QOS
 
-    domain = random.Random(os.getpid() ^ time.monotonic_ns()).randint(101, 199)
+    domain = private_domain_id()
     ctx = Context()
     rclpy.init(context=ctx, domain_id=domain)
     node = Node('teleop_probe', context=ctx)

@@ -10,6 +10,7 @@ import pytest
 
 from assist_bridge import image_link
 from assist_bridge.image_link import COLOR_FORMAT, DEPTH_FORMAT, LinkError, decode_color, decode_depth, encode_color
+from assist_common.domains import private_domain_id
 
 HUGE = 16000                                  # px a side: 768 MB as RGB, far over the 4096 px limit
 DEPTH_HEADER = struct.pack('<iff', 1, 0.0, 0.0)   # compressedDepth ConfigHeader, PNG
@@ -163,7 +164,7 @@ def test_image_decoder_node_counts_each_refusal_by_reason_and_still_publishes():
     from assist_bridge.image_decoder import ImageDecoder
 
     ctx = Context()
-    rclpy.init(context=ctx, domain_id=62)
+    rclpy.init(context=ctx, domain_id=private_domain_id())
     try:
         node = ImageDecoder(context=ctx)
         try:

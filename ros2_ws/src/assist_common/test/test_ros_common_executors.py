@@ -1,6 +1,5 @@
 """ros_common executors: make_executor, the EventsExecutor loop, run_node's `executor` parameter, heap freeze."""
 import gc
-import random
 import subprocess
 import sys
 import textwrap
@@ -19,12 +18,13 @@ from std_msgs.msg import String
 
 from assist_common.ros_common import (EXECUTORS, EventsExecutorLoop, freeze_startup_heap, make_executor, sec_to_stamp,
                                       spin_until_stopped)
+from assist_common.domains import private_domain_id
 
 
 def test_executor_kinds_by_name():
     assert EXECUTORS == ('single', 'multi', 'events')
     ctx = Context()
-    rclpy.init(context=ctx, domain_id=random.randint(100, 199))
+    rclpy.init(context=ctx, domain_id=private_domain_id())
     try:
         assert isinstance(make_executor('single', context=ctx), SingleThreadedExecutor)
         assert isinstance(make_executor('multi', 3, context=ctx), MultiThreadedExecutor)
@@ -45,7 +45,7 @@ def _wait_for(cond, timeout=10.0):
 @pytest.mark.filterwarnings('error::pytest.PytestUnhandledThreadExceptionWarning')   # spin returns, not raises
 def test_events_loop_serves_steady_and_sim_time_timers_and_subscriptions_and_stops_at_shutdown():
     ctx = Context()
-    rclpy.init(context=ctx, domain_id=random.randint(100, 199))
+    rclpy.init(context=ctx, domain_id=private_domain_id())
     node = Node('events_loop_test', context=ctx,
                 parameter_overrides=[Parameter('use_sim_time', Parameter.Type.BOOL, True)])
     steady, sim, got = [], [], []
@@ -119,7 +119,7 @@ def test_run_node_spins_the_executor_the_node_parameter_names(kind, tmp_path):
     script.write_text(SCRIPT)
     env_args = ['--ros-args', '-p', f'executor:={kind}']
     out = subprocess.run([sys.executable, str(script), *env_args], capture_output=True, text=True, timeout=60,
-                         env={**__import__('os').environ, 'ROS_DOMAIN_ID': str(random.randint(100, 199))})
+                         env={**__import__('os').environ, 'ROS_DOMAIN_ID': str(private_domain_id())})
     assert out.returncode == 0, out.stderr
     assert f"frozen True made ['{kind}']" in out.stdout, out.stdout + out.stderr
 
@@ -158,7 +158,7 @@ def test_run_node_treats_a_runtime_error_as_shutdown_only_after_the_context_went
     import assist_common.ros_common as rc
     spinner = _Spinner(shutdown)
     monkeypatch.setattr(rc, 'make_executor', lambda kind, num_threads=2: spinner)
-    monkeypatch.setenv('ROS_DOMAIN_ID', str(random.randint(100, 199)))
+    monkeypatch.setenv('ROS_DOMAIN_ID', str(private_domain_id()))
     factory = lambda: Node('runtime_error_probe')      # noqa: E731
     if shutdown:
         assert rc.run_node(factory, args=[]) == 0       # SIGINT's race: a clean exit
@@ -215,7 +215,7 @@ def test_ctrl_c_during_a_callback_lets_it_finish_and_exits_cleanly(kind, signame
     script.write_text(CTRL_C_SCRIPT)
     proc = subprocess.Popen([sys.executable, str(script), '--ros-args', '-p', f'executor:={kind}'],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env={**os.environ, 'ROS_DOMAIN_ID': str(random.randint(100, 199))})
+                            env={**os.environ, 'ROS_DOMAIN_ID': str(private_domain_id())})
     try:
         assert proc.stdout.readline().strip() == 'callback start'
         time.sleep(0.3)                           # well inside the 1.5 s callback
@@ -257,7 +257,7 @@ def test_a_ctrl_c_in_the_wait_returns_only_after_spin_and_teardown_ended():
     import os
     import signal
     from assist_common.ros_common import spin_off_main_thread
-    rclpy.init(domain_id=random.randint(100, 199))
+    rclpy.init(domain_id=private_domain_id())
     spinner = _SlowStopSpinner()
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     threading.Timer(0.3, lambda: os.kill(os.getpid(), signal.SIGINT)).start()
@@ -308,7 +308,7 @@ def test_a_node_stuck_while_going_down_writes_every_threads_stack(tmp_path):
     err = tmp_path / 'stderr.txt'
     with open(err, 'w') as err_file:
         proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, stderr=err_file, text=True,
-                                env={**os.environ, 'ROS_DOMAIN_ID': str(random.randint(100, 199))})
+                                env={**os.environ, 'ROS_DOMAIN_ID': str(private_domain_id())})
     try:
         assert proc.stdout.readline().strip() == 'up'
         proc.send_signal(signal.SIGINT)
@@ -363,7 +363,7 @@ def test_a_stop_signal_taken_by_another_thread_still_stops_the_spin():
 
     from assist_common.ros_common import spin_off_main_thread
     context = Context()
-    rclpy.init(context=context, domain_id=random.randint(100, 199))
+    rclpy.init(context=context, domain_id=private_domain_id())
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     sent = []
 

@@ -1,6 +1,5 @@
 """Python logging of cores reaches the node's logger and /rosout (forward_logging / run_node)."""
 import logging
-import random
 import threading
 import time
 
@@ -12,11 +11,12 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from assist_common.ros_common import forward_logging
+from assist_common.domains import private_domain_id
 
 
 def test_core_log_records_reach_rosout_under_the_node_logger():
     ctx = Context()
-    rclpy.init(context=ctx, domain_id=random.randint(100, 199))
+    rclpy.init(context=ctx, domain_id=private_domain_id())
     node = Node('log_test', context=ctx)
     got: list[Log] = []
     qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)

@@ -2,7 +2,6 @@
 hangs in C with the GIL held (rcl_node_fini deleting the middleware's participant), with run_node's exit code
 and every thread's stack, instead of waiting for launch's SIGKILL."""
 import os
-import random
 import signal
 import subprocess
 import sys
@@ -10,6 +9,7 @@ import textwrap
 
 import rclpy
 from rclpy.node import Node
+from assist_common.domains import private_domain_id
 
 WAIT_S = 60.0       # a hung process would sleep 600 s: any bound far below that tells the two apart
 
@@ -22,7 +22,7 @@ def _run(script: str, tmp_path, signal_after_line: str | None = None) -> tuple[i
     err_path = tmp_path / 'stderr.txt'
     with open(err_path, 'w') as err:
         proc = subprocess.Popen([sys.executable, str(path)], stdout=subprocess.PIPE, stderr=err, text=True,
-                                env={**os.environ, 'ROS_DOMAIN_ID': str(random.randint(100, 199))})
+                                env={**os.environ, 'ROS_DOMAIN_ID': str(private_domain_id())})
     try:
         lines = []
         if signal_after_line is not None:
@@ -172,7 +172,7 @@ def test_without_a_stop_signal_run_node_arms_no_deadline(monkeypatch):
     armed = []
     monkeypatch.setattr(rc, 'make_executor', lambda kind, num_threads=2: _ShutdownSpinner())
     monkeypatch.setattr(rc.TeardownDeadline, 'arm', classmethod(lambda cls, seconds, code: armed.append(code)))
-    monkeypatch.setenv('ROS_DOMAIN_ID', str(random.randint(100, 199)))
+    monkeypatch.setenv('ROS_DOMAIN_ID', str(private_domain_id()))
     assert rc.run_node(lambda: Node('no_deadline_probe'), args=[]) == 0
     assert armed == []
     assert not rclpy.ok()

@@ -67,6 +67,7 @@ import numpy as np
 import rclpy
 import rclpy.signals
 from assist_common.constants import BLEND_THRESHOLD_MPS
+from assist_common.domains import DOMAIN_IDS_ENV, domain_range
 from assist_common.ros_common import LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, stamp_to_sec
 from assist_sim.core.arducopter import FLIGHT_CONTROLLERS
 from assist_sim.pilots import PILOT_NAMES
@@ -469,14 +470,16 @@ def domain_in_use(domain_id: int, listen_s: float = 2.0) -> bool:
 
 
 def pick_domain_id() -> int:
-    """A domain in AUTO_DOMAINS with no node on it, starting from one derived from this process id."""
-    n = len(AUTO_DOMAINS)
-    first = os.getpid() % n
-    for i in range(n):
-        candidate = AUTO_DOMAINS[(first + i) % n]
+    """A domain with no node on it: from $ASSIST_DOMAIN_IDS when set (assist_common.domains), else from AUTO_DOMAINS,
+    starting from one derived from this process id."""
+    lo, hi = domain_range() if os.environ.get(DOMAIN_IDS_ENV) else (AUTO_DOMAINS.start, AUTO_DOMAINS.stop - 1)
+    domains = range(lo, hi + 1)
+    first = os.getpid() % len(domains)
+    for i in range(len(domains)):
+        candidate = domains[(first + i) % len(domains)]
         if not domain_in_use(candidate):
             return candidate
-    raise GraphError(f'every ROS_DOMAIN_ID in {AUTO_DOMAINS.start}-{AUTO_DOMAINS.stop - 1} is in use: pass --domain-id')
+    raise GraphError(f'every ROS_DOMAIN_ID in {lo}-{hi} is in use: pass --domain-id')
 
 
 # ----------------------------------------------------------------------------------------- one condition

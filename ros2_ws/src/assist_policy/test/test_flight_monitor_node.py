@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import importlib.util
 import os
-import random
 import time
 from pathlib import Path
 
@@ -19,6 +18,7 @@ from std_srvs.srv import Trigger
 
 from assist_common.ros_common import LATCHED_QOS
 from assist_policy.policy_node import PolicyNode
+from assist_common.domains import private_domain_id
 
 _spec = importlib.util.spec_from_file_location('policy_core_helpers_flight_node',
                                                Path(__file__).with_name('test_policy_core.py'))
@@ -32,7 +32,7 @@ WAIT_S = 30.0     # the most any one condition may take to come true (it normall
 def graph(tmp_path):
     """(policy_node, probe node, spin_until) on a private context and domain."""
     ctx = Context()
-    domain = int(os.environ.get('ROS_DOMAIN_ID') or random.randint(100, 199))
+    domain = int(os.environ.get('ROS_DOMAIN_ID') or private_domain_id())
     model = _helpers.constant_actor(tmp_path / 'a.pt', [0.0, 0.0, 0.0])
     rclpy.init(args=['--ros-args', '-p', f'model_path:={model}', '-p', 'mode:=latent', '-p', 'step_on_latent:=false',
                      '-p', 'flight_reset_min_interval_s:=3600.0'], context=ctx, domain_id=domain)
