@@ -18,6 +18,13 @@ def pytest_configure(config):
         os.environ['ROS_DOMAIN_ID'] = str(40 + n)
 
 
+def pytest_collection_modifyitems(config, items):
+    """Files holding a test marked slow run first (their order kept), so that on parallel workers the long ones do
+    not end the run alone."""
+    slow_files = {item.path for item in items if item.get_closest_marker('slow')}
+    items.sort(key=lambda item: item.path not in slow_files)
+
+
 @pytest.fixture(autouse=True)
 def _python_logging_released():
     """After each test, Python logging no longer forwards to a node an in-process test built (ros_common)."""

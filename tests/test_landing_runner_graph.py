@@ -13,6 +13,7 @@ from assist_sim.testing import free_udp_port
 pytestmark = pytest.mark.graph
 
 
+@pytest.mark.slow
 def test_runner_flies_two_episodes_on_the_mavlink_vehicle(ros, start_node, wait, tmp_path):
     port = free_udp_port()
     start_node('sim_node', {'mavlink_url': f'udpout:127.0.0.1:{port}', 'camera_rate_hz': 0.0, 'seed': 7,

@@ -95,7 +95,8 @@ def _first(args: list[str], opt: str, fallback: str | None) -> list[str]:
 def budget(program: str, args: list[str]) -> list[str]:
     """The documented arguments with the long budgets cut to a test's."""
     if program == 'evaluate' and '--from-csv' not in args:
-        return _cap(_first(_set(args, '--landings', '1'), '--betas', '0.5'), '--max-episode-s', 4)
+        args = _cap(_first(_set(args, '--landings', '1'), '--betas', '0.5'), '--max-episode-s', 4)
+        return _set(args, '--workers', '1') if '--workers' in args else args     # a few landings: no worker processes
     if program == 'evaluate_graph':
         args = _cap(_first(_set(args, '--landings', '1'), '--betas', '0.5'), '--max-episode-s', 4)
         conditions = _values(args, '--conditions')
@@ -106,6 +107,7 @@ def budget(program: str, args: list[str]) -> list[str]:
                           ('--eval-episodes-per-beta', 1), ('--buffer-size', 5000), ('--max-episode-s', 4)):
             args = _cap(args, opt, most,
                         default_when_absent=opt in ('--total-steps', '--max-episode-s', '--eval-episodes-per-beta'))
+        args = _set(args, '--workers', '1') if '--workers' in args else args   # no pool (the lab's tests fly one)
         return _cap(args, '--dagger-rounds', 1, default_when_absent=False)
     if program == 'simulate_study':
         for opt, value in (('--participants', '1'), ('--landings-per-block', '1'), ('--practice', '0'),

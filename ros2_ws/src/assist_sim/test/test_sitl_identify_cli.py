@@ -21,7 +21,7 @@ def run_main(argv, capsys):
     (['--out', 'x', '--sequences', 'step_x_pos,nope'], 'unknown nope'),
     (['--out', 'x', '--sequences', 'step_x_pos,step_x_pos'], 'twice'),
     (['--out', 'x', '--altitude-m', '0.5'], '--altitude-m must be >= 1.5'),
-    (['--out', 'x', '--altitude-m', 'nan'], '--altitude-m must be a finite number'),
+    (['--out', 'x', '--altitude-m', 'nan'], "--altitude-m: not a finite number: 'nan'"),
     (['--out', 'x', '--json-port', '70000'], '--json-port must be <= 65535'),
     (['--out', 'x', '--command-hz', '50', '--log-hz', '20'], '--log-hz must be >= --command-hz'),
 ])
