@@ -12,11 +12,12 @@ PKG_INPUTS := $(foreach p,$(PKGS),ros2_ws/src/$(p)/setup.py ros2_ws/src/$(p)/set
 export ROS_DOMAIN_ID ?= 42
 export RMW_IMPLEMENTATION ?= rmw_fastrtps_cpp
 
-.PHONY: venv demo test lint bench soak colcon clean help browser netns
+.PHONY: venv demo test test-scale lint bench soak colcon clean help browser netns
 
 help:
 	@echo "make demo   - run the simulated landing demo (creates .venv)"
 	@echo "make test   - lint, then run the test suite (creates .venv)"
+	@echo "make test-scale - the scale and stress checks (several landings in one graph, a starved CPU); CI runs them too"
 	@echo "make lint   - the style gate: ruff check with ruff.toml"
 	@echo "make bench  - print the benchmark table"
 	@echo "make soak   - soak test: full assisted graph, 30 min sim time (ASSIST_SOAK_SIM_S=seconds to change)"
@@ -53,9 +54,13 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 
 # Two worker processes (TEST_WORKERS), a test file per worker at a time; each worker has its own DDS domains.
+# The scale and stress checks (marker `scale`) have their own target; .ci/run runs both.
 TEST_WORKERS ?= 2
 test: $(STAMP) browser netns lint
-	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile
+	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile -m "not scale"
+
+test-scale: $(STAMP)
+	$(PY) -m pytest -p no:cacheprovider -m scale
 
 bench: $(STAMP)
 	$(PY) -m bench

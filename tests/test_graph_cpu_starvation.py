@@ -35,7 +35,7 @@ HOG_LIMIT_S = 500.0     # each stops by itself after this long (the test stops t
 LATE_S = 0.8            # sim seconds each pilot command is held back (> pilot_timeout_s 0.5, < its max latency 2)
 RAW = '/pilot/cmd_vel_raw'
 
-pytestmark = [pytest.mark.graph, pytest.mark.slow,
+pytestmark = [pytest.mark.graph, pytest.mark.slow, pytest.mark.scale,
               pytest.mark.skipif(not all(m.is_file() for m in MODELS), reason='shipped latent models missing')]
 
 

@@ -46,6 +46,7 @@ def started_pids(monkeypatch):
 
 
 @pytest.mark.slow
+@pytest.mark.scale
 @pytest.mark.timeout(420)
 def test_five_consecutive_assisted_landings_through_the_graph(domain_id, tmp_path, started_pids):
     betas = (0.6, 0.7, 0.8, 0.9, 1.0)
