@@ -130,6 +130,13 @@ def _has_ended(process: multiprocessing.process.BaseProcess) -> bool:
         return True
 
 
+def any_worker_ended(pool: ProcessPoolExecutor) -> bool:
+    """Whether one of `pool`'s worker processes has ended, read from the processes themselves: a worker killed while
+    it writes a result can leave the executor's own manager thread waiting for the rest of that message, so the
+    pool would never say it is broken."""
+    return any(_has_ended(p) for p in list((getattr(pool, '_processes', None) or {}).values()))
+
+
 def worker_died(pool: ProcessPoolExecutor) -> str:
     """'a worker process died (pid N, killed by SIGKILL)': which of `pool`'s workers ended and how, as far as the
     pool still knows (call before it is shut down)."""
@@ -189,10 +196,13 @@ def completed_in_turn(futures: Iterable[Future]) -> Iterator[Future]:
         yield from done
 
 
-def result_of(future: Future):
-    """future.result(), waking every WAIT_POLL_S so that a Ctrl-C is raised at once (see completed_in_turn)."""
+def result_of(future: Future, pool: ProcessPoolExecutor | None = None):
+    """future.result(), waking every WAIT_POLL_S so that a Ctrl-C is raised at once (see completed_in_turn);
+    BrokenProcessPool as soon as one of `pool`'s workers has ended (any_worker_ended)."""
     while not future.done():
         wait([future], timeout=WAIT_POLL_S)
+        if pool is not None and not future.done() and any_worker_ended(pool):
+            raise BrokenProcessPool('a worker process ended')
     return future.result()
 
 
@@ -312,6 +322,7 @@ class WorkerPool:
         self._ray = connect_ray(ray_address) if ray_address else None
         self.workers = workers or (ray_cpus(self._ray) if self._ray else cpu_cores())
         self._next = 0
+        self._broken = False
         if self._ray is not None:
             remote = self._ray.remote(num_cpus=1)(_Hosted)
             self._actors = [remote.remote(make) for _ in range(self.workers)]
@@ -343,8 +354,9 @@ class WorkerPool:
         """What the task `handle` names returned, once done (its exception is raised here)."""
         if isinstance(handle, Future):
             try:
-                return result_of(handle)
+                return result_of(handle, self._pool)
             except BrokenProcessPool:
+                self._broken = True
                 raise WorkerDied(worker_died(self._pool)) from None
         from ray.exceptions import RayTaskError
         try:
@@ -356,7 +368,13 @@ class WorkerPool:
         """The handles in the order their tasks finish (a Ctrl-C is raised within WAIT_POLL_S)."""
         handles = list(handles)
         if self._pool is not None:
-            yield from completed_in_turn(handles)
+            pending = set(handles)
+            while pending:
+                done, pending = wait(pending, timeout=WAIT_POLL_S, return_when=FIRST_COMPLETED)
+                yield from done
+                if pending and not done and any_worker_ended(self._pool):
+                    self._broken = True
+                    raise WorkerDied(worker_died(self._pool))
             return
         pending = list(handles)
         while pending:
@@ -382,9 +400,24 @@ class WorkerPool:
                 self.cancel(handle)
 
     def close(self) -> None:
-        """Stop the workers (tasks not started are dropped)."""
+        """Stop the workers (tasks not started are dropped; after a worker died, the others are ended too)."""
         if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
+            if self._broken or any_worker_ended(self._pool):
+                procs = list((getattr(self._pool, '_processes', None) or {}).values())
+                writer = getattr(getattr(self._pool, '_result_queue', None), '_writer', None)
+                self._pool.shutdown(wait=False, cancel_futures=True)      # (drops the executor's references)
+                for proc in procs:
+                    if not _has_ended(proc):
+                        proc.terminate()
+                for proc in procs:
+                    proc.join(EXIT_STATUS_WAIT_S)
+                # With every worker gone, this process holds the last write end of the results pipe: closing it
+                # ends (EOF) a read the executor's manager thread may be stuck in, on a result a killed worker
+                # cut short, so the thread ends and the interpreter can exit.
+                if writer is not None:
+                    writer.close()
+            else:
+                self._pool.shutdown(wait=True, cancel_futures=True)
         else:
             for actor in self._actors:
                 self._ray.kill(actor)

@@ -1,5 +1,9 @@
 """Training landings on env workers (assist_lab.collect): what a pool of workers flies, and train_td3 on it."""
 import csv
+import functools
+import os
+import signal
+import time
 
 import numpy as np
 import pytest
@@ -7,6 +11,7 @@ import torch
 
 from assist_lab.collect import (ActorWeights, LandingPool, LandingTask, LandingWorker, collect_demos,
                                    make_env)
+from assist_lab.cluster import WorkerDied, WorkerPool
 from assist_lab.env import EnvConfig
 from assist_lab.td3 import TD3, ReplayBuffer, TD3Config, load_actor
 from assist_lab.train import TrainArgs, evaluate_agent, load_checkpoint, main, resumed_args, train
@@ -275,3 +280,30 @@ print(resource_sharer._resource_sharer._listener is None, same)
     out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.split() == ['True', 'True'], out.stdout
+
+
+def test_a_worker_killed_while_it_writes_a_result_is_one_error_and_the_pool_still_closes():
+    """A worker SIGKILLed in the middle of sending its result leaves the executor's manager thread waiting for the
+    rest of that message, so the executor itself never says it is broken: the pool sees the process end, raises
+    WorkerDied at once, and its close() ends that thread (the program can exit)."""
+    import struct
+    import types
+    pool = WorkerPool(functools.partial(types.SimpleNamespace, fly=time.sleep), 2)
+    try:
+        handle = pool.submit(60.0)
+        deadline = time.monotonic() + 60
+        while not pool._pool._processes and time.monotonic() < deadline:      # the executor starts them lazily
+            time.sleep(0.05)
+        manager = pool._pool._executor_manager_thread
+        writer = pool._pool._result_queue._writer
+        os.write(writer.fileno(), struct.pack('!i', 1_000_000) + b'x' * 10)      # a result cut short
+        time.sleep(0.5)
+        os.kill(next(iter(pool._pool._processes)), signal.SIGKILL)
+        t0 = time.monotonic()
+        with pytest.raises(WorkerDied, match=r'a worker process died \(pid \d+, killed by SIGKILL\)'):
+            pool.result(handle)
+        assert time.monotonic() - t0 < 10
+    finally:
+        pool.close()
+    manager.join(10)
+    assert not manager.is_alive()
