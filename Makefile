@@ -17,7 +17,7 @@ export RMW_IMPLEMENTATION ?= rmw_fastrtps_cpp
 help:
 	@echo "make demo   - run the simulated landing demo (creates .venv)"
 	@echo "make test   - lint, then run the test suite (creates .venv)"
-	@echo "make test-scale - the scale and stress checks (several landings in one graph, a starved CPU); CI runs them too"
+	@echo "make test-scale - the scale and stress checks (several landings in one graph, a starved CPU); CI runs them after make test"
 	@echo "make lint   - the style gate: ruff check with ruff.toml"
 	@echo "make bench  - print the benchmark table"
 	@echo "make soak   - soak test: full assisted graph, 30 min sim time (ASSIST_SOAK_SIM_S=seconds to change)"

@@ -14,6 +14,7 @@ pytestmark = pytest.mark.graph
 
 
 @pytest.mark.slow
+@pytest.mark.scale
 def test_runner_flies_two_episodes_on_the_mavlink_vehicle(ros, start_node, wait, tmp_path):
     port = free_udp_port()
     start_node('sim_node', {'mavlink_url': f'udpout:127.0.0.1:{port}', 'camera_rate_hz': 0.0, 'seed': 7,
