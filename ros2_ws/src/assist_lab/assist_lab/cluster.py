@@ -183,8 +183,9 @@ def ignore_ctrl_c() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-def completed_in_turn(futures: Iterable[Future]) -> Iterator[Future]:
-    """concurrent.futures.as_completed, waking every WAIT_POLL_S.
+def completed_in_turn(futures: Iterable[Future], pool: ProcessPoolExecutor | None = None) -> Iterator[Future]:
+    """concurrent.futures.as_completed, waking every WAIT_POLL_S; BrokenProcessPool as soon as one of `pool`'s
+    workers has ended while none of the futures left finished (any_worker_ended).
 
     The kernel hands a process-wide SIGINT to any thread that does not block it (the pool's own), and
     Python runs the handler on the main thread at its next bytecode: an untimed wait slept through a
@@ -194,6 +195,8 @@ def completed_in_turn(futures: Iterable[Future]) -> Iterator[Future]:
     while pending:
         done, pending = wait(pending, timeout=WAIT_POLL_S, return_when=FIRST_COMPLETED)
         yield from done
+        if pool is not None and pending and not done and any_worker_ended(pool):
+            raise BrokenProcessPool('a worker process ended')
 
 
 def result_of(future: Future, pool: ProcessPoolExecutor | None = None):
@@ -322,7 +325,6 @@ class WorkerPool:
         self._ray = connect_ray(ray_address) if ray_address else None
         self.workers = workers or (ray_cpus(self._ray) if self._ray else cpu_cores())
         self._next = 0
-        self._broken = False
         if self._ray is not None:
             remote = self._ray.remote(num_cpus=1)(_Hosted)
             self._actors = [remote.remote(make) for _ in range(self.workers)]
@@ -356,7 +358,6 @@ class WorkerPool:
             try:
                 return result_of(handle, self._pool)
             except BrokenProcessPool:
-                self._broken = True
                 raise WorkerDied(worker_died(self._pool)) from None
         from ray.exceptions import RayTaskError
         try:
@@ -368,13 +369,10 @@ class WorkerPool:
         """The handles in the order their tasks finish (a Ctrl-C is raised within WAIT_POLL_S)."""
         handles = list(handles)
         if self._pool is not None:
-            pending = set(handles)
-            while pending:
-                done, pending = wait(pending, timeout=WAIT_POLL_S, return_when=FIRST_COMPLETED)
-                yield from done
-                if pending and not done and any_worker_ended(self._pool):
-                    self._broken = True
-                    raise WorkerDied(worker_died(self._pool))
+            try:
+                yield from completed_in_turn(handles, self._pool)
+            except BrokenProcessPool:
+                raise WorkerDied(worker_died(self._pool)) from None
             return
         pending = list(handles)
         while pending:
@@ -402,7 +400,7 @@ class WorkerPool:
     def close(self) -> None:
         """Stop the workers (tasks not started are dropped; after a worker died, the others are ended too)."""
         if self._pool is not None:
-            if self._broken or any_worker_ended(self._pool):
+            if any_worker_ended(self._pool):             # (a dead worker stays ended: nothing to remember)
                 procs = list((getattr(self._pool, '_processes', None) or {}).values())
                 writer = getattr(getattr(self._pool, '_result_queue', None), '_writer', None)
                 self._pool.shutdown(wait=False, cancel_futures=True)      # (drops the executor's references)
