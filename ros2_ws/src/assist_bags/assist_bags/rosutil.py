@@ -12,7 +12,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 
-from assist_common.ros_common import HELP_FLAGS, VERSION_FLAG, Param, node_help, package_version
+from assist_common.ros_common import HELP_FLAGS, VERSION_FLAG, Param, node_help, version_text
 
 
 def message_class(msgtype: str) -> Any | None:
@@ -77,8 +77,7 @@ def cli_to_ros_args(prog: str, description: str, params: Mapping[str, Param], ar
         sys.stdout.write(node_help(prog, summary, params) + '\n' + flags + '\n')
         raise SystemExit(0)
     if VERSION_FLAG in argv:
-        package = __name__.split('.')[0]
-        sys.stdout.write(f'{prog} ({package}) {package_version(package)}\n')
+        sys.stdout.write(version_text(prog, __name__.split('.')[0]))
         raise SystemExit(0)
     parser = argparse.ArgumentParser(prog=prog, description=description,
                                      formatter_class=argparse.RawDescriptionHelpFormatter,

@@ -691,6 +691,11 @@ def console_request(factory: Callable[[], Node], args: list[str] | None,
     if any(a in HELP_FLAGS for a in own):
         doc = (getattr(sys.modules.get(module), '__doc__', None) or '').strip()
         return node_help(prog, doc.splitlines()[0] if doc else '', params)
+    return version_text(prog, package)
+
+
+def version_text(prog: str, package: str) -> str:
+    """The --version answer of executable `prog` of `package`: 'prog (package) version'."""
     return f'{prog} ({package}) {package_version(package)}\n'
 
 
