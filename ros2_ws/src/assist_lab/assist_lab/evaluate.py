@@ -518,7 +518,6 @@ class LandingFlyer:
     """Flies landings in this process: one env and assistant per condition, made on its first landing."""
 
     def __init__(self, args: EvalArgs) -> None:
-        torch.set_num_threads(1)        # one torch thread: the workers are the parallelism
         self.args = args
         self.made: dict[str, tuple] = {}
 
@@ -545,6 +544,12 @@ class LandingFlyer:
         for env, _ in self.made.values():
             env.close()
         self.made.clear()
+
+
+def worker_flyer(args: EvalArgs) -> LandingFlyer:
+    """A pool worker's flyer: one torch thread in the worker process (the workers are the parallelism)."""
+    torch.set_num_threads(1)
+    return LandingFlyer(args)
 
 
 # A worker process spends ~5 s importing torch and building its envs (about three landings' worth): with
@@ -602,7 +607,7 @@ def fly_plan(args: EvalArgs, results: LandingLog) -> dict[str, list[dict]]:
                 finally:
                     flyer.close()
             elif todo:
-                with WorkerPool(functools.partial(LandingFlyer, args), 0 if args.ray else workers, args.ray) as pool:
+                with WorkerPool(functools.partial(worker_flyer, args), 0 if args.ray else workers, args.ray) as pool:
                     handles = {pool.submit(t): t for t in todo}
                     try:
                         for handle in pool.completed(handles):
