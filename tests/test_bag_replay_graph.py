@@ -24,7 +24,7 @@ from geometry_msgs.msg import TwistStamped
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 
-from assist_bags.bagio import PARAMS_KEY, BagReader
+from assist_bags.bagio import PARAMS_KEY, BagReader, BagWriter
 from assist_bags.replay import ReplayConfig, pair_latents, replay, summarize
 
 pytestmark = pytest.mark.graph
@@ -156,5 +156,44 @@ def test_replay_takes_the_mode_from_the_bag(graph_bag, tmp_path):
 
 
 def test_pair_latents_matches_each_latent_with_its_pad_estimate():
-    events = [('L', 0), ('P', 100), ('P', 150), ('L', 1), ('L', 2), ('L', 3), ('P', 300)]
-    assert pair_latents(events) == {0: 100, 1: 150, 3: 300}
+    # the recorder took two latents before their pad estimates: the pairing is not shifted by it
+    events = [('L', 0), ('P', 100), ('L', 1), ('L', 2), ('P', 150), ('P', 200), ('L', 3), ('P', 300)]
+    assert pair_latents(events) == {0: 100, 1: 150, 2: 200, 3: 300}
+    # the pad-estimate subscription matched two frames after the latent one
+    events = [('L', 0), ('L', 1), ('L', 2), ('P', 200), ('L', 3), ('P', 300)]
+    assert pair_latents(events) == {2: 200, 3: 300}
+    # one pad estimate lost mid-flight: its latent is left out, the pairing on either side stays right
+    events = [e for k in range(60) for e in (('L', k), ('P', 1000 + k)) if e != ('P', 1030)]
+    assert pair_latents(events) == {k: 1000 + k for k in range(60) if k != 30}
+    assert pair_latents([('L', 0), ('L', 1)]) == {}
+
+
+def _reordered(src: Path, dst: Path) -> Path:
+    """A copy of bag `src` in which the n-th /assist/pad_estimate is recorded right after the (n+1)-th
+    /assist/latent: the order a recorder gives when it takes the latent topic one frame ahead of the pad estimates."""
+    with BagReader(src) as r:
+        rows = list(r.messages())
+        infos = dict(r.topics)
+        custom = dict(r.metadata['custom_data'] or {})
+    pads = [raw for topic, _, raw in rows if topic == '/assist/pad_estimate']
+    out = [m for m in rows if m[0] != '/assist/pad_estimate']
+    latent_times = [t for topic, t, _ in out if topic == '/assist/latent']
+    end = max(t for _, t, _ in rows)
+    for n, raw in enumerate(pads):
+        out.append(('/assist/pad_estimate', latent_times[n + 1] + 1 if n + 1 < len(latent_times) else end + 1 + n, raw))
+    with BagWriter(dst) as w:
+        for name, info in infos.items():
+            w.add_topic(name, info.msgtype, info.qos)
+        for key, value in custom.items():
+            w.set_custom_data(key, value)
+        for topic, t, raw in sorted(out, key=lambda m: m[1]):
+            w.write(topic, t, raw)
+    return dst
+
+
+def test_replay_finds_each_latents_frame_when_the_recorder_took_latents_a_frame_ahead(graph_bag, tmp_path):
+    bag = _reordered(graph_bag, tmp_path / 'ahead')
+    s = summarize(replay(bag, ReplayConfig()))
+    assert s['latent_frames_realigned'] > 20
+    assert s['latent_frames_rejected'] == 0 and s['latent_frames_missing'] <= 3
+    assert s['latent']['max'] < 1e-4

@@ -27,7 +27,9 @@ What flew, and where replay learns it (--mode/--actor/--encoder/--floor-guard/..
   (warned), and frames are encoded without noise.
 Graph bags are replayed as the graph ran, not as evaluate's env does: each recorded /assist/latent is
 re-encoded from the frame it came from (paired through the /assist/pad_estimate published right after it,
-which carries the frame's stamp) and reaches the core when the recorded latent did, so frames the encoder
+which carries the frame's stamp: `pair_latents`; where the recorder took one of the two topics a frame ahead of
+the other, the neighbouring frame whose latent is the recorded one is taken, and counted as
+latent_frames_realigned) and reaches the core when the recorded latent did, so frames the encoder
 dropped or rejected are left out as they were; each step runs on policy_node's clock at that step (its
 /cmd_vel stamp); recorded /assist/agent_cmd messages are paired with their step by header stamp. policy_node
 does not publish which pilot command a step had, and the pilot's messages race with the steps; the step's
@@ -51,6 +53,7 @@ import logging
 import math
 import os
 import sys
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -68,7 +71,9 @@ log = logging.getLogger(__name__)
 RGB, DEPTH, ODOM, PILOT = '/camera/color/image_raw', '/camera/depth/image_raw', '/odom', '/pilot/cmd_vel'
 LATENT, AGENT, CMD, GOAL = '/assist/latent', '/assist/agent_cmd', '/cmd_vel', '/sim/goal'
 PAD, DIAG, LANDED = '/assist/pad_estimate', '/diagnostics', '/uav/landed_state'
+PAIR_WINDOW = 25           # latents either side whose neighbours vote on the latent/pad-estimate offset
 FRAME_MEMORY = 40          # recent camera frames kept for the latents that follow them (2 s at 20 Hz)
+LATENT_MATCH = 1e-3        # a re-encoded latent this close (max abs) to a recorded one encodes the same frame
 SAME_CLOCK_NS = 1_000_000_000   # a /cmd_vel stamp this close to its receive time is on the recorder's clock
 MAX_RATE_HZ = 1000.0            # --rate-hz limit (policy_node runs at most 200 Hz)
 MAX_STEPS = 1_000_000           # steps at --rate-hz that one gap between messages may take (14 h at 20 Hz)
@@ -155,19 +160,43 @@ def diagnostics_mode(r: BagReader) -> str | None:
     return None
 
 
-def pair_latents(events: list[tuple[str, int]]) -> dict[int, int]:
+def pair_latents(events: list[tuple[str, int]], window: int = PAIR_WINDOW) -> dict[int, int]:
     """Recorded latent index -> stamp (ns) of the frame it encodes, from the bag's order of /assist/latent ('L',
-    index) and /assist/pad_estimate ('P', stamp) messages: encoder_node publishes a frame's pad estimate (stamped
-    with the frame) right after its latent, so the two are neighbours; a latent without one is left out."""
-    out: dict[int, tuple[np.ndarray, str]] = {}
-    prev: tuple[str, int] | None = None
-    for ev in events:
-        if prev is not None and prev[0] != ev[0]:
-            k, stamp = (prev[1], ev[1]) if prev[0] == 'L' else (ev[1], prev[1])
-            out[k] = stamp
-            prev = None
-        else:
-            prev = ev
+    index) and /assist/pad_estimate ('P', stamp) messages.
+
+    encoder_node publishes a frame's pad estimate (stamped with the frame) right after its latent, so each topic's
+    messages are in frame order and the n-th latent goes with the n-th pad estimate, up to an offset: where the
+    recorder's two subscriptions started (or lost a message) apart. The offset is read from the latents followed by
+    a pad estimate in the bag, by majority over the `window` latents either side, so a burst in which the recorder
+    took two latents before their pad estimates (L L P P) does not shift the pairing. A pad estimate
+    goes with one latent at most; a latent without one is left out."""
+    pads = [stamp for kind, stamp in events if kind == 'P']
+    latents = [k for kind, k in events if kind == 'L']
+    votes: list[tuple[int, int]] = []          # (latent index, pad index - latent index) of a latent then a pad
+    n_pad = 0
+    for (kind, v), (nxt, _) in zip(events, events[1:]):
+        if kind == 'P':
+            n_pad += 1
+        elif nxt == 'P':
+            votes.append((v, n_pad - v))
+    if not votes:
+        return {}
+    out: dict[int, int] = {}
+    used: set[int] = set()
+    lo = 0
+    for k in latents:
+        while lo < len(votes) and votes[lo][0] < k - window:
+            lo += 1
+        near = [(abs(kv - k), o) for kv, o in votes[lo:lo + 2 * window + 1] if kv <= k + window]   # one per latent
+        if not near:
+            continue
+        tally = Counter(off for _, off in near)
+        top = max(tally.values())
+        off = min((d, o) for d, o in near if tally[o] == top)[1]   # a tie: the offset of the nearest neighbours
+        j = k + off
+        if 0 <= j < len(pads) and j not in used:
+            used.add(j)
+            out[k] = pads[j]
     return out
 
 
@@ -348,6 +377,8 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
         # graph bags: re-encode the frame each recorded latent came from, at the time it reached the policy
         at_latents = (encode is not None and not condition and LATENT in r.topics and r.topics[LATENT].count > 0)
         frame_of: dict[int, int] = {}
+        pads: list[int] = []
+        pad_index: dict[int, int] = {}
         if at_latents:
             events: list[tuple[str, int]] = []
             n_events = 0
@@ -358,6 +389,8 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
                 else:
                     events.append(('P', msgs.stamp_ns(r.deserialize(raw, PAD).header.stamp)))
             frame_of = pair_latents(events)
+            pads = [stamp for kind, stamp in events if kind == 'P']
+            pad_index = {stamp: j for j, stamp in enumerate(pads)}
         ticks_from_bag = CMD in r.topics and r.topics[CMD].count > 0
         if cfg.align_pilot not in ('auto', 'on', 'off'):
             raise ValueError(f'align-pilot must be auto, on or off, got {cfg.align_pilot!r}')
@@ -370,7 +403,8 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
         last_frame: int | None = None
         start = r.start_ns
         slop_ns = int(float(ep.get('sync_slop_s', 0.02)) * 1e9)
-        counts = {'latent_frames_missing': 0, 'latent_frames_rejected': 0, 'pilot_aligned': 0}
+        counts = {'latent_frames_missing': 0, 'latent_frames_rejected': 0, 'latent_frames_realigned': 0,
+                  'pilot_aligned': 0}
         res.info = {'bag': str(bag), 'mode': mode, 'mode_from': mode_from, 'actor': str(actor),
                     'latent_source': use_latent if mode == 'latent' else None,
                     'encoder': (encoder_path or 'shipped') if encode else None, 'velocity_frame': frame,
@@ -403,30 +437,62 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
             if latent_id is not None:
                 res.step_latent[i] = latent_id
 
-        def encode_frame(stamp: int) -> np.ndarray | None:
+        def encode_frame(stamp: int, count: bool = True) -> np.ndarray | None:
             """The re-encoded latent of the frame stamped `stamp` (None: frame not in the bag or rejected)."""
             rgb, depth = frames.get(stamp, (None, None))
             if rgb is None or depth is None:
-                counts['latent_frames_missing'] += 1
+                counts['latent_frames_missing'] += count
                 return None
             rejected = encode.rejected
             mu = np.asarray(encode(rgb, depth, stamp_ns=stamp) if frame_noise else encode(rgb, depth), dtype=float)
             if encode.rejected != rejected and not condition:   # encoder_node publishes nothing for such a frame
-                counts['latent_frames_rejected'] += 1           # (evaluate's env repeats the last latent: as it flew)
+                counts['latent_frames_rejected'] += count       # (evaluate's env repeats the last latent: as it flew)
                 return None
             return mu
 
         waiting: dict[int, list[int]] = {}     # frame stamp -> recorded latents received before the frame
+        # frame stamp -> (recorded latent, the latent of the frame it was paired with) that wait for a neighbouring
+        # frame still on its way, which may be the one it encodes
+        maybe: dict[int, list[tuple[int, np.ndarray]]] = {}
+
+        def use_latent(k: int, mu: np.ndarray, t: int, now: float) -> None:
+            """Hand re-encoded latent k to the core at bag time `t`."""
+            nonlocal latent_id
+            res.latents[k] = mu
+            res.latent_times[k] = t
+            core.set_latent(now, mu)
+            latent_id = k
+
+        def is_recorded(mu: np.ndarray | None, k: int) -> bool:
+            """Whether `mu` is recorded latent k (the same frame through the same encoder)."""
+            rec = res.rec_latent[k]
+            return mu is not None and rec.shape == mu.shape and float(np.max(np.abs(mu - rec))) <= LATENT_MATCH
 
         def apply_latent(k: int, stamp: int, t: int, now: float) -> None:
-            """Re-encode recorded latent k's frame and hand it to the core at bag time `t`."""
-            nonlocal latent_id
+            """Re-encode recorded latent k's frame and hand it to the core at bag time `t`.
+
+            Where the frame paired by bag order does not give the recorded latent and the next or previous pad
+            estimate's frame does (the recorder took one topic's messages a frame ahead of the other's), that frame
+            is the one encoded; a neighbour still on its way is waited for."""
             mu = encode_frame(stamp)
-            if mu is not None:
-                res.latents[k] = mu
-                res.latent_times[k] = t
-                core.set_latent(now, mu)
-                latent_id = k
+            if mu is None:
+                return
+            j = pad_index.get(stamp)
+            if is_recorded(mu, k) or j is None or res.rec_latent[k].shape != mu.shape:
+                use_latent(k, mu, t, now)
+                return
+            for alt in (pads[i] for i in (j + 1, j - 1) if 0 <= i < len(pads)):
+                rgb, depth = frames.get(alt, (None, None))
+                if rgb is not None and depth is not None:
+                    other = encode_frame(alt, count=False)
+                    if is_recorded(other, k):
+                        counts['latent_frames_realigned'] += 1
+                        use_latent(k, other, t, now)
+                        return
+                elif alt > stamp:
+                    maybe.setdefault(alt, []).append((k, mu))
+                    return
+            use_latent(k, mu, t, now)
 
         try:
             for topic, t, raw in r.messages(used):
@@ -483,6 +549,10 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
                         if at_latents and rgb is not None and depth is not None:
                             for k in waiting.pop(st, []):     # latents the recorder got before their frame
                                 apply_latent(k, st, t, now)
+                            for k, mu in maybe.pop(st, []):
+                                other = encode_frame(st, count=False)
+                                counts['latent_frames_realigned'] += is_recorded(other, k)
+                                use_latent(k, other if is_recorded(other, k) else mu, t, now)
                         if encode is not None and not at_latents and rgb is not None and depth is not None:
                             mu = encode_frame(st)              # every frame, once it is complete
                             if mu is not None:
@@ -534,6 +604,9 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
     if not res.times_ns:
         raise BagError(f'{bag}: no policy step could be replayed (no inputs in the bag)')
     counts['latent_frames_missing'] += sum(len(ks) for ks in waiting.values())
+    for pending in maybe.values():      # the bag ended before the neighbouring frame: the frame paired by order
+        for k, mu in pending:
+            res.latents[k] = mu
     # recorded agent_cmd -> the step whose /cmd_vel carries the same header stamp (policy_node stamps both alike)
     keys = cmd_stamps if ticks_from_bag else res.times_ns
     steps_of: dict[int, list[int]] = {}
