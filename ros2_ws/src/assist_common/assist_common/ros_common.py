@@ -191,6 +191,23 @@ def declare_parameters(node: Node, spec: Mapping[str, Param],
     return values
 
 
+def check_overrides(node: Node) -> None:
+    """StartupError (one line) when the node was given a parameter it does not declare (a misspelt name in a
+    parameter file or a ``-p``), naming the closest declared one: rclpy would otherwise ignore it silently."""
+    import difflib
+    given = node._parameter_overrides      # rclpy keeps a node's start-up overrides only here (no public getter)
+    unknown = sorted(name for name in given if not node.has_parameter(name))
+    if not unknown:
+        return
+    declared = sorted(node._parameters)
+    hints = []
+    for name in unknown:
+        close = difflib.get_close_matches(name, declared, n=1)
+        hints.append(f'{name!r}' + (f' (did you mean {close[0]!r}?)' if close else ''))
+    raise StartupError(f'{node.get_name()}: unknown parameter{"s" if len(unknown) > 1 else ""} {", ".join(hints)}; '
+                       'its --help lists the parameters')
+
+
 def stamp_to_sec(stamp) -> float:
     """builtin_interfaces/Time -> float seconds."""
     return float(stamp.sec) + 1e-9 * float(stamp.nanosec)
@@ -757,6 +774,7 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
     try:
         node = factory()
         handler.attach(node)
+        check_overrides(node)
         kind = executor or ('single' if num_threads <= 1 else 'multi')
         if node.has_parameter(EXECUTOR_PARAM):
             kind = node.get_parameter(EXECUTOR_PARAM).value
