@@ -82,6 +82,22 @@ def test_flags_after_ros_args_are_not_ours():
     assert console_request(factory, ['--version', '--ros-args'], {}).endswith('\n')
 
 
+def test_a_misspelt_parameter_is_refused_at_start_up_in_one_line(tmp_path):
+    """A parameter the node does not declare (from a parameter file or -p) ends the start-up with one line naming
+    it and the closest declared name, instead of being ignored."""
+    params = tmp_path / 'pilot.yaml'
+    params.write_text('sim_pilot_node:\n  ros__parameters:\n    bta: 0.9\n    alpha: 0.3\n')
+    env = dict(os.environ, ROS_DOMAIN_ID=str(private_domain_id()))
+    proc = subprocess.run([str(BIN / 'sim_pilot_node'), '--ros-args', '--params-file', str(params),
+                           '-p', 'rate_hz:=10.0', '-p', 'zz_unrelated:=1'],
+                          capture_output=True, text=True, timeout=60, env=env)
+    assert proc.returncode == 1, proc.stderr
+    errors = [line for line in proc.stderr.splitlines() if line.startswith('error:')]
+    assert errors == ["error: sim_pilot_node: unknown parameters 'bta' (did you mean 'beta'?), 'zz_unrelated'; "
+                      "its --help lists the parameters"], proc.stderr
+    assert 'Traceback' not in proc.stderr
+
+
 def console_scripts() -> dict[str, str]:
     """Every console script of the workspace's packages: name -> 'module:function' (from each setup.py)."""
     import re
