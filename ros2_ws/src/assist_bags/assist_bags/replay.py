@@ -63,7 +63,7 @@ from . import msgs
 from .bagio import (CONTRACT_TOPICS, DEPTH_NOISE_KEY, METADATA, PARAMS_KEY, VELOCITY_FRAME_KEY, BagError, BagReader,
                     BagWriter, check_output, publish_new)
 from assist_policy.blending import DEFAULT_THRESHOLD
-from assist_policy.observation import Condition
+from assist_policy.rules import rule
 from assist_policy.poses import header_seconds
 
 log = logging.getLogger(__name__)
@@ -98,11 +98,9 @@ class ReplayConfig:
     align_pilot: str = 'auto'          # on | off | auto (on for graph bags): see pilot_alignment
 
 
-# rule -> the flag evaluate adds to a condition's name when the rule flew (latent+guard+override+recall+damper)
-RULE_FLAGS = {'floor_guard': 'guard', 'override': 'override', 'recall': 'recall', 'damper': 'damper'}
-# rule -> policy_node's parameter that switches it (recorded by bag_record)
-RULE_PARAMS = {'floor_guard': 'floor_guard', 'override': 'pilot_override', 'recall': 'pad_recall',
-               'damper': 'oscillation_damper'}
+# replay option (ReplayConfig field, --option) -> the rule it switches (assist_policy.rules: evaluate's flag in a
+# condition's name, policy_node's switch recorded by bag_record)
+RULE_OPTIONS = {name: rule(name) for name in ('floor_guard', 'override', 'recall', 'damper')}
 # PolicyCoreConfig timeout -> policy_node's parameter
 TIMEOUT_PARAMS = {'pilot_timeout_s': 'pilot_timeout_s', 'feature_timeout_s': 'latent_timeout_s',
                   'odom_timeout_s': 'odom_timeout_s'}
@@ -115,17 +113,17 @@ def rules_on(cfg: ReplayConfig, condition: str, flags: list[str], mode: str = 'l
     recorded parameters (`flown`) say, else policy_node's defaults for `mode` (all on; in mode oracle only the floor
     guard)."""
     out = {}
-    for rule, flag in RULE_FLAGS.items():
-        v = getattr(cfg, rule)
+    for option, r in RULE_OPTIONS.items():
+        v = getattr(cfg, option)
         if v not in ('auto', 'on', 'off'):
-            raise ValueError(f"{rule.replace('_', '-')} must be auto, on or off, got {v!r}")
+            raise ValueError(f"{option.replace('_', '-')} must be auto, on or off, got {v!r}")
         if condition:
-            default = flag in flags
-        elif flown is not None and isinstance(flown.get(RULE_PARAMS[rule]), bool):
-            default = flown[RULE_PARAMS[rule]]
+            default = r.flag in flags
+        elif flown is not None and isinstance(flown.get(r.switch), bool):
+            default = flown[r.switch]
         else:
-            default = rule == 'floor_guard' or not Condition(mode).knows_goal
-        out[rule] = v == 'on' or (v == 'auto' and default)
+            default = r.default_on(mode)
+        out[option] = v == 'on' or (v == 'auto' and default)
     return out
 
 
@@ -347,7 +345,7 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
         actor = Path(_model(cfg.actor, policy_params, 'the actor') or default_model_path(mode))
         # every setting policy_node flew with (graph bags), through the same table policy_node builds its core
         # with; the rule switches, threshold and timeouts as decided above
-        flown = {**pp, **{RULE_PARAMS[rule]: on for rule, on in rules.items()}, 'blend_threshold': threshold,
+        flown = {**pp, **{RULE_OPTIONS[o].switch: on for o, on in rules.items()}, 'blend_threshold': threshold,
                  **{TIMEOUT_PARAMS[f]: v for f, v in timeouts.items()}}
         try:
             core_cfg = settings.config_from(PolicyCoreConfig, flown, mode=mode, actor_velocity=frame)

@@ -5,8 +5,8 @@ One step = one control period of the world (1/control_hz s):
      action in [-1, 1]^3, scaled to a velocity a_t (``actions.scale_action``);
      the assistant's non-learned stages then act on it in their one order, the chain policy_node runs
      (``assistant.Assistant``: oscillation damper, pilot override, pad recall, blending, floor guard, wall
-     rule, speed clamp); a rule left None in EnvConfig (``safety``, ``override``, ``recall``, ``damper``) is
-     off; the flight monitor (``flight.FlightMonitor``) applies policy_node's flight boundaries (the odometry
+     rule, speed clamp); each rule (``assist_policy.rules.RULES``) is off unless EnvConfig switches it on;
+     the flight monitor (``flight.FlightMonitor``) applies policy_node's flight boundaries (the odometry
      rules: the simulation reports no landed state, and its camera evidence is not read);
   2. the vehicle flies V_t, the chain's command (within policy_node's speed limits when assisted; the
      unassisted pilot flies u_t as it is), with the world's turbulence;
@@ -28,7 +28,6 @@ landing never pays); trainers treat it as terminal.
 """
 from __future__ import annotations
 
-import dataclasses
 import logging
 from dataclasses import dataclass, field
 from typing import Any
@@ -48,12 +47,13 @@ from assist_sim.pilots import make_pilot
 from assist_policy.actions import DEFAULT_MAX_SPEED, scale_action
 from assist_policy.assistant import Assistant, AssistantConfig, DepthFrame, StepContext
 from assist_policy.blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS
-from assist_policy.damper import DamperConfig
 from assist_policy.flight import FlightConfig, FlightMonitor
 from assist_policy.observation import IMAGE_SHAPE, Condition, ObservationBuilder, image_feature, oracle_feature
 from assist_policy.override import OverrideConfig
 from assist_policy.recall import RecallConfig
+from assist_policy.rules import RULES, all_settings, rule, switched
 from assist_policy.safety import SafetyConfig
+from assist_policy.damper import DamperConfig
 from .episodes_plan import landing_plan
 
 log = logging.getLogger(__name__)
@@ -99,10 +99,12 @@ class EnvConfig:
     # dynamics scaled by uniform factors in [1 - spread, 1 + spread] (assist_sim.core.arducopter.randomised)
     arducopter_share: float = 0.0
     arducopter_spread: float = 0.0
-    safety: SafetyConfig | None = None               # floor guard on the blended command (None: off)
-    override: OverrideConfig | None = None           # pilot override on the agent action (None: off)
-    recall: RecallConfig | None = None               # pad recall on the agent action (None: off)
-    damper: DamperConfig | None = None               # oscillation damper on the agent action (None: off)
+    # the non-learned rules (assist_policy.rules.RULES), off unless switched on (`rules.switched`); None: the
+    # settings class's defaults, as everywhere
+    safety: SafetyConfig | None = field(default_factory=lambda: switched(rule('safety'), False))
+    override: OverrideConfig | None = field(default_factory=lambda: switched(rule('override'), False))
+    recall: RecallConfig | None = field(default_factory=lambda: switched(rule('recall'), False))
+    damper: DamperConfig | None = field(default_factory=lambda: switched(rule('damper'), False))
     flight: FlightConfig = field(default_factory=FlightConfig)   # flight boundaries (flight.FlightMonitor)
     reward: RewardConfig = field(default_factory=RewardConfig)
     pilot: PilotConfig = field(default_factory=PilotConfig)
@@ -277,10 +279,8 @@ class LandingAssistEnv(gym.Env):
         self._dist = d
         terminated = self.world.done
         truncated = (not terminated) and self.elapsed_s >= self.cfg.max_episode_s - 0.5 * self.dt
-        overridden, recalled = 'pilot_override' in acted, 'pad_recall' in acted
-        info: dict[str, Any] = {'active': active, 'guard': 'floor_guard' in acted, 'walls': 'wall_guard' in acted,
-                                'override': overridden, 'recall': recalled,
-                                'damper': 'oscillation_damper' in acted,
+        info: dict[str, Any] = {'active': active, 'walls': 'wall_guard' in acted,
+                                **{r.flag: r.switch in acted for r in RULES},      # guard, override, recall, damper
                                 'goal_estimate': self.pilot.goal_estimate.copy()}
         if terminated:
             res = self.world.result
@@ -315,12 +315,8 @@ class LandingAssistEnv(gym.Env):
 
 
 def assistant_config(cfg: EnvConfig) -> AssistantConfig:
-    """The assistant's settings for an env: a rule left None in `cfg` is off (its defaults, switched off)."""
-    def off(rule, default):
-        return rule if rule is not None else dataclasses.replace(default, enabled=False)
-    return AssistantConfig(cfg.blend_threshold, cfg.max_cmd_speed_mps, cfg.max_cmd_vertical_mps,
-                           off(cfg.safety, SafetyConfig()), off(cfg.override, OverrideConfig()),
-                           off(cfg.recall, RecallConfig()), off(cfg.damper, DamperConfig()))
+    """The assistant's settings for an env (its rules' settings as `cfg` holds them)."""
+    return AssistantConfig(cfg.blend_threshold, cfg.max_cmd_speed_mps, cfg.max_cmd_vertical_mps, **all_settings(cfg))
 
 
 def over_pad(pads, xy: np.ndarray, margin_m: float = 0.0) -> bool:
@@ -331,22 +327,20 @@ def over_pad(pads, xy: np.ndarray, margin_m: float = 0.0) -> bool:
 def run_episode(env: LandingAssistEnv, policy, seed: int, options: dict | None = None) -> dict:
     """Roll out one landing with `policy(obs) -> raw action` (None = unassisted); returns a summary."""
     obs, info = env.reset(seed=seed, options=options)
-    steps, active, guarded, walled, overridden, recalled, damped = 0, 0, 0, 0, 0, 0, 0
+    # step info key -> the summary's <name>_fraction: the assistant ran, the wall rule and each rule acted
+    counted = {'active': 'active', 'walls': 'wall', **{r.flag: r.flag for r in RULES}}
+    counts = dict.fromkeys(counted, 0)
+    steps = 0
     while True:
         act = np.zeros(3) if policy is None else policy(obs)
         obs, _, term, trunc, step_info = env.step(act)
         steps += 1
-        active += int(step_info['active'])
-        guarded += int(step_info.get('guard', False))
-        walled += int(step_info.get('walls', False))
-        overridden += int(step_info.get('override', False))
-        recalled += int(step_info.get('recall', False))
-        damped += int(step_info.get('damper', False))
+        for key in counted:
+            counts[key] += int(step_info.get(key, False))
         if term or trunc:
             break
     res = dict(step_info['result'])
     res.update(beta=info['beta'], alpha=info['alpha'], scene_seed=info['scene_seed'], steps=steps,
-               aimed_index=info['aimed_index'], pilot=info['pilot'], guard_fraction=guarded / steps,
-               wall_fraction=walled / steps, override_fraction=overridden / steps, recall_fraction=recalled / steps,
-               damper_fraction=damped / steps, active_fraction=active / steps, episode_return=env.episode_return)
+               aimed_index=info['aimed_index'], pilot=info['pilot'], episode_return=env.episode_return,
+               **{f'{name}_fraction': counts[key] / steps for key, name in counted.items()})
     return res

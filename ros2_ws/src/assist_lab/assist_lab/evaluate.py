@@ -63,8 +63,10 @@ import json
 import logging
 import sys
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -81,15 +83,11 @@ from assist_bags.bagio import BagError
 from .landing_bags import record_landing
 from .cluster import (DirectoryBusy, RayUnreachable, WorkerDied, WorkerPool, connect_ray, cpu_cores, hold_directory)
 from assist_common.settings import check_settings, parse_command, setting
-from assist_policy.damper import DamperConfig
 from .env import EnvConfig, LandingAssistEnv, run_episode
 from .episodes_plan import landing_seeds
 from assist_perception.latent import make_latent_fn
-from assist_policy.observation import Condition
 from assist_policy.policy_core import default_model_path
-from assist_policy.override import OverrideConfig
-from assist_policy.recall import RecallConfig
-from assist_policy.safety import SafetyConfig
+from assist_policy.rules import RULES, Rule, switched
 from assist_policy.scripted import LEAD_S, NEAREST_PAD_VARIANTS, ScriptedConfig, ScriptedOracle, make_nearest_pad
 from assist_policy.actor import load_actor
 
@@ -282,10 +280,17 @@ def write_landings(path: Path, rows_by_cond: dict[str, list[dict]]) -> None:
 
 
 def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: float, alpha: float,
-                pilot: str = 'paper', safety: SafetyConfig | None = None, override: OverrideConfig | None = None,
-                recall: RecallConfig | None = None, damper: DamperConfig | None = None,
+                pilot: str = 'paper', rules: Mapping[str, Any] | None = None,
                 flight_controller: str = 'ideal', world_config: str = ''):
-    """(env, policy) for one condition; policy(obs) -> raw action, None for unassisted (override etc.: learned only)."""
+    """(env, policy) for one condition; policy(obs) -> raw action, None for unassisted.
+
+    `rules`: the non-learned rules that fly, by settings field (assist_policy.rules.RULES) with their settings
+    (None: the defaults); the others are off, and the scripted references fly only the floor guard."""
+    given = dict(rules or {})
+    unknown = sorted(set(given) - {r.field for r in RULES})
+    if unknown:
+        raise ValueError(f'no rule(s) {unknown}: rules are {", ".join(r.field for r in RULES)}')
+    flying = {r.field: switched(r, True, given[r.field]) if r.field in given else switched(r, False) for r in RULES}
     world = WorldConfig.from_yaml(world_config) if world_config else WorldConfig()
     world.flight_controller = flight_controller
     if condition == 'unassisted':
@@ -293,7 +298,7 @@ def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: fl
                                           pilot_family=pilot, world=world)), None
     if condition in BASELINES:
         env = LandingAssistEnv(EnvConfig(condition='oracle', alpha=alpha, max_episode_s=max_episode_s,
-                                         pilot_family=pilot, safety=safety, world=world))
+                                         pilot_family=pilot, safety=flying['safety'], world=world))
         script = (ScriptedOracle() if condition == 'scripted_oracle' else
                   ScriptedOracle(ScriptedConfig(lead_s=LEAD_S)) if condition == 'scripted_oracle_lead' else
                   make_nearest_pad(condition[len('scripted_'):]))
@@ -302,8 +307,7 @@ def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: fl
     actor, meta = load_actor(path)
     cfg = EnvConfig(condition=condition, alpha=alpha, max_episode_s=max_episode_s,
                     max_speed=tuple(meta.get('max_speed', (1.0, 1.0, 0.6))),
-                    latent_dim=int(meta.get('latent_dim', 0)), pilot_family=pilot, safety=safety, override=override,
-                    recall=recall, damper=damper, world=world,
+                    latent_dim=int(meta.get('latent_dim', 0)), pilot_family=pilot, **flying, world=world,
                     feature_lags_s=tuple(meta['feature_lags_s']), memory_displacement=meta['memory_displacement'])
     if condition == 'latent':
         latent_fn, dim = make_latent_fn(encoder_path or None)
@@ -507,8 +511,7 @@ def plan_tasks(args: EvalArgs) -> list[PlannedLanding]:
     """Every landing of a run in the one-process order: condition, then beta, then landing (`landing_seeds`)."""
     tasks = []
     for cond in args.conditions:
-        on = {rule: rule_on(getattr(args, rule), cond) for rule in ('override', 'recall', 'damper')}
-        name = condition_name(cond, args.safety, on)
+        name = condition_name(cond, rules_flying(args, cond))
         tasks += [PlannedLanding(cond, name, beta, s)
                   for s, beta in landing_seeds(args.seed, args.betas, args.landings)]
     return tasks
@@ -526,13 +529,10 @@ class LandingFlyer:
         a = self.args
         if task.cond not in self.made:
             model = getattr(a, f'{task.cond}_model', '') if task.cond in CONDITIONS[1:] else ''
-            on = {rule: rule_on(getattr(a, rule), task.cond) for rule in ('override', 'recall', 'damper')}
-            self.made[task.cond] = make_policy(task.cond, model, a.encoder_path, a.max_episode_s, a.alpha, a.pilot,
-                                               SafetyConfig() if a.safety else None,
-                                               OverrideConfig() if on['override'] else None,
-                                               RecallConfig() if on['recall'] else None,
-                                               DamperConfig() if on['damper'] else None, a.flight_controller,
-                                               a.world_config)
+            flying = {r.field: None for r, on in rules_flying(a, task.cond).items() if on}
+            self.made[task.cond] = make_policy(task.cond, model, a.encoder_path, a.max_episode_s, a.alpha,
+                                               pilot=a.pilot, rules=flying, flight_controller=a.flight_controller,
+                                               world_config=a.world_config)
         env, policy = self.made[task.cond]
         row = (record_landing(run_landing, env, policy, task.seed, task.beta, task.name, a.record_dir)
                if a.record_dir else run_landing(env, policy, task.seed, task.beta))
@@ -653,19 +653,25 @@ def write_results(out: Path, rows_by_cond: dict[str, list[dict]], with_plot: boo
     return summary
 
 
-def condition_name(cond: str, safety: bool, on: dict[str, bool]) -> str:
-    """A condition's row name: cond, +guard when the floor guard flies with it, +<rule> for each rule in
-    `on` that flies."""
-    return (cond + ('+guard' if safety and cond != 'unassisted' else '')
-            + ''.join(f'+{rule}' for rule, flies in on.items() if flies))
+def condition_name(cond: str, flying: Mapping[Rule, bool]) -> str:
+    """A condition's row name: cond, then +<flag> for each rule that flies with it (registry order)."""
+    return cond + ''.join(f'+{r.flag}' for r, on in flying.items() if on)
 
 
-def rule_on(flag: bool | None, cond: str) -> bool:
-    """Whether a goal-agnostic rule (override, recall, damper) flies with `cond`: as asked for every learned assistant,
-    else (None) as policy_node's default for its mode: on for latent and end_to_end, off for the oracle."""
-    if cond not in CONDITIONS[1:]:
-        return False
-    return flag if flag is not None else not Condition(cond).knows_goal
+def rules_flying(args: Any, cond: str) -> dict[Rule, bool]:
+    """Whether each rule flies with `cond` for options `args` (a bool or None per rule's settings field): the
+    floor guard with every assisted condition as asked; a goal-agnostic rule with the learned assistants only, as
+    asked, else (None) as policy_node's default for the mode (on for latent and end_to_end, off for the oracle)."""
+    out = {}
+    for r in RULES:
+        asked = getattr(args, r.field)
+        if not r.goal_agnostic:
+            out[r] = bool(asked) and cond != 'unassisted'
+        elif cond not in CONDITIONS[1:]:
+            out[r] = False
+        else:
+            out[r] = bool(asked) if asked is not None else r.default_on(cond)
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -85,6 +85,7 @@ from visualization_msgs.msg import MarkerArray
 from assist_common.settings import check_settings, parse_command, setting
 from .cluster import DirectoryBusy, hold_directory
 from .episodes_plan import LandingPlan, evaluation_plans
+from assist_policy.rules import RULES, Rule
 from .evaluate import (
     CONDITIONS,
     MAX_EVAL_SEED,
@@ -92,7 +93,7 @@ from .evaluate import (
     LandingLog,
     condition_name,
     print_results,
-    rule_on,
+    rules_flying,
     write_results,
 )
 
@@ -101,10 +102,8 @@ log = logging.getLogger(__name__)
 BIN = Path(sys.executable).parent
 CONTROL_HZ = 20.0                       # the world's control rate: the policy's and the pilot's step
 # policy_node diagnostics counters -> evaluate's fraction columns
-POLICY_COUNTERS = {'guard_fraction': 'floor_guard_engaged', 'wall_fraction': 'wall_guard_engaged',
-                   'override_fraction': 'pilot_override_engaged', 'recall_fraction': 'pad_recall_engaged',
-                   'damper_fraction': 'oscillation_damper_engaged'}
-RULE_PARAMS = {'override': 'pilot_override', 'recall': 'pad_recall', 'damper': 'oscillation_damper'}
+POLICY_COUNTERS = {'wall_fraction': 'wall_guard_engaged',
+                   **{f'{r.flag}_fraction': f'{r.switch}_engaged' for r in RULES}}
 AUTO_DOMAINS = range(200, 233)          # 233+ overflow Fast DDS's default UDP ports
 AUTOPILOTS = ('none', 'sitl')
 # ArduPilot SITL (AP_HAL_SITL/SITL_cmdline.cpp): -I N moves SERIAL0 (tcp 5760) and the JSON physics port (SIM_OUT_PORT
@@ -488,7 +487,7 @@ def sitl_ports(instance: int) -> tuple[int, int]:
     return SITL_MAVLINK_PORT + SITL_PORT_STRIDE * instance, SITL_JSON_PORT + SITL_PORT_STRIDE * instance
 
 
-def node_params(args: GraphEvalArgs, cond: str, plans: list[LandingPlan], on: dict[str, bool],
+def node_params(args: GraphEvalArgs, cond: str, plans: list[LandingPlan], on: dict[Rule, bool],
                 runner_results: str = '') -> dict[str, dict]:
     """Parameters of every node of `cond`'s graph, for these landings in order (`runner_results`: landing_runner's
     results_file with --autopilot sitl)."""
@@ -517,8 +516,7 @@ def node_params(args: GraphEvalArgs, cond: str, plans: list[LandingPlan], on: di
         nodes['sim_node']['camera_rate_hz'] = 0.0       # nothing looks at the camera
         return nodes
     model = getattr(args, f'{cond}_model', '')
-    policy = {'use_sim_time': True, 'mode': cond, 'floor_guard': bool(args.safety),
-              **{RULE_PARAMS[r]: bool(flies) for r, flies in on.items()}}
+    policy = {'use_sim_time': True, 'mode': cond, **{r.switch: bool(flies) for r, flies in on.items()}}
     if model:
         policy['model_path'] = str(Path(model).resolve())
     nodes['policy_node'] = policy
@@ -661,7 +659,7 @@ def runner_verdict(path: Path, episode: int, wait_s: float) -> bool | str:
         time.sleep(0.2)
 
 
-def fly_condition(args: GraphEvalArgs, cond: str, name: str, on: dict[str, bool],
+def fly_condition(args: GraphEvalArgs, cond: str, name: str, on: dict[Rule, bool],
                   todo: list[tuple[int, LandingPlan]], domain_id: int, log_dir: Path,
                   results: LandingLog, rows: list[dict] | None = None) -> list[dict]:
     """Start `cond`'s graph, fly the landings `todo` in order as consecutive episodes, write each row (also
@@ -781,8 +779,8 @@ def _fly_all(args: GraphEvalArgs, out: Path) -> dict[str, dict]:
     rows_by_cond: dict[str, list[dict]] = {}
     try:
         for cond in args.conditions:
-            on = {rule: rule_on(getattr(args, rule), cond) for rule in ('override', 'recall', 'damper')}
-            name = condition_name(cond, args.safety, on)
+            on = rules_flying(args, cond)
+            name = condition_name(cond, on)
             done = {seed: results.flown(name, float(p.beta), seed) for seed, p in planned}
             todo = [(seed, p) for seed, p in planned if done[seed] is None]
             t0 = time.monotonic()

@@ -54,8 +54,7 @@ from .collect import (DEMO_POLICIES, ActorWeights, LandingPool, LandingTask, col
 from .episodes_plan import landing_seeds
 from .env import EnvConfig, LandingAssistEnv, RewardConfig, run_episode
 from assist_policy.observation import DISPLACEMENT_DIM, MAX_FEATURE_LAG_S, MAX_FEATURE_LAGS, feature_dim
-from assist_policy.override import OverrideConfig
-from assist_policy.safety import SafetyConfig
+from assist_policy.rules import rule, switched
 from assist_policy.scripted import NEAREST_PAD_VARIANTS
 from .td3 import TD3, OUNoise, ReplayBuffer, TD3Config, load_actor, save_actor
 
@@ -231,8 +230,7 @@ def env_config_from(args: TrainArgs) -> EnvConfig:
                      encoder_path=args.encoder_path, pilot_family=args.pilot, paper_share=args.paper_share,
                      feature_lags_s=tuple(args.feature_lags_s), memory_displacement=bool(args.memory_displacement),
                      arducopter_share=float(args.arducopter_share), arducopter_spread=float(args.arducopter_spread),
-                     safety=SafetyConfig() if args.safety else None,
-                     override=OverrideConfig() if args.override else None,
+                     safety=switched(rule('safety'), args.safety), override=switched(rule('override'), args.override),
                      reward=RewardConfig(landing_weight=args.landing_weight,
                                          progress_weight=args.progress_weight,
                                          progress_radius_m=args.progress_radius_m,

@@ -11,6 +11,7 @@ from assist_policy.assistant import Assistant, AssistantConfig, DepthFrame, Step
 from assist_lab.evaluate import EvalArgs, evaluate
 from assist_policy.flight import FlightConfig, FlightMonitor
 from assist_policy.policy_core import InputRejected, PolicyCore, PolicyCoreConfig
+from assist_policy.rules import GOAL_AGNOSTIC, RULES, switched
 from assist_policy.testing import LATENT, constant_actor
 
 FLOOR_3M = np.full((64, 64), 3.0 - 0.05, np.float32)        # bare floor seen from 3 m
@@ -136,18 +137,13 @@ def _hand_chained_row(condition: str, pilot: str, rules: bool, seed: int, beta: 
     import torch
 
     from assist_policy.actor import load_actor
-    from assist_policy.damper import DamperConfig
     from assist_lab.env import EnvConfig, LandingAssistEnv
     from assist_perception.latent import make_latent_fn
-    from assist_policy.override import OverrideConfig
     from assist_policy.policy_core import default_model_path
-    from assist_policy.recall import RecallConfig
-    from assist_policy.safety import SafetyConfig
     actor, meta = load_actor(default_model_path(condition))
     cfg = EnvConfig(condition=condition, alpha=0.5, max_episode_s=60.0, max_speed=tuple(meta['max_speed']),
                     latent_dim=int(meta['latent_dim']), pilot_family=pilot,
-                    safety=SafetyConfig() if rules else None, override=OverrideConfig() if rules else None,
-                    recall=RecallConfig() if rules else None, damper=DamperConfig() if rules else None,
+                    **{r.field: switched(r, rules) for r in RULES},
                     feature_lags_s=tuple(meta['feature_lags_s']), memory_displacement=meta['memory_displacement'])
     env = LandingAssistEnv(cfg, latent_fn=make_latent_fn()[0]) if condition == 'latent' else LandingAssistEnv(cfg)
     try:
@@ -229,7 +225,7 @@ def test_policy_node_parameters_and_assist_yaml_come_from_the_config_dataclasses
     shipped = yml['policy_node']['ros__parameters']
     assert set(shipped) <= set(policy_node.PARAMS), set(shipped) - set(policy_node.PARAMS)
     # every parameter but the per-mode switches (their default depends on the mode) is in the file, at its default
-    missing = set(policy_node.PARAMS) - set(shipped) - set(policy_node.GOAL_AGNOSTIC_RULES)
+    missing = set(policy_node.PARAMS) - set(shipped) - {r.switch for r in GOAL_AGNOSTIC}
     assert not missing, missing
     assert {k: v for k, v in shipped.items() if v != policy_node.PARAMS[k].default} == {}
     # a run-time set reaches the live settings through the same table

@@ -213,3 +213,15 @@ def test_an_assisted_command_is_flown_within_policy_node_limits_and_the_pilot_al
         flown[cond] = float(np.hypot(*e.last_command[1][:2]))
         e.close()
     assert flown['oracle'] == pytest.approx(1.5) and flown['none'] == pytest.approx(1.5 * 2 ** 0.5)
+
+
+def test_the_envs_rules_are_off_unless_switched_on_and_settings_left_out_are_the_defaults():
+    from assist_policy.override import OverrideConfig
+    from assist_policy.rules import RULES
+    assert all(not getattr(EnvConfig(), r.field).enabled for r in RULES)
+    env = LandingAssistEnv(EnvConfig(condition='oracle', override=None))
+    try:
+        assert env.assistant.cfg.override == OverrideConfig() and env.assistant.override.cfg.enabled
+        assert [getattr(env.assistant.cfg, r.field).enabled for r in RULES] == [False, True, False, False]
+    finally:
+        env.close()

@@ -1,6 +1,5 @@
 """Pilot override (assist_policy.override): the rule, and where it acts (env, evaluate, policy core)."""
 import csv
-import functools
 
 import numpy as np
 import pytest
@@ -8,7 +7,7 @@ import pytest
 import assist_lab.evaluate as evaluate_module
 from assist_policy.blending import blend
 from assist_lab.env import EnvConfig, LandingAssistEnv
-from assist_lab.evaluate import EvalArgs, evaluate
+from assist_lab.evaluate import EvalArgs, evaluate, make_policy
 from assist_policy.flight import FlightConfig
 from assist_policy.override import OverrideConfig, PilotOverride
 from assist_policy.policy_core import PolicyCore, PolicyCoreConfig
@@ -127,9 +126,10 @@ def test_policy_core_override_engages_reports_and_turns_off(tmp_path):
 
 
 def test_train_td3_flies_with_the_override_only_when_asked():
-    assert env_config_from(TrainArgs(pilot='train_mix')).override is None
+    assert env_config_from(TrainArgs(pilot='train_mix')).override == OverrideConfig(enabled=False)
     cfg = env_config_from(TrainArgs(pilot='train_mix', override=True))
     assert cfg.override == OverrideConfig()
+    assert LandingAssistEnv(cfg).assistant.override.cfg.enabled
 
 
 def push(ov, t0, seconds, u, v, altitude=3.0, over_floor=None, dt=0.05, pos=None):
@@ -408,7 +408,9 @@ def test_evaluate_a_glide_pilot_passes_the_nearer_pad_with_the_persistent_push(t
     """glide beta 1, landing 4007: held over pad 3 and landed there without the push rule; with it, the goal."""
     runs = {}
     for persist in (0.0, OverrideConfig.persist_s):
-        monkeypatch.setattr(evaluate_module, 'OverrideConfig', functools.partial(OverrideConfig, persist_s=persist))
+        def with_persist(*args, rules, persist=persist, **kw):
+            return make_policy(*args, rules={**rules, 'override': OverrideConfig(persist_s=persist)}, **kw)
+        monkeypatch.setattr(evaluate_module, 'make_policy', with_persist)
         out = tmp_path / f'ev{persist}'
         evaluate(EvalArgs(out=str(out), conditions=('latent',), betas=(1.0,), landings=1, seed=4007, pilot='glide',
                           safety=True, override=True, recall=True, damper=True, plot=False))

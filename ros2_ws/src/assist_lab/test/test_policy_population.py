@@ -73,7 +73,7 @@ def test_training_refuses_held_out_pilots():
         with pytest.raises(ValueError, match='not for training'):
             env_config_from(TrainArgs(pilot=name))
     cfg = env_config_from(TrainArgs(pilot='train_mix', safety=True))
-    assert cfg.pilot_family == 'train_mix' and cfg.safety is not None
+    assert cfg.pilot_family == 'train_mix' and cfg.safety.enabled
 
 
 def test_paired_comparison_with_unassisted_on_the_same_landings():

@@ -84,7 +84,7 @@ def test_policy_core_stops_the_actor_flying_into_a_wall(tmp_path, depth_at):
 def test_the_cautious_novice_who_flew_into_the_end_wall_now_stops_short_of_it():
     """Traced landing (cautious, beta 0, seed 11): the pilot's aim lies beyond the last pad and the actor pushed
     the same way at 4.8 m; it hit the end wall and fell. With the wall rule it hovers short of it."""
-    env, policy = make_policy('latent', '', '', 60.0, 0.5, 'cautious', SafetyConfig())
+    env, policy = make_policy('latent', '', '', 60.0, 0.5, 'cautious', rules={'safety': SafetyConfig()})
     try:
         row = run_landing(env, policy, 11, 0.0)
         assert not row['crash'] and row['wall_fraction'] > 0.02, row

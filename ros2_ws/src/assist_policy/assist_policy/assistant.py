@@ -41,6 +41,7 @@ from .blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS, MIN_SP
 from .damper import DamperConfig, OscillationDamper
 from .override import OverrideConfig, PilotOverride
 from .recall import PadRecall, RecallConfig
+from .rules import RULES, switched
 from .safety import FloorGuard, SafetyConfig
 from .walls import WallGuard
 
@@ -131,10 +132,7 @@ class AssistantConfig:
 def rules_off(cfg: AssistantConfig | None = None) -> AssistantConfig:
     """A copy of `cfg` (default settings: None) with every non-learned rule switched off: the bare actor."""
     cfg = cfg or AssistantConfig()
-    return dataclasses.replace(cfg, safety=dataclasses.replace(cfg.safety, enabled=False),
-                               override=dataclasses.replace(cfg.override, enabled=False),
-                               recall=dataclasses.replace(cfg.recall, enabled=False),
-                               damper=dataclasses.replace(cfg.damper, enabled=False))
+    return dataclasses.replace(cfg, **{r.field: switched(r, False, getattr(cfg, r.field)) for r in RULES})
 
 
 # ----------------------------------------------------------------------------------------------- stages

@@ -42,6 +42,7 @@ from .observation import Condition, ObservationBuilder, image_feature, oracle_fe
 from .override import OverrideConfig
 from .poses import PoseHistory
 from .recall import RecallConfig
+from .rules import RULES, all_settings, changed
 from .safety import SafetyConfig
 from .actor import load_actor
 from .settings import nested, node_param
@@ -104,11 +105,11 @@ class PolicyCoreConfig:
     max_odom_speed_mps: float = 50.0    # odometry faster than this is not a multirotor: rejected
     max_position_m: float = 1.0e4       # odometry / goal coordinates beyond this are rejected
     max_latent_abs: float = 1.0e3       # encoder means beyond this are rejected
-    safety: SafetyConfig | None = nested(SafetyConfig)   # floor guard settings (None: SafetyConfig() defaults)
-    # pilot override settings (None: OverrideConfig() defaults)
+    # the rules' settings (rules.RULES; None: the settings class's defaults, as everywhere)
+    safety: SafetyConfig | None = nested(SafetyConfig)
     override: OverrideConfig | None = nested(OverrideConfig)
-    recall: RecallConfig | None = nested(RecallConfig)   # pad recall settings (None: RecallConfig() defaults)
-    damper: DamperConfig | None = nested(DamperConfig)   # oscillation damper settings (None: DamperConfig() defaults)
+    recall: RecallConfig | None = nested(RecallConfig)
+    damper: DamperConfig | None = nested(DamperConfig)
     flight: FlightConfig | None = nested(FlightConfig)   # flight boundaries (None: FlightConfig() defaults)
     # velocity the actor sees: the odometry twist as given (base_link, policy_node) or rotated to odom with the
     # odometry attitude (as evaluate's env trains and flies it; replay_assist for evaluate's bags); the rules
@@ -196,8 +197,7 @@ class PolicyCore:
         self.faults: Counter[str] = Counter()       # exceptions inside step(), per exception type
         c = self.cfg
         self.assistant = Assistant(AssistantConfig(c.blend_threshold, c.max_speed_mps, c.max_vertical_mps,
-                                                   c.safety or SafetyConfig(), c.override or OverrideConfig(),
-                                                   c.recall or RecallConfig(), c.damper or DamperConfig()))
+                                                   **all_settings(c)))
         # the stages' rules, by name (their settings objects are the ones policy_node changes at run time)
         self.guard, self.walls = self.assistant.guard, self.assistant.walls
         self.override, self.recall, self.damper = self.assistant.override, self.assistant.recall, self.assistant.damper
@@ -223,14 +223,15 @@ class PolicyCore:
     def configure(self, **changes) -> None:
         """Change settings at run time; ValueError (nothing changed) if any is invalid.
 
-        Top-level fields by name (e.g. ``max_speed_mps=1.0``); a rule's by its config field and a dict
-        (``safety={'enabled': False}``, also ``override``, ``recall``, ``damper``, ``flight``): the rule's live
+        Top-level fields by name (e.g. ``max_speed_mps=1.0``); a rule's by its config field (rules.RULES) and a dict
+        (``safety={'enabled': False}``; also ``flight``), a field the rule does not have refused: the rule's live
         settings object changes in place (the floor guard's is shared with the wall rule and the recall's floor test).
         """
-        live = {'safety': self.guard.cfg, 'override': self.override.cfg, 'recall': self.recall.cfg,
-                'damper': self.damper.cfg, 'flight': self.flight.cfg}
+        rules = {r.field: r for r in RULES}
+        live = {**{f: getattr(self.assistant.cfg, f) for f in rules}, 'flight': self.flight.cfg}
         nested_changes = {k: changes.pop(k) for k in list(changes) if k in live}
-        checked = {k: dataclasses.replace(live[k], **v) for k, v in nested_changes.items()}   # validates each
+        checked = {k: changed(rules[k], live[k], v) if k in rules else dataclasses.replace(live[k], **v)
+                   for k, v in nested_changes.items()}   # validates each
         cfg = dataclasses.replace(self.cfg, **changes)
         if cfg.mode != self.cfg.mode:
             raise ValueError('the mode of a running policy core cannot change')

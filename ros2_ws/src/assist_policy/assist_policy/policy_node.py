@@ -45,9 +45,9 @@ from assist_common.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, STA
 
 from . import settings
 from .flight import REASONS as FLIGHT_REASONS, LandedState
-from .observation import Condition
 from .policy_core import InputRejected, PolicyCore, PolicyCoreConfig, PolicyOutput, default_model_path
 from .poses import header_seconds
+from .rules import RULES
 
 # policy_node's own parameters; the assistant's (blending, limits, timeouts, every rule, flight boundaries) are
 # declared on its config dataclasses (settings.node_param) and derived from them below
@@ -79,23 +79,20 @@ NODE_PARAMS = {
 CORE_PARAMS = settings.parameters(PolicyCoreConfig)      # parameter name -> config path, default, rule
 PARAMS = {**NODE_PARAMS, **{name: Param(f.default, f.spec.description, f.spec.min, f.spec.max, f.spec.min_exclusive,
                                         f.spec.choices, f.spec.dynamic) for name, f in CORE_PARAMS.items()}}
-# The goal-agnostic rules: on by default, off by default in mode oracle, where the assistant knows the goal: letting
+# The goal-agnostic rules (rules.RULES) are off by default in mode oracle, where the assistant knows the goal: letting
 # the pilot's keys through, steering to the nearest pad or damping the pilot only cost it (evaluate, 110 paper-pilot
 # landings: oracle + floor guard 99.1 % on the goal pad / 0 % crashes, with all three rules too 76.4 % / 8.2 %).
-GOAL_AGNOSTIC_RULES = ('pilot_override', 'pad_recall', 'oscillation_damper')
-RULE_SWITCHES = ('floor_guard', *GOAL_AGNOSTIC_RULES)          # on/off in /diagnostics
+RULE_SWITCHES = tuple(r.switch for r in RULES)          # on/off in /diagnostics
 
 
 def params_for_mode(mode: str) -> dict[str, Param]:
     """PARAMS with the defaults of `mode` (oracle: the goal-agnostic rules off unless set)."""
-    if not Condition(mode).knows_goal:
-        return dict(PARAMS)
-    return {**PARAMS, **{k: dataclasses.replace(PARAMS[k], default=False) for k in GOAL_AGNOSTIC_RULES}}
+    return {**PARAMS, **{r.switch: dataclasses.replace(PARAMS[r.switch], default=False)
+                         for r in RULES if not r.default_on(mode)}}
 
 
 # step outcomes that are normal operation (diagnostics OK); everything else is a WARN with its reason
-OK_KEYS = ('assisting', 'small_action', 'floor_guard', 'wall_guard', 'pilot_override', 'pad_recall',
-           'oscillation_damper', 'switched_off')
+OK_KEYS = ('assisting', 'small_action', 'wall_guard', *RULE_SWITCHES, 'switched_off')
 FAULT_KEYS = ('actor_nonfinite', 'step_error')
 
 

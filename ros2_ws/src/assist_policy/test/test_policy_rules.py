@@ -1,0 +1,85 @@
+"""The rule registry (assist_policy.rules): one entry per rule, one meaning of settings left out, refusals."""
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from assist_policy import policy_node, rules
+from assist_policy.assistant import Assistant, AssistantConfig, rules_off
+from assist_policy.override import OverrideConfig
+from assist_policy.policy_core import PolicyCore, PolicyCoreConfig
+from assist_policy.recall import RecallConfig
+from assist_policy.rules import RULES, Rule, all_settings, changed, rule, settings, switched
+from assist_policy.safety import SafetyConfig
+from assist_policy.testing import constant_actor
+
+
+def test_each_rule_has_one_entry_that_every_name_finds():
+    assert [r.switch for r in RULES] == ['floor_guard', 'pilot_override', 'pad_recall', 'oscillation_damper']
+    for r in RULES:
+        assert rule(r.field) is rule(r.switch) is rule(r.flag) is r
+    with pytest.raises(ValueError, match="no rule 'wall' \\(rules: floor_guard, pilot_override"):
+        rule('wall')
+    # the settings fields, the node's switches and its stage keys are the registry's
+    assert {r.field for r in RULES} <= {f.name for f in dataclasses.fields(AssistantConfig)}
+    assert {r.field for r in RULES} <= {f.name for f in dataclasses.fields(PolicyCoreConfig)}
+    assert {r.switch for r in RULES} <= set(policy_node.PARAMS) and policy_node.RULE_SWITCHES == tuple(
+        r.switch for r in RULES)
+    assert {s.key for s in Assistant().stages} == {r.switch for r in RULES} | {'wall_guard'}
+
+
+def test_a_rule_registered_twice_or_without_a_switch_is_refused():
+    twice = RULES + (Rule('guard2', 'floor_guard', 'guard2', SafetyConfig, False),)
+    with pytest.raises(TypeError, match="^rule switch 'floor_guard' registered twice$"):
+        rules._check_registry(twice)
+
+    @dataclasses.dataclass
+    class NoSwitch:
+        gain: float = 1.0
+    with pytest.raises(TypeError, match='^rule extra: NoSwitch has no `enabled` field$'):
+        rules._check_registry(RULES + (Rule('extra', 'extra', 'extra', NoSwitch, False),))
+
+
+def test_settings_left_out_are_the_defaults_everywhere(tmp_path):
+    override = rule('override')
+    assert settings(override) == OverrideConfig() and settings(override, None).enabled
+    mine = OverrideConfig(persist_s=0.0)
+    assert settings(override, mine) is mine
+    assert settings(override, {'persist_s': 0.0}) == mine
+    assert switched(override, False) == OverrideConfig(enabled=False)
+    assert switched(override, True, {'persist_s': 0.0}) == mine
+    # the node's core and the assistant read None as the defaults; off is `enabled` False
+    core = PolicyCore(constant_actor(tmp_path / 'a.pt', [0.0, 0.0, 0.0]),
+                      PolicyCoreConfig(mode='latent', override=None, recall=RecallConfig(enabled=False)))
+    assert core.assistant.cfg.override == OverrideConfig() and core.assistant.override.cfg.enabled
+    assert not core.assistant.recall.cfg.enabled
+    assert all_settings(PolicyCoreConfig()) == {r.field: r.config() for r in RULES}
+    assert all(not getattr(rules_off(), r.field).enabled for r in RULES)
+
+
+def test_an_unknown_setting_is_refused_in_one_line(tmp_path):
+    with pytest.raises(ValueError, match=r"^pad_recall: unknown setting 'radius' \(known: .*enabled.*\)$"):
+        settings(rule('recall'), {'radius': 1.0})
+    with pytest.raises(ValueError, match=r"^floor_guard: unknown settings 'a', 'b' "):
+        changed(rule('safety'), SafetyConfig(), {'b': 1, 'a': 2})
+    with pytest.raises(TypeError, match='^oscillation_damper: settings must be None, a mapping or a DamperConfig'):
+        settings(rule('damper'), SafetyConfig())
+    # at run time: nothing changes
+    core = PolicyCore(constant_actor(tmp_path / 'a.pt', [0.0, 0.0, 0.0]), PolicyCoreConfig(mode='latent'))
+    before = dataclasses.asdict(core.assistant.cfg)
+    with pytest.raises(ValueError, match="^pilot_override: unknown setting 'persist'"):
+        core.configure(override={'persist': 0.0})
+    assert dataclasses.asdict(core.assistant.cfg) == before
+    core.configure(override={'persist_s': 0.0})
+    assert core.override.cfg.persist_s == 0.0 and core.assistant.cfg.override is core.override.cfg
+
+
+def test_goal_agnostic_rules_are_off_by_default_only_where_the_goal_is_known():
+    assert [r.default_on('latent') for r in RULES] == [True] * 4
+    assert [r.default_on('end_to_end') for r in RULES] == [True] * 4
+    assert [r.default_on('oracle') for r in RULES] == [True, False, False, False]
+    oracle = policy_node.params_for_mode('oracle')
+    assert {r.switch: oracle[r.switch].default for r in RULES} == {
+        'floor_guard': True, 'pilot_override': False, 'pad_recall': False, 'oscillation_damper': False}
+    assert policy_node.params_for_mode('latent') == policy_node.PARAMS
