@@ -45,9 +45,10 @@ from assist_sim.pilot import PilotConfig, SimulatedPilot
 from assist_sim.pilots import make_pilot
 
 from assist_policy.actions import DEFAULT_MAX_SPEED, scale_action
-from assist_policy.assistant import Assistant, AssistantConfig, DepthFrame, StepContext
+from assist_policy.assistant import Assistant, AssistantConfig, DepthFrame
 from assist_policy.blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS
 from assist_policy.flight import FlightConfig, FlightMonitor
+from assist_policy.loop import AssistLoop
 from assist_policy.observation import IMAGE_SHAPE, Condition, ObservationBuilder, image_feature, oracle_feature
 from assist_policy.override import OverrideConfig
 from assist_policy.recall import RecallConfig
@@ -139,7 +140,9 @@ class LandingAssistEnv(gym.Env):
         self.pilot: SimulatedPilot | None = None
         self.assistant = Assistant(assistant_config(self.cfg))     # the chain policy_node runs
         self.flight = FlightMonitor(self.cfg.flight)
-        self.flight_resets = 0                           # flight boundaries seen inside episodes (flight.FlightMonitor)
+        # the step code policy_node's core runs: observation, chain, action history, forgetting a flight
+        self.loop = AssistLoop(self.condition, self.builder, self.assistant, self.flight)
+        self.flight_resets = self.loop.flight_resets     # flight boundaries seen inside episodes, per reason
         self._frame = None
         self._u = np.zeros(3)
         self._steps = 0                                  # control steps since reset (the episode clock)
@@ -179,10 +182,7 @@ class LandingAssistEnv(gym.Env):
         st = self.world.state
         self._frame = None
         t = self.elapsed_s
-        if self.condition is Condition.END_TO_END:
-            vec = self.builder.build(t, np.zeros(0), st.velocity, st.position[2], self._u)
-            return np.concatenate([self._feature(st.position), vec]).astype(np.float32)
-        return self.builder.build(t, self._feature(st.position), st.velocity, st.position[2], self._u, st.position)
+        return self.loop.observation(t, self._feature(st.position), st.velocity, st.position, self._u)
 
     def _goal_dist(self, pos: np.ndarray) -> float:
         return float(np.linalg.norm(self.world.goal_position - pos))
@@ -207,9 +207,7 @@ class LandingAssistEnv(gym.Env):
         latent_reset = getattr(self.latent_fn, 'reset', None)
         if latent_reset is not None:
             latent_reset(noise_seed)             # the camera noise of this landing depends on its seed only
-        self.builder.reset()                       # a new episode is a new flight (the world teleports the vehicle)
-        self.assistant.reset()
-        self.flight.reset()
+        self.loop.restart()                        # a new episode is a new flight (the world teleports the vehicle)
         self.last_command = None
         self._steps = 0
         self._u = self.pilot.act(st.position, None)
@@ -248,21 +246,18 @@ class LandingAssistEnv(gym.Env):
         acted: tuple[str, ...] = ()
         if self.unassisted:
             v = self._u.copy()
-            self.builder.record(t, self._u, a)
+            self.loop.idle(t, self._u)
         else:
             # the flight monitor policy_node's core runs (a landing, an odometry jump): the same rule here
             vz = 0.0 if self.last_command is None else float(self.last_command[1][2])
-            if self.flight.update(t, st.position, st.velocity, vz) is not None:
-                self.flight_resets += 1
-                self.builder.reset()
-                self.assistant.reset()
+            boundary = self.flight.update(t, st.position, st.velocity, vz)
+            if boundary is not None:
+                self.loop.forget(boundary)
             v_body = quat_to_matrix(st.quaternion).T @ st.velocity   # odometry twist, base_link (REP-105)
             frame = DepthFrame(self._steps, lambda: self.camera_frame().depth, lambda: (st.position, st.quaternion))
-            ctx = StepContext(t, self._u, self.builder.history.means(t)[0], st.position, v_body, st.quaternion,
-                              frame, self.cfg.max_speed)
-            res = self.assistant.step(ctx, a)
+            ctx = self.loop.context(t, self._u, st.position, v_body, st.quaternion, frame, self.cfg.max_speed)
+            res = self.loop.act(ctx, a)
             a, v, acted = res.agent, res.velocity, res.acted
-            self.builder.record(t, self._u, res.applied)
         active = float(np.linalg.norm(a)) > self.cfg.blend_threshold
         self.last_command = (a.copy(), np.array(v, dtype=float))    # what was flown (bags record it)
         st = self.world.step(v)

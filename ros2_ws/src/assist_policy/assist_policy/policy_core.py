@@ -34,10 +34,11 @@ from assist_common.frames import quat_to_matrix
 from assist_common.shipped import shipped_model_path
 
 from .actions import scale_action
-from .assistant import Assistant, AssistantConfig, DepthFrame, StepContext
+from .assistant import Assistant, AssistantConfig, DepthFrame
 from .blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS, MIN_SPEED_LIMIT_MPS, clamp_velocity
 from .damper import DamperConfig
 from .flight import FlightConfig, FlightMonitor, surface_clearance
+from .loop import AssistLoop
 from .observation import Condition, ObservationBuilder, image_feature, oracle_feature
 from .override import OverrideConfig
 from .poses import PoseHistory
@@ -202,7 +203,9 @@ class PolicyCore:
         self.guard, self.walls = self.assistant.guard, self.assistant.walls
         self.override, self.recall, self.damper = self.assistant.override, self.assistant.recall, self.assistant.damper
         self.flight = FlightMonitor(c.flight or FlightConfig())
-        self.flight_resets: Counter[str] = Counter()    # flight boundaries seen, per reason (flight.REASONS)
+        # the step code the training/evaluation env runs too: observation, chain, action history, forgetting
+        self.loop = AssistLoop(self.mode, self.builder, self.assistant, self.flight)
+        self.flight_resets = self.loop.flight_resets    # flight boundaries seen, per reason (flight.REASONS)
         self.last_reset: tuple[float, str] | None = None   # (odometry time, reason) of the latest
         self.last_reset_detail = ''                 # why the latest boundary (FlightMonitor.last_detail, or the caller)
         self._odom_stamp = -math.inf                # sensor stamp of the latest odometry
@@ -416,8 +419,7 @@ class PolicyCore:
 
     def _forget(self, t: float, reason: str, detail: str = '') -> None:
         """Drop everything that belongs to the current flight (flight boundary `reason` at odometry time `t`)."""
-        self.builder.reset()
-        self.assistant.reset()
+        self.loop.forget(reason)
         self._poses.clear()
         # what the camera showed before the boundary belongs to the last flight: a frame taken on the pad just
         # landed on, mapped from the next start pose 3 m up, is a 'wall' under the start (the assistant then
@@ -426,7 +428,6 @@ class PolicyCore:
         if not self.mode.knows_goal:
             self._feature = None
         self._flight_start = float(t)
-        self.flight_resets[reason] += 1
         self.last_reset = (float(t), reason)
         self.last_reset_detail = detail
         log.info('assistant reset: %s (%s)', reason, detail)
@@ -504,16 +505,14 @@ class PolicyCore:
         u = self.pilot_command(now)
         odom_ok = self._odom is not None and self._fresh(self._odom[0], now, c.odom_timeout_s)
         if not odom_ok:                          # nothing to place the vehicle by: V = u, no stage runs
-            self.builder.record(now, u, np.zeros(3))
+            self.loop.idle(now, u)
             return PolicyOutput(None, self._clamp(u), 'odometry stale or absent', 'odom_stale')
         _, pos, vel = self._odom
         vel_actor = (quat_to_matrix(self._attitude) @ vel
                      if c.actor_velocity == 'odom' and self._attitude is not None else vel)
-        ctx = StepContext(now, u, self.builder.history.means(now)[0], pos, vel, self._attitude, self._frame_now(now),
-                          self.max_speed)
+        ctx = self.loop.context(now, u, pos, vel, self._attitude, self._frame_now(now), self.max_speed)
         a, key, reason = self._actor(now, u, pos, vel_actor)
-        res = self.assistant.step(ctx, a, key, reason)
-        self.builder.record(now, u, res.applied)
+        res = self.loop.act(ctx, a, key, reason)
         return PolicyOutput(res.agent, res.velocity, res.reason, res.key)
 
     def _actor(self, now: float, u: np.ndarray, pos: np.ndarray, vel: np.ndarray) -> tuple[np.ndarray | None, str, str]:
@@ -526,11 +525,7 @@ class PolicyCore:
             if self._feature is None or not self._fresh(self._feature[0], now, self.cfg.feature_timeout_s):
                 return None, 'feature_stale', f'{self.mode.value} input stale or absent'
             feature = self._feature[1]
-        if self.mode is Condition.END_TO_END:
-            vec = self.builder.build(now, np.zeros(0), vel, pos[2], u)
-            obs = np.concatenate([feature, vec]).astype(np.float32)
-        else:
-            obs = self.builder.build(now, feature, vel, pos[2], u, pos)
+        obs = self.loop.observation(now, feature, vel, pos, u)
         with torch.no_grad():
             raw = self.actor(torch.as_tensor(obs).unsqueeze(0))[0].numpy().astype(float)
         if not np.all(np.isfinite(raw)):
