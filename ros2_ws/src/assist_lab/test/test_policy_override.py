@@ -172,8 +172,8 @@ def test_a_push_is_not_persistent_when_the_vehicle_goes_along_it_is_slow_or_it_r
     push(ov, 0.0, 1.5, [0.7, 0, -0.3], [0, 0, 0])
     assert ov.apply(1.55, np.array([0.7, 0, -0.3]), np.array([0.7, 0, -0.3]), 3.0, MS, None) is None
     assert push(ov, 1.6, 1.5, [0.7, 0, -0.3], [0, 0, 0])[-1] is None
-    with pytest.raises(ValueError, match='persist_speed_mps'):
-        OverrideConfig(persist_floor_speed_mps=0.0)
+    with pytest.raises(ValueError, match='^OverrideConfig.persist_floor_speed_mps must be >= 0.01, got 0.0$'):
+        OverrideConfig(persist_floor_speed_mps=0.0)      # a pilot pressing nothing would engage it
 
 
 def test_no_persistent_push_in_the_last_metre_over_what_is_below():

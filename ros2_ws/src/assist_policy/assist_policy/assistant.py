@@ -29,13 +29,14 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import math
 from collections import Counter
 from dataclasses import dataclass, field
 from typing import Protocol
 from collections.abc import Callable, Hashable
 
 import numpy as np
+
+from assist_common.settings import check_named, setting
 
 from .blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS, MIN_SPEED_LIMIT_MPS, blend, clamp_velocity
 from .damper import DamperConfig, OscillationDamper
@@ -110,23 +111,17 @@ class Stage(Protocol):
 class AssistantConfig:
     """Settings of the chain (blending and speed limits here; each stage's in its own config)."""
 
-    blend_threshold: float = DEFAULT_THRESHOLD
-    max_speed_mps: float = MAX_SPEED_MPS            # horizontal limit of V
-    max_vertical_mps: float = MAX_VERTICAL_MPS      # vertical limit of V
+    blend_threshold: float = setting(DEFAULT_THRESHOLD, ge=0)
+    max_speed_mps: float = setting(MAX_SPEED_MPS, ge=MIN_SPEED_LIMIT_MPS)       # horizontal limit of V
+    max_vertical_mps: float = setting(MAX_VERTICAL_MPS, ge=MIN_SPEED_LIMIT_MPS)  # vertical limit of V
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     override: OverrideConfig = field(default_factory=OverrideConfig)
     recall: RecallConfig = field(default_factory=RecallConfig)
     damper: DamperConfig = field(default_factory=DamperConfig)
 
     def __post_init__(self) -> None:
-        """Reject a threshold or limits that would suppress or invent motion (ValueError, one line)."""
-        t = self.blend_threshold
-        if not (isinstance(t, (int, float)) and math.isfinite(t) and t >= 0):
-            raise ValueError(f'blend_threshold must be a finite number >= 0, got {t!r}')
-        for name in ('max_speed_mps', 'max_vertical_mps'):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= MIN_SPEED_LIMIT_MPS):
-                raise ValueError(f'{name} must be a finite number >= {MIN_SPEED_LIMIT_MPS}, got {v!r}')
+        """Reject a threshold or limits that would suppress or invent motion (SettingsError, one line)."""
+        check_named(self, type(self).__name__)
 
 
 def rules_off(cfg: AssistantConfig | None = None) -> AssistantConfig:

@@ -38,6 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from assist_common.settings import check_named, setting
 from .settings import node_param
 
 
@@ -52,32 +53,26 @@ class DamperConfig:
     # 1/s: a_xy = -gain v_xy while an oscillation is detected
     gain: float = node_param(2.0, 'oscillation_damper_gain', 'Gain of the oscillation damper (1/s): a_xy = -gain '
                              'v_xy.', min=0.0, max=10.0)
-    speed_mps: float = 0.5          # mean horizontal pilot speed over mean_s that counts as a held key
-    mean_s: float = 0.5             # span of each mean compared
-    gap_s: float = 1.0              # the earlier mean is taken this long before the latest
+    speed_mps: float = setting(0.5, ge=0)  # mean horizontal pilot speed over mean_s that counts as a held key
+    mean_s: float = setting(0.5, gt=0)  # span of each mean compared
+    gap_s: float = setting(1.0, gt=0)  # the earlier mean is taken this long before the latest
     # reversals are counted over this window
     window_s: float = node_param(8.0, 'oscillation_damper_window_s', 'The oscillation damper counts reversals of '
                                  "the pilot's held keys over this window (s).", min=0.5, max=60.0)
     # this many reversals within window_s: an oscillation
     min_reversals: int = node_param(2, 'oscillation_damper_reversals', 'This many reversals within the window '
                                     'engage the oscillation damper.', min=1, max=20)
-    cross_radius_m: float = 0.5     # damped only if the last swing passed this close to a mapped pad's centre
-    near_m: float = 1.5             # ... and the vehicle is still this close to that pad (horizontal m)
-    leave_s: float = 1.5            # getting farther from that pad for this long: leaving it, let go
-    leave_gain_m: float = 0.3       # ... by at least this much over leave_s
-    leave_jitter_m: float = 0.01    # ... never nearer by more than this in one step (turbulence, not a turn)
+    # damped only if the last swing passed this close to a mapped pad's centre
+    cross_radius_m: float = setting(0.5, ge=0)
+    near_m: float = setting(1.5, ge=0)  # ... and the vehicle is still this close to that pad (horizontal m)
+    leave_s: float = setting(1.5, ge=0)  # getting farther from that pad for this long: leaving it, let go
+    leave_gain_m: float = setting(0.3, ge=0)  # ... by at least this much over leave_s
+    # ... never nearer by more than this in one step (turbulence, not a turn)
+    leave_jitter_m: float = setting(0.01, ge=0)
 
     def __post_init__(self) -> None:
-        """Reject settings that would never engage or engage on no input (ValueError, one line)."""
-        for name in ('gain', 'speed_mps', 'mean_s', 'gap_s', 'window_s', 'cross_radius_m', 'near_m', 'leave_s',
-                     'leave_gain_m', 'leave_jitter_m'):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise ValueError(f'DamperConfig.{name} must be a finite number >= 0, got {v!r}')
-        if self.mean_s <= 0 or self.gap_s <= 0:
-            raise ValueError(f'DamperConfig.mean_s and gap_s must be > 0, got {self.mean_s}, {self.gap_s}')
-        if not (isinstance(self.min_reversals, int) and self.min_reversals >= 1):
-            raise ValueError(f'DamperConfig.min_reversals must be an integer >= 1, got {self.min_reversals!r}')
+        """Reject settings outside their fields' ranges (SettingsError, one line)."""
+        check_named(self, type(self).__name__)
 
 
 class OscillationDamper:

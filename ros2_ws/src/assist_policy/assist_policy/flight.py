@@ -59,6 +59,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from assist_common.settings import check_named, setting
 from .settings import node_param
 
 REASONS = ('odom_jump', 'landed', 'takeoff', 'vehicle_landed', 'vehicle_takeoff', 'service', 'episode')
@@ -128,32 +129,19 @@ class FlightConfig:
                                              'per this many seconds (node clock); sooner calls are answered '
                                              'success=false and counted (flight_reset_refused); 0: no limit.',
                                              min=0.0, max=3600.0)
-    rest_radius_m: float = 0.1            # at rest: every position of the window this close to their mean
-    touchdown_descent_m: float = 0.15     # came down into the rest: this much higher shortly before it...
-    touchdown_lookback_s: float = 3.0     # ... within this long before the rest window
-    surface_memory_s: float = 10.0        # surfaces the camera saw count this long...
-    surface_radius_m: float = 0.5         # ... within this horizontal distance
-    takeoff_window_s: float = 0.5         # take-off: altitude (mean) and climb speed (fitted) over this window
-    takeoff_speed_mps: float = 0.1        # climbing at least this fast...
-    takeoff_hold_s: float = 2.0           # ... or held above takeoff_climb_m this long
-    ground_altitude_m: float = 0.3        # at rest below this altitude (odom z): on the floor
+    rest_radius_m: float = setting(0.1, gt=0)  # at rest: every position of the window this close to their mean
+    touchdown_descent_m: float = setting(0.15, gt=0)  # came down into the rest: this much higher shortly before it...
+    touchdown_lookback_s: float = setting(3.0, gt=0)  # ... within this long before the rest window
+    surface_memory_s: float = setting(10.0, gt=0)  # surfaces the camera saw count this long...
+    surface_radius_m: float = setting(0.5, gt=0)  # ... within this horizontal distance
+    takeoff_window_s: float = setting(0.5, gt=0)  # take-off: altitude (mean) and climb speed (fitted) over this window
+    takeoff_speed_mps: float = setting(0.1, gt=0)  # climbing at least this fast...
+    takeoff_hold_s: float = setting(2.0, gt=0)  # ... or held above takeoff_climb_m this long
+    ground_altitude_m: float = setting(0.3)  # at rest below this altitude (odom z): on the floor
 
     def __post_init__(self) -> None:
-        """Reject non-finite or non-positive thresholds (ValueError, one line)."""
-        positive = ('jump_m', 'rest_speed_mps', 'rest_s', 'rest_descent_mps', 'takeoff_climb_m', 'contact_height_m',
-                    'landed_state_timeout_s', 'rest_radius_m', 'touchdown_descent_m', 'touchdown_lookback_s',
-                    'surface_memory_s', 'surface_radius_m', 'takeoff_window_s', 'takeoff_speed_mps',
-                    'takeoff_hold_s')
-        for name in positive:
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f'FlightConfig.{name} must be a finite number > 0, got {v!r}')
-        for name in ('reset_min_interval_s', 'ground_altitude_m'):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v)):
-                raise ValueError(f'FlightConfig.{name} must be a finite number, got {v!r}')
-        if self.reset_min_interval_s < 0:
-            raise ValueError(f'FlightConfig.reset_min_interval_s must be >= 0, got {self.reset_min_interval_s!r}')
+        """Reject settings outside their fields' ranges (SettingsError, one line)."""
+        check_named(self, type(self).__name__)
 
 
 def surface_clearance(depth: np.ndarray, camera_offset_m: float) -> float | None:

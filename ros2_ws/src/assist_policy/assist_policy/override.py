@@ -100,6 +100,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from assist_common.settings import check_named, setting
 from .scripted import YIELD_SPEED_MPS, holds_key
 from .settings import node_param
 
@@ -143,8 +144,10 @@ class OverrideConfig:
     # ... over bare floor under every leg (no pad to hold the pilot on)
     persist_floor_speed_mps: float = node_param(0.4, 'pilot_override_persist_floor_speed_mps', 'The same over bare '
                                                 'floor under every leg in the depth image (m/s).', min=0.01, max=10.0)
-    held_back_fraction: float = 0.5        # held back: the vehicle made less than this share of the push's speed
-    persist_min_height_m: float = 1.0      # not lower than this over the surface below (the last metre: landing)
+    # held back: the vehicle made less than this share of the push's speed
+    held_back_fraction: float = setting(0.5, ge=0)
+    # not lower than this over the surface below (the last metre: landing)
+    persist_min_height_m: float = setting(1.0, ge=0)
     # held climb (module docstring): a climb commanded for persist_s that the vehicle does not make (0 = off)
     # mean climb command over persist_s that counts (keys climb at 0.5)
     persist_climb_mps: float = node_param(0.3, 'pilot_override_persist_climb_mps', 'Held climb: a climb commanded '
@@ -160,35 +163,25 @@ class OverrideConfig:
     long_push_speed_mps: float = node_param(0.35, 'pilot_override_long_push_speed_mps', 'Mean horizontal pilot '
                                             'speed along one axis over pilot_override_long_push_s (m/s) that counts '
                                             'as a long push.', min=0.01, max=10.0)
-    long_push_min_height_m: float = 0.3    # not lower than this over the surface below (touching down)
-    long_push_release_mps: float = 0.15    # latched: released once the mean command over long_push_s descends faster
+    long_push_min_height_m: float = setting(0.3, ge=0)  # not lower than this over the surface below (touching down)
+    # latched: released once the mean command over long_push_s descends faster
+    long_push_release_mps: float = setting(0.15, ge=0)
     # landing spots (module docstring): where the pilot commanded a descent while not going anywhere (0 = off)
     # such a descent is remembered this long
     spot_memory_s: float = node_param(20.0, 'pilot_override_spot_memory_s', 'Landing spots: where the pilot '
                                       'commanded a descent while not going anywhere is remembered this long (s); a '
                                       'persistent or long push back to such a spot, or a held climb near one, stays '
                                       'with the actor (positioning, not leaving); 0 = off.', min=0.0, max=600.0)
-    spot_speed_mps: float = 0.4            # ... commanded with a 1 s mean horizontal command slower than this
+    spot_speed_mps: float = setting(0.4, ge=0)  # ... commanded with a 1 s mean horizontal command slower than this
     # a push toward a spot this close, or a climb this close to one, stays
     spot_radius_m: float = node_param(1.2, 'pilot_override_spot_radius_m', 'A landing spot this close (horizontal '
                                       'm) counts for pilot_override_spot_memory_s.', min=0.0, max=10.0)
-    spot_ahead_m: float = 0.2              # ... with the actor: 'toward' = the spot this far ahead along the push
+    spot_ahead_m: float = setting(0.2, ge=0)  # ... with the actor: 'toward' = the spot this far ahead along the push
 
     def __post_init__(self) -> None:
-        """Reject settings that would make the rule engage on no input or descend (ValueError, one line)."""
-        for name in ('speed_mps', 'climb_mps', 'climb_below_m', 'reversal_s', 'persist_s', 'persist_speed_mps',
-                     'persist_floor_speed_mps', 'held_back_fraction', 'persist_min_height_m', 'persist_climb_mps',
-                     'long_push_s', 'long_push_speed_mps', 'long_push_min_height_m', 'long_push_release_mps',
-                     'spot_memory_s', 'spot_speed_mps', 'spot_radius_m', 'spot_ahead_m'):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise ValueError(f'OverrideConfig.{name} must be a finite number >= 0, got {v!r}')
-        if self.persist_s > 0 and min(self.persist_speed_mps, self.persist_floor_speed_mps) <= 0:
-            raise ValueError('OverrideConfig.persist_speed_mps and persist_floor_speed_mps must be > 0 '
-                             'while persist_s > 0 (else a pilot pressing nothing would engage it)')
-        if self.long_push_s > 0 and self.long_push_speed_mps <= 0:
-            raise ValueError('OverrideConfig.long_push_speed_mps must be > 0 while long_push_s > 0 '
-                             '(else a pilot pressing nothing would engage it)')
+        """Reject settings outside their fields' ranges (SettingsError, one line): the push speeds' lower bounds
+        keep a pilot pressing nothing from engaging the rule."""
+        check_named(self, type(self).__name__)
 
 
 def yield_action(cfg: OverrideConfig, u: np.ndarray, altitude_m: float,

@@ -47,6 +47,7 @@ from .rules import RULES, all_settings, changed
 from .safety import SafetyConfig
 from .actor import load_actor
 from .settings import nested, node_param
+from assist_common.settings import check_named, setting
 
 log = logging.getLogger(__name__)
 
@@ -66,11 +67,6 @@ class InputRejected(ValueError):
     def __init__(self, reason: str, detail: str):
         super().__init__(detail)
         self.reason = reason
-
-
-def _positive(name: str, value: float) -> None:
-    if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-        raise ValueError(f'PolicyCoreConfig.{name} must be a finite number > 0, got {value!r}')
 
 
 @dataclass
@@ -103,9 +99,9 @@ class PolicyCoreConfig:
     # pilot commands must be in this frame (or carry no frame)
     body_frame: str = node_param('base_link', 'frame_id', 'Body frame: frame_id of the published commands; pilot '
                                  'commands must carry it (or none).', dynamic=False)
-    max_odom_speed_mps: float = 50.0    # odometry faster than this is not a multirotor: rejected
-    max_position_m: float = 1.0e4       # odometry / goal coordinates beyond this are rejected
-    max_latent_abs: float = 1.0e3       # encoder means beyond this are rejected
+    max_odom_speed_mps: float = setting(50.0, gt=0)    # odometry faster than this is not a multirotor: rejected
+    max_position_m: float = setting(1.0e4, gt=0)       # odometry / goal coordinates beyond this are rejected
+    max_latent_abs: float = setting(1.0e3, gt=0)       # encoder means beyond this are rejected
     # the rules' settings (rules.RULES; None: the settings class's defaults, as everywhere)
     safety: SafetyConfig | None = nested(SafetyConfig)
     override: OverrideConfig | None = nested(OverrideConfig)
@@ -115,7 +111,7 @@ class PolicyCoreConfig:
     # velocity the actor sees: the odometry twist as given (base_link, policy_node) or rotated to odom with the
     # odometry attitude (as evaluate's env trains and flies it; replay_assist for evaluate's bags); the rules
     # (floor guard, override, damper) always read the twist
-    actor_velocity: str = 'twist'
+    actor_velocity: str = setting('twist', choices=('twist', 'odom'))
     # the pad recall maps a depth frame from the odometry pose at the frame's sensor stamp (interpolated) when
     # odometry stamps lie within this of it (s); else from the latest odometry (counted: depth_pose_unmatched)
     depth_pose_match_s: float = node_param(0.1, 'depth_pose_match_s', 'The pad recall maps a depth frame from the '
@@ -125,23 +121,9 @@ class PolicyCoreConfig:
                                            'another clock).', min=0.0, max=1.0)
 
     def __post_init__(self) -> None:
-        """Reject settings that would reverse, suppress or invent motion (ValueError, one line)."""
+        """Reject settings outside their fields' ranges (SettingsError, one line) and an unknown mode."""
         self.mode = Condition(self.mode).value
-        thr = self.blend_threshold
-        if not (isinstance(thr, (int, float)) and math.isfinite(thr) and thr >= 0):
-            raise ValueError(f'PolicyCoreConfig.blend_threshold must be a finite number >= 0, got {thr!r}')
-        for name in ('max_speed_mps', 'max_vertical_mps'):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= MIN_SPEED_LIMIT_MPS):
-                raise ValueError(f'PolicyCoreConfig.{name} must be a finite number >= {MIN_SPEED_LIMIT_MPS}, got {v!r}')
-        for name in ('pilot_timeout_s', 'pilot_max_latency_s', 'feature_timeout_s', 'odom_timeout_s', 'max_input_mps',
-                     'max_odom_speed_mps', 'max_position_m', 'max_latent_abs'):
-            _positive(name, getattr(self, name))
-        m = self.depth_pose_match_s
-        if not (isinstance(m, (int, float)) and math.isfinite(m) and m >= 0):
-            raise ValueError(f'PolicyCoreConfig.depth_pose_match_s must be a finite number >= 0, got {m!r}')
-        if self.actor_velocity not in ('twist', 'odom'):
-            raise ValueError(f"PolicyCoreConfig.actor_velocity must be 'twist' or 'odom', got {self.actor_velocity!r}")
+        check_named(self, type(self).__name__)
 
 
 @dataclass

@@ -85,6 +85,7 @@ import numpy as np
 
 from assist_common.frames import R_BODY_FROM_OPTICAL, heading, quat_to_matrix, rotate_xy
 
+from assist_common.settings import check_named, setting
 from .safety import FloorGuard, SafetyConfig
 from .scripted import ScriptedConfig, ScriptedOracle
 from .settings import node_param
@@ -103,56 +104,48 @@ class RecallConfig:
     # steers only to a mapped pad this close (pads stand ~4 m apart)
     radius_m: float = node_param(3.0, 'pad_recall_radius_m', 'The pad recall steers only to a mapped pad this close '
                                  '(horizontal m).', min=0.0, max=50.0)
-    gain_xy: float = ScriptedConfig.gain_xy   # 1/s, the reference's centring gain (V = gain (pad - p))
-    low_height_m: float = 1.2         # also acts without a descent this low over the pad's top (reference: 1.2)
-    clear_height_m: float = 0.35      # lower than this over the pad's top and off it: climb first (its side)
-    clear_radius_m: float = 0.4       # 'over it': nearer its centre than this (pads >= 0.8 m): the rule is off
-    climb_mps: float = 0.3            # vertical V while climbing to clear the pad's side
-    leave_speed_mps: float = 0.5      # a command (now or 1 s mean) this fast away from the pad: leaving it
+    gain_xy: float = setting(ScriptedConfig.gain_xy, ge=0)  # 1/s, the reference's centring gain (V = gain (pad - p))
+    low_height_m: float = setting(1.2, ge=0)  # also acts without a descent this low over the pad's top (reference: 1.2)
+    clear_height_m: float = setting(0.35, ge=0)  # lower than this over the pad's top and off it: climb first (its side)
+    # 'over it': nearer its centre than this (pads >= 0.8 m): the rule is off
+    clear_radius_m: float = setting(0.4, ge=0)
+    climb_mps: float = setting(0.3, ge=0)  # vertical V while climbing to clear the pad's side
+    leave_speed_mps: float = setting(0.5, ge=0)  # a command (now or 1 s mean) this fast away from the pad: leaving it
     # lower than this over a pad seen whole and over it: centre on it (0: off)
     touchdown_height_m: float = node_param(1.0, 'pad_recall_touchdown_height_m', 'Lower than this over the top of a '
                                            'mapped pad seen whole (and over it) during a descent, the pad recall '
                                            'centres on it instead of the actor (m; 0: off).', min=0.0, max=5.0)
-    min_top_m: float = 0.25           # a point this high over the floor is raised (pads 0.4-1.2 m)
-    max_top_m: float = 2.0            # a raised region reaching this high is a wall (walls stand 6 m)
-    top_band_m: float = 0.1           # the top surface: raised points within this of the region's top
-    min_pixels: int = 6               # smaller raised regions are noise
-    min_spread_m: float = 0.03        # a top thinner than this (std across) is a vertical face, not a pad
-    merge_radius_m: float = 1.2       # a sighting this close to a mapped pad is that pad (pads <= 1.6 m)
-    min_view_m: float = 0.5           # the map is not updated with the camera nearer than this to the floor
-    camera_offset_m: float = SafetyConfig.camera_offset_m    # optical centre below base_link (as the guard's)
-    vertical_fov_deg: float = SafetyConfig.vertical_fov_deg  # depth camera vertical field of view (square pixels)
-    max_image_px: int = 128           # a larger depth image is subsampled to this many pixels on its long side
+    min_top_m: float = setting(0.25, ge=0)  # a point this high over the floor is raised (pads 0.4-1.2 m)
+    max_top_m: float = setting(2.0, ge=0)  # a raised region reaching this high is a wall (walls stand 6 m)
+    top_band_m: float = setting(0.1, ge=0)  # the top surface: raised points within this of the region's top
+    min_pixels: int = setting(6, ge=1)  # smaller raised regions are noise
+    min_spread_m: float = setting(0.03, ge=0)  # a top thinner than this (std across) is a vertical face, not a pad
+    merge_radius_m: float = setting(1.2, ge=0)  # a sighting this close to a mapped pad is that pad (pads <= 1.6 m)
+    min_view_m: float = setting(0.5, ge=0)  # the map is not updated with the camera nearer than this to the floor
+    # optical centre below base_link (as the guard's)
+    camera_offset_m: float = setting(SafetyConfig.camera_offset_m, ge=0)
+    # depth camera vertical field of view (square pixels)
+    vertical_fov_deg: float = setting(SafetyConfig.vertical_fov_deg, gt=0, lt=180)
+    max_image_px: int = setting(128, ge=8)  # a larger depth image is subsampled to this many pixels on its long side
     # scout (module docstring): look beyond before steering back to a pad behind (scout_max_m 0: off)
     # at most this far from where the scout began (then back to the pad)
     scout_max_m: float = node_param(1.5, 'pad_recall_scout_max_m', 'Before steering back to a mapped pad behind, '
                                     'the pad recall looks at the ground beyond not yet seen, where a nearer pad may '
                                     'be, at most this far (horizontal m; 0: off).', min=0.0, max=10.0)
-    scout_margin_m: float = 0.4       # a pad nearer than the mapped one has its centre this much nearer still
-    scout_back_mps: float = 0.25      # a command this fast toward the pad behind: the pilot is coming back (no scout)
-    cell_m: float = 0.25              # ground seen: cells of this size (m) with a depth pixel on them
-    max_seen_cells: int = 100_000     # more cells seen (a long flight): those farther than keep_seen_m are forgotten
-    keep_seen_m: float = 20.0         # ... (a landing covers ~2000 cells; a scout looks < 5 m away)
+    scout_margin_m: float = setting(0.4, ge=0)  # a pad nearer than the mapped one has its centre this much nearer still
+    # a command this fast toward the pad behind: the pilot is coming back (no scout)
+    scout_back_mps: float = setting(0.25, ge=0)
+    cell_m: float = setting(0.25, gt=0)  # ground seen: cells of this size (m) with a depth pixel on them
+    # more cells seen (a long flight): those farther than keep_seen_m are forgotten
+    max_seen_cells: int = setting(100_000, ge=1000)
+    keep_seen_m: float = setting(20.0, ge=0)  # ... (a landing covers ~2000 cells; a scout looks < 5 m away)
 
     def __post_init__(self) -> None:
-        """Reject settings that would map nothing or steer everywhere (ValueError, one line)."""
-        for name in ('radius_m', 'gain_xy', 'low_height_m', 'clear_height_m', 'clear_radius_m', 'climb_mps',
-                     'leave_speed_mps', 'touchdown_height_m', 'min_top_m', 'max_top_m',
-                     'top_band_m', 'min_spread_m', 'merge_radius_m', 'min_view_m', 'camera_offset_m',
-                     'vertical_fov_deg', 'scout_max_m', 'scout_margin_m', 'scout_back_mps', 'keep_seen_m'):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise ValueError(f'RecallConfig.{name} must be a finite number >= 0, got {v!r}')
+        """Reject settings outside their fields' ranges, or a pad-top band that holds nothing (ValueError, one
+        line)."""
+        check_named(self, type(self).__name__)
         if self.max_top_m <= self.min_top_m:
             raise ValueError(f'RecallConfig.max_top_m ({self.max_top_m}) must exceed min_top_m ({self.min_top_m})')
-        if not (isinstance(self.max_image_px, int) and self.max_image_px >= 8):
-            raise ValueError(f'RecallConfig.max_image_px must be an integer >= 8, got {self.max_image_px!r}')
-        if not (math.isfinite(self.cell_m) and self.cell_m > 0):
-            raise ValueError(f'RecallConfig.cell_m must be a finite number > 0, got {self.cell_m!r}')
-        if not (isinstance(self.max_seen_cells, int) and self.max_seen_cells >= 1000):
-            raise ValueError(f'RecallConfig.max_seen_cells must be an integer >= 1000, got {self.max_seen_cells!r}')
-        if not 0 < self.vertical_fov_deg < 180:
-            raise ValueError(f'RecallConfig.vertical_fov_deg must be in (0, 180), got {self.vertical_fov_deg}')
 
 
 @dataclass

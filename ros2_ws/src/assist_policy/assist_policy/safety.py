@@ -50,6 +50,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from assist_common.settings import check_named, setting
 from .blending import blend
 from .settings import node_param
 
@@ -64,22 +65,23 @@ class SafetyConfig:
     # acts below this altitude of base_link over the floor
     guard_height_m: float = node_param(1.0, 'floor_guard_height_m', 'Altitude (odom z over the floor, m) below '
                                        'which the floor guard acts.', min=0.0, max=10.0)
-    floor_tolerance_m: float = 0.2    # a leg's surface within this of the floor depth is the floor
+    floor_tolerance_m: float = setting(0.2, ge=0)  # a leg's surface within this of the floor depth is the floor
     # vertical V imposed instead of a descent
     min_climb_mps: float = node_param(0.15, 'floor_guard_climb_mps', 'Vertical velocity the floor guard imposes '
                                       'instead of a descent (m/s; at least blend_threshold / 2 + 0.01 is used).',
                                       min=0.0, max=1.0)
-    leg_offset_m: float = 0.15        # legs at (+-, +-) this in base_link (VehicleConfig.leg_offset_m)
-    window_m: float = 0.06            # half-size, on the floor, of the patch checked under each leg
-    camera_offset_m: float = 0.05     # optical centre below base_link (CameraConfig.offset_below_base_m)
-    vertical_fov_deg: float = 58.0    # depth camera vertical field of view (square pixels)
-    blind_range_m: float = 0.3        # camera minimum range (D435i ~0.2-0.3 m; sim near plane 0.1 m) + margin
-    pad_memory_radius_m: float = 0.6  # a pad seen beneath the legs is assumed still there within this (x, y)
+    leg_offset_m: float = setting(0.15, ge=0)  # legs at (+-, +-) this in base_link (VehicleConfig.leg_offset_m)
+    window_m: float = setting(0.06, gt=0)  # half-size, on the floor, of the patch checked under each leg
+    camera_offset_m: float = setting(0.05, ge=0)  # optical centre below base_link (CameraConfig.offset_below_base_m)
+    vertical_fov_deg: float = setting(58.0, gt=0, lt=180)  # depth camera vertical field of view (square pixels)
+    blind_range_m: float = setting(0.3, ge=0)  # camera minimum range (D435i ~0.2-0.3 m; sim near plane 0.1 m) + margin
+    # a pad seen beneath the legs is assumed still there within this (x, y)
+    pad_memory_radius_m: float = setting(0.6, ge=0)
     # hold a descent straddling a pad edge nearer than this to the pad (0: off)
     edge_height_m: float = node_param(0.6, 'floor_guard_edge_height_m', 'Floor guard edge rule: a descent is held '
                                       'while the legs straddle a pad edge with the camera nearer than this to the '
                                       'pad (m; 0 = off).', min=0.0, max=5.0)
-    edge_watch_m: float = 2.0         # the edge rule watches below this altitude
+    edge_watch_m: float = setting(2.0, ge=0)  # the edge rule watches below this altitude
     # wall rule (assist_policy.walls): no V toward a wall seen within wall_radius_m (0: off)
     # a wall this close horizontally stops the approach to it
     wall_radius_m: float = node_param(1.5, 'floor_guard_wall_radius_m', 'Floor guard wall rule '
@@ -90,8 +92,12 @@ class SafetyConfig:
     wall_height_m: float = node_param(2.0, 'floor_guard_wall_height_m', 'Floor guard wall rule: a surface seen this '
                                       'high over the floor (odom z) is a wall (m; landing pads must stand lower).',
                                       min=0.1, max=50.0)
-    wall_min_points: int = 4          # fewer such pixels in a frame: noise
-    wall_cell_m: float = 0.25         # walls are remembered in cells of this size (m)
+    wall_min_points: int = setting(4, ge=1)  # fewer such pixels in a frame: noise
+    wall_cell_m: float = setting(0.25, gt=0)  # walls are remembered in cells of this size (m)
+
+    def __post_init__(self) -> None:
+        """Reject settings outside their fields' ranges (SettingsError, one line)."""
+        check_named(self, type(self).__name__)
 
 
 @dataclass

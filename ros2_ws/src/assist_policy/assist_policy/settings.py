@@ -6,13 +6,17 @@ parameter of that name, with that description, range and run-time rule (``dynami
 parameter fields belong to the node too. ``parameters(PolicyCoreConfig)`` lists them all, ``config_from``
 builds the config from parameter values, and ``changes_for`` turns a run-time set into per-config changes.
 Pure Python (no rclpy): policy_node turns each ``NodeParam`` into its ``Param``, and a test holds
-``config/assist.yaml`` to the same names and defaults.
+``config/assist.yaml`` to the same names and defaults. A node parameter's range is its field's settings rule
+too, and the other fields declare theirs with ``assist_common.settings.setting``: a config's ``__post_init__``
+checks every field with ``check_named`` (ranges declared once, where the field is).
 """
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
 from typing import Any
+
+from assist_common.settings import RULE_KEY, Rule
 
 PARAM_KEY = 'node_param'
 NESTED_KEY = 'nested_config'
@@ -30,6 +34,11 @@ class NodeParam:
     dynamic: bool = True
     choices: tuple[str, ...] | None = None
 
+    def settings_rule(self) -> Rule:
+        """The same range as a settings rule (one declaration for the node parameter and the config field)."""
+        return Rule(ge=None if self.min_exclusive else self.min, gt=self.min if self.min_exclusive else None,
+                    le=self.max, choices=tuple(self.choices or ()))
+
 
 @dataclass(frozen=True)
 class ParamField:
@@ -41,8 +50,10 @@ class ParamField:
 
 
 def node_param(default: Any, name: str, description: str, **rule: Any) -> Any:
-    """A dataclass field with `default` that is the node parameter `name` (rule: NodeParam's min, max, ...)."""
-    return dataclasses.field(default=default, metadata={PARAM_KEY: NodeParam(name, description, **rule)})
+    """A dataclass field with `default` that is the node parameter `name` (rule: NodeParam's min, max, ...); its
+    range is also the field's settings rule (``assist_common.settings.check_named`` checks the config with it)."""
+    spec = NodeParam(name, description, **rule)
+    return dataclasses.field(default=default, metadata={PARAM_KEY: spec, RULE_KEY: spec.settings_rule()})
 
 
 def nested(cls: type, default: Any = None) -> Any:

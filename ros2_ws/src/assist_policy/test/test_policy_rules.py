@@ -83,3 +83,28 @@ def test_goal_agnostic_rules_are_off_by_default_only_where_the_goal_is_known():
     assert {r.switch: oracle[r.switch].default for r in RULES} == {
         'floor_guard': True, 'pilot_override': False, 'pad_recall': False, 'oscillation_damper': False}
     assert policy_node.params_for_mode('latent') == policy_node.PARAMS
+
+
+def test_every_numeric_setting_declares_its_range_once_where_the_field_is():
+    from assist_common.settings import RULE_KEY
+    from assist_policy.flight import FlightConfig
+    from assist_policy.settings import PARAM_KEY
+    for cls in (*(r.config for r in RULES), FlightConfig, PolicyCoreConfig, AssistantConfig):
+        for f in dataclasses.fields(cls):
+            numeric = isinstance(f.default, (int, float)) and not isinstance(f.default, bool)
+            if not numeric or f.name in ('ground_altitude_m',):          # any finite altitude
+                continue
+            assert RULE_KEY in f.metadata, f'{cls.__name__}.{f.name} declares no range'
+            if PARAM_KEY in f.metadata:           # a node parameter: its range is the field's rule
+                spec, r = f.metadata[PARAM_KEY], f.metadata[RULE_KEY]
+                assert (r.gt if spec.min_exclusive else r.ge) == spec.min and r.le == spec.max, f.name
+    with pytest.raises(ValueError, match=r'^SafetyConfig.window_m must be > 0, got 0.0$'):
+        SafetyConfig(window_m=0.0)
+    with pytest.raises(ValueError, match=r'^PolicyCoreConfig.pilot_timeout_s must be > 0, got 0.0$'):
+        PolicyCoreConfig(pilot_timeout_s=0.0)
+    with pytest.raises(ValueError, match=r"^PolicyCoreConfig.actor_velocity must be one of twist, odom, got 'body'$"):
+        PolicyCoreConfig(actor_velocity='body')
+    with pytest.raises(ValueError, match=r'^AssistantConfig.max_speed_mps must be >= 0.1, got 0.0$'):
+        AssistantConfig(max_speed_mps=0.0)
+    with pytest.raises(ValueError, match=r'^RecallConfig.vertical_fov_deg must be a finite number, got inf$'):
+        RecallConfig(vertical_fov_deg=float('inf'))
