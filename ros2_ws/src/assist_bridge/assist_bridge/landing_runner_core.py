@@ -18,6 +18,8 @@ import logging
 import math
 from dataclasses import dataclass, field
 
+from assist_common.settings import check_named, setting
+
 _LOG = logging.getLogger(__name__)
 
 
@@ -37,37 +39,28 @@ class RunnerState(enum.Enum):
 class RunnerConfig:
     """Settings of the episode sequence (the node's parameters)."""
 
-    episodes: int = 0                 # landings to fly; 0: until stopped
-    arm_retry_s: float = 5.0          # wait this long after a refused arm / takeoff before retrying
-    arm_give_up_s: float = 300.0      # fail when no arm + takeoff succeeded this long into an episode
-    flight_timeout_s: float = 150.0   # no landing result this long after takeoff: request LAND
+    episodes: int = setting(0, ge=0)  # landings to fly; 0: until stopped
+    arm_retry_s: float = setting(5.0, gt=0)  # wait this long after a refused arm / takeoff before retrying
+    arm_give_up_s: float = setting(300.0, gt=0)  # fail when no arm + takeoff succeeded this long into an episode
+    flight_timeout_s: float = setting(150.0, gt=0)  # no landing result this long after takeoff: request LAND
     land_after_touchdown: bool = True  # request LAND after the landing result (disarms on the ground)
-    reboot_after_s: float = 120.0     # still refused this long into an episode: reboot the autopilot once; 0: never
+    # still refused this long into an episode: reboot the autopilot once; 0: never
+    reboot_after_s: float = setting(120.0, ge=0)
     reboot_after_crash: bool = False  # reboot before the episode after a crash (SITL's EKF may not survive one)
-    disarm_timeout_s: float = 20.0    # no next episode this long after the landing's LAND: force-disarm; 0: never
-    autopilot_confirm_s: float = 3.0  # after a touchdown result, wait this long for ON_GROUND before LAND; 0: don't
+    # no next episode this long after the landing's LAND: force-disarm; 0: never
+    disarm_timeout_s: float = setting(20.0, ge=0)
+    # after a touchdown result, wait this long for ON_GROUND before LAND; 0: don't
+    autopilot_confirm_s: float = setting(3.0, ge=0)
     # arm only once /odom has been still this long (speed <= settle_speed_mps, position within settle_drift_m):
     # an estimate still moving (SITL's EKF re-converging after the sim moved the vehicle to the next start
     # spot) would put the takeoff's ground, and the first metres of the approach, where the vehicle is not
-    settle_s: float = 1.0             # 0: arm without waiting for the odometry
-    settle_speed_mps: float = 0.05
-    settle_drift_m: float = 0.05
+    settle_s: float = setting(1.0, ge=0)  # 0: arm without waiting for the odometry
+    settle_speed_mps: float = setting(0.05, gt=0)
+    settle_drift_m: float = setting(0.05, gt=0)
 
     def __post_init__(self) -> None:
-        if int(self.episodes) < 0:
-            raise ValueError(f'episodes must be >= 0, got {self.episodes}')
-        for name in ('arm_retry_s', 'arm_give_up_s', 'flight_timeout_s'):
-            v = float(getattr(self, name))
-            if not math.isfinite(v) or v <= 0.0:
-                raise ValueError(f'{name} must be finite and > 0, got {v}')
-        for name in ('reboot_after_s', 'disarm_timeout_s', 'autopilot_confirm_s', 'settle_s'):
-            v = float(getattr(self, name))
-            if not math.isfinite(v) or v < 0.0:
-                raise ValueError(f'{name} must be finite and >= 0, got {v}')
-        for name in ('settle_speed_mps', 'settle_drift_m'):
-            v = float(getattr(self, name))
-            if not math.isfinite(v) or v <= 0.0:
-                raise ValueError(f'{name} must be finite and > 0, got {v}')
+        """Reject settings outside their fields' ranges (SettingsError, one line)."""
+        check_named(self)
 
 
 # MAV_LANDED_STATE_ON_GROUND: the autopilot's land detector declared the vehicle landed

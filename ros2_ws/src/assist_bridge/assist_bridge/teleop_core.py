@@ -7,10 +7,11 @@ terminal's auto-repeat delay) and, once it repeats, until its repeats stop for `
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from assist_common.settings import check_named, setting
 
 # Key bindings as data: token -> (axis in FLU (0=x forward, 1=y left, 2=z up), direction).
 KEY_BINDINGS: dict[str, tuple[int, int]] = {
@@ -31,17 +32,15 @@ HELP = 'W/S forward/back  A/D left/right  Up/Down climb/descend  space stop  q q
 class TeleopConfig:
     """Speeds and key timing (node parameters map onto these)."""
 
-    speed: float = 1.0               # m/s horizontal (W/S/A/D)
-    speed_z: float = 0.5             # m/s vertical (arrows)
-    rate_hz: float = 20.0            # publish rate of /pilot/cmd_vel
-    initial_hold_s: float = 0.6      # > terminal auto-repeat delay (typically 0.25-0.6 s)
-    repeat_timeout_s: float = 0.15   # > auto-repeat period (typically 0.03-0.05 s)
+    speed: float = setting(1.0, gt=0)  # m/s horizontal (W/S/A/D)
+    speed_z: float = setting(0.5, gt=0)  # m/s vertical (arrows)
+    rate_hz: float = setting(20.0, gt=0)  # publish rate of /pilot/cmd_vel
+    initial_hold_s: float = setting(0.6, gt=0)  # > terminal auto-repeat delay (typically 0.25-0.6 s)
+    repeat_timeout_s: float = setting(0.15, gt=0)  # > auto-repeat period (typically 0.03-0.05 s)
 
     def __post_init__(self) -> None:
-        for name in ('speed', 'speed_z', 'rate_hz', 'initial_hold_s', 'repeat_timeout_s'):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f'{name} must be a positive finite number, got {v!r}')
+        """Reject settings outside their fields' ranges (SettingsError, one line)."""
+        check_named(self)
 
 
 class KeyDecoder:

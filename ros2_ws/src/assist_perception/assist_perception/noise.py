@@ -31,46 +31,37 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from assist_common.settings import check_named, setting
+
 
 @dataclass
 class NoiseConfig:
     """Parameters of the D435i-like depth noise model (defaults are for 64x64 images)."""
 
-    min_range_m: float = 0.28            # D435i minimum depth at 848x480
+    min_range_m: float = setting(0.28, ge=0)  # D435i minimum depth at 848x480
     max_range_m: float = 10.0            # usable range
-    sigma_z2: float = 0.01               # axial std = sigma_z2 * z^2 (2 % at 2 m, the D435i spec)
-    focal_baseline_px_m: float = 21.0    # f (px, 848x480) * baseline (0.05 m)
-    disparity_step_px: float = 0.08      # sub-pixel disparity resolution; 0 disables
-    depth_unit_m: float = 0.001          # output rounding (16UC1 millimetres); 0 disables
-    edge_threshold_m: float = 0.1        # neighbour depth jump that counts as a discontinuity
-    edge_band_px: int = 1                # half-width of the band around a discontinuity
-    edge_hole_prob: float = 0.5          # band pixel -> hole
-    flying_pixel_prob: float = 0.3       # remaining band pixel -> flying pixel
+    sigma_z2: float = setting(0.01, ge=0)  # axial std = sigma_z2 * z^2 (2 % at 2 m, the D435i spec)
+    focal_baseline_px_m: float = setting(21.0, gt=0)  # f (px, 848x480) * baseline (0.05 m)
+    disparity_step_px: float = setting(0.08, ge=0)  # sub-pixel disparity resolution; 0 disables
+    depth_unit_m: float = setting(0.001, ge=0)  # output rounding (16UC1 millimetres); 0 disables
+    edge_threshold_m: float = setting(0.1, ge=0)  # neighbour depth jump that counts as a discontinuity
+    edge_band_px: int = setting(1, ge=0)  # half-width of the band around a discontinuity
+    edge_hole_prob: float = setting(0.5, ge=0, le=1)  # band pixel -> hole
+    flying_pixel_prob: float = setting(0.3, ge=0, le=1)  # remaining band pixel -> flying pixel
     dark_threshold: float = 0.12         # luminance (0..1) below which a surface is "dark"
-    dark_hole_prob: float = 0.5          # dark pixel -> hole
-    base_hole_prob: float = 0.01         # any pixel -> hole
-    blob_rate: float = 1.0               # mean number of dropout blobs per frame
+    dark_hole_prob: float = setting(0.5, ge=0, le=1)  # dark pixel -> hole
+    base_hole_prob: float = setting(0.01, ge=0, le=1)  # any pixel -> hole
+    blob_rate: float = setting(1.0, ge=0)  # mean number of dropout blobs per frame
     blob_radius_frac: tuple[float, float] = (0.03, 0.12)   # blob semi-axes / image width
 
     def __post_init__(self) -> None:
-        """Validate ranges so a bad config fails loudly at construction."""
-        for name in ('edge_hole_prob', 'flying_pixel_prob', 'dark_hole_prob', 'base_hole_prob'):
-            v = getattr(self, name)
-            if not 0.0 <= v <= 1.0:
-                raise ValueError(f'NoiseConfig.{name} must be in [0, 1], got {v}')
-        for name in ('sigma_z2', 'disparity_step_px', 'depth_unit_m', 'blob_rate',
-                     'edge_threshold_m', 'min_range_m'):
-            if getattr(self, name) < 0:
-                raise ValueError(f'NoiseConfig.{name} must be >= 0')
+        """Validate ranges so a bad config fails loudly at construction (SettingsError, one line)."""
+        check_named(self, type(self).__name__)
         if self.max_range_m <= self.min_range_m:
             raise ValueError('NoiseConfig.max_range_m must exceed min_range_m')
-        if self.edge_band_px < 0:
-            raise ValueError('NoiseConfig.edge_band_px must be >= 0')
         lo, hi = self.blob_radius_frac
         if not 0 < lo <= hi:
             raise ValueError('NoiseConfig.blob_radius_frac must satisfy 0 < lo <= hi')
-        if self.focal_baseline_px_m <= 0:
-            raise ValueError('NoiseConfig.focal_baseline_px_m must be > 0')
 
 
 def frame_rng(seed: int, stamp_ns: int) -> np.random.Generator:

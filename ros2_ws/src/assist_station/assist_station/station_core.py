@@ -17,6 +17,8 @@ from collections.abc import Hashable, Iterable, Sequence
 
 import numpy as np
 
+from assist_common.settings import check_named, setting
+
 from assist_bridge.teleop_core import KEY_BINDINGS, TeleopConfig
 
 # Browser KeyboardEvent.code -> teleop token (KEY_BINDINGS) ; 'Space' is the stop key.
@@ -142,15 +144,13 @@ def command_from_keys(down: Sequence[str], speed: float, speed_z: float) -> np.n
 class StationConfig:
     """Speeds and timing of the pilot's command (node parameters map onto these)."""
 
-    speed: float = TeleopConfig.speed        # m/s, W/S/A/D (same as teleop_keyboard)
-    speed_z: float = TeleopConfig.speed_z    # m/s, arrows
-    key_timeout_s: float = 1.0               # held keys not refreshed for this long count as released
+    speed: float = setting(TeleopConfig.speed, gt=0)  # m/s, W/S/A/D (same as teleop_keyboard)
+    speed_z: float = setting(TeleopConfig.speed_z, gt=0)  # m/s, arrows
+    key_timeout_s: float = setting(1.0, gt=0)  # held keys not refreshed for this long count as released
 
     def __post_init__(self) -> None:
-        for name in ('speed', 'speed_z', 'key_timeout_s'):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f'{name} must be a positive finite number, got {v!r}')
+        """Reject settings outside their fields' ranges (SettingsError, one line)."""
+        check_named(self)
 
 
 class KeyState:
