@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from assist_lab.episodes_plan import evaluation_plans
+from assist_lab.evaluate import rules_flying
 from assist_lab.graph_eval import (GraphEvalArgs, check_sitl_args, node_params, runner_verdict, sitl_command,
                                       sitl_ports)
 from assist_sim.core.config import WorldConfig
@@ -115,7 +116,7 @@ def _plans(n: int = 3):
 def test_sitl_graph_nodes_and_parameters_follow_the_plan_and_instance():
     plans = _plans()
     args = GraphEvalArgs(autopilot='sitl', sitl_instance=1, conditions=('latent',))
-    on = {'override': False, 'recall': False, 'damper': False}
+    on = rules_flying(GraphEvalArgs(override=False, recall=False, damper=False), 'latent')
     params = node_params(args, 'latent', plans, on, runner_results='/runs/x/landing_runner.csv')
     assert set(params) == {'sim_node', 'mavlink_bridge_node', 'landing_runner', 'sim_pilot_node', 'encoder_node',
                            'policy_node'}
@@ -132,6 +133,9 @@ def test_sitl_graph_nodes_and_parameters_follow_the_plan_and_instance():
     assert pilot['episode_seeds'] == [p.pilot_seed for p in plans]
     assert params['encoder_node']['level_camera'] is True
     assert params['policy_node']['mode'] == 'latent'
+    assert {k: params['policy_node'][k] for k in ('floor_guard', 'pilot_override', 'pad_recall',
+                                                  'oscillation_damper')} == {
+        'floor_guard': True, 'pilot_override': False, 'pad_recall': False, 'oscillation_damper': False}
 
     unassisted = node_params(args, 'unassisted', plans, on)
     assert set(unassisted) == {'sim_node', 'mavlink_bridge_node', 'landing_runner', 'sim_pilot_node'}

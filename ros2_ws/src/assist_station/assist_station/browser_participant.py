@@ -113,8 +113,11 @@ class BrowserParticipant:
                 found = self.driver.find_elements(*selector)
                 state = (f'displayed {found[0].is_displayed()}, enabled {found[0].is_enabled()}' if found
                          else 'not on the page')
+                shown = self.driver.execute_script(
+                    "const p = document.getElementById('study'); return p ? p.innerText.slice(0, 200) : '';")
                 raise ParticipantError(f'answer {name}={value} not clickable within {STEP_TIMEOUT_S:.0f} s '
-                                       f'({state})') from None
+                                       f'({state}; study view: {self._view()}; the panel showed: {shown!r}; '
+                                       f'console: {self.driver.get_log("browser")[-5:]})') from None
 
     def run(self) -> dict[str, Any]:
         """Go through the whole protocol in the page; returns what happened (ParticipantError if it cannot)."""

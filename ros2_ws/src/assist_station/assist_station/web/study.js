@@ -134,4 +134,6 @@
       else if (msg.type === 'study_feedback') { feedback = Object.assign({ n: Date.now() }, msg); render(true); }
     },
   };
+  // a study message the socket delivered while this script was still loading: show it now
+  if (stats && stats.study) window.stationStudy.onMessage(stats.study);
 })();
