@@ -45,7 +45,8 @@ from assist_sim.pilot import PilotConfig, SimulatedPilot
 from assist_sim.pilots import make_pilot
 
 from assist_policy.actions import DEFAULT_MAX_SPEED, scale_action
-from assist_policy.assistant import Assistant, AssistantConfig, DepthFrame
+from assist_policy.assistant import Assistant, AssistantConfig
+from assist_policy.stage import DepthFrame
 from assist_policy.blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS
 from assist_policy.flight import FlightConfig, FlightMonitor
 from assist_policy.loop import AssistLoop

@@ -7,7 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from assist_policy.assistant import Assistant, AssistantConfig, DepthFrame, StepContext, rules_off
+from assist_policy.assistant import Assistant, AssistantConfig, rules_off
+from assist_policy.stage import DepthFrame, StepContext
 from assist_lab.evaluate import EvalArgs, evaluate
 from assist_policy.flight import FlightConfig, FlightMonitor
 from assist_policy.policy_core import InputRejected, PolicyCore, PolicyCoreConfig

@@ -1,14 +1,15 @@
 """The deployed assistant: the actor's action through the non-learned stages to the command V, in one order.
 
 policy_node (through ``policy_core.PolicyCore``), the training/evaluation env (``env.LandingAssistEnv``) and
-``replay_assist`` all run this chain; nothing else chains the stages. Each stage sees the same
+``replay_assist`` all run this chain; nothing else chains the stages. Each rule's module implements its stage
+(``stage.Stage``: ``damper.DamperStage``, ``override.OverrideStage``, ...); each stage sees the same
 ``StepContext`` and the ``Decision`` so far, and returns a new ``Decision`` when it acts (None when it
 does not). The order, and so who wins:
 
 1. ``oscillation_damper`` (``damper.OscillationDamper``): while the pilot's held keys keep reversing across
    a mapped pad, a_xy = -gain v_xy. A later action stage replaces its result.
 2. ``pilot_override`` (``override.PilotOverride``): a held key, a persistent or long push, a held climb
-   passes instead of a. Wins over the damper and the recall (the recall does not run after it).
+   passes instead of a. Wins over the damper and the recall (its Decision is ``final``: the recall leaves it).
 3. ``pad_recall`` (``recall.PadRecall``): maps every depth frame (also when it then does not act); steers a
    descent over bare floor back to a mapped pad (recall, scout) or centres on the pad below (touchdown).
 4. blending (``blending.blend``): V = (u + a) / 2 if |a| > threshold else u. The action history the
@@ -28,84 +29,21 @@ legs) belongs to one flight: ``Assistant.reset`` forgets it (``flight.FlightMoni
 from __future__ import annotations
 
 import dataclasses
-import functools
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Protocol
-from collections.abc import Callable, Hashable
 
 import numpy as np
 
 from assist_common.settings import check_named, setting
 
 from .blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS, MIN_SPEED_LIMIT_MPS, blend, clamp_velocity
-from .damper import DamperConfig, OscillationDamper
-from .override import OverrideConfig, PilotOverride
-from .recall import PadRecall, RecallConfig
+from .damper import DamperConfig, DamperStage, OscillationDamper
+from .override import OverrideConfig, OverrideStage, PilotOverride
+from .recall import PadRecall, RecallConfig, RecallStage
 from .rules import RULES, switched
-from .safety import FloorGuard, SafetyConfig
-from .walls import WallGuard
-
-Pose = tuple[np.ndarray, 'np.ndarray | None']     # odom position, attitude quaternion (x, y, z, w) or None
-
-
-class DepthFrame:
-    """One depth image (metres, HxW) with the odometry pose it was taken from; both read at most once, when asked.
-
-    `key` identifies the frame: the stages that map what the camera sees (pad map, wall map) add a frame once.
-    """
-
-    def __init__(self, key: Hashable, image: Callable[[], np.ndarray], pose: Callable[[], Pose]):
-        self.key = key
-        self._image = image
-        self._pose = pose
-
-    @functools.cached_property
-    def image(self) -> np.ndarray:
-        """The depth image (rendered or decoded on first use)."""
-        return self._image()
-
-    @functools.cached_property
-    def pose(self) -> Pose:
-        """(position, attitude) of the vehicle when the frame was taken."""
-        return self._pose()
-
-
-@dataclass
-class StepContext:
-    """What every stage sees in one control step (odom ENU positions, base_link velocities and commands)."""
-
-    t: float                            # flight clock (s)
-    u: np.ndarray                       # pilot command
-    mean_u: np.ndarray                  # its mean over the observation window (the actor's input)
-    position: np.ndarray                # vehicle position (odom)
-    velocity: np.ndarray                # odometry twist (base_link)
-    quaternion: np.ndarray | None       # attitude (None: level, heading 0)
-    frame: DepthFrame | None            # a fresh depth frame, or None (the depth-reading stages then skip)
-    max_speed: tuple[float, float, float]   # the actor's action limits (m/s per axis)
-
-
-@dataclass
-class Decision:
-    """The step's result so far: agent action a (None: the actor did not run), command V (None before blending)."""
-
-    agent: np.ndarray | None
-    velocity: np.ndarray | None = None
-    key: str = ''                       # which stage decided last ('' before any)
-    reason: str = ''
-
-
-class Stage(Protocol):
-    """One non-learned stage: ``apply`` returns the new Decision when the stage acts, None when it does not."""
-
-    key: str
-
-    def reset(self) -> None:
-        """Forget this flight."""
-
-    def apply(self, ctx: StepContext, d: Decision) -> Decision | None:
-        """Act on the decision so far, or return None."""
-
+from .safety import FloorGuard, GuardStage, SafetyConfig
+from .stage import Decision, Stage, StepContext
+from .walls import WallGuard, WallStage
 
 @dataclass
 class AssistantConfig:
@@ -128,142 +66,6 @@ def rules_off(cfg: AssistantConfig | None = None) -> AssistantConfig:
     """A copy of `cfg` (default settings: None) with every non-learned rule switched off: the bare actor."""
     cfg = cfg or AssistantConfig()
     return dataclasses.replace(cfg, **{r.field: switched(r, False, getattr(cfg, r.field)) for r in RULES})
-
-
-# ----------------------------------------------------------------------------------------------- stages
-class DamperStage:
-    """1. The oscillation damper on the actor's horizontal action (reads the recall's pad map)."""
-
-    key = 'oscillation_damper'
-
-    def __init__(self, damper: OscillationDamper, recall: PadRecall):
-        self.damper, self._recall = damper, recall
-
-    def reset(self) -> None:
-        """Forget the reversals and positions."""
-        self.damper.reset()
-
-    def apply(self, ctx: StepContext, d: Decision) -> Decision | None:
-        """a_xy = -gain v_xy while the pilot oscillates across a mapped pad."""
-        a = self.damper.apply(ctx.t, ctx.u, d.agent, ctx.velocity, ctx.position,
-                              [m.xyz for m in self._recall.map.pads], ctx.max_speed)
-        return None if a is None else Decision(a, None, self.key, 'oscillation damper: damping the pilot\'s '
-                                                                  'oscillation')
-
-
-_OVERRIDE_REASONS = {'held_key': 'pilot override: the pilot\'s held correction passes',
-                     'persistent': 'pilot override: the pilot\'s persistent push passes',
-                     'climb': 'pilot override: the pilot\'s held climb passes',
-                     'long': 'pilot override: the pilot\'s long push passes'}
-
-
-class OverrideStage:
-    """2. The pilot override: a deliberate correction passes instead of the actor's action."""
-
-    key = 'pilot_override'
-
-    def __init__(self, override: PilotOverride, guard: FloorGuard):
-        self.override, self._guard = override, guard
-
-    def reset(self) -> None:
-        """Forget held keys, pushes and landing spots."""
-        self.override.reset()
-
-    def apply(self, ctx: StepContext, d: Decision) -> Decision | None:
-        """The pilot's correction (with a gentle climb when low), or None."""
-        # the depth image's surface under the legs, through the floor guard's test (off with the guard: the
-        # altitude stands in)
-        surface = (None if not self._guard.cfg.enabled or ctx.frame is None
-                   else lambda: self._guard.surface_below(ctx.frame.image, ctx.position))
-        a = self.override.apply(ctx.t, ctx.u, ctx.mean_u, float(ctx.position[2]), ctx.max_speed, ctx.velocity,
-                                surface, ctx.position)
-        if a is None:
-            return None
-        return Decision(a, None, self.key, _OVERRIDE_REASONS.get(self.override.mode, _OVERRIDE_REASONS['held_key']))
-
-
-_RECALL_REASONS = {'recall': 'pad recall: steering back to a pad seen',
-                   'touchdown': 'pad recall: centring on the pad below for touchdown',
-                   'scout': 'pad recall: looking beyond for a nearer pad before steering back'}
-
-
-class RecallStage:
-    """3. The pad recall: maps every depth frame; steers back to a mapped pad (not after the override)."""
-
-    key = 'pad_recall'
-
-    def __init__(self, recall: PadRecall):
-        self.recall = recall
-        self._mapped: Hashable = None         # key of the depth frame last added to the map
-
-    def reset(self) -> None:
-        """Forget the map and the scouting."""
-        self.recall.reset()
-        self._mapped = None
-
-    def apply(self, ctx: StepContext, d: Decision) -> Decision | None:
-        """The push back to a mapped pad, or None."""
-        if ctx.frame is None or not self.recall.cfg.enabled:
-            return None
-        if self._mapped != ctx.frame.key:
-            self.recall.observe(ctx.frame.image, *ctx.frame.pose)
-            self._mapped = ctx.frame.key
-        if d.key == OverrideStage.key:
-            return None                       # the pilot's correction wins
-        a = self.recall.apply(ctx.u, ctx.mean_u, d.agent, ctx.frame.image, ctx.position, ctx.quaternion,
-                              ctx.max_speed)
-        if a is None:
-            return None
-        return Decision(a, None, self.key, _RECALL_REASONS.get(self.recall.mode, _RECALL_REASONS['recall']))
-
-
-class GuardStage:
-    """5. The floor guard on the blended command."""
-
-    key = 'floor_guard'
-
-    def __init__(self, guard: FloorGuard, threshold: Callable[[], float]):
-        self.guard, self._threshold = guard, threshold
-
-    def reset(self) -> None:
-        """Forget the last pad seen under the legs."""
-        self.guard.reset()
-
-    def apply(self, ctx: StepContext, d: Decision) -> Decision | None:
-        """A small climb instead of a descent over bare floor, or None."""
-        if (ctx.frame is None or not self.guard.cfg.enabled
-                or float(ctx.position[2]) >= self.guard.watch_height_m):
-            return None                       # too high to watch: the image is not read
-        thr = self._threshold()
-        active = d.agent is not None and float(np.linalg.norm(d.agent)) > thr
-        g = self.guard.apply(ctx.u, d.agent if active else None, d.velocity, ctx.frame.image, ctx.position, thr)
-        return Decision(g.agent, g.velocity, self.key, 'floor guard: descent blocked') if g.engaged else None
-
-
-class WallStage:
-    """6. The wall rule: no command toward a wall seen within reach (the floor guard's switch and settings)."""
-
-    key = 'wall_guard'
-
-    def __init__(self, walls: WallGuard, threshold: Callable[[], float]):
-        self.walls, self._threshold = walls, threshold
-        self._mapped: Hashable = None
-
-    def reset(self) -> None:
-        """Forget the wall map."""
-        self.walls.reset()
-        self._mapped = None
-
-    def apply(self, ctx: StepContext, d: Decision) -> Decision | None:
-        """V without its part toward the nearest walls, or None."""
-        if ctx.frame is None or not self.walls.active:
-            return None
-        if self._mapped != ctx.frame.key:
-            self.walls.observe(ctx.frame.image, *ctx.frame.pose)
-            self._mapped = ctx.frame.key
-        active = d.agent is not None and float(np.linalg.norm(d.agent)) > self._threshold()
-        w = self.walls.apply(ctx.u, d.agent if active else None, d.velocity, ctx.position, ctx.quaternion)
-        return Decision(w.agent, w.velocity, self.key, 'floor guard: approach to a wall stopped') if w.engaged else None
 
 
 # ----------------------------------------------------------------------------------------------- chain

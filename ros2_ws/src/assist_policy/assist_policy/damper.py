@@ -34,12 +34,17 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from typing import TYPE_CHECKING
 from dataclasses import dataclass
 
 import numpy as np
 
 from assist_common.settings import check_named, setting
 from .settings import node_param
+from .stage import Decision, StepContext
+
+if TYPE_CHECKING:                     # the stage reads the recall's pad map
+    from .recall import PadRecall
 
 
 @dataclass
@@ -170,3 +175,24 @@ class OscillationDamper:
         ms = np.asarray(max_speed, dtype=float).reshape(3)
         a[:2] = np.clip(-self.cfg.gain * v[:2], -ms[:2], ms[:2])
         return a
+
+
+# ----------------------------------------------------------------------------------------------- stage
+class DamperStage:
+    """1. The oscillation damper on the actor's horizontal action (reads the recall's pad map)."""
+
+    key = 'oscillation_damper'
+
+    def __init__(self, damper: OscillationDamper, recall: PadRecall):
+        self.damper, self._recall = damper, recall
+
+    def reset(self) -> None:
+        """Forget the reversals and positions."""
+        self.damper.reset()
+
+    def apply(self, ctx: StepContext, d: Decision) -> Decision | None:
+        """a_xy = -gain v_xy while the pilot oscillates across a mapped pad."""
+        a = self.damper.apply(ctx.t, ctx.u, d.agent, ctx.velocity, ctx.position,
+                              [m.xyz for m in self._recall.map.pads], ctx.max_speed)
+        return None if a is None else Decision(a, None, self.key, 'oscillation damper: damping the pilot\'s '
+                                                                  'oscillation')

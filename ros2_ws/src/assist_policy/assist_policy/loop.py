@@ -13,7 +13,8 @@ from collections import Counter
 
 import numpy as np
 
-from .assistant import Assistant, DepthFrame, StepContext, StepResult
+from .assistant import Assistant, StepResult
+from .stage import DepthFrame, StepContext
 from .flight import FlightMonitor
 from .observation import Condition, ObservationBuilder
 

@@ -103,6 +103,8 @@ import numpy as np
 from assist_common.settings import check_named, setting
 from .scripted import YIELD_SPEED_MPS, holds_key
 from .settings import node_param
+from .safety import FloorGuard
+from .stage import Decision, StepContext
 
 # what the depth image shows below the vehicle, on demand: (bare floor under every leg, height over the
 # surface below in m), None where unknown (safety.FloorGuard.surface_below)
@@ -422,3 +424,36 @@ class PilotOverride:
             self.mode = 'long'        # latched; a descent tapped on the way is the actor's to judge this step
             return yield_action(c, u, altitude_m, max_speed)
         return None
+
+
+# ----------------------------------------------------------------------------------------------- stage
+_OVERRIDE_REASONS = {'held_key': 'pilot override: the pilot\'s held correction passes',
+                     'persistent': 'pilot override: the pilot\'s persistent push passes',
+                     'climb': 'pilot override: the pilot\'s held climb passes',
+                     'long': 'pilot override: the pilot\'s long push passes'}
+
+
+class OverrideStage:
+    """2. The pilot override: a deliberate correction passes instead of the actor's action."""
+
+    key = 'pilot_override'
+
+    def __init__(self, override: PilotOverride, guard: FloorGuard):
+        self.override, self._guard = override, guard
+
+    def reset(self) -> None:
+        """Forget held keys, pushes and landing spots."""
+        self.override.reset()
+
+    def apply(self, ctx: StepContext, d: Decision) -> Decision | None:
+        """The pilot's correction (with a gentle climb when low), or None."""
+        # the depth image's surface under the legs, through the floor guard's test (off with the guard: the
+        # altitude stands in)
+        surface = (None if not self._guard.cfg.enabled or ctx.frame is None
+                   else lambda: self._guard.surface_below(ctx.frame.image, ctx.position))
+        a = self.override.apply(ctx.t, ctx.u, ctx.mean_u, float(ctx.position[2]), ctx.max_speed, ctx.velocity,
+                                surface, ctx.position)
+        if a is None:
+            return None
+        return Decision(a, None, self.key, _OVERRIDE_REASONS.get(self.override.mode, _OVERRIDE_REASONS['held_key']),
+                        final=True)           # the pilot's correction: the later action stages leave it

@@ -34,7 +34,8 @@ from assist_common.frames import quat_to_matrix
 from assist_common.shipped import shipped_model_path
 
 from .actions import scale_action
-from .assistant import Assistant, AssistantConfig, DepthFrame
+from .assistant import Assistant, AssistantConfig
+from .stage import DepthFrame
 from .blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS, MIN_SPEED_LIMIT_MPS, clamp_velocity
 from .damper import DamperConfig
 from .flight import FlightConfig, FlightMonitor, surface_clearance

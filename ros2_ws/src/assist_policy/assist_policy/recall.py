@@ -78,6 +78,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Hashable
 from dataclasses import dataclass, field
 
 import cv2
@@ -89,6 +90,7 @@ from assist_common.settings import check_named, setting
 from .safety import FloorGuard, SafetyConfig
 from .scripted import ScriptedConfig, ScriptedOracle
 from .settings import node_param
+from .stage import Decision, StepContext
 
 log = logging.getLogger(__name__)
 
@@ -425,3 +427,39 @@ def depth_points(depth: np.ndarray, position: np.ndarray, quaternion: np.ndarray
 def _thinnest_spread(xy: np.ndarray) -> float:
     """Standard deviation of points `xy` (Nx2) across their narrowest direction (m)."""
     return float(math.sqrt(max(np.linalg.eigvalsh(np.cov(xy.T))[0], 0.0))) if len(xy) > 2 else 0.0
+
+
+# ----------------------------------------------------------------------------------------------- stage
+_RECALL_REASONS = {'recall': 'pad recall: steering back to a pad seen',
+                   'touchdown': 'pad recall: centring on the pad below for touchdown',
+                   'scout': 'pad recall: looking beyond for a nearer pad before steering back'}
+
+
+class RecallStage:
+    """3. The pad recall: maps every depth frame; steers back to a mapped pad (not after the override)."""
+
+    key = 'pad_recall'
+
+    def __init__(self, recall: PadRecall):
+        self.recall = recall
+        self._mapped: Hashable = None         # key of the depth frame last added to the map
+
+    def reset(self) -> None:
+        """Forget the map and the scouting."""
+        self.recall.reset()
+        self._mapped = None
+
+    def apply(self, ctx: StepContext, d: Decision) -> Decision | None:
+        """The push back to a mapped pad, or None."""
+        if ctx.frame is None or not self.recall.cfg.enabled:
+            return None
+        if self._mapped != ctx.frame.key:
+            self.recall.observe(ctx.frame.image, *ctx.frame.pose)
+            self._mapped = ctx.frame.key
+        if d.final:
+            return None                       # the pilot's correction wins
+        a = self.recall.apply(ctx.u, ctx.mean_u, d.agent, ctx.frame.image, ctx.position, ctx.quaternion,
+                              ctx.max_speed)
+        if a is None:
+            return None
+        return Decision(a, None, self.key, _RECALL_REASONS.get(self.recall.mode, _RECALL_REASONS['recall']))

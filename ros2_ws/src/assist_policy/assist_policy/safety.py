@@ -46,6 +46,7 @@ are over the pad (not the floor) when they come this low. Pure numpy; no rclpy.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -53,6 +54,7 @@ import numpy as np
 from assist_common.settings import check_named, setting
 from .blending import blend
 from .settings import node_param
+from .stage import Decision, StepContext
 
 
 @dataclass
@@ -236,3 +238,27 @@ class FloorGuard:
         a_safe = a_safe.copy()
         a_safe[2] = 2.0 * climb - u[2]
         return GuardResult(a_safe, blend(u, a_safe, blend_threshold), True, floor)
+
+
+# ----------------------------------------------------------------------------------------------- stage
+class GuardStage:
+    """5. The floor guard on the blended command."""
+
+    key = 'floor_guard'
+
+    def __init__(self, guard: FloorGuard, threshold: Callable[[], float]):
+        self.guard, self._threshold = guard, threshold
+
+    def reset(self) -> None:
+        """Forget the last pad seen under the legs."""
+        self.guard.reset()
+
+    def apply(self, ctx: StepContext, d: Decision) -> Decision | None:
+        """A small climb instead of a descent over bare floor, or None."""
+        if (ctx.frame is None or not self.guard.cfg.enabled
+                or float(ctx.position[2]) >= self.guard.watch_height_m):
+            return None                       # too high to watch: the image is not read
+        thr = self._threshold()
+        active = d.agent is not None and float(np.linalg.norm(d.agent)) > thr
+        g = self.guard.apply(ctx.u, d.agent if active else None, d.velocity, ctx.frame.image, ctx.position, thr)
+        return Decision(g.agent, g.velocity, self.key, 'floor guard: descent blocked') if g.engaged else None

@@ -30,6 +30,7 @@ where the wall was marked from higher up. Pure numpy; no rclpy.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Hashable
 
 import numpy as np
 
@@ -37,6 +38,7 @@ from assist_common.frames import heading, yaw_rotation
 
 from .recall import cells_within, depth_points, subsample
 from .safety import GuardResult, SafetyConfig
+from .stage import Decision, StepContext
 
 WALL_IMAGE_PX = 48          # frames larger than this on their long side are subsampled (walls span many pixels)
 WALL_MAX_CELLS = 20_000     # more wall cells (a long flight): those farther than WALL_KEEP_M are forgotten
@@ -117,3 +119,30 @@ class WallGuard:
         v_safe = np.array([v_xy[0], v_xy[1], v[2]])
         u = np.asarray(u, dtype=float).reshape(3)
         return GuardResult(2.0 * v_safe - u, v_safe, True, None)
+
+
+# ----------------------------------------------------------------------------------------------- stage
+class WallStage:
+    """6. The wall rule: no command toward a wall seen within reach (the floor guard's switch and settings)."""
+
+    key = 'wall_guard'
+
+    def __init__(self, walls: WallGuard, threshold: Callable[[], float]):
+        self.walls, self._threshold = walls, threshold
+        self._mapped: Hashable = None
+
+    def reset(self) -> None:
+        """Forget the wall map."""
+        self.walls.reset()
+        self._mapped = None
+
+    def apply(self, ctx: StepContext, d: Decision) -> Decision | None:
+        """V without its part toward the nearest walls, or None."""
+        if ctx.frame is None or not self.walls.active:
+            return None
+        if self._mapped != ctx.frame.key:
+            self.walls.observe(ctx.frame.image, *ctx.frame.pose)
+            self._mapped = ctx.frame.key
+        active = d.agent is not None and float(np.linalg.norm(d.agent)) > self._threshold()
+        w = self.walls.apply(ctx.u, d.agent if active else None, d.velocity, ctx.position, ctx.quaternion)
+        return Decision(w.agent, w.velocity, self.key, 'floor guard: approach to a wall stopped') if w.engaged else None
