@@ -103,6 +103,86 @@ def ros(domain_id):
     rclpy.shutdown(context=ctx)
 
 
+class PolicyProbe:
+    """policy_node's inputs published from the test's node (/odom, /pilot/cmd_vel, /assist/latent) and its outputs
+    recorded with their arrival times (/cmd_vel, /assist/agent_cmd, its /diagnostics statuses)."""
+
+    def __init__(self, node):
+        import numpy as np
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import TwistStamped
+        from nav_msgs.msg import Odometry
+        from std_msgs.msg import Float32MultiArray
+
+        from assist_common.ros_common import RELIABLE_QOS, SENSOR_QOS
+        from assist_policy.testing import LATENT
+        self._np, self._twist, self._odom, self._array, self._latent = (np, TwistStamped, Odometry,
+                                                                          Float32MultiArray, LATENT)
+        self.node, self.lock = node, threading.Lock()
+        self.cmd, self.agent, self.diag = [], [], []
+        self.subs = [node.create_subscription(TwistStamped, '/cmd_vel', self._rec(self.cmd), RELIABLE_QOS),
+                     node.create_subscription(TwistStamped, '/assist/agent_cmd', self._rec(self.agent),
+                                              RELIABLE_QOS),
+                     node.create_subscription(DiagnosticArray, '/diagnostics', self._diag, 10)]
+        self.pub_odom = node.create_publisher(Odometry, '/odom', SENSOR_QOS)
+        self.pub_pilot = node.create_publisher(TwistStamped, '/pilot/cmd_vel', RELIABLE_QOS)
+        self.pub_latent = node.create_publisher(Float32MultiArray, '/assist/latent', SENSOR_QOS)
+
+    def _rec(self, store: list) -> Callable:
+        def cb(msg) -> None:
+            with self.lock:
+                store.append((time.monotonic(), self._np.array([msg.twist.linear.x, msg.twist.linear.y,
+                                                                msg.twist.linear.z])))
+        return cb
+
+    def _diag(self, msg) -> None:
+        with self.lock:
+            self.diag += [(time.monotonic(), s) for s in msg.status if s.hardware_id == 'policy_node']
+
+    def since(self, store: list, t0: float) -> list:
+        """The values of `store` recorded at or after monotonic time `t0`."""
+        with self.lock:
+            return [v for t, v in store if t >= t0]
+
+    def publish(self, u=(0.0, 1.0, 0.0), frame: str = 'base_link', odom_v=(0.0, 0.0, 0.0), latent: bool = True,
+                latent_value: float = 0.0) -> None:
+        """One set of inputs: odometry 2 m up moving at `odom_v`, the pilot's `u` in `frame`, a latent (all
+        `latent_value`) unless `latent` is False."""
+        od = self._odom()
+        od.pose.pose.position.z = 2.0
+        od.twist.twist.linear.x, od.twist.twist.linear.y, od.twist.twist.linear.z = odom_v
+        self.pub_odom.publish(od)
+        tw = self._twist()
+        tw.header.frame_id = frame
+        tw.twist.linear.x, tw.twist.linear.y, tw.twist.linear.z = (float(x) for x in u)
+        self.pub_pilot.publish(tw)
+        if latent:
+            self.pub_latent.publish(self._array(data=[float(latent_value)] * self._latent))
+
+    def run(self, seconds: float, **kw) -> float:
+        """Publish the inputs at 20 Hz for `seconds`; the monotonic time it began."""
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < seconds:
+            self.publish(**kw)
+            time.sleep(0.05)
+        return t0
+
+    def close(self) -> None:
+        """Destroy the subscriptions and publishers."""
+        for s in self.subs:
+            self.node.destroy_subscription(s)
+        for p in (self.pub_odom, self.pub_pilot, self.pub_latent):
+            self.node.destroy_publisher(p)
+
+
+@pytest.fixture
+def probe(ros):
+    """A PolicyProbe on the test module's node."""
+    p = PolicyProbe(ros)
+    yield p
+    p.close()
+
+
 @pytest.fixture
 def start_node(domain_id, tmp_path):
     """Factory: start_node('sim_node', {'seed': 1}) -> NodeProcess; all stopped at teardown."""

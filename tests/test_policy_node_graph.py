@@ -5,73 +5,12 @@ import time
 
 import numpy as np
 import pytest
-from geometry_msgs.msg import TwistStamped
-from nav_msgs.msg import Odometry
-from std_msgs.msg import Float32MultiArray
 
-from assist_common.ros_common import RELIABLE_QOS, SENSOR_QOS
 from assist_policy.testing import LATENT, constant_actor
 
 pytestmark = pytest.mark.graph
 
 LATENT = LATENT
-
-
-class Probe:
-    """Publishes the policy inputs, records its outputs."""
-
-    def __init__(self, node):
-        self.node = node
-        self.lock = threading.Lock()
-        self.cmd, self.agent = [], []
-        self.subs = [node.create_subscription(TwistStamped, '/cmd_vel', self._rec(self.cmd), RELIABLE_QOS),
-                     node.create_subscription(TwistStamped, '/assist/agent_cmd', self._rec(self.agent),
-                                              RELIABLE_QOS)]
-        self.pub_odom = node.create_publisher(Odometry, '/odom', SENSOR_QOS)
-        self.pub_pilot = node.create_publisher(TwistStamped, '/pilot/cmd_vel', RELIABLE_QOS)
-        self.pub_latent = node.create_publisher(Float32MultiArray, '/assist/latent', SENSOR_QOS)
-
-    def _rec(self, store):
-        def cb(msg):
-            with self.lock:
-                store.append((time.monotonic(), np.array([msg.twist.linear.x, msg.twist.linear.y,
-                                                          msg.twist.linear.z])))
-        return cb
-
-    def since(self, store, t0):
-        with self.lock:
-            return [v for t, v in store if t >= t0]
-
-    def publish(self, u=(0.0, 1.0, 0.0), latent=True, latent_value=0.0):
-        od = Odometry()
-        od.pose.pose.position.z = 2.0
-        self.pub_odom.publish(od)
-        tw = TwistStamped()
-        tw.header.frame_id = 'base_link'
-        tw.twist.linear.x, tw.twist.linear.y, tw.twist.linear.z = (float(x) for x in u)
-        self.pub_pilot.publish(tw)
-        if latent:
-            self.pub_latent.publish(Float32MultiArray(data=[float(latent_value)] * LATENT))
-
-    def run(self, seconds, **kw):
-        t0 = time.monotonic()
-        while time.monotonic() - t0 < seconds:
-            self.publish(**kw)
-            time.sleep(0.05)
-        return t0
-
-    def close(self):
-        for s in self.subs:
-            self.node.destroy_subscription(s)
-        for p in (self.pub_odom, self.pub_pilot, self.pub_latent):
-            self.node.destroy_publisher(p)
-
-
-@pytest.fixture
-def probe(ros):
-    p = Probe(ros)
-    yield p
-    p.close()
 
 
 def test_policy_node_blends_relinquishes_when_stale_and_rejects_nan(probe, start_node, wait, tmp_path):

@@ -5,7 +5,6 @@ graph tests run the console script on the test's private domain.
 from __future__ import annotations
 
 import math
-import threading
 import time
 from pathlib import Path
 
@@ -14,7 +13,7 @@ import pytest
 import rclpy
 import rclpy.duration
 import torch
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry
 from rclpy.context import Context
@@ -22,7 +21,6 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import Float32MultiArray
 
 from assist_policy.policy_node import PolicyNode, ReasonThrottle
-from assist_common.ros_common import RELIABLE_QOS, SENSOR_QOS
 from assist_policy.testing import LATENT, constant_actor
 from assist_common.domains import private_domain_id
 
@@ -196,60 +194,6 @@ def test_each_reason_has_its_own_throttle():
 
 
 # ------------------------------------------------------------------ graph: the console script
-
-class Probe:
-    def __init__(self, node):
-        self.node, self.lock = node, threading.Lock()
-        self.cmd, self.diag = [], []
-        self.subs = [node.create_subscription(TwistStamped, '/cmd_vel', self._cmd, RELIABLE_QOS),
-                     node.create_subscription(DiagnosticArray, '/diagnostics', self._diag, 10)]
-        self.pub_odom = node.create_publisher(Odometry, '/odom', SENSOR_QOS)
-        self.pub_pilot = node.create_publisher(TwistStamped, '/pilot/cmd_vel', RELIABLE_QOS)
-        self.pub_latent = node.create_publisher(Float32MultiArray, '/assist/latent', SENSOR_QOS)
-
-    def _cmd(self, msg):
-        with self.lock:
-            self.cmd.append((time.monotonic(), _vec(msg)))
-
-    def _diag(self, msg):
-        with self.lock:
-            self.diag += [(time.monotonic(), s) for s in msg.status if s.hardware_id == 'policy_node']
-
-    def since(self, store, t0):
-        with self.lock:
-            return [v for t, v in store if t >= t0]
-
-    def publish(self, u=(0.0, 1.0, 0.0), frame='base_link', odom_v=(0.0, 0.0, 0.0)):
-        od = Odometry()
-        od.pose.pose.position.z = 2.0
-        od.twist.twist.linear.x, od.twist.twist.linear.y, od.twist.twist.linear.z = odom_v
-        self.pub_odom.publish(od)
-        tw = TwistStamped()
-        tw.header.frame_id = frame
-        tw.twist.linear.x, tw.twist.linear.y, tw.twist.linear.z = (float(x) for x in u)
-        self.pub_pilot.publish(tw)
-        self.pub_latent.publish(Float32MultiArray(data=[0.0] * LATENT))
-
-    def run(self, seconds, **kw):
-        t0 = time.monotonic()
-        while time.monotonic() - t0 < seconds:
-            self.publish(**kw)
-            time.sleep(0.05)
-        return t0
-
-    def close(self):
-        for s in self.subs:
-            self.node.destroy_subscription(s)
-        for p in (self.pub_odom, self.pub_pilot, self.pub_latent):
-            self.node.destroy_publisher(p)
-
-
-@pytest.fixture
-def probe(ros):
-    p = Probe(ros)
-    yield p
-    p.close()
-
 
 @pytest.mark.graph
 def test_node_survives_hostile_odometry_and_wrong_frames(probe, start_node, wait, model):

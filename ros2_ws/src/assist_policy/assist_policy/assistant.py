@@ -45,6 +45,7 @@ from .safety import FloorGuard, GuardStage, SafetyConfig
 from .stage import Decision, Stage, StepContext
 from .walls import WallGuard, WallStage
 
+
 @dataclass
 class AssistantConfig:
     """Settings of the chain (blending and speed limits here; each stage's in its own config)."""
