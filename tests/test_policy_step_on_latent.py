@@ -1,28 +1,16 @@
 """policy_node steps on each new latent (camera-to-command latency of one inference), not only on its timer."""
-import importlib.util
 import time
-from pathlib import Path
 
 import pytest
 
+from assist_policy.testing import constant_actor
+
 pytestmark = pytest.mark.graph
-
-_spec = importlib.util.spec_from_file_location(
-    'policy_node_graph', Path(__file__).resolve().parent / 'test_policy_node_graph.py')
-_graph = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(_graph)
-
-
-@pytest.fixture
-def probe(ros):
-    p = _graph.Probe(ros)
-    yield p
-    p.close()
 
 
 @pytest.mark.parametrize('step_on_latent', [True, False])
 def test_commands_follow_latents_not_the_timer(probe, start_node, wait, tmp_path, step_on_latent):
-    model = _graph.constant_actor(tmp_path / 'actor.pt', [0.8, 0.0, 0.0])
+    model = constant_actor(tmp_path / 'actor.pt', [0.8, 0.0, 0.0])
     # a 1 Hz timer: 20 Hz of commands can only come from stepping on each latent
     node = start_node('policy_node', {'mode': 'latent', 'model_path': str(model), 'rate_hz': 1.0,
                                       'step_on_latent': step_on_latent})

@@ -84,11 +84,15 @@ class BrowserParticipant:
                 time.sleep(0.1)
 
     def _act(self, element_id: str) -> None:
-        """Click a study button and wait until the station's view moves on (or an error shows)."""
-        before = self._view()
+        """Click a study button and wait until the station's view moves on to another step (participant, phase,
+        trial or a landing begun) or an error shows; a view of the same step (its stage changing, say) is not the
+        result of the click."""
+        def step(view: dict[str, Any] | None) -> tuple | None:
+            return None if view is None else tuple(view.get(k) for k in ('participant', 'phase', 'trial', 'in_flight'))
+        before = step(self._view())
         errors = self._stats()['errors']
         self._click(element_id)
-        st = self._wait(lambda s: s['study'] != before or s['errors'] > errors, f'the result of {element_id}')
+        st = self._wait(lambda s: step(s['study']) != before or s['errors'] > errors, f'the result of {element_id}')
         if st['errors'] > errors:
             text = self.driver.execute_script("const e = document.getElementById('study-error'); "
                                               "return e ? e.textContent : '';")
