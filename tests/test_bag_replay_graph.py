@@ -131,7 +131,7 @@ def test_replay_reproduces_the_latents_and_commands_that_flew(graph_bag):
     assert s['latent']['max'] < 1e-4
     # every step is one recorded /cmd_vel; every recorded agent_cmd is paired with its step by header stamp
     assert s['steps'] == s['cmd_vel']['compared'] == n_cmd
-    assert s['agent_cmd_unpaired'] == 0
+    assert s['agent_cmd_unpaired'] == 0 and s['agent_cmd_after_last_step'] <= 1     # the recorder stops first
     assert s['agent_cmd']['compared'] + s['agent_cmd']['only_recorded'] == n_agent
     assert s['agent_cmd']['compared'] >= n_agent - 5
     res = replay(graph_bag, ReplayConfig())

@@ -610,12 +610,18 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
     steps_of: dict[int, list[int]] = {}
     for i, key in enumerate(keys):
         steps_of.setdefault(key, []).append(i)
-    unpaired = 0
+    unpaired = after_last = 0
+    last_step = max(keys, default=None)
     for key, recs in rec_agents.items():
         for i, a in zip(steps_of.get(key, []), recs):
             res.rec_agent[i] = a
-        unpaired += max(0, len(recs) - len(steps_of.get(key, [])))
-    res.info.update(counts, agent_cmd_unpaired=unpaired, flight_resets=dict(core.flight_resets))
+        missing = max(0, len(recs) - len(steps_of.get(key, [])))
+        if last_step is not None and key > last_step:
+            after_last += missing      # the bag ended between a step's agent_cmd and its /cmd_vel
+        else:
+            unpaired += missing
+    res.info.update(counts, agent_cmd_unpaired=unpaired, agent_cmd_after_last_step=after_last,
+                    flight_resets=dict(core.flight_resets))
     if encode is not None and counts['latent_frames_missing'] + counts['latent_frames_rejected']:
         log.warning('%d recorded latents had no frame in the bag and %d frames were rejected on re-encoding: those '
                     'latents were not replayed', counts['latent_frames_missing'], counts['latent_frames_rejected'])
