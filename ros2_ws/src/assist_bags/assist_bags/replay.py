@@ -547,10 +547,12 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
                         if at_latents and rgb is not None and depth is not None:
                             for k in waiting.pop(st, []):     # latents the recorder got before their frame
                                 apply_latent(k, st, t, now)
-                            for k, mu in maybe.pop(st, []):
-                                other = encode_frame(st, count=False)
-                                counts['latent_frames_realigned'] += is_recorded(other, k)
-                                use_latent(k, other if is_recorded(other, k) else mu, t, now)
+                            pending = maybe.pop(st, [])
+                            other = encode_frame(st, count=False) if pending else None    # once per frame
+                            for k, mu in pending:
+                                hit = is_recorded(other, k)
+                                counts['latent_frames_realigned'] += hit
+                                use_latent(k, other if hit else mu, t, now)
                         if encode is not None and not at_latents and rgb is not None and depth is not None:
                             mu = encode_frame(st)              # every frame, once it is complete
                             if mu is not None:
