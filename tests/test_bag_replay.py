@@ -46,14 +46,15 @@ def override_landing(tmp_path_factory):
 
 @pytest.fixture(scope='module')
 def rules_landing(tmp_path_factory):
-    """One latent landing flown with every non-learned rule on, each of which acts in it (low_flyer, beta 0.5)."""
+    """One latent landing flown with every non-learned rule on, each of which acts in it (low_flyer, beta 0.5); the
+    assistant's intent shown (--cues) to a pilot who does not read it, so the bag records the intent."""
     out = tmp_path_factory.mktemp('eval_rules')
     code = evaluate.main(['--out', str(out), '--conditions', 'latent', '--betas', '0.5', '--landings', '1',
                           '--seed', '3025', '--pilot', 'low_flyer', '--safety', 'true', '--override', 'true',
                           '--recall', 'true', '--damper', 'true', '--max-episode-s', '25',
-                          '--record-dir', str(out / 'bags'), '--plot', 'false'])
+                          '--record-dir', str(out / 'bags'), '--plot', 'false', '--cues', '--cue-trust', '0'])
     assert code == 0
-    cond = 'latent+guard+override+recall+damper'
+    cond = 'latent+guard+override+recall+damper+cues'
     row = evaluate.read_landings(out / 'landings.csv')[cond][0]
     return out / 'bags' / landing_bag_name(cond, row['beta'], row['seed']), row
 
@@ -119,8 +120,12 @@ def test_replay_cli_writes_a_bag_and_summary(landing, tmp_path):
     assert summary['cmd_vel']['max'] < 1e-4
     with BagReader(out) as r:
         n = summary['steps']
-        assert {t: v.count for t, v in r.topics.items()} == {'/assist/latent': n, '/assist/agent_cmd': n,
-                                                            '/cmd_vel': n}
+        counts = {t: v.count for t, v in r.topics.items()}
+        assert {t: counts.pop(t) for t in ('/assist/latent', '/assist/agent_cmd', '/cmd_vel')} == dict.fromkeys(
+            ('/assist/latent', '/assist/agent_cmd', '/cmd_vel'), n)
+        # and the assistant's intent: a goal estimate once a pad is mapped, the descent flag where the depth tells
+        assert 0 < counts.pop('/assist/goal_estimate') <= n and 0 < counts.pop('/assist/descent_ok') <= n
+        assert not counts
     # the same result as CSV
     res = replay(bag, ReplayConfig(latent='recorded'))
     csv_path = write_outputs(res, tmp_path / 'replayed.csv')
@@ -174,6 +179,9 @@ def test_replay_runs_the_rules_the_bag_was_flown_with(rules_landing, landing):
     assert s['latent']['max'] < 1e-5                             # the same noise re-applied to the same frames
     assert s['agent_cmd']['max'] < 1e-4 and s['cmd_vel']['max'] < 1e-4
     assert s['agent_cmd']['only_new'] == s['agent_cmd']['only_recorded'] == 0
+    # the assistant's intent as it was recorded: every goal estimate and descent flag, the same
+    assert s['goal_estimate']['compared'] > 50 and s['goal_estimate']['max'] < 1e-9
+    assert s['descent_ok']['compared'] == s['steps'] and s['descent_ok']['agree'] == s['steps']
     for rule in ('floor_guard', 'override', 'recall', 'damper'):    # each one's commands are in the bag
         off = summarize(replay(bag, ReplayConfig(latent='recorded', **{rule: 'off'})))
         assert off['rules'][rule] is False and off['cmd_vel']['max'] > 0.05, rule

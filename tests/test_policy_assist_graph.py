@@ -4,13 +4,15 @@ Oracle mode needs no encoder; the latent variant adds encoder_node and runs with
 and latent actor.
 """
 import json
+import math
 import threading
 from pathlib import Path
 
 import pytest
-from std_msgs.msg import String
+from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
+from std_msgs.msg import Bool, String
 
-from assist_common.ros_common import LANDING_QOS
+from assist_common.ros_common import LANDING_QOS, LATCHED_QOS, RELIABLE_QOS
 from assist_policy.testing import constant_actor
 
 pytestmark = pytest.mark.graph
@@ -67,19 +69,61 @@ LATENT_ACTOR = REPO / 'models' / 'td3_latent_actor.pt'
 CMVAE = REPO / 'models' / 'cmvae.pt'
 
 
+@pytest.fixture
+def intent(ros):
+    """The assistant's intent as it arrives: goal estimates (and their covariance), descent flags, the sim's goals;
+    each list frozen at the first landing (``seen['landed']``)."""
+    seen = {'goals': [], 'descent': [], 'sim_goal': [], 'landed': False}
+    lock = threading.Lock()
+
+    def keep(key, value):
+        with lock:
+            if not seen['landed']:
+                seen[key].append(value)
+    subs = [ros.create_subscription(PoseWithCovarianceStamped, '/assist/goal_estimate',
+                                    lambda m: keep('goals', (m.header.frame_id, m.pose.pose.position.x,
+                                                             m.pose.pose.position.y, list(m.pose.covariance))),
+                                    RELIABLE_QOS),
+            ros.create_subscription(Bool, '/assist/descent_ok', lambda m: keep('descent', bool(m.data)), RELIABLE_QOS),
+            ros.create_subscription(PointStamped, '/sim/goal', lambda m: keep('sim_goal', (m.point.x, m.point.y)),
+                                    LATCHED_QOS)]
+    yield seen, lock
+    for sub in subs:
+        ros.destroy_subscription(sub)
+
+
 @pytest.mark.skipif(not (LATENT_ACTOR.is_file() and CMVAE.is_file()), reason='latent actor or CM-VAE not shipped')
-def test_latent_assisted_graph_with_encoder_completes_landings(start_node, wait, landings):
+def test_latent_assisted_graph_with_encoder_completes_landings(start_node, wait, landings, intent):
+    seen, lock = intent
     nodes = [
         start_node('sim_node', {'seed': 8, 'real_time_factor': 2.0, 'camera_rate_hz': 20.0,
                                 'reset_delay_s': 0.5}),
         start_node('encoder_node', {'use_sim_time': True, 'depth_noise': True}),
-        start_node('sim_pilot_node', {'alpha': 0.5, 'beta': 1.0, 'seed': 2, 'use_sim_time': True}),
+        # a pilot who reads the cues: the node's cue path runs on the live intent
+        start_node('sim_pilot_node', {'alpha': 0.5, 'beta': 1.0, 'seed': 2, 'use_sim_time': True, 'cue_trust': 1.0}),
         start_node('policy_node', {'mode': 'latent', 'use_sim_time': True}),
     ]
-    ok = wait(lambda: _real(landings) is not None or any(n.proc.poll() is not None for n in nodes), 300)
+
+    def landed() -> bool:
+        with lock:
+            seen['landed'] = _real(landings) is not None
+        return seen['landed']
+    ok = wait(lambda: landed() or any(n.proc.poll() is not None for n in nodes), 300)
     logs = '\n'.join(n.log()[-2000:] for n in nodes)
     assert ok and landings, logs
     first = _real(landings)
     assert first is not None, (landings, logs)
     assert first['assisted'] is True, first
     assert all(n.proc.poll() is None for n in nodes), logs
+    # the intent (assist_policy.intent) came with the landing: estimates in odom, a variance per axis, and the
+    # light green at some point over the pad it came down on
+    with lock:
+        goals, descent, sim_goal = list(seen['goals']), list(seen['descent']), list(seen['sim_goal'])
+    assert goals and descent, logs
+    frame, x, y, cov = goals[-1]
+    assert frame == 'odom' and len(cov) == 36 and all(math.isfinite(v) for v in (x, y, *cov)), goals[-1]
+    assert cov[0] >= 0.0 and cov[7] >= 0.0
+    assert True in descent, descent[-20:]
+    if first['success']:        # it landed on the goal pad: the last estimate before touchdown was that pad
+        gx, gy = sim_goal[-1]
+        assert math.hypot(x - gx, y - gy) < 0.5, (goals[-1], sim_goal[-1])

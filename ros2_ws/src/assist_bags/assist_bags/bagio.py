@@ -86,6 +86,8 @@ CONTRACT_TOPICS: dict[str, tuple[str, Qos]] = {
     '/assist/depth_denoised': ('sensor_msgs/msg/Image', SENSOR),
     '/assist/agent_cmd': ('geometry_msgs/msg/TwistStamped', RELIABLE),
     '/cmd_vel': ('geometry_msgs/msg/TwistStamped', RELIABLE),
+    '/assist/goal_estimate': ('geometry_msgs/msg/PoseWithCovarianceStamped', RELIABLE),
+    '/assist/descent_ok': ('std_msgs/msg/Bool', RELIABLE),
     '/uav/landed_state': ('std_msgs/msg/UInt8', LATCHED),
     '/sim/goal': ('geometry_msgs/msg/PointStamped', LATCHED),
     '/sim/landing': ('std_msgs/msg/String', LANDING),

@@ -121,6 +121,27 @@ def float_array(values) -> Any:
                                                data=data)
 
 
+def pose_with_covariance(t_ns: int, p, covariance, frame: str = 'odom') -> Any:
+    """geometry_msgs/PoseWithCovarianceStamped at position p (3,), identity orientation, 6x6 row-major covariance."""
+    pose = T('geometry_msgs/msg/Pose')(position=T('geometry_msgs/msg/Point')(x=float(p[0]), y=float(p[1]),
+                                                                             z=float(p[2])),
+                                        orientation=T('geometry_msgs/msg/Quaternion')(x=0.0, y=0.0, z=0.0, w=1.0))
+    cov = np.asarray(covariance, dtype=np.float64).reshape(36)
+    return T('geometry_msgs/msg/PoseWithCovarianceStamped')(
+        header=header(t_ns, frame), pose=T('geometry_msgs/msg/PoseWithCovariance')(pose=pose, covariance=cov))
+
+
+def pose_position(msg: Any) -> np.ndarray:
+    """PoseWithCovarianceStamped -> its position (3,)."""
+    p = msg.pose.pose.position
+    return np.array([p.x, p.y, p.z], dtype=float)
+
+
+def boolean(value: bool) -> Any:
+    """std_msgs/Bool."""
+    return T('std_msgs/msg/Bool')(data=bool(value))
+
+
 def string(text: str) -> Any:
     """std_msgs/String."""
     return T('std_msgs/msg/String')(data=text)

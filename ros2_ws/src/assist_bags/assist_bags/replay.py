@@ -8,12 +8,13 @@ No ROS graph: the bag's camera frames, /odom and /pilot/cmd_vel (and /sim/goal f
 the same cores the nodes run (assist_perception's LatentEncoder via make_latent_fn, PolicyCore) at the
 recorded receive times; the policy steps once per recorded /cmd_vel message (or at --rate-hz, at most
 1000 Hz, when the bag has none; a gap that would take more than a million such steps, e.g. one message with
-a far-future timestamp, is refused). Writes /assist/latent, /assist/agent_cmd and /cmd_vel into a new bag (or
-one CSV row per step) and prints (and writes as JSON) the max, mean and rms difference of /cmd_vel,
-/assist/agent_cmd and the latent from the recorded ones. Existing outputs (bag, CSV, summary JSON) are
-refused, never overwritten. With the models that flew the bag the difference is ~0 (tests/test_bag_replay.py
-holds evaluate's bags to < 1e-4 m/s): that is the check that replay is faithful before a new model is tried
-on old flights.
+a far-future timestamp, is refused). Writes /assist/latent, /assist/agent_cmd, /cmd_vel and the assistant's intent
+(/assist/goal_estimate, /assist/descent_ok) into a new bag (or one CSV row per step) and prints (and writes as
+JSON) the max, mean and rms difference of /cmd_vel, /assist/agent_cmd, the latent and the goal estimate from the
+recorded ones (and how many descent_ok flags are the same), where the bag recorded them. Existing outputs (bag,
+CSV, summary JSON) are refused, never overwritten. With the models that flew the bag the difference is ~0
+(tests/test_bag_replay.py holds evaluate's bags to < 1e-4 m/s): that is the check that replay is faithful before a
+new model is tried on old flights.
 
 What flew, and where replay learns it (--mode/--actor/--encoder/--floor-guard/... decide instead):
 * evaluate's bags: custom_data assist.condition (e.g. latent+guard+override+recall+damper) gives the mode and
@@ -71,6 +72,7 @@ log = logging.getLogger(__name__)
 RGB, DEPTH, ODOM, PILOT = '/camera/color/image_raw', '/camera/depth/image_raw', '/odom', '/pilot/cmd_vel'
 LATENT, AGENT, CMD, GOAL = '/assist/latent', '/assist/agent_cmd', '/cmd_vel', '/sim/goal'
 PAD, DIAG, LANDED = '/assist/pad_estimate', '/diagnostics', '/uav/landed_state'
+GOAL_EST, DESCENT = '/assist/goal_estimate', '/assist/descent_ok'
 PAIR_WINDOW = 25           # latents either side whose neighbours vote on the latent/pad-estimate offset
 FRAME_MEMORY = 40          # recent camera frames kept for the latents that follow them (2 s at 20 Hz)
 LATENT_MATCH = 1e-3        # a re-encoded latent this close (max abs) to a recorded one encodes the same frame
@@ -248,6 +250,11 @@ class ReplayResult:
     latents: dict[int, np.ndarray] = field(default_factory=dict)  # id -> re-encoded latent
     latent_times: dict[int, int] = field(default_factory=dict)    # id -> bag time it reached the core
     rec_latent: dict[int, np.ndarray] = field(default_factory=dict)   # id -> recorded latent
+    goal: dict[int, np.ndarray] = field(default_factory=dict)         # step -> the intent's goal estimate
+    cov: dict[int, list[float]] = field(default_factory=dict)         # step -> its 6x6 covariance
+    descent: dict[int, bool] = field(default_factory=dict)            # step -> descent_ok
+    rec_goal: dict[int, np.ndarray] = field(default_factory=dict)     # step -> the recorded goal estimate
+    rec_descent: dict[int, bool] = field(default_factory=dict)        # step -> the recorded descent_ok
     info: dict = field(default_factory=dict)
 
 
@@ -327,7 +334,8 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
         missing = [t for t in need if t not in r.topics]
         if missing:
             raise BagError(f'{bag}: lacks {", ".join(missing)}: cannot re-run the {mode} assistant')
-        used = need + [t for t in (AGENT, CMD, LATENT, PAD, LANDED) if t in r.topics and t not in need]
+        used = need + [t for t in (AGENT, CMD, LATENT, PAD, LANDED, GOAL_EST, DESCENT)
+                       if t in r.topics and t not in need]
         r.check_definitions(used)
         import torch  # heavy: only once the bag is known to be good
 
@@ -420,6 +428,7 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
             bar = tqdm(total=total, unit='msg', desc='replay', file=sys.stderr)
         cmd_stamps: list[int | None] = []          # header stamp of each step's recorded /cmd_vel
         rec_agents: dict[int, list[np.ndarray]] = {}   # header stamp -> recorded /assist/agent_cmd
+        rec_goals: dict[int, list[np.ndarray]] = {}    # header stamp -> recorded /assist/goal_estimate
         latent_id: int | None = None
         n_latent = 0
 
@@ -432,6 +441,10 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
             res.cmd[i] = out.velocity
             if out.agent is not None:
                 res.agent[i] = out.agent
+            if out.intent.goal is not None:
+                res.goal[i], res.cov[i] = out.intent.goal, out.intent.pose_covariance()
+            if out.intent.descent_ok is not None:
+                res.descent[i] = out.intent.descent_ok
             if latent_id is not None:
                 res.step_latent[i] = latent_id
 
@@ -580,6 +593,12 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
                     elif topic == AGENT:
                         rec_agents.setdefault(msgs.stamp_ns(msg.header.stamp) if ticks_from_bag else t, []).append(
                             msgs.twist_linear(msg))
+                    elif topic == GOAL_EST:
+                        rec_goals.setdefault(msgs.stamp_ns(msg.header.stamp) if ticks_from_bag else t, []).append(
+                            msgs.pose_position(msg))
+                    elif topic == DESCENT and res.times_ns:
+                        # no header: the step published just before it arrived (each step publishes it last)
+                        res.rec_descent[len(res.times_ns) - 1] = bool(msg.data)
                     elif topic == CMD:
                         i = len(res.times_ns)
                         res.rec_cmd[i] = msgs.twist_linear(msg)
@@ -614,6 +633,9 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
         steps_of.setdefault(key, []).append(i)
     unpaired = after_last = 0
     last_step = max(keys, default=None)
+    for key, recs in rec_goals.items():
+        for i, g in zip(steps_of.get(key, []), recs):
+            res.rec_goal[i] = g
     for key, recs in rec_agents.items():
         for i, a in zip(steps_of.get(key, []), recs):
             res.rec_agent[i] = a
@@ -647,6 +669,11 @@ def summarize(res: ReplayResult) -> dict:
     out['agent_cmd']['only_recorded'] = len(set(res.rec_agent) - set(res.agent))
     if res.latents:
         out['latent'] = diff(res.latents, res.rec_latent)
+    if res.rec_goal or res.rec_descent:      # the assistant's intent, where the bag recorded it
+        out['goal_estimate'] = diff(res.goal, res.rec_goal)
+        common = sorted(set(res.descent) & set(res.rec_descent))
+        out['descent_ok'] = {'compared': len(common),
+                             'agree': sum(res.descent[i] == res.rec_descent[i] for i in common)}
     return out
 
 
@@ -683,12 +710,18 @@ def write_outputs(res: ReplayResult, out: Path, storage: str = 'mcap') -> Path:
         if i in res.agent:
             rows.append((t, 1, AGENT, msgs.twist_stamped(t, res.agent[i])))
         rows.append((t, 2, CMD, msgs.twist_stamped(t, res.cmd[i])))
+        if i in res.goal:
+            rows.append((t, 3, GOAL_EST, msgs.pose_with_covariance(t, res.goal[i], res.cov[i])))
+        if i in res.descent:
+            rows.append((t, 4, DESCENT, msgs.boolean(res.descent[i])))
     rows.sort(key=lambda row: row[:2])          # stable: steps at one time keep their order
     with BagWriter(out, storage=storage, atomic=True) as w:
         if res.latents:
             w.add_topic(LATENT, *CONTRACT_TOPICS[LATENT])
         w.add_topic(AGENT, *CONTRACT_TOPICS[AGENT])
         w.add_topic(CMD, *CONTRACT_TOPICS[CMD])
+        for topic in (GOAL_EST, DESCENT):
+            w.add_topic(topic, *CONTRACT_TOPICS[topic])
         for t, _, topic, msg in rows:
             w.write_msg(topic, t, msg)
     return out
@@ -700,7 +733,7 @@ def format_summary(s: dict) -> str:
     lines = [f"replayed {s['steps']} steps of {s['bag']} ({s['mode']} from {s.get('mode_from', '?')}, "
              f"actor {s['actor']}, latent {s['latent_source']}, velocity {s['velocity_frame']}, "
              f"steps at {s['steps_at']}, rules {', '.join(on) or 'none'})"]
-    for key in ('cmd_vel', 'agent_cmd', 'latent'):
+    for key in ('cmd_vel', 'agent_cmd', 'latent', 'goal_estimate'):
         d = s.get(key)
         if not d:
             continue
@@ -709,6 +742,9 @@ def format_summary(s: dict) -> str:
                          f"mean {d['mean']:.3g}, rms {d['rms']:.3g}")
         else:
             lines.append(f'  {key:<10} vs recorded: nothing recorded to compare with')
+    d = s.get('descent_ok')
+    if d:
+        lines.append(f"  descent_ok vs recorded: {d['compared']} compared, {d['agree']} the same")
     return '\n'.join(lines)
 
 

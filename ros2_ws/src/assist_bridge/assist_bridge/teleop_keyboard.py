@@ -2,7 +2,9 @@
 
 W/S forward/back, A/D left/right, arrow up/down climb/descend, space stop, q (or Ctrl-C) quit.
 Needs a real terminal: the terminal is put in non-canonical, no-echo mode (restored on every
-exit) and a zero command is published before the node goes away.
+exit) and a zero command is published before the node goes away. Under the status line a second
+line shows the assistant's intent from /assist/goal_estimate, /assist/descent_ok and /odom (where
+its goal pad lies in body terms, whether to descend), empty while none has arrived in time.
 """
 from __future__ import annotations
 
@@ -15,13 +17,16 @@ import termios
 import threading
 import time
 
-from geometry_msgs.msg import TwistStamped
+from geometry_msgs.msg import PoseWithCovarianceStamped, TwistStamped
+from nav_msgs.msg import Odometry
 from rclpy.node import Node
+from std_msgs.msg import Bool
 
-from assist_common.ros_common import (RELIABLE_QOS, Param, StartupError, declare_parameters, fill_twist, exit_process,
-                                      forward_logging, run_node)
+from assist_common.ros_common import (RELIABLE_QOS, SENSOR_QOS, STAMP_TOLERANCE_S, Diagnostics, Param, StartupError,
+                                      declare_parameters, exit_process, fill_twist, forward_logging, run_node,
+                                      stamp_to_sec)
 
-from .teleop_core import HELP, KeyDecoder, TeleopConfig, TeleopCore
+from .teleop_core import HELP, IntentConfig, IntentError, IntentLine, KeyDecoder, TeleopConfig, TeleopCore
 
 PARAMS = {
     'speed': Param(1.0, 'Horizontal speed for W/S/A/D (m/s; settable at run time).', min=0.0, max=5.0,
@@ -36,8 +41,14 @@ PARAMS = {
     'repeat_timeout_s': Param(0.15, 'A repeating key counts as released when its repeats stop this long '
                                     '(settable at run time).', min=0.0, max=2.0, min_exclusive=True, dynamic=True),
     'frame_id': Param('base_link', 'frame_id of the published commands (body FLU).'),
-    'status_line': Param(True, 'Show a live status line in the terminal, cut to its width (settable at run '
-                               'time).', dynamic=True),
+    'status_line': Param(True, 'Show a live status line in the terminal, cut to its width, and under it the '
+                               'assistant\'s intent (settable at run time).', dynamic=True),
+    'intent_timeout_s': Param(IntentConfig.timeout_s, 'The intent line shows a goal estimate stamped, and /odom or '
+                              '/assist/descent_ok received, within this long (s, the node\'s clock); with neither '
+                              'estimate nor descent_ok that recent it is empty.', min=0.0, max=10.0,
+                              min_exclusive=True),
+    'intent_max_sigma_m': Param(IntentConfig.max_sigma_m, 'A goal estimate whose sqrt(max(var x, var y)) exceeds '
+                                'this is shown as unsure (m).', min=0.0, max=100.0, min_exclusive=True),
 }
 # TeleopConfig fields that a run-time parameter set changes in place
 LIVE_CONFIG = ('speed', 'speed_z', 'initial_hold_s', 'repeat_timeout_s')
@@ -62,7 +73,15 @@ class TeleopKeyboard(Node):
             raise StartupError(f'teleop_keyboard: bad parameter: {exc}') from exc
         self.core = TeleopCore(self.cfg)
         self.decoder = KeyDecoder()
+        self.intent = IntentLine(IntentConfig(timeout_s=self.p['intent_timeout_s'],
+                                              max_sigma_m=self.p['intent_max_sigma_m'],
+                                              stamp_tolerance_s=STAMP_TOLERANCE_S))
+        self._logged: set[str] = set()
+        self.diag = Diagnostics(self)
         self.pub = self.create_publisher(TwistStamped, '/pilot/cmd_vel', RELIABLE_QOS)
+        self.create_subscription(Odometry, '/odom', self._on_odom, SENSOR_QOS)
+        self.create_subscription(PoseWithCovarianceStamped, '/assist/goal_estimate', self._on_goal, RELIABLE_QOS)
+        self.create_subscription(Bool, '/assist/descent_ok', self._on_descent, RELIABLE_QOS)
         self._fd = sys.stdin.fileno()
         self._saved = termios.tcgetattr(self._fd)
         self._restored = False
@@ -86,7 +105,7 @@ class TeleopKeyboard(Node):
                 if key in changed:
                     setattr(self.cfg, key, float(changed[key]))
         if changed.get('status_line') is False:
-            self._out('\r\x1b[K')
+            self._out('\r\x1b[K\x1b[B\r\x1b[K\x1b[A')          # both rows: status and intent
 
     # ------------------------------------------------------------------ terminal
     def _out(self, text: str) -> None:
@@ -98,7 +117,7 @@ class TeleopKeyboard(Node):
             self._restored = True
             termios.tcsetattr(self._fd, termios.TCSADRAIN, self._saved)
             if self.p['status_line']:
-                self._out('\r\n')
+                self._out('\x1b[B\r\n')                         # below the intent row
 
     def _read_keys(self) -> None:
         while not self._stop.is_set():
@@ -118,6 +137,45 @@ class TeleopKeyboard(Node):
                 self._request_quit(f'key {self.core.last_key!r}')
                 return
 
+    # ------------------------------------------------------------------ the assistant's intent
+    def _now_s(self) -> float:
+        """The node's clock in seconds (sim time under use_sim_time)."""
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def _reject(self, counter: str, text: str) -> None:
+        """Count an unusable message and log it the first time its counter is seen."""
+        self.diag.count(counter)
+        if counter not in self._logged:
+            self._logged.add(counter)
+            self.get_logger().warning(f'{text} (further ones counted as {counter})')
+
+    def _on_odom(self, msg: Odometry) -> None:
+        """The vehicle's pose, for where the goal pad lies in body terms."""
+        pp = msg.pose.pose
+        with self.lock:
+            ok = self.intent.note_odom((pp.position.x, pp.position.y, pp.position.z),
+                                       (pp.orientation.x, pp.orientation.y, pp.orientation.z, pp.orientation.w),
+                                       self._now_s())
+        if not ok:
+            self._reject('odom_rejected', '/odom rejected: non-finite pose or zero quaternion')
+
+    def _on_goal(self, msg: PoseWithCovarianceStamped) -> None:
+        """The assistant's goal pad estimate, validated by the core; a rejected one counted by reason."""
+        pp, stamp = msg.pose.pose, stamp_to_sec(msg.header.stamp)
+        try:
+            with self.lock:
+                self.intent.note_goal(msg.header.frame_id, stamp if stamp > 0 else None,
+                                      (pp.position.x, pp.position.y, pp.position.z),
+                                      (pp.orientation.x, pp.orientation.y, pp.orientation.z, pp.orientation.w),
+                                      msg.pose.covariance, self._now_s())
+        except IntentError as exc:
+            self._reject(f'goal_estimate_rejected_{exc.kind}', f'/assist/goal_estimate rejected: {exc}')
+
+    def _on_descent(self, msg: Bool) -> None:
+        """The assistant's descent light (no header: dated by its arrival)."""
+        with self.lock:
+            self.intent.note_descent(bool(msg.data), self._now_s())
+
     # ------------------------------------------------------------------ publishing
     def _publish(self, v) -> None:
         msg = TwistStamped()
@@ -129,12 +187,14 @@ class TeleopKeyboard(Node):
         if self._closing:
             return
         now = time.monotonic()
+        width = shutil.get_terminal_size((80, 24)).columns
         with self.lock:
             v = self.core.velocity(now)
-            line = self.core.status_line(now, shutil.get_terminal_size((80, 24)).columns)
+            line = self.core.status_line(now, width)
+            intent = self.intent.line(self._now_s(), width)
         self._publish(v)
-        if self.p['status_line']:
-            self._out('\r' + line + '\x1b[K')
+        if self.p['status_line']:   # two rows redrawn in place, status then intent; the cursor ends on the first
+            self._out('\r' + line + '\x1b[K\r\n' + intent + '\x1b[K\x1b[A\r')
 
     def _send_zero(self) -> None:
         for _ in range(3):    # reliable QoS, but say it more than once on the way out

@@ -5,7 +5,8 @@ same landings (same --pilot, --seed, --betas, --landings; e.g. the shipped assis
 change, or two actors) are paired on (beta, seed). The report: each side's error mean (median) /
 goal-pad success / crash, the paired error difference with its standard error and a Wilcoxon
 signed-rank test, success and crash flips with an exact McNemar test (binomial on the discordant
-pairs), the same per pilot family when the rows name one, and every landing whose outcome changed or
+pairs), the time to land and path length of both (mean, relative change, Wilcoxon) and the wrong-pad
+landings (McNemar), the same per pilot family when the rows name one, and every landing whose outcome changed or
 whose error moved more than --worse-m. ``--out`` writes the pairs as CSV, ``--plot`` draws them (errors
 A against B, the paired difference's distribution).
 
@@ -30,7 +31,8 @@ from assist_common.atomic import atomic_path
 from .evaluate import mean_se, read_landings
 
 log = logging.getLogger(__name__)
-PAIR_FIELDS = ('beta', 'seed', 'pilot', 'outcome_a', 'outcome_b', 'error_a', 'error_b', 'delta_error')
+PAIR_FIELDS = ('beta', 'seed', 'pilot', 'outcome_a', 'outcome_b', 'error_a', 'error_b', 'delta_error',
+               'duration_a', 'duration_b', 'path_a', 'path_b')
 
 
 @dataclass
@@ -83,13 +85,30 @@ def paired_stats(pairs: list[tuple[dict, dict]]) -> dict:
     out = {'n': len(d), 'delta_error': delta, 'delta_se': se}
     nonzero = d[np.abs(d) > 1e-9]
     out['wilcoxon_p'] = float(stats.wilcoxon(nonzero).pvalue) if len(nonzero) >= 1 else 1.0
-    for key in ('success', 'crash'):
-        gained = sum(1 for a, b in pairs if b[key] and not a[key])
-        lost = sum(1 for a, b in pairs if a[key] and not b[key])
+    flags = {'success': lambda r: bool(r['success']), 'crash': lambda r: bool(r['crash']),
+             'wrong_pad': lambda r: r['outcome'] == 'wrong_pad'}
+    for key, flag in flags.items():
+        gained = sum(1 for a, b in pairs if flag(b) and not flag(a))
+        lost = sum(1 for a, b in pairs if flag(a) and not flag(b))
         out[f'{key}_gained'], out[f'{key}_lost'] = gained, lost
+        out[f'{key}_a'], out[f'{key}_b'] = sum(flag(a) for a, _ in pairs), sum(flag(b) for _, b in pairs)
         out[f'{key}_mcnemar_p'] = (float(stats.binomtest(gained, gained + lost, 0.5).pvalue)
                                    if gained + lost else 1.0)
+    for key in EFFORT:
+        both = [(float(a.get(key, 'nan')), float(b.get(key, 'nan'))) for a, b in pairs]
+        both = np.array([x for x in both if np.isfinite(x[0]) and np.isfinite(x[1])], dtype=float).reshape(-1, 2)
+        if len(both) == 0:
+            continue
+        diff = both[:, 1] - both[:, 0]
+        nz = diff[np.abs(diff) > 1e-9]
+        out[key] = {'n': len(both), 'a': float(both[:, 0].mean()), 'b': float(both[:, 1].mean()),
+                    'change': float(both[:, 1].mean() / both[:, 0].mean() - 1.0) if both[:, 0].mean() else 0.0,
+                    'wilcoxon_p': float(stats.wilcoxon(nz).pvalue) if len(nz) >= 1 else 1.0}
     return out
+
+
+# per-landing effort columns compared pair by pair where both sides have them (older tables lack path_m)
+EFFORT = {'duration_s': 'time to land (s)', 'path_m': 'path length (m)'}
 
 
 def changed(pairs: list[tuple[dict, dict]], worse_m: float) -> list[tuple[dict, dict]]:
@@ -120,6 +139,14 @@ def report(a: Side, b: Side, worse_m: float = 0.25) -> tuple[str, list[tuple[dic
                      f'{s["delta_error"]:>+8.3f} +- {s["delta_se"]:<5.3f}  {s["wilcoxon_p"]:>10.3g}  '
                      f'{s["success_gained"]:>5}/{s["success_lost"]:<5}  {s["success_mcnemar_p"]:>6.3g}  '
                      f'{s["crash_gained"]:>4}/{s["crash_lost"]:<4}')
+    s = paired_stats(pairs)
+    for key, label in EFFORT.items():
+        if key in s:
+            e = s[key]
+            lines.append(f'{label:<18} {e["n"]:>4}  A {e["a"]:.2f}  B {e["b"]:.2f}  ({100 * e["change"]:+.1f} %)  '
+                         f'Wilcoxon p {e["wilcoxon_p"]:.3g}')
+    lines.append(f'{"wrong pad":<18} {s["n"]:>4}  A {s["wrong_pad_a"]}  B {s["wrong_pad_b"]}  '
+                 f'(+{s["wrong_pad_gained"]}/-{s["wrong_pad_lost"]}, McNemar p {s["wrong_pad_mcnemar_p"]:.3g})')
     moved = changed(pairs, worse_m)
     lines.append(f'changed (outcome, or error moved > {worse_m:g} m): {len(moved)}')
     for x, y in moved:
@@ -135,7 +162,8 @@ def write_pairs(path: Path, pairs: list[tuple[dict, dict]]) -> None:
         w.writerow(PAIR_FIELDS)
         for a, b in pairs:
             w.writerow([a['beta'], a.get('seed'), a.get('pilot') or '', a['outcome'], b['outcome'], a['error_m'],
-                        b['error_m'], round(b['error_m'] - a['error_m'], 4)])
+                        b['error_m'], round(b['error_m'] - a['error_m'], 4), a.get('duration_s', ''),
+                        b.get('duration_s', ''), a.get('path_m', ''), b.get('path_m', '')])
 
 
 def plot_pairs(path: Path, pairs: list[tuple[dict, dict]], a: str, b: str) -> None:

@@ -28,7 +28,9 @@ landing never pays); trainers treat it as terminal.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
+import math
 from dataclasses import dataclass, field
 from typing import Any
 from collections.abc import Callable
@@ -41,6 +43,7 @@ from assist_sim.core.arducopter import randomised
 from assist_sim.core.config import WorldConfig
 from assist_common.frames import quat_to_matrix
 from assist_sim.core.world import LandingWorld
+from assist_sim.cues import Cue, CueConfig
 from assist_sim.pilot import PilotConfig, SimulatedPilot
 from assist_sim.pilots import make_pilot
 
@@ -49,6 +52,7 @@ from assist_policy.assistant import Assistant, AssistantConfig
 from assist_policy.stage import DepthFrame
 from assist_policy.blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS
 from assist_policy.flight import FlightConfig, FlightMonitor
+from assist_policy.intent import Intent, IntentConfig
 from assist_policy.loop import AssistLoop
 from assist_policy.observation import IMAGE_SHAPE, Condition, ObservationBuilder, image_feature, oracle_feature
 from assist_policy.override import OverrideConfig
@@ -108,6 +112,11 @@ class EnvConfig:
     recall: RecallConfig | None = field(default_factory=lambda: switched(rule('recall'), False))
     damper: DamperConfig | None = field(default_factory=lambda: switched(rule('damper'), False))
     flight: FlightConfig = field(default_factory=FlightConfig)   # flight boundaries (flight.FlightMonitor)
+    # the assistant's intent shown to the pilot (assist_policy.intent, as policy_node publishes it), and how the
+    # pilots read it (assist_sim.cues; trust 0: they never look)
+    cues: bool = False
+    intent: IntentConfig = field(default_factory=IntentConfig)
+    pilot_cues: CueConfig = field(default_factory=CueConfig)
     reward: RewardConfig = field(default_factory=RewardConfig)
     pilot: PilotConfig = field(default_factory=PilotConfig)
     world: WorldConfig = field(default_factory=WorldConfig)
@@ -142,13 +151,15 @@ class LandingAssistEnv(gym.Env):
         self.assistant = Assistant(assistant_config(self.cfg))     # the chain policy_node runs
         self.flight = FlightMonitor(self.cfg.flight)
         # the step code policy_node's core runs: observation, chain, action history, forgetting a flight
-        self.loop = AssistLoop(self.condition, self.builder, self.assistant, self.flight)
+        intent = self.cfg.intent if self.cfg.cues else dataclasses.replace(self.cfg.intent, enabled=False)
+        self.loop = AssistLoop(self.condition, self.builder, self.assistant, self.flight, intent)
         self.flight_resets = self.loop.flight_resets     # flight boundaries seen inside episodes, per reason
         self._frame = None
         self._u = np.zeros(3)
         self._steps = 0                                  # control steps since reset (the episode clock)
         self._dist = 0.0
         self.episode_return = 0.0
+        self.path_m = 0.0                                # distance flown this episode (m, 3-D)
         self.last_command: tuple[np.ndarray, np.ndarray] | None = None   # (a, V) applied in the last step
 
     @property
@@ -201,7 +212,8 @@ class LandingAssistEnv(gym.Env):
         scene_seed, beta = plan.scene_seed, plan.beta
         st = self.world.reset(seed=scene_seed, goal_index=options.get('goal_index'))
         self.pilot = make_pilot(plan.pilot_family, plan.alpha, beta, self.pilot_cfg,
-                                np.random.default_rng(plan.pilot_seed), pads=self.world.pad_top_centers)
+                                np.random.default_rng(plan.pilot_seed), pads=self.world.pad_top_centers,
+                                cues=self.cfg.pilot_cues if self.cfg.cues else None)
         self.pilot.reset(self.world.goal_position, st.position)
         noise_seed = plan.noise_seed
         plant = self._draw_plant(rng)               # drawn after the plan: runs without it keep their landings
@@ -214,6 +226,7 @@ class LandingAssistEnv(gym.Env):
         self._u = self.pilot.act(st.position, None)
         self._dist = self._goal_dist(st.position)
         self.episode_return = 0.0
+        self.path_m = 0.0
         return self._obs(), {'alpha': self.pilot.alpha, 'beta': beta, 'scene_seed': scene_seed,
                              'goal_index': self.world.goal_index, 'aimed_index': self.aimed_index(),
                              'pilot': self.pilot.name, 'pilot_params': dict(self.pilot.params), 'plant': plant}
@@ -257,11 +270,15 @@ class LandingAssistEnv(gym.Env):
             v_body = quat_to_matrix(st.quaternion).T @ st.velocity   # odometry twist, base_link (REP-105)
             frame = DepthFrame(self._steps, lambda: self.camera_frame().depth, lambda: (st.position, st.quaternion))
             ctx = self.loop.context(t, self._u, st.position, v_body, st.quaternion, frame, self.cfg.max_speed)
-            res = self.loop.act(ctx, a)
+            known = self.world.goal_position if self.condition is Condition.ORACLE else None
+            res = self.loop.act(ctx, a, known_goal=known)
             a, v, acted = res.agent, res.velocity, res.acted
+        self.pilot.see_cue(cue_of(self.loop.intent.last) if self.cfg.cues else None)
         active = float(np.linalg.norm(a)) > self.cfg.blend_threshold
         self.last_command = (a.copy(), np.array(v, dtype=float))    # what was flown (bags record it)
+        before = st.position.copy()
         st = self.world.step(v)
+        self.path_m += float(np.linalg.norm(st.position - before))
         self._steps += 1
         self._u = self.pilot.act(st.position, a if active else None)
         r = self.cfg.reward
@@ -310,6 +327,14 @@ class LandingAssistEnv(gym.Env):
         self.world.close()
 
 
+def cue_of(intent: Intent) -> Cue:
+    """What the station shows of the assistant's intent (the goal cue's xy standard deviation, the light)."""
+    if intent.goal is None:
+        return Cue(None, math.inf, intent.descent_ok)
+    sigma = math.sqrt(max(float(intent.covariance[0, 0]), float(intent.covariance[1, 1])))
+    return Cue(intent.goal, sigma, intent.descent_ok)
+
+
 def assistant_config(cfg: EnvConfig) -> AssistantConfig:
     """The assistant's settings for an env (its rules' settings as `cfg` holds them)."""
     return AssistantConfig(cfg.blend_threshold, cfg.max_cmd_speed_mps, cfg.max_cmd_vertical_mps, **all_settings(cfg))
@@ -338,5 +363,6 @@ def run_episode(env: LandingAssistEnv, policy, seed: int, options: dict | None =
     res = dict(step_info['result'])
     res.update(beta=info['beta'], alpha=info['alpha'], scene_seed=info['scene_seed'], steps=steps,
                aimed_index=info['aimed_index'], pilot=info['pilot'], episode_return=env.episode_return,
+               path_m=env.path_m,
                **{f'{name}_fraction': counts[key] / steps for key, name in counted.items()})
     return res

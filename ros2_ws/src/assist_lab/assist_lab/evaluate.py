@@ -77,6 +77,7 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 from assist_common.atomic import CsvLog, atomic_path, truncate_csv, write_text_atomic
 from assist_sim.core.arducopter import FLIGHT_CONTROLLERS
 from assist_sim.core.config import WorldConfig
+from assist_sim.cues import CueConfig
 from assist_sim.pilots import PILOT_NAMES
 
 from assist_bags.bagio import BagError
@@ -134,6 +135,8 @@ class EvalArgs:
     flight_controller: str = setting('ideal', choices=FLIGHT_CONTROLLERS)
     world_config: str = ''                         # YAML of WorldConfig fields (e.g. the SITL start); '' = defaults
     ray: str = ''                                  # '' local processes; 'auto' a local Ray instance; or an address
+    cues: bool = False                             # the assistant's intent shown to the pilots (assist_sim.cues)
+    cue_trust: float = setting(1.0, ge=0.0, le=1.0)   # ... who read it in this share of their landings
 
 # Settings that change how a run is carried out, not which landings it flies (not part of the resume key).
 RUN_ONLY = ('out', 'plot', 'workers', 'ray')
@@ -174,6 +177,10 @@ HELP = {
     'world_config': 'YAML file of assist_sim WorldConfig fields for the landing world (sim_node\'s world_config), '
                     'e.g. assist_sim/config/world_sitl_start.yaml: every landing starts where the SITL landing '
                     'series starts (over the start spot at take-off altitude); --flight-controller still applies',
+    'cues': 'show the pilots the assistant\'s intent, as the pilot station does (the pad its command steers to, '
+            'the descend/hold light: assist_policy.intent), and let them read it (assist_sim.cues); the assisted '
+            'conditions are named <condition>+cues',
+    'cue_trust': 'with --cues: the chance per landing that the pilot reads the cues (0: pilots who ignore them)',
     'record_dir': 'save every landing as a rosbag2 bag (the graph\'s topics and types) in this directory, '
                   'named <condition>_beta<beta>_seed<seed>: replay_assist / plot_flight take any of them',
 }
@@ -181,7 +188,7 @@ HELP = {
 LANDING_FIELDS = ['condition', 'beta', 'seed', 'scene_seed', 'goal_index', 'landed_index', 'nearest_index',
                   'aimed_index', 'error_m', 'nearest_error_m', 'outcome', 'success', 'crash', 'duration_s',
                   'active_fraction', 'pilot', 'guard_fraction', 'override_fraction', 'recall_fraction',
-                  'damper_fraction', 'wall_fraction', 'autopilot_landed']
+                  'damper_fraction', 'wall_fraction', 'autopilot_landed', 'path_m']
 _BOOL = {'True': True, 'False': False}
 
 
@@ -200,6 +207,7 @@ def read_landings(path: str | Path) -> dict[str, list[dict]]:
                            nearest_error_m=float(r.get('nearest_error_m') or 'nan'),
                            success=_BOOL[r['success']], crash=_BOOL[r['crash']],
                            active_fraction=float(r.get('active_fraction') or 0.0),
+                           duration_s=float(r.get('duration_s') or 'nan'), path_m=float(r.get('path_m') or 'nan'),
                            goal_index=int(r['goal_index']),
                            autopilot_landed=_BOOL.get(r.get('autopilot_landed') or '', None),
                            **{k: None if r.get(k) in (None, '') else int(r[k])
@@ -281,11 +289,12 @@ def write_landings(path: Path, rows_by_cond: dict[str, list[dict]]) -> None:
 
 def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: float, alpha: float,
                 pilot: str = 'paper', rules: Mapping[str, Any] | None = None,
-                flight_controller: str = 'ideal', world_config: str = ''):
+                flight_controller: str = 'ideal', world_config: str = '', cues: CueConfig | None = None):
     """(env, policy) for one condition; policy(obs) -> raw action, None for unassisted.
 
     `rules`: the non-learned rules that fly, by settings field (assist_policy.rules.RULES) with their settings
-    (None: the defaults); the others are off, and the scripted references fly only the floor guard."""
+    (None: the defaults); the others are off, and the scripted references fly only the floor guard. `cues`: the
+    assistant's intent is shown to the pilots, who read it so (None: not shown; never without an assistant)."""
     given = dict(rules or {})
     unknown = sorted(set(given) - {r.field for r in RULES})
     if unknown:
@@ -298,7 +307,8 @@ def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: fl
                                           pilot_family=pilot, world=world)), None
     if condition in BASELINES:
         env = LandingAssistEnv(EnvConfig(condition='oracle', alpha=alpha, max_episode_s=max_episode_s,
-                                         pilot_family=pilot, safety=flying['safety'], world=world))
+                                         pilot_family=pilot, safety=flying['safety'], world=world,
+                                         cues=cues is not None, pilot_cues=cues or CueConfig()))
         script = (ScriptedOracle() if condition == 'scripted_oracle' else
                   ScriptedOracle(ScriptedConfig(lead_s=LEAD_S)) if condition == 'scripted_oracle_lead' else
                   make_nearest_pad(condition[len('scripted_'):]))
@@ -308,7 +318,8 @@ def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: fl
     cfg = EnvConfig(condition=condition, alpha=alpha, max_episode_s=max_episode_s,
                     max_speed=tuple(meta.get('max_speed', (1.0, 1.0, 0.6))),
                     latent_dim=int(meta.get('latent_dim', 0)), pilot_family=pilot, **flying, world=world,
-                    feature_lags_s=tuple(meta['feature_lags_s']), memory_displacement=meta['memory_displacement'])
+                    feature_lags_s=tuple(meta['feature_lags_s']), memory_displacement=meta['memory_displacement'],
+                    cues=cues is not None, pilot_cues=cues or CueConfig())
     if condition == 'latent':
         latent_fn, dim = make_latent_fn(encoder_path or None)
         if dim != cfg.latent_dim:
@@ -336,7 +347,8 @@ def run_landing(env: LandingAssistEnv, policy, seed: int, beta: float) -> dict:
             'override_fraction': round(res['override_fraction'], 3),
             'recall_fraction': round(res['recall_fraction'], 3),
             'damper_fraction': round(res['damper_fraction'], 3), 'wall_fraction': round(res['wall_fraction'], 3),
-            'autopilot_landed': '' if res.get('autopilot_landed') is None else bool(res['autopilot_landed'])}
+            'autopilot_landed': '' if res.get('autopilot_landed') is None else bool(res['autopilot_landed']),
+            'path_m': round(float(res['path_m']), 3)}
 
 
 def summarize(rows: list[dict]) -> dict:
@@ -511,7 +523,7 @@ def plan_tasks(args: EvalArgs) -> list[PlannedLanding]:
     """Every landing of a run in the one-process order: condition, then beta, then landing (`landing_seeds`)."""
     tasks = []
     for cond in args.conditions:
-        name = condition_name(cond, rules_flying(args, cond))
+        name = condition_name(cond, rules_flying(args, cond), cues_shown(args, cond))
         tasks += [PlannedLanding(cond, name, beta, s)
                   for s, beta in landing_seeds(args.seed, args.betas, args.landings)]
     return tasks
@@ -530,9 +542,10 @@ class LandingFlyer:
         if task.cond not in self.made:
             model = getattr(a, f'{task.cond}_model', '') if task.cond in CONDITIONS[1:] else ''
             flying = {r.field: None for r, on in rules_flying(a, task.cond).items() if on}
+            cues = CueConfig(trust=a.cue_trust) if cues_shown(a, task.cond) else None
             self.made[task.cond] = make_policy(task.cond, model, a.encoder_path, a.max_episode_s, a.alpha,
                                                pilot=a.pilot, rules=flying, flight_controller=a.flight_controller,
-                                               world_config=a.world_config)
+                                               world_config=a.world_config, cues=cues)
         env, policy = self.made[task.cond]
         row = (record_landing(run_landing, env, policy, task.seed, task.beta, task.name, a.record_dir)
                if a.record_dir else run_landing(env, policy, task.seed, task.beta))
@@ -653,9 +666,15 @@ def write_results(out: Path, rows_by_cond: dict[str, list[dict]], with_plot: boo
     return summary
 
 
-def condition_name(cond: str, flying: Mapping[Rule, bool]) -> str:
-    """A condition's row name: cond, then +<flag> for each rule that flies with it (registry order)."""
-    return cond + ''.join(f'+{r.flag}' for r, on in flying.items() if on)
+def condition_name(cond: str, flying: Mapping[Rule, bool], cues: bool = False) -> str:
+    """A condition's row name: cond, then +<flag> for each rule that flies with it (registry order), +cues when
+    the pilots see the assistant's intent."""
+    return cond + ''.join(f'+{r.flag}' for r, on in flying.items() if on) + ('+cues' if cues else '')
+
+
+def cues_shown(args: Any, cond: str) -> bool:
+    """Whether the pilots of `cond` see the assistant's intent (--cues; never without an assistant)."""
+    return bool(getattr(args, 'cues', False)) and cond != 'unassisted'
 
 
 def rules_flying(args: Any, cond: str) -> dict[Rule, bool]:

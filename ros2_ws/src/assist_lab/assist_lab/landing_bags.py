@@ -4,7 +4,8 @@ evaluate runs without ROS, so `EpisodeRecorder` writes what the graph would have
 frames as rendered (clean depth, as sim_node publishes it and as the floor guard, pad recall and pilot
 override read it), /odom (twist in base_link, REP-105), /pilot/cmd_vel (u),
 /assist/latent, /assist/agent_cmd (a) and /cmd_vel (V) at every control step (a and V as the env
-applied them: after the pilot override and the floor guard, as policy_node publishes), /sim/goal and
+applied them: after the pilot override and the floor guard, as policy_node publishes; with the cues shown, the
+assistant's intent: /assist/goal_estimate and /assist/descent_ok), /sim/goal and
 /sim/scene at the start and the /sim/landing JSON at the end. Times are the episode's sim time
 (0 at the start pose). The bag's custom_data records that the assistant observed world-frame
 velocity (as the env does) and, in the latent condition with the simulated depth sensor noise, the
@@ -29,6 +30,7 @@ from assist_bags.bagio import CONTRACT_TOPICS, DEPTH_NOISE_KEY, VELOCITY_FRAME_K
 
 EPISODE_TOPICS = ('/camera/color/image_raw', '/camera/depth/image_raw', '/odom', '/pilot/cmd_vel', '/assist/latent',
                   '/assist/agent_cmd', '/cmd_vel', '/sim/goal', '/sim/scene', '/sim/landing')
+INTENT_TOPICS = ('/assist/goal_estimate', '/assist/descent_ok')    # recorded when the pilots see the cues
 
 
 def ns(t: float) -> int:
@@ -44,7 +46,8 @@ class EpisodeRecorder:
         self.env = env
         self._policy = policy
         self.writer = BagWriter(path, storage=storage, atomic=True)
-        for topic in EPISODE_TOPICS:
+        self._intent = bool(env.cfg.cues) and not env.unassisted
+        for topic in EPISODE_TOPICS + (INTENT_TOPICS if self._intent else ()):
             if topic == '/assist/latent' and env.condition is not Condition.LATENT:
                 continue
             self.writer.add_topic(topic, *CONTRACT_TOPICS[topic])
@@ -109,6 +112,12 @@ class EpisodeRecorder:
         if not self.env.unassisted:
             self.writer.write_msg('/assist/agent_cmd', t, msgs.twist_stamped(t, a))
         self.writer.write_msg('/cmd_vel', t, msgs.twist_stamped(t, v))
+        intent = self.env.loop.intent.last
+        if self._intent and intent.goal is not None:
+            self.writer.write_msg('/assist/goal_estimate', t,
+                                  msgs.pose_with_covariance(t, intent.goal, intent.pose_covariance()))
+        if self._intent and intent.descent_ok is not None:
+            self.writer.write_msg('/assist/descent_ok', t, msgs.boolean(intent.descent_ok))
         self._pending = None
 
     def finish(self, row: dict) -> Path:

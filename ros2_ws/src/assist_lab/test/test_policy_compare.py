@@ -70,3 +70,22 @@ def test_cli_draws_the_paired_comparison(runs, tmp_path):
     png = tmp_path / 'pairs.png'
     assert main(['--a', str(old), '--condition-a', 'unassisted', '--b', str(new), '--plot', str(png)]) == 0
     assert png.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n' and png.stat().st_size > 10_000
+
+
+def test_time_path_and_wrong_pad_are_compared_pair_by_pair(tmp_path):
+    a = [dict(row('latent', 0.0, s, 0.1), duration_s=20.0 + s, path_m=10.0 + s) for s in range(4)]
+    a[0].update(outcome='wrong_pad', success=False)
+    a[1].update(outcome='wrong_pad', success=False)
+    b = [dict(row('latent+cues', 0.0, s, 0.1), duration_s=15.0 + s, path_m=9.0 + s) for s in range(4)]
+    b[1].update(outcome='wrong_pad', success=False)
+    b[3].pop('path_m')                                     # an older table's row: compared where both have it
+    write_landings(tmp_path / 'a.csv', {'latent': a})
+    write_landings(tmp_path / 'b.csv', {'latent+cues': b})
+    text, pairs = report(load_side([str(tmp_path / 'a.csv')], None), load_side([str(tmp_path / 'b.csv')], None))
+    s = paired_stats(pairs)
+    assert s['duration_s']['n'] == 4 and s['duration_s']['a'] == pytest.approx(21.5)
+    assert s['duration_s']['change'] == pytest.approx(16.5 / 21.5 - 1.0)
+    assert s['path_m']['n'] == 3 and s['path_m']['b'] == pytest.approx(10.0)
+    assert (s['wrong_pad_a'], s['wrong_pad_b'], s['wrong_pad_gained'], s['wrong_pad_lost']) == (2, 1, 0, 1)
+    assert 'time to land (s)      4  A 21.50  B 16.50  (-23.3 %)' in text
+    assert 'wrong pad             4  A 2  B 1  (+0/-1, McNemar p 1)' in text

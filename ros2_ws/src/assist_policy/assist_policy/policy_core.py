@@ -39,6 +39,7 @@ from .stage import DepthFrame
 from .blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS, MIN_SPEED_LIMIT_MPS, clamp_velocity
 from .damper import DamperConfig
 from .flight import FlightConfig, FlightMonitor, surface_clearance
+from .intent import NO_INTENT, Intent, IntentConfig
 from .loop import AssistLoop
 from .observation import Condition, ObservationBuilder, image_feature, oracle_feature
 from .override import OverrideConfig
@@ -109,6 +110,7 @@ class PolicyCoreConfig:
     recall: RecallConfig | None = nested(RecallConfig)
     damper: DamperConfig | None = nested(DamperConfig)
     flight: FlightConfig | None = nested(FlightConfig)   # flight boundaries (None: FlightConfig() defaults)
+    intent: IntentConfig | None = nested(IntentConfig)   # goal estimate and descent flag (None: the defaults)
     # velocity the actor sees: the odometry twist as given (base_link, policy_node) or rotated to odom with the
     # odometry attitude (as evaluate's env trains and flies it; replay_assist for evaluate's bags); the rules
     # (floor guard, override, damper) always read the twist
@@ -145,6 +147,7 @@ class PolicyOutput:
     reason: str
     key: str = 'assisting'
     fault: str = ''           # exception type name when key is step_error
+    intent: Intent = NO_INTENT   # the assistant's intent this step (intent.IntentEstimator; none when it did not run)
 
     @property
     def assisting(self) -> bool:
@@ -187,7 +190,7 @@ class PolicyCore:
         self.override, self.recall, self.damper = self.assistant.override, self.assistant.recall, self.assistant.damper
         self.flight = FlightMonitor(c.flight or FlightConfig())
         # the step code the training/evaluation env runs too: observation, chain, action history, forgetting
-        self.loop = AssistLoop(self.mode, self.builder, self.assistant, self.flight)
+        self.loop = AssistLoop(self.mode, self.builder, self.assistant, self.flight, c.intent or IntentConfig())
         self.flight_resets = self.loop.flight_resets    # flight boundaries seen, per reason (flight.REASONS)
         self.last_reset: tuple[float, str] | None = None   # (odometry time, reason) of the latest
         self.last_reset_detail = ''                 # why the latest boundary (FlightMonitor.last_detail, or the caller)
@@ -210,11 +213,12 @@ class PolicyCore:
         """Change settings at run time; ValueError (nothing changed) if any is invalid.
 
         Top-level fields by name (e.g. ``max_speed_mps=1.0``); a rule's by its config field (rules.RULES) and a dict
-        (``safety={'enabled': False}``; also ``flight``), a field the rule does not have refused: the rule's live
+XX
         settings object changes in place (the floor guard's is shared with the wall rule and the recall's floor test).
         """
         rules = {r.field: r for r in RULES}
-        live = {**{f: getattr(self.assistant.cfg, f) for f in rules}, 'flight': self.flight.cfg}
+        live = {**{f: getattr(self.assistant.cfg, f) for f in rules}, 'flight': self.flight.cfg,
+                'intent': self.loop.intent.cfg}
         nested_changes = {k: changes.pop(k) for k in list(changes) if k in live}
         checked = {k: changed(rules[k], live[k], v) if k in rules else dataclasses.replace(live[k], **v)
                    for k, v in nested_changes.items()}   # validates each
@@ -495,8 +499,9 @@ class PolicyCore:
                      if c.actor_velocity == 'odom' and self._attitude is not None else vel)
         ctx = self.loop.context(now, u, pos, vel, self._attitude, self._frame_now(now), self.max_speed)
         a, key, reason = self._actor(now, u, pos, vel_actor)
-        res = self.loop.act(ctx, a, key, reason)
-        return PolicyOutput(res.agent, res.velocity, res.reason, res.key)
+        known = self._goal if self.mode is Condition.ORACLE else None
+        res = self.loop.act(ctx, a, key, reason, known_goal=known)
+        return PolicyOutput(res.agent, res.velocity, res.reason, res.key, intent=self.loop.intent.last)
 
     def _actor(self, now: float, u: np.ndarray, pos: np.ndarray, vel: np.ndarray) -> tuple[np.ndarray | None, str, str]:
         """The actor's action a (m/s), or (None, key, reason) when it cannot run."""

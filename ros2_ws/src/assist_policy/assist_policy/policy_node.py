@@ -30,12 +30,12 @@ import time
 import numpy as np
 import torch
 from diagnostic_msgs.msg import DiagnosticStatus
-from geometry_msgs.msg import PointStamped, TwistStamped
+from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped, TwistStamped
 from nav_msgs.msg import Odometry
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 from sensor_msgs.msg import Image
-from std_msgs.msg import Float32MultiArray, UInt8
+from std_msgs.msg import Bool, Float32MultiArray, UInt8
 from std_srvs.srv import Trigger
 
 from assist_common.images import decode_color, decode_depth
@@ -145,6 +145,9 @@ class PolicyNode(Node):
         inputs = MutuallyExclusiveCallbackGroup()
         self.pub_agent = self.create_publisher(TwistStamped, '/assist/agent_cmd', RELIABLE_QOS)
         self.pub_cmd = self.create_publisher(TwistStamped, '/cmd_vel', RELIABLE_QOS)
+        # the assistant's intent (assist_policy.intent), for the pilot's cues
+        self.pub_goal = self.create_publisher(PoseWithCovarianceStamped, '/assist/goal_estimate', RELIABLE_QOS)
+        self.pub_descent = self.create_publisher(Bool, '/assist/descent_ok', RELIABLE_QOS)
         self.create_subscription(Odometry, '/odom', self._guard('odom', self._on_odom), SENSOR_QOS,
                                  callback_group=inputs)
         self.create_subscription(TwistStamped, '/pilot/cmd_vel', self._guard('pilot', self._on_pilot),
@@ -159,6 +162,7 @@ class PolicyNode(Node):
             self.create_subscription(Image, '/camera/color/image_raw', self._guard('image', self._on_rgb),
                                      SENSOR_QOS, callback_group=inputs)
         self._rgb = None
+        self._odom_frame = 'odom'
         # every mode: the floor guard reads the depth image (end_to_end also feeds it to the actor)
         self.create_subscription(Image, '/camera/depth/image_raw', self._guard('depth', self._on_depth),
                                  SENSOR_QOS, callback_group=inputs)
@@ -232,6 +236,7 @@ class PolicyNode(Node):
         with self._lock:
             t, stamp = self._dated('odom', msg, self.core.cfg.odom_timeout_s)
             self.core.set_odom(t, [p.x, p.y, p.z], [v.x, v.y, v.z], [q.x, q.y, q.z, q.w], stamp)
+            self._odom_frame = msg.header.frame_id or 'odom'   # the goal estimate is in the odometry's frame
 
     def _on_pilot(self, msg: TwistStamped) -> None:
         # dated by its arrival: the pilot is present while commands keep coming, however late (policy_core.set_pilot)
@@ -300,6 +305,18 @@ class PolicyNode(Node):
             msg.header.stamp, msg.header.frame_id = stamp, frame
             self.pub_agent.publish(fill_twist(msg, out.agent))
             self.diag.count('agent_cmds')
+        intent = out.intent
+        if intent.goal is not None and np.all(np.isfinite(intent.goal)):
+            goal = PoseWithCovarianceStamped()
+            goal.header.stamp, goal.header.frame_id = stamp, self._odom_frame
+            goal.pose.pose.position.x, goal.pose.pose.position.y, goal.pose.pose.position.z = (
+                float(v) for v in intent.goal)
+            goal.pose.pose.orientation.w = 1.0
+            goal.pose.covariance = intent.pose_covariance()
+            self.pub_goal.publish(goal)
+            self.diag.count('goal_estimates')
+        if intent.descent_ok is not None:
+            self.pub_descent.publish(Bool(data=bool(intent.descent_ok)))
 
     def _tick(self) -> None:
         """One control step; any exception relinquishes (V = u, clamped), is counted and logged."""
@@ -340,6 +357,10 @@ class PolicyNode(Node):
                            ('pad_recall_touchdown', 'pad_recall:touchdown'), ('pad_recall_scout', 'pad_recall:scout')):
             self.diag.set(name, modes[mode])
         self.diag.set('pad_recall_pads', len(self.core.recall.map.pads))
+        intent = out.intent
+        self.diag.set('intent_confidence', round(intent.confidence, 3))
+        self.diag.set('intent_candidates', intent.candidates)
+        self.diag.set('descent_ok', 'unknown' if intent.descent_ok is None else str(intent.descent_ok).lower())
         self.diag.set('depth_pose_unmatched', self.core.depth_pose_unmatched)
         for reason in FLIGHT_REASONS:
             self.diag.set(f'flight_reset_{reason}', self.core.flight_resets[reason])

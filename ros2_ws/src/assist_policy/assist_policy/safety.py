@@ -192,6 +192,19 @@ class FloorGuard:
         d_floor = float(altitude_m) - self.cfg.camera_offset_m
         return all(d >= d_floor - self.cfg.floor_tolerance_m for d in legs)
 
+    def legs_on_pad(self, depth: np.ndarray, position: np.ndarray) -> bool | None:
+        """True when every leg is over a surface nearer than the floor (a pad, no edge) or the camera is inside its
+        blind range over the pad last seen under them, False when a leg is over the floor, None when a leg's
+        window holds no valid depth."""
+        p = np.asarray(position, dtype=float).reshape(3)
+        if self._near_remembered_pad(p):
+            return True
+        legs = self._leg_depths(depth, float(p[2]))
+        if not legs or any(d is None for d in legs):
+            return None
+        d_floor = float(p[2]) - self.cfg.camera_offset_m
+        return all(d < d_floor - self.cfg.floor_tolerance_m for d in legs)
+
     def straddle_depth(self, depth: np.ndarray, altitude_m: float) -> float | None:
         """Depth of the nearest pad under a leg when other legs are over the floor (a pad edge), else None."""
         return self._straddle_from(self._leg_depths(depth, altitude_m), altitude_m)

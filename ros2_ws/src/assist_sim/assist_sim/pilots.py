@@ -54,6 +54,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .cues import Cue, CueConfig, CueReader
 from .pilot import PilotConfig, SimulatedPilot
 
 Range = tuple[float, float]
@@ -233,10 +234,13 @@ class FamilyPilot(SimulatedPilot):
 
     def __init__(self, alpha: float = 0.5, beta: float = 0.5, cfg: PilotConfig | None = None,
                  rng: np.random.Generator | int | None = None, pads: np.ndarray | None = None,
-                 family_cfg: FamilyConfig | None = None):
+                 family_cfg: FamilyConfig | None = None, cues: CueConfig | None = None):
         super().__init__(alpha, beta, cfg, rng)
         self.fcfg = family_cfg or FamilyConfig()
         self.family_rng = self.rng.spawn(1)[0]
+        # the assistant's cues (assist_sim.cues), read with their own generator: a pilot who does not read them
+        # flies as without them
+        self.cues = CueReader(cues, self.rng.spawn(1)[0])
         self.pads = None if pads is None else np.asarray(pads, dtype=float).reshape(-1, 3)
         self.base_alpha = self.alpha
         self.params: dict[str, float | str] = {}
@@ -266,6 +270,21 @@ class FamilyPilot(SimulatedPilot):
         self.t = 0.0
         self._draw_params()
         super().reset(goal, position, goal_estimate)
+        self.cues.reset()
+
+    def see_cue(self, cue: Cue | None) -> None:
+        """The assistant's cue the station shows now (assist_sim.cues; None: none)."""
+        self.cues.see(cue)
+
+    def act(self, position: np.ndarray, agent_action: np.ndarray | None = None) -> np.ndarray:
+        """The paper's step (estimate, then command) with the cues read where the pilot reads them."""
+        self.goal_estimate, follow = self.cues.estimate(self.goal, self.goal_estimate)
+        u = super().act(position, agent_action if follow else None)
+        if self.cues.reading:
+            u = u.copy()
+            u[2] = self.cues.vertical(self.goal, float(np.asarray(position, dtype=float)[2]), float(u[2]),
+                                      self.cfg.speed_down_mps)
+        return u
 
     def _draw_params(self) -> None:
         """Per-episode family parameters (none for the paper pilot)."""
@@ -754,13 +773,14 @@ def resolve_pilot_name(name: str, rng: np.random.Generator) -> str:
 
 def make_pilot(name: str, alpha: float = 0.5, beta: float = 0.5, cfg: PilotConfig | None = None,
                rng: np.random.Generator | int | None = None, pads: np.ndarray | None = None,
-               family_cfg: FamilyConfig | None = None) -> FamilyPilot:
-    """A pilot of family `name` (or one drawn from population `name` with `rng`); ValueError if unknown."""
+               family_cfg: FamilyConfig | None = None, cues: CueConfig | None = None) -> FamilyPilot:
+    """A pilot of family `name` (or one drawn from population `name` with `rng`), reading the assistant's cues as
+    `cues` says (None: never); ValueError if unknown."""
     rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
     name = resolve_pilot_name(name, rng)
     if name not in FAMILIES:
         raise ValueError(f'unknown pilot {name!r}; choose from {", ".join(PILOT_NAMES)}')
-    return FAMILIES[name](alpha, beta, cfg, rng, pads=pads, family_cfg=family_cfg)
+    return FAMILIES[name](alpha, beta, cfg, rng, pads=pads, family_cfg=family_cfg, cues=cues)
 
 
 __all__ = ['FAMILIES', 'TRAIN_FAMILIES', 'MIX_FAMILIES', 'APPROACH_FAMILIES', 'UNTUNED_FAMILIES', 'HELDOUT_FAMILIES',

@@ -12,22 +12,32 @@ evaluation env's: a fresh ``make_pilot(episode_pilots[i], alpha, episode_betas[i
 np.random.default_rng(episode_seeds[i]), pads)``, started only once the latched /sim/scene of that
 landing (the one whose pads hold the goal) is in. Past the end of the plan (or without one) the
 landings follow `pilot`, `beta` and `seed` as before.
+
+Cues (`cue_trust` > 0): the pilot reads the assistant's intent as the pilot station shows it (assist_sim.cues):
+/assist/goal_estimate (the highlighted pad, its xy standard deviation from the covariance) and /assist/descent_ok
+(the light), each while no older than `cue_timeout_s` and only while the assistant acts (/assist/agent_cmd fresh),
+as the station never shows a cue with the assistance off. A malformed estimate (non-finite, a negative variance)
+is not read and is counted (rejected_goal_estimate).
 """
 from __future__ import annotations
 
 import threading
 
 import numpy as np
-from geometry_msgs.msg import PointStamped, TwistStamped
+import math
+
+from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped, TwistStamped
 from nav_msgs.msg import Odometry
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
+from std_msgs.msg import Bool
 from visualization_msgs.msg import MarkerArray
 
 from assist_common.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError,
                                       declare_parameters, exit_process, fill_twist, forward_logging, run_node,
                                       twist_to_array)
 
+from .cues import Cue, CueConfig
 from .pilot import PilotConfig
 from .pilots import PILOT_NAMES, make_pilot
 
@@ -56,6 +66,10 @@ PARAMS = {
                                 'seed) of landing 0, 1, 2, ... (needs episode_seeds, same length); empty: pilot.',
                             choices=PILOT_NAMES, item_type=str),
     'frame_id': Param('base_link', 'frame_id of /pilot/cmd_vel.'),
+    'cue_trust': Param(0.0, "Chance per landing that the pilot reads the assistant's cues (/assist/goal_estimate, "
+                            '/assist/descent_ok; assist_sim.cues); 0: it never looks at them.', min=0.0, max=1.0),
+    'cue_timeout_s': Param(0.5, 'A cue older than this is not shown (the station greys it).', min=0.0, max=10.0,
+                           min_exclusive=True, dynamic=True),
     'start_altitude_m': Param(0.0, 'A landing starts (the pilot model is reset to the new goal) once /odom is at '
                                    'or above this altitude; 0: at once. For episodes that start on the ground '
                                    '(ArduPilot SITL, MAVLink vehicles) set it just below the takeoff altitude '
@@ -82,6 +96,7 @@ class SimPilotNode(Node):
             if self.p[key] and len(self.p[key]) != n_plan:
                 raise StartupError(f"sim_pilot_node: {key} has {len(self.p[key])} entries, episode_seeds {n_plan}: "
                                    'an evaluation plan gives every landing its seed (and beta, pilot)')
+        self._cue_cfg = CueConfig(trust=float(self.p['cue_trust'])) if self.p['cue_trust'] > 0 else None
         self.pilot = self._new_pilot()
         self._default_pilot = self.pilot        # the paper pilot flies every landing past the plan
         self._odom: tuple[float, np.ndarray] | None = None
@@ -96,20 +111,27 @@ class SimPilotNode(Node):
         self.create_subscription(TwistStamped, '/assist/agent_cmd', self._on_agent, RELIABLE_QOS,
                                  callback_group=group)
         self.create_subscription(MarkerArray, '/sim/scene', self._on_scene, LATCHED_QOS, callback_group=group)
+        self._goal_cue: tuple[float, np.ndarray, float] | None = None     # (arrival, pad top centre, xy std)
+        self._light: tuple[float, bool] | None = None
+        if self._cue_cfg is not None:
+            self.create_subscription(PoseWithCovarianceStamped, '/assist/goal_estimate', self._on_goal_estimate,
+                                     RELIABLE_QOS, callback_group=group)
+            self.create_subscription(Bool, '/assist/descent_ok', self._on_descent_ok, RELIABLE_QOS,
+                                     callback_group=group)
         self.create_timer(1.0 / float(self.p['rate_hz']), self._tick, callback_group=group)
         self.get_logger().info(f"sim_pilot_node: pilot {self.p['pilot']} alpha {self.p['alpha']} "
                                f"beta {self.p['beta']} seed {self.p['seed']}")
 
     def _new_pilot(self):
         return make_pilot(self.p['pilot'], float(self.p['alpha']), float(self.p['beta']), self._cfg, self._rng,
-                          pads=self._pads)
+                          pads=self._pads, cues=self._cue_cfg)
 
     def _planned_pilot(self, i: int):
         """Landing i's pilot from the evaluation plan (the env's: its own generator seeded per landing)."""
         pilots, betas = self.p['episode_pilots'], self.p['episode_betas']
         return make_pilot(pilots[i] if pilots else self.p['pilot'], float(self.p['alpha']),
                           float(betas[i]) if betas else float(self.p['beta']), self._cfg,
-                          np.random.default_rng(int(self.p['episode_seeds'][i])), pads=self._pads)
+                          np.random.default_rng(int(self.p['episode_seeds'][i])), pads=self._pads, cues=self._cue_cfg)
 
     def _scene_holds(self, goal: np.ndarray) -> bool:
         """True when the latest /sim/scene is the scene of `goal` (one of its pad tops is the goal)."""
@@ -167,6 +189,32 @@ class SimPilotNode(Node):
         with self._lock:
             self._agent = (self._now(), a)
 
+    def _on_goal_estimate(self, msg: PoseWithCovarianceStamped) -> None:
+        p, cov = msg.pose.pose.position, np.asarray(msg.pose.covariance, dtype=float)
+        goal = np.array([p.x, p.y, p.z])
+        if cov.size != 36 or not (np.all(np.isfinite(goal)) and np.all(np.isfinite(cov[[0, 7]]))
+                                  and cov[0] >= 0 and cov[7] >= 0):
+            self.diag.count('rejected_goal_estimate')
+            self.get_logger().warning('rejected a goal estimate that is not finite or has a negative variance',
+                                      throttle_duration_sec=2.0)
+            return
+        with self._lock:
+            self._goal_cue = (self._now(), goal, math.sqrt(max(cov[0], cov[7])))
+
+    def _on_descent_ok(self, msg: Bool) -> None:
+        with self._lock:
+            self._light = (self._now(), bool(msg.data))
+
+    def _cue(self, now: float, assisting: bool) -> Cue | None:
+        """The cue the station would show now: fresh parts only, none while the assistant does not act."""
+        timeout = float(self.p['cue_timeout_s'])
+        if not assisting:
+            return None
+        goal = self._goal_cue if self._goal_cue is not None and abs(now - self._goal_cue[0]) <= timeout else None
+        light = self._light if self._light is not None and abs(now - self._light[0]) <= timeout else None
+        return Cue(None if goal is None else goal[1], math.inf if goal is None else goal[2],
+                   None if light is None else light[1])
+
     def _tick(self) -> None:
         now = self._now()
         with self._lock:
@@ -193,9 +241,11 @@ class SimPilotNode(Node):
                 u = np.zeros(3)
             else:
                 a = None
-                if self._agent is not None and abs(now - self._agent[0]) <= self.p['agent_timeout_s']:
-                    if float(np.linalg.norm(self._agent[1])) > self.p['blend_threshold']:
-                        a = self._agent[1]
+                fresh = self._agent is not None and abs(now - self._agent[0]) <= self.p['agent_timeout_s']
+                if fresh and float(np.linalg.norm(self._agent[1])) > self.p['blend_threshold']:
+                    a = self._agent[1]
+                if self._cue_cfg is not None:
+                    self.pilot.see_cue(self._cue(now, fresh))
                 u = self.pilot.act(self._odom[1], a)
         msg = TwistStamped()
         msg.header.stamp = self.get_clock().now().to_msg()

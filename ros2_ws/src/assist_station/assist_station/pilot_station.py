@@ -1,8 +1,9 @@
 """pilot_station: the browser pilot station as a ROS 2 node (thin shell over station_core + server).
 
-Serves the page (chase view from /sim/scene + /odom, camera inset, assisted state, landing results)
-and publishes the pilot's held keys as /pilot/cmd_vel (TwistStamped, base_link) at a fixed rate,
-and at once when the command changes. No message on any topic stops the node: an unusable one is
+Serves the page (chase view from /sim/scene + /odom, camera inset, assisted state, landing results,
+the assistant's intent cues from /assist/goal_estimate, /assist/descent_ok and /cmd_vel) and publishes
+the pilot's held keys as /pilot/cmd_vel (TwistStamped, base_link) at a fixed rate, and at once when
+the command changes. No message on any topic stops the node: an unusable one is
 rejected, counted on /diagnostics and logged once per reason.
 """
 from __future__ import annotations
@@ -16,22 +17,23 @@ from typing import Any
 from collections.abc import Callable
 
 import numpy as np
-from geometry_msgs.msg import TwistStamped
+from geometry_msgs.msg import PoseWithCovarianceStamped, TwistStamped
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from sensor_msgs.msg import Image
-from std_msgs.msg import String
+from std_msgs.msg import Bool, String
 from visualization_msgs.msg import Marker, MarkerArray
 
 from assist_common.constants import BLEND_THRESHOLD_MPS
-from assist_common.ros_common import (LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param,
-                                      StartupError, declare_parameters, exit_process, fill_twist, run_node,
-                                      twist_to_array)
+from assist_common.ros_common import (LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, STAMP_TOLERANCE_S,
+                                      Diagnostics, Param, StartupError, declare_parameters, exit_process, fill_twist,
+                                      run_node, stamp_to_sec, twist_to_array)
 
 from .server import ServerConfig, StationServer
 from .access import allowed_hosts
-from .station_core import (MODES, AssistMonitor, CommandGate, InputError, KeyState, OncePerReason, StationConfig,
-                           StudyMessage, camera_payload, landing_feedback, parse_landing, scene_from_boxes, short_repr)
+from .station_core import (CUES, MODES, AssistMonitor, CommandGate, CueConfig, InputError, IntentCues, KeyState,
+                           OncePerReason, StationConfig, StudyMessage, camera_payload, landing_feedback, parse_landing,
+                           scene_from_boxes, short_repr)
 from .study import StudyConfig, StudyError
 
 PARAMS = {
@@ -70,6 +72,25 @@ PARAMS = {
     'chase_back_m': Param(3.5, 'Chase camera distance behind the drone (m).', min=0.0, max=50.0),
     'chase_up_m': Param(2.0, 'Chase camera height above the drone (m).', min=0.0, max=50.0),
     'fov_deg': Param(60.0, 'Vertical field of view of the chase view (deg).', min=10.0, max=120.0),
+    'camera_vfov_deg': Param(58.0, 'Vertical field of view of the downward camera (deg), to place the goal cue in '
+                                   'the camera inset (image top = body forward, optical x = body -y).',
+                             min=1.0, max=170.0),
+    'camera_offset_m': Param(0.05, 'Optical centre of the downward camera below base_link, on the body z axis (m).',
+                             min=0.0, max=2.0),
+    'cue_goal': Param(True, 'Show the assistant\'s estimated goal pad (/assist/goal_estimate) in the chase view and '
+                            'the camera inset (settable at run time).', dynamic=True),
+    'cue_descent': Param(True, 'Show the assistant\'s descent light (/assist/descent_ok): green descend, red hold, '
+                               'grey unknown (settable at run time).', dynamic=True),
+    'cue_push': Param(True, 'Show the assistant\'s push, /cmd_vel minus the pilot\'s command, as an arrow from '
+                            'the drone in the chase view (settable at run time).', dynamic=True),
+    'cue_timeout_s': Param(CueConfig.timeout_s, 'A goal estimate or /cmd_vel stamped longer ago than this, or a '
+                           '/assist/descent_ok not received for this long, shows as unknown (s, the node\'s clock: '
+                           'sim time under use_sim_time).', min=0.0, max=10.0, min_exclusive=True),
+    'cue_max_sigma_m': Param(CueConfig.max_sigma_m, 'A goal estimate whose sqrt(max(var x, var y)) exceeds this is '
+                             'drawn as unsure (outlined, not filled) (m).', min=0.0, max=100.0, min_exclusive=True),
+    'cue_pad_tolerance_m': Param(CueConfig.pad_tolerance_m, 'A goal estimate farther than this from the top centre '
+                                 'of every pad of /sim/scene (horizontally or vertically) is an unknown pad: not '
+                                 'drawn, counted (m).', min=0.0, max=10.0, min_exclusive=True),
     'frame_id': Param('base_link', 'frame_id of the published /pilot/cmd_vel.'),
     'study_config': Param('', 'User-study YAML file (see config/study.yaml); empty: no study. With one, the page '
                               'runs the protocol (participant ID, consent, practice, two blocks, questionnaires), '
@@ -96,6 +117,9 @@ class PilotStation(Node):
         self.keys = KeyState(StationConfig(speed=p['speed'], speed_z=p['speed_z'], key_timeout_s=p['key_timeout_s']))
         self.assist = AssistMonitor(p['agent_timeout_s'], p['assist_threshold'])
         self.gate = CommandGate()
+        self.cues = IntentCues(CueConfig(timeout_s=p['cue_timeout_s'], max_sigma_m=p['cue_max_sigma_m'],
+                                         pad_tolerance_m=p['cue_pad_tolerance_m'],
+                                         stamp_tolerance_s=STAMP_TOLERANCE_S), count=self.diag.count)
         self._first = OncePerReason()
         self._lock = threading.Lock()
         self._odom: dict | None = None
@@ -107,6 +131,10 @@ class PilotStation(Node):
         self.create_subscription(MarkerArray, '/sim/scene', guard('scene', self._on_scene), LATCHED_QOS)
         self.create_subscription(TwistStamped, '/assist/agent_cmd', guard('agent_cmd', self._on_agent), RELIABLE_QOS)
         self.create_subscription(String, '/sim/landing', guard('landing', self._on_landing), LANDING_QOS)
+        self.create_subscription(PoseWithCovarianceStamped, '/assist/goal_estimate',
+                                 guard('goal_estimate', self._on_goal_estimate), RELIABLE_QOS)
+        self.create_subscription(Bool, '/assist/descent_ok', guard('descent_ok', self._on_descent_ok), RELIABLE_QOS)
+        self.create_subscription(TwistStamped, '/cmd_vel', guard('cmd_vel', self._on_cmd_vel), RELIABLE_QOS)
         if p['camera_rate_hz'] > 0:
             self.create_subscription(Image, '/camera/color/image_raw', guard('camera', self._on_camera), SENSOR_QOS)
         self.study = None
@@ -119,7 +147,8 @@ class PilotStation(Node):
         hello = {'mode': p['mode'], 'study': study_cfg is not None,      # a study always marks the goal pad
                  'show_goal': p['mode'] in ('practice', 'study') or study_cfg is not None,
                  'chase': {'back_m': p['chase_back_m'], 'up_m': p['chase_up_m'], 'fov_deg': p['fov_deg']},
-                 'speed': p['speed'], 'speed_z': p['speed_z'], 'camera': p['camera_rate_hz'] > 0}
+                 'speed': p['speed'], 'speed_z': p['speed_z'], 'camera': p['camera_rate_hz'] > 0,
+                 'camera_geom': {'vfov_deg': p['camera_vfov_deg'], 'offset_m': p['camera_offset_m']}}
         try:
             allowed_hosts(p['host'], 80, p['allowed_hosts'])
         except ValueError as exc:
@@ -180,6 +209,7 @@ class PilotStation(Node):
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.header.frame_id = self.p['frame_id']
         self.pub_cmd.publish(fill_twist(msg, v))
+        self.cues.note_pilot(v)
 
     def _keys_fly(self) -> bool:
         """Whether the pilot's keys reach the vehicle now (always, except between a study's landings)."""
@@ -240,6 +270,7 @@ class PilotStation(Node):
             self._rejected('scene_rejected', InputError('/sim/scene rejected', short_repr(str(exc), 200)))
             return
         self.server.set_scene(scene)
+        self.cues.set_scene(scene['platforms'])
         if self.study is not None:
             self.study.note_scene(boxes)
         self.get_logger().info(f"scene: {len(scene['platforms'])} platforms, goal {scene['goal']}")
@@ -247,6 +278,37 @@ class PilotStation(Node):
     def _on_agent(self, msg: TwistStamped) -> None:
         if not self.assist.note(twist_to_array(msg), time.monotonic()):
             self._rejected('agent_cmd_rejected', InputError('/assist/agent_cmd rejected: not a finite 3-vector'))
+
+    def _now_s(self) -> float:
+        """The node's clock in seconds (sim time under use_sim_time)."""
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    @staticmethod
+    def _stamp(msg: Any) -> float | None:
+        """A message's header stamp in seconds; None when unset (the message is then dated by its arrival)."""
+        t = stamp_to_sec(msg.header.stamp)
+        return t if t > 0 else None
+
+    def _on_goal_estimate(self, msg: PoseWithCovarianceStamped) -> None:
+        """The assistant's goal pad estimate: validated by the cue core, a rejected one counted by reason."""
+        pp = msg.pose.pose
+        try:
+            self.cues.note_goal(msg.header.frame_id, self._stamp(msg), (pp.position.x, pp.position.y, pp.position.z),
+                                (pp.orientation.x, pp.orientation.y, pp.orientation.z, pp.orientation.w),
+                                msg.pose.covariance, self._now_s())
+        except InputError as exc:
+            self._rejected(f'goal_estimate_rejected_{exc.kind}', exc)
+
+    def _on_descent_ok(self, msg: Bool) -> None:
+        """The assistant's descent light (no header: dated by its arrival on the node's clock)."""
+        self.cues.note_descent(bool(msg.data), self._now_s())
+
+    def _on_cmd_vel(self, msg: TwistStamped) -> None:
+        """The blended command V that flies: with the station's own u it gives the assistant's push."""
+        try:
+            self.cues.note_blended(msg.header.frame_id, self._stamp(msg), twist_to_array(msg), self._now_s())
+        except InputError as exc:
+            self._rejected(f'cmd_vel_rejected_{exc.kind}', exc)
 
     def _on_landing(self, msg: String) -> None:
         try:
@@ -278,8 +340,10 @@ class PilotStation(Node):
         now = time.monotonic()
         with self._lock:
             odom, age = self._odom, now - self._odom_time
+        assist = self.assist.state(now)
+        cues = self.cues.view(self._now_s(), assist != 'off', {k: bool(self.p[f'cue_{k}']) for k in CUES})
         return {'pose': odom, 'odom_age_s': round(age, 3) if math.isfinite(age) else None,
-                'assist': self.assist.state(now), 'keys': list(self.keys.held(now)),
+                'assist': assist, 'cues': cues, 'keys': list(self.keys.held(now)),
                 'stopped': self.keys.stopped(now),
                 'cmd': [round(float(x), 3) for x in self.keys.command(now)]}
 

@@ -13,13 +13,15 @@ import math
 import threading
 from dataclasses import dataclass
 from typing import Any
-from collections.abc import Hashable, Iterable, Sequence
+from collections.abc import Callable, Hashable, Iterable, Mapping, Sequence
 
 import numpy as np
 
+from assist_common.constants import ACCEPTED_CMD_FRAMES
+from assist_common.frames import unit_quat_to_matrix
 from assist_common.settings import check_named, setting
 
-from assist_bridge.teleop_core import KEY_BINDINGS, TeleopConfig
+from assist_bridge.teleop_core import KEY_BINDINGS, IntentError, TeleopConfig, check_goal_estimate, stamp_age_problem
 
 # Browser KeyboardEvent.code -> teleop token (KEY_BINDINGS) ; 'Space' is the stop key.
 BROWSER_KEYS: dict[str, str] = {'KeyW': 'w', 'KeyS': 's', 'KeyA': 'a', 'KeyD': 'd',
@@ -37,11 +39,12 @@ def short_repr(value: Any, limit: int = 40) -> str:
 
 
 class InputError(ValueError):
-    """An unusable input message; `reason` is a fixed phrase (one log line per reason), `detail` the value."""
+    """An unusable input message; `reason` is a fixed phrase (one log line per reason), `detail` the value,
+    `kind` a short key naming the reason in counters (e.g. 'nonfinite')."""
 
-    def __init__(self, reason: str, detail: str = ''):
+    def __init__(self, reason: str, detail: str = '', kind: str = ''):
         super().__init__(reason + (f' ({detail})' if detail else ''))
-        self.reason, self.detail = reason, detail
+        self.reason, self.detail, self.kind = reason, detail, kind
 
 
 class OncePerReason:
@@ -288,6 +291,196 @@ class AssistMonitor:
             if now - self._last > self.timeout_s:
                 return 'off'
             return 'acting' if self._norm > self.threshold else 'standby'
+
+
+# ------------------------------------------------------------------ the assistant's intent cues
+CUES = ('goal', 'descent', 'push')     # the page's three cues, each switched by a station parameter cue_<name>
+PUSH_MIN_MPS = 0.02                    # a push below this norm is sent as none (V = u)
+
+
+@dataclass
+class CueConfig:
+    """Validation and timing of the assistant's intent cues (node parameters map onto these)."""
+
+    timeout_s: float = setting(0.5, gt=0)           # older estimate / blended command, silent descent_ok: unknown
+    max_sigma_m: float = setting(0.5, gt=0)         # sqrt(max(var_x, var_y)) above this: the goal cue is unsure
+    pad_tolerance_m: float = setting(0.8, gt=0)     # farther than this from every pad top centre: unknown pad
+    stamp_tolerance_s: float = setting(0.25, ge=0)  # a stamp this far ahead of the clock is still accepted
+
+    def __post_init__(self) -> None:
+        """Reject settings outside their fields' ranges (SettingsError, one line)."""
+        check_named(self)
+
+
+@dataclass(frozen=True)
+class GoalEstimate:
+    """A validated /assist/goal_estimate: position (odom), xy sigma, matched pad id, clock time it is dated by."""
+
+    p: tuple[float, float, float]
+    sigma_m: float
+    pad: int | None
+    t: float
+
+
+def pad_top_centres(platforms: Iterable[dict[str, Any]]) -> list[tuple[int, np.ndarray]]:
+    """(pad id, centre of its top surface in odom) of each platform box of the page's scene (scene_from_boxes)."""
+    out = []
+    for b in platforms:
+        up = unit_quat_to_matrix(b['q']) @ np.array([0.0, 0.0, float(b['s'][2]) / 2.0])
+        out.append((int(b['id']), np.asarray(b['p'], dtype=float) + up))
+    return out
+
+
+def match_pad(p: Sequence[float], pads: Sequence[tuple[int, np.ndarray]], tolerance_m: float) -> int | None:
+    """Id of the pad whose top centre is nearest `p` (horizontally) among those within `tolerance_m` of it
+    horizontally and vertically; None when there is none."""
+    best, best_d = None, math.inf
+    for pad_id, top in pads:
+        d = math.hypot(float(p[0]) - top[0], float(p[1]) - top[1])
+        if d <= tolerance_m and abs(float(p[2]) - top[2]) <= tolerance_m and d < best_d:
+            best, best_d = pad_id, d
+    return best
+
+
+def parse_goal_estimate(frame_id: str, stamp_s: float | None, position: Sequence[float],
+                        orientation: Sequence[float], covariance: Sequence[float], now_s: float,
+                        pads: Sequence[tuple[int, np.ndarray]] | None, cfg: CueConfig) -> GoalEstimate:
+    """A /assist/goal_estimate (PoseWithCovarianceStamped fields) -> GoalEstimate; InputError (its `kind`:
+    nonfinite, frame, variance, future_stamp, stale_stamp, unknown_pad) when it must not be drawn.
+
+    The stamp is judged against `now_s` (the node's clock: sim time under use_sim_time); an unset stamp
+    (None) is dated by the arrival. With `pads` (the current scene's pad top centres) the position must
+    lie within cfg.pad_tolerance_m of one of them; without a scene any position is accepted.
+    """
+    try:        # the rules teleop_keyboard applies too (assist_bridge.teleop_core)
+        pos, sigma, t = check_goal_estimate(frame_id, stamp_s, position, orientation, covariance, now_s,
+                                            cfg.timeout_s, cfg.stamp_tolerance_s)
+    except IntentError as exc:
+        raise InputError(f'/assist/goal_estimate: {exc.reason}', exc.detail, kind=exc.kind) from None
+    pad = None
+    if pads:
+        pad = match_pad(pos, pads, cfg.pad_tolerance_m)
+        if pad is None:
+            raise InputError('/assist/goal_estimate is not on any pad of the scene',
+                             short_repr([round(float(x), 2) for x in pos], 80), kind='unknown_pad')
+    return GoalEstimate((float(pos[0]), float(pos[1]), float(pos[2])), sigma, pad, t)
+
+
+def parse_blended(frame_id: str, stamp_s: float | None, v: Sequence[float], now_s: float,
+                  cfg: CueConfig) -> tuple[float, np.ndarray]:
+    """A /cmd_vel (the blended V) -> (clock time it is dated by, body-FLU velocity); InputError (kind nonfinite,
+    frame, future_stamp, stale_stamp) when it cannot give the assistant's push."""
+    arr = np.asarray(v, dtype=float).reshape(-1)
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise InputError('/cmd_vel is not a finite 3-vector', kind='nonfinite')
+    if frame_id not in ACCEPTED_CMD_FRAMES:
+        raise InputError('/cmd_vel is not in base_link', short_repr(frame_id), kind='frame')
+    stale = stamp_age_problem(stamp_s, now_s, cfg.timeout_s, cfg.stamp_tolerance_s)
+    if stale is not None:
+        raise InputError(f'/cmd_vel: {stale.reason}', stale.detail, kind=stale.kind)
+    return (now_s if stamp_s is None else min(stamp_s, now_s)), arr
+
+
+class IntentCues:
+    """What the page shows of the assistant's intent: the goal pad it believes in, the descent light, its push.
+
+    Inputs are noted with the node's clock (`now_s`, sim-aware) and validated here; `view` decides what
+    the page may draw: nothing at all while assistance is off, nothing of a cue that is switched off, a
+    goal cue 'unknown' (grey) once its estimate is older than cfg.timeout_s or the latest one was
+    rejected, the descent light 'unknown' once descent_ok has been silent that long. A cue going grey
+    is counted (`cue_goal_unknown`, `cue_descent_unknown`) through `count`. Thread-safe.
+    """
+
+    def __init__(self, cfg: CueConfig | None = None, count: Callable[[str], None] | None = None):
+        self.cfg = cfg or CueConfig()
+        self._count = count or (lambda key: None)
+        self._lock = threading.Lock()
+        self._pads: list[tuple[int, np.ndarray]] | None = None
+        self._goal: GoalEstimate | None = None
+        self._goal_valid = False
+        self._descent: tuple[float, bool] | None = None
+        self._blended: tuple[float, np.ndarray] | None = None
+        self._pilot = np.zeros(3)
+        self._shown: dict[str, str | None] = {'goal': None, 'descent': None}
+
+    def set_scene(self, platforms: Iterable[dict[str, Any]]) -> None:
+        """A new scene: its pads validate the estimates from now on; the estimate of the old scene is forgotten."""
+        pads = pad_top_centres(platforms)
+        with self._lock:
+            self._pads = pads or None
+            self._goal, self._goal_valid = None, False
+
+    def note_goal(self, frame_id: str, stamp_s: float | None, position: Sequence[float],
+                  orientation: Sequence[float], covariance: Sequence[float], now_s: float) -> GoalEstimate:
+        """One /assist/goal_estimate; InputError when unusable (the cue then shows 'unknown' until a good one)."""
+        with self._lock:
+            pads = self._pads
+        try:
+            est = parse_goal_estimate(frame_id, stamp_s, position, orientation, covariance, now_s, pads, self.cfg)
+        except InputError:
+            with self._lock:
+                self._goal_valid = False
+            raise
+        with self._lock:
+            self._goal, self._goal_valid = est, True
+        return est
+
+    def note_descent(self, ok: bool, now_s: float) -> None:
+        """One /assist/descent_ok (no header: dated by its arrival at `now_s`)."""
+        with self._lock:
+            self._descent = (float(now_s), bool(ok))
+
+    def note_blended(self, frame_id: str, stamp_s: float | None, v: Sequence[float], now_s: float) -> None:
+        """One /cmd_vel (the blended V that flies); InputError when unusable (the push then shows nothing)."""
+        try:
+            dated = parse_blended(frame_id, stamp_s, v, now_s, self.cfg)
+        except InputError:
+            with self._lock:
+                self._blended = None
+            raise
+        with self._lock:
+            self._blended = dated
+
+    def note_pilot(self, u: Sequence[float]) -> None:
+        """The pilot command u the station published last (body FLU, m/s)."""
+        arr = np.asarray(u, dtype=float).reshape(-1)
+        if arr.shape == (3,) and np.all(np.isfinite(arr)):
+            with self._lock:
+                self._pilot = arr.copy()
+
+    def _fresh(self, t: float, now_s: float) -> bool:
+        return -self.cfg.stamp_tolerance_s <= now_s - t <= self.cfg.timeout_s
+
+    def view(self, now_s: float, assist_live: bool, show: Mapping[str, bool]) -> dict[str, Any]:
+        """The cues for the page at `now_s`: {'goal': None | {state sure/unsure/unknown, p, pad, sigma_m},
+        'descent': None | 'ok' / 'hold' / 'unknown', 'push': None | V - u (body FLU, m/s)}; all None while
+        assistance is off (`assist_live` False), a cue None while `show[name]` is False."""
+        out: dict[str, Any] = {'goal': None, 'descent': None, 'push': None}
+        with self._lock:
+            if assist_live:
+                goal = self._goal
+                if show.get('goal') and goal is not None:
+                    if not (self._goal_valid and self._fresh(goal.t, now_s)):
+                        state = 'unknown'
+                    else:
+                        state = 'unsure' if goal.sigma_m > self.cfg.max_sigma_m else 'sure'
+                    out['goal'] = {'state': state, 'p': [round(x, 3) for x in goal.p], 'pad': goal.pad,
+                                   'sigma_m': round(goal.sigma_m, 3)}
+                if show.get('descent'):
+                    d = self._descent
+                    out['descent'] = ('unknown' if d is None or not self._fresh(d[0], now_s)
+                                      else ('ok' if d[1] else 'hold'))
+                b = self._blended
+                if show.get('push') and b is not None and self._fresh(b[0], now_s):
+                    push = b[1] - self._pilot
+                    if float(np.linalg.norm(push)) >= PUSH_MIN_MPS:
+                        out['push'] = [round(float(x), 3) for x in push]
+            states = {'goal': out['goal'] and out['goal']['state'], 'descent': out['descent']}
+            went_grey = [k for k, s in states.items() if s == 'unknown' and self._shown[k] not in (None, 'unknown')]
+            self._shown = states
+        for k in went_grey:
+            self._count(f'cue_{k}_unknown')
+        return out
 
 
 LANDING_FIELDS = ('episode', 'goal_index', 'landed_index', 'nearest_index', 'error_m', 'nearest_error_m',

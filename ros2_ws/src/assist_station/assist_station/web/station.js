@@ -1,5 +1,6 @@
 // Pilot station page: chase view drawn by hand on a 2D canvas from /sim/scene + /odom, camera inset,
-// keyboard -> WebSocket (held keys), connection / assistant / landing state. No external assets.
+// keyboard -> WebSocket (held keys), connection / assistant / landing state, the assistant's intent cues
+// (goal pad highlight in the chase view and the inset, descent light, push arrow). No external assets.
 'use strict';
 (function () {
   const KEYS = ['KeyW', 'KeyS', 'KeyA', 'KeyD', 'ArrowUp', 'ArrowDown', 'Space'];
@@ -9,11 +10,22 @@
   const MOTION_MPS = 0.15;       // "the vehicle moves": body velocity along the key's axis above this
   const NEAR = 0.05;
   const MIN_W = 480, MIN_H = 360;
+  // intent cues: the goal pad the assistant believes in (sure: filled, unsure: outlined, unknown: grey)
+  const CUE_STYLE = {
+    sure: { fill: 'rgba(0,220,255,0.55)', stroke: '#00dcff', width: 4, dash: [] },
+    unsure: { fill: null, stroke: '#00dcff', width: 3, dash: [10, 7] },
+    unknown: { fill: 'rgba(165,165,165,0.6)', stroke: '#a5a5a5', width: 3, dash: [6, 6] },
+  };
+  const PUSH_COLOUR = '#ff3cf0';
+  const PUSH_M_PER_MPS = 1.0;    // arrow length in the chase view per m/s of push
+  const PUSH_MIN_MPS = 0.05;     // smaller pushes are not drawn
+  const RING_M = 0.4;            // goal cue radius where no pad box is known (no scene)
 
   const stats = window.stationStats = {
     frames: 0, fps: 0, ws: 'connecting', role: null, mode: null, states: 0, cameraFrames: 0, errors: 0,
     acks: 0, ackRttMs: null, keyToMotionMs: [], releases: 0, held: [], canvas: null, landing: null,
-    scenePlatforms: 0, goal: null, pose: null,
+    scenePlatforms: 0, goal: null, pose: null, cues: null,
+    cueDrawn: { goal: null, push: null, descent: null },   // what the last frame drew of the cues (screen px)
   };
 
   const view = document.getElementById('view');
@@ -32,7 +44,8 @@
   let held = [];
   const sentAt = new Map();
   let motionProbe = null;
-  let cfg = { mode: 'practice', show_goal: true, chase: { back_m: 3.5, up_m: 2.0, fov_deg: 60 } };
+  let cfg = { mode: 'practice', show_goal: true, chase: { back_m: 3.5, up_m: 2.0, fov_deg: 60 },
+    camera_geom: { vfov_deg: 58, offset_m: 0.05 } };
   let scene = { platforms: [], goal: null };
   let state = null, stateAt = 0;
   let landingTimer = null;
@@ -132,6 +145,7 @@
     session = msg.role === 'pilot' && msg.session ? msg.session : null;   // a view-only page holds no token
     storage.set(session);
     stats.role = msg.role; stats.mode = msg.mode; stats.speed = msg.speed; stats.speedZ = msg.speed_z;
+    stats.chase = msg.chase; stats.cameraGeom = msg.camera_geom || null;
     el('role').textContent = msg.role === 'pilot' ? 'you are the pilot' : 'view only';
     el('role').className = 'pill ' + (msg.role === 'pilot' ? 'ok' : 'warn');
     el('mode').textContent = { practice: 'practice', study: 'study', free: 'free flight' }[msg.mode] || msg.mode;
@@ -159,6 +173,8 @@
     const assist = { off: ['unassisted', ''], standby: ['assisted', 'ok'], acting: ['assistant acting', 'acting'] };
     const [txt, cls] = assist[msg.assist] || ['assistant: ?', ''];
     a.textContent = txt; a.className = 'pill ' + cls;
+    stats.cues = msg.cues || null;
+    showDescent(stats.cues ? stats.cues.descent : null);
     if (ws && ws.readyState === WebSocket.OPEN) {
       if (!msg.pose || msg.odom_age_s === null || msg.odom_age_s > 1.0) setConn('connected - no vehicle data', 'warn');
       else setConn('connected', 'ok');
@@ -180,6 +196,14 @@
     if (msg.stopped) el('telemetry').textContent += '\nSTOP held by a view-only page';
     stats.stopped = !!msg.stopped;
   }
+  function showDescent(d) {
+    const box = el('descent');
+    const look = { ok: ['descend', 'go'], hold: ['hold', 'stop'], unknown: ['descend ?', 'unknown'] }[d];
+    stats.cueDrawn.descent = look ? d : null;
+    if (!look) { box.className = 'hidden'; return; }
+    box.className = look[1];
+    box.querySelector('.label').textContent = look[0];
+  }
   function onCamera(buf) {
     const dv = new DataView(buf);
     if (buf.byteLength < 4) return;
@@ -192,8 +216,6 @@
     }
     camBuf.width = w; camBuf.height = h;
     camBuf.getContext('2d').putImageData(img, 0, 0);
-    ictx.imageSmoothingEnabled = false;
-    ictx.drawImage(camBuf, 0, 0, inset.width, inset.height);
     stats.cameraFrames += 1;
   }
 
@@ -319,8 +341,12 @@
     const items = [];
     const ground = pose ? surfaceBelow(pos[0], pos[1]) : 0;
     let shadowOn = pose && ground === 0 ? 'floor' : null;
+    const goalCue = stats.cues && stats.cues.goal && stats.cues.goal.p ? stats.cues.goal : null;
+    const goalBox = goalCue && goalCue.pad !== null ? scene.platforms.find((b) => b.id === goalCue.pad) : null;
+    let goalDrawn = null;
     for (const b of scene.platforms) {
       const isGoal = cfg.show_goal && scene.goal === b.id;
+      const isCue = goalBox === b;
       for (const [pts, n] of boxFaces(b.p, b.q, b.s)) {
         const centre = scl(pts.reduce(add, [0, 0, 0]), 0.25);
         if (dot(n, sub(cam.eye, centre)) <= 0) continue;
@@ -331,10 +357,18 @@
         items.push({ depth: toCam(cam, centre)[2], draw: () => {
           drawPoly(cam, pts, rgb(b.c, k), isGoal ? '#ff2a1a' : 'rgba(0,0,0,0.35)', isGoal ? (top ? 4 : 2) : 1);
           if (isGoal) drawPoly(cam, pts, top ? 'rgba(255,40,20,0.55)' : 'rgba(255,40,20,0.25)');
+          if (isCue && top) drawCue(cam, pts, goalCue.state);
           if (shadowHere) drawShadow(cam, pos, ground);
         } });
       }
     }
+    if (goalBox) goalDrawn = screenOf(cam, goalCue.p);
+    else if (goalCue) {               // no pad box for it (no scene): a ring where the estimate lies
+      const ring = circle(goalCue.p, RING_M, 24);
+      items.push({ depth: toCam(cam, goalCue.p)[2], draw: () => drawCue(cam, ring, goalCue.state) });
+      goalDrawn = screenOf(cam, goalCue.p);
+    }
+    stats.cueDrawn.goal = goalCue ? { pad: goalCue.pad, state: goalCue.state, view: goalDrawn } : null;
     if (pose && shadowOn === 'floor') drawShadow(cam, pos, 0);
     if (pose) {
       // the drone: body, front marker, four legs, rotor discs; a drop line to the surface below
@@ -367,6 +401,7 @@
     }
     items.sort((a, b) => b.depth - a.depth);
     for (const it of items) it.draw();
+    stats.cueDrawn.push = pose ? drawPush(cam, pos, pose.q) : null;
 
     // labels: pad numbers, GOAL on the goal pad (always on top)
     ctx.font = 'bold 16px sans-serif'; ctx.textAlign = 'center';
@@ -383,6 +418,89 @@
       ctx.fillStyle = '#fff'; ctx.fillText('waiting for the vehicle (/odom)', W / 2, H / 2 + 6);
     }
   }
+  function screenOf(cam, p) {
+    const c = toCam(cam, p);
+    return c[2] < NEAR ? null : project(cam, c).map((x) => Math.round(x));
+  }
+  function circle(p, r, n) {
+    const pts = [];
+    for (let i = 0; i < n; i += 1) {
+      const a = 2 * Math.PI * i / n;
+      pts.push([p[0] + r * Math.cos(a), p[1] + r * Math.sin(a), p[2] + 0.003]);
+    }
+    return pts;
+  }
+  // the goal cue on a world polygon (a pad's top face, or a ring): fill and outline by its state
+  function drawCue(cam, pts, state) {
+    const st = CUE_STYLE[state] || CUE_STYLE.unknown;
+    ctx.setLineDash(st.dash);
+    drawPoly(cam, pts, st.fill, st.stroke, st.width);
+    ctx.setLineDash([]);
+  }
+  // the assistant's push (V - u, body FLU) as an arrow from the drone; returns its screen ends or null
+  function drawPush(cam, pos, q) {
+    const push = stats.cues && stats.cues.push;
+    if (!push || Math.hypot(push[0], push[1], push[2]) < PUSH_MIN_MPS) return null;
+    const tip = add(pos, scl(rotate(q, push), PUSH_M_PER_MPS));
+    const a = toCam(cam, pos), b = toCam(cam, tip);
+    if (a[2] < NEAR || b[2] < NEAR) return null;
+    const sa = project(cam, a), sb = project(cam, b);
+    const len = Math.hypot(sb[0] - sa[0], sb[1] - sa[1]);
+    ctx.strokeStyle = PUSH_COLOUR; ctx.fillStyle = PUSH_COLOUR; ctx.lineWidth = 5; ctx.lineCap = 'round';
+    ctx.beginPath(); ctx.moveTo(sa[0], sa[1]); ctx.lineTo(sb[0], sb[1]); ctx.stroke();
+    if (len > 4) {                  // arrowhead in screen space
+      const ux = (sb[0] - sa[0]) / len, uy = (sb[1] - sa[1]) / len, h = Math.min(18, 0.5 * len + 6);
+      ctx.beginPath(); ctx.moveTo(sb[0] + ux * 4, sb[1] + uy * 4);
+      ctx.lineTo(sb[0] - ux * h - uy * h * 0.6, sb[1] - uy * h + ux * h * 0.6);
+      ctx.lineTo(sb[0] - ux * h + uy * h * 0.6, sb[1] - uy * h - ux * h * 0.6);
+      ctx.closePath(); ctx.fill();
+    }
+    ctx.lineCap = 'butt';
+    return { from: sa.map((x) => Math.round(x)), to: sb.map((x) => Math.round(x)) };
+  }
+
+  // ------------------------------------------------------------------ camera inset
+  // world point -> the downward camera's optical frame (x right = body -y, y down the image = body -x, z = body -z)
+  const cameraGeom = () => cfg.camera_geom || { vfov_deg: 58, offset_m: 0.05 };
+  function toOptical(pose, p) {
+    const q = pose.q;
+    const d = rotate([-q[0], -q[1], -q[2], q[3]], sub(p, pose.p));
+    const b = [d[0], d[1], d[2] + cameraGeom().offset_m];      // the optical centre lies offset_m below base_link
+    return [-b[1], -b[0], -b[2]];
+  }
+  function insetPixel(o, w, h) {     // optical point -> inset canvas pixel (the image stretched over the inset)
+    const f = (h / 2) / Math.tan(cameraGeom().vfov_deg * Math.PI / 360);
+    return [(w / 2 + f * o[0] / o[2]) * inset.width / w, (h / 2 + f * o[1] / o[2]) * inset.height / h];
+  }
+  function drawInset(pose) {
+    ictx.imageSmoothingEnabled = false;
+    if (camBuf.width > 0 && stats.cameraFrames > 0) ictx.drawImage(camBuf, 0, 0, inset.width, inset.height);
+    else { ictx.fillStyle = '#000'; ictx.fillRect(0, 0, inset.width, inset.height); }
+    const cue = stats.cues && stats.cues.goal && stats.cues.goal.p ? stats.cues.goal : null;
+    let drawn = null;
+    if (cue && pose) {
+      const w = stats.cameraFrames > 0 ? camBuf.width : 64, h = stats.cameraFrames > 0 ? camBuf.height : 64;
+      const box = cue.pad !== null ? scene.platforms.find((b) => b.id === cue.pad) : null;
+      const outline = box ? boxFaces(box.p, box.q, box.s)[4][0] : circle(cue.p, RING_M, 24);    // [4]: the top face
+      const opt = outline.map((p) => toOptical(pose, p));
+      const centre = toOptical(pose, cue.p);
+      if (centre[2] > NEAR && opt.every((o) => o[2] > NEAR)) {
+        const st = CUE_STYLE[cue.state] || CUE_STYLE.unknown;
+        ictx.beginPath();
+        opt.forEach((o, i) => { const s = insetPixel(o, w, h); if (i) ictx.lineTo(s[0], s[1]); else ictx.moveTo(s[0], s[1]); });
+        ictx.closePath();
+        if (st.fill) { ictx.fillStyle = st.fill; ictx.fill(); }
+        ictx.setLineDash(st.dash.map((x) => x / 2)); ictx.strokeStyle = st.stroke; ictx.lineWidth = 2; ictx.stroke();
+        ictx.setLineDash([]);
+        const c = insetPixel(centre, w, h);
+        ictx.beginPath(); ictx.moveTo(c[0] - 6, c[1]); ictx.lineTo(c[0] + 6, c[1]); ictx.moveTo(c[0], c[1] - 6); ictx.lineTo(c[0], c[1] + 6);
+        ictx.strokeStyle = st.stroke; ictx.lineWidth = 2; ictx.stroke();
+        if (c[0] >= 0 && c[0] <= inset.width && c[1] >= 0 && c[1] <= inset.height) drawn = c.map((x) => Math.round(x));
+      }
+    }
+    if (stats.cueDrawn.goal) stats.cueDrawn.goal.inset = drawn;
+  }
+
   function drawShadow(cam, pos, h) {
     const pts = [];
     for (let i = 0; i < 16; i += 1) {
@@ -402,7 +520,7 @@
   function frame(now) {
     resize();
     const t0 = performance.now();
-    try { render(); } catch (err) { stats.errors += 1; console.error(err); }
+    try { render(); if (cfg.camera) drawInset(currentPose()); } catch (err) { stats.errors += 1; console.error(err); }
     stats.renderMsTotal = (stats.renderMsTotal || 0) + (performance.now() - t0);   // draw time, for benches
     stats.frames += 1; fpsN += 1;
     if (now - fpsT0 >= 1000) {
