@@ -92,6 +92,7 @@ from .evaluate import (
     EvalArgs,
     LandingLog,
     condition_name,
+    cues_shown,
     print_results,
     rules_flying,
     write_results,
@@ -160,6 +161,8 @@ class GraphEvalArgs:
     sitl_connection: str = ''
     sitl_preload: str = ''
     sitl_restarts: int = setting(2, ge=0, le=100)
+    cues: bool = False
+    cue_trust: float = setting(1.0, ge=0.0, le=1.0)
     plot: bool = True
 
 
@@ -197,6 +200,9 @@ HELP = {
     'sitl_speedup': 'SITL --speedup (sim seconds per wall second; the graph must keep up: watch the coverage)',
     'sitl_connection': 'MAVLink address of a SITL already running (started with --model JSON:127.0.0.1 and the '
                        'instance\'s JSON port); empty: evaluate_graph starts its own, wiped, per condition',
+    'cues': 'the simulated pilot reads the assistant\'s intent (sim_pilot_node cue_trust; policy_node publishes it '
+            'always); the assisted conditions are named <condition>+cues, as evaluate\'s',
+    'cue_trust': 'with --cues: the chance per landing that the pilot reads the cues',
     'sitl_preload': 'LD_PRELOAD for the SITL process (e.g. a shim that binds its ports to loopback)',
     'sitl_restarts': 'times a condition\'s graph (its own SITL included) is started afresh for the landings still '
                      'missing after SITL died, went silent or never armed',
@@ -512,6 +518,8 @@ def node_params(args: GraphEvalArgs, cond: str, plans: list[LandingPlan], on: di
                                         'connection': args.sitl_connection or f'tcp:127.0.0.1:{mav_port}'}
         nodes['landing_runner'] = {'episodes': len(plans), 'reboot_after_crash': True, 'results_file': runner_results}
         nodes['sim_pilot_node']['start_altitude_m'] = SITL_START_ALTITUDE_M
+    if cues_shown(args, cond):
+        nodes['sim_pilot_node']['cue_trust'] = float(args.cue_trust)
     if cond == 'unassisted':
         nodes['sim_node']['camera_rate_hz'] = 0.0       # nothing looks at the camera
         return nodes
@@ -780,7 +788,7 @@ def _fly_all(args: GraphEvalArgs, out: Path) -> dict[str, dict]:
     try:
         for cond in args.conditions:
             on = rules_flying(args, cond)
-            name = condition_name(cond, on)
+            name = condition_name(cond, on, cues_shown(args, cond))
             done = {seed: results.flown(name, float(p.beta), seed) for seed, p in planned}
             todo = [(seed, p) for seed, p in planned if done[seed] is None]
             t0 = time.monotonic()
