@@ -122,3 +122,26 @@ def test_settings_out_of_range_are_refused():
         IntentConfig(spread_m=0.0)
     with pytest.raises(SettingsError, match='memory_s'):
         IntentConfig(memory_s=-1.0)
+
+
+def test_the_policy_core_reports_the_intent_it_publishes_and_changes_its_settings_at_run_time(tmp_path):
+    from assist_policy.policy_core import PolicyCore, PolicyCoreConfig
+    from assist_policy.testing import constant_actor
+    core = PolicyCore(constant_actor(tmp_path / 'a.pt', [0.5, 0.0, 0.0], condition='oracle', latent_dim=0),
+                      PolicyCoreConfig(mode='oracle'))
+    goal = np.array([6.0, 1.0, 0.8])
+    core.set_goal(goal)
+    core.set_odom(0.0, [0.0, 0.0, 3.0], [0.0, 0.0, 0.0])
+    core.set_pilot(0.0, [1.0, 0.0, 0.0])
+    out = core.step(0.05)
+    assert out.key == 'assisting'
+    np.testing.assert_array_equal(out.intent.goal, goal)           # the oracle's intent is the goal it is given
+    assert out.intent.descent_ok is None                           # no depth frame yet: unknown
+    core.configure(intent={'spread_m': 0.4, 'memory_s': 2.0})
+    assert core.loop.intent.cfg.spread_m == 0.4 and core.cfg.intent.memory_s == 2.0
+    with pytest.raises(ValueError, match='spread_m'):
+        core.configure(intent={'spread_m': 0.0})
+    assert core.loop.intent.cfg.spread_m == 0.4                     # refused: nothing changed
+    core.configure(intent={'enabled': False})
+    assert core.step(0.1).intent.goal is None
+    assert core.pass_through(0.15).intent.goal is None             # switched off: no intent at all
