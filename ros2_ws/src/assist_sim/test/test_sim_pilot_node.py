@@ -233,3 +233,74 @@ def test_evaluation_plan_gives_each_landing_its_own_pilot():
         probe.destroy_node()
     finally:
         rclpy.shutdown(context=ctx)
+
+
+@pytest.fixture
+def cue_graph():
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=random.Random(os.getpid() ^ time.monotonic_ns()).randint(101, 200))
+    pilot = SimPilotNode(context=ctx, parameter_overrides=[Parameter('cue_trust', value=1.0),
+                                                           Parameter('odom_timeout_s', value=ODOM_TIMEOUT_S),
+                                                           Parameter('agent_timeout_s', value=ODOM_TIMEOUT_S),
+                                                           Parameter('cue_timeout_s', value=ODOM_TIMEOUT_S)])
+    probe = Node('probe', context=ctx)
+    ex = MultiThreadedExecutor(num_threads=2, context=ctx)
+    ex.add_node(pilot)
+    ex.add_node(probe)
+    th = threading.Thread(target=ex.spin, daemon=True)
+    th.start()
+    yield pilot, probe
+    ex.shutdown()
+    pilot.destroy_node()
+    probe.destroy_node()
+    rclpy.shutdown(context=ctx)
+
+
+def test_a_cue_reading_pilot_sees_the_intent_only_while_assisted_and_refuses_a_bad_one(cue_graph):
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from std_msgs.msg import Bool
+    pilot, probe = cue_graph
+    pub_odom = probe.create_publisher(Odometry, '/odom', SENSOR_QOS)
+    pub_goal = probe.create_publisher(PointStamped, '/sim/goal', LATCHED_QOS)
+    pub_agent = probe.create_publisher(TwistStamped, '/assist/agent_cmd', RELIABLE_QOS)
+    pub_est = probe.create_publisher(PoseWithCovarianceStamped, '/assist/goal_estimate', RELIABLE_QOS)
+    pub_ok = probe.create_publisher(Bool, '/assist/descent_ok', RELIABLE_QOS)
+    g = PointStamped()
+    g.point.x, g.point.y, g.point.z = 4.0, 0.0, 1.0
+    pub_goal.publish(g)
+
+    def estimate(x, var=0.01):
+        m = PoseWithCovarianceStamped()
+        m.header.frame_id = 'odom'
+        m.pose.pose.position.x, m.pose.pose.position.z = x, 1.0
+        m.pose.covariance[0] = m.pose.covariance[7] = var
+        return m
+
+    def step(assisting: bool, est=None):
+        o = Odometry()
+        o.pose.pose.position.z = 3.0
+        pub_odom.publish(o)
+        if assisting:
+            a = TwistStamped()
+            a.twist.linear.x = 0.5
+            pub_agent.publish(a)
+        if est is not None:
+            pub_est.publish(est)
+        pub_ok.publish(Bool(data=True))
+        time.sleep(0.05)
+
+    def seen(assisting, est, until, timeout=10.0):
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < timeout:
+            step(assisting, est)
+            if until(pilot.pilot.cues.cue):
+                return True
+        return False
+    assert seen(True, estimate(4.1), lambda c: c.goal is not None and abs(c.goal[0] - 4.1) < 1e-9
+                and c.descent_ok is True and abs(c.sigma_m - 0.1) < 1e-9)
+    assert pilot.pilot.cues.reading                     # trust 1: it reads them in every landing
+    # the assistance stops (no agent_cmd): no cue, as the station shows none
+    assert seen(False, estimate(4.1), lambda c: c.goal is None and c.descent_ok is None, timeout=3 * ODOM_TIMEOUT_S + 5)
+    bad = estimate(float('nan'))
+    assert seen(True, bad, lambda c: pilot.diag.get('rejected_goal_estimate') > 0)
+    assert seen(True, estimate(5.0, var=-1.0), lambda c: pilot.diag.get('rejected_goal_estimate') > 1)
