@@ -131,13 +131,25 @@ def test_replay_reproduces_the_latents_and_commands_that_flew(graph_bag):
     assert s['latent']['max'] < 1e-4
     # every step is one recorded /cmd_vel; every recorded agent_cmd is paired with its step by header stamp
     assert s['steps'] == s['cmd_vel']['compared'] == n_cmd
-    assert s['agent_cmd_unpaired'] == 0 and s['agent_cmd_after_last_step'] <= 1     # the recorder stops first
+    # (a recorder that falls more than its queue depth of 10 behind loses a /cmd_vel and keeps its agent_cmd: on a
+    # loaded machine one step in a run can be unpaired; the recorder stops first, so the last one may be too)
+    assert s['agent_cmd_unpaired'] <= 2 and s['agent_cmd_after_last_step'] <= 1, s
     # every recorded agent_cmd is compared with its step, was not re-run, or came after the bag's last step
     assert s['agent_cmd']['compared'] + s['agent_cmd']['only_recorded'] + s['agent_cmd_after_last_step'] == n_agent
     assert s['agent_cmd']['compared'] >= n_agent - 5
     res = replay(graph_bag, ReplayConfig())
     d = np.array([np.linalg.norm(res.agent[i] - res.rec_agent[i]) for i in sorted(set(res.agent) & set(res.rec_agent))])
     assert np.median(d) < 1e-4, np.percentile(d, [50, 75, 90, 100])     # most steps' inputs line up exactly
+    # the assistant's intent, recorded (bag_record takes the contract's topics): paired with its step by header
+    # stamp; the same pad estimated at most steps (its mapped centre moves by a few cm with which frames the map
+    # had taken when the step ran: the same race as the commands'), the descent flag the same at most
+    with BagReader(graph_bag) as r:
+        n_goal = r.topics['/assist/goal_estimate'].count
+    g = s['goal_estimate']
+    assert n_goal > 20 and g['compared'] >= n_goal - 5, (g, n_goal)
+    d = np.array([np.linalg.norm(res.goal[i] - res.rec_goal[i]) for i in sorted(set(res.goal) & set(res.rec_goal))])
+    assert np.mean(d < 0.3) > 0.9 and np.median(d) < 0.05, (np.percentile(d, [50, 75, 90, 100]), g)
+    assert s['descent_ok']['agree'] >= 0.9 * s['descent_ok']['compared'] > 0, s['descent_ok']
 
 
 def test_replay_takes_the_mode_from_the_bag(graph_bag, tmp_path):
