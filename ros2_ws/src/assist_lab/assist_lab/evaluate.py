@@ -40,6 +40,16 @@ oscillation damper (assist_policy.damper) for the learned assistants: rows
 
     evaluate --pilot bang_bang --betas 0 0.25 0.5 0.75 1 --landings 8 --out runs/eval_bang_bang
 
+The assistant's intent as the pilot station shows it (assist_policy.intent: the pad its command steers to, the
+descend/hold light): `--cues` shows it to the pilots of the assisted conditions (rows `<condition>...+cues`), who
+read it in a share `--cue-trust` of their landings (assist_sim.cues). Every row records `duration_s` (time to
+land) and `path_m` (the distance flown): `compare_landings` of a run with and without `--cues` on the same
+landings pairs them, and the wrong-pad landings.
+
+    evaluate --conditions latent --pilot mix --betas 0 0.25 0.5 0.75 1 --landings 24 --out runs/plain
+    evaluate --conditions latent --pilot mix --betas 0 0.25 0.5 0.75 1 --landings 24 --cues --out runs/cues
+    compare_landings --a runs/plain --b runs/cues
+
 Landings are independent tasks keyed by (condition, beta, seed), flown from their own seeds: `--workers N`
 flies them on N processes, `--ray ADDRESS` (or auto) as tasks on a Ray cluster, with the rows of a
 one-process run either way, and a progress bar shows the run.
