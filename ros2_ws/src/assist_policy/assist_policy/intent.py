@@ -104,6 +104,7 @@ class IntentEstimator:
         self._own = PadMap(recall.cfg) if recall is not None else PadMap()
         self._mapped: Hashable = None      # key of the depth frame last added to the own map
         self._log_belief: list[float] = []  # per pad of the map, in its order (pads are only appended)
+        self._source: PadMap | None = None  # the map the belief is over
         self._t: float | None = None
         self.last: Intent = NO_INTENT
 
@@ -120,13 +121,19 @@ class IntentEstimator:
         self.last = NO_INTENT
 
     def _pads(self, ctx: StepContext) -> list[MappedPad]:
-        """The flight's mapped pads: the recall's map, or (recall off) the own map updated with this frame."""
+        """The flight's mapped pads: the recall's map, or (recall off) the own map updated with this frame. The
+        belief follows one map: when the other takes over (the recall switched at run time) it starts afresh."""
         if self.recall is not None and self.recall.cfg.enabled:
-            return self.recall.map.pads
-        if ctx.frame is not None and self._mapped != ctx.frame.key:
-            self._own.update(ctx.frame.image, *ctx.frame.pose)
-            self._mapped = ctx.frame.key
-        return self._own.pads
+            source = self.recall.map
+        else:
+            source = self._own
+            if ctx.frame is not None and self._mapped != ctx.frame.key:
+                self._own.update(ctx.frame.image, *ctx.frame.pose)
+                self._mapped = ctx.frame.key
+        if source is not self._source or len(source.pads) < len(self._log_belief):
+            self._source = source
+            self._log_belief.clear()
+        return source.pads
 
     def update(self, ctx: StepContext, velocity: np.ndarray, known_goal: np.ndarray | None = None,
                assisting: bool = True) -> Intent:

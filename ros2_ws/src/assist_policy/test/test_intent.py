@@ -145,3 +145,15 @@ def test_the_policy_core_reports_the_intent_it_publishes_and_changes_its_setting
     core.configure(intent={'enabled': False})
     assert core.step(0.1).intent.goal is None
     assert core.pass_through(0.15).intent.goal is None             # switched off: no intent at all
+
+
+def test_the_belief_starts_afresh_when_the_recall_is_switched_and_its_map_no_longer_serves():
+    est = estimator()
+    fly(est, 0.0, 2.0, (1.5, 0.0, 3.0), (1.0, 0.0, 0.0))
+    assert est.last.index == 1
+    est.recall.cfg.enabled = False          # the recall's map no longer serves; the own map has seen nothing
+    out = est.update(ctx(2.0, (1.5, 0.0, 3.0)), np.array([1.0, 0.0, 0.0]))
+    assert out.goal is None and out.candidates == 0
+    est.recall.cfg.enabled = True           # back: a fresh belief over the recall's two pads
+    out = est.update(ctx(2.05, (1.5, 0.0, 3.0)), np.array([-1.0, 0.0, 0.0]))
+    assert out.index == 0 and out.candidates == 2
