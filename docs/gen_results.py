@@ -54,6 +54,13 @@ class Runs:
         paired = sorted(set(left) & set(right))
         return sum(left[k] == right[k] for k in paired), len(paired)
 
+    def paired(self, a: tuple[str, str], b: tuple[str, str]) -> dict:
+        """compare_landings' paired statistics of run/condition `b` against `a` (same beta and seed)."""
+        from assist_lab.compare import paired_stats
+        left = {(r['beta'], r['seed']): r for r in self.rows(*a)}
+        right = {(r['beta'], r['seed']): r for r in self.rows(*b)}
+        return paired_stats([(left[k], right[k]) for k in sorted(set(left) & set(right))])
+
 
 def cell_metrics(cell, runs: Runs) -> dict | None:
     """The figures of a cell: computed from a run, or recorded; None for a text or same-outcome cell."""
@@ -73,6 +80,13 @@ def format_cell(cell, style: str, runs: Runs, bold: bool) -> list[str]:
     if isinstance(cell, dict) and 'same_outcome' in cell:
         same, n = runs.same_outcome(*cell['same_outcome'], cell['condition'])
         return [f'{same} / {n}']
+    if isinstance(cell, dict) and 'paired' in cell:      # b against a: [[run, condition], [run, condition]]
+        s = runs.paired(*(tuple(side) for side in cell['paired']))
+        key = cell['measure']
+        if key == 'wrong_pad':
+            return [f"{s['wrong_pad_a']} -> {s['wrong_pad_b']}"]
+        e = s[key]
+        return [f"{e['a']:.1f} -> {e['b']:.1f} ({100 * e['change']:+.1f} %, p {e['wilcoxon_p']:.2g})"]
     m = cell_metrics(cell, runs)
     if m is None:
         return [str(cell)]
