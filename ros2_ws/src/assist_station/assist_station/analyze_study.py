@@ -1,39 +1,46 @@
-"""analyze_study: the paper's user-study analysis (Table I, tests, regressions, SUS, Figs. 6-8) of participant dirs.
+"""analyze_study: the paper's user-study analysis (Table I, tests, regressions, SUS, Figs. 6-8) of participant dirs,
+and the per-landing measures of every condition with paired tests.
 
     analyze_study study_data/* --out study_analysis
     analyze_study study_sim/S01 study_sim/S02 --out /tmp/a --trajectories 4
 
 Reads each participant directory the station (or simulate_study) wrote: study.yaml, landings.csv,
-survey.json and bags/. Landings of the two blocks count (practice does not); a landing that ended on
+survey.json and bags/. Landings of the study's blocks count (practice does not); a landing that ended on
 the pad the vehicle started above (``started_on_pad``, the paper's "immediately landing on the
-starting platform") is excluded and counted per condition.
+starting platform") is excluded and counted per condition. A study has the paper's two conditions
+(unassisted, assisted) or also assisted_cues (its study file's ``conditions``): the paper's figures
+compare unassisted with assisted; the per-landing measures are reported for every condition.
 
 Every value is checked against the study file and the protocol before it counts; what fails is left
 out, one line each on stderr, and counted per reason in summary.json (``validation``) and in the
 tables' first lines:
 
 * the study file: the one most participant directories hold as study.yaml (ties: the first given),
-  or --study; a participant that ran another sequence, scene, pad count or assistant is left out,
-  as is one without study.yaml when --study is not given;
+  or --study; a participant that ran another sequence, scene, pad count, assistant or set of conditions
+  is left out, as is one without study.yaml when --study is not given (a study file that does not parse,
+  e.g. one naming an unknown condition, leaves its participant out with the reason);
 * a participant directory is named after its participant (the station's layout): a name that is not
   a participant ID, or the same participant twice, is left out;
 * landings.csv rows (study blocks; practice rows are not analysed): the participant, the block's
-  condition and order (the participant's counterbalanced order), the trial number (within the
-  sequence) and its goal pad (the sequence's), finite errors within ``--max-error-m`` (the arena),
-  the nearest pad's error no larger than the goal pad's, pad indices within the study's pads, an
-  outcome the simulator writes that agrees with success and crash, ``assist_live`` (when recorded)
-  agreeing with the condition, a plain bag name; a row written twice counts once, two different rows
-  for one landing do not count. A torn last row (cut mid-write), a malformed CSV row (wrong number
+  condition and order (the participant's counterbalanced order: study.condition_order), the trial
+  number (within the sequence) and its goal pad (the sequence's), finite errors within
+  ``--max-error-m`` (the arena), the nearest pad's error no larger than the goal pad's, pad indices
+  within the study's pads, an outcome the simulator writes that agrees with success and crash,
+  ``assist_live`` (when recorded) agreeing with the condition (on in assisted and assisted_cues), a plain
+  bag name, and the measures when recorded (a file written before them has none): ``path_length_m`` a
+  finite length within ``MAX_PATH_M``, ``key_presses`` and ``corrective_keys`` integers as the station
+  writes them, the corrective presses no more than the presses; a row written twice counts once, two
+  different rows for one landing do not count. A torn last row (cut mid-write), a malformed CSV row (wrong number
   of fields, a field over the csv module's size limit) or a row that is not UTF-8 is skipped;
   a file without the station's columns, over 16 MB or unreadable leaves the participant out;
-* survey.json: an object of the station's shape; each SUS entry's block (1 or 2) and condition
-  (the participant's order), its ten answers (1-5) and score (0-100, the answers' score), and the
+* survey.json: an object of the station's shape; each SUS entry's block (one of the study's) and
+  condition (the participant's order), its ten answers (1-5) and score (0-100, the answers' score), and the
   concluding survey's 21 answers within each question's scale; a bad entry (or the whole file, when
   it is not an object, not UTF-8 JSON, or another participant's) is not used.
 
 What is computed from the rows that pass:
 
-* Table I, specified and nearest platform: success rate (specified: all legs on the goal pad;
+* Table I (unassisted vs assisted), specified and nearest platform: success rate (specified: all legs on the goal pad;
   nearest: all legs on any pad, i.e. the pad nearest to where it landed), median and mean error, and
   variance (sample variance, m^2) of the horizontal error to the goal pad's centre (nearest: to the
   nearest pad's centre), unassisted vs assisted.
@@ -42,8 +49,9 @@ What is computed from the rows that pass:
   discordant pairs; landings without their pair are counted as ``unpaired``), Mood's median test
   (scipy), Welch's t-test on the mean (scipy), and the F-test of equal variances (variance ratio
   against scipy's F distribution, two-sided).
-* The multivariable regression (statsmodels OLS) of a landing's error on three binary variables:
-  assisted, first half (block 1) and experienced (a participant's mean self-rating on experience
+* The multivariable regression (statsmodels OLS) of a landing's error (unassisted and assisted landings)
+  on three binary variables: assisted, first half (the earlier of the participant's unassisted and
+  assisted blocks: block 1 in the two-block study) and experienced (a participant's mean self-rating on experience
   questions 2, 3, 5 and 6 at or above the threshold that makes a third of the participants
   experienced): coefficients and p-values.
 * The experience level of the paper's Fig. 8: a linear regression (statsmodels OLS) of each
@@ -56,6 +64,16 @@ What is computed from the rows that pass:
   between the grade boundaries; 68 is the 50th percentile).
 * Goal inference (assisted landings): the share that ended nearest to the goal pad, and the share
   of those that succeeded (the paper: 79.34 % and 93.34 %).
+* Per-landing measures (``measures`` in summary.json, the second table), per condition of the study: landings,
+  success rate, wrong-pad rate (outcome wrong_pad: all legs on another pad), and the mean and median per
+  landing of time to land (``duration_s``: the episode's start to its landing, sim seconds), path length
+  (``path_length_m``: the /odom path flown), corrective key presses and key presses (study.KeyCounter
+  defines them); a landing without a measure (not recorded) is left out of that measure only. Between
+  each pair of conditions the data have (both with landings), paired by participant: the Wilcoxon
+  signed-rank test (scipy, two-sided; exact for small samples without ties) on the participants'
+  per-condition means of each continuous measure, and McNemar's test (as above) on success and on
+  wrong-pad, landings paired by participant and trial. * marks p < 0.01 (not corrected for the three
+  comparisons of a three-condition study).
 
 Writes OUT/summary.json (strict JSON: a figure that is not defined is null), OUT/table.txt,
 OUT/table.md, OUT/violin.png (Fig. 6), OUT/experience.png (Fig. 8) and OUT/trajectories.png (Fig. 7:
@@ -89,8 +107,9 @@ from assist_common.atomic import fsync_dir
 from assist_common.frames import heading, rotate_xy
 from assist_common.settings import parse_command, setting
 
-from .study import (CONDITIONS, EXPERIENCE_QUESTIONS, LANDING_COLUMNS, PARTICIPANT_ID, StudyConfig, StudyError,
-                    block_condition, check_survey, check_sus, order_name, sus_score)
+from .study import (ASSISTED_CONDITIONS, BASE_COLUMNS, CONDITIONS, CUE_CONDITION, EXPERIENCE_QUESTIONS,
+                    PARTICIPANT_ID, StudyConfig, StudyError, block_condition, check_survey, check_sus,
+                    condition_order, order_name, sus_score)
 
 log = logging.getLogger('analyze_study')
 ALPHA = 0.01
@@ -101,16 +120,18 @@ SUS_PERCENTILES = ((0.0, 0.0), (51.6, 14.0), (51.7, 15.0), (62.6, 34.0), (62.7, 
                    (77.2, 80.0), (78.8, 84.0), (78.9, 85.0), (80.7, 89.0), (80.8, 90.0), (84.0, 95.0), (84.1, 96.0),
                    (100.0, 100.0))
 JUMP_M = 1.0          # an /odom step longer than this between two messages is a reset (teleport)
-COLORS = {'unassisted': '#1f77b4', 'assisted': '#2ca02c'}
+COLORS = {'unassisted': '#1f77b4', 'assisted': '#2ca02c', CUE_CONDITION: '#d62728'}
 
 # what the data are checked against
 OUTCOMES = ('success', 'wrong_pad', 'edge', 'crash', 'timeout')     # the simulator's landing outcomes
-PROTOCOL_FIELDS = ('scene_seed', 'sequence', 'n_pads', 'assistant_mode', 'policy_model', 'encoder_model')
-SUS_BLOCKS = ('1', '2')
+PROTOCOL_FIELDS = ('scene_seed', 'sequence', 'n_pads', 'assistant_mode', 'policy_model', 'encoder_model',
+                   'conditions')
 SUS_MAX = 100.0
 SUS_STEP = 2.5                          # ten 1-5 answers give scores in steps of 2.5
 STORED_TOLERANCE_M = 1e-3               # landings.csv stores metres with four decimals
 MAX_DURATION_S = 24 * 3600.0
+MAX_PATH_M = 100_000.0                  # a landing's path flown (m): far beyond any landing, below any corruption
+MAX_KEY_PRESSES = 1_000_000
 MAX_LANDINGS_BYTES = 16 * 1024 * 1024   # a study's landings.csv holds a few dozen rows of ~200 bytes
 MAX_SURVEY_BYTES = 1024 * 1024
 MAX_DETAILS = 200                       # excluded rows listed one by one (log and summary.json); the rest counted
@@ -122,7 +143,7 @@ R_TORN = 'torn last row'
 R_MALFORMED = 'malformed CSV row'
 R_ENCODING = 'not UTF-8'
 R_PARTICIPANT = "another participant's row"
-R_BLOCK = 'block not 0, 1 or 2'
+R_BLOCK = "block not 0 (practice) or one of the study's blocks"
 R_CONDITION = "condition or order contradicts the participant's order"
 R_TRIAL = 'trial outside the sequence'
 R_GOAL = "goal pad differs from the sequence's"
@@ -200,6 +221,7 @@ class Participant:
     rows: list[dict[str, Any]]
     sus: dict[str, float]                 # condition -> score
     survey: dict[str, Any] | None
+    conditions: tuple[str, ...] = CONDITIONS      # the study's conditions (one block each)
 
 
 @dataclass
@@ -292,7 +314,7 @@ def read_csv_rows(path: Path, val: Validation, where: str) -> tuple[list[str], l
             if not utf8:
                 raise StudyError(f'{path}: the header is not UTF-8')
             header = fields_
-            missing = [c for c in LANDING_COLUMNS if c not in header]
+            missing = [c for c in BASE_COLUMNS if c not in header]
             if missing or len(set(header)) != len(header):
                 raise StudyError(f'{path}: not the station\'s columns (missing {", ".join(missing) or "none"}'
                                  f'{", some twice" if len(set(header)) != len(header) else ""})')
@@ -316,15 +338,35 @@ def _optional_int(text: str, lo: int, hi: int) -> tuple[bool, int | None]:
     return (v is not None and lo <= v < hi), v
 
 
+def _measure_problem(r: dict[str, str]) -> str | None:
+    """Why a row's recorded measures cannot be used (None: they can; an empty or absent one was not recorded)."""
+    path = r.get('path_length_m', '')
+    if path != '':
+        v = _float(path)
+        if v is None or not 0.0 <= v <= MAX_PATH_M:
+            return f'path_length_m {_shown(path)} (0-{MAX_PATH_M:g} m)'
+    counts = {}
+    for name in ('key_presses', 'corrective_keys'):
+        text = r.get(name, '')
+        if text != '':
+            counts[name] = _int(text)
+            if counts[name] is None or not 0 <= counts[name] <= MAX_KEY_PRESSES:
+                return f'{name} {_shown(text)} (an integer 0-{MAX_KEY_PRESSES})'
+    if len(counts) == 2 and counts['corrective_keys'] > counts['key_presses']:
+        return f"corrective_keys {counts['corrective_keys']} > key_presses {counts['key_presses']}"
+    return None
+
+
 def check_row(r: dict[str, str], pid: str, cfg: StudyConfig, max_error_m: float) -> tuple[str | None, str]:
     """(reason, detail) why a study-block row of participant `pid` cannot count (None: it can)."""
     if r['participant'] != pid:
         return R_PARTICIPANT, f"participant {_shown(r['participant'])}"
     block = _int(r['block'])
-    expected = block_condition(pid, block) if block in (1, 2) else None
-    if r['condition'] != expected or r['order'] not in ('', order_name(pid)):
+    expected = block_condition(pid, block, cfg.conditions) if block in range(1, cfg.n_blocks + 1) else None
+    order = order_name(pid, cfg.conditions)
+    if r['condition'] != expected or r['order'] not in ('', order):
         return R_CONDITION, (f"block {block} is {_shown(r['condition'])}, order {_shown(r['order'])}; {pid} flies "
-                             f'{expected} in block {block} ({order_name(pid)})')
+                             f'{expected} in block {block} ({order})')
     trial = _int(r['trial'])
     if trial is None or not 0 <= trial < len(cfg.sequence):
         return R_TRIAL, f"trial {_shown(r['trial'])}, the sequence has {len(cfg.sequence)}"
@@ -346,6 +388,9 @@ def check_row(r: dict[str, str], pid: str, cfg: StudyConfig, max_error_m: float)
             return R_VALUE, f"duration_s {_shown(r['duration_s'])}"
     if r['assist_live'] != '' and _bool(r['assist_live']) is None:
         return R_VALUE, f"assist_live {_shown(r['assist_live'])}"
+    why = _measure_problem(r)
+    if why:
+        return R_VALUE, why
     bag = r['bag']
     if bag in ('.', '..') or any(c in bag for c in '/\\\0'):
         return R_VALUE, f'bag {_shown(bag)} (a name under bags/)'
@@ -361,7 +406,7 @@ def check_row(r: dict[str, str], pid: str, cfg: StudyConfig, max_error_m: float)
         return R_OUTCOME, (f"outcome {_shown(outcome)}, success {r['success']}, crash {r['crash']}, landed_index "
                            f"{_shown(r['landed_index'])}, error_m {err:g}, nearest_error_m {nerr:g}")
     live = _bool(r['assist_live']) if r['assist_live'] != '' else None
-    if live is not None and live != (r['condition'] == 'assisted'):
+    if live is not None and live != (r['condition'] in ASSISTED_CONDITIONS):
         return R_LIVE, f"assist_live {r['assist_live']} in a {r['condition']} block"
     return None, ''
 
@@ -377,7 +422,7 @@ def load_rows(path: Path, pid: str, cfg: StudyConfig, val: Validation, max_error
         block = _int(r['block'])
         if block == 0:
             continue                                    # practice: not analysed
-        if block not in (1, 2):
+        if block not in range(1, cfg.n_blocks + 1):
             val.row(f'{where} line {line}', R_BLOCK, f"block {_shown(r['block'])}")
             continue
         reason, detail = check_row(r, pid, cfg, max_error_m)
@@ -402,7 +447,11 @@ def load_rows(path: Path, pid: str, cfg: StudyConfig, val: Validation, max_error
                      'nearest_index': _int(r['nearest_index']), 'error_m': err,
                      'nearest_error_m': float(r['nearest_error_m']) if r['nearest_error_m'] != '' else err,
                      'success': bool(_bool(r['success'])), 'crash': bool(_bool(r['crash'])), 'outcome': r['outcome'],
-                     'started_on_pad': bool(_bool(r['started_on_pad'])), 'bag': r['bag'], 'line': first_line})
+                     'started_on_pad': bool(_bool(r['started_on_pad'])), 'bag': r['bag'], 'line': first_line,
+                     'duration_s': _float(r['duration_s']) if r['duration_s'] != '' else None,
+                     'path_length_m': _float(r['path_length_m']) if r.get('path_length_m', '') != '' else None,
+                     'key_presses': _int(r['key_presses']) if r.get('key_presses', '') != '' else None,
+                     'corrective_keys': _int(r['corrective_keys']) if r.get('corrective_keys', '') != '' else None})
     return rows
 
 
@@ -410,9 +459,11 @@ def _refuse_constant(name: str) -> None:
     raise ValueError(f'{name} is not a JSON number')
 
 
-def load_answers(path: Path, pid: str, val: Validation) -> tuple[dict[str, float], dict[str, Any] | None]:
+def load_answers(path: Path, pid: str, val: Validation,
+                 conditions: tuple[str, ...] = CONDITIONS) -> tuple[dict[str, float], dict[str, Any] | None]:
     """(SUS score per condition, the concluding survey's answers or None) from survey.json; what does not pass
-    the station's own checks (study.check_sus, check_survey, the participant's order) is reported in `val`."""
+    the station's own checks (study.check_sus, check_survey, the participant's order over `conditions`) is
+    reported in `val`."""
     where = f'{pid}/survey.json'
     try:
         if path.stat().st_size > MAX_SURVEY_BYTES:
@@ -440,7 +491,7 @@ def load_answers(path: Path, pid: str, val: Validation) -> tuple[dict[str, float
         val.file(f'{where} sus', f'a JSON {type(entries).__name__}, not an object keyed by block')
         entries = {}
     for block, entry in entries.items():
-        why = _sus_problem(pid, block, entry)
+        why = _sus_problem(pid, block, entry, conditions)
         if why:
             val.file(f'{where} sus block {_shown(block)}', why)
             continue
@@ -456,13 +507,14 @@ def load_answers(path: Path, pid: str, val: Validation) -> tuple[dict[str, float
     return sus, survey
 
 
-def _sus_problem(pid: str, block: Any, entry: Any) -> str | None:
+def _sus_problem(pid: str, block: Any, entry: Any, conditions: tuple[str, ...] = CONDITIONS) -> str | None:
     """Why one survey.json SUS entry cannot be used (None: it can)."""
-    if block not in SUS_BLOCKS:
-        return 'SUS is asked after block 1 or 2 only'
+    blocks = [str(b) for b in range(1, len(conditions) + 1)]
+    if block not in blocks:
+        return f"SUS is asked after block {' or '.join([', '.join(blocks[:-1]), blocks[-1]])} only"
     if not isinstance(entry, dict):
         return f'a JSON {type(entry).__name__}, not an object'
-    expected = block_condition(pid, int(block))
+    expected = block_condition(pid, int(block), conditions)
     if entry.get('condition') != expected:
         return f"condition {_shown(entry.get('condition'))}, {pid} flies {expected} in block {block}"
     score = entry.get('score')
@@ -487,8 +539,8 @@ def load_participant(path: Path, pid: str, cfg: StudyConfig, val: Validation,
     sus: dict[str, float] = {}
     survey = None
     if (path / 'survey.json').exists():
-        sus, survey = load_answers(path / 'survey.json', pid, val)
-    return Participant(pid, path, rows, sus, survey)
+        sus, survey = load_answers(path / 'survey.json', pid, val, cfg.conditions)
+    return Participant(pid, path, rows, sus, survey, cfg.conditions)
 
 
 def load_study(dirs: list[Path], args: AnalyzeArgs, val: Validation) -> list[Participant]:
@@ -630,13 +682,22 @@ def experienced_set(ratings: dict[str, np.ndarray]) -> tuple[set[str], float | N
     return {pid for pid, m in means.items() if m >= threshold}, threshold
 
 
-def regression(rows: list[dict], experienced: set[str]) -> dict[str, dict[str, float | None]]:
-    """OLS of error_m on assisted, first_half and experienced (binary); coefficient and p-value of each."""
+def first_half_block(pid: str, conditions: tuple[str, ...] = CONDITIONS) -> int:
+    """The earlier of participant `pid`'s unassisted and assisted blocks (the regression's first half: block 1
+    in the two-block study)."""
+    order = condition_order(pid, conditions)
+    return 1 + min(order.index(c) for c in CONDITIONS)
+
+
+def regression(rows: list[dict], experienced: set[str],
+               conditions: tuple[str, ...] = CONDITIONS) -> dict[str, dict[str, float | None]]:
+    """OLS of error_m on assisted, first_half and experienced (binary); coefficient and p-value of each. `rows`:
+    unassisted and assisted landings; first_half: the row's block is the earlier of its participant's two."""
     import pandas as pd
     import statsmodels.formula.api as smf
     df = pd.DataFrame({'error_m': [r['error_m'] for r in rows],
                        'assisted': [int(r['condition'] == 'assisted') for r in rows],
-                       'first_half': [int(r['block'] == 1) for r in rows],
+                       'first_half': [int(r['block'] == first_half_block(r['pid'], conditions)) for r in rows],
                        'experienced': [int(r['pid'] in experienced) for r in rows]})
     out: dict[str, dict[str, float | None]] = {}
     terms = [t for t in ('assisted', 'first_half', 'experienced') if df[t].nunique() > 1]
@@ -690,12 +751,82 @@ def line_fit(x: np.ndarray, y: np.ndarray) -> dict[str, float | None]:
             'p': float(fit.pvalues[1]) if x.size > 2 else None}
 
 
+# ----------------------------------------------------------------------------------------- measures
+# the continuous per-landing measures: (summary.json key, row key, table label, name in the tests' lines)
+MEASURES = (('time_to_land_s', 'duration_s', 'Time to land (s)', 'time to land'),
+            ('path_length_m', 'path_length_m', 'Path length (m)', 'path length'),
+            ('corrective_keys', 'corrective_keys', 'Corrective key presses', 'corrective keys'),
+            ('key_presses', 'key_presses', 'Key presses', 'key presses'))
+RATES = (('success', 'Success rate', 'success'), ('wrong_pad', 'Wrong-pad rate', 'wrong pad'))
+
+
+def _rate_hit(rate: str, r: dict[str, Any]) -> bool:
+    """Whether landing `r` counts for `rate`: success (all legs on the goal pad) or wrong_pad (on another pad)."""
+    return bool(r['success']) if rate == 'success' else r['outcome'] == 'wrong_pad'
+
+
+def wilcoxon_test(a: np.ndarray, b: np.ndarray) -> dict[str, Any]:
+    """Wilcoxon signed-rank test (two-sided, scipy) of paired values a, b: statistic (the smaller rank sum), p,
+    pairs and the median of a - b; statistic and p None when no pair differs."""
+    from scipy import stats
+    d = np.asarray(a, dtype=float) - np.asarray(b, dtype=float)
+    out: dict[str, Any] = {'statistic': None, 'p': None, 'pairs': int(d.size),
+                           'median_difference': float(np.median(d)) if d.size else None}
+    if not np.any(d != 0):
+        return out
+    res = stats.wilcoxon(a, b)
+    out.update(statistic=float(res.statistic), p=float(res.pvalue))
+    return out
+
+
+def measures(rows: list[dict[str, Any]], conditions: tuple[str, ...]) -> dict[str, Any]:
+    """summary.json's ``measures``: per condition its landings, success and wrong-pad rates and each continuous
+    measure's mean and median per landing; per pair of conditions with landings, the paired tests (module doc)."""
+    by = {c: [r for r in rows if r['condition'] == c] for c in conditions}
+    per: dict[str, dict[str, Any]] = {}
+    for c in conditions:
+        entry: dict[str, Any] = {'landings': len(by[c])}
+        for rate, *_ in RATES:
+            entry[f'{rate}_rate'] = (sum(_rate_hit(rate, r) for r in by[c]) / len(by[c])) if by[c] else None
+        for key, field_, *_ in MEASURES:
+            vals = np.array([r[field_] for r in by[c] if r[field_] is not None], dtype=float)
+            entry[key] = {'mean': float(np.mean(vals)) if vals.size else None,
+                          'median': float(np.median(vals)) if vals.size else None, 'n': int(vals.size)}
+        per[c] = entry
+    tests: dict[str, dict[str, Any]] = {}
+    present = [c for c in conditions if by[c]]
+    for i, a in enumerate(present):
+        for b in present[i + 1:]:
+            pair: dict[str, Any] = {'conditions': [a, b]}
+            for key, field_, *_ in MEASURES:
+                means = {}
+                for c in (a, b):
+                    per_pid: dict[str, list[float]] = {}
+                    for r in by[c]:
+                        if r[field_] is not None:
+                            per_pid.setdefault(r['pid'], []).append(float(r[field_]))
+                    means[c] = {pid: float(np.mean(v)) for pid, v in per_pid.items()}
+                pids = sorted(set(means[a]) & set(means[b]))
+                pair[key] = wilcoxon_test(np.array([means[a][p] for p in pids]), np.array([means[b][p] for p in pids]))
+            for rate, *_ in RATES:
+                index = {(r['pid'], r['trial'], r['condition']): _rate_hit(rate, r) for r in by[a] + by[b]}
+                pairs = [(index[(pid, t, a)], index[(pid, t, b)]) for (pid, t, c) in index
+                         if c == a and (pid, t, b) in index]
+                pair[rate] = mcnemar_test(pairs)
+                pair[rate]['unpaired'] = len(index) - 2 * len(pairs)
+            tests[f'{a} vs {b}'] = pair
+    return {'conditions': list(conditions), 'per_condition': per, 'tests': tests}
+
+
 # ----------------------------------------------------------------------------------------- analysis
 def analyze(parts: list[Participant]) -> dict[str, Any]:
-    """Every figure of the paper's study analysis as summary.json's dictionary."""
+    """Every figure of the paper's study analysis (unassisted vs assisted) and the per-landing measures of every
+    condition of the study as summary.json's dictionary."""
+    conditions = parts[0].conditions if parts else CONDITIONS
     rows_all = [r for p in parts for r in p.rows]
     excluded = {c: sum(1 for r in rows_all if r['condition'] == c and r['started_on_pad']) for c in CONDITIONS}
-    rows = [r for r in rows_all if not r['started_on_pad']]
+    kept = [r for r in rows_all if not r['started_on_pad']]
+    rows = [r for r in kept if r['condition'] in CONDITIONS]           # the paper's figures: its two conditions
     by = {c: [r for r in rows if r['condition'] == c] for c in CONDITIONS}
     table: dict[str, dict[str, dict[str, float | None]]] = {}
     nearest_ok = {'success', 'wrong_pad'}
@@ -721,12 +852,12 @@ def analyze(parts: list[Participant]) -> dict[str, Any]:
                                      np.array([r[key] for r in by['assisted']], dtype=float)))
     ratings = experience_ratings(parts)
     experienced, threshold = experienced_set(ratings)
-    reg = regression(rows, experienced)
+    reg = regression(rows, experienced, conditions)
     levels, how = experience_levels(parts, ratings)
     per_participant = {}
     for p in parts:
         entry: dict[str, Any] = {'experience_level': levels.get(p.pid), 'experienced': p.pid in experienced}
-        for c in CONDITIONS:
+        for c in conditions:
             errs = [r['error_m'] for r in p.rows if r['condition'] == c and not r['started_on_pad']]
             entry[f'median_error_m_{c}'] = float(np.median(errs)) if errs else None
             entry[f'landings_{c}'] = len(errs)
@@ -739,7 +870,7 @@ def analyze(parts: list[Participant]) -> dict[str, Any]:
         x, y = (np.array([a for a, _ in pts]), np.array([b for _, b in pts])) if pts else (np.zeros(0), np.zeros(0))
         fig8[c] = line_fit(x, y)
     sus = {}
-    for c in CONDITIONS:
+    for c in conditions:
         scores = [p.sus[c] for p in parts if c in p.sus]
         mean = float(np.mean(scores)) if scores else None
         sus[c] = {'mean': mean, 'percentile': None if mean is None else sus_percentile(mean), 'n': len(scores)}
@@ -754,7 +885,10 @@ def analyze(parts: list[Participant]) -> dict[str, Any]:
             'regression': reg, 'experienced': {'threshold_mean_rating': threshold, 'n': len(experienced),
                                                'participants': sorted(experienced)},
             'experience_level': {'method': how, 'fits': fig8}, 'sus': sus, 'goal_inference': goal_inference,
-            'per_participant': per_participant}
+            'per_participant': per_participant,
+            'measures': dict(measures(kept, conditions),
+                             excluded={c: sum(1 for r in rows_all if r['condition'] == c and r['started_on_pad'])
+                                       for c in conditions})}
 
 
 # ----------------------------------------------------------------------------------------- tables
@@ -790,13 +924,18 @@ def table_rows(summary: dict[str, Any]) -> list[list[str]]:
 
 
 def render_tables(summary: dict[str, Any]) -> tuple[str, str]:
-    """(plain text, Markdown) of Table I plus the tests, regression, SUS and goal inference."""
+    """(plain text, Markdown) of Table I plus the tests, regression, SUS and goal inference, then the per-landing
+    measures per condition and their paired tests."""
     head = ['', 'Specified: unassisted', 'Specified: assisted', 'Nearest: unassisted', 'Nearest: assisted']
     rows = table_rows(summary)
     widths = [max(len(r[i]) for r in [head] + rows) for i in range(len(head))]
+    m = summary.get('measures') or {}
+    others = [c for c in m.get('conditions', ()) if c not in CONDITIONS]
     text = [f"User study: {summary['participants']} participants, {summary['landings']['unassisted']} unassisted and "
             f"{summary['landings']['assisted']} assisted landings (excluded: {summary['excluded']['unassisted']} "
-            f"unassisted, {summary['excluded']['assisted']} assisted, ended on the starting platform)"]
+            f"unassisted, {summary['excluded']['assisted']} assisted, ended on the starting platform)"
+            + ''.join(f"; {m['per_condition'][c]['landings']} {c} landings ({m['excluded'][c]} excluded)"
+                      for c in others)]
     text += validation_lines(summary.get('validation'))
     md = text + ['', '| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head)]
     text += ['  '.join(c.ljust(w) for c, w in zip(r, widths)) for r in [head] + rows]
@@ -816,11 +955,56 @@ def render_tables(summary: dict[str, Any]) -> tuple[str, str]:
         f"{c} {_num(fits[c]['slope'])}" for c in CONDITIONS))
     sus = summary['sus']
     notes.append('SUS: ' + ', '.join(f"{c} {_num(sus[c]['mean'])} ({_ordinal(sus[c]['percentile'])} percentile)"
-                                     for c in CONDITIONS))
+                                     for c in sus))
     gi = summary['goal_inference']
     notes.append(f"Goal inferred (assisted landings ended nearest the goal pad): {_pct(gi['rate'])}; of those "
                  f"successful: {_pct(gi['success_given_inferred'])}")
-    return '\n'.join(text + [''] + notes) + '\n', '\n'.join(md + [''] + [f'- {n}' for n in notes]) + '\n'
+    text_m, md_m = render_measures(m) if m else ([], [])
+    return ('\n'.join(text + [''] + notes + text_m) + '\n',
+            '\n'.join(md + [''] + [f'- {n}' for n in notes] + md_m) + '\n')
+
+
+MEASURES_TITLE = ('Per-landing measures by condition (landings not ended on the starting platform; time to land, '
+                  'path length and key presses: mean / median per landing)')
+TESTS_TITLE = ('Paired tests (* p < 0.01): Wilcoxon signed-rank on per-participant means (W, p, participants); '
+               'McNemar on landings paired by participant and trial (statistic, p, pairs)')
+
+
+def measure_rows(m: dict[str, Any]) -> list[list[str]]:
+    """The measures table as rows of cells: a row per measure, a column per condition."""
+    per = m['per_condition']
+    conds = m['conditions']
+    out = [['Landings'] + [str(per[c]['landings']) for c in conds]]
+    for rate, label, _ in RATES:
+        out.append([label] + [_pct(per[c][f'{rate}_rate']).replace(' ', '') for c in conds])
+    for key, _, label, _ in MEASURES:
+        out.append([label] + [f"{_num(per[c][key]['mean'])} / {_num(per[c][key]['median'])}" for c in conds])
+    return out
+
+
+def _test_text(t: dict[str, Any]) -> str:
+    star = '*' if t.get('p') is not None and t['p'] < ALPHA else ''
+    return f"{_num(t['statistic'])}, p {_num(t['p'], 4)}{star} ({t['pairs']})"
+
+
+def render_measures(m: dict[str, Any]) -> tuple[list[str], list[str]]:
+    """(plain text lines, Markdown lines) of the per-landing measures table and its paired tests."""
+    head = [''] + list(m['conditions'])
+    rows = measure_rows(m)
+    widths = [max(len(r[i]) for r in [head] + rows) for i in range(len(head))]
+    lines = []
+    for name, t in m['tests'].items():
+        parts = [f'{name} W {_test_text(t[key])}' for key, _, _, name in MEASURES]
+        parts += [f'{name} McNemar {_test_text(t[rate])}' for rate, _, name in RATES]
+        lines.append(f'{name}: ' + '; '.join(parts))
+    if not lines:
+        lines = ['no two conditions with landings to compare']
+    text = ['', MEASURES_TITLE] + ['  '.join(c.ljust(w) for c, w in zip(r, widths)) for r in [head] + rows]
+    text += [TESTS_TITLE] + lines
+    md = ['', MEASURES_TITLE, '', '| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head)]
+    md += ['| ' + ' | '.join(r) + ' |' for r in rows]
+    md += ['', TESTS_TITLE, ''] + [f'- {line}' for line in lines]
+    return text, md
 
 
 def validation_lines(validation: dict[str, Any] | None) -> list[str]:
@@ -866,14 +1050,15 @@ def _save(fig: Any, path: Path, dpi: int = 120) -> None:
 
 
 def plot_violin(parts: list[Participant], path: Path) -> None:
-    """Fig. 6: the distribution of landing errors per condition."""
+    """Fig. 6: the distribution of landing errors per condition (every condition of the study)."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
+    conditions = parts[0].conditions if parts else CONDITIONS
     data = [[r['error_m'] for p in parts for r in p.rows if r['condition'] == c and not r['started_on_pad']]
-            for c in CONDITIONS]
+            for c in conditions]
     fig, ax = plt.subplots(figsize=(5, 4))
-    shown = [(c, d) for c, d in zip(CONDITIONS, data) if len(d) > 1]
+    shown = [(c, d) for c, d in zip(conditions, data) if len(d) > 1]
     if shown:
         parts_ = ax.violinplot([d for _, d in shown], showmedians=True)
         for body, (c, _) in zip(parts_['bodies'], shown):
@@ -939,7 +1124,8 @@ def bag_track(bag: Path) -> tuple[np.ndarray, np.ndarray | None]:
 
 
 def plot_trajectories(parts: list[Participant], n: int, path: Path) -> int:
-    """Fig. 7: top views of chosen landings (both conditions of one trial) from their bags; returns panels drawn."""
+    """Fig. 7: top views of chosen landings (one trial flown unassisted and assisted, and with cues where the study
+    has them) from their bags; returns panels drawn."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
@@ -952,7 +1138,7 @@ def plot_trajectories(parts: list[Participant], n: int, path: Path) -> int:
         for r in p.rows:
             if r['bag'] and (p.dir / 'bags' / r['bag']).is_dir():
                 trials.setdefault(r['trial'], {})[r['condition']] = r
-        both = sorted(t for t, d in trials.items() if len(d) == 2)
+        both = sorted(t for t, d in trials.items() if all(c in d for c in CONDITIONS))
         if both:
             chosen.append((p, trials[both[len(both) // 2]]))
     if not chosen:
@@ -960,7 +1146,7 @@ def plot_trajectories(parts: list[Participant], n: int, path: Path) -> int:
     fig, axes = plt.subplots(len(chosen), 1, figsize=(10, 2.6 * len(chosen)), squeeze=False)   # long scenes: rows
     drawn = 0
     for ax, (p, pair) in zip(axes[:, 0], chosen):
-        for c in CONDITIONS:
+        for c in [c for c in p.conditions if c in pair]:
             r = pair[c]
             try:
                 track, pads = bag_track(p.dir / 'bags' / r['bag'])

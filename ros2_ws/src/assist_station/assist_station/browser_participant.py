@@ -4,8 +4,8 @@ The same participant as assist_station.participant (pilot family, skill, scripte
 goes through the page: the participant ID is typed into the page's field, consent, start, finish-practice
 and submit are clicks on the page's buttons, questionnaire answers are clicks on its radio buttons and
 check boxes, and the flight keys are keyboard events dispatched to the page, which sends them to the
-station exactly as it does for a person. The pose and the goal come from the page's own state
-(window.stationStats).
+station exactly as it does for a person. The pose, the goal and (in an assisted_cues landing) the intent cues
+the page draws come from the page's own state (window.stationStats).
 """
 from __future__ import annotations
 
@@ -17,7 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from .participant import STEP_TIMEOUT_S, Flyer, ParticipantError, Profile, felt, sus_answers, survey_answers
+from .participant import (STEP_TIMEOUT_S, Flyer, ParticipantError, Profile, cue_shown, felt, sus_answers,
+                          survey_answers)
+from .study import CUE_CONDITION, phase_block
 from .testing import start_browser
 
 log = logging.getLogger(__name__)
@@ -32,7 +34,7 @@ for (const k of want) if (!held.includes(k)) window.dispatchEvent(new KeyboardEv
 window.__simHeld = want.slice();
 const s = window.stationStats;
 return {study: s.study || null, pose: s.pose, scene: s.scene || null, ws: s.ws, role: s.role,
-        speed: s.speed, speedZ: s.speedZ, errors: s.studyErrors || 0};
+        speed: s.speed, speedZ: s.speedZ, errors: s.studyErrors || 0, cues: s.cues || null};
 """
 
 
@@ -47,6 +49,7 @@ class BrowserParticipant:
         self.work = Path(work_dir)
         self.rng = np.random.default_rng(profile.seed)
         self.outcomes: dict[str, list[float]] = {'unassisted': [], 'assisted': []}
+        self.cue_steps: dict[str, list[int]] = {}     # condition -> [pilot steps flown, steps with a cue drawn]
         self.landings_flown = 0
         self.reloads = 0
         self.driver = None
@@ -170,10 +173,10 @@ class BrowserParticipant:
                 self._act('study-consent')
             elif phase == 'practice' and v['trial'] > self.profile.practice:
                 self._act('study-stop-practice')
-            elif phase in ('practice', 'block1', 'block2'):
+            elif phase == 'practice' or (phase.startswith('block') and phase_block(phase)):
                 self._fly(v)
-            elif phase in ('sus1', 'sus2'):
-                for i, a in enumerate(sus_answers(self.rng, felt(self.outcomes[v['condition']]))):
+            elif phase.startswith('sus') and phase_block(phase):
+                for i, a in enumerate(sus_answers(self.rng, felt(self.outcomes.get(v['condition'], [])))):
                     self._answer(f'sus-{i}', a)
                 self._act('study-submit')
             elif phase == 'survey':
@@ -187,7 +190,7 @@ class BrowserParticipant:
             else:
                 raise ParticipantError(f'unexpected study phase {phase!r}')
         return {'participant': self.profile.pid, 'landings_flown': self.landings_flown, 'reconnects': self.reloads,
-                'profile': asdict(self.profile)}
+                'profile': asdict(self.profile), 'cue_steps': self.cue_steps}
 
     def _fly(self, v: dict) -> None:
         key = (v['phase'], v['trial'])
@@ -204,7 +207,8 @@ class BrowserParticipant:
         if not same(st):
             return
         flyer = Flyer(self.profile, self.landings_flown, st['scene'], np.array(st['pose']['p']),
-                      float(st['speed'] or 1.0), float(st['speedZ'] or 0.5))
+                      float(st['speed'] or 1.0), float(st['speedZ'] or 0.5),
+                      reads_cues=v.get('condition') == CUE_CONDITION)
         period = flyer.period_s / self.rtf
         self._held: list[str] = []
         next_t = started = time.monotonic()
@@ -220,7 +224,10 @@ class BrowserParticipant:
             if st['ws'] != 'open':
                 raise ParticipantError('the page lost the station during a landing')
             last_pose = st['pose'] or last_pose
-            self._held = list(flyer.step(last_pose))
+            seen = self.cue_steps.setdefault(v.get('condition', ''), [0, 0])
+            seen[0] += 1
+            seen[1] += cue_shown(st.get('cues'))
+            self._held = list(flyer.step(last_pose, st.get('cues')))
             next_t += period
             time.sleep(max(0.0, next_t - time.monotonic()))
             if time.monotonic() - next_t > 1.0:

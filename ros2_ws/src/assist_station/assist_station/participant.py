@@ -6,6 +6,10 @@ assist_sim.pilots (family and skill ``beta`` per participant, conformance ``alph
 from the station's state messages and the goal pad from its scene, turns the pilot's velocity into held
 keys (W/A/S/D, arrows; a key is held while the pilot's command on that axis is above half the key
 speed) and perceives the assistant as the difference between the vehicle's velocity and its own keys.
+In a landing of the assisted_cues condition the pilot also reads the intent cues the station shows it (the
+``cues`` of the station's state messages: the highlighted goal pad, the descent light) as assist_sim.cues
+says, each landing with the participant's ``cue_trust``; in the other conditions the station shows none and
+the pilot is the same as without cues.
 Questionnaire answers are scripted from the participant's skill and what it saw of its own landings
 (how far from the goal pad the drone came to rest), so they correlate with skill and performance.
 
@@ -19,14 +23,17 @@ import json
 import logging
 import time
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import aiohttp
 import numpy as np
 
 from assist_common.frames import enu_to_flu, heading
 
-from .study import SURVEY, SUS_ITEMS
+from .study import CUE_CONDITION, SURVEY, SUS_ITEMS, phase_block
+
+if TYPE_CHECKING:
+    from assist_sim.cues import Cue
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +43,8 @@ HEARTBEAT_S = 0.25
 ASSIST_PERCEPTION_MPS = 0.25      # velocity beyond the keys' own that the participant takes for the assistant
 STEP_TIMEOUT_S = 30.0             # a study step the station does not answer within this (wall) is an error
 DEFAULT_FAMILIES = ('paper', 'delay', 'tapper', 'bang_bang', 'keyboard', 'cautious')
+CUE_TRUST = (0.5, 1.0)            # a participant's cue_trust is drawn uniformly between these
+CUE_TRUST_SALT = 0x637565         # its own generator: drawing it changes none of the other profile values
 
 
 class ParticipantError(RuntimeError):
@@ -53,13 +62,16 @@ class Profile:
     seed: int
     practice: int                 # practice landings flown before finishing practice
     experience: float             # self-rated experience in [0, 1] (noisy in skill)
+    cue_trust: float = 1.0        # chance per landing of reading the cues, where the station shows them (assisted_cues)
     extra: dict[str, Any] = field(default_factory=dict)
 
 
 def draw_profiles(n: int, seed: int, families: tuple[str, ...] = DEFAULT_FAMILIES, practice: int = 2,
-                  id_prefix: str = 'S') -> list[Profile]:
-    """`n` participants with a spread of skills: betas on a jittered grid over [0.1, 0.9], families in turn."""
+                  id_prefix: str = 'S', cue_trust: tuple[float, float] = CUE_TRUST) -> list[Profile]:
+    """`n` participants with a spread of skills: betas on a jittered grid over [0.1, 0.9], families in turn, a
+    cue_trust uniform in `cue_trust` (from its own generator of `seed`)."""
     rng = np.random.default_rng(seed)
+    trusts = np.random.default_rng([seed, CUE_TRUST_SALT]).uniform(cue_trust[0], cue_trust[1], n)
     grid = (np.arange(n) + rng.uniform(0.2, 0.8, n)) / max(n, 1)
     betas = 0.1 + 0.8 * rng.permutation(grid)
     out = []
@@ -69,7 +81,7 @@ def draw_profiles(n: int, seed: int, families: tuple[str, ...] = DEFAULT_FAMILIE
         out.append(Profile(pid=f'{id_prefix}{i + 1:02d}', family=families[i % len(families)], beta=round(beta, 3),
                            alpha=round(float(rng.uniform(0.3, 0.7)), 3), seed=int(rng.integers(2 ** 31 - 1)),
                            practice=int(max(1, min(practice, 1 + rng.integers(practice + 1)))),
-                           experience=round(experience, 3)))
+                           experience=round(experience, 3), cue_trust=round(float(trusts[i]), 3)))
     return out
 
 
@@ -133,17 +145,42 @@ def key_velocity(keys: list[str], speed: float, speed_z: float) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------------------- flying
+def cue_shown(cues: dict | None) -> bool:
+    """Whether the station's state message shows any intent cue (goal pad, light or push)."""
+    return bool(cues) and any(v is not None for v in cues.values())
+
+
+def cue_from_view(cues: dict | None) -> Cue | None:
+    """The cue a participant sees in the station's state message (its ``cues``) as assist_sim.cues.Cue: the goal
+    pad while it is drawn known (sure or unsure, with its sigma), the light while it is green (True) or red
+    (False); None when the station shows no cue."""
+    from assist_sim.cues import Cue
+    if not cues:
+        return None
+    goal = cues.get('goal')
+    known = isinstance(goal, dict) and goal.get('state') in ('sure', 'unsure') and goal.get('p') is not None
+    light = {'ok': True, 'hold': False}.get(cues.get('descent'))
+    if not known and light is None:
+        return None
+    return Cue(np.asarray(goal['p'], dtype=float) if known else None,
+               float(goal.get('sigma_m', np.inf)) if known else np.inf, light)
+
+
 class Flyer:
     """One landing of a participant: its pilot model turned into held keys, step by step from the pose."""
 
     def __init__(self, profile: Profile, landing: int, scene: dict, start: np.ndarray, speed: float,
-                 speed_z: float):
+                 speed_z: float, reads_cues: bool = False):
+        """`reads_cues`: the landing shows cues (assisted_cues); its pilot reads them with the profile's cue_trust."""
+        from assist_sim.cues import CueConfig
         from assist_sim.pilots import make_pilot
         self.pads = np.array([[b['p'][0], b['p'][1], b['p'][2] + b['s'][2] / 2] for b in scene['platforms']])
         self.goal = self.pads[int(scene['goal'])]
         self.speed, self.speed_z = speed, speed_z
         rng = np.random.default_rng([profile.seed, landing])
-        self.pilot = make_pilot(profile.family, profile.alpha, profile.beta, rng=rng, pads=self.pads)
+        self.reads_cues = reads_cues
+        self.pilot = make_pilot(profile.family, profile.alpha, profile.beta, rng=rng, pads=self.pads,
+                                cues=CueConfig(trust=profile.cue_trust) if reads_cues else None)
         self.pilot.reset(self.goal, np.asarray(start, dtype=float))
         self.keys: list[str] = []
 
@@ -152,9 +189,12 @@ class Flyer:
         """Sim seconds per pilot step."""
         return 1.0 / self.pilot.cfg.control_hz
 
-    def step(self, pose: dict) -> list[str]:
-        """The keys to hold after seeing `pose` (p, v, q in odom ENU): the pilot's command, the assistant
-        perceived as the velocity beyond what the held keys command."""
+    def step(self, pose: dict, cues: dict | None = None) -> list[str]:
+        """The keys to hold after seeing `pose` (p, v, q in odom ENU) and the station's `cues` (its state
+        message's; read in a cue landing only): the pilot's command, the assistant perceived as the velocity
+        beyond what the held keys command."""
+        if self.reads_cues:
+            self.pilot.see_cue(cue_from_view(cues))
         pos, vel = np.array(pose['p'], dtype=float), np.array(pose['v'], dtype=float)
         v_body = enu_to_flu(vel, heading(pose['q']))
         extra = v_body - key_velocity(self.keys, self.speed, self.speed_z)
@@ -192,6 +232,7 @@ class Participant:
         self.errors: list[str] = []
         self.view_changed = asyncio.Event()
         self.outcomes: dict[str, list[float]] = {'unassisted': [], 'assisted': []}
+        self.cue_steps: dict[str, list[int]] = {}     # condition -> [pilot steps flown, steps with a cue shown]
         self.reconnects = 0
         self.landings_flown = 0
 
@@ -289,7 +330,7 @@ class Participant:
                     if self.ws is not None:
                         await self.ws.close()
         return {'participant': self.profile.pid, 'landings_flown': self.landings_flown,
-                'reconnects': self.reconnects, 'profile': asdict(self.profile)}
+                'reconnects': self.reconnects, 'profile': asdict(self.profile), 'cue_steps': self.cue_steps}
 
     async def _protocol(self) -> None:
         p = self.profile
@@ -303,10 +344,10 @@ class Participant:
                 await self._step('consent')
             elif phase == 'practice' and v['trial'] > p.practice:
                 await self._step('stop_practice')
-            elif phase in ('practice', 'block1', 'block2'):
+            elif phase == 'practice' or (phase.startswith('block') and phase_block(phase)):
                 await self._fly(v)
-            elif phase in ('sus1', 'sus2'):
-                await self._step('sus', answers=sus_answers(self.rng, felt(self.outcomes[v['condition']])))
+            elif phase.startswith('sus') and phase_block(phase):
+                await self._step('sus', answers=sus_answers(self.rng, felt(self.outcomes.get(v['condition'], []))))
             elif phase == 'survey':
                 how = {c: felt(d) for c, d in self.outcomes.items()}
                 await self._step('survey', answers=survey_answers(self.rng, p, how))
@@ -330,7 +371,8 @@ class Participant:
         await self._wait(lambda: self.state is not None and self.state.get('pose') is not None
                          and self.scene is not None and self.scene.get('goal') is not None, 'pose and scene')
         flyer = Flyer(self.profile, self.landings_flown, self.scene, np.array(self.state['pose']['p']),
-                      float(self.hello.get('speed', 1.0)), float(self.hello.get('speed_z', 0.5)))
+                      float(self.hello.get('speed', 1.0)), float(self.hello.get('speed_z', 0.5)),
+                      reads_cues=v.get('condition') == CUE_CONDITION)
         period = flyer.period_s / self.rtf
         keys: list[str] = []
         last_sent = 0.0
@@ -338,7 +380,11 @@ class Participant:
         while self.view.get('stage') == 'flying' and self._same_landing(key):
             if self.ws is None or self.ws.closed:
                 raise ConnectionResetError('station connection lost during a landing')
-            new = flyer.step(self.state['pose'])
+            cues = self.state.get('cues')
+            seen = self.cue_steps.setdefault(v.get('condition', ''), [0, 0])
+            seen[0] += 1
+            seen[1] += cue_shown(cues)
+            new = flyer.step(self.state['pose'], cues)
             now = time.monotonic()
             if new != keys or now - last_sent >= HEARTBEAT_S:
                 keys = list(new)

@@ -78,11 +78,14 @@ PARAMS = {
     'camera_offset_m': Param(0.05, 'Optical centre of the downward camera below base_link, on the body z axis (m).',
                              min=0.0, max=2.0),
     'cue_goal': Param(True, 'Show the assistant\'s estimated goal pad (/assist/goal_estimate) in the chase view and '
-                            'the camera inset (settable at run time).', dynamic=True),
+                            'the camera inset (settable at run time; a study sets it: on only in its assisted_cues '
+                            'landings).', dynamic=True),
     'cue_descent': Param(True, 'Show the assistant\'s descent light (/assist/descent_ok): green descend, red hold, '
-                               'grey unknown (settable at run time).', dynamic=True),
+                               'grey unknown (settable at run time; a study sets it: on only in its assisted_cues '
+                               'landings).', dynamic=True),
     'cue_push': Param(True, 'Show the assistant\'s push, /cmd_vel minus the pilot\'s command, as an arrow from '
-                            'the drone in the chase view (settable at run time).', dynamic=True),
+                            'the drone in the chase view (settable at run time; a study sets it: on only in its '
+                            'assisted_cues landings).', dynamic=True),
     'cue_timeout_s': Param(CueConfig.timeout_s, 'A goal estimate or /cmd_vel stamped longer ago than this, or a '
                            '/assist/descent_ok not received for this long, shows as unknown (s, the node\'s clock: '
                            'sim time under use_sim_time).', min=0.0, max=10.0, min_exclusive=True),
@@ -93,8 +96,9 @@ PARAMS = {
                                  'drawn, counted (m).', min=0.0, max=10.0, min_exclusive=True),
     'frame_id': Param('base_link', 'frame_id of the published /pilot/cmd_vel.'),
     'study_config': Param('', 'User-study YAML file (see config/study.yaml); empty: no study. With one, the page '
-                              'runs the protocol (participant ID, consent, practice, two blocks, questionnaires), '
-                              'the keys fly only while a landing is in flight, and results go under study_dir.'),
+                              'runs the protocol (participant ID, consent, practice, a block per condition, '
+                              'questionnaires), the keys fly only while a landing is in flight, and results go '
+                              'under study_dir.'),
     'study_dir': Param('study_data', 'Directory holding one directory per participant (created if missing).'),
     'study_sim_node': Param('/sim_node', 'sim_node whose scene_seed/goal_index/auto_reset the study sets.'),
     'study_policy_node': Param('/policy_node', 'policy_node whose assist_enabled the study switches per block.'),
@@ -114,7 +118,18 @@ class PilotStation(Node):
         self.p = declare_parameters(self, PARAMS)
         self.diag = Diagnostics(self)
         p = self.p
-        self.keys = KeyState(StationConfig(speed=p['speed'], speed_z=p['speed_z'], key_timeout_s=p['key_timeout_s']))
+        study_cfg = None
+        if p['study_config']:
+            try:
+                study_cfg = StudyConfig.load(p['study_config'])
+            except StudyError as exc:
+                raise StartupError(f'pilot_station: {exc}') from None
+        key_cfg = StationConfig(speed=p['speed'], speed_z=p['speed_z'], key_timeout_s=p['key_timeout_s'])
+        if study_cfg is not None:           # a study counts the pilot's key presses per landing
+            from .study_station import CountingKeyState
+            self.keys = CountingKeyState(key_cfg)
+        else:
+            self.keys = KeyState(key_cfg)
         self.assist = AssistMonitor(p['agent_timeout_s'], p['assist_threshold'])
         self.gate = CommandGate()
         self.cues = IntentCues(CueConfig(timeout_s=p['cue_timeout_s'], max_sigma_m=p['cue_max_sigma_m'],
@@ -138,12 +153,6 @@ class PilotStation(Node):
         if p['camera_rate_hz'] > 0:
             self.create_subscription(Image, '/camera/color/image_raw', guard('camera', self._on_camera), SENSOR_QOS)
         self.study = None
-        study_cfg = None
-        if p['study_config']:
-            try:
-                study_cfg = StudyConfig.load(p['study_config'])
-            except StudyError as exc:
-                raise StartupError(f'pilot_station: {exc}') from None
         hello = {'mode': p['mode'], 'study': study_cfg is not None,      # a study always marks the goal pad
                  'show_goal': p['mode'] in ('practice', 'study') or study_cfg is not None,
                  'chase': {'back_m': p['chase_back_m'], 'up_m': p['chase_up_m'], 'fov_deg': p['fov_deg']},
@@ -166,7 +175,7 @@ class PilotStation(Node):
                 self.study = StudyDriver(self, study_cfg[0], study_cfg[1], Path(p['study_dir']),
                                          self.server.set_study, self.server.push_event,
                                          sim_node=p['study_sim_node'], policy_node=p['study_policy_node'],
-                                         encoder_node=p['study_encoder_node'])
+                                         encoder_node=p['study_encoder_node'], key_counter=self.keys.counter)
             except OSError as exc:
                 raise StartupError(f"pilot_station: cannot use study_dir {p['study_dir']}: {exc}") from None
             self.server.set_study(self.study.view())
@@ -249,7 +258,7 @@ class PilotStation(Node):
             self._odom = {'p': [float(x) for x in p], 'q': [float(x) for x in q], 'v': [float(x) for x in v]}
             self._odom_time = time.monotonic()
         if self.study is not None:
-            self.study.note_odom(np.array(p[:2]))
+            self.study.note_odom(np.array(p), self._stamp(msg))
 
     def _on_scene(self, msg: MarkerArray) -> None:
         boxes = []

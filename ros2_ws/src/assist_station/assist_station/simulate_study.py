@@ -2,13 +2,15 @@
 
     simulate_study --participants 12 --out study_sim          # the shipped study file (16 landings per block)
     simulate_study --participants 2 --landings-per-block 3 --practice 1 --out /tmp/s --browser-participants 1
+    simulate_study --participants 6 --study config/study_cues.yaml --out study_cues   # + the assisted_cues block
     analyze_study study_sim/* --out study_sim_analysis
 
 Starts the node graph a lab runs for the study (sim_node, encoder_node and policy_node in the study
 file's assistant mode, pilot_station with the study file) on a private ROS_DOMAIN_ID and lets each
 simulated participant (assist_station.participant: a pilot family with a skill drawn per participant,
-questionnaire answers scripted from skill and performance) go through the whole protocol over the
-station's WebSocket, one after another. With ``--browser-participants M`` the first M participants
+questionnaire answers scripted from skill and performance, a ``cue_trust`` drawn from ``--cue-trust``: the
+chance per landing of reading the station's intent cues in an assisted_cues block) go through the whole
+protocol over the station's WebSocket, one after another. With ``--browser-participants M`` the first M participants
 use the station page in headless Chromium instead (the page's own forms, buttons and keyboard
 handling; ``make browser`` installs Chromium). Each participant's directory is DIR/<ID> (landings.csv,
 survey.json, protocol.log, bags/), with ``simulated_participant.json`` saying who the simulated
@@ -34,7 +36,7 @@ from assist_common.settings import parse_command, setting
 from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-from .participant import DEFAULT_FAMILIES, Participant, Profile, draw_profiles
+from .participant import CUE_TRUST, DEFAULT_FAMILIES, Participant, Profile, draw_profiles
 from .study import PARTICIPANT_ID, StudyConfig, StudyError
 
 log = logging.getLogger('simulate_study')
@@ -58,13 +60,18 @@ class SimulateArgs:
     domain_id: int = setting(0, ge=0, le=232)
     id_prefix: str = setting('S', nonempty=True)
     only: tuple[str, ...] = ()
+    cue_trust: tuple[float, float] = setting(CUE_TRUST, ge=0.0, le=1.0)
 
     def check_relations(self) -> None:
-        """The participant IDs --id-prefix and --participants make are IDs the study accepts."""
+        """The participant IDs --id-prefix and --participants make are IDs the study accepts; --cue-trust is a
+        range (low, high)."""
         try:
             participant_ids(self)
         except StudyError as exc:
             raise SettingsError(f'--id-prefix {exc}') from None
+        if self.cue_trust[0] > self.cue_trust[1]:
+            raise SettingsError(f'--cue-trust: the low end {self.cue_trust[0]:g} is above the high end '
+                                f'{self.cue_trust[1]:g}')
 
 
 def participant_ids(args: SimulateArgs) -> list[str]:
@@ -82,7 +89,8 @@ def participant_ids(args: SimulateArgs) -> list[str]:
 HELP = {
     'out': 'directory of the participants\' directories (created; existing participants resume or are skipped)',
     'participants': 'number of simulated participants',
-    'study': 'study YAML file (default: the shipped config/study.yaml)',
+    'study': 'study YAML file (default: the shipped config/study.yaml; config/study_cues.yaml adds the '
+             'assisted_cues block)',
     'landings_per_block': 'fly only the first K landings of the study\'s sequence per block (0: all of them)',
     'practice': 'practice landings each participant flies at most (and the study file\'s practice_landings cap)',
     'families': 'pilot families of assist_sim.pilots, assigned to participants in turn',
@@ -95,6 +103,8 @@ HELP = {
                  '_ or -, starting with a letter or digit, the IDs at most 32 characters',
     'only': 'fly only these participant IDs of the --participants drawn (e.g. a second graph sharing the work; '
             'give each run its own IDs)',
+    'cue_trust': 'LOW HIGH: each participant\'s chance per landing of reading the intent cues (assisted_cues '
+                 'blocks) is drawn uniformly in this range',
 }
 
 
@@ -227,7 +237,8 @@ def simulate(args: SimulateArgs) -> list[dict]:
     from assist_lab.graph_eval import pick_domain_id
     domain = args.domain_id or pick_domain_id()
     params = graph_params(cfg, args, study_path, out, free_tcp_port())
-    profiles = draw_profiles(args.participants, args.seed, tuple(args.families), args.practice, args.id_prefix)
+    profiles = draw_profiles(args.participants, args.seed, tuple(args.families), args.practice, args.id_prefix,
+                             cue_trust=tuple(args.cue_trust))
     if [p.pid for p in profiles] != ids:
         raise StudyError(f'drawn participant IDs {[p.pid for p in profiles]} are not {ids}')
     if args.only:
@@ -235,7 +246,7 @@ def simulate(args: SimulateArgs) -> list[dict]:
     graph = StudyGraph(params, domain, sim_dir / ('logs' if not args.only else f'logs_{"_".join(args.only)}'))
     results = []
     t0 = time.monotonic()
-    per_participant = 2 * cfg.landings_per_block + cfg.practice_landings     # at most (practice may end early)
+    per_participant = cfg.n_blocks * cfg.landings_per_block + cfg.practice_landings   # at most (practice may end early)
     bar = tqdm(total=len(profiles) * per_participant, desc='simulated study', unit='landing', file=sys.stderr,
                mininterval=1.0, dynamic_ncols=False, disable=None)
     try:

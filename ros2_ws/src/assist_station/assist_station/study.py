@@ -2,15 +2,19 @@
 
 A study is one YAML file (``StudyConfig``; the shipped example is ``config/study.yaml``): the scene, the
 predefined landing sequence of a block (the same goal pads for every participant), the practice landings
-(the paper allowed up to 14, goal drawn at random, feedback after each), the assistant that flies the
-assisted block and the texts the page shows. A participant goes through
+(the paper allowed up to 14, goal drawn at random, feedback after each), the conditions (``conditions``:
+the paper's ``unassisted`` and ``assisted``, and optionally ``assisted_cues``: assisted, with the pilot
+station's three intent cues shown), the assistant that flies the assisted blocks and the texts the page
+shows. A participant goes through
 
-    consent -> practice -> block 1 -> SUS -> block 2 -> SUS -> concluding survey -> done
+    consent -> practice -> block 1 -> SUS -> block 2 -> SUS [-> block 3 -> SUS] -> concluding survey -> done
 
-with the two blocks in the order that follows from the participant ID (``first_condition``:
-counterbalanced, odd/even trailing number). Everything a participant produces lives in one directory
+one block per condition, in the order that follows from the participant ID (``condition_order``: a row
+of a balanced Latin square picked by the ID's trailing number; with the two conditions an odd number
+starts unassisted, an even one assisted). Everything a participant produces lives in one directory
 (``ParticipantStore``): the study file as run (``study.yaml``), ``landings.csv`` (one fsynced row per
-finished landing), ``survey.json`` (SUS answers per block and the concluding survey's 21 answers,
+finished landing, with its measures: time to land, path length, key presses and corrective ones),
+``survey.json`` (SUS answers per block with its condition, and the concluding survey's 21 answers,
 written atomically), ``protocol.log`` (one JSON line per protocol event) and ``bags/`` (a rosbag2 bag per
 landing, written by the station). The protocol's position is derived from those files only, so a
 station restarted mid-block resumes at the next unfinished landing: rows already written are never
@@ -37,10 +41,16 @@ from typing import Any
 import numpy as np
 import yaml
 
+from assist_bridge.teleop_core import KEY_BINDINGS
 from assist_common.atomic import write_text_atomic
 
-CONDITIONS = ('unassisted', 'assisted')
-PHASES = ('consent', 'practice', 'block1', 'sus1', 'block2', 'sus2', 'survey', 'done')
+from .station_core import BROWSER_KEYS, STOP_KEY
+
+CONDITIONS = ('unassisted', 'assisted')                  # the paper's two (Table I compares them)
+CUE_CONDITION = 'assisted_cues'                           # assisted, with the station's intent cues shown
+ALL_CONDITIONS = (*CONDITIONS, CUE_CONDITION)             # every condition a study file may list, in this order
+ASSISTED_CONDITIONS = ('assisted', CUE_CONDITION)         # the assistant flies along (policy_node assist_enabled)
+PHASES = ('consent', 'practice', 'block1', 'sus1', 'block2', 'sus2', 'survey', 'done')     # the two-block study's
 PRACTICE_BLOCK = 0
 PARTICIPANT_ID = re.compile(r'[A-Za-z0-9][A-Za-z0-9_-]{0,31}')        # the whole ID (fullmatch: no trailing newline)
 MAX_CONFIG_BYTES = 256 * 1024
@@ -98,9 +108,13 @@ SURVEY = (
 )
 EXPERIENCE_QUESTIONS = (2, 3, 5, 6)     # the paper's "experienced" rating and its Fig. 8 experience level
 
-LANDING_COLUMNS = ('participant', 'block', 'condition', 'order', 'trial', 'goal_index', 'landed_index',
-                   'nearest_index', 'error_m', 'nearest_error_m', 'success', 'crash', 'outcome', 'duration_s',
-                   'started_on_pad', 'start_pad', 'assist_live', 'episode', 'bag', 'recorded_utc')
+BASE_COLUMNS = ('participant', 'block', 'condition', 'order', 'trial', 'goal_index', 'landed_index',
+                'nearest_index', 'error_m', 'nearest_error_m', 'success', 'crash', 'outcome', 'duration_s',
+                'started_on_pad', 'start_pad', 'assist_live', 'episode', 'bag', 'recorded_utc')
+# per-landing measures, after the base columns (a file written without them is still read; empty: not measured):
+# path flown (m, /odom during the landing), key presses and the corrective ones among them (KeyCounter)
+MEASURE_COLUMNS = ('path_length_m', 'key_presses', 'corrective_keys')
+LANDING_COLUMNS = BASE_COLUMNS + MEASURE_COLUMNS
 
 
 class StudyError(ValueError):
@@ -118,7 +132,8 @@ class StudyConfig:
     n_pads: int = 5                           # pads in the scene (the sim's scene.n_pads)
     practice_landings: int = 14               # at most this many practice landings (the participant may stop early)
     practice_seed: int = 0                    # practice goals: drawn from this seed and the participant ID
-    practice_condition: str = 'first'         # first (the participant's first block's), unassisted or assisted
+    practice_condition: str = 'first'         # first (the participant's first block's) or one of conditions
+    conditions: tuple[str, ...] = CONDITIONS  # one block each; the paper's two, or also assisted_cues
     assistant_mode: str = 'latent'            # policy_node mode that flies the assisted block (checked at start)
     policy_model: str = ''                    # the TD3 actor policy_node must fly ('' = the shipped one; checked)
     encoder_model: str = ''                   # the CM-VAE encoder_node must use (latent; '' = the shipped one; checked)
@@ -147,8 +162,17 @@ class StudyConfig:
             problems.append(f'practice_landings must be an integer in 0..100, got {self.practice_landings!r}')
         if not (_is_int(self.practice_seed) and self.practice_seed >= 0):
             problems.append(f'practice_seed must be a non-negative integer, got {self.practice_seed!r}')
-        if self.practice_condition not in ('first', *CONDITIONS):
-            problems.append('practice_condition must be first, unassisted or assisted, got '
+        conds = self.conditions
+        if not (isinstance(conds, tuple) and all(isinstance(c, str) for c in conds)
+                and set(conds) <= set(ALL_CONDITIONS) and len(set(conds)) == len(conds)
+                and set(CONDITIONS) <= set(conds)):
+            problems.append(f'conditions must list {", ".join(CONDITIONS)} and optionally {CUE_CONDITION}, each '
+                            f'once, got {conds!r}')
+            conds = CONDITIONS
+        else:                                   # one order however the file lists them (the blocks' order is the ID's)
+            object.__setattr__(self, 'conditions', tuple(c for c in ALL_CONDITIONS if c in conds))
+        if self.practice_condition not in ('first', *conds):
+            problems.append(f'practice_condition must be first or one of the conditions ({", ".join(conds)}), got '
                             f'{self.practice_condition!r}')
         if self.assistant_mode not in ('latent', 'oracle', 'end_to_end'):
             problems.append(f'assistant_mode must be latent, oracle or end_to_end, got {self.assistant_mode!r}')
@@ -170,8 +194,13 @@ class StudyConfig:
 
     @property
     def landings_per_block(self) -> int:
-        """Landings in each of the two blocks (the sequence's length; the paper: 16)."""
+        """Landings in each block (the sequence's length; the paper: 16)."""
         return len(self.sequence)
+
+    @property
+    def n_blocks(self) -> int:
+        """Blocks of the study: one per condition (the paper: 2)."""
+        return len(self.conditions)
 
     @classmethod
     def from_text(cls, text: str, source: str = 'study file') -> StudyConfig:
@@ -191,7 +220,7 @@ class StudyConfig:
         if unknown:
             raise StudyError(f'{source}: unknown setting(s) {", ".join(unknown)} (known: {", ".join(sorted(known))})')
         values = dict(data)
-        for key in ('sequence', 'bag_topics'):
+        for key in ('sequence', 'bag_topics', 'conditions'):
             if key in values:
                 if not isinstance(values[key], list):
                     raise StudyError(f'{source}: {key} must be a list')
@@ -216,9 +245,13 @@ class StudyConfig:
         return cls.from_text(text, f'study file {path}'), text
 
     def to_dict(self) -> dict[str, Any]:
-        """The settings as plain YAML/JSON values."""
+        """The settings as plain YAML/JSON values (``conditions`` only when it is not the paper's two)."""
         d = asdict(self)
         d['sequence'], d['bag_topics'] = list(self.sequence), list(self.bag_topics)
+        if self.conditions == CONDITIONS:
+            del d['conditions']
+        else:
+            d['conditions'] = list(self.conditions)
         return d
 
 
@@ -234,23 +267,66 @@ def check_participant_id(pid: Any) -> str:
     return pid
 
 
-def first_condition(pid: str) -> str:
-    """The condition of block 1 (counterbalanced): an odd trailing number starts unassisted, an even one
-    assisted; an ID without a trailing number by the parity of its SHA-256."""
+def latin_square(conditions: tuple[str, ...]) -> tuple[tuple[str, ...], ...]:
+    """The rows (block orders) of a balanced Latin square over `conditions` (Williams design): each condition
+    in each block equally often and each one right after each other equally often. First row 0, 1, n-1, 2,
+    n-2, ...; row i adds i to it (mod n); with an odd n the mirrored rows follow (2n rows). Two conditions:
+    (a, b), (b, a); three: all six orders."""
+    n = len(conditions)
+    first, low, high = [0], 1, n - 1
+    while len(first) < n:
+        first.append(low if len(first) % 2 else high)
+        low, high = (low + 1, high) if len(first) % 2 == 0 else (low, high - 1)
+    rows = [tuple(conditions[(k + i) % n] for k in first) for i in range(n)]
+    if n % 2:
+        rows += [row[::-1] for row in rows]
+    return tuple(rows)
+
+
+def participant_number(pid: str) -> int:
+    """The number that picks a participant's block order: the ID's trailing number, else its SHA-256's first byte."""
     m = re.search(r'(\d+)\Z', pid)
-    n = int(m.group(1)) if m else hashlib.sha256(pid.encode()).digest()[0]
-    return 'unassisted' if n % 2 == 1 else 'assisted'
+    return int(m.group(1)) if m else hashlib.sha256(pid.encode()).digest()[0]
 
 
-def block_condition(pid: str, block: int) -> str:
-    """Condition of block 1 or 2 for participant `pid`."""
-    first = first_condition(pid)
-    return first if block == 1 else CONDITIONS[1 - CONDITIONS.index(first)]
+def condition_order(pid: str, conditions: tuple[str, ...] = CONDITIONS) -> tuple[str, ...]:
+    """The conditions of blocks 1, 2, ... for participant `pid` (counterbalanced): row (number - 1) mod rows of
+    the balanced Latin square over `conditions`. Two conditions: an odd number starts unassisted, an even one
+    assisted."""
+    rows = latin_square(tuple(conditions))
+    return rows[(participant_number(pid) - 1) % len(rows)]
 
 
-def order_name(pid: str) -> str:
-    """'unassisted_first' or 'assisted_first'."""
-    return f'{first_condition(pid)}_first'
+def first_condition(pid: str, conditions: tuple[str, ...] = CONDITIONS) -> str:
+    """The condition of block 1 (counterbalanced, ``condition_order``)."""
+    return condition_order(pid, conditions)[0]
+
+
+def block_condition(pid: str, block: int, conditions: tuple[str, ...] = CONDITIONS) -> str:
+    """Condition of block `block` (1..number of conditions) for participant `pid`; StudyError for another block."""
+    order = condition_order(pid, conditions)
+    if not (_is_int(block) and 1 <= block <= len(order)):
+        raise StudyError(f'block {block!r}: the study has blocks 1-{len(order)}')
+    return order[block - 1]
+
+
+def order_name(pid: str, conditions: tuple[str, ...] = CONDITIONS) -> str:
+    """The participant's block order as written in landings.csv: 'unassisted_first' or 'assisted_first' with the
+    paper's two conditions, else the conditions joined by '-' (e.g. 'assisted-assisted_cues-unassisted')."""
+    order = condition_order(pid, conditions)
+    return f'{order[0]}_first' if len(order) == 2 else '-'.join(order)
+
+
+def phases(n_blocks: int) -> tuple[str, ...]:
+    """The protocol's phases for a study of `n_blocks` blocks (two: PHASES)."""
+    blocks = tuple(p for b in range(1, n_blocks + 1) for p in (f'block{b}', f'sus{b}'))
+    return ('consent', 'practice', *blocks, 'survey', 'done')
+
+
+def phase_block(phase: str) -> int | None:
+    """The block a 'block<k>' or 'sus<k>' phase belongs to (None for the others)."""
+    m = re.fullmatch(r'(?:block|sus)([1-9][0-9]*)', phase)
+    return int(m.group(1)) if m else None
 
 
 def practice_goals(cfg: StudyConfig, pid: str) -> list[int]:
@@ -311,13 +387,81 @@ class LandingSpec:
 
     @property
     def assisted(self) -> bool:
-        """Whether the assistant flies along."""
-        return self.condition == 'assisted'
+        """Whether the assistant flies along (assisted, assisted_cues)."""
+        return self.condition in ASSISTED_CONDITIONS
+
+    @property
+    def cues(self) -> bool:
+        """Whether the station shows the assistant's intent cues (assisted_cues only)."""
+        return self.condition == CUE_CONDITION
 
     @property
     def name(self) -> str:
         """Short name (bag names, logs): practice_03, block1_12."""
         return f"{'practice' if self.block == PRACTICE_BLOCK else f'block{self.block}'}_{self.trial:02d}"
+
+
+# ----------------------------------------------------------------------------------------- measures
+# the horizontal keys: browser key code -> (axis 0 forward / 1 left, direction +1 / -1), the station's bindings
+HORIZONTAL_KEYS = {code: KEY_BINDINGS[token] for code, token in BROWSER_KEYS.items() if KEY_BINDINGS[token][0] < 2}
+
+
+class KeyCounter:
+    """The pilot's key presses during one landing and the corrective ones among them (thread-safe).
+
+    ``note(held)`` gets every change of the pilot's held keys as the station's key state has them (press
+    order; a key the page stopped refreshing counts as released). A key press is a key-down event: a key
+    (W/A/S/D, the arrows, Space) in the held set that was not in the one before. A press is corrective when
+    it is the stop key (Space), or a horizontal key whose direction is opposite to the last horizontal key held
+    on its axis during the landing (W against S on the forward axis, A against D on the left axis; a key held
+    when the landing starts counts as held): the pilot takes back what it asked for on that axis. Vertical keys
+    are presses, never corrective. Presses are counted between ``start()`` and ``stop()``.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._held: tuple[str, ...] = ()
+        self._counting = False
+        self._last: dict[int, int] = {}       # axis -> direction of the last horizontal key held on it
+        self.presses = 0
+        self.corrective = 0
+
+    def note(self, held: tuple[str, ...] | list[str]) -> None:
+        """The pilot's held keys now (in press order)."""
+        held = tuple(held)
+        with self._lock:
+            pressed = [k for k in held if k not in self._held]
+            self._held = held
+            if not self._counting:
+                return
+            for key in pressed:
+                self.presses += 1
+                if key == STOP_KEY:
+                    self.corrective += 1
+                elif key in HORIZONTAL_KEYS:
+                    axis, direction = HORIZONTAL_KEYS[key]
+                    if self._last.get(axis) == -direction:
+                        self.corrective += 1
+                    self._last[axis] = direction
+
+    def start(self) -> None:
+        """A landing starts: counts from zero; the horizontal keys held now are the last ones on their axes."""
+        with self._lock:
+            self._counting = True
+            self.presses = self.corrective = 0
+            self._last = {}
+            for key in self._held:
+                if key in HORIZONTAL_KEYS:
+                    axis, direction = HORIZONTAL_KEYS[key]
+                    self._last[axis] = direction
+
+    def stop(self) -> tuple[int, int] | None:
+        """The landing ended: (key presses, corrective presses) since start(); None when it was not started."""
+        with self._lock:
+            if not self._counting:
+                return None
+            self._counting = False
+            return self.presses, self.corrective
 
 
 # ----------------------------------------------------------------------------------------- files
@@ -367,6 +511,7 @@ class ParticipantStore:
         self.survey_path = self.dir / 'survey.json'
         self.log_path = self.dir / 'protocol.log'
         self.created = not os.path.lexists(self.dir)      # this store made the directory (discard() may remove it)
+        self.columns = LANDING_COLUMNS     # an existing landings.csv's own: one written without the measures stays so
         try:
             self._open(config_text)
         except BaseException:
@@ -478,8 +623,13 @@ class ParticipantStore:
             self.log('torn_row_dropped', bytes=len(raw) - cut)
             raw = raw[:cut]
         reader = csv.DictReader(io.StringIO(raw.decode('utf-8')))
-        if reader.fieldnames is not None and tuple(reader.fieldnames) != LANDING_COLUMNS:
-            raise StudyError(f'{path}: columns differ from this station\'s; not appending to it')
+        if reader.fieldnames is not None:
+            if tuple(reader.fieldnames) not in (LANDING_COLUMNS, BASE_COLUMNS):
+                raise StudyError(f'{path}: columns differ from this station\'s; not appending to it')
+            self.columns = tuple(reader.fieldnames)
+            if self.columns == BASE_COLUMNS:
+                _LOG.warning('%s: written without the measure columns (%s); its rows go on without them', path,
+                             ', '.join(MEASURE_COLUMNS))
         rows = []
         for row in reader:
             if None in row or None in row.values():     # a row an interrupted write cut short: never recorded
@@ -536,16 +686,19 @@ class ParticipantStore:
             self.events.append(entry)
 
     def append_row(self, row: dict[str, Any]) -> dict[str, str]:
-        """Append one landing row (header first on a new file), fsynced; returns it as stored."""
+        """Append one landing row (header first on a new file), fsynced; returns it as stored. A file written
+        without the measure columns gets its rows without them (the file stays one table)."""
         path = self._plain(self.landings_path)
         new = not path.exists() or path.stat().st_size == 0
+        columns = LANDING_COLUMNS if new else self.columns
         buf = io.StringIO()
-        writer = csv.DictWriter(buf, fieldnames=LANDING_COLUMNS, lineterminator='\n')
+        writer = csv.DictWriter(buf, fieldnames=columns, lineterminator='\n')
         if new:
             writer.writeheader()
-        stored = {k: _csv_value(row.get(k)) for k in LANDING_COLUMNS}
+        stored = {k: _csv_value(row.get(k)) for k in columns}
         writer.writerow(stored)
         self._append(path, buf.getvalue().encode('utf-8'))
+        self.columns = columns
         self.rows.append(stored)
         return stored
 
@@ -578,7 +731,8 @@ class StudySession:
         self.cfg = cfg
         self.store = ParticipantStore(root, pid, cfg, config_text)
         self.pid = self.store.pid
-        self.order = order_name(self.pid)
+        self.blocks = condition_order(self.pid, cfg.conditions)     # the condition of blocks 1, 2, ...
+        self.order = order_name(self.pid, cfg.conditions)
         self._practice_goals = practice_goals(cfg, self.pid)
         self._lock = threading.RLock()
         self.active: LandingSpec | None = None
@@ -616,13 +770,13 @@ class StudySession:
 
     @property
     def phase(self) -> str:
-        """The current phase (PHASES)."""
+        """The current phase (``phases(cfg.n_blocks)``)."""
         with self._lock:
             if not self._logged('consent'):
                 return 'consent'
             if self._count(PRACTICE_BLOCK) < self.cfg.practice_landings and not self._logged('practice_done'):
                 return 'practice'
-            for block in (1, 2):
+            for block in range(1, self.cfg.n_blocks + 1):
                 if self._count(block) < self.cfg.landings_per_block:
                     return f'block{block}'
                 if str(block) not in self.store.survey['sus']:
@@ -635,13 +789,12 @@ class StudySession:
             phase = self.phase
             if phase == 'practice':
                 k = self._count(PRACTICE_BLOCK)
-                cond = (self.cfg.practice_condition if self.cfg.practice_condition != 'first'
-                        else first_condition(self.pid))
+                cond = self.cfg.practice_condition if self.cfg.practice_condition != 'first' else self.blocks[0]
                 return LandingSpec(PRACTICE_BLOCK, cond, k, self._practice_goals[k])
-            if phase in ('block1', 'block2'):
-                block = int(phase[-1])
+            if phase.startswith('block'):
+                block = phase_block(phase)
                 k = self._count(block)
-                return LandingSpec(block, block_condition(self.pid, block), k, self.cfg.sequence[k])
+                return LandingSpec(block, self.blocks[block - 1], k, self.cfg.sequence[k])
             raise StudyError(f'no landing to fly now (the study is at {phase})')
 
     # ---------------------------------------------------------------- steps
@@ -673,8 +826,9 @@ class StudySession:
             return spec
 
     def record_landing(self, landing: dict[str, Any], *, start_pad: int | None, episode: int | None,
-                       bag: str | None) -> dict[str, str]:
-        """Write the landing in flight's row from its /sim/landing result; returns the stored row."""
+                       bag: str | None, measures: dict[str, Any] | None = None) -> dict[str, str]:
+        """Write the landing in flight's row from its /sim/landing result and its `measures` (MEASURE_COLUMNS;
+        a measure missing or None is written empty: not measured); returns the stored row."""
         with self._lock:
             spec = self.active
             if spec is None:
@@ -693,6 +847,7 @@ class StudySession:
                 'started_on_pad': start_pad is not None and landed is not None and int(landed) == start_pad,
                 'start_pad': start_pad, 'assist_live': landing.get('assisted'), 'episode': episode, 'bag': bag,
                 'recorded_utc': time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime()),
+                **{k: (measures or {}).get(k) for k in MEASURE_COLUMNS},
             }
             stored = self.store.append_row(row)
             self.active = None              # the row is saved: the landing is recorded whatever the log says
@@ -713,15 +868,16 @@ class StudySession:
         """SUS answers for the block just flown; returns its score."""
         with self._lock:
             phase = self.phase
-            if phase not in ('sus1', 'sus2'):
+            if not phase.startswith('sus'):
                 raise StudyError(f'no SUS questionnaire now (the study is at {phase})')
-            block = int(phase[-1])
+            block = phase_block(phase)
             a = check_sus(answers)
             score = sus_score(a)
             survey = json.loads(json.dumps(self.store.survey))
-            survey['sus'][str(block)] = {'condition': block_condition(self.pid, block), 'answers': a, 'score': score}
+            condition = self.blocks[block - 1]
+            survey['sus'][str(block)] = {'condition': condition, 'answers': a, 'score': score}
             self.store.save_survey(survey)
-            self._note('sus', block=block, score=score)
+            self._note('sus', block=block, condition=condition, score=score)
             return score
 
     def submit_survey(self, answers: Any) -> None:
@@ -744,16 +900,16 @@ class StudySession:
                                  'in_flight': self.active is not None, 'study': self.cfg.name}
             if phase == 'consent':
                 v.update(intro=self.cfg.intro_text, consent=self.cfg.consent_text)
-            elif phase in ('practice', 'block1', 'block2'):
+            elif phase == 'practice' or phase.startswith('block'):
                 spec = self.active or self.next_landing()
                 total = self.cfg.practice_landings if phase == 'practice' else self.cfg.landings_per_block
                 v.update(trial=spec.trial + 1, of=total, condition=spec.condition, block=spec.block,
                          intro=self.cfg.intro_text, can_stop_practice=phase == 'practice' and self.active is None)
                 if self.last_feedback is not None and phase == 'practice':
                     v['feedback'] = self.last_feedback
-            elif phase in ('sus1', 'sus2'):
-                v.update(block=int(phase[-1]), condition=block_condition(self.pid, int(phase[-1])),
-                         items=list(SUS_ITEMS))
+            elif phase.startswith('sus'):
+                block = phase_block(phase)
+                v.update(block=block, condition=self.blocks[block - 1], items=list(SUS_ITEMS))
             elif phase == 'survey':
                 v.update(questions=[dict(q) for q in SURVEY])
             else:
@@ -773,7 +929,9 @@ def practice_feedback(landing: dict[str, Any], pads: np.ndarray | None, final_xy
     return fb
 
 
-__all__ = ['CONDITIONS', 'EXPERIENCE_QUESTIONS', 'LANDING_COLUMNS', 'PHASES', 'PRACTICE_BLOCK', 'SURVEY',
-           'SUS_ITEMS', 'LandingSpec', 'ParticipantStore', 'StudyConfig', 'StudyError', 'StudySession',
-           'block_condition', 'check_participant_id', 'check_survey', 'check_sus', 'first_condition', 'order_name',
+__all__ = ['ALL_CONDITIONS', 'ASSISTED_CONDITIONS', 'BASE_COLUMNS', 'CONDITIONS', 'CUE_CONDITION',
+           'EXPERIENCE_QUESTIONS', 'LANDING_COLUMNS', 'MEASURE_COLUMNS', 'PHASES', 'PRACTICE_BLOCK', 'SURVEY',
+           'SUS_ITEMS', 'KeyCounter', 'LandingSpec', 'ParticipantStore', 'StudyConfig', 'StudyError', 'StudySession',
+           'block_condition', 'check_participant_id', 'check_survey', 'check_sus', 'condition_order',
+           'first_condition', 'latin_square', 'order_name', 'participant_number', 'phase_block', 'phases',
            'practice_feedback', 'practice_goals', 'sus_score']

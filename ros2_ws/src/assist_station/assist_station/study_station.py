@@ -5,13 +5,23 @@ SUS and survey answers); this class turns them into graph actions and files:
 
 * a landing starts by setting sim_node's ``scene_seed`` and ``goal_index`` (and ``auto_reset`` false,
   so the station decides when each landing starts) and policy_node's ``assist_enabled`` (the block's
-  condition) over their parameter services, opening the landing's bag (an in-process bag_record) and
-  calling ``/sim/reset``; the vehicle flies the pilot's keys only while a landing is in flight;
-* the landing ends with the ``/sim/landing`` result of that episode: the row goes to landings.csv, the
-  bag is closed, practice landings get feedback (where the drone ended relative to the goal pad),
-  block landings none;
+  condition: on for assisted and assisted_cues) over their parameter services, switching the station's
+  own cues (its parameters ``cue_goal``, ``cue_descent``, ``cue_push``) on for an assisted_cues landing and
+  off for the others, opening the landing's bag (an in-process bag_record) and calling ``/sim/reset``; the
+  vehicle flies the pilot's keys only while a landing is in flight;
+* while it flies, the driver measures it: the path flown (the sum of the steps between successive /odom
+  positions in stamp order: a message stamped no later than the last is skipped, a step longer than JUMP_M
+  faster than MAX_SPEED_MPS between the stamps is a teleport, a reset, not flown, and messages the station
+  missed leave a straight step between the ones it got) and the pilot's key presses and corrective presses
+  (study.KeyCounter, fed by the station's key state through CountingKeyState);
+* the landing ends with the ``/sim/landing`` result of that episode: the row (with the measures) goes to
+  landings.csv, the cues go off, the bag is closed, practice landings get feedback (where the drone ended
+  relative to the goal pad), block landings none;
 * a landing whose page goes away, or that gets no result within ``landing_timeout_s``, is not
   recorded and is flown again (logged in protocol.log).
+
+Between landings, and from the moment the driver starts, the station's cues are off: a study shows them in
+its assisted_cues landings only.
 
 Every ROS call is asynchronous (futures with callbacks) on the node's executor; page steps arrive on
 the web server's thread and are queued for the node's timer.
@@ -35,9 +45,9 @@ from std_srvs.srv import Trigger
 
 from assist_common.frames import heading, rotate_xy
 
-from .station_core import StudyMessage
-from .study import (PRACTICE_BLOCK, LandingSpec, StudyConfig, StudyError, StudySession, check_participant_id,
-                    practice_feedback)
+from .station_core import CUES, KeyState, StationConfig, StudyMessage
+from .study import (PRACTICE_BLOCK, KeyCounter, LandingSpec, StudyConfig, StudyError, StudySession,
+                    check_participant_id, practice_feedback)
 
 EPISODE_RE = re.compile(r'^episode (\d+): goal pad (\d+)')
 SERVICE_WAIT_S = 10.0          # a node's parameter service / /sim/reset not answering this long: the step fails
@@ -45,6 +55,9 @@ BAG_WARMUP_S = 0.6             # the landing's bag subscribes before the episode
 BAG_TAIL_S = 0.5               # ... and keeps recording this long after the result
 INBOX_SIZE = 64                # page steps waiting for the node's timer at most (more are dropped)
 WARNING_PERIOD_S = 5.0         # the same refusal is logged at most once per this long (the rest counted)
+JUMP_M = 1.0                   # an /odom step longer than this, faster than MAX_SPEED_MPS, is a teleport (a reset)
+MAX_SPEED_MPS = 20.0           # ... far above what the vehicle flies (keys 1 m/s, the assistant's push adds little)
+CUE_PARAMETERS = tuple(f'cue_{name}' for name in CUES)     # the station's cue switches (pilot_station parameters)
 
 
 def _same_file(a: str, b: str) -> bool:
@@ -74,6 +87,26 @@ class _Warnings:
             return self._held.pop(key, 0)
 
 
+class CountingKeyState(KeyState):
+    """The station's key state that also hands every change of the pilot's held keys to a KeyCounter."""
+
+    def __init__(self, cfg: StationConfig | None = None, counter: KeyCounter | None = None):
+        super().__init__(cfg)
+        self.counter = counter or KeyCounter()
+
+    def set(self, down: Any, now: float) -> np.ndarray:
+        """Replace the held set (KeyState.set); keys that timed out before it count as released first."""
+        self.counter.note(self.held(now))
+        v = super().set(down, now)
+        self.counter.note(self.held(now))
+        return v
+
+    def release_all(self) -> None:
+        """Every key up (KeyState.release_all)."""
+        super().release_all()
+        self.counter.note(())
+
+
 class _Call:
     """One pending service call: its future, deadline and what to do with the answer."""
 
@@ -87,8 +120,11 @@ class StudyDriver:
 
     def __init__(self, node: Node, cfg: StudyConfig, config_text: str, root: Path, publish_view: Callable[[dict], None],
                  push_event: Callable[[dict], None], sim_node: str = '/sim_node', policy_node: str = '/policy_node',
-                 encoder_node: str = '/encoder_node'):
+                 encoder_node: str = '/encoder_node', key_counter: KeyCounter | None = None):
+        """`node` hosts the study (the pilot station: its cue parameters are switched per landing, a node without
+        them has no cues to switch); `key_counter` is fed the pilot's keys (None: key presses not measured)."""
         self.node, self.cfg, self.text, self.root = node, cfg, config_text, Path(root)
+        self.keys = key_counter
         self.root.mkdir(parents=True, exist_ok=True)
         self._publish_view, self._push_event = publish_view, push_event
         self.session: StudySession | None = None
@@ -110,6 +146,8 @@ class StudyDriver:
         self.started_at = math.inf
         self.start_xy: np.ndarray | None = None
         self.last_xy: np.ndarray | None = None
+        self.path_m = 0.0                    # path flown in the landing in flight (m)
+        self._path_last: tuple[np.ndarray, float | None] | None = None      # last /odom position and its stamp
         self.pads: np.ndarray | None = None
         self.boxes: list[dict[str, Any]] = []
         self.recorder = None
@@ -120,6 +158,9 @@ class StudyDriver:
         self._view_dirty = True
         self.error: str | None = None
         self.save_error: str | None = None      # the last step could not be saved (shown until a step is)
+        problem = self._set_cues(False)         # no cues unless a landing of the cue condition flies
+        if problem:
+            node.get_logger().error(f'study: {problem}')
 
     # ------------------------------------------------------------------ inputs (any thread)
     def submit(self, msg: StudyMessage) -> None:
@@ -173,11 +214,25 @@ class StudyDriver:
                        'yaw': heading(b['q'])} for b in pads]
         self.pads = np.array([[b['p'][0], b['p'][1], b['p'][2] + b['s'][2] / 2] for b in pads]) if pads else None
 
-    def note_odom(self, xy: np.ndarray) -> None:
-        """The vehicle's horizontal position (from /odom)."""
-        self.last_xy = np.asarray(xy, dtype=float)[:2]
-        if self.stage == 'flying' and self.start_xy is None:
+    def note_odom(self, position: np.ndarray, stamp_s: float | None = None) -> None:
+        """The vehicle's position (x, y, z in odom, from /odom, stamped `stamp_s`: None when unset): where it is,
+        and the path of a landing in flight (module doc). Without stamps every step longer than JUMP_M is taken
+        for a teleport."""
+        p = np.asarray(position, dtype=float).reshape(-1)[:3]
+        self.last_xy = p[:2].copy()
+        if self.stage != 'flying':
+            return
+        if self.start_xy is None:
             self.start_xy = self.last_xy.copy()
+        if self._path_last is not None:
+            last, last_t = self._path_last
+            dt = None if stamp_s is None or last_t is None else stamp_s - last_t
+            if dt is not None and dt <= 0:
+                return                      # older than (or as old as) the last one: no step
+            step = float(np.linalg.norm(p - last))
+            if step <= JUMP_M or (dt is not None and step / dt <= MAX_SPEED_MPS):
+                self.path_m += step
+        self._path_last = (p, stamp_s)
 
     # ------------------------------------------------------------------ timer (node thread)
     def tick(self) -> None:
@@ -333,8 +388,24 @@ class StudyDriver:
             self._set_params('policy_node', self.policy_params, [Parameter('assist_enabled', value=spec.assisted)])
             if spec.assisted:
                 self._check_policy_mode()
+        problem = self._set_cues(spec.cues)
+        if problem:
+            self._fail(problem)
+            return
         self.node.get_logger().info(f'study: {self.session.pid} {spec.name} ({spec.condition}, goal pad '
                                     f'{spec.goal_index})')
+
+    def _set_cues(self, on: bool) -> str | None:
+        """Switch the station's cue parameters (its own: the node that hosts the study) on or off; why not, or
+        None. A node without them (no pilot station) has no cues to switch."""
+        names = [n for n in CUE_PARAMETERS if self.node.has_parameter(n)]
+        change = [Parameter(n, value=bool(on)) for n in names if self.node.get_parameter(n).value != bool(on)]
+        if not change:
+            return None
+        result = self.node.set_parameters_atomically(change)
+        if result.successful:
+            return None
+        return f"pilot_station refused {', '.join(p.name for p in change)}: {result.reason}"
 
     def _set_params(self, what: str, client: Any, params: list[Parameter]) -> None:
         if not client.service_is_ready():
@@ -407,6 +478,9 @@ class StudyDriver:
             self.stage = 'flying'
             self.started_at = time.monotonic()
             self.start_xy = None
+            self.path_m, self._path_last = 0.0, None
+            if self.keys is not None:
+                self.keys.start()
             self._view_dirty = True
         self._calls.append(_Call('/sim/reset', self.reset_client.call_async(Trigger.Request()), done))
 
@@ -416,12 +490,18 @@ class StudyDriver:
             return False
         spec = self.spec
         start_pad = self._pad_under(self.start_xy)
+        keys = self.keys.stop() if self.keys is not None else None
+        measures = {'path_length_m': self.path_m if self._path_last is not None else None,
+                    'key_presses': None if keys is None else keys[0],
+                    'corrective_keys': None if keys is None else keys[1]}
         try:
             row = self.session.record_landing(landing, start_pad=start_pad, episode=self.episode,
-                                              bag=None if self.bag is None else Path(self.bag).name)
+                                              bag=None if self.bag is None else Path(self.bag).name,
+                                              measures=measures)
         except (StudyError, OSError) as exc:
             self._fail(f'landing not recorded: {exc}')
             return False
+        self._cues_off()
         self._report_log_problem()          # the row is saved: recorded, even where its log line is missing
         if spec.block == PRACTICE_BLOCK:
             fb = practice_feedback(landing, self.pads, self.last_xy)
@@ -451,10 +531,19 @@ class StudyDriver:
         self._push_event({'type': 'study_error', 'message': why})
         self._abort(why)
 
+    def _cues_off(self) -> None:
+        """The landing is over: the cues go off (a refusal is logged; the next landing's start tries again)."""
+        problem = self._set_cues(False)
+        if problem:
+            self.node.get_logger().error(f'study: {problem}')
+
     def _abort(self, why: str) -> None:
         if self.session is not None and self.session.active is not None:
             self.session.abort_landing(why)
             self._report_log_problem()
+        if self.keys is not None:
+            self.keys.stop()
+        self._cues_off()
         self._calls.clear()
         self._close_bag()
         self.stage = 'idle'

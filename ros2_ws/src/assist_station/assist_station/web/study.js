@@ -1,6 +1,7 @@
 // User-study panel of the pilot station: participant ID -> consent -> practice -> block 1 -> SUS -> block 2 ->
-// SUS -> concluding survey -> thanks. The station decides the phase (its 'study' messages); this panel only
-// shows it and sends the participant's steps ({type: 'study', action, ...}) through the station's socket.
+// SUS [-> block 3 -> SUS] -> concluding survey -> thanks. The station decides the phase (its 'study' messages:
+// block<k>, sus<k>); this panel only shows it and sends the participant's steps ({type: 'study', action, ...})
+// through the station's socket.
 'use strict';
 (function () {
   const panel = document.getElementById('study');
@@ -34,6 +35,15 @@
     const el = panel.querySelector(`input[name="${name}"]:checked`);
     return el ? parseInt(el.value, 10) : null;
   }
+  const isBlock = (p) => /^block[0-9]+$/.test(p);
+  const isSus = (p) => /^sus[0-9]+$/.test(p);
+  const CONDITION_TEXT = {
+    unassisted: 'You fly on your own in this block.',
+    assisted: 'The assistant flies along in this block.',
+    assisted_cues: 'The assistant flies along in this block and shows what it intends: the platform it believes ' +
+      'is yours highlighted, a light that is green when descending is safe and red when you should hold, and ' +
+      'an arrow for how it pushes the drone.',
+  };
   function feedbackText(fb) {
     let t = fb.success ? 'Landed on the goal platform.' : fb.crash ? 'Crashed.' : 'Missed the goal platform.';
     if (fb.offset_m) {
@@ -63,7 +73,7 @@
     } else if (p === 'consent') {
       h = `<h2>Welcome, ${esc(view.participant)}</h2><p>${esc(view.intro)}</p><p>${esc(view.consent)}</p>` +
           button('study-consent', 'I agree, continue');
-    } else if (p === 'practice' || p === 'block1' || p === 'block2') {
+    } else if (p === 'practice' || isBlock(p)) {
       const what = p === 'practice' ? 'Practice landing' : `Block ${view.block}: landing`;
       if (view.in_flight) {
         h = `${esc(what)} ${view.trial} of ${view.of} - land on the green platform`;
@@ -71,13 +81,13 @@
         h = `<h2>${esc(what)} ${view.trial} of ${view.of}</h2>`;
         if (p === 'practice' && feedback) h += `<p class="fb" id="study-feedback">${esc(feedbackText(feedback))}</p>`;
         if (p !== 'practice' && view.trial === 1) {
-          h += `<p>${view.condition === 'assisted' ? 'The assistant flies along in this block.' :
-            'You fly on your own in this block.'} No results are shown during the block.</p>`;
+          h += `<p id="study-condition">${esc(CONDITION_TEXT[view.condition] || CONDITION_TEXT.unassisted)} ` +
+            'No results are shown during the block.</p>';
         }
         h += `<p>${esc(view.intro)}</p>` + button('study-start', 'Start landing');
         if (view.can_stop_practice && view.trial > 1) h += button('study-stop-practice', 'Finish practice');
       }
-    } else if (p === 'sus1' || p === 'sus2') {
+    } else if (isSus(p)) {
       h = `<h2>Questionnaire: block ${view.block}</h2><p>1 = strongly disagree, 5 = strongly agree</p>`;
       view.items.forEach((text, i) => { h += `<div class="q"><div>${i + 1}. ${esc(text)}</div>${radios('sus-' + i, 5)}</div>`; });
       h += button('study-submit', 'Submit');
@@ -107,7 +117,7 @@
     on('study-start', () => { feedback = null; send('start'); });
     on('study-stop-practice', () => { feedback = null; send('stop_practice'); });
     on('study-submit', () => {
-      if (p === 'sus1' || p === 'sus2') {
+      if (isSus(p)) {
         const answers = view.items.map((_, i) => checked('sus-' + i));
         if (answers.includes(null)) { error = 'Please answer every statement.'; render(true); return; }
         send('sus', { answers: answers });
