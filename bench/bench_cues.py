@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import os
 import random
-import re
 import shutil
 import subprocess
 import sys
@@ -24,21 +23,13 @@ import time
 from pathlib import Path
 
 from assist_sim.testing import stop_process
-from assist_station.testing import start_browser
+
+from .bench_station import open_page, wait_until
 
 FPS_WINDOW_S = 5.0
 PADS = [((4.0, 1.0, 0.4), (1.2, 1.0, 0.8)), ((8.0, -0.8, 0.5), (1.0, 1.4, 1.0)), ((12.0, 0.6, 0.3), (1.4, 1.2, 0.6)),
         ((16.0, -1.0, 0.6), (1.0, 1.0, 1.2)), ((20.0, 0.2, 0.45), (1.2, 1.2, 0.9))]
 HOVER = (0.5, 0.0, 3.0)
-
-
-def _wait(pred, timeout):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if pred():
-            return True
-        time.sleep(0.05)
-    return bool(pred())
 
 
 class _Feed:
@@ -151,19 +142,14 @@ def run() -> list[dict]:
     feed = _Feed(node)
     driver = None
     try:
-        if not _wait(lambda: 'open http://' in (tmp / 'station.log').read_text(), 60):
-            raise RuntimeError('pilot_station did not start')
-        url = re.search(r'open (http://\S+/)', (tmp / 'station.log').read_text()).group(1)
-        driver = start_browser(tmp / 'chromium')
-        driver.get(url)
-        stats = lambda: driver.execute_script('return window.stationStats')  # noqa: E731
+        driver, stats = open_page(tmp / 'station.log', tmp / 'chromium')
 
         def all_cues():
             s = stats()
             d = s['cueDrawn']
             return (d['goal'] is not None and d['goal']['state'] == 'sure' and d['push'] is not None
                     and d['descent'] in ('ok', 'hold') and s['cameraFrames'] > 0)
-        if not _wait(all_cues, 60):
+        if not wait_until(all_cues, 60):
             raise RuntimeError(f'page never drew the three cues: {stats()["cueDrawn"]}')
         time.sleep(1.0)
         fps_on, ms_on = _frames(stats)
@@ -174,9 +160,9 @@ def run() -> list[dict]:
         req = SetParameters.Request(parameters=[Parameter(f'cue_{k}', value=False).to_parameter_msg()
                                                 for k in ('goal', 'descent', 'push')])
         future = client.call_async(req)
-        if not _wait(future.done, 20) or not all(r.successful for r in future.result().results):
+        if not wait_until(future.done, 20) or not all(r.successful for r in future.result().results):
             raise RuntimeError('setting cue_* false failed')
-        if not _wait(lambda: stats()['cueDrawn'] == {'goal': None, 'push': None, 'descent': None}, 20):
+        if not wait_until(lambda: stats()['cueDrawn'] == {'goal': None, 'push': None, 'descent': None}, 20):
             raise RuntimeError('cues still drawn with cue_* false')
         time.sleep(1.0)
         fps_off, ms_off = _frames(stats)

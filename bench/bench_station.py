@@ -32,13 +32,25 @@ MOVING_MPS = 0.15
 FPS_WINDOW_S = 5.0
 
 
-def _wait(pred, timeout):
+def wait_until(pred, timeout: float) -> bool:
+    """Poll `pred` every 20 ms until it is true (True) or `timeout` seconds pass (its last value)."""
     end = time.monotonic() + timeout
     while time.monotonic() < end:
         if pred():
             return True
         time.sleep(0.02)
     return bool(pred())
+
+
+def open_page(log: Path, user_dir: Path):
+    """Wait for the pilot_station writing `log` to print its URL, open it in headless Chromium; (driver, stats),
+    stats() returning the page's window.stationStats."""
+    if not wait_until(lambda: 'open http://' in log.read_text(), 60):
+        raise RuntimeError('pilot_station did not start')
+    url = re.search(r'open (http://\S+/)', log.read_text()).group(1)
+    driver = start_browser(user_dir)
+    driver.get(url)
+    return driver, lambda: driver.execute_script('return window.stationStats')
 
 
 def run() -> list[dict]:
@@ -87,13 +99,8 @@ def run() -> list[dict]:
     spin.start()
     driver = None
     try:
-        if not _wait(lambda: 'open http://' in (tmp / 'station.log').read_text(), 60):
-            raise RuntimeError('pilot_station did not start')
-        url = re.search(r'open (http://\S+/)', (tmp / 'station.log').read_text()).group(1)
-        driver = start_browser(tmp / 'chromium')
-        driver.get(url)
-        stats = lambda: driver.execute_script('return window.stationStats')  # noqa: E731
-        if not _wait(lambda: (s := stats())['pose'] is not None and s['scenePlatforms'] == 5, 60):
+        driver, stats = open_page(tmp / 'station.log', tmp / 'chromium')
+        if not wait_until(lambda: (s := stats())['pose'] is not None and s['scenePlatforms'] == 5, 60):
             raise RuntimeError('page never showed the vehicle and scene')
         time.sleep(1.0)
         s0, t0 = stats(), time.monotonic()
@@ -105,7 +112,7 @@ def run() -> list[dict]:
         to_cmd, to_move = [], []
         for i in range(N_TRIALS):
             key, sign = ('w', 1.0) if i % 2 == 0 else ('s', -1.0)
-            _wait(lambda: odom and abs(odom[-1][1]) < 0.05, 5.0)
+            wait_until(lambda: odom and abs(odom[-1][1]) < 0.05, 5.0)
             ActionChains(driver).key_down(key).perform()
             time.sleep(0.7)
             ActionChains(driver).key_up(key).perform()

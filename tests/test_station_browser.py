@@ -23,40 +23,11 @@ from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry
 
 from assist_common.ros_common import RELIABLE_QOS, SENSOR_QOS
-from assist_sim.testing import stop_process
 from assist_station import testing
+from assist_station.testing import Proc, wait_for
 
 pytestmark = pytest.mark.graph
 BIN = Path(sys.executable).parent
-
-
-def wait_for(predicate, timeout, interval=0.02):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if predicate():
-            return True
-        time.sleep(interval)
-    return bool(predicate())
-
-
-class Proc:
-    """A console-script node on the test's domain, output in a log file."""
-
-    def __init__(self, exe: str, args: list[str], domain_id: int, log: Path):
-        self.log_path = log
-        self._f = open(log, 'w')
-        env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED='1')
-        self.proc = subprocess.Popen([str(BIN / exe), '--ros-args', *args], env=env, stdout=self._f,
-                                     stderr=subprocess.STDOUT, start_new_session=True)
-
-    def log(self) -> str:
-        self._f.flush()
-        return self.log_path.read_text(errors='replace')
-
-    def stop(self) -> int:
-        code = stop_process(self.proc, 10.0)
-        self._f.close()
-        return code
 
 
 class Probe:

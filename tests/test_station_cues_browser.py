@@ -9,9 +9,7 @@ hello, the downward camera of ARCHITECTURE.md), and the page's window.stationSta
 from __future__ import annotations
 
 import math
-import os
 import re
-import subprocess
 import sys
 import threading
 import time
@@ -29,8 +27,8 @@ from std_msgs.msg import Bool
 from visualization_msgs.msg import Marker, MarkerArray
 
 from assist_common.ros_common import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS
-from assist_sim.testing import stop_process
 from assist_station import testing
+from assist_station.testing import Proc, wait_for
 
 pytestmark = pytest.mark.graph
 BIN = Path(sys.executable).parent
@@ -44,34 +42,6 @@ ABOVE_PAD0 = (3.5, 1.0, 2.5)          # the vehicle in the inset check: pad 0's 
 CAMERA_GRAY = 40
 SURE_VAR, UNSURE_VAR = 0.01, 1.0      # m^2: sigma 0.1 m and 1 m (cue_max_sigma_m 0.5 by default)
 BETWEEN_PADS = (5.75, 0.0, 0.9)      # on no pad
-
-
-class Proc:
-    """A console-script node on the test's domain, output in a log file."""
-
-    def __init__(self, exe: str, args: list[str], domain_id: int, log: Path):
-        self.log_path, self._f = log, open(log, 'w')
-        env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED='1')
-        self.proc = subprocess.Popen([str(BIN / exe), '--ros-args', *args], env=env, stdout=self._f,
-                                     stderr=subprocess.STDOUT, start_new_session=True)
-
-    def log(self) -> str:
-        self._f.flush()
-        return self.log_path.read_text(errors='replace')
-
-    def stop(self) -> int:
-        code = stop_process(self.proc, 10.0)
-        self._f.close()
-        return code
-
-
-def wait_for(predicate, timeout, interval=0.05):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if predicate():
-            return True
-        time.sleep(interval)
-    return bool(predicate())
 
 
 class Feed:

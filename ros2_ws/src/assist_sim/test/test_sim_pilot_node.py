@@ -21,15 +21,11 @@ pytestmark = pytest.mark.graph
 ODOM_TIMEOUT_S = 2.0
 
 
-@pytest.fixture
-def graph():
+def _pilot_and_probe(domains: tuple[int, int], **params):
+    """sim_pilot_node with `params` and a probe node, spun in-process on a private domain in `domains`."""
     ctx = Context()
-    rclpy.init(context=ctx, domain_id=random.Random(os.getpid() ^ time.monotonic_ns()).randint(1, 100))
-    # odom_timeout_s 2 s instead of 0.5 s: on a loaded CI machine the probe's odometry stalled for over 0.5 s
-    # mid-test and the pilot (rightly) sent zero while the test waited for a descent
-    pilot = SimPilotNode(context=ctx, parameter_overrides=[Parameter('beta', value=1.0),
-                                                           Parameter('alpha', value=1.0),
-                                                           Parameter('odom_timeout_s', value=ODOM_TIMEOUT_S)])
+    rclpy.init(context=ctx, domain_id=random.Random(os.getpid() ^ time.monotonic_ns()).randint(*domains))
+    pilot = SimPilotNode(context=ctx, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
     probe = Node('probe', context=ctx)
     ex = MultiThreadedExecutor(num_threads=2, context=ctx)
     ex.add_node(pilot)
@@ -41,6 +37,13 @@ def graph():
     pilot.destroy_node()
     probe.destroy_node()
     rclpy.shutdown(context=ctx)
+
+
+@pytest.fixture
+def graph():
+    # odom_timeout_s 2 s instead of 0.5 s: on a loaded CI machine the probe's odometry stalled for over 0.5 s
+    # mid-test and the pilot (rightly) sent zero while the test waited for a descent
+    yield from _pilot_and_probe((1, 100), beta=1.0, alpha=1.0, odom_timeout_s=ODOM_TIMEOUT_S)
 
 
 def test_pilot_node_flies_toward_goal_and_descends_over_it(graph):
@@ -237,23 +240,8 @@ def test_evaluation_plan_gives_each_landing_its_own_pilot():
 
 @pytest.fixture
 def cue_graph():
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=random.Random(os.getpid() ^ time.monotonic_ns()).randint(101, 200))
-    pilot = SimPilotNode(context=ctx, parameter_overrides=[Parameter('cue_trust', value=1.0),
-                                                           Parameter('odom_timeout_s', value=ODOM_TIMEOUT_S),
-                                                           Parameter('agent_timeout_s', value=ODOM_TIMEOUT_S),
-                                                           Parameter('cue_timeout_s', value=ODOM_TIMEOUT_S)])
-    probe = Node('probe', context=ctx)
-    ex = MultiThreadedExecutor(num_threads=2, context=ctx)
-    ex.add_node(pilot)
-    ex.add_node(probe)
-    th = threading.Thread(target=ex.spin, daemon=True)
-    th.start()
-    yield pilot, probe
-    ex.shutdown()
-    pilot.destroy_node()
-    probe.destroy_node()
-    rclpy.shutdown(context=ctx)
+    yield from _pilot_and_probe((101, 200), cue_trust=1.0, odom_timeout_s=ODOM_TIMEOUT_S,
+                                agent_timeout_s=ODOM_TIMEOUT_S, cue_timeout_s=ODOM_TIMEOUT_S)
 
 
 def test_a_cue_reading_pilot_sees_the_intent_only_while_assisted_and_refuses_a_bad_one(cue_graph):

@@ -4,6 +4,10 @@ from __future__ import annotations
 import base64
 import os
 import shutil
+import subprocess
+import sys
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -50,3 +54,35 @@ def png_to_rgb(png: bytes) -> np.ndarray:
     if img is None:
         raise ValueError('not a PNG image')
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+class Proc:
+    """A console-script node of this virtualenv on ROS domain `domain_id`, its output in the file `log`."""
+
+    def __init__(self, exe: str, args: list[str], domain_id: int, log: Path):
+        self.log_path, self._f = log, open(log, 'w')
+        env = dict(os.environ, ROS_DOMAIN_ID=str(domain_id), PYTHONUNBUFFERED='1')
+        self.proc = subprocess.Popen([str(Path(sys.executable).parent / exe), '--ros-args', *args], env=env,
+                                     stdout=self._f, stderr=subprocess.STDOUT, start_new_session=True)
+
+    def log(self) -> str:
+        """Everything the process printed so far."""
+        self._f.flush()
+        return self.log_path.read_text(errors='replace')
+
+    def stop(self) -> int:
+        """SIGINT, then SIGKILL if it does not exit within 10 s; its exit code."""
+        from assist_sim.testing import stop_process
+        code = stop_process(self.proc, 10.0)
+        self._f.close()
+        return code
+
+
+def wait_for(predicate: Callable[[], object], timeout: float, interval: float = 0.02) -> bool:
+    """Poll `predicate` until it is true (True) or `timeout` seconds pass (its last value, as a bool)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(interval)
+    return bool(predicate())
