@@ -13,17 +13,9 @@ import numpy as np
 import pytest
 
 from assist_station import testing
+from assist_station.testing import wait_for
 from assist_station.server import ServerConfig, StationServer
 from assist_station.station_core import KeyState, StationConfig
-
-
-def wait_for(predicate, timeout, interval=0.05):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if predicate():
-            return True
-        time.sleep(interval)
-    return bool(predicate())
 
 
 class Intruder:

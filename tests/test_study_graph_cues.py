@@ -27,7 +27,7 @@ PIDS = ('S03',)                # order: assisted_cues-unassisted-assisted
 @pytest.fixture(scope='module')
 def run(tmp_path_factory, domain_id):
     out = tmp_path_factory.mktemp('cues_study')
-    args = SimulateArgs(out=str(out), participants=3, only=PIDS, landings_per_block=1, practice=1,
+    args = SimulateArgs(out=str(out), participants=3, only=PIDS, landings_per_block=1, practice=0,
                         real_time_factor=3.0, browser_participants=1, study=str(STUDY), domain_id=domain_id)
     results = simulate(args)
     return out, {r['participant']: r for r in results}
@@ -40,8 +40,7 @@ def test_blocks_follow_the_latin_square_and_cues_show_only_in_their_block(run):
         with open(out / pid / 'landings.csv', newline='') as fh:
             table = list(csv.DictReader(fh))
         order = condition_order(pid, ALL_CONDITIONS)
-        assert [(r['block'], r['condition']) for r in table] == [('0', order[0])] + [
-            (str(b), c) for b, c in enumerate(order, start=1)]
+        assert [(r['block'], r['condition']) for r in table] == [(str(b), c) for b, c in enumerate(order, start=1)]
         for r in table:
             assert r['assist_live'] == ('false' if r['condition'] == 'unassisted' else 'true'), r
             assert all(r[c] != '' for c in MEASURE_COLUMNS), r
