@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import math
 from dataclasses import dataclass, field
 from typing import Any
 from collections.abc import Callable
@@ -329,10 +328,7 @@ class LandingAssistEnv(gym.Env):
 
 def cue_of(intent: Intent) -> Cue:
     """What the station shows of the assistant's intent (the goal cue's xy standard deviation, the light)."""
-    if intent.goal is None:
-        return Cue(None, math.inf, intent.descent_ok)
-    sigma = math.sqrt(max(float(intent.covariance[0, 0]), float(intent.covariance[1, 1])))
-    return Cue(intent.goal, sigma, intent.descent_ok)
+    return Cue(intent.goal, intent.sigma_xy_m, intent.descent_ok)
 
 
 def assistant_config(cfg: EnvConfig) -> AssistantConfig:

@@ -81,6 +81,13 @@ class Intent:
     descent_ok: bool | None             # None: unknown (no fresh depth, a leg window without depth)
     candidates: int = 0                 # pads believed in
 
+    @property
+    def sigma_xy_m(self) -> float:
+        """The horizontal standard deviation of the estimate: sqrt(max(var x, var y)) (inf without an estimate)."""
+        if self.covariance is None:
+            return math.inf
+        return math.sqrt(max(float(self.covariance[0, 0]), float(self.covariance[1, 1])))
+
     def pose_covariance(self) -> list[float]:
         """The 6x6 row-major covariance of a PoseWithCovariance: position block as estimated, rotation unknown."""
         cov = np.zeros((6, 6))

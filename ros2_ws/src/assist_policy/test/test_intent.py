@@ -157,3 +157,9 @@ def test_the_belief_starts_afresh_when_the_recall_is_switched_and_its_map_no_lon
     est.recall.cfg.enabled = True           # back: a fresh belief over the recall's two pads
     out = est.update(ctx(2.05, (1.5, 0.0, 3.0)), np.array([-1.0, 0.0, 0.0]))
     assert out.index == 0 and out.candidates == 2
+
+
+def test_the_horizontal_sigma_is_the_wider_axis_of_the_covariance():
+    out = fly(estimator(), 0.0, 3.0, (2.0, 0.0, 3.0), (0.0, 0.0, 0.0))
+    assert out.sigma_xy_m == pytest.approx(np.sqrt(out.covariance[0, 0]))      # the pads stand in a row along x
+    assert estimator().last.sigma_xy_m == np.inf                                # no estimate
