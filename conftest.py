@@ -27,9 +27,9 @@ def pytest_collection_modifyitems(config, items):
 
 @pytest.fixture(autouse=True)
 def _python_logging_released():
-    """After each test, Python logging no longer forwards to a node an in-process test built (ros_common)."""
+    """After each test, Python logging no longer forwards to a node an in-process test built (forward_logging)."""
     yield
-    from assist_common.ros_common import release_logging
+    from assist_common.ros_io import release_logging
     release_logging()
 
 

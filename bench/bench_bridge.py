@@ -132,7 +132,7 @@ def run() -> list[dict]:
     from rclpy.context import Context
     from rclpy.node import Node
 
-    from assist_common.ros_common import RELIABLE_QOS
+    from assist_common.ros_io import RELIABLE_QOS
 
     domain = random.Random(os.getpid() ^ time.monotonic_ns()).randint(200, 230)
     port = free_udp_port()

@@ -42,7 +42,7 @@ class _Feed:
         from std_msgs.msg import Bool
         from visualization_msgs.msg import Marker, MarkerArray
 
-        from assist_common.ros_common import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, sec_to_stamp
+        from assist_common.ros_io import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, sec_to_stamp
         self.node, self.sec_to_stamp = node, sec_to_stamp
         self.types = {'pose': PoseWithCovarianceStamped, 'twist': TwistStamped, 'odom': Odometry, 'bool': Bool}
         self.pubs = {'odom': node.create_publisher(Odometry, '/odom', SENSOR_QOS),

@@ -124,8 +124,8 @@ def measure(frames: int = FRAMES, startup_timeout_s: float = 90.0, node_params: 
     from sensor_msgs.msg import Image
     from std_msgs.msg import Float32MultiArray
 
-    from assist_common.ros_common import (RELIABLE_QOS, SENSOR_QOS, make_executor, set_realtime_priority,
-                                          spin_until_stopped)
+    from assist_common.ros_io import RELIABLE_QOS, SENSOR_QOS
+    from assist_common.ros_run import make_executor, set_realtime_priority, spin_until_stopped
 
     domain = random.Random(os.getpid() ^ time.monotonic_ns()).randint(150, 199)
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED='1')

@@ -83,7 +83,7 @@ def _graph_latency(samples: int = 200, period_s: float = 0.05) -> tuple[float, f
     from sensor_msgs.msg import Image
     from std_msgs.msg import Float32MultiArray
 
-    from assist_common.ros_common import SENSOR_QOS
+    from assist_common.ros_io import SENSOR_QOS
 
     domain = random.Random(os.getpid() ^ time.monotonic_ns()).randint(200, 230)
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED='1')

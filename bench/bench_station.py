@@ -63,7 +63,7 @@ def run() -> list[dict]:
     from rclpy.node import Node
     from selenium.webdriver.common.action_chains import ActionChains
 
-    from assist_common.ros_common import RELIABLE_QOS, SENSOR_QOS
+    from assist_common.ros_io import RELIABLE_QOS, SENSOR_QOS
 
     domain = random.Random(os.getpid() ^ time.monotonic_ns()).randint(200, 232)
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED='1')

@@ -114,7 +114,7 @@ class PolicyProbe:
         from nav_msgs.msg import Odometry
         from std_msgs.msg import Float32MultiArray
 
-        from assist_common.ros_common import RELIABLE_QOS, SENSOR_QOS
+        from assist_common.ros_io import RELIABLE_QOS, SENSOR_QOS
         from assist_policy.testing import LATENT
         self._np, self._twist, self._odom, self._array, self._latent = (np, TwistStamped, Odometry,
                                                                           Float32MultiArray, LATENT)

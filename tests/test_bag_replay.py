@@ -174,7 +174,7 @@ def test_replay_runs_the_rules_the_bag_was_flown_with(rules_landing, landing):
     with BagReader(bag) as r:
         assert DEPTH_NOISE_KEY in r.metadata['custom_data']      # the encoder's noise seeds, the depth as rendered
     s = summarize(replay(bag, ReplayConfig()))
-    assert s['rules'] == {'floor_guard': True, 'override': True, 'recall': True, 'damper': True}
+    assert s['rules'] == {'safety': True, 'override': True, 'recall': True, 'damper': True}
     assert s['depth_noise'] is not None and s['velocity_frame'] == 'odom'
     assert s['latent']['max'] < 1e-5                             # the same noise re-applied to the same frames
     assert s['agent_cmd']['max'] < 1e-4 and s['cmd_vel']['max'] < 1e-4
@@ -182,14 +182,14 @@ def test_replay_runs_the_rules_the_bag_was_flown_with(rules_landing, landing):
     # the assistant's intent as it was recorded: every goal estimate and descent flag, the same
     assert s['goal_estimate']['compared'] > 50 and s['goal_estimate']['max'] < 1e-9
     assert s['descent_ok']['compared'] == s['steps'] and s['descent_ok']['agree'] == s['steps']
-    for rule in ('floor_guard', 'override', 'recall', 'damper'):    # each one's commands are in the bag
+    for rule in ('safety', 'override', 'recall', 'damper'):    # each one's commands are in the bag
         off = summarize(replay(bag, ReplayConfig(latent='recorded', **{rule: 'off'})))
         assert off['rules'][rule] is False and off['cmd_vel']['max'] > 0.05, rule
     # a bag evaluate flew without rules replays without them; a graph's bag (no condition) with all, as policy_node
     assert summarize(replay(landing[0], ReplayConfig(latent='recorded')))['rules'] == dict.fromkeys(
-        ('floor_guard', 'override', 'recall', 'damper'), False)
-    assert rules_on(ReplayConfig(), '', []) == dict.fromkeys(('floor_guard', 'override', 'recall', 'damper'), True)
-    assert rules_on(ReplayConfig(), '', [], 'oracle') == {'floor_guard': True, 'override': False, 'recall': False,
+        ('safety', 'override', 'recall', 'damper'), False)
+    assert rules_on(ReplayConfig(), '', []) == dict.fromkeys(('safety', 'override', 'recall', 'damper'), True)
+    assert rules_on(ReplayConfig(), '', [], 'oracle') == {'safety': True, 'override': False, 'recall': False,
                                                           'damper': False}
     with pytest.raises(ValueError, match='recall must be'):
         replay(bag, ReplayConfig(recall='sometimes'))

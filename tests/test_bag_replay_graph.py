@@ -160,7 +160,7 @@ def test_replay_takes_the_mode_from_the_bag(graph_bag, tmp_path):
                                                            json.dumps({**pol, 'mode': 'oracle'})})
     s = summarize(replay(oracle, ReplayConfig(latent='recorded')))
     assert s['mode'] == 'oracle' and s['mode_from'] == 'policy_node parameters'
-    assert s['rules'] == {'floor_guard': True, 'override': True, 'recall': True, 'damper': True}   # as recorded
+    assert s['rules'] == {'safety': True, 'override': True, 'recall': True, 'damper': True}   # as recorded
     # without the recorder's parameters: policy_node's /diagnostics say which mode flew
     bare = _with_custom(graph_bag, tmp_path / 'bare', None)
     s = summarize(replay(bare, ReplayConfig(latent='recorded')))

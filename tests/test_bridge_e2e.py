@@ -14,7 +14,7 @@ from rcl_interfaces.srv import SetParameters
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_srvs.srv import Trigger
 
-from assist_common.ros_common import RELIABLE_QOS, SENSOR_QOS, fill_twist
+from assist_common.ros_io import RELIABLE_QOS, SENSOR_QOS, fill_twist
 from assist_common.mavlink_io import mavlink
 from assist_sim.testing import SilentAutopilot, free_udp_port
 

@@ -13,7 +13,7 @@ from std_msgs.msg import UInt8
 from std_srvs.srv import Trigger
 
 from assist_common.mavlink_io import mavlink
-from assist_common.ros_common import LATCHED_QOS, SENSOR_QOS
+from assist_common.ros_io import LATCHED_QOS, SENSOR_QOS
 from assist_sim.testing import SilentAutopilot, VehicleThread, free_udp_port
 
 pytestmark = pytest.mark.graph

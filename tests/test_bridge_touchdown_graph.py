@@ -13,7 +13,7 @@ from std_msgs.msg import UInt8
 from std_srvs.srv import Trigger
 
 from assist_common.mavlink_io import mavlink
-from assist_common.ros_common import LATCHED_QOS, RELIABLE_QOS, fill_twist
+from assist_common.ros_io import LATCHED_QOS, RELIABLE_QOS, fill_twist
 from assist_common.touchdown import TouchdownConfig
 from assist_sim.testing import RecordingWorld, VehicleThread, free_udp_port
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rclpy
-from assist_common.ros_common import RELIABLE_QOS, stamp_to_sec
+from assist_common.ros_io import RELIABLE_QOS, stamp_to_sec
 from assist_lab import graph_eval
 from assist_lab.episodes_plan import landing_plan
 from assist_lab.evaluate import read_landings

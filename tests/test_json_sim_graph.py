@@ -15,7 +15,7 @@ from sensor_msgs.msg import Image
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from assist_common.ros_common import LATCHED_QOS, SENSOR_QOS
+from assist_common.ros_io import LATCHED_QOS, SENSOR_QOS
 from assist_sim.testing_sitl import SitlStandIn
 
 pytestmark = pytest.mark.graph

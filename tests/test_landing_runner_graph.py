@@ -50,7 +50,7 @@ def test_pilot_starts_the_landing_only_above_start_altitude(ros, start_node, wai
     import numpy as np
     from geometry_msgs.msg import TwistStamped
 
-    from assist_common.ros_common import RELIABLE_QOS, twist_to_array
+    from assist_common.ros_io import RELIABLE_QOS, twist_to_array
     start_node('sim_node', {'camera_rate_hz': 0.0, 'seed': 3})      # velocity mode: episodes start airborne
     start_node('sim_pilot_node', {'start_altitude_m': 50.0, 'seed': 1}, remaps={'/pilot/cmd_vel': '/pilot_high'})
     start_node('sim_pilot_node', {'start_altitude_m': 0.0, 'seed': 1}, remaps={'/pilot/cmd_vel': '/pilot_now',

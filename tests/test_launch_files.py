@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from assist_common.ros_common import RELIABLE_QOS
+from assist_common.ros_io import RELIABLE_QOS
 
 pytestmark = pytest.mark.graph
 

@@ -74,7 +74,7 @@ def test_version_is_the_package_version(answers, name):
 
 def test_flags_after_ros_args_are_not_ours():
     """`--ros-args ... --help` belongs to ROS: the node is not answered with our help."""
-    from assist_common.ros_common import console_request
+    from assist_common.ros_params import console_request
 
     def factory():
         raise AssertionError('never built')

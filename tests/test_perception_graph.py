@@ -10,7 +10,7 @@ from std_msgs.msg import Float32MultiArray
 
 from assist_perception.encoder_core import default_model_path
 from assist_perception.model import load_model
-from assist_common.ros_common import SENSOR_QOS, stamp_to_sec
+from assist_common.ros_io import SENSOR_QOS, stamp_to_sec
 
 pytestmark = pytest.mark.graph
 

@@ -12,7 +12,7 @@ import pytest
 from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped
 from std_msgs.msg import Bool, String
 
-from assist_common.ros_common import LANDING_QOS, LATCHED_QOS, RELIABLE_QOS
+from assist_common.ros_io import LANDING_QOS, LATCHED_QOS, RELIABLE_QOS
 from assist_policy.testing import constant_actor
 
 pytestmark = pytest.mark.graph

@@ -18,7 +18,7 @@ from rcl_interfaces.srv import SetParameters
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float32MultiArray
 
-from assist_common.ros_common import RELIABLE_QOS, SENSOR_QOS
+from assist_common.ros_io import RELIABLE_QOS, SENSOR_QOS
 from assist_policy.testing import LATENT, constant_actor
 
 pytestmark = pytest.mark.graph

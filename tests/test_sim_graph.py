@@ -12,7 +12,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from assist_common.ros_common import LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, fill_twist
+from assist_common.ros_io import LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, fill_twist
 
 pytestmark = pytest.mark.graph
 

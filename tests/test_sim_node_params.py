@@ -18,7 +18,7 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image
 from std_srvs.srv import Trigger
 
-from assist_common.ros_common import SENSOR_QOS
+from assist_common.ros_io import SENSOR_QOS
 
 pytestmark = pytest.mark.graph
 BIN = Path(sys.executable).parent

@@ -22,7 +22,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry
 
-from assist_common.ros_common import RELIABLE_QOS, SENSOR_QOS
+from assist_common.ros_io import RELIABLE_QOS, SENSOR_QOS
 from assist_station import testing
 from assist_station.testing import Proc, wait_for
 

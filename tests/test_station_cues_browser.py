@@ -26,7 +26,7 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import Bool
 from visualization_msgs.msg import Marker, MarkerArray
 
-from assist_common.ros_common import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS
+from assist_common.ros_io import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS
 from assist_station import testing
 from assist_station.testing import Proc, wait_for
 

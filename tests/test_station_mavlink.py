@@ -14,7 +14,7 @@ from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry
 from std_srvs.srv import Trigger
 
-from assist_common.ros_common import RELIABLE_QOS, SENSOR_QOS
+from assist_common.ros_io import RELIABLE_QOS, SENSOR_QOS
 from assist_sim.testing import free_udp_port
 from assist_station import testing
 

@@ -11,7 +11,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from assist_sim.core.config import SceneConfig
 from assist_sim.core.scene import generate_scene
 from assist_sim.core.scene_markers import GOAL_NS, PLATFORMS_NS, material_rgba, scene_markers
-from assist_common.ros_common import LATCHED_QOS
+from assist_common.ros_io import LATCHED_QOS
 
 
 def test_scene_markers_are_one_box_per_pad_plus_the_goal():

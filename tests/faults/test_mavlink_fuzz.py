@@ -274,7 +274,7 @@ def test_bridge_node_under_fuzz(ros, start_node, wait):
     from geometry_msgs.msg import TwistStamped
     from diagnostic_msgs.msg import DiagnosticArray
 
-    from assist_common.ros_common import RELIABLE_QOS, fill_twist
+    from assist_common.ros_io import RELIABLE_QOS, fill_twist
 
     port = free_udp_port()
     bridge = start_node('mavlink_bridge_node', {'connection': f'udpin:127.0.0.1:{port}'})

@@ -22,7 +22,7 @@ import pytest
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 
-from assist_common.ros_common import LANDING_QOS
+from assist_common.ros_io import LANDING_QOS
 
 SIM_S = float(os.environ.get('ASSIST_SOAK_SIM_S', '0') or 0)
 # sim_node real_time_factor: 0 (as fast as possible, the default) stresses the processes; the graph then falls

@@ -36,7 +36,7 @@ def vehicle(out: str, port: int, seconds: float) -> None:
     import rclpy
     from sensor_msgs.msg import Image
 
-    from assist_common.ros_common import SENSOR_QOS
+    from assist_common.ros_io import SENSOR_QOS
     from assist_sim.testing import SilentAutopilot
     stop = _stop_event()
     ap = SilentAutopilot(port, send_position=True)
@@ -72,7 +72,7 @@ def pilot(out: str, seconds: float) -> None:
     from nav_msgs.msg import Odometry
     from sensor_msgs.msg import CompressedImage
 
-    from assist_common.ros_common import RELIABLE_QOS, SENSOR_QOS
+    from assist_common.ros_io import RELIABLE_QOS, SENSOR_QOS
     stop = _stop_event()
     rclpy.init()
     node = rclpy.create_node('netns_pilot')

@@ -23,7 +23,8 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock
 
-from assist_common.ros_common import Param, StartupError, declare_parameters, run_node
+from assist_common.ros_params import Param, StartupError, declare_parameters
+from assist_common.ros_run import run_node
 
 from .bagio import BagError, BagReader
 from .play_core import PlayClock, parse_remaps

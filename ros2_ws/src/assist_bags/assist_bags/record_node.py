@@ -36,7 +36,9 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from assist_common.ros_common import Diagnostics, Param, StartupError, declare_parameters, run_node
+from assist_common.ros_io import Diagnostics
+from assist_common.ros_params import Param, StartupError, declare_parameters
+from assist_common.ros_run import run_node
 
 from .bagio import CLOCK_KEY, CONTRACT_TOPICS, PARAMS_KEY, BagError, BagWriter, typestore
 from .rosutil import bag_qos, cli_to_ros_args, message_class

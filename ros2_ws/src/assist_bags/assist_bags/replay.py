@@ -64,7 +64,7 @@ from . import msgs
 from .bagio import (CONTRACT_TOPICS, DEPTH_NOISE_KEY, METADATA, PARAMS_KEY, VELOCITY_FRAME_KEY, BagError, BagReader,
                     BagWriter, check_output, publish_new)
 from assist_policy.blending import DEFAULT_THRESHOLD
-from assist_policy.rules import rule
+from assist_policy.rules import RULES, rule_fields
 from assist_policy.poses import header_seconds
 
 log = logging.getLogger(__name__)
@@ -82,6 +82,9 @@ MAX_STEPS = 1_000_000           # steps at --rate-hz that one gap between messag
 
 
 @dataclass
+# a field per non-learned rule (assist_policy.rules.RULES, by its settings field): on | off | auto (as the bag was
+# flown)
+@rule_fields(lambda r: field(default='auto'), lambda r: str)
 class ReplayConfig:
     """What to re-run and how (replay_assist flags map 1:1); None / '' / 'auto': as the bag was flown."""
 
@@ -93,16 +96,12 @@ class ReplayConfig:
     rate_hz: float = 20.0              # step rate when the bag has no recorded /cmd_vel
     blend_threshold: float | None = None   # None: policy_node's recorded value, else 0.25
     timeout_s: float | None = None     # pilot, feature and odometry timeouts; None: recorded, else 0.5
-    override: str = 'auto'             # pilot override: on | off | auto (as the bag was flown)
-    floor_guard: str = 'auto'          # floor guard: on | off | auto (as override)
-    recall: str = 'auto'               # pad recall: on | off | auto (as override)
-    damper: str = 'auto'               # oscillation damper: on | off | auto (as override)
     align_pilot: str = 'auto'          # on | off | auto (on for graph bags): see pilot_alignment
 
 
 # replay option (ReplayConfig field, --option) -> the rule it switches (assist_policy.rules: evaluate's flag in a
 # condition's name, policy_node's switch recorded by bag_record)
-RULE_OPTIONS = {name: rule(name) for name in ('floor_guard', 'override', 'recall', 'damper')}
+RULE_OPTIONS = {r.field: r for r in RULES}
 # PolicyCoreConfig timeout -> policy_node's parameter
 TIMEOUT_PARAMS = {'pilot_timeout_s': 'pilot_timeout_s', 'feature_timeout_s': 'latent_timeout_s',
                   'odom_timeout_s': 'odom_timeout_s'}
@@ -118,7 +117,7 @@ def rules_on(cfg: ReplayConfig, condition: str, flags: list[str], mode: str = 'l
     for option, r in RULE_OPTIONS.items():
         v = getattr(cfg, option)
         if v not in ('auto', 'on', 'off'):
-            raise ValueError(f"{option.replace('_', '-')} must be auto, on or off, got {v!r}")
+            raise ValueError(f'--{option} must be auto, on or off, got {v!r}')
         if condition:
             default = r.flag in flags
         elif flown is not None and isinstance(flown.get(r.switch), bool):
@@ -776,14 +775,9 @@ def main(argv: list[str] | None = None) -> int:
                    help='|a| above which a is blended (default: policy_node\'s recorded value, else 0.25)')
     p.add_argument('--timeout-s', type=float, default=d.timeout_s,
                    help='input staleness timeout (s; default: policy_node\'s recorded timeouts, else 0.5)')
-    p.add_argument('--override', default=d.override, choices=('auto', 'on', 'off'),
-                   help='pilot override (auto: as the bag was flown)')
-    p.add_argument('--floor-guard', default=d.floor_guard, choices=('auto', 'on', 'off'),
-                   help='floor guard (auto: as the bag was flown)')
-    p.add_argument('--recall', default=d.recall, choices=('auto', 'on', 'off'),
-                   help='pad recall (auto: as the bag was flown)')
-    p.add_argument('--damper', default=d.damper, choices=('auto', 'on', 'off'),
-                   help='oscillation damper (auto: as the bag was flown)')
+    for r in RULES:                          # --safety (--floor-guard), --override (--pilot-override), ...
+        p.add_argument(f'--{r.field}', f'--{r.switch.replace("_", "-")}', dest=r.field, default=getattr(d, r.field),
+                       choices=('auto', 'on', 'off'), help=f'{r.title} (auto: as the bag was flown)')
     p.add_argument('--align-pilot', default=d.align_pilot, choices=('auto', 'on', 'off'),
                    help='give each step the pilot command its recorded V and a imply, when that is the recorded '
                         'message before or after the latest (auto: graph bags)')
@@ -797,8 +791,8 @@ def main(argv: list[str] | None = None) -> int:
     bag = Path(a.bag.rstrip('/'))
     cfg = ReplayConfig(mode=a.mode, actor=a.actor, encoder=a.encoder, latent=a.latent,
                        velocity_frame=a.velocity_frame, rate_hz=a.rate_hz, blend_threshold=a.blend_threshold,
-                       timeout_s=a.timeout_s, override=a.override, floor_guard=a.floor_guard, recall=a.recall,
-                       damper=a.damper, align_pilot=a.align_pilot)
+                       timeout_s=a.timeout_s, align_pilot=a.align_pilot,
+                       **{r.field: getattr(a, r.field) for r in RULES})
     bags = bags_under(bag)
     if bags:
         return replay_many(bags, Path(a.out) if a.out else None, cfg, a.storage, summary_given=bool(a.summary))

@@ -12,7 +12,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 
-from assist_common.ros_common import HELP_FLAGS, VERSION_FLAG, Param, node_help, version_text
+from assist_common.ros_params import HELP_FLAGS, VERSION_FLAG, Param, node_help, version_text
 
 
 def message_class(msgtype: str) -> Any | None:

@@ -18,7 +18,9 @@ from diagnostic_msgs.msg import DiagnosticStatus
 from rclpy.node import Node
 from sensor_msgs.msg import CompressedImage, Image
 
-from assist_common.ros_common import Diagnostics, Param, declare_parameters, exit_process, run_node
+from assist_common.ros_io import Diagnostics
+from assist_common.ros_params import Param, declare_parameters
+from assist_common.ros_run import exit_process, run_node
 
 from .image_link import COLOR_SUFFIX, DEPTH_SUFFIX, LinkError, decode_color, decode_depth
 from .image_relay import LINK_QOS

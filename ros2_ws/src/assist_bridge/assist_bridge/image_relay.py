@@ -18,7 +18,9 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CompressedImage, Image
 
 from assist_common.images import BadFrame, decode_color, decode_depth
-from assist_common.ros_common import Diagnostics, Param, declare_parameters, exit_process, run_node, stamp_to_sec
+from assist_common.ros_io import Diagnostics, stamp_to_sec
+from assist_common.ros_params import Param, declare_parameters
+from assist_common.ros_run import exit_process, run_node
 
 from .image_link import COLOR_FORMAT, COLOR_SUFFIX, DEPTH_FORMAT, DEPTH_SUFFIX, LinkConfig, LinkError, pack_pair
 

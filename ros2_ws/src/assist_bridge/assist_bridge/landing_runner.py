@@ -27,8 +27,9 @@ from std_msgs.msg import String, UInt8
 from std_srvs.srv import Trigger
 
 from assist_common.atomic import CsvLog
-from assist_common.ros_common import (LANDING_QOS, LATCHED_QOS, SENSOR_QOS, Diagnostics, Param, StartupError,
-                                      declare_parameters, exit_process, forward_logging, run_node)
+from assist_common.ros_io import LANDING_QOS, LATCHED_QOS, SENSOR_QOS, Diagnostics, forward_logging
+from assist_common.ros_params import Param, StartupError, declare_parameters
+from assist_common.ros_run import exit_process, run_node
 
 from .landing_runner_core import LandingRunnerCore, RunnerConfig, RunnerState
 from .mavlink_bridge_node import LANDED_STATE_TOPIC

@@ -43,9 +43,10 @@ from std_srvs.srv import Trigger
 
 from assist_common.constants import ACCEPTED_CMD_FRAMES
 from assist_common.mavlink_io import ThrottledLog
-from assist_common.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError,
-                                      declare_parameters, exit_process, forward_logging, run_node, stamp_to_sec,
-                                      twist_to_array)
+from assist_common.ros_io import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, forward_logging, stamp_to_sec,
+                                  twist_to_array)
+from assist_common.ros_params import Param, StartupError, declare_parameters
+from assist_common.ros_run import exit_process, run_node
 from assist_common.settings import RULE_KEY, check_named
 from assist_common.touchdown import TouchdownConfig
 

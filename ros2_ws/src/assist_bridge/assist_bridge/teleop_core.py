@@ -168,7 +168,7 @@ class IntentError(ValueError):
 def stamp_age_problem(stamp_s: float | None, now_s: float, max_age_s: float,
                       tolerance_s: float) -> IntentError | None:
     """Why a header stamp makes a message unusable at `now_s` (the node's clock, sim or wall), else None; an unset
-    stamp (None) is dated by its arrival. The rule of assist_common.ros_common.stamp_problem (which needs rclpy)."""
+    stamp (None) is dated by its arrival. The rule of assist_common.ros_io.stamp_problem (which needs rclpy)."""
     if stamp_s is None:
         return None
     if stamp_s - now_s > tolerance_s:

@@ -22,9 +22,10 @@ from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from std_msgs.msg import Bool
 
-from assist_common.ros_common import (RELIABLE_QOS, SENSOR_QOS, STAMP_TOLERANCE_S, Diagnostics, Param, StartupError,
-                                      declare_parameters, exit_process, fill_twist, forward_logging, run_node,
-                                      stamp_to_sec)
+from assist_common.ros_io import (RELIABLE_QOS, SENSOR_QOS, STAMP_TOLERANCE_S, Diagnostics, fill_twist,
+                                  forward_logging, stamp_to_sec)
+from assist_common.ros_params import Param, StartupError, declare_parameters
+from assist_common.ros_run import exit_process, run_node
 
 from .teleop_core import HELP, IntentConfig, IntentError, IntentLine, KeyDecoder, TeleopConfig, TeleopCore
 

@@ -23,7 +23,8 @@ from std_msgs.msg import UInt8  # noqa: E402
 from assist_bridge import mavlink_bridge_node  # noqa: E402
 from assist_bridge.mavlink_bridge_node import LANDED_STATE_TOPIC, MavlinkBridgeNode  # noqa: E402
 from assist_bridge.vision import VisionEstimate  # noqa: E402
-from assist_common.ros_common import LATCHED_QOS, StartupError, release_logging  # noqa: E402
+from assist_common.ros_io import LATCHED_QOS, release_logging  # noqa: E402
+from assist_common.ros_params import StartupError  # noqa: E402
 from assist_sim.testing import free_udp_port  # noqa: E402
 from assist_common.domains import private_domain_id  # noqa: E402
 

@@ -102,7 +102,7 @@ def teleop_tmux(tmp_path):
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
 
-    from assist_common.ros_common import RELIABLE_QOS
+    from assist_common.ros_io import RELIABLE_QOS
 
     domain = private_domain_id()
     ctx = Context()

@@ -116,7 +116,7 @@ def teleop_with_intent(tmp_path):
     from rclpy.node import Node
     from std_msgs.msg import Bool
 
-    from assist_common.ros_common import RELIABLE_QOS, SENSOR_QOS, sec_to_stamp
+    from assist_common.ros_io import RELIABLE_QOS, SENSOR_QOS, sec_to_stamp
 
     domain = private_domain_id()
     ctx = Context()

@@ -330,7 +330,7 @@ def make_node():
     from rclpy.parameter import Parameter
 
     from assist_bridge.mavlink_bridge_node import MavlinkBridgeNode
-    from assist_common.ros_common import release_logging
+    from assist_common.ros_io import release_logging
     ctx = Context()
     rclpy.init(context=ctx, domain_id=int(os.environ.get('ROS_DOMAIN_ID') or 0))
     made = []
@@ -363,7 +363,7 @@ def test_the_node_builds_the_envelope_from_its_parameters_and_shows_it_on_diagno
 
 
 def test_the_node_refuses_a_release_range_below_the_engage_range_in_one_line(make_node):
-    from assist_common.ros_common import StartupError
+    from assist_common.ros_params import StartupError
     with pytest.raises(StartupError) as err:
         make_node(touchdown_engage_range_m=0.5, touchdown_release_range_m=0.4)
     assert 'touchdown_release_range_m' in str(err.value) and '\n' not in str(err.value)

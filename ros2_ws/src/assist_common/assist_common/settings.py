@@ -48,6 +48,7 @@ class Rule:
     min_len: int = 0                 # tuple fields: number of items
     max_len: int | None = None
     nonempty: bool = False           # strings: not ''
+    max_chars: int | None = None     # strings: at most this many characters
     file_name: bool = False          # strings: one path component (no '/', not '.' or '..')
 
     def problem(self, value: Any) -> str | None:
@@ -55,8 +56,10 @@ class Rule:
         if self.choices and value not in self.choices:
             return 'must be one of ' + ', '.join(str(c) for c in self.choices)
         if isinstance(value, str):
-            if (self.nonempty or self.file_name) and not value:
+            if (self.nonempty or self.file_name) and not value.strip():
                 return 'must not be empty'
+            if self.max_chars is not None and len(value) > self.max_chars:
+                return f'must be at most {self.max_chars} characters'
             if self.file_name and ('/' in value or '\\' in value or value in ('.', '..')):
                 return "must be a plain name (no '/', not '.' or '..')"
             return None

@@ -54,11 +54,7 @@ from assist_policy.flight import FlightConfig, FlightMonitor
 from assist_policy.intent import Intent, IntentConfig
 from assist_policy.loop import AssistLoop
 from assist_policy.observation import IMAGE_SHAPE, Condition, ObservationBuilder, image_feature, oracle_feature
-from assist_policy.override import OverrideConfig
-from assist_policy.recall import RecallConfig
-from assist_policy.rules import RULES, all_settings, rule, switched
-from assist_policy.safety import SafetyConfig
-from assist_policy.damper import DamperConfig
+from assist_policy.rules import RULES, all_settings, rule_fields, switched
 from .episodes_plan import landing_plan
 
 log = logging.getLogger(__name__)
@@ -80,6 +76,9 @@ class RewardConfig:
 
 
 @dataclass
+# a field per non-learned rule (assist_policy.rules.RULES): off unless switched on (`rules.switched`); None: the
+# settings class's defaults, as everywhere
+@rule_fields(lambda r: field(default_factory=lambda: switched(r, False)))
 class EnvConfig:
     """Everything that defines the training / evaluation task."""
 
@@ -104,12 +103,6 @@ class EnvConfig:
     # dynamics scaled by uniform factors in [1 - spread, 1 + spread] (assist_sim.core.arducopter.randomised)
     arducopter_share: float = 0.0
     arducopter_spread: float = 0.0
-    # the non-learned rules (assist_policy.rules.RULES), off unless switched on (`rules.switched`); None: the
-    # settings class's defaults, as everywhere
-    safety: SafetyConfig | None = field(default_factory=lambda: switched(rule('safety'), False))
-    override: OverrideConfig | None = field(default_factory=lambda: switched(rule('override'), False))
-    recall: RecallConfig | None = field(default_factory=lambda: switched(rule('recall'), False))
-    damper: DamperConfig | None = field(default_factory=lambda: switched(rule('damper'), False))
     flight: FlightConfig = field(default_factory=FlightConfig)   # flight boundaries (flight.FlightMonitor)
     # the assistant's intent shown to the pilot (assist_policy.intent, as policy_node publishes it), and how the
     # pilots read it (assist_sim.cues; trust 0: they never look)

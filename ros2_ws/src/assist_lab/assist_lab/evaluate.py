@@ -98,7 +98,7 @@ from .env import EnvConfig, LandingAssistEnv, run_episode
 from .episodes_plan import landing_seeds
 from assist_perception.latent import make_latent_fn
 from assist_policy.policy_core import default_model_path
-from assist_policy.rules import RULES, Rule, switched
+from assist_policy.rules import RULES, Rule, rule_fields, switched
 from assist_policy.scripted import LEAD_S, NEAREST_PAD_VARIANTS, ScriptedConfig, ScriptedOracle, make_nearest_pad
 from assist_policy.actor import load_actor
 
@@ -115,7 +115,26 @@ PAPER = {'unassisted': '0.67 +- 0.40', 'end_to_end': '0.37 +- 0.33', 'latent': '
 MAX_EVAL_SEED = 2**31 - 1 - 1000 * 1000 - 100_000     # landing seeds (seed + 1000 beta index + k) stay valid
 
 
+def rule_option(r: Rule) -> dataclasses.Field:
+    """evaluate's and evaluate_graph's option for a rule: a goal-agnostic one unset (None: as policy_node flies each
+    mode), the others on."""
+    return dataclasses.field(default=None if r.goal_agnostic else True)
+
+
+def rule_help(r: Rule) -> str:
+    """evaluate's --help line for a rule's option."""
+    if not r.goal_agnostic:
+        return (f'apply the {r.title} ({r.module}) to every assisted condition (on by default, as policy_node; false '
+                f'with the other rules off: the bare actor, as the paper flew it)')
+    return (f'apply the {r.title} ({r.module}) to the learned assistants (latent, oracle, end_to_end); unset: as '
+            f'policy_node, on for latent and end_to_end, off for the oracle')
+
+
 @dataclass
+# the non-learned rules (a field per rule, assist_policy.rules.RULES), by default as policy_node flies each mode
+# (false: the bare actor): the floor guard on; the goal-agnostic ones (None) on for latent and end_to_end, off for
+# the oracle, which knows the goal
+@rule_fields(rule_option, lambda r: bool | None)
 class EvalArgs:
     """Command-line arguments of evaluate (every field is a --flag)."""
 
@@ -133,12 +152,6 @@ class EvalArgs:
     max_episode_s: float = setting(60.0, gt=0.0, le=3600.0)
     plot: bool = True
     pilot: str = setting('paper', choices=PILOT_NAMES)
-    # the non-learned rules, by default as policy_node flies each mode (false: the bare actor): the floor guard on;
-    # the goal-agnostic three (None) on for latent and end_to_end, off for the oracle, which knows the goal
-    safety: bool = True
-    override: bool | None = None
-    recall: bool | None = None
-    damper: bool | None = None
     from_csv: tuple[str, ...] = ()
     record_dir: str = ''
     workers: int = setting(0, ge=0, le=1024)      # 0: one per CPU core (a short run: fewer, see worker_count)
@@ -165,14 +178,7 @@ HELP = {
     'pilot': 'simulated pilot: paper (the reference), a family of assist_sim.pilots, mix (a held-out family '
              'per landing), approach_mix (glide or low_flyer per landing) or train_mix (a training family per '
              'landing)',
-    'safety': 'apply the floor guard (assist_policy.safety) to every assisted condition (on by default, as '
-              'policy_node; false with the other three: the bare actor, as the paper flew it)',
-    'override': 'apply the pilot override (assist_policy.override) to the learned assistants (latent, oracle, '
-                'end_to_end); unset: as policy_node, on for latent and end_to_end, off for the oracle',
-    'recall': 'apply the pad recall (assist_policy.recall) to the learned assistants (latent, oracle, end_to_end); '
-              'unset: as policy_node, on for latent and end_to_end, off for the oracle',
-    'damper': 'apply the oscillation damper (assist_policy.damper) to the learned assistants (latent, oracle, '
-              'end_to_end); unset: as policy_node, on for latent and end_to_end, off for the oracle',
+    **{r.field: rule_help(r) for r in RULES},
     'from_csv': 'fly nothing: combine the landings.csv files of earlier runs (e.g. one condition split '
                 'over processes by --betas; a landing in a later file replaces the same condition, beta '
                 'and seed in an earlier one) into one table, summary.csv and plot',
@@ -197,8 +203,8 @@ HELP = {
 
 LANDING_FIELDS = ['condition', 'beta', 'seed', 'scene_seed', 'goal_index', 'landed_index', 'nearest_index',
                   'aimed_index', 'error_m', 'nearest_error_m', 'outcome', 'success', 'crash', 'duration_s',
-                  'active_fraction', 'pilot', 'guard_fraction', 'override_fraction', 'recall_fraction',
-                  'damper_fraction', 'wall_fraction', 'autopilot_landed', 'path_m']
+                  'active_fraction', 'pilot', *(f'{r.flag}_fraction' for r in RULES), 'wall_fraction',
+                  'autopilot_landed', 'path_m']
 _BOOL = {'True': True, 'False': False}
 
 
@@ -353,10 +359,8 @@ def run_landing(env: LandingAssistEnv, policy, seed: int, beta: float) -> dict:
             'error_m': round(float(res['error_m']), 4), 'nearest_error_m': round(float(res['nearest_error_m']), 4),
             'outcome': res['outcome'], 'success': bool(res['success']), 'crash': bool(res['crash']),
             'duration_s': round(float(res['duration_s']), 2), 'active_fraction': round(res['active_fraction'], 3),
-            'pilot': res['pilot'], 'guard_fraction': round(res['guard_fraction'], 3),
-            'override_fraction': round(res['override_fraction'], 3),
-            'recall_fraction': round(res['recall_fraction'], 3),
-            'damper_fraction': round(res['damper_fraction'], 3), 'wall_fraction': round(res['wall_fraction'], 3),
+            'pilot': res['pilot'], **{f'{r.flag}_fraction': round(res[f'{r.flag}_fraction'], 3) for r in RULES},
+            'wall_fraction': round(res['wall_fraction'], 3),
             'autopilot_landed': '' if res.get('autopilot_landed') is None else bool(res['autopilot_landed']),
             'path_m': round(float(res['path_m']), 3)}
 
@@ -694,9 +698,7 @@ def rules_flying(args: Any, cond: str) -> dict[Rule, bool]:
     out = {}
     for r in RULES:
         asked = getattr(args, r.field)
-        if not r.goal_agnostic:
-            out[r] = bool(asked) and cond != 'unassisted'
-        elif cond not in CONDITIONS[1:]:
+        if cond == 'unassisted' or (r.goal_agnostic and cond not in CONDITIONS[1:]):
             out[r] = False
         else:
             out[r] = bool(asked) if asked is not None else r.default_on(cond)
@@ -723,10 +725,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f'combined from {", ".join(args.from_csv)}')
     else:
         state = {True: 'on', False: 'off', None: 'on (oracle: off)'}
-        print(f'pilot {args.pilot}, floor guard {"on" if args.safety else "off"}, '
-              f'pilot override {state[args.override]}, '
-              f'pad recall {state[args.recall]}, oscillation damper {state[args.damper]}, '
-              f'alpha {args.alpha}, '
+        print(f'pilot {args.pilot}, '
+              + ''.join(f'{r.title} {state[getattr(args, r.field)]}, ' for r in RULES)
+              + f'alpha {args.alpha}, '
               f'betas {args.betas[0]}..{args.betas[-1]} ({len(args.betas)}), '
               f'{args.landings} landings each, seed {args.seed}')
     print_results(summary, args.out)

@@ -68,7 +68,7 @@ import rclpy
 import rclpy.signals
 from assist_common.constants import BLEND_THRESHOLD_MPS
 from assist_common.domains import DOMAIN_IDS_ENV, domain_range
-from assist_common.ros_common import LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, stamp_to_sec
+from assist_common.ros_io import LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, stamp_to_sec
 from assist_sim.core.arducopter import FLIGHT_CONTROLLERS
 from assist_sim.pilots import PILOT_NAMES
 from diagnostic_msgs.msg import DiagnosticArray
@@ -85,7 +85,7 @@ from visualization_msgs.msg import MarkerArray
 from assist_common.settings import check_settings, parse_command, setting
 from .cluster import DirectoryBusy, hold_directory
 from .episodes_plan import LandingPlan, evaluation_plans
-from assist_policy.rules import RULES, Rule
+from assist_policy.rules import RULES, Rule, rule_fields
 from .evaluate import (
     CONDITIONS,
     MAX_EVAL_SEED,
@@ -94,6 +94,7 @@ from .evaluate import (
     condition_name,
     cues_shown,
     print_results,
+    rule_option,
     rules_flying,
     write_results,
 )
@@ -127,6 +128,7 @@ RUN_ONLY_ARGS = ('out', 'plot', 'domain_id', 'landing_timeout_s', 'startup_timeo
 
 
 @dataclass
+@rule_fields(rule_option, lambda r: bool | None)     # a field per non-learned rule, as evaluate's
 class GraphEvalArgs:
     """Command-line arguments of evaluate_graph (every field is a --flag)."""
 
@@ -142,10 +144,6 @@ class GraphEvalArgs:
     end_to_end_model: str = ''
     encoder_path: str = ''
     max_episode_s: float = setting(_EVAL.max_episode_s, gt=0.0, le=3600.0)
-    safety: bool = True
-    override: bool | None = None
-    recall: bool | None = None
-    damper: bool | None = None
     real_time_factor: float = setting(2.0, gt=0.0, le=100.0)
     domain_id: int = setting(0, ge=0, le=232)
     depth_noise: bool = True
@@ -179,10 +177,9 @@ HELP = {
     'end_to_end_model': 'policy_node model_path for end_to_end',
     'encoder_path': 'encoder_node model_path (default: the shipped CM-VAE)',
     'max_episode_s': 'sim_node episode_timeout_s: a landing not finished by then is a timeout (the env\'s cut)',
-    'safety': 'policy_node floor_guard (rows +guard)',
-    'override': 'policy_node pilot_override for every assistant; unset: policy_node\'s default for the mode',
-    'recall': 'policy_node pad_recall for every assistant; unset: policy_node\'s default for the mode',
-    'damper': 'policy_node oscillation_damper for every assistant; unset: policy_node\'s default for the mode',
+    **{r.field: (f'policy_node {r.switch} (rows +{r.flag})' if not r.goal_agnostic else
+                 f'policy_node {r.switch} for every assistant; unset: policy_node\'s default for the mode')
+       for r in RULES},
     'real_time_factor': 'sim_node real_time_factor: sim seconds per wall second (the nodes must keep up: 2 on two '
                         'cores; 0 = as fast as possible, which they do not)',
     'domain_id': 'ROS_DOMAIN_ID of the graph (1-232); 0: the first of 200-232 nobody on this machine uses',

@@ -27,9 +27,10 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Float32MultiArray, MultiArrayDimension
 
-from assist_common.ros_common import (SENSOR_QOS, STAMP_TOLERANCE_S, Diagnostics, Param, StartupError,
-                                      declare_parameters, executor_param, exit_process, forward_logging,
-                                      realtime_priority_param, run_node, stamp_problem, stamp_to_sec)
+from assist_common.ros_io import (SENSOR_QOS, STAMP_TOLERANCE_S, Diagnostics, forward_logging, stamp_problem,
+                                  stamp_to_sec)
+from assist_common.ros_params import Param, StartupError, declare_parameters
+from assist_common.ros_run import executor_param, exit_process, realtime_priority_param, run_node
 
 from .encoder_core import BadFrame, LatentEncoder, LatestOnly, StampPairer, decode_color, decode_depth
 from .level import DEFAULT_MIN_TILT_DEG, AttitudeBuffer, level_frame, level_rotation, tilt_deg

@@ -19,7 +19,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from assist_common.atomic import atomic_path
-from assist_common.settings import SettingsError
+from assist_common.settings import SettingsError, check_named, setting
 
 MODEL_FORMAT = 'assist_perception.cmvae'
 MODEL_VERSION = 1
@@ -30,63 +30,38 @@ class ModelLoadError(RuntimeError):
     """A CM-VAE weights file is missing, corrupt or of the wrong kind (one clear message)."""
 
 
-def _int_field(name: str, v: Any, lo: int, hi: int) -> int:
-    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not lo <= int(v) <= hi:
-        raise ValueError(f'CMVAEConfig.{name} must be an integer in [{lo}, {hi}], got {v!r}')
-    return int(v)
-
-
-def _float_field(name: str, v: Any) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not np.isfinite(v):
-        raise ValueError(f'CMVAEConfig.{name} must be a finite number, got {v!r}')
-    return float(v)
-
-
-def _seq_field(name: str, v: Any, n: int, kind: type) -> tuple:
-    if isinstance(v, (str, bytes)) or not hasattr(v, '__len__') or len(v) != n:
-        raise ValueError(f'CMVAEConfig.{name} must be {n} numbers, got {v!r}')
-    if kind is int:
-        return tuple(_int_field(f'{name}[{i}]', x, -2**31, 2**31) for i, x in enumerate(v))
-    return tuple(_float_field(f'{name}[{i}]', x) for i, x in enumerate(v))
+def _plain(v: Any) -> Any:
+    """A weights file's value as plain Python: numpy scalars as numbers, lists as tuples (strings as they are)."""
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return tuple(_plain(x) for x in v)
+    return v
 
 
 @dataclass
 class CMVAEConfig:
     """Architecture and input/output scaling of the CM-VAE (stored inside every weights file)."""
 
-    latent_dim: int = 10                 # CM-VAE reference size: z[0:3] = pad XYZ, 7 dims for the rest
-    image_size: int = 64
-    channels: tuple[int, int, int] = (32, 64, 128)   # DroNet residual blocks
-    depth_scale_m: float = 5.0           # network depth units: metres / depth_scale_m
-    max_input_depth_m: float = 10.0      # farther depth readings are treated as holes
-    init_depth_m: float = 2.5            # initial output of p_D (training starts near the mean)
-    xyz_hidden: int = 64                 # width of each scalar decoder p_X, p_Y, p_Z
-    xyz_mean: tuple[float, float, float] = (0.0, 0.0, 2.0)   # label standardisation (from data)
-    xyz_std: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    latent_dim: int = setting(10, ge=3, le=4096)      # CM-VAE reference size: z[0:3] = pad XYZ (p_X, p_Y, p_Z)
+    image_size: int = setting(64, choices=(64,))     # the decoder is built for 64x64 images
+    channels: tuple[int, int, int] = setting((32, 64, 128), ge=1, le=1024)   # DroNet residual blocks
+    depth_scale_m: float = setting(5.0, gt=0.0, le=MAX_RANGE_M)     # network depth units: metres / depth_scale_m
+    max_input_depth_m: float = setting(10.0, gt=0.0, le=MAX_RANGE_M)   # farther depth readings are holes
+    init_depth_m: float = setting(2.5, ge=0.0, le=MAX_RANGE_M)   # initial output of p_D (training starts near it)
+    xyz_hidden: int = setting(64, ge=1, le=8192)     # width of each scalar decoder p_X, p_Y, p_Z
+    # label standardisation (from data)
+    xyz_mean: tuple[float, float, float] = setting((0.0, 0.0, 2.0), ge=-MAX_RANGE_M, le=MAX_RANGE_M)
+    xyz_std: tuple[float, float, float] = setting((1.0, 1.0, 1.0), gt=0.0, le=MAX_RANGE_M)
 
     def __post_init__(self) -> None:
-        """Validate types, lengths and ranges (a weights file's config passes through here); ValueError."""
-        self.latent_dim = _int_field('latent_dim', self.latent_dim, 3, 4096)   # z[0:3] feed p_X, p_Y, p_Z
-        if _int_field('image_size', self.image_size, 1, 4096) != 64:
-            raise ValueError('CMVAEConfig.image_size: the decoder is built for 64x64 images')
-        self.channels = _seq_field('channels', self.channels, 3, int)
-        if any(not 1 <= c <= 1024 for c in self.channels):
-            raise ValueError(f'CMVAEConfig.channels must be 3 integers in [1, 1024], got {self.channels}')
-        self.xyz_hidden = _int_field('xyz_hidden', self.xyz_hidden, 1, 8192)
-        for name in ('depth_scale_m', 'max_input_depth_m'):
-            v = _float_field(name, getattr(self, name))
-            if not 0 < v <= MAX_RANGE_M:
-                raise ValueError(f'CMVAEConfig.{name} must be in (0, {MAX_RANGE_M:g}] m, got {v!r}')
-            setattr(self, name, v)
-        self.init_depth_m = _float_field('init_depth_m', self.init_depth_m)
-        if not 0 <= self.init_depth_m <= MAX_RANGE_M:
-            raise ValueError(f'CMVAEConfig.init_depth_m must be in [0, {MAX_RANGE_M:g}] m, got {self.init_depth_m!r}')
-        self.xyz_mean = _seq_field('xyz_mean', self.xyz_mean, 3, float)
-        self.xyz_std = _seq_field('xyz_std', self.xyz_std, 3, float)
-        if any(abs(v) > MAX_RANGE_M for v in self.xyz_mean):
-            raise ValueError(f'CMVAEConfig.xyz_mean must be within +-{MAX_RANGE_M:g} m, got {self.xyz_mean}')
-        if any(not 0 < v <= MAX_RANGE_M for v in self.xyz_std):
-            raise ValueError(f'CMVAEConfig.xyz_std must be in (0, {MAX_RANGE_M:g}] m, got {self.xyz_std}')
+        """Validate types, lengths and ranges (a weights file's config passes through here); ValueError, one line."""
+        for f in dataclasses.fields(self):
+            setattr(self, f.name, _plain(getattr(self, f.name)))
+        check_named(self, 'CMVAEConfig')
+        for name in ('depth_scale_m', 'max_input_depth_m', 'init_depth_m'):
+            setattr(self, name, float(getattr(self, name)))
+        self.xyz_mean, self.xyz_std = tuple(map(float, self.xyz_mean)), tuple(map(float, self.xyz_std))
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> CMVAEConfig:

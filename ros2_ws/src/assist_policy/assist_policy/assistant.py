@@ -1,8 +1,9 @@
 """The deployed assistant: the actor's action through the non-learned stages to the command V, in one order.
 
 policy_node (through ``policy_core.PolicyCore``), the training/evaluation env (``env.LandingAssistEnv``) and
-``replay_assist`` all run this chain; nothing else chains the stages. Each rule's module implements its stage
-(``stage.Stage``: ``damper.DamperStage``, ``override.OverrideStage``, ...); each stage sees the same
+``replay_assist`` all run this chain; nothing else chains the stages. The rules are ``rules.RULES``; each rule's
+module builds its stages (``stage.Stage``: ``damper.DamperStage``, ``override.OverrideStage``, ...), and each stage
+says where it sits (``phase``: on the actor's action or on V; ``position``). Each stage sees the same
 ``StepContext`` and the ``Decision`` so far, and returns a new ``Decision`` when it acts (None when it
 does not). The order, and so who wins:
 
@@ -37,26 +38,18 @@ import numpy as np
 from assist_common.settings import check_named, setting
 
 from .blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS, MIN_SPEED_LIMIT_MPS, blend, clamp_velocity
-from .damper import DamperConfig, DamperStage, OscillationDamper
-from .override import OverrideConfig, OverrideStage, PilotOverride
-from .recall import PadRecall, RecallConfig, RecallStage
-from .rules import RULES, switched
-from .safety import FloorGuard, GuardStage, SafetyConfig
-from .stage import Decision, Stage, StepContext
-from .walls import WallGuard, WallStage
+from .rules import RULES, rule_fields, settings, switched
+from .stage import ACTION, COMMAND, Decision, Stage, StepContext
 
 
 @dataclass
+@rule_fields(lambda r: field(default_factory=r.config), lambda r: r.config)    # each rule's settings
 class AssistantConfig:
-    """Settings of the chain (blending and speed limits here; each stage's in its own config)."""
+    """Settings of the chain (blending and speed limits here; each rule's in its own config, a field per rule)."""
 
     blend_threshold: float = setting(DEFAULT_THRESHOLD, ge=0)
     max_speed_mps: float = setting(MAX_SPEED_MPS, ge=MIN_SPEED_LIMIT_MPS)       # horizontal limit of V
     max_vertical_mps: float = setting(MAX_VERTICAL_MPS, ge=MIN_SPEED_LIMIT_MPS)  # vertical limit of V
-    safety: SafetyConfig = field(default_factory=SafetyConfig)
-    override: OverrideConfig = field(default_factory=OverrideConfig)
-    recall: RecallConfig = field(default_factory=RecallConfig)
-    damper: DamperConfig = field(default_factory=DamperConfig)
 
     def __post_init__(self) -> None:
         """Reject a threshold or limits that would suppress or invent motion (SettingsError, one line)."""
@@ -87,25 +80,44 @@ class Assistant:
 
     def __init__(self, cfg: AssistantConfig | None = None):
         self.cfg = cfg or AssistantConfig()
-        c = self.cfg
-        self.guard = FloorGuard(c.safety)
-        self.walls = WallGuard(c.safety)                 # the same settings object: one switch for both
-        self.override = PilotOverride(c.override)
-        self.recall = PadRecall(c.recall, self.guard)
-        self.damper = OscillationDamper(c.damper)
         threshold = lambda: self.cfg.blend_threshold    # noqa: E731 - read at each step (changeable at run time)
-        self.action_stages: tuple[Stage, ...] = (DamperStage(self.damper, self.recall),
-                                                 OverrideStage(self.override, self.guard),
-                                                 RecallStage(self.recall))
-        self.command_stages: tuple[Stage, ...] = (GuardStage(self.guard, threshold),
-                                                  WallStage(self.walls, threshold))
+        self.parts: dict[str, object] = {}              # the rules' objects by name: guard, walls, override, ...
+        stages: list[Stage] = []
+        for r in RULES:           # each rule's settings object is kept: run-time changes reach the rule
+            cfg = settings(r, getattr(self.cfg, r.field))
+            setattr(self.cfg, r.field, cfg)
+            parts, own = r.make(cfg, self.parts, threshold)
+            self.parts.update(parts)
+            stages += own
+        keys = [s.key for s in stages]
+        twice = sorted({k for k in keys if keys.count(k) > 1})
+        if twice:
+            raise TypeError(f'stage {", ".join(map(repr, twice))} registered twice')
+        ordered = sorted(stages, key=lambda s: s.position)
+        self.action_stages: tuple[Stage, ...] = tuple(s for s in ordered if s.phase == ACTION)
+        self.command_stages: tuple[Stage, ...] = tuple(s for s in ordered if s.phase == COMMAND)
         self.engaged: Counter[str] = Counter()           # steps each stage acted (stage key)
-        self.modes: Counter[str] = Counter()             # ... of those, per mode (e.g. 'pilot_override:climb')
+        self.modes: Counter[str] = Counter()             # ... per mode (e.g. 'pilot_override:climb')
+
+    def __getattr__(self, name: str) -> object:
+        """A rule's object by name (``assistant.recall``, ``assistant.guard``: ``parts``)."""
+        parts = self.__dict__.get('parts', {})
+        if name in parts:
+            return parts[name]
+        raise AttributeError(f'{type(self).__name__!r} object has no attribute {name!r}')
 
     @property
     def stages(self) -> tuple[Stage, ...]:
         """Every stage, in order."""
         return self.action_stages + self.command_stages
+
+    def diagnostics(self) -> dict[str, int]:
+        """Every stage's ``<key>_engaged`` count and its own /diagnostics values."""
+        out: dict[str, int] = {}
+        for s in self.stages:
+            out[f'{s.key}_engaged'] = self.engaged[s.key]
+            out.update(s.diagnostics(self.modes))
+        return out
 
     def reset(self) -> None:
         """Forget the flight: every stage's memory."""
@@ -125,13 +137,11 @@ class Assistant:
         d = Decision(None if agent is None else np.asarray(agent, dtype=float).reshape(3), None, key, reason)
         acted: list[str] = []
         if d.agent is not None:
-            for stage in self.action_stages:
-                new = stage.apply(ctx, d)
+            for stage in self.action_stages:    # each new action replaces the one before: only the last acted on
+                new = stage.apply(ctx, d)       # what flies
                 if new is not None:
                     d = new
-                    acted.append(stage.key)
-        if DamperStage.key in acted and (OverrideStage.key in acted or RecallStage.key in acted):
-            acted.remove(DamperStage.key)       # its action was replaced: it did not act on what flew
+                    acted[:] = [stage.key]
         applied = np.zeros(3) if d.agent is None else d.agent
         d.velocity = blend(ctx.u, applied, c.blend_threshold)
         if d.agent is not None and not d.key:
@@ -144,11 +154,8 @@ class Assistant:
                 acted.append(stage.key)
         for k in acted:
             self.engaged[k] += 1
-        if OverrideStage.key in acted and self.override.mode:
-            self.modes[f'{OverrideStage.key}:{self.override.mode}'] += 1
-        elif RecallStage.key in acted and self.recall.mode:
-            self.modes[f'{RecallStage.key}:{self.recall.mode}'] += 1
-        if agent is not None and self.override.kept:      # a landing spot kept the actor's action
-            self.modes[f'{OverrideStage.key}:spot_kept'] += 1
+        for stage in self.stages:
+            for mode in stage.modes(stage.key in acted, agent is not None):
+                self.modes[f'{stage.key}:{mode}'] += 1
         v = clamp_velocity(d.velocity, c.max_speed_mps, c.max_vertical_mps)
         return StepResult(d.agent, v, applied, d.key, d.reason, tuple(acted))

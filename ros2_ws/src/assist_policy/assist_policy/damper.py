@@ -41,7 +41,7 @@ import numpy as np
 
 from assist_common.settings import check_named, setting
 from .settings import node_param
-from .stage import Decision, StepContext
+from .stage import ACTION, Decision, Parts, Rule, Stage, StepContext
 
 if TYPE_CHECKING:                     # the stage reads the recall's pad map
     from .recall import PadRecall
@@ -178,10 +178,10 @@ class OscillationDamper:
 
 
 # ----------------------------------------------------------------------------------------------- stage
-class DamperStage:
+class DamperStage(Stage):
     """1. The oscillation damper on the actor's horizontal action (reads the recall's pad map)."""
 
-    key = 'oscillation_damper'
+    key, phase, position = 'oscillation_damper', ACTION, 10
 
     def __init__(self, damper: OscillationDamper, recall: PadRecall):
         self.damper, self._recall = damper, recall
@@ -196,3 +196,13 @@ class DamperStage:
                               [m.xyz for m in self._recall.map.pads], ctx.max_speed)
         return None if a is None else Decision(a, None, self.key, 'oscillation damper: damping the pilot\'s '
                                                                   'oscillation')
+
+
+def _make(cfg: DamperConfig, parts: Parts, threshold) -> tuple[dict, tuple[Stage, ...]]:
+    """The damper and its stage (it reads the pad recall's map)."""
+    damper = OscillationDamper(cfg)
+    return {'damper': damper}, (DamperStage(damper, parts['recall']),)
+
+
+RULE = Rule('damper', 'oscillation_damper', 'damper', DamperConfig, goal_agnostic=True, title='oscillation damper',
+            make=_make)

@@ -104,7 +104,7 @@ from assist_common.settings import check_named, setting
 from .scripted import YIELD_SPEED_MPS, holds_key
 from .settings import node_param
 from .safety import FloorGuard
-from .stage import Decision, StepContext
+from .stage import ACTION, Decision, Parts, Rule, Stage, StepContext
 
 # what the depth image shows below the vehicle, on demand: (bare floor under every leg, height over the
 # surface below in m), None where unknown (safety.FloorGuard.surface_below)
@@ -433,10 +433,13 @@ _OVERRIDE_REASONS = {'held_key': 'pilot override: the pilot\'s held correction p
                      'long': 'pilot override: the pilot\'s long push passes'}
 
 
-class OverrideStage:
+class OverrideStage(Stage):
     """2. The pilot override: a deliberate correction passes instead of the actor's action."""
 
-    key = 'pilot_override'
+    key, phase, position = 'pilot_override', ACTION, 20
+    # /diagnostics value -> the mode it counts
+    DIAGNOSTICS = {'pilot_override_persistent_engaged': 'persistent', 'pilot_override_climb_engaged': 'climb',
+                   'pilot_override_long_engaged': 'long', 'pilot_override_spot_kept': 'spot_kept'}
 
     def __init__(self, override: PilotOverride, guard: FloorGuard):
         self.override, self._guard = override, guard
@@ -457,3 +460,22 @@ class OverrideStage:
             return None
         return Decision(a, None, self.key, _OVERRIDE_REASONS.get(self.override.mode, _OVERRIDE_REASONS['held_key']),
                         final=True)           # the pilot's correction: the later action stages leave it
+
+    def modes(self, acted: bool, ran: bool) -> tuple[str, ...]:
+        """The override's mode when it acted; 'spot_kept' when a landing spot kept the actor's action."""
+        return ((self.override.mode,) if acted and self.override.mode else ()) + (
+            ('spot_kept',) if ran and self.override.kept else ())
+
+    def diagnostics(self, modes) -> dict[str, int]:
+        """Steps per override mode and with a landing spot kept."""
+        return {name: modes[f'{self.key}:{mode}'] for name, mode in self.DIAGNOSTICS.items()}
+
+
+def _make(cfg: OverrideConfig, parts: Parts, threshold) -> tuple[dict, tuple[Stage, ...]]:
+    """The override and its stage (the floor guard's surface test tells it the height over what is below)."""
+    override = PilotOverride(cfg)
+    return {'override': override}, (OverrideStage(override, parts['guard']),)
+
+
+RULE = Rule('override', 'pilot_override', 'override', OverrideConfig, goal_agnostic=True, title='pilot override',
+            make=_make)

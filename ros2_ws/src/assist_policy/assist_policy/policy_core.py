@@ -37,16 +37,12 @@ from .actions import scale_action
 from .assistant import Assistant, AssistantConfig
 from .stage import DepthFrame
 from .blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS, MIN_SPEED_LIMIT_MPS, clamp_velocity
-from .damper import DamperConfig
 from .flight import FlightConfig, FlightMonitor, surface_clearance
 from .intent import NO_INTENT, Intent, IntentConfig
 from .loop import AssistLoop
 from .observation import Condition, ObservationBuilder, image_feature, oracle_feature
-from .override import OverrideConfig
 from .poses import PoseHistory
-from .recall import RecallConfig
-from .rules import RULES, all_settings, changed
-from .safety import SafetyConfig
+from .rules import RULES, all_settings, changed, rule_fields
 from .actor import load_actor
 from .settings import nested, node_param
 from assist_common.settings import check_named, setting
@@ -72,6 +68,7 @@ class InputRejected(ValueError):
 
 
 @dataclass
+@rule_fields(lambda r: nested(r.config))     # each rule's settings (rules.RULES; None: its defaults, as everywhere)
 class PolicyCoreConfig:
     """Settings of the policy core (policy_node parameters map 1:1); validated on construction."""
 
@@ -104,11 +101,6 @@ class PolicyCoreConfig:
     max_odom_speed_mps: float = setting(50.0, gt=0)    # odometry faster than this is not a multirotor: rejected
     max_position_m: float = setting(1.0e4, gt=0)       # odometry / goal coordinates beyond this are rejected
     max_latent_abs: float = setting(1.0e3, gt=0)       # encoder means beyond this are rejected
-    # the rules' settings (rules.RULES; None: the settings class's defaults, as everywhere)
-    safety: SafetyConfig | None = nested(SafetyConfig)
-    override: OverrideConfig | None = nested(OverrideConfig)
-    recall: RecallConfig | None = nested(RecallConfig)
-    damper: DamperConfig | None = nested(DamperConfig)
     flight: FlightConfig | None = nested(FlightConfig)   # flight boundaries (None: FlightConfig() defaults)
     intent: IntentConfig | None = nested(IntentConfig)   # goal estimate and descent flag (None: the defaults)
     # velocity the actor sees: the odometry twist as given (base_link, policy_node) or rotated to odom with the
@@ -185,9 +177,6 @@ class PolicyCore:
         c = self.cfg
         self.assistant = Assistant(AssistantConfig(c.blend_threshold, c.max_speed_mps, c.max_vertical_mps,
                                                    **all_settings(c)))
-        # the stages' rules, by name (their settings objects are the ones policy_node changes at run time)
-        self.guard, self.walls = self.assistant.guard, self.assistant.walls
-        self.override, self.recall, self.damper = self.assistant.override, self.assistant.recall, self.assistant.damper
         self.flight = FlightMonitor(c.flight or FlightConfig())
         # the step code the training/evaluation env runs too: observation, chain, action history, forgetting
         self.loop = AssistLoop(self.mode, self.builder, self.assistant, self.flight, c.intent or IntentConfig())
@@ -203,6 +192,14 @@ class PolicyCore:
         self._poses = PoseHistory(POSE_HISTORY_S, self.cfg.depth_pose_match_s)   # odometry by sensor stamp
         # depth frames mapped from the latest odometry (no pose at their stamp)
         self.depth_pose_unmatched = 0
+
+    def __getattr__(self, name: str) -> object:
+        """A rule's object by name (``core.recall``, ``core.guard``: ``Assistant.parts``; their settings objects
+        are the ones policy_node changes at run time)."""
+        assistant = self.__dict__.get('assistant')
+        if assistant is not None and name in assistant.parts:
+            return assistant.parts[name]
+        raise AttributeError(f'{type(self).__name__!r} object has no attribute {name!r}')
 
     @property
     def engaged(self) -> Counter[str]:

@@ -39,9 +39,10 @@ from std_msgs.msg import Bool, Float32MultiArray, UInt8
 from std_srvs.srv import Trigger
 
 from assist_common.images import decode_color, decode_depth
-from assist_common.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, STAMP_TOLERANCE_S, Diagnostics, Param,
-                                      StartupError, stamp_problem, declare_parameters, executor_param, exit_process,
-                                      fill_twist, realtime_priority_param, run_node, twist_to_array)
+from assist_common.ros_io import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, STAMP_TOLERANCE_S, Diagnostics,
+                                  stamp_problem, fill_twist, twist_to_array)
+from assist_common.ros_params import Param, StartupError, declare_parameters
+from assist_common.ros_run import executor_param, exit_process, realtime_priority_param, run_node
 
 from . import settings
 from .flight import REASONS as FLIGHT_REASONS, LandedState
@@ -91,8 +92,8 @@ def params_for_mode(mode: str) -> dict[str, Param]:
                          for r in RULES if not r.default_on(mode)}}
 
 
-# step outcomes that are normal operation (diagnostics OK); everything else is a WARN with its reason
-OK_KEYS = ('assisting', 'small_action', 'wall_guard', *RULE_SWITCHES, 'switched_off')
+# step outcomes that are normal operation (diagnostics OK; also every stage's key); everything else is a WARN
+OK_KEYS = ('assisting', 'small_action', 'switched_off')
 FAULT_KEYS = ('actor_nonfinite', 'step_error')
 
 
@@ -347,16 +348,8 @@ class PolicyNode(Node):
         """Counters, throttled warnings and the diagnostic level/message for this step's outcome."""
         self.diag.set('state', out.key)
         self.diag.set('rejected_actor_outputs', self.core.rejected)
-        engaged, modes = self.core.engaged, self.core.assistant.modes
-        for key in ('floor_guard', 'wall_guard', 'pilot_override', 'pad_recall', 'oscillation_damper'):
-            self.diag.set(f'{key}_engaged', engaged[key])
-        for name, mode in (('pilot_override_persistent_engaged', 'pilot_override:persistent'),
-                           ('pilot_override_climb_engaged', 'pilot_override:climb'),
-                           ('pilot_override_long_engaged', 'pilot_override:long'),
-                           ('pilot_override_spot_kept', 'pilot_override:spot_kept'),
-                           ('pad_recall_touchdown', 'pad_recall:touchdown'), ('pad_recall_scout', 'pad_recall:scout')):
-            self.diag.set(name, modes[mode])
-        self.diag.set('pad_recall_pads', len(self.core.recall.map.pads))
+        for name, value in self.core.assistant.diagnostics().items():     # <stage>_engaged and each stage's own
+            self.diag.set(name, value)
         intent = out.intent
         self.diag.set('intent_confidence', round(intent.confidence, 3))
         self.diag.set('intent_candidates', intent.candidates)
@@ -382,19 +375,16 @@ class PolicyNode(Node):
             self._warn(f'{out.key}:{out.fault}', out.reason)
         else:
             self._consecutive_faults = 0
-        if out.key not in OK_KEYS:
+        stage_keys = {s.key for s in self.core.assistant.stages}
+        if out.key not in OK_KEYS and out.key not in stage_keys:
             self.diag.count(f'relinquished_{out.key}')
         if self._consecutive_faults >= int(self.p['error_after_faults']):
             self.diag.status(DiagnosticStatus.ERROR, f'relinquished: {self._consecutive_faults} consecutive '
                                                      f'failed steps ({out.reason})')
         elif out.key == 'assisting':
             self.diag.status(DiagnosticStatus.OK, 'assisting')
-        elif out.key == 'floor_guard':
-            self.diag.status(DiagnosticStatus.OK, 'floor guard: descent over bare floor blocked')
-        elif out.key in ('wall_guard', 'pilot_override', 'pad_recall', 'oscillation_damper'):
-            self.diag.status(DiagnosticStatus.OK, out.reason)      # the core's text (recall: which mode acted)
-        elif out.key == 'switched_off':
-            self.diag.status(DiagnosticStatus.OK, out.reason)
+        elif out.key in stage_keys or out.key == 'switched_off':
+            self.diag.status(DiagnosticStatus.OK, out.reason)      # the stage's text (recall: which mode acted)
         elif out.key == 'small_action':
             self.diag.status(DiagnosticStatus.OK, 'relinquished: agent action at or below blend_threshold')
         else:

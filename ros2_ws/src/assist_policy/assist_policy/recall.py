@@ -90,7 +90,7 @@ from assist_common.settings import check_named, setting
 from .safety import FloorGuard, SafetyConfig
 from .scripted import ScriptedConfig, ScriptedOracle
 from .settings import node_param
-from .stage import Decision, StepContext
+from .stage import ACTION, Decision, Parts, Rule, Stage, StepContext
 
 log = logging.getLogger(__name__)
 
@@ -435,10 +435,10 @@ _RECALL_REASONS = {'recall': 'pad recall: steering back to a pad seen',
                    'scout': 'pad recall: looking beyond for a nearer pad before steering back'}
 
 
-class RecallStage:
+class RecallStage(Stage):
     """3. The pad recall: maps every depth frame; steers back to a mapped pad (not after the override)."""
 
-    key = 'pad_recall'
+    key, phase, position = 'pad_recall', ACTION, 30
 
     def __init__(self, recall: PadRecall):
         self.recall = recall
@@ -463,3 +463,21 @@ class RecallStage:
         if a is None:
             return None
         return Decision(a, None, self.key, _RECALL_REASONS.get(self.recall.mode, _RECALL_REASONS['recall']))
+
+    def modes(self, acted: bool, ran: bool) -> tuple[str, ...]:
+        """The recall's mode (recall, scout, touchdown) when it acted."""
+        return (self.recall.mode,) if acted and self.recall.mode else ()
+
+    def diagnostics(self, modes) -> dict[str, int]:
+        """Steps it centred on the pad below or scouted, and the pads mapped in this flight."""
+        return {'pad_recall_touchdown': modes[f'{self.key}:touchdown'], 'pad_recall_scout': modes[f'{self.key}:scout'],
+                'pad_recall_pads': len(self.recall.map.pads)}
+
+
+def _make(cfg: RecallConfig, parts: Parts, threshold) -> tuple[dict, tuple[Stage, ...]]:
+    """The recall and its stage (the floor guard's legs-over-floor test)."""
+    recall = PadRecall(cfg, parts['guard'])
+    return {'recall': recall}, (RecallStage(recall),)
+
+
+RULE = Rule('recall', 'pad_recall', 'recall', RecallConfig, goal_agnostic=True, title='pad recall', make=_make)

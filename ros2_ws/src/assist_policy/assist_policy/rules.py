@@ -1,11 +1,14 @@
 """The non-learned rules as every tool names them, and the one meaning of a rule's settings left out.
 
-Each rule has one entry: the field that holds its settings (``AssistantConfig``, ``PolicyCoreConfig``,
-``EnvConfig`` and the evaluation and replay options), the policy_node parameter that switches it (also its
-stage key and its /diagnostics counter ``<switch>_engaged``), the flag evaluate adds to a condition's name
-when it flies (and its ``<flag>_fraction`` column), its settings class (each has an ``enabled`` switch) and
-whether it is goal-agnostic: such a rule is off by default for an assistant that knows the goal (mode
-oracle) and never flies with the scripted references.
+Each rule's module declares it (``stage.Rule``): the field that holds its settings, the policy_node parameter that
+switches it (also its stage key and its /diagnostics counter ``<switch>_engaged``), the flag evaluate adds to a
+condition's name when it flies (and its ``<flag>_fraction`` column), its settings class (each has an ``enabled``
+switch), whether it is goal-agnostic (off by default for an assistant that knows the goal, mode oracle, and never
+flown with the scripted references), and how it builds its stages. Everything else reads ``RULES``: the
+assistant's chain, the configs that hold the rules' settings (``rule_fields``: ``AssistantConfig``,
+``PolicyCoreConfig`` and so policy_node's parameters, ``EnvConfig``), evaluate's and evaluate_graph's options,
+condition names and columns, and replay_assist's options. Adding a rule is its module (settings, stages, ``RULE``)
+and its line in ``RULES``.
 
 A rule's settings left out (None) are its settings class's defaults, everywhere; a rule is switched off by
 its ``enabled`` field (``switched``), never by leaving it out.
@@ -13,38 +16,16 @@ its ``enabled`` field (``switched``), never by leaving it out.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
 from typing import Any
 
-from .damper import DamperConfig
-from .observation import Condition
-from .override import OverrideConfig
-from .recall import RecallConfig
-from .safety import SafetyConfig
+from . import damper, override, recall, safety
+from .stage import Rule
 
 
-@dataclass(frozen=True)
-class Rule:
-    """One non-learned rule: where its settings live and how each tool names it."""
-
-    field: str              # settings field: 'safety'
-    switch: str             # policy_node parameter, stage key, counter: 'floor_guard'
-    flag: str               # evaluate's condition-name flag and fraction column: 'guard'
-    config: type            # settings dataclass (with an `enabled` field)
-    goal_agnostic: bool     # off by default when the assistant knows the goal
-
-    def default_on(self, mode: str) -> bool:
-        """Whether policy_node flies the rule by default in `mode` (latent, oracle, end_to_end)."""
-        return not (self.goal_agnostic and Condition(mode).knows_goal)
-
-
-RULES: tuple[Rule, ...] = (
-    Rule('safety', 'floor_guard', 'guard', SafetyConfig, goal_agnostic=False),
-    Rule('override', 'pilot_override', 'override', OverrideConfig, goal_agnostic=True),
-    Rule('recall', 'pad_recall', 'recall', RecallConfig, goal_agnostic=True),
-    Rule('damper', 'oscillation_damper', 'damper', DamperConfig, goal_agnostic=True),
-)
+# In the order they are built (a rule's parts may use those of the rules before it); the chain's order is the
+# stages' own (Stage.phase, Stage.position).
+RULES: tuple[Rule, ...] = (safety.RULE, override.RULE, recall.RULE, damper.RULE)
 GOAL_AGNOSTIC = tuple(r for r in RULES if r.goal_agnostic)
 
 
@@ -54,6 +35,22 @@ def rule(name: str) -> Rule:
         if name in (r.field, r.switch, r.flag):
             return r
     raise ValueError(f'no rule {name!r} (rules: {", ".join(r.switch for r in RULES)})')
+
+
+def rule_fields(field_for: Callable[[Rule], dataclasses.Field], annotation: Callable[[Rule], Any] | None = None):
+    """A class decorator, applied before ``@dataclass``: one field per registered rule, named by its settings field
+    (``field_for(rule)`` gives the field, ``annotation(rule)`` its type; default: the settings class or None), after
+    the class's own fields."""
+    def add(cls: type) -> type:
+        notes = cls.__dict__.get('__annotations__', {})
+        for r in RULES:
+            if r.field in notes:
+                raise TypeError(f'{cls.__name__}.{r.field} is a rule\'s field: rules.rule_fields adds it')
+            notes[r.field] = annotation(r) if annotation else (r.config | None)
+            setattr(cls, r.field, field_for(r))
+        cls.__annotations__ = notes
+        return cls
+    return add
 
 
 def _check_registry(rules: tuple[Rule, ...]) -> None:

@@ -54,7 +54,7 @@ import numpy as np
 from assist_common.settings import check_named, setting
 from .blending import blend
 from .settings import node_param
-from .stage import Decision, StepContext
+from .stage import COMMAND, Decision, Parts, Rule, Stage, StepContext
 
 
 @dataclass
@@ -254,10 +254,10 @@ class FloorGuard:
 
 
 # ----------------------------------------------------------------------------------------------- stage
-class GuardStage:
+class GuardStage(Stage):
     """5. The floor guard on the blended command."""
 
-    key = 'floor_guard'
+    key, phase, position = 'floor_guard', COMMAND, 10
 
     def __init__(self, guard: FloorGuard, threshold: Callable[[], float]):
         self.guard, self._threshold = guard, threshold
@@ -274,4 +274,16 @@ class GuardStage:
         thr = self._threshold()
         active = d.agent is not None and float(np.linalg.norm(d.agent)) > thr
         g = self.guard.apply(ctx.u, d.agent if active else None, d.velocity, ctx.frame.image, ctx.position, thr)
-        return Decision(g.agent, g.velocity, self.key, 'floor guard: descent blocked') if g.engaged else None
+        if not g.engaged:
+            return None
+        return Decision(g.agent, g.velocity, self.key, 'floor guard: descent over bare floor blocked')
+
+
+def _make(cfg: SafetyConfig, parts: Parts, threshold: Callable[[], float]) -> tuple[dict, tuple[Stage, ...]]:
+    """The floor guard and the wall rule (one switch and one settings object for both) and their stages."""
+    from .walls import WallGuard, WallStage      # walls builds on this module
+    guard, walls = FloorGuard(cfg), WallGuard(cfg)
+    return {'guard': guard, 'walls': walls}, (GuardStage(guard, threshold), WallStage(walls, threshold))
+
+
+RULE = Rule('safety', 'floor_guard', 'guard', SafetyConfig, goal_agnostic=False, title='floor guard', make=_make)

@@ -1,17 +1,22 @@
-"""What every stage of the assistant's chain sees and returns (``assistant.Assistant`` runs them in order).
+"""What every stage of the assistant's chain sees and returns, and how a rule declares itself (``Rule``).
 
-Each non-learned rule implements ``Stage`` in its own module (``damper.DamperStage``, ``override.OverrideStage``,
-``recall.RecallStage``, ``safety.GuardStage``, ``walls.WallStage``): ``apply`` gets the step's ``StepContext`` and
-the ``Decision`` so far and returns a new ``Decision`` when it acts, None when it does not.
+Each non-learned rule lives in its own module with its settings class, its stages and its ``RULE`` (``damper``,
+``override``, ``recall``, ``safety``); ``rules.RULES`` lists them. A stage (``damper.DamperStage``,
+``override.OverrideStage``, ``recall.RecallStage``, ``safety.GuardStage``, ``walls.WallStage``) says where it sits
+in the chain (``phase``: on the actor's action before blending, or on the command after it; ``position`` within
+the phase); ``apply`` gets the step's ``StepContext`` and the ``Decision`` so far and returns a new ``Decision``
+when it acts, None when it does not.
 """
 from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Protocol
-from collections.abc import Callable, Hashable
+from typing import Any
+from collections.abc import Callable, Hashable, Mapping
 
 import numpy as np
+
+from .observation import Condition
 
 Pose = tuple[np.ndarray, 'np.ndarray | None']     # odom position, attitude quaternion (x, y, z, w) or None
 
@@ -63,13 +68,58 @@ class Decision:
     final: bool = False                 # the pilot's own correction: the later action stages leave it as it is
 
 
-class Stage(Protocol):
-    """One non-learned stage: ``apply`` returns the new Decision when the stage acts, None when it does not."""
+ACTION, COMMAND = 'action', 'command'      # a stage's phase: on the actor's action (before blending), on V (after)
 
-    key: str
+
+class Stage:
+    """One non-learned stage (each rule's module subclasses it): ``apply`` returns the new Decision when the stage
+    acts, None when it does not."""
+
+    key: str                 # its name in counters and /diagnostics (`<key>_engaged`)
+    phase: str               # ACTION or COMMAND
+    position: int            # order within the phase (lower first)
 
     def reset(self) -> None:
         """Forget this flight."""
 
     def apply(self, ctx: StepContext, d: Decision) -> Decision | None:
         """Act on the decision so far, or return None."""
+        raise NotImplementedError
+
+    def modes(self, acted: bool, ran: bool) -> tuple[str, ...]:
+        """What to count under `<key>:<mode>` after a step (`acted`: it acted on what flew; `ran`: the actor ran)."""
+        return ()
+
+    def diagnostics(self, modes: Mapping[str, int]) -> dict[str, int]:
+        """Its own /diagnostics values beside `<key>_engaged`, from the chain's mode counts (`<key>:<mode>`)."""
+        return {}
+
+
+Parts = Mapping[str, Any]      # the rules' objects built so far, by name (Assistant.parts: 'guard', 'recall', ...)
+
+
+@dataclass(frozen=True)
+class Rule:
+    """One non-learned rule: where its settings live, how each tool names it, and how it joins the chain.
+
+    ``make(settings, parts, threshold)`` builds the rule from its settings (its config class; the object is kept,
+    so run-time changes to it reach the rule), the parts of the rules registered before it and the blending
+    threshold (read at each step), and returns its parts by name and its stages.
+    """
+
+    field: str              # settings field of every config that holds the rules: 'safety'
+    switch: str             # policy_node parameter, stage key, counter: 'floor_guard'
+    flag: str               # evaluate's condition-name flag and fraction column: 'guard'
+    config: type            # settings dataclass (with an `enabled` field)
+    goal_agnostic: bool     # off by default when the assistant knows the goal
+    title: str              # as a person reads it: 'floor guard'
+    make: Callable[[Any, Parts, Callable[[], float]], tuple[dict[str, Any], tuple[Stage, ...]]]
+
+    @property
+    def module(self) -> str:
+        """The module that implements it (its settings class's): 'assist_policy.safety'."""
+        return self.config.__module__
+
+    def default_on(self, mode: str) -> bool:
+        """Whether policy_node flies the rule by default in `mode` (latent, oracle, end_to_end)."""
+        return not (self.goal_agnostic and Condition(mode).knows_goal)

@@ -38,7 +38,7 @@ from assist_common.frames import heading, yaw_rotation
 
 from .recall import cells_within, depth_points, subsample
 from .safety import GuardResult, SafetyConfig
-from .stage import Decision, StepContext
+from .stage import COMMAND, Decision, Stage, StepContext
 
 WALL_IMAGE_PX = 48          # frames larger than this on their long side are subsampled (walls span many pixels)
 WALL_MAX_CELLS = 20_000     # more wall cells (a long flight): those farther than WALL_KEEP_M are forgotten
@@ -122,10 +122,10 @@ class WallGuard:
 
 
 # ----------------------------------------------------------------------------------------------- stage
-class WallStage:
+class WallStage(Stage):
     """6. The wall rule: no command toward a wall seen within reach (the floor guard's switch and settings)."""
 
-    key = 'wall_guard'
+    key, phase, position = 'wall_guard', COMMAND, 20
 
     def __init__(self, walls: WallGuard, threshold: Callable[[], float]):
         self.walls, self._threshold = walls, threshold

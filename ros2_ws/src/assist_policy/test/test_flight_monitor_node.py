@@ -16,7 +16,7 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import UInt8
 from std_srvs.srv import Trigger
 
-from assist_common.ros_common import LATCHED_QOS
+from assist_common.ros_io import LATCHED_QOS
 from assist_policy.policy_node import PolicyNode
 from assist_common.domains import private_domain_id
 

@@ -5,7 +5,7 @@ import dataclasses
 
 import pytest
 
-from assist_policy import policy_node, rules
+from assist_policy import assistant as assistant_module, policy_node, rules
 from assist_policy.assistant import Assistant, AssistantConfig, rules_off
 from assist_policy.override import OverrideConfig
 from assist_policy.policy_core import PolicyCore, PolicyCoreConfig
@@ -29,8 +29,8 @@ def test_each_rule_has_one_entry_that_every_name_finds():
     assert {s.key for s in Assistant().stages} == {r.switch for r in RULES} | {'wall_guard'}
 
 
-def test_a_rule_registered_twice_or_without_a_switch_is_refused():
-    twice = RULES + (Rule('guard2', 'floor_guard', 'guard2', SafetyConfig, False),)
+def test_a_rule_registered_twice_or_without_a_switch_is_refused(monkeypatch):
+    twice = RULES + (Rule('guard2', 'floor_guard', 'guard2', SafetyConfig, False, 'guard', rules.safety.RULE.make),)
     with pytest.raises(TypeError, match="^rule switch 'floor_guard' registered twice$"):
         rules._check_registry(twice)
 
@@ -38,7 +38,13 @@ def test_a_rule_registered_twice_or_without_a_switch_is_refused():
     class NoSwitch:
         gain: float = 1.0
     with pytest.raises(TypeError, match='^rule extra: NoSwitch has no `enabled` field$'):
-        rules._check_registry(RULES + (Rule('extra', 'extra', 'extra', NoSwitch, False),))
+        rules._check_registry(RULES + (Rule('extra', 'extra', 'extra', NoSwitch, False, 'extra', None),))
+    # a rule whose stage takes a key another stage has: refused when the chain is built
+    clash = dataclasses.replace(rules.damper.RULE, make=lambda cfg, parts, threshold: (
+        {}, (rules.recall.RecallStage(parts['recall']),)))
+    monkeypatch.setattr(assistant_module, 'RULES', RULES[:-1] + (clash,))
+    with pytest.raises(TypeError, match="^stage 'pad_recall' registered twice$"):
+        Assistant()
 
 
 def test_settings_left_out_are_the_defaults_everywhere(tmp_path):

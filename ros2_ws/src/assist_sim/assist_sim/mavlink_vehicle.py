@@ -38,6 +38,7 @@ import numpy as np
 os.environ['MAVLINK20'] = '1'  # MAVLink 2 framing; must be set before mavutil is imported
 from pymavlink import mavutil
 
+from assist_common.settings import check_named, setting
 from assist_common.frames import (attitude_enu_flu_to_ned_frd, enu_to_ned, flu_to_frd, ned_to_enu,
                                   quat_to_matrix, yaw_rotation)
 from assist_common.mavlink_io import (COPTER_MODE_NAMES, COPTER_MODES, FORCE_ARM_DISARM_MAGIC,
@@ -95,40 +96,46 @@ def _wrap_pi(a: float) -> float:
 class MavlinkVehicleConfig:
     """ArduCopter-like behaviour of the stand-in (parameter names in comments are ArduCopter's)."""
 
-    system_id: int = 1                       # SYSID_THISMAV
-    component_id: int = 1                    # MAV_COMP_ID_AUTOPILOT1
-    heartbeat_interval_s: float = 1.0
-    ekf_ready_delay_s: float = 3.0           # arming / GUIDED refused until the EKF has a position
-    guid_timeout_s: float = 3.0              # GUID_TIMEOUT: velocity targets expire after this
-    takeoff_speed_mps: float = 1.0           # WPNAV_SPEED_UP
-    takeoff_alt_tolerance_m: float = 0.1     # takeoff complete within this of the target altitude
-    land_speed_mps: float = 0.5              # LAND_SPEED
-    disarm_delay_s: float = 10.0             # DISARM_DELAY: auto-disarm after landed this long
-    yaw_follow_min_speed_mps: float = 0.5    # 5 % of WPNAV_SPEED: slower travel keeps the heading
-    yaw_slew_rate_rad_s: float = 1.05        # ATC_SLEW_YAW (60 deg/s) for auto-yaw
-    hold_kp: float = 1.0                     # 1/s, position hold (post-takeoff, timeout, BRAKE)
-    hold_max_speed_mps: float = 1.0
-    initial_mode: str = 'STABILIZE'
-    home_lat_deg: float = -35.363261         # SITL's CMAC field, for GLOBAL_POSITION_INT
-    home_lon_deg: float = 149.165230
-    home_alt_m: float = 584.0
-    battery_voltage_v: float = 16.2
-    rangefinder_min_m: float = 0.05          # RNGFND1_MIN / _MAX of the downward rangefinder (DISTANCE_SENSOR)
-    rangefinder_max_m: float = 15.0
+    system_id: int = setting(1, ge=1, le=255)                # SYSID_THISMAV
+    component_id: int = setting(1, ge=1, le=255)             # MAV_COMP_ID_AUTOPILOT1
+    heartbeat_interval_s: float = setting(1.0, gt=0.0, le=60.0)
+    ekf_ready_delay_s: float = setting(3.0, ge=0.0, le=600.0)   # arming / GUIDED refused until the EKF has a position
+    guid_timeout_s: float = setting(3.0, gt=0.0, le=60.0)     # GUID_TIMEOUT: velocity targets expire after this
+    takeoff_speed_mps: float = setting(1.0, gt=0.0, le=10.0)  # WPNAV_SPEED_UP
+    takeoff_alt_tolerance_m: float = setting(0.1, gt=0.0, le=10.0)   # takeoff complete within this of the target
+    land_speed_mps: float = setting(0.5, gt=0.0, le=5.0)      # LAND_SPEED
+    disarm_delay_s: float = setting(10.0, ge=0.0, le=600.0)   # DISARM_DELAY: auto-disarm after landed this long
+    yaw_follow_min_speed_mps: float = setting(0.5, ge=0.0, le=10.0)   # 5 % of WPNAV_SPEED: slower keeps the heading
+    yaw_slew_rate_rad_s: float = setting(1.05, gt=0.0, le=20.0)   # ATC_SLEW_YAW (60 deg/s) for auto-yaw
+    hold_kp: float = setting(1.0, ge=0.0, le=20.0)            # 1/s, position hold (post-takeoff, timeout, BRAKE)
+    hold_max_speed_mps: float = setting(1.0, gt=0.0, le=20.0)
+    initial_mode: str = setting('STABILIZE', choices=tuple(sorted(SUPPORTED_MODES)))
+    home_lat_deg: float = setting(-35.363261, ge=-90.0, le=90.0)     # SITL's CMAC field, for GLOBAL_POSITION_INT
+    home_lon_deg: float = setting(149.165230, ge=-180.0, le=180.0)
+    home_alt_m: float = setting(584.0, ge=-500.0, le=10_000.0)
+    battery_voltage_v: float = setting(16.2, ge=0.0, le=100.0)
+    # RNGFND1_MIN / _MAX of the downward rangefinder (DISTANCE_SENSOR)
+    rangefinder_min_m: float = setting(0.05, ge=0.0, le=100.0)
+    rangefinder_max_m: float = setting(15.0, gt=0.0, le=700.0)
     # Streams sent without being asked (message name -> interval s); ArduPilot's default is none.
     default_intervals_s: dict[str, float] = field(default_factory=dict)
-    max_messages_per_step: int = 1000        # bound on incoming messages handled per step
+    max_messages_per_step: int = setting(1000, ge=1, le=1_000_000)   # bound on incoming messages handled per step
     signing_key_file: str = ''               # MAVLink 2 signing key file; '' = unsigned
 
     def __post_init__(self) -> None:
-        if self.initial_mode not in SUPPORTED_MODES:
-            raise ValueError(f'initial_mode must be one of {sorted(SUPPORTED_MODES)}')
-        for name in self.default_intervals_s:
+        """ValueError (one line) for a setting outside its range or an unknown telemetry stream."""
+        check_named(self, type(self).__name__)
+
+    def check_relations(self) -> None:
+        """Rules between fields, and the streams' names and intervals."""
+        for name, interval in self.default_intervals_s.items():
             if name not in TELEMETRY.values():
                 raise ValueError(f'default_intervals_s: unknown message {name!r}')
-        for name in ('heartbeat_interval_s', 'guid_timeout_s', 'takeoff_speed_mps', 'land_speed_mps'):
-            if not getattr(self, name) > 0.0:
-                raise ValueError(f'{name} must be > 0')
+            if isinstance(interval, bool) or not isinstance(interval, (int, float)) or not interval > 0.0:
+                raise ValueError(f'default_intervals_s: {name} interval must be a number > 0, got {interval!r}')
+        if self.rangefinder_min_m >= self.rangefinder_max_m:
+            raise ValueError(f'rangefinder_min_m must be < rangefinder_max_m ({self.rangefinder_max_m:g}), got '
+                             f'{self.rangefinder_min_m:g}')
 
 
 @dataclass

@@ -22,9 +22,10 @@ from visualization_msgs.msg import MarkerArray
 
 from assist_common.constants import ACCEPTED_CMD_FRAMES
 from assist_common.frames import quat_to_matrix
-from assist_common.ros_common import (LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param,
-                                      StartupError, declare_parameters, executor_param, exit_process, forward_logging,
-                                      run_node, sec_to_stamp, twist_to_array)
+from assist_common.ros_io import (LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, forward_logging,
+                                  sec_to_stamp, twist_to_array)
+from assist_common.ros_params import Param, StartupError, declare_parameters
+from assist_common.ros_run import executor_param, exit_process, run_node
 
 from .core.arducopter import FLIGHT_CONTROLLERS
 from .core.config import WorldConfig

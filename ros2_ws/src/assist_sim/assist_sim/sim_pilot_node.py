@@ -33,9 +33,10 @@ from rclpy.node import Node
 from std_msgs.msg import Bool
 from visualization_msgs.msg import MarkerArray
 
-from assist_common.ros_common import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, Param, StartupError,
-                                      declare_parameters, exit_process, fill_twist, forward_logging, run_node,
-                                      twist_to_array)
+from assist_common.ros_io import (LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, Diagnostics, fill_twist, forward_logging,
+                                  twist_to_array)
+from assist_common.ros_params import Param, StartupError, declare_parameters
+from assist_common.ros_run import exit_process, run_node
 
 from .cues import Cue, CueConfig
 from .pilot import PilotConfig

@@ -14,7 +14,7 @@ from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from assist_common.ros_common import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS
+from assist_common.ros_io import LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS
 from assist_sim.sim_pilot_node import SimPilotNode
 
 pytestmark = pytest.mark.graph
@@ -117,7 +117,7 @@ def test_pilot_family_parameter_uses_the_scene_and_rejects_unknown_names():
     """pilot:=late_correction aims first at a real neighbour pad from /sim/scene; a bad name cannot start."""
     from visualization_msgs.msg import Marker, MarkerArray
 
-    from assist_common.ros_common import StartupError
+    from assist_common.ros_params import StartupError
     ctx = Context()
     rclpy.init(context=ctx, domain_id=random.Random(os.getpid() ^ time.monotonic_ns()).randint(1, 100))
     try:
@@ -180,7 +180,7 @@ def test_evaluation_plan_gives_each_landing_its_own_pilot():
     started only once the /sim/scene holding its goal is in; plans of unequal length cannot start."""
     from assist_sim.pilot import PilotConfig
     from assist_sim.pilots import make_pilot
-    from assist_common.ros_common import StartupError
+    from assist_common.ros_params import StartupError
     from visualization_msgs.msg import MarkerArray
     ctx = Context()
     rclpy.init(context=ctx, domain_id=random.Random(os.getpid() ^ time.monotonic_ns()).randint(1, 100))

@@ -25,9 +25,10 @@ from std_msgs.msg import Bool, String
 from visualization_msgs.msg import Marker, MarkerArray
 
 from assist_common.constants import BLEND_THRESHOLD_MPS
-from assist_common.ros_common import (LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, STAMP_TOLERANCE_S,
-                                      Diagnostics, Param, StartupError, declare_parameters, exit_process, fill_twist,
-                                      run_node, stamp_to_sec, twist_to_array)
+from assist_common.ros_io import (LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, SENSOR_QOS, STAMP_TOLERANCE_S, Diagnostics,
+                                  fill_twist, stamp_to_sec, twist_to_array)
+from assist_common.ros_params import Param, StartupError, declare_parameters
+from assist_common.ros_run import exit_process, run_node
 
 from .server import ServerConfig, StationServer
 from .access import allowed_hosts

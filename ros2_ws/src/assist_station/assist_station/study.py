@@ -29,7 +29,6 @@ import hashlib
 import io
 import json
 import logging
-import math
 import os
 import re
 import threading
@@ -43,6 +42,7 @@ import yaml
 
 from assist_bridge.teleop_core import KEY_BINDINGS
 from assist_common.atomic import write_text_atomic
+from assist_common.settings import check_named, setting
 
 from .station_core import BROWSER_KEYS, STOP_KEY
 
@@ -54,6 +54,7 @@ PHASES = ('consent', 'practice', 'block1', 'sus1', 'block2', 'sus2', 'survey', '
 PRACTICE_BLOCK = 0
 PARTICIPANT_ID = re.compile(r'[A-Za-z0-9][A-Za-z0-9_-]{0,31}')        # the whole ID (fullmatch: no trailing newline)
 MAX_CONFIG_BYTES = 256 * 1024
+MAX_TEXT_CHARS = 20_000            # a study file's page texts (intro, consent, thanks)
 EVENT_START = '{"t": "'         # how every protocol.log line begins (json.dumps of an entry whose first key is t)
 _LOG = logging.getLogger('assist_station.study')
 
@@ -126,71 +127,53 @@ class StudyError(ValueError):
 class StudyConfig:
     """One study: scene, landing sequence, practice, assistant and the page's texts (a YAML file's keys)."""
 
-    name: str = 'assisted-landing-study'
-    scene_seed: int = 7                       # every landing flies the scene of this sim seed
-    sequence: tuple[int, ...] = (2, 0, 4, 1, 3, 0, 2, 4, 3, 1, 4, 2, 0, 3, 1, 2)   # goal pads of a block, in order
-    n_pads: int = 5                           # pads in the scene (the sim's scene.n_pads)
-    practice_landings: int = 14               # at most this many practice landings (the participant may stop early)
-    practice_seed: int = 0                    # practice goals: drawn from this seed and the participant ID
-    practice_condition: str = 'first'         # first (the participant's first block's) or one of conditions
-    conditions: tuple[str, ...] = CONDITIONS  # one block each; the paper's two, or also assisted_cues
-    assistant_mode: str = 'latent'            # policy_node mode that flies the assisted block (checked at start)
+    name: str = setting('assisted-landing-study', nonempty=True)
+    scene_seed: int = setting(7, ge=0, lt=2 ** 31)   # every landing flies the scene of this sim seed
+    # goal pads of a block, in order (each < n_pads)
+    sequence: tuple[int, ...] = setting((2, 0, 4, 1, 3, 0, 2, 4, 3, 1, 4, 2, 0, 3, 1, 2), ge=0, min_len=1,
+                                        max_len=200)
+    n_pads: int = setting(5, ge=1, le=64)            # pads in the scene (the sim's scene.n_pads)
+    practice_landings: int = setting(14, ge=0, le=100)   # at most this many practice landings (may stop early)
+    practice_seed: int = setting(0, ge=0)            # practice goals: drawn from this seed and the participant ID
+    practice_condition: str = 'first'                 # first (the participant's first block's) or one of conditions
+    # one block each; the paper's two, or also assisted_cues (each once)
+    conditions: tuple[str, ...] = setting(CONDITIONS, choices=ALL_CONDITIONS)
+    assistant_mode: str = setting('latent', choices=('latent', 'oracle', 'end_to_end'))  # checked at start
     policy_model: str = ''                    # the TD3 actor policy_node must fly ('' = the shipped one; checked)
     encoder_model: str = ''                   # the CM-VAE encoder_node must use (latent; '' = the shipped one; checked)
     record_bags: bool = True                  # a rosbag2 bag per landing under <participant>/bags/
-    bag_topics: tuple[str, ...] = ()          # empty: the contract's default set
-    landing_timeout_s: float = 120.0          # wall seconds without a landing result: the landing is flown again
-    intro_text: str = ('Land the drone on the platform marked in green. W/A/S/D move it forward, left, back and '
-                       'right; the up and down arrows climb and descend; Space stops it.')
-    consent_text: str = ('Your landings, the answers you give and the flight recordings are stored under your '
-                         'participant ID only. You may stop at any time.')
-    thanks_text: str = 'Thank you for taking part. You may close this page.'
+    bag_topics: tuple[str, ...] = ()          # empty: the contract's default set (names start with /)
+    # wall seconds without a landing result: the landing is flown again
+    landing_timeout_s: float = setting(120.0, ge=5.0, le=3600.0)
+    intro_text: str = setting('Land the drone on the platform marked in green. W/A/S/D move it forward, left, back '
+                              'and right; the up and down arrows climb and descend; Space stops it.',
+                              max_chars=MAX_TEXT_CHARS)
+    consent_text: str = setting('Your landings, the answers you give and the flight recordings are stored under your '
+                                'participant ID only. You may stop at any time.', max_chars=MAX_TEXT_CHARS)
+    thanks_text: str = setting('Thank you for taking part. You may close this page.', max_chars=MAX_TEXT_CHARS)
 
     def __post_init__(self) -> None:
-        problems = []
-        if not isinstance(self.name, str) or not self.name.strip():
-            problems.append('name must be a non-empty string')
-        if not (_is_int(self.n_pads) and 1 <= self.n_pads <= 64):
-            problems.append(f'n_pads must be an integer in 1..64, got {self.n_pads!r}')
-        if not (_is_int(self.scene_seed) and 0 <= self.scene_seed < 2 ** 31):
-            problems.append(f'scene_seed must be an integer in 0..2^31-1, got {self.scene_seed!r}')
-        seq = self.sequence
-        if not (isinstance(seq, tuple) and 1 <= len(seq) <= 200
-                and all(_is_int(g) and 0 <= g < (self.n_pads if _is_int(self.n_pads) else 0) for g in seq)):
-            problems.append(f'sequence must list 1-200 pad indices in 0..n_pads-1, got {seq!r}')
-        if not (_is_int(self.practice_landings) and 0 <= self.practice_landings <= 100):
-            problems.append(f'practice_landings must be an integer in 0..100, got {self.practice_landings!r}')
-        if not (_is_int(self.practice_seed) and self.practice_seed >= 0):
-            problems.append(f'practice_seed must be a non-negative integer, got {self.practice_seed!r}')
-        conds = self.conditions
-        if not (isinstance(conds, tuple) and all(isinstance(c, str) for c in conds)
-                and set(conds) <= set(ALL_CONDITIONS) and len(set(conds)) == len(conds)
-                and set(CONDITIONS) <= set(conds)):
-            problems.append(f'conditions must list {", ".join(CONDITIONS)} and optionally {CUE_CONDITION}, each '
-                            f'once, got {conds!r}')
-            conds = CONDITIONS
-        else:                                   # one order however the file lists them (the blocks' order is the ID's)
-            object.__setattr__(self, 'conditions', tuple(c for c in ALL_CONDITIONS if c in conds))
-        if self.practice_condition not in ('first', *conds):
-            problems.append(f'practice_condition must be first or one of the conditions ({", ".join(conds)}), got '
-                            f'{self.practice_condition!r}')
-        if self.assistant_mode not in ('latent', 'oracle', 'end_to_end'):
-            problems.append(f'assistant_mode must be latent, oracle or end_to_end, got {self.assistant_mode!r}')
-        for name in ('policy_model', 'encoder_model'):
-            if not isinstance(getattr(self, name), str):
-                problems.append(f'{name} must be a file path (empty: the shipped model)')
-        if not isinstance(self.record_bags, bool):
-            problems.append('record_bags must be true or false')
-        if not all(isinstance(t, str) and t.startswith('/') for t in self.bag_topics):
-            problems.append('bag_topics must list topic names starting with /')
-        if not (isinstance(self.landing_timeout_s, (int, float)) and not isinstance(self.landing_timeout_s, bool)
-                and math.isfinite(self.landing_timeout_s) and 5.0 <= self.landing_timeout_s <= 3600.0):
-            problems.append(f'landing_timeout_s must be a number in 5..3600, got {self.landing_timeout_s!r}')
-        for name in ('intro_text', 'consent_text', 'thanks_text'):
-            if not isinstance(getattr(self, name), str) or len(getattr(self, name)) > 20000:
-                problems.append(f'{name} must be a string of at most 20000 characters')
-        if problems:
-            raise StudyError('study file: ' + '; '.join(problems))
+        """StudyError (one line) for a value outside its field's type or range, or fields that disagree."""
+        try:
+            check_named(self)
+        except ValueError as exc:
+            raise StudyError(f'study file: {exc}') from None
+        # one order however the file lists them (the blocks' order is the participant ID's)
+        object.__setattr__(self, 'conditions', tuple(c for c in ALL_CONDITIONS if c in self.conditions))
+
+    def check_relations(self) -> None:
+        """The rules between fields (check_named runs it after the fields' own)."""
+        if any(g >= self.n_pads for g in self.sequence):
+            raise ValueError(f'sequence must list pad indices in 0..n_pads-1 ({self.n_pads - 1}), got '
+                             f'{list(self.sequence)}')
+        if len(set(self.conditions)) != len(self.conditions) or not set(CONDITIONS) <= set(self.conditions):
+            raise ValueError(f'conditions must list {", ".join(CONDITIONS)} and optionally {CUE_CONDITION}, each '
+                             f'once, got {list(self.conditions)}')
+        if self.practice_condition not in ('first', *self.conditions):
+            raise ValueError(f'practice_condition must be first or one of the conditions '
+                             f'({", ".join(self.conditions)}), got {self.practice_condition!r}')
+        if not all(t.startswith('/') for t in self.bag_topics):
+            raise ValueError(f'bag_topics must list topic names starting with /, got {list(self.bag_topics)}')
 
     @property
     def landings_per_block(self) -> int:

@@ -297,7 +297,7 @@ def test_an_unknown_condition_in_a_study_file_and_another_studys_participant_are
     s = analyse(tmp_path, dirs)
     assert s['participants'] == 2
     bad, other = s['validation']['participants_excluded']
-    assert 'conditions must list unassisted, assisted and optionally assisted_cues' in bad and '\n' not in bad
+    assert 'conditions items must be one of unassisted, assisted, assisted_cues' in bad and '\n' not in bad
     assert 'conditions differ' in other
 
 

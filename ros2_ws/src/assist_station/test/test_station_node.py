@@ -20,7 +20,7 @@ from sensor_msgs.msg import Image
 from std_msgs.msg import Bool, String
 from visualization_msgs.msg import Marker, MarkerArray
 
-from assist_common.ros_common import sec_to_stamp
+from assist_common.ros_io import sec_to_stamp
 from assist_station.pilot_station import PilotStation
 
 LANDING = {'episode': 1, 'goal_index': 2, 'landed_index': 2, 'nearest_index': 2, 'error_m': 0.1,

@@ -14,7 +14,7 @@ from rclpy.node import Node
 from std_srvs.srv import Trigger
 
 from assist_common.domains import private_domain_id
-from assist_common.ros_common import declare_parameters
+from assist_common.ros_params import declare_parameters
 from assist_station.pilot_station import PARAMS
 from assist_station.station_core import StationConfig, StudyMessage
 from assist_station.study import SURVEY, StudyConfig

@@ -3,8 +3,9 @@ from __future__ import annotations
 
 import rclpy
 
-from assist_common import ros_common
-from assist_common.ros_common import Param, node_help, parameter_help, run_node
+from assist_common import ros_params
+from assist_common.ros_params import Param, node_help, parameter_help
+from assist_common.ros_run import run_node
 
 PARAMS = {
     'rate_hz': Param(20.0, 'Loop rate.', min=0.0, max=100.0, min_exclusive=True, dynamic=True),
@@ -24,7 +25,7 @@ def test_help_and_version_never_start_rclpy(monkeypatch, capsys):
     monkeypatch.setattr(rclpy, 'init', no_init)
     assert run_node(_never_built, ['--help'], params=PARAMS) == 0
     text = capsys.readouterr().out
-    assert text.startswith('usage: test_ros_common_console [-h] [--version]')
+    assert text.startswith('usage: test_ros_params_console [-h] [--version]')
     assert '  rate_hz (double; default 20.0; > 0.0 and <= 100.0; run-time)\n      Loop rate.' in text
     assert "  mode (string; default 'a'; one of a, b; read-only)" in text
     assert '  topics (string[]; default []; read-only)' in text
@@ -32,12 +33,12 @@ def test_help_and_version_never_start_rclpy(monkeypatch, capsys):
     assert run_node(_never_built, ['-h', '--ros-args', '-p', 'x:=1'], params=PARAMS) == 0
     assert capsys.readouterr().out == text
     assert run_node(_never_built, ['--version']) == 0
-    assert capsys.readouterr().out.startswith('test_ros_common_console (')   # package: the test module's top level
+    assert capsys.readouterr().out.startswith('test_ros_params_console (')   # package: the test module's top level
 
 
 def test_package_version_of_an_installed_package():
-    assert ros_common.package_version('assist_common') == '0.1.0'
-    assert ros_common.package_version('no_such_package_here') == 'unknown'
+    assert ros_params.package_version('assist_common') == '0.1.0'
+    assert ros_params.package_version('no_such_package_here') == 'unknown'
 
 
 def test_help_without_a_table_still_answers():

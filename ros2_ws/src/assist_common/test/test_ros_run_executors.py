@@ -1,4 +1,4 @@
-"""ros_common executors: make_executor, the EventsExecutor loop, run_node's `executor` parameter, heap freeze."""
+"""ros_run executors: make_executor, the EventsExecutor loop, run_node's `executor` parameter, heap freeze."""
 import gc
 import subprocess
 import sys
@@ -16,8 +16,8 @@ from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock as ClockMsg
 from std_msgs.msg import String
 
-from assist_common.ros_common import (EXECUTORS, EventsExecutorLoop, freeze_startup_heap, make_executor, sec_to_stamp,
-                                      spin_until_stopped)
+from assist_common.ros_io import sec_to_stamp
+from assist_common.ros_run import EXECUTORS, EventsExecutorLoop, freeze_startup_heap, make_executor, spin_until_stopped
 from assist_common.domains import private_domain_id
 
 
@@ -90,7 +90,8 @@ SCRIPT = textwrap.dedent('''
     import gc, sys
     import rclpy
     from rclpy.node import Node
-    import assist_common.ros_common as rc
+    import assist_common.ros_run as rc
+    import assist_common.ros_params as rp
 
     made = []
     real = rc.make_executor
@@ -99,7 +100,7 @@ SCRIPT = textwrap.dedent('''
     class N(Node):
         def __init__(self):
             super().__init__('executor_param_test')
-            rc.declare_parameters(self, {'executor': rc.Param('single', 'kind', choices=rc.EXECUTORS)})
+            rp.declare_parameters(self, {'executor': rp.Param('single', 'kind', choices=rc.EXECUTORS)})
             self.ticks = 0
             self.create_timer(0.02, self.tick)
 
@@ -155,7 +156,7 @@ class _Spinner:
 
 @pytest.mark.parametrize('shutdown', [True, False])
 def test_run_node_treats_a_runtime_error_as_shutdown_only_after_the_context_went_away(monkeypatch, shutdown):
-    import assist_common.ros_common as rc
+    import assist_common.ros_run as rc
     spinner = _Spinner(shutdown)
     monkeypatch.setattr(rc, 'make_executor', lambda kind, num_threads=2: spinner)
     monkeypatch.setenv('ROS_DOMAIN_ID', str(private_domain_id()))
@@ -172,13 +173,14 @@ def test_run_node_treats_a_runtime_error_as_shutdown_only_after_the_context_went
 CTRL_C_SCRIPT = textwrap.dedent('''
     import sys, threading, time
     from rclpy.node import Node
-    import assist_common.ros_common as rc
+    import assist_common.ros_run as rc
+    import assist_common.ros_params as rp
 
     class N(Node):
         """A timer callback of ~1.5 s of pure-Python work: a Ctrl-C will land while it runs."""
         def __init__(self):
             super().__init__('ctrl_c_probe')
-            rc.declare_parameters(self, {'executor': rc.executor_param('events')})
+            rp.declare_parameters(self, {'executor': rc.executor_param('events')})
             self.create_timer(0.05, self.work)
             self.done = 0
 
@@ -256,7 +258,7 @@ def test_a_ctrl_c_in_the_wait_returns_only_after_spin_and_teardown_ended():
     The running callback and the teardown end before the context is shut down."""
     import os
     import signal
-    from assist_common.ros_common import spin_off_main_thread
+    from assist_common.ros_run import spin_off_main_thread
     rclpy.init(domain_id=private_domain_id())
     spinner = _SlowStopSpinner()
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
@@ -275,7 +277,8 @@ def test_a_ctrl_c_in_the_wait_returns_only_after_spin_and_teardown_ended():
 STUCK_SCRIPT = textwrap.dedent('''
     import ctypes, sys
     from rclpy.node import Node
-    import assist_common.ros_common as rc
+    import assist_common.ros_run as rc
+    import assist_common.ros_params as rp
     rc.SHUTDOWN_STACKS_S = 1.5
 
     class N(Node):
@@ -361,7 +364,7 @@ def test_a_stop_signal_taken_by_another_thread_still_stops_the_spin():
     import signal
     from rclpy.context import Context
 
-    from assist_common.ros_common import spin_off_main_thread
+    from assist_common.ros_run import spin_off_main_thread
     context = Context()
     rclpy.init(context=context, domain_id=private_domain_id())
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)

@@ -1,5 +1,5 @@
-"""ros_common.sec_to_stamp: float seconds -> builtin_interfaces/Time (sim_node's /clock and image stamps)."""
-from assist_common.ros_common import sec_to_stamp, stamp_to_sec
+"""ros_io.sec_to_stamp: float seconds -> builtin_interfaces/Time (sim_node's /clock and image stamps)."""
+from assist_common.ros_io import sec_to_stamp, stamp_to_sec
 
 
 def test_a_time_just_below_a_whole_second_rounds_up_into_the_next_second():

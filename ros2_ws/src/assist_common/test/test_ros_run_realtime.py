@@ -6,7 +6,7 @@ import time
 
 import pytest
 
-from assist_common.ros_common import set_realtime_priority
+from assist_common.ros_run import set_realtime_priority
 
 CHILD = ('import threading, time; '
          '[threading.Thread(target=time.sleep, args=(30,), daemon=True).start() for _ in range(3)]; time.sleep(30)')

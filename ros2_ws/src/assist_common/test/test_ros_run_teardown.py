@@ -42,7 +42,7 @@ def _run(script: str, tmp_path, signal_after_line: str | None = None) -> tuple[i
 def test_a_deadline_ends_a_process_whose_gil_is_held_with_the_given_code_and_its_stacks(tmp_path):
     code, out, err = _run('''
         import ctypes
-        from assist_common.ros_common import TeardownDeadline
+        from assist_common.ros_run import TeardownDeadline
         deadline = TeardownDeadline.arm(0.5, 3)
         print('probe: armed', deadline.armed, flush=True)
         ctypes.PyDLL(None).sleep(600)       # PyDLL keeps the GIL during the call: no Python code runs any more
@@ -57,7 +57,7 @@ def test_a_deadline_ends_a_process_whose_gil_is_held_with_the_given_code_and_its
 def test_a_cancelled_deadline_neither_exits_nor_writes_stacks(tmp_path):
     code, out, err = _run('''
         import sys, time
-        from assist_common.ros_common import TeardownDeadline
+        from assist_common.ros_run import TeardownDeadline
         deadline = TeardownDeadline.arm(0.3, 3)
         deadline.cancel()
         print('probe: cancelled, armed', deadline.armed, flush=True)
@@ -73,14 +73,15 @@ def test_a_cancelled_deadline_neither_exits_nor_writes_stacks(tmp_path):
 STUCK_DESTROY = '''
     import ctypes, sys
     from rclpy.node import Node
-    import assist_common.ros_common as rc
+    import assist_common.ros_run as rc
+    import assist_common.ros_params as rp
     rc.TEARDOWN_DEADLINE_S = 1.0
 
     class N(Node):
         """Its destruction blocks in C holding the GIL, as rcl_node_fini did in CI (Fast DDS participant deletion)."""
         def __init__(self):
             super().__init__('stuck_destroy_probe')
-            rc.declare_parameters(self, {'executor': rc.executor_param('events')})
+            rp.declare_parameters(self, {'executor': rc.executor_param('events')})
             self.create_timer(0.05, self.tick)
             self.ticked = False
 
@@ -114,7 +115,8 @@ def _recording_script(body: str) -> str:
     return textwrap.dedent('''
         import sys
         from rclpy.node import Node
-        import assist_common.ros_common as rc
+        import assist_common.ros_run as rc
+        import assist_common.ros_params as rp
 
         deadlines = []
         arm = rc.TeardownDeadline.arm
@@ -168,7 +170,7 @@ class _ShutdownSpinner:
 
 def test_without_a_stop_signal_run_node_arms_no_deadline(monkeypatch):
     """A process that runs a node in turn with other work (a test run) is never ended by the deadline."""
-    import assist_common.ros_common as rc
+    import assist_common.ros_run as rc
     armed = []
     monkeypatch.setattr(rc, 'make_executor', lambda kind, num_threads=2: _ShutdownSpinner())
     monkeypatch.setattr(rc.TeardownDeadline, 'arm', classmethod(lambda cls, seconds, code: armed.append(code)))

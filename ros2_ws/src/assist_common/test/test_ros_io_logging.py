@@ -10,7 +10,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
-from assist_common.ros_common import forward_logging
+from assist_common.ros_io import forward_logging
 from assist_common.domains import private_domain_id
 
 

@@ -7,7 +7,7 @@ from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from assist_common.ros_common import Param, StartupError, declare_parameters
+from assist_common.ros_params import Param, StartupError, declare_parameters
 
 SPEC = {
     'rate_hz': Param(20.0, 'rate', min=0.0, min_exclusive=True, dynamic=True),
@@ -128,7 +128,7 @@ def test_release_logging_stops_forwarding_to_a_destroyed_node():
 
     import rclpy
 
-    from assist_common.ros_common import forward_logging, release_logging
+    from assist_common.ros_io import forward_logging, release_logging
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     try:
