@@ -48,7 +48,8 @@ def test_conditions_option_defaults_to_the_papers_two_and_takes_the_cue_block():
 
 
 @pytest.mark.parametrize('text, needle', [
-    ('conditions: [unassisted, assisted, magic]\n', 'conditions items must be one of unassisted, assisted, assisted_cues'),
+    ('conditions: [unassisted, assisted, magic]\n',
+     'conditions items must be one of unassisted, assisted, assisted_cues'),
     ('conditions: [unassisted, assisted_cues]\n', 'conditions must list'),
     ('conditions: [unassisted, assisted, assisted]\n', 'conditions must list'),
     ('conditions: assisted_cues\n', 'conditions must be a list'),
