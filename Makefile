@@ -53,11 +53,12 @@ netns:
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 
-# Two worker processes (TEST_WORKERS), a test file per worker at a time; each worker has its own DDS domains.
-# The scale and stress checks (marker `scale`) have their own target; .ci/run runs both.
+# Two worker processes (TEST_WORKERS), a test file per worker at a time, in the order conftest.py sets (the slow
+# files first, longest first; xdist would otherwise put the files with the most tests first); each worker has its
+# own DDS domains. The scale and stress checks (marker `scale`) have their own target; .ci/run runs both.
 TEST_WORKERS ?= 2
 test: $(STAMP) browser netns lint
-	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile -m "not scale"
+	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m "not scale"
 
 test-scale: $(STAMP)
 	$(PY) -m pytest -p no:cacheprovider -m scale

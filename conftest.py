@@ -19,10 +19,15 @@ def pytest_configure(config):
 
 
 def pytest_collection_modifyitems(config, items):
-    """Files holding a test marked slow run first (their order kept), so that on parallel workers the long ones do
-    not end the run alone."""
-    slow_files = {item.path for item in items if item.get_closest_marker('slow')}
-    items.sort(key=lambda item: item.path not in slow_files)
+    """Files holding a test marked slow run first, the longest first (the marker's `seconds`, else 60), so that on
+    parallel workers (make test: --dist loadfile --no-loadscope-reorder keeps this order) the long ones do not end
+    the run alone; the order within a file is kept."""
+    seconds: dict = {}
+    for item in items:
+        marker = item.get_closest_marker('slow')
+        if marker:
+            seconds[item.path] = max(seconds.get(item.path, 0), marker.kwargs.get('seconds', 60))
+    items.sort(key=lambda item: -seconds.get(item.path, 0))
 
 
 @pytest.fixture(autouse=True)

@@ -18,7 +18,7 @@ from assist_common.ros_io import RELIABLE_QOS, SENSOR_QOS, fill_twist
 from assist_common.mavlink_io import mavlink
 from assist_sim.testing import SilentAutopilot, free_udp_port
 
-pytestmark = pytest.mark.graph
+pytestmark = [pytest.mark.graph, pytest.mark.slow(seconds=60)]
 # /rosout keeps the last 1000 lines for late joiners (transient local, 10 s lifespan): events logged
 # before this probe matched still arrive
 ROSOUT_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)

@@ -45,7 +45,7 @@ def started_pids(monkeypatch):
     return pids
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=75)
 @pytest.mark.scale
 @pytest.mark.timeout(420)
 def test_five_consecutive_assisted_landings_through_the_graph(domain_id, tmp_path, started_pids):

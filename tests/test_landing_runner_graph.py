@@ -13,7 +13,7 @@ from assist_sim.testing import free_udp_port
 pytestmark = pytest.mark.graph
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=50)
 @pytest.mark.scale
 def test_runner_flies_two_episodes_on_the_mavlink_vehicle(ros, start_node, wait, tmp_path):
     port = free_udp_port()

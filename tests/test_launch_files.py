@@ -22,7 +22,7 @@ import pytest
 
 from assist_common.ros_io import RELIABLE_QOS
 
-pytestmark = pytest.mark.graph
+pytestmark = [pytest.mark.graph, pytest.mark.slow(seconds=70)]
 
 REPO = Path(__file__).resolve().parents[1]
 RUNNER = REPO / 'tests' / 'standins' / 'ros2launch.py'

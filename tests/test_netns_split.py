@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytestmark = [pytest.mark.graph, pytest.mark.slow]
+pytestmark = [pytest.mark.graph, pytest.mark.slow(seconds=55)]
 
 REPO = Path(__file__).resolve().parents[1]
 ROLES = REPO / 'tests' / 'standins' / 'netns_roles.py'

@@ -22,7 +22,7 @@ from assist_station.browser_participant import BrowserParticipant
 from assist_station.participant import Participant, draw_profiles
 from assist_station.simulate_study import SimulateArgs, StudyGraph, free_tcp_port, graph_params, study_file
 
-pytestmark = [pytest.mark.graph, pytest.mark.slow]
+pytestmark = [pytest.mark.graph, pytest.mark.slow(seconds=150)]
 RTF = 3.0                      # sim seconds per wall second (the landings need not be flown well here)
 
 

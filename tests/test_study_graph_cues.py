@@ -19,7 +19,7 @@ from assist_station import analyze_study
 from assist_station.simulate_study import SimulateArgs, simulate
 from assist_station.study import ALL_CONDITIONS, MEASURE_COLUMNS, condition_order
 
-pytestmark = [pytest.mark.graph, pytest.mark.slow]
+pytestmark = [pytest.mark.graph, pytest.mark.slow(seconds=150)]
 STUDY = Path(__file__).resolve().parents[1] / 'ros2_ws' / 'src' / 'assist_station' / 'config' / 'study_cues.yaml'
 PIDS = ('S03',)                # order: assisted_cues-unassisted-assisted
 

@@ -4,7 +4,8 @@
 $DOC_SHIM_LOG ({program, args, how, rc}). `how` is one of:
 
 - `run`: the workspace's own command-line tools run for real, with their long budgets cut (one landing
-  of at most 4 s, one beta, eight frames, one epoch, a few training steps; see `budget`);
+  of at most 4 s, one beta, eight frames, one epoch, a few training steps; see `budget`), each in a child forked
+  from the test's fork server when $DOC_SHIM_FORKSERVER names one (tests/standins/doc_forkserver.py);
   bag_record / bag_play run for real and get a Ctrl-C after a few seconds, as the docs say to stop them.
 - `checked`: what cannot run inside a test without a robot or the ROS 2 CLI is checked instead of run:
   `ros2 launch` (every `name:=value` is a declared argument and one of its choices, from the launch
@@ -139,6 +140,11 @@ def run_tool(program: str, args: list[str]) -> int:
     """The real tool with a test's budget (bag_record / bag_play: Ctrl-C after a few seconds)."""
     cmd = [str(REAL_BIN / program), *budget(program, args)]
     if program not in STOPPED_BY_CTRL_C:
+        server = os.environ.get('DOC_SHIM_FORKSERVER')
+        if server:          # the test's fork server: the same entry point without another interpreter start-up
+            sys.path.insert(0, str(Path(__file__).resolve().parent))
+            from doc_forkserver import call
+            return _log(program, cmd[1:], 'run', call(server, program, cmd[1:]))
         return _log(program, cmd[1:], 'run', subprocess.call(cmd))
     proc = subprocess.Popen(cmd, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:

@@ -15,6 +15,8 @@ from assist_policy.policy_core import InputRejected, PolicyCore, PolicyCoreConfi
 from assist_policy.rules import GOAL_AGNOSTIC, RULES, switched
 from assist_policy.testing import LATENT, constant_actor
 
+pytestmark = pytest.mark.slow(seconds=50)
+
 FLOOR_3M = np.full((64, 64), 3.0 - 0.05, np.float32)        # bare floor seen from 3 m
 
 

@@ -16,6 +16,7 @@ from assist_lab.env import EnvConfig
 from assist_lab.td3 import TD3, ReplayBuffer, TD3Config, load_actor
 from assist_lab.train import TrainArgs, evaluate_agent, load_checkpoint, main, resumed_args, train
 
+pytestmark = pytest.mark.slow(seconds=100)
 CFG = dict(condition='oracle', max_episode_s=3.0)
 
 
@@ -135,6 +136,7 @@ def test_ray_at_an_address_nobody_serves_is_one_error_line(tmp_path, capsys):
     assert not (tmp_path / 'r').exists()                     # refused before the run directory is made
 
 
+@pytest.mark.scale
 def test_ray_actors_fly_what_a_local_worker_flies(local_ray):
     worker = LandingWorker(EnvConfig(**CFG), 'oracle')
     tasks = [LandingTask('demo', k, 20 + k, noise_seed=(2, k), noise=0.2) for k in range(2)]
@@ -148,6 +150,7 @@ def test_ray_actors_fly_what_a_local_worker_flies(local_ray):
         worker.close()
 
 
+@pytest.mark.scale
 def test_a_second_ray_address_in_one_process_is_refused(local_ray):
     from assist_lab.cluster import connect_ray
     assert connect_ray('auto') is local_ray                        # the instance up for 'auto' is reused

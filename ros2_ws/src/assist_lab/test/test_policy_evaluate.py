@@ -5,6 +5,8 @@ import pytest
 
 from assist_lab.evaluate import EvalArgs, evaluate, format_table, main, summarize
 
+pytestmark = pytest.mark.slow(seconds=60)
+
 
 def test_tiny_evaluation_writes_everything(tmp_path):
     args = EvalArgs(out=str(tmp_path), conditions=('unassisted', 'scripted_oracle', 'latent'),
@@ -125,6 +127,7 @@ def test_auto_workers_scale_with_the_plan(monkeypatch):
     assert ev.worker_count(3, 2) == 2 and ev.worker_count(3, 100) == 3
 
 
+@pytest.mark.scale
 def test_a_local_ray_instance_flies_the_rows_of_one_process(tmp_path, local_ray):
     """--ray auto: the landings as Ray tasks on a local instance, byte-identical rows."""
     flags = ['--conditions', 'unassisted', 'oracle', '--betas', '0', '1', '--landings', '1', '--max-episode-s', '12',
