@@ -96,10 +96,13 @@ def _first(args: list[str], opt: str, fallback: str | None) -> list[str]:
 def budget(program: str, args: list[str]) -> list[str]:
     """The documented arguments with the long budgets cut to a test's."""
     if program == 'evaluate' and '--from-csv' not in args:
-        args = _cap(_first(_set(args, '--landings', '1'), '--betas', '0.5'), '--max-episode-s', 4)
+        # one landing, no figure (evaluate's plot is tested by the lab's own tests)
+        args = _cap(_first(_set(_set(args, '--landings', '1'), '--plot', 'false'), '--betas', '0.5'),
+                    '--max-episode-s', 4)
         return _set(args, '--workers', '1') if '--workers' in args else args     # a few landings: no worker processes
     if program == 'evaluate_graph':
-        args = _cap(_first(_set(args, '--landings', '1'), '--betas', '0.5'), '--max-episode-s', 4)
+        args = _cap(_first(_set(_set(args, '--landings', '1'), '--plot', 'false'), '--betas', '0.5'),
+                    '--max-episode-s', 4)
         conditions = _values(args, '--conditions')
         return _set(args, '--conditions', conditions[-1]) if conditions else args
     if program == 'train_td3':

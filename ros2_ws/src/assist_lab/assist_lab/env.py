@@ -273,6 +273,9 @@ class LandingAssistEnv(gym.Env):
         self.path_m += float(np.linalg.norm(st.position - before))
         self._steps += 1
         self._u = self.pilot.act(st.position, a if active else None)
+        if self.pilot.new_goal_index is not None and self.pilot.new_goal_index != self.world.goal_index:
+            self.world.change_goal(self.pilot.new_goal_index)     # the pilot changed its mind: judged on its new goal
+            self._dist = self._goal_dist(st.position)              # progress counts toward the new goal from here
         r = self.cfg.reward
         d = self._goal_dist(st.position)
         reward = -r.action_weight * float(np.linalg.norm(a))

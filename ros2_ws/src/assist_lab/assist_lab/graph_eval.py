@@ -70,7 +70,7 @@ from assist_common.constants import BLEND_THRESHOLD_MPS
 from assist_common.domains import DOMAIN_IDS_ENV, domain_range
 from assist_common.ros_io import LANDING_QOS, LATCHED_QOS, RELIABLE_QOS, stamp_to_sec
 from assist_sim.core.arducopter import FLIGHT_CONTROLLERS
-from assist_sim.pilots import PILOT_NAMES
+from assist_sim.pilots import GRAPH_PILOT_NAMES
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PointStamped, TwistStamped
 from rcl_interfaces.srv import SetParameters
@@ -138,7 +138,7 @@ class GraphEvalArgs:
     betas: tuple[float, ...] = setting(_EVAL.betas, ge=0.0, le=1.0, min_len=1)
     landings: int = setting(_EVAL.landings, ge=1, le=100_000)
     seed: int = setting(_EVAL.seed, ge=0, le=MAX_EVAL_SEED)
-    pilot: str = setting('paper', choices=PILOT_NAMES)
+    pilot: str = setting('paper', choices=GRAPH_PILOT_NAMES)
     latent_model: str = ''
     oracle_model: str = ''
     end_to_end_model: str = ''

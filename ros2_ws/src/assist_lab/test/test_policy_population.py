@@ -11,6 +11,26 @@ from assist_lab.train import TrainArgs, check_training_pilot, env_config_from
 from assist_sim.pilots import HELDOUT_FAMILIES, TRAIN_FAMILIES
 
 
+def test_a_pilot_who_changes_their_mind_is_judged_on_the_final_goal():
+    env = LandingAssistEnv(EnvConfig(condition='none', pilot_family='change_mind', max_episode_s=60.0))
+    for seed in (2024, 2027):
+        _, info = env.reset(seed=seed, options={'beta': 0.5})
+        first = info['goal_index']
+        res = run_episode(env, None, seed, {'beta': 0.5})
+        final = env.pilot.params['new_goal_index']
+        # the world's goal followed the pilot: the landing is judged on the pad it wanted last
+        assert final != first and res['goal_index'] == final == env.world.goal_index
+        assert res['success'] == (res['landed_index'] == final)
+    env.close()
+
+
+def test_the_graph_refuses_a_pilot_whose_goal_changes(capsys):
+    from assist_lab.graph_eval import main as graph_main
+    with pytest.raises(SystemExit) as exit_info:
+        graph_main(['--pilot', 'change_mind', '--out', 'unused'])
+    assert exit_info.value.code == 2 and 'change_mind' in capsys.readouterr().err
+
+
 def test_env_flies_the_named_family_and_mix_draws_held_out_families():
     env = LandingAssistEnv(EnvConfig(condition='none', pilot_family='late_correction'))
     _, info = env.reset(seed=3)

@@ -19,6 +19,8 @@ Families (``FAMILIES``; the reasoning is in each class's docstring):
 ``tapper``         hesitation and key-tapping: short taps near the aim, freezes (more often near it)
 ``late_correction`` discrete wrong-pad choice (a neighbour pad, exactly), no gradual correction, then
                    a sudden late switch to the true goal (low over the wrong pad, or after a while)
+``change_mind``    the goal itself changes: flies to its goal as the paper pilot, then chooses another pad
+                   (low over its aim, or after a while); the landing is judged on the final goal
 ``depth_bias``     persistent misjudgement of its own position along the viewing depth (x), which
                    skill never removes
 ``key_confusion``  spells of swapped axes or a flipped sign (control-display mapping errors)
@@ -34,8 +36,10 @@ Families (``FAMILIES``; the reasoning is in each class's docstring):
 
 Split (``TRAIN_FAMILIES`` / ``HELDOUT_FAMILIES``): training may use ``paper``, ``delay``, ``tapper``,
 ``depth_bias`` and ``follower``; ``bang_bang``, ``late_correction``, ``key_confusion``, ``ignorer``,
-``keyboard``, ``glide``, ``low_flyer`` and ``cautious`` are for evaluation only (``cautious``,
-``UNTUNED_FAMILIES``, is held out from tuning as well: no non-learned rule was tuned against it).
+``keyboard``, ``glide``, ``low_flyer``, ``cautious`` and ``change_mind`` are for evaluation only (``cautious`` and
+``change_mind``, ``UNTUNED_FAMILIES``, are held out from tuning as well: no non-learned rule was tuned against
+them). ``change_mind`` (``GOAL_CHANGING_FAMILIES``) changes the goal the landing is judged on: the env applies its
+``new_goal_index``; the graph cannot (no topic of the contract carries it), so sim_pilot_node refuses it.
 Population names (``POPULATIONS``): ``mix`` = one of the first five held-out families (``MIX_FAMILIES``)
 drawn uniformly per episode (the held-out evaluation docs/results.md reports), ``approach_mix`` =
 ``glide`` or ``low_flyer`` (``APPROACH_FAMILIES``: pilots that descend before they are over their aim,
@@ -116,6 +120,20 @@ class LateCorrectionConfig:
     notice_height_m: Range = (0.4, 1.5)   # height over the wrong pad's top at which it notices
     notice_time_s: Range = (10.0, 30.0)   # ...or after this long, whichever comes first
     fallback_gap_m: float = 4.0           # neighbour distance along x when the pads are unknown
+
+
+@dataclass
+class ChangeOfMindConfig:
+    """The goal itself changes: the pilot decides on another pad mid-approach."""
+
+    # A person told "land on that one" changes their mind, or is told another pad, while already low over the
+    # first one (the hard case for an assistant that has just helped them there) or earlier in the approach. The
+    # new goal is a neighbour pad (the nearest other pad, side drawn) or any other pad; the pilot sees where it is
+    # with the paper pilot's wrong-in-depth first estimate. The landing is judged on the final goal.
+    switch_height_m: Range = (0.5, 1.5)   # height over its aim's top at which it changes its mind ...
+    switch_radius_m: float = 1.0          # ... within this of its aim horizontally
+    switch_time_s: Range = (8.0, 25.0)    # ...or after this long, whichever comes first
+    neighbour_share: float = 0.7          # chance the new goal is a neighbour pad (else any other pad)
 
 
 @dataclass
@@ -213,6 +231,7 @@ class FamilyConfig:
     bang_bang: BangBangConfig = field(default_factory=BangBangConfig)
     tapper: TapperConfig = field(default_factory=TapperConfig)
     late: LateCorrectionConfig = field(default_factory=LateCorrectionConfig)
+    change_mind: ChangeOfMindConfig = field(default_factory=ChangeOfMindConfig)
     depth_bias: DepthBiasConfig = field(default_factory=DepthBiasConfig)
     key_confusion: KeyConfusionConfig = field(default_factory=KeyConfusionConfig)
     alpha: AlphaConfig = field(default_factory=AlphaConfig)
@@ -245,6 +264,9 @@ class FamilyPilot(SimulatedPilot):
         self.base_alpha = self.alpha
         self.params: dict[str, float | str] = {}
         self.t = 0.0
+        # the pad the pilot now wants when it changed its goal during this landing (index into `pads`), else None:
+        # the env then judges the landing on that pad (a family that never changes its goal leaves it None)
+        self.new_goal_index: int | None = None
 
     @property
     def dt(self) -> float:
@@ -268,6 +290,7 @@ class FamilyPilot(SimulatedPilot):
         self.alpha = self.base_alpha
         self.params = {}
         self.t = 0.0
+        self.new_goal_index = None
         self._draw_params()
         super().reset(goal, position, goal_estimate)
         self.cues.reset()
@@ -484,6 +507,49 @@ class LateCorrectionMixin(FamilyPilot):
         return super().command(position)
 
 
+class ChangeOfMindMixin(FamilyPilot):
+    """Flies to its goal as the paper pilot does, then chooses another pad: low over its aim, or after a while."""
+
+    def _draw_params(self) -> None:
+        super()._draw_params()
+        cm, r = self.fcfg.change_mind, self.family_rng
+        self.params.update(switch_height_m=_draw(r, cm.switch_height_m), switch_time_s=_draw(r, cm.switch_time_s),
+                           neighbour=bool(r.uniform() < cm.neighbour_share), side=float(r.choice([-1.0, 1.0])),
+                           pick=float(r.uniform()))
+
+    def _other_pad(self) -> int | None:
+        """The pad it changes to (drawn at reset): a neighbour along the row, or any other pad; None without pads."""
+        if self.pads is None or len(self.pads) < 2:
+            return None
+        goal = int(np.argmin(np.linalg.norm(self.pads - self.goal, axis=1)))
+        others = [i for i in range(len(self.pads)) if i != goal]
+        if self.params['neighbour']:
+            order = [int(i) for i in np.argsort(self.pads[:, 0])]
+            k = order.index(goal)
+            j = k + int(self.params['side'])
+            if not 0 <= j < len(order):
+                j = k - int(self.params['side'])
+            return order[j]
+        return others[min(int(float(self.params['pick']) * len(others)), len(others) - 1)]
+
+    def command(self, position: np.ndarray) -> np.ndarray:
+        """Check the change-of-mind trigger, then the family command."""
+        p = np.asarray(position, dtype=float).reshape(3)
+        if self.new_goal_index is None and 'switched_at_s' not in self.params:
+            low = (p[2] - self.goal_estimate[2] < float(self.params['switch_height_m'])
+                   and np.hypot(*(p[:2] - self.goal_estimate[:2])) < self.fcfg.change_mind.switch_radius_m)
+            if low or self.t >= float(self.params['switch_time_s']):
+                self.params['switched_at_s'] = round(self.t, 2)
+                j = self._other_pad()
+                if j is not None:
+                    self.new_goal_index = j
+                    self.goal = self.pads[j].copy()
+                    self.goal_estimate = SimulatedPilot.initial_estimate(self, self.goal, p)
+                    self.params['new_goal_index'] = j
+                    self._descending = False
+        return super().command(position)
+
+
 class DepthBiasMixin(FamilyPilot):
     """A constant error in judging the drone's own x (viewing depth) on top of the paper's drifting one."""
 
@@ -579,6 +645,12 @@ class LateCorrectionPilot(LateCorrectionMixin):
     """Wrong pad, then a sudden late correction."""
 
     name = 'late_correction'
+
+
+class ChangeOfMindPilot(ChangeOfMindMixin):
+    """Changes its goal to another pad mid-approach (judged on the final goal)."""
+
+    name = 'change_mind'
 
 
 class DepthBiasPilot(DepthBiasMixin):
@@ -751,17 +823,22 @@ class CautiousPilot(FamilyPilot):
 
 
 FAMILIES: dict[str, type[FamilyPilot]] = {cls.name: cls for cls in (
-    PaperPilot, DelayPilot, BangBangPilot, TapperPilot, LateCorrectionPilot, DepthBiasPilot,
+    PaperPilot, DelayPilot, BangBangPilot, TapperPilot, LateCorrectionPilot, ChangeOfMindPilot, DepthBiasPilot,
     KeyConfusionPilot, IgnorerPilot, FollowerPilot, KeyboardPilot, GlidePilot, LowFlyerPilot, CautiousPilot)}
 TRAIN_FAMILIES: tuple[str, ...] = ('paper', 'delay', 'tapper', 'depth_bias', 'follower')
 MIX_FAMILIES: tuple[str, ...] = ('bang_bang', 'late_correction', 'key_confusion', 'ignorer', 'keyboard')
 APPROACH_FAMILIES: tuple[str, ...] = ('glide', 'low_flyer')
 # held out from tuning too: no rule or actor was tuned or changed for them
-UNTUNED_FAMILIES: tuple[str, ...] = ('cautious',)
+UNTUNED_FAMILIES: tuple[str, ...] = ('cautious', 'change_mind')
 HELDOUT_FAMILIES: tuple[str, ...] = MIX_FAMILIES + APPROACH_FAMILIES + UNTUNED_FAMILIES
+# families whose goal changes during a landing: only the env flies them (the graph's contract has no topic on which
+# sim_node would learn the pilot's new goal)
+GOAL_CHANGING_FAMILIES: tuple[str, ...] = ('change_mind',)
 POPULATIONS: dict[str, tuple[str, ...]] = {'mix': MIX_FAMILIES, 'approach_mix': APPROACH_FAMILIES,
                                            'train_mix': TRAIN_FAMILIES}
 PILOT_NAMES: tuple[str, ...] = tuple(FAMILIES) + tuple(POPULATIONS)
+# the pilots a node graph can fly (sim_pilot_node, evaluate_graph, simulate_study): all but the goal-changing ones
+GRAPH_PILOT_NAMES: tuple[str, ...] = tuple(n for n in PILOT_NAMES if n not in GOAL_CHANGING_FAMILIES)
 
 
 def resolve_pilot_name(name: str, rng: np.random.Generator) -> str:
@@ -784,5 +861,5 @@ def make_pilot(name: str, alpha: float = 0.5, beta: float = 0.5, cfg: PilotConfi
 
 
 __all__ = ['FAMILIES', 'TRAIN_FAMILIES', 'MIX_FAMILIES', 'APPROACH_FAMILIES', 'UNTUNED_FAMILIES', 'HELDOUT_FAMILIES',
-           'POPULATIONS',
-           'PILOT_NAMES', 'FamilyConfig', 'FamilyPilot', 'make_pilot', 'resolve_pilot_name', 'confuse']
+           'GOAL_CHANGING_FAMILIES', 'POPULATIONS', 'PILOT_NAMES', 'GRAPH_PILOT_NAMES', 'FamilyConfig', 'FamilyPilot',
+           'make_pilot', 'resolve_pilot_name', 'confuse']

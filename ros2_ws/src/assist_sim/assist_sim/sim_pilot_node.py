@@ -40,7 +40,7 @@ from assist_common.ros_run import exit_process, run_node
 
 from .cues import Cue, CueConfig
 from .pilot import PilotConfig
-from .pilots import PILOT_NAMES, make_pilot
+from .pilots import GRAPH_PILOT_NAMES, make_pilot
 
 PARAMS = {
     'alpha': Param(0.5, 'Conformance to the assistant in [0, 1] (paper alpha; settable at run time).',
@@ -57,7 +57,7 @@ PARAMS = {
                                  'time).', min=0.0, max=10.0, min_exclusive=True, dynamic=True),
     'pilot': Param('paper', 'Pilot model: paper (the reference) or an assist_sim.pilots family or population '
                             '(mix = held-out families, train_mix = training families), drawn anew per landing.',
-                   choices=PILOT_NAMES),
+                   choices=GRAPH_PILOT_NAMES),
     'episode_seeds': Param((), 'Evaluation plan: seed of the pilot of landing 0, 1, 2, ... (each its own fresh pilot, '
                                'as the evaluation env builds it); empty: the landings follow seed.', min=0,
                            max=2**31 - 1, item_type=int),
@@ -65,7 +65,7 @@ PARAMS = {
                                'same length); empty: beta.', min=0.0, max=1.0, item_type=float),
     'episode_pilots': Param((), 'Evaluation plan: pilot model (family or population, drawn with that landing\'s '
                                 'seed) of landing 0, 1, 2, ... (needs episode_seeds, same length); empty: pilot.',
-                            choices=PILOT_NAMES, item_type=str),
+                            choices=GRAPH_PILOT_NAMES, item_type=str),
     'frame_id': Param('base_link', 'frame_id of /pilot/cmd_vel.'),
     'cue_trust': Param(0.0, "Chance per landing that the pilot reads the assistant's cues (/assist/goal_estimate, "
                             '/assist/descent_ok; assist_sim.cues); 0: it never looks at them.', min=0.0, max=1.0),

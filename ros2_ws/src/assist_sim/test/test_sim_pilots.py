@@ -3,8 +3,9 @@ import numpy as np
 import pytest
 
 from assist_sim.pilot import PilotConfig, SimulatedPilot
-from assist_sim.pilots import (APPROACH_FAMILIES, FAMILIES, HELDOUT_FAMILIES, MIX_FAMILIES, PILOT_NAMES, POPULATIONS,
-                               TRAIN_FAMILIES, UNTUNED_FAMILIES, CautiousConfig, FamilyConfig, confuse, make_pilot)
+from assist_sim.pilots import (APPROACH_FAMILIES, FAMILIES, GOAL_CHANGING_FAMILIES, GRAPH_PILOT_NAMES, HELDOUT_FAMILIES,
+                               MIX_FAMILIES, PILOT_NAMES, POPULATIONS, TRAIN_FAMILIES, UNTUNED_FAMILIES, CautiousConfig,
+                               FamilyConfig, confuse, make_pilot)
 
 GOAL = np.array([12.0, 0.5, 0.8])
 START = np.array([0.0, 0.0, 3.5])
@@ -47,6 +48,8 @@ def test_registry_split_and_populations():
         make_pilot('nobody')
     seen = {make_pilot('mix', rng=s).name for s in range(60)}
     assert seen == set(MIX_FAMILIES)                    # the held-out mix is unchanged by the later families
+    assert set(GOAL_CHANGING_FAMILIES) <= set(UNTUNED_FAMILIES) and not set(GOAL_CHANGING_FAMILIES) & set(
+        GRAPH_PILOT_NAMES)
     assert {make_pilot('approach_mix', rng=s).name for s in range(20)} == set(APPROACH_FAMILIES)
 
 
@@ -185,6 +188,37 @@ def test_late_correction_flies_to_a_neighbour_pad_then_switches():
     assert np.linalg.norm(est[k - 1, :2] - first[:2]) < 0.05
     assert np.linalg.norm(est[k, :2] - GOAL[:2]) < 0.4
     assert np.linalg.norm(p[:2] - GOAL[:2]) < 0.5                                  # then lands on the goal
+
+
+def test_change_mind_reaches_its_goal_then_chooses_another_pad_and_lands_there():
+    cfg = PilotConfig(perception_sigma_m=(0.0, 0.0))
+    seen = set()
+    for seed in range(8):
+        pl = make_pilot('change_mind', 0.5, 1.0, cfg, rng=seed, pads=PADS)
+        pl.fcfg.change_mind.switch_time_s = (60.0, 60.0)        # only the low-over-its-aim trigger
+        pl.reset(GOAL, START)
+        assert pl.new_goal_index is None
+        p = START.copy()
+        at_switch = None
+        for _ in range(2400):
+            p = p + pl.act(p) * DT
+            if at_switch is None and pl.new_goal_index is not None:
+                at_switch = p.copy()
+            if p[2] <= 0.5:
+                break
+        j = pl.new_goal_index
+        assert j is not None and j != 2 and pl.params['new_goal_index'] == j
+        seen.add(j)
+        # it changed its mind low over its first goal, and then flew to the new one
+        assert np.hypot(*(at_switch[:2] - GOAL[:2])) < 1.0 and at_switch[2] - GOAL[2] < 1.5
+        assert np.array_equal(pl.goal, PADS[j]) and np.linalg.norm(p[:2] - PADS[j][:2]) < 0.6
+    assert {1, 3} <= seen                                       # both neighbours occur
+    # without the pads it cannot choose a real one: it keeps its goal
+    pl = make_pilot('change_mind', 0.5, 1.0, cfg, rng=0)
+    pl.reset(GOAL, START)
+    for _ in range(600):
+        pl.act(START + np.array([12.0, 0.5, -2.5]))
+    assert pl.new_goal_index is None and 'switched_at_s' in pl.params
 
 
 def test_late_correction_without_pads_uses_one_spacing():

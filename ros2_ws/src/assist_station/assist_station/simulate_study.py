@@ -288,7 +288,7 @@ def main(argv: list[str] | None = None) -> int:
     """Console entry point."""
     cmd = parse_command(SimulateArgs, 'simulate_study', __doc__, HELP, argv)
     parser, args = cmd.parser, cmd.settings
-    from assist_sim.pilots import PILOT_NAMES
+    from assist_sim.pilots import GRAPH_PILOT_NAMES as PILOT_NAMES
     bad = [f for f in args.families if f not in PILOT_NAMES]
     if bad:
         parser.error(f'--families: unknown pilot {", ".join(bad)} (choose from {", ".join(PILOT_NAMES)})')

@@ -50,7 +50,8 @@ from .study import (PRACTICE_BLOCK, KeyCounter, LandingSpec, StudyConfig, StudyE
                     check_participant_id, practice_feedback)
 
 EPISODE_RE = re.compile(r'^episode (\d+): goal pad (\d+)')
-SERVICE_WAIT_S = 10.0          # a node's parameter service / /sim/reset not answering this long: the step fails
+SERVICE_WAIT_S = 10.0          # a node's parameter service / /sim/reset not answering this long: sent again or failed
+SERVICE_RETRIES = 2            # a parameter request (idempotent) is sent again this many times before the step fails
 BAG_WARMUP_S = 0.6             # the landing's bag subscribes before the episode starts
 BAG_TAIL_S = 0.5               # ... and keeps recording this long after the result
 INBOX_SIZE = 64                # page steps waiting for the node's timer at most (more are dropped)
@@ -108,11 +109,28 @@ class CountingKeyState(KeyState):
 
 
 class _Call:
-    """One pending service call: its future, deadline and what to do with the answer."""
+    """One pending service call: its future, deadline and what to do with the answer.
 
-    def __init__(self, what: str, future: Any, on_done: Callable[[Any], None], timeout_s: float = SERVICE_WAIT_S):
-        self.what, self.future, self.on_done = what, future, on_done
+    `again` (idempotent requests only: setting or reading parameters) sends the same request anew: a call not
+    answered within its time is sent again up to SERVICE_RETRIES times before the step fails (a loaded machine
+    can hold a parameter service's answer back for seconds).
+    """
+
+    def __init__(self, what: str, future: Any, on_done: Callable[[Any], None], timeout_s: float = SERVICE_WAIT_S,
+                 again: Callable[[], Any] | None = None):
+        self.what, self.future, self.on_done, self.again = what, future, on_done, again
+        self.timeout_s = timeout_s
         self.deadline = time.monotonic() + timeout_s
+        self.tries = 1
+
+    def retry(self) -> bool:
+        """Send the request again (a fresh future and deadline); False when it may not or has been sent enough."""
+        if self.again is None or self.tries > SERVICE_RETRIES:
+            return False
+        self.future = self.again()
+        self.deadline = time.monotonic() + self.timeout_s
+        self.tries += 1
+        return True
 
 
 class StudyDriver:
@@ -238,6 +256,8 @@ class StudyDriver:
     def tick(self) -> None:
         """Run queued page steps, finished service calls, timeouts; publish the view when it changed."""
         for call in list(self._calls):
+            if call not in self._calls:     # an earlier answer in this loop failed the step: the rest went with it
+                continue
             if call.future.done():
                 self._calls.remove(call)
                 try:
@@ -247,8 +267,12 @@ class StudyDriver:
                     continue
                 call.on_done(result)
             elif time.monotonic() > call.deadline:
+                if call.retry():
+                    self._warn(f'retry {call.what}', f'study: {call.what}: no answer within {call.timeout_s:.0f} s; '
+                                                     f'sent again (try {call.tries} of {SERVICE_RETRIES + 1})')
+                    continue
                 self._calls.remove(call)
-                self._fail(f'{call.what}: no answer within {SERVICE_WAIT_S:.0f} s')
+                self._fail(f'{call.what}: no answer within {call.timeout_s:.0f} s ({call.tries} tries)')
         while True:
             try:
                 msg = self.inbox.get_nowait()
@@ -422,7 +446,8 @@ class StudyDriver:
             self._pending_config -= 1
             if self._pending_config == 0 and self.stage == 'configuring':
                 self._open_bag()
-        self._calls.append(_Call(f'setting {what} parameters', client.call_async(req), done))
+        self._calls.append(_Call(f'setting {what} parameters', client.call_async(req), done,
+                                 again=lambda: client.call_async(req)))
 
     def _check_policy_mode(self) -> None:
         """The assisted block flies the study file's assistant: policy_node's mode and model, encoder_node's model."""
@@ -446,7 +471,8 @@ class StudyDriver:
                                    f'{want or "(shipped)"!r}')
                         return
             req = GetParameters.Request(names=names)
-            self._calls.append(_Call(f'reading {what} parameters', client.call_async(req), done))
+            self._calls.append(_Call(f'reading {what} parameters', client.call_async(req), done,
+                                     again=lambda client=client, req=req: client.call_async(req)))
 
     def _open_bag(self) -> None:
         if self.bag is not None:

@@ -166,3 +166,44 @@ def test_the_next_participant_begins_once_the_open_one_is_done(h, tmp_path):
     h2.step('begin', participant='P04')
     assert h2.driver.session.pid == 'P04' and h2.errors() == []
     h2.driver.close()
+
+
+class Future:
+    """A service call's future, answered when the test says."""
+
+    def __init__(self, answer=None):
+        self.answer = answer
+
+    def done(self):
+        return self.answer is not None
+
+    def result(self):
+        return self.answer
+
+
+def test_calls_not_answered_in_time_are_sent_again_then_fail_the_step_once(h, monkeypatch):
+    from assist_station import study_station
+    now = [1000.0]
+    monkeypatch.setattr(study_station.time, 'monotonic', lambda: now[0])
+    answered, sent = [], []
+
+    def again():
+        sent.append(Future())
+        return sent[-1]
+    call = study_station._Call('setting policy_node parameters', Future(), answered.append, again=again)
+    h.driver._calls.append(call)
+    now[0] += study_station.SERVICE_WAIT_S + 0.1
+    h.driver.tick()                                  # not answered in time: sent again, nothing failed
+    assert len(sent) == 1 and call.tries == 2 and h.driver._calls == [call] and not h.errors()
+    sent[-1].answer = 'ok'
+    h.driver.tick()                                  # the second request's answer is taken
+    assert answered == ['ok'] and not h.driver._calls and not h.errors()
+    # two calls out of time and out of tries: the first fails the step and drops the second, which is not
+    # touched again (it used to raise from the tick: list.remove of a call already dropped)
+    first = study_station._Call('setting policy_node parameters', Future(), answered.append)
+    second = study_station._Call('reading encoder_node parameters', Future(), answered.append)
+    h.driver._calls += [first, second]
+    now[0] += study_station.SERVICE_WAIT_S + 0.1
+    h.driver.tick()
+    assert h.errors() == ['setting policy_node parameters: no answer within 10 s (1 tries)']
+    assert not h.driver._calls and answered == ['ok']

@@ -319,6 +319,13 @@ class LandingWorld:
         """True once the current episode has a result."""
         return self.result is not None
 
+    def change_goal(self, index: int) -> None:
+        """The goal pad becomes `index` from now on (a pilot who changes their mind): the landing is judged on it."""
+        index = int(index)
+        if not 0 <= index < len(self.scene.pads):
+            raise ValueError(f'goal_index {index} out of range 0..{len(self.scene.pads) - 1}')
+        self.goal_index = index
+
     @property
     def goal_position(self) -> np.ndarray:
         """Top-surface centre of the goal pad (odom ENU)."""
