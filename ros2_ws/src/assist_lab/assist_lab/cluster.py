@@ -20,6 +20,7 @@ import socket
 import sys
 import threading
 import time
+import typing
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
@@ -286,6 +287,23 @@ def ray_cpus(ray: ModuleType) -> int:
 _WORKER = None      # in a pool's worker process: the object its tasks run on
 
 
+def exit_worker_died(line: str) -> typing.NoReturn:
+    """End a command whose worker process died: its one error `line` on stderr, then the process at once (status 1).
+
+    The pool is closed by then and everything the run keeps is written; what is left are threads of the pool's
+    machinery that a worker killed mid-message can leave waiting for ever (the executor's manager thread reading
+    the rest of a result), which a normal interpreter exit would join.
+    """
+    sys.stderr.write(line.rstrip('\n') + '\n')
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(1)
+
+
 def _start_worker(make: Callable[[], Any], parent_pid: int) -> None:
     """Worker process initialiser: gone with its parent `parent_pid`, Ctrl-C left to the parent, warnings logged,
     the worker object made."""
@@ -403,6 +421,10 @@ class WorkerPool:
             if any_worker_ended(self._pool):             # (a dead worker stays ended: nothing to remember)
                 procs = list((getattr(self._pool, '_processes', None) or {}).values())
                 writer = getattr(getattr(self._pool, '_result_queue', None), '_writer', None)
+                # tasks still queued for the dead workers: their feeder thread would block the exit on a full pipe
+                call_queue = getattr(self._pool, '_call_queue', None)
+                if call_queue is not None:
+                    call_queue.cancel_join_thread()
                 self._pool.shutdown(wait=False, cancel_futures=True)      # (drops the executor's references)
                 for proc in procs:
                     if not _has_ended(proc):

@@ -92,7 +92,8 @@ from assist_sim.pilots import PILOT_NAMES
 
 from assist_bags.bagio import BagError
 from .landing_bags import record_landing
-from .cluster import (DirectoryBusy, RayUnreachable, WorkerDied, WorkerPool, connect_ray, cpu_cores, hold_directory)
+from .cluster import (DirectoryBusy, RayUnreachable, WorkerDied, WorkerPool, connect_ray, cpu_cores, exit_worker_died,
+                      hold_directory)
 from assist_common.settings import check_settings, parse_command, setting
 from .env import EnvConfig, LandingAssistEnv, run_episode
 from .episodes_plan import landing_seeds
@@ -715,7 +716,9 @@ def main(argv: list[str] | None = None) -> int:
     except (DirectoryBusy, RayUnreachable) as exc:      # the --out or --ray given cannot be used now
         print(f'error: {exc}', file=sys.stderr)
         return 2
-    except (OSError, ValueError, BagError, WorkerDied) as exc:
+    except WorkerDied as exc:
+        exit_worker_died(f'error: {exc}')
+    except (OSError, ValueError, BagError) as exc:
         print(f'error: {exc}', file=sys.stderr)
         return 1
     if not summary:

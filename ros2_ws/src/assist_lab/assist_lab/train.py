@@ -48,7 +48,7 @@ from assist_perception.model import load_training_state, training_device
 from assist_sim.pilots import HELDOUT_FAMILIES, TRAIN_FAMILIES
 
 from assist_common.settings import SettingsError, check_settings, exit_error, flag, parse_command, setting
-from .cluster import DirectoryBusy, RayUnreachable, WorkerDied, hold_directory
+from .cluster import DirectoryBusy, RayUnreachable, WorkerDied, exit_worker_died, hold_directory
 from .collect import (DEMO_POLICIES, ActorWeights, LandingPool, LandingTask, collect_demos,
                       make_env)
 from .episodes_plan import landing_seeds
@@ -747,7 +747,9 @@ def main(argv: list[str] | None = None) -> int:
             run_dir = train(args)
     except (DirectoryBusy, RayUnreachable, SettingsError) as exc:    # the run directory or --ray cannot be used
         exit_error(parser.prog, exc, 2)
-    except (ValueError, OSError, WorkerDied) as exc:     # damaged checkpoint, an actor that does not fit, disk full
+    except WorkerDied as exc:
+        exit_worker_died(f'{parser.prog}: error: {exc}')
+    except (ValueError, OSError) as exc:     # damaged checkpoint, an actor that does not fit, disk full
         log.debug('train_td3 failed', exc_info=True)
         exit_error(parser.prog, exc, 1)
     print(f'run directory: {run_dir}')
