@@ -21,7 +21,11 @@ import sys
 import threading
 import traceback
 
-PRELOAD = ('torch', 'numpy', 'matplotlib', 'assist_lab.evaluate', 'assist_lab.train', 'assist_bags.replay')
+# what the tools import, loaded once (none of it starts a thread: checked before the first fork)
+PRELOAD = ('torch', 'torch.onnx', 'onnxruntime', 'numpy', 'matplotlib', 'matplotlib.pyplot', 'pybullet',
+           'assist_perception.encoder_core', 'assist_lab.evaluate', 'assist_lab.train', 'assist_lab.graph_eval',
+           'assist_lab.compare', 'assist_lab.cmvae_train', 'assist_bags.replay', 'assist_station.simulate_study',
+           'assist_station.analyze_study')
 MAX_REQUEST = 1 << 20
 
 
