@@ -182,18 +182,30 @@ def test_pair_latents_matches_each_latent_with_its_pad_estimate():
 
 
 def _reordered(src: Path, dst: Path) -> Path:
-    """A copy of bag `src` in which the n-th /assist/pad_estimate is recorded right after the (n+1)-th
-    /assist/latent: the order a recorder gives when it takes the latent topic one frame ahead of the pad estimates."""
+    """A copy of bag `src` in which each /assist/pad_estimate is recorded right after the /assist/latent that follows
+    its own frame's latent: the order a recorder gives when it takes the latent topic one frame ahead of the pad
+    estimates. Its own latent is the one the live bag pairs it with (pair_latents on the bag as recorded, which may
+    itself hold a burst or a lost message), so every pad estimate is exactly one frame late."""
     with BagReader(src) as r:
         rows = list(r.messages())
         infos = dict(r.topics)
         custom = dict(r.metadata['custom_data'] or {})
-    pads = [raw for topic, _, raw in rows if topic == '/assist/pad_estimate']
+    events, latent_times, pads = [], [], []
+    for topic, t, raw in rows:
+        if topic == '/assist/latent':
+            events.append(('L', len(latent_times)))
+            latent_times.append(t)
+        elif topic == '/assist/pad_estimate':
+            events.append(('P', len(pads)))           # its index stands for its stamp
+            pads.append((t, raw))
+    own = {j: k for k, j in pair_latents(events).items()}          # pad estimate -> its frame's latent
     out = [m for m in rows if m[0] != '/assist/pad_estimate']
-    latent_times = [t for topic, t, _ in out if topic == '/assist/latent']
     end = max(t for _, t, _ in rows)
-    for n, raw in enumerate(pads):
-        out.append(('/assist/pad_estimate', latent_times[n + 1] + 1 if n + 1 < len(latent_times) else end + 1 + n, raw))
+    for j, (t, raw) in enumerate(pads):
+        k = own.get(j)
+        if k is not None:
+            t = latent_times[k + 1] + 1 if k + 1 < len(latent_times) else end + 1 + j
+        out.append(('/assist/pad_estimate', t, raw))
     with BagWriter(dst) as w:
         for name, info in infos.items():
             w.add_topic(name, info.msgtype, info.qos)
