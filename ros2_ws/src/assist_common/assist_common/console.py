@@ -12,8 +12,11 @@ raised inside a C extension's initialisation comes out as an unrelated ImportErr
 from __future__ import annotations
 
 import importlib
+import logging
 import os
 import signal
+import sys
+import typing
 from collections.abc import Callable, Iterable
 
 #: Exit code of a ROS node stopped by Ctrl-C: it did what was asked, as run_node returns after a Ctrl-C.
@@ -66,3 +69,16 @@ def node_executables(packages: Iterable[str]) -> dict[str, tuple[str, str]]:
             if callable(value) and getattr(value, 'interrupted', None) == NODE_INTERRUPTED:
                 nodes[name] = (pkg, value.target)
     return nodes
+
+
+def exit_now(code: int) -> typing.NoReturn:
+    """End the process with `code` after flushing logging and the standard streams, without the interpreter's
+    finalization (which would join threads and tear modules down: see ros_run.exit_process and
+    assist_lab.cluster.exit_worker_died for why each needs that)."""
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(code)

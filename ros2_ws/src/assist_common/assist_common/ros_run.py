@@ -19,6 +19,7 @@ from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor, Si
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
+from .console import exit_now
 from .ros_io import forward_logging
 from .ros_params import Param, StartupError, check_overrides, console_request
 
@@ -368,13 +369,7 @@ def exit_process(code: int) -> None:
     """
     _going_down()
     faulthandler.dump_traceback_later(EXIT_STACKS_S, exit=True, file=sys.stderr)
-    logging.shutdown()
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (OSError, ValueError):
-            pass
-    os._exit(code)
+    exit_now(code)
 
 
 def _going_down() -> None:

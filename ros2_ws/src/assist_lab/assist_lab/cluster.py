@@ -30,6 +30,8 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+from assist_common.console import exit_now
+
 log = logging.getLogger(__name__)
 
 RAY_PIN = 'ray==2.60.0'
@@ -295,13 +297,7 @@ def exit_worker_died(line: str) -> typing.NoReturn:
     the rest of a result), which a normal interpreter exit would join.
     """
     sys.stderr.write(line.rstrip('\n') + '\n')
-    logging.shutdown()
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except (OSError, ValueError):
-            pass
-    os._exit(1)
+    exit_now(1)
 
 
 def _start_worker(make: Callable[[], Any], parent_pid: int) -> None:
