@@ -458,6 +458,17 @@ class TapperMixin(FamilyPilot):
         return u
 
 
+def neighbour_pad(pads: np.ndarray, goal: np.ndarray, side: float) -> int:
+    """Index of the pad next to the one at `goal` along the row (x), on `side` (+1 / -1), or on the other side at the
+    row's end (at least two pads)."""
+    order = np.argsort(pads[:, 0])
+    k = int(np.argmin(np.linalg.norm(pads[order, :2] - np.asarray(goal, dtype=float)[:2], axis=1)))
+    j = k + int(side)
+    if not 0 <= j < len(order):
+        j = k - int(side)
+    return int(order[j])
+
+
 class LateCorrectionMixin(FamilyPilot):
     """Flies confidently to a neighbour pad, then switches to the true goal suddenly and late."""
 
@@ -474,12 +485,7 @@ class LateCorrectionMixin(FamilyPilot):
         side = float(self.params.get('side', 1.0))
         wrong = goal + np.array([side * self.fcfg.late.fallback_gap_m, 0.0, 0.0])
         if self.pads is not None and len(self.pads) > 1:
-            order = np.argsort(self.pads[:, 0])
-            k = int(np.argmin(np.linalg.norm(self.pads[order, :2] - goal[:2], axis=1)))
-            j = k + int(side)
-            if not 0 <= j < len(order):
-                j = k - int(side)
-            wrong = self.pads[order[j]].copy()
+            wrong = self.pads[neighbour_pad(self.pads, goal, side)].copy()
         return wrong + np.array([0.0, float(self.params.get('lateral', 0.0)), 0.0])
 
     def update_estimate(self, agent_action: np.ndarray | None = None) -> np.ndarray:
@@ -521,15 +527,10 @@ class ChangeOfMindMixin(FamilyPilot):
         """The pad it changes to (drawn at reset): a neighbour along the row, or any other pad; None without pads."""
         if self.pads is None or len(self.pads) < 2:
             return None
-        goal = int(np.argmin(np.linalg.norm(self.pads - self.goal, axis=1)))
-        others = [i for i in range(len(self.pads)) if i != goal]
         if self.params['neighbour']:
-            order = [int(i) for i in np.argsort(self.pads[:, 0])]
-            k = order.index(goal)
-            j = k + int(self.params['side'])
-            if not 0 <= j < len(order):
-                j = k - int(self.params['side'])
-            return order[j]
+            return neighbour_pad(self.pads, self.goal, float(self.params['side']))
+        goal = int(np.argmin(np.linalg.norm(self.pads[:, :2] - self.goal[:2], axis=1)))
+        others = [i for i in range(len(self.pads)) if i != goal]
         return others[min(int(float(self.params['pick']) * len(others)), len(others) - 1)]
 
     def command(self, position: np.ndarray) -> np.ndarray:
