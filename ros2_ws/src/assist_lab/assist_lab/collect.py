@@ -35,7 +35,7 @@ import torch
 from tqdm import tqdm
 
 from assist_perception.latent import make_latent_fn
-from assist_policy.actor import Actor
+from assist_policy.actor import build_actor, validate_actor_meta
 from assist_policy.scripted import LEAD_S, NEAREST_PAD_VARIANTS, ScriptedConfig, ScriptedOracle, make_nearest_pad
 from .cluster import WorkerPool
 from .env import EnvConfig, LandingAssistEnv, run_episode
@@ -90,9 +90,7 @@ class ActorWeights:
 
     def policy(self) -> Callable[[np.ndarray], np.ndarray]:
         """obs -> deterministic raw action, computed as TD3.act computes it on the CPU."""
-        m = self.meta
-        actor = Actor(m['vec_dim'], m['act_dim'], hidden=tuple(m['hidden']), image=m['image'],
-                      image_channels=tuple(m['image_channels']))
+        actor = build_actor(validate_actor_meta(dict(self.meta)))
         actor.load_state_dict({k: torch.from_numpy(v) for k, v in self.state.items()})
         actor.eval()
 
@@ -118,6 +116,7 @@ class LandingTask:
     random_actions: bool = False         # td3: uniformly random actions
     ou: tuple[float, ...] = ()           # td3: OUNoise (theta, sigma, sigma_min, decay) and its landing number
     beta: float = 0.0                    # eval: the pilot's beta
+    goal_labels: bool = False            # demo: each label also carries the true goal (env.goal_label)
 
 
 @dataclass
@@ -170,13 +169,15 @@ def _landing(env: LandingAssistEnv, seed: int, episode: int, choose: Callable[[n
 
 
 def fly_demo(env: LandingAssistEnv, seed: int, episode: int, rng: np.random.Generator, noise: float,
-             script: ScriptedOracle | None, label_fn=None, act_fn=None) -> FlownLanding:
-    """A demonstration landing: every state labelled by `script` (or `label_fn(obs)` when script is None);
-    flown by the label (+ Gaussian `noise` from `rng`) unless `act_fn(obs)` flies (DAgger)."""
+             script: ScriptedOracle | None, label_fn=None, act_fn=None, goal_labels: bool = False) -> FlownLanding:
+    """A demonstration landing: every state labelled by `script` (or `label_fn(obs)` when script is None),
+    followed by the true goal with `goal_labels`; flown by the label (+ Gaussian `noise` from `rng`) unless
+    `act_fn(obs)` flies (DAgger)."""
     def choose(obs: np.ndarray) -> tuple:
         clean = np.asarray(label_fn(obs), dtype=float) if script is None else script.raw_action(env)
         flown = clean if act_fn is None else np.asarray(act_fn(obs), dtype=float)
-        return np.clip(flown + rng.normal(0.0, noise, 3), -1.0, 1.0), clean
+        label = np.concatenate([clean, env.goal_label()]) if goal_labels else clean
+        return np.clip(flown + rng.normal(0.0, noise, 3), -1.0, 1.0), label
     return _landing(env, seed, episode, choose)
 
 
@@ -221,7 +222,7 @@ class LandingWorker:
             return fly_demo(self.env, task.seed, task.episode, np.random.default_rng(task.noise_seed), task.noise,
                             None if task.actor_labels else self.script,
                             label_fn=act_fn if task.actor_labels else None,
-                            act_fn=act_fn if task.actor_flies else None)
+                            act_fn=act_fn if task.actor_flies else None, goal_labels=task.goal_labels)
         if task.kind == 'td3':
             return fly_td3(self.env, task, act_fn)
         if task.kind == 'eval':
@@ -251,14 +252,15 @@ class LandingPool(WorkerPool):
 
 def collect_demos(env: LandingAssistEnv, episodes: int, noise: float, seed: int, buffer: ReplayBuffer,
                   demo_policy: str = 'oracle', act_fn=None, label_fn=None, desc: str = 'demonstrations',
-                  pool: LandingPool | None = None, weights: ActorWeights | None = None,
+                  pool: LandingPool | None = None, weights: ActorWeights | None = None, goal_labels: bool = False,
                   ) -> tuple[np.ndarray, np.ndarray, list[dict]]:
     """Fly `episodes` landings into `buffer`; (obs, demonstrator actions, results).
 
     The demonstrator labels every state: the scripted assistant `demo_policy`, or for 'init_actor'
     `label_fn(obs)` (the starting actor, frozen: TD3+BC then anchors fine-tuning to it). It also flies
     (+ Gaussian `noise`) unless `act_fn(obs)` is given: then that policy flies and the demonstrator
-    only labels (DAgger). With `pool` the landings are flown by its workers, `weights` being the actor
+    only labels (DAgger). With `goal_labels` each label is followed by the true goal (6 columns). With `pool`
+    the landings are flown by its workers, `weights` being the actor
     that `act_fn`/`label_fn` compute (only whether each is given counts then). A progress bar (`desc`,
     landings) on stderr when it is a terminal.
     """
@@ -268,13 +270,14 @@ def collect_demos(env: LandingAssistEnv, episodes: int, noise: float, seed: int,
     bar = tqdm(total=episodes, desc=desc, unit='landing', file=sys.stderr, mininterval=2, disable=None)
     if pool is None:
         rng = np.random.default_rng(seed)
-        landings = (fly_demo(env, int(seed * 7919 + ep), ep, rng, noise, script, label_fn, act_fn)
+        landings = (fly_demo(env, int(seed * 7919 + ep), ep, rng, noise, script, label_fn, act_fn, goal_labels)
                     for ep in range(episodes))
     else:
         if weights is None and (act_fn is not None or label_fn is not None):
             raise ValueError('a pool flies the actor from its weights: pass weights')
         landings = pool.map((LandingTask('demo', ep, int(seed * 7919 + ep), noise_seed=(seed, ep), noise=noise,
-                                         actor_flies=act_fn is not None, actor_labels=script is None)
+                                         actor_flies=act_fn is not None, actor_labels=script is None,
+                                         goal_labels=goal_labels)
                              for ep in range(episodes)), weights)
     obs_l, act_l, results = [], [], []
     with bar:
@@ -285,5 +288,6 @@ def collect_demos(env: LandingAssistEnv, episodes: int, noise: float, seed: int,
             results.append(landing.result)
             bar.update(1)
     if not obs_l:
-        return np.zeros((0, env.observation_space.shape[0]), np.float32), np.zeros((0, 3), np.float32), results
+        return (np.zeros((0, env.observation_space.shape[0]), np.float32),
+                np.zeros((0, 6 if goal_labels else 3), np.float32), results)
     return np.concatenate(obs_l), np.concatenate(act_l), results

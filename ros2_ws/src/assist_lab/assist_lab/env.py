@@ -51,7 +51,7 @@ from assist_policy.assistant import Assistant, AssistantConfig
 from assist_policy.stage import DepthFrame
 from assist_policy.blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS
 from assist_policy.flight import FlightConfig, FlightMonitor
-from assist_policy.intent import Intent, IntentConfig
+from assist_policy.intent import Intent, IntentConfig, LearnedGoal
 from assist_policy.loop import AssistLoop
 from assist_policy.observation import IMAGE_SHAPE, Condition, ObservationBuilder, image_feature, oracle_feature
 from assist_policy.rules import RULES, all_settings, rule_fields, switched
@@ -95,6 +95,8 @@ class EnvConfig:
     window_s: float = 1.0
     feature_lags_s: tuple[float, ...] = ()           # feature memory (observation.FeatureMemory); () = none
     memory_displacement: bool = False                # + the displacement since each lagged feature
+    history_s: float = 0.0                           # history window (observation.HistoryWindow); 0 = none
+    history_step_s: float = 0.25                     # s between the window's rows
     latent_dim: int = 0                              # set from the encoder for the latent condition
     encoder_path: str = ''                           # CM-VAE weights (latent condition)
     pilot_family: str = 'paper'                      # assist_sim.pilots name: a family, 'mix' or 'train_mix'
@@ -131,7 +133,8 @@ class LandingAssistEnv(gym.Env):
         self.latent_fn = latent_fn
         self.world = LandingWorld(self.cfg.world)
         self.builder = ObservationBuilder(self.condition, self.cfg.latent_dim, self.cfg.window_s,
-                                          tuple(self.cfg.feature_lags_s), self.cfg.memory_displacement)
+                                          tuple(self.cfg.feature_lags_s), self.cfg.memory_displacement,
+                                          self.cfg.history_s, self.cfg.history_step_s)
         self.dt = 1.0 / self.cfg.world.control_hz
         self.pilot_cfg = self.cfg.pilot
         self.pilot_cfg.control_hz = float(self.cfg.world.control_hz)
@@ -153,6 +156,9 @@ class LandingAssistEnv(gym.Env):
         self.episode_return = 0.0
         self.path_m = 0.0                                # distance flown this episode (m, 3-D)
         self.last_command: tuple[np.ndarray, np.ndarray] | None = None   # (a, V) applied in the last step
+        # the goal head's estimate for the next step, set by whoever ran the actor (evaluate's GoalHeadPolicy) as
+        # policy_node's core hands it to the loop; used by that step only
+        self.learned_goal: LearnedGoal | None = None
 
     @property
     def pilot_action(self) -> np.ndarray:
@@ -214,6 +220,7 @@ class LandingAssistEnv(gym.Env):
             latent_reset(noise_seed)             # the camera noise of this landing depends on its seed only
         self.loop.restart()                        # a new episode is a new flight (the world teleports the vehicle)
         self.last_command = None
+        self.learned_goal = None
         self._steps = 0
         self._u = self.pilot.act(st.position, None)
         self._dist = self._goal_dist(st.position)
@@ -235,6 +242,10 @@ class LandingAssistEnv(gym.Env):
             cfg = randomised(cfg, rng, self.cfg.arducopter_spread)
         self.world.set_flight_controller('arducopter', cfg)
         return 'arducopter'
+
+    def goal_label(self) -> np.ndarray:
+        """The true goal relative to the vehicle now, as the oracle observes it (a goal head's training target)."""
+        return oracle_feature(self.world.goal_position, self.world.state.position)
 
     def aimed_index(self) -> int:
         """Pad nearest (horizontally) to the pilot's current goal estimate: the pad it is heading for."""
@@ -263,8 +274,9 @@ class LandingAssistEnv(gym.Env):
             frame = DepthFrame(self._steps, lambda: self.camera_frame().depth, lambda: (st.position, st.quaternion))
             ctx = self.loop.context(t, self._u, st.position, v_body, st.quaternion, frame, self.cfg.max_speed)
             known = self.world.goal_position if self.condition is Condition.ORACLE else None
-            res = self.loop.act(ctx, a, known_goal=known)
+            res = self.loop.act(ctx, a, known_goal=known, learned_goal=self.learned_goal)
             a, v, acted = res.agent, res.velocity, res.acted
+        self.learned_goal = None
         self.pilot.see_cue(cue_of(self.loop.intent.last) if self.cfg.cues else None)
         active = float(np.linalg.norm(a)) > self.cfg.blend_threshold
         self.last_command = (a.copy(), np.array(v, dtype=float))    # what was flown (bags record it)

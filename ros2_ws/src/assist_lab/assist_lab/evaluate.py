@@ -71,6 +71,7 @@ import functools
 import dataclasses
 import json
 import logging
+import math
 import sys
 import time
 from collections.abc import Mapping
@@ -101,7 +102,7 @@ from assist_perception.latent import make_latent_fn
 from assist_policy.policy_core import default_model_path
 from assist_policy.rules import RULES, Rule, rule_fields, switched
 from assist_policy.scripted import LEAD_S, NEAREST_PAD_VARIANTS, ScriptedConfig, ScriptedOracle, make_nearest_pad
-from assist_policy.actor import load_actor
+from assist_policy.actor import load_actor, run_actor
 
 log = logging.getLogger(__name__)
 
@@ -206,6 +207,11 @@ LANDING_FIELDS = ['condition', 'beta', 'seed', 'scene_seed', 'goal_index', 'land
                   'aimed_index', 'error_m', 'nearest_error_m', 'outcome', 'success', 'crash', 'duration_s',
                   'active_fraction', 'pilot', *(f'{r.flag}_fraction' for r in RULES), 'wall_fraction',
                   'autopilot_landed', 'path_m']
+# goal inference of an actor with a goal head (empty for the others): the share of steps whose estimate is nearest
+# the pilot's goal pad at that step, over the landing and within each window of time to touchdown (s)
+GOAL_WINDOWS_S = ((0.0, 1.0), (1.0, 2.0), (2.0, 4.0), (4.0, 8.0))
+GOAL_FIELDS = ['goal_acc', *(f'goal_acc_{lo:g}_{hi:g}s' for lo, hi in GOAL_WINDOWS_S)]
+LANDING_FIELDS += GOAL_FIELDS
 _BOOL = {'True': True, 'False': False}
 
 
@@ -227,6 +233,7 @@ def read_landings(path: str | Path) -> dict[str, list[dict]]:
                            duration_s=float(r.get('duration_s') or 'nan'), path_m=float(r.get('path_m') or 'nan'),
                            goal_index=int(r['goal_index']),
                            autopilot_landed=_BOOL.get(r.get('autopilot_landed') or '', None),
+                           **{k: None if r.get(k) in (None, '') else float(r[k]) for k in GOAL_FIELDS},
                            **{k: None if r.get(k) in (None, '') else int(r[k])
                               for k in ('seed', 'landed_index', 'nearest_index', 'aimed_index')})
             except (KeyError, ValueError) as exc:
@@ -336,6 +343,7 @@ def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: fl
                     max_speed=tuple(meta.get('max_speed', (1.0, 1.0, 0.6))),
                     latent_dim=int(meta.get('latent_dim', 0)), pilot_family=pilot, **flying, world=world,
                     feature_lags_s=tuple(meta['feature_lags_s']), memory_displacement=meta['memory_displacement'],
+                    history_s=meta['history_s'], history_step_s=meta['history_step_s'],
                     cues=cues is not None, pilot_cues=cues or CueConfig())
     if condition == 'latent':
         latent_fn, dim = make_latent_fn(encoder_path or None)
@@ -345,14 +353,48 @@ def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: fl
     else:
         env = LandingAssistEnv(cfg)
 
+    if meta['goal_head']:
+        return env, GoalHeadPolicy(env, actor)
+
     @torch.no_grad()
     def policy(obs: np.ndarray) -> np.ndarray:
         return actor(torch.as_tensor(obs).unsqueeze(0))[0].numpy().astype(float)
     return env, policy
 
 
+class GoalHeadPolicy:
+    """An actor with a goal head flown in `env`: the raw action, and per step the time and whether the head's
+    estimate (vehicle position + offset) is horizontally nearest the pilot's goal pad of that step (``trace``)."""
+
+    def __init__(self, env: LandingAssistEnv, actor: torch.nn.Module):
+        self.env, self.actor = env, actor
+        self.trace: list[tuple[float, bool]] = []
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        """The raw action for `obs`; the estimate goes to the env (its intent, as policy_node's) and the trace."""
+        world = self.env.world
+        action, goal = run_actor(self.actor, obs, world.state.position)
+        self.env.learned_goal = goal
+        pads = world.pad_top_centers
+        nearest = int(np.argmin(np.linalg.norm(pads[:, :2] - goal.mean[:2], axis=1)))
+        self.trace.append((self.env.elapsed_s, nearest == world.goal_index))
+        return action
+
+    def accuracy(self, duration_s: float) -> dict[str, float | str]:
+        """The GOAL_FIELDS of the landing just flown (its trace then cleared); '' where no step falls."""
+        hits = [(duration_s - t, ok) for t, ok in self.trace]
+        self.trace = []
+        out: dict[str, float | str] = {'goal_acc': round(float(np.mean([ok for _, ok in hits])), 3) if hits else ''}
+        for (lo, hi), name in zip(GOAL_WINDOWS_S, GOAL_FIELDS[1:]):
+            inside = [ok for left, ok in hits if lo <= left < hi]
+            out[name] = round(float(np.mean(inside)), 3) if inside else ''
+        return out
+
+
 def run_landing(env: LandingAssistEnv, policy, seed: int, beta: float) -> dict:
     """One landing with the given seed and pilot skill; the result row."""
+    if isinstance(policy, GoalHeadPolicy):
+        policy.trace = []
     res = run_episode(env, policy, seed, {'beta': beta})
     return {'beta': beta, 'seed': seed, 'scene_seed': res['scene_seed'], 'goal_index': res['goal_index'],
             'landed_index': res['landed_index'], 'nearest_index': res['nearest_index'],
@@ -363,7 +405,9 @@ def run_landing(env: LandingAssistEnv, policy, seed: int, beta: float) -> dict:
             'pilot': res['pilot'], **{f'{r.flag}_fraction': round(res[f'{r.flag}_fraction'], 3) for r in RULES},
             'wall_fraction': round(res['wall_fraction'], 3),
             'autopilot_landed': '' if res.get('autopilot_landed') is None else bool(res['autopilot_landed']),
-            'path_m': round(float(res['path_m']), 3)}
+            'path_m': round(float(res['path_m']), 3),
+            **(policy.accuracy(float(res['duration_s'])) if isinstance(policy, GoalHeadPolicy)
+               else dict.fromkeys(GOAL_FIELDS, ''))}
 
 
 def summarize(rows: list[dict]) -> dict:
@@ -386,6 +430,8 @@ def summarize(rows: list[dict]) -> dict:
             'misaimed': float(np.mean(misaimed)) if known_aim else float('nan'),
             'misaimed_success': (float(np.mean([r['success'] for r, m in zip(rows, misaimed) if m]))
                                  if any(misaimed) else float('nan')),
+            **{k: float(np.mean(vals)) if (vals := [r[k] for r in rows if r.get(k) not in (None, '')])
+               else float('nan') for k in GOAL_FIELDS},
             # arducopter plant: of the touchdowns, the share its land detector declared (nan on the ideal plant)
             'autopilot_landed': (float(np.mean([bool(r['autopilot_landed']) for r in checked]))
                                  if (checked := [r for r in rows if r.get('autopilot_landed') not in (None, '')])
@@ -670,6 +716,8 @@ def write_results(out: Path, rows_by_cond: dict[str, list[dict]], with_plot: boo
         w = csv.writer(fh)
         keys = ['n', 'error_mean', 'error_std', 'error_median', 'specified_success', 'nearest_success',
                 'crash_rate', 'landed_on_goal', 'active_fraction', 'misaimed', 'misaimed_success']
+        if any(math.isfinite(s['goal_acc']) for s in summary.values()):     # an actor with a goal head flew
+            keys += GOAL_FIELDS
         w.writerow(['condition'] + keys)
         for c, s in summary.items():
             w.writerow([c] + [round(s[k], 4) for k in keys])
@@ -737,9 +785,25 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def format_goal_inference(summary: dict[str, dict]) -> str:
+    """The goal-inference table of the conditions whose actor has a goal head ('' when none has)."""
+    rows = [(c, s) for c, s in summary.items() if math.isfinite(s.get('goal_acc', float('nan')))]
+    if not rows:
+        return ''
+    head = ['goal inference', 'all steps', *(f'{lo:g}-{hi:g} s to touchdown' for lo, hi in GOAL_WINDOWS_S)]
+    lines = [' | '.join(head)]
+    for c, s in rows:
+        lines.append(' | '.join([c, *('-' if not math.isfinite(s[k]) else f'{100 * s[k]:.1f} %' for k in GOAL_FIELDS)]))
+    return '\n'.join(lines)
+
+
 def print_results(summary: dict[str, dict], out: str, extra: str = '') -> None:
-    """Print the table, the paired comparison (paired.txt, when written) and what was written to `out`."""
+    """Print the table, the goal inference (actors with a goal head), the paired comparison (paired.txt, when
+    written) and what was written to `out`."""
     print(format_table(summary))
+    goal = format_goal_inference(summary)
+    if goal:
+        print(goal)
     paired = Path(out) / 'paired.txt'
     if paired.exists():
         print(paired.read_text(encoding='utf-8'), end='')

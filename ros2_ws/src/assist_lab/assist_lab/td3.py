@@ -23,6 +23,7 @@ from torch.nn import functional as F
 
 from assist_common.atomic import atomic_path
 
+from assist_policy.actor import GOAL_LOG_STD
 from assist_policy.actor import (MAX_ACTION_SPEED, META_DEFAULTS, Actor, ImageFeatures, _mlp, _Trunk, load_actor,  # noqa: F401
                     save_actor, validate_actor_meta)
 
@@ -43,6 +44,16 @@ class TD3Config:
     policy_delay: int = 2           # actor + target update every this many critic updates
     hidden: tuple[int, ...] = (256, 256)
     image_channels: tuple[int, ...] = (32, 32, 64, 64)  # end-to-end conv stack (stride 2 each)
+    history_hidden: int = 64        # GRU units over the observation's history window (when it has one)
+    goal_head: bool = False         # the actor also estimates the goal (trained in behaviour cloning)
+    goal_weight: float = 0.1        # weight of the goal head's Gaussian negative log-likelihood in cloning
+
+
+def goal_nll(head: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
+    """Mean Gaussian negative log-likelihood of `goal` (B, 3) under the goal head's output (B, 4: mean, log std
+    shared by the three axes, clamped to actor.GOAL_LOG_STD), constants dropped."""
+    log_std = head[:, 3:4].clamp(*GOAL_LOG_STD)
+    return (0.5 * ((goal - head[:, :3]) / log_std.exp()) ** 2 + log_std).sum(dim=1).mean()
 
 
 class Critic(nn.Module):
@@ -165,12 +176,14 @@ class TD3:
     """TD3 agent: act(), update(), state_dict()/load_state_dict() for checkpoints."""
 
     def __init__(self, vec_dim: int, act_dim: int = 3, cfg: TD3Config | None = None,
-                 image: bool = False, seed: int = 0, device: str = 'cpu'):
+                 image: bool = False, seed: int = 0, device: str = 'cpu', history_steps: int = 0,
+                 history_row: int = 0):
         self.cfg = cfg or TD3Config()
         self.device = torch.device(device)
         torch.manual_seed(seed)
         kw = dict(hidden=self.cfg.hidden, image=image, image_channels=self.cfg.image_channels)
-        self.actor = Actor(vec_dim, act_dim, **kw).to(self.device)
+        self.actor = Actor(vec_dim, act_dim, **kw, history_steps=history_steps, history_row=history_row,
+                           history_hidden=self.cfg.history_hidden, goal_head=self.cfg.goal_head).to(self.device)
         self.critic = Critic(vec_dim, act_dim, **kw).to(self.device)
         self.actor_target = copy.deepcopy(self.actor)
         self.critic_target = copy.deepcopy(self.critic)
@@ -179,7 +192,8 @@ class TD3:
         self.updates = 0
         self.rng = np.random.default_rng(seed)
         self.meta = {'vec_dim': int(vec_dim), 'act_dim': int(act_dim), 'image': bool(image),
-                     'hidden': list(self.cfg.hidden), 'image_channels': list(self.cfg.image_channels)}
+                     'hidden': list(self.cfg.hidden), 'image_channels': list(self.cfg.image_channels),
+                     'history_hidden': int(self.cfg.history_hidden), 'goal_head': bool(self.cfg.goal_head)}
 
     @torch.no_grad()
     def act(self, obs: np.ndarray) -> np.ndarray:
@@ -216,7 +230,7 @@ class TD3:
                 if demos is not None and bc_alpha > 0:
                     idx = self.rng.integers(0, len(demos[0]), size=c.batch_size)
                     d_obs = torch.as_tensor(np.asarray(demos[0][idx], dtype=np.float32), device=self.device)
-                    d_act = torch.as_tensor(np.asarray(demos[1][idx], dtype=np.float32), device=self.device)
+                    d_act = torch.as_tensor(np.asarray(demos[1][idx, :3], dtype=np.float32), device=self.device)
                     lam = bc_alpha / q.abs().mean().detach().clamp(min=1e-3)
                     bc = F.mse_loss(self.actor(d_obs), d_act)
                     actor_loss = -lam * q.mean() + bc
@@ -234,18 +248,32 @@ class TD3:
         return out
 
     def behaviour_clone(self, obs: np.ndarray, act: np.ndarray, steps: int, batch: int = 256) -> float:
-        """Supervised actor pre-training on (obs, raw action) demonstrations; returns the final MSE (a progress
-        bar on stderr when it is a terminal)."""
+        """Supervised actor pre-training on (obs, raw action) demonstrations; returns the final action MSE (a
+        progress bar on stderr when it is a terminal).
+
+        With a goal head, `act` carries the true goal after the action (3 + 3 columns, ``env.goal_label``) and
+        the loss adds goal_weight x the head's Gaussian negative log-likelihood of it (``goal_nll``).
+        """
         from tqdm import tqdm
+        act = np.asarray(act, dtype=np.float32)
+        goal = self.actor.goal_head is not None
+        if goal and act.shape[1] != 6:
+            raise ValueError(f'an actor with a goal head clones (action, goal) labels, got {act.shape[1]} columns')
         obs_t = torch.as_tensor(np.asarray(obs, dtype=np.float32), device=self.device)
-        act_t = torch.as_tensor(np.asarray(act, dtype=np.float32), device=self.device).clamp(-0.999, 0.999)
+        act_t = torch.as_tensor(act[:, :3], device=self.device).clamp(-0.999, 0.999)
+        goal_t = torch.as_tensor(act[:, 3:6], device=self.device) if goal else None
         loss = torch.zeros(())
         for _ in tqdm(range(steps), desc='behaviour cloning', unit='step', file=sys.stderr, mininterval=2,
                       disable=None):
             idx = torch.as_tensor(self.rng.integers(0, len(obs_t), size=batch), device=self.device)
-            loss = F.mse_loss(self.actor(obs_t[idx]), act_t[idx])
+            if goal:
+                pred, head = self.actor.act_and_goal(obs_t[idx])
+                loss = F.mse_loss(pred, act_t[idx])
+                total = loss + self.cfg.goal_weight * goal_nll(head, goal_t[idx])
+            else:
+                loss = total = F.mse_loss(self.actor(obs_t[idx]), act_t[idx])
             self.actor_opt.zero_grad()
-            loss.backward()
+            total.backward()
             self.actor_opt.step()
         self.actor_target.load_state_dict(self.actor.state_dict())
         return float(loss.detach())

@@ -53,7 +53,9 @@ from .collect import (DEMO_POLICIES, ActorWeights, LandingPool, LandingTask, col
                       make_env)
 from .episodes_plan import landing_seeds
 from .env import EnvConfig, LandingAssistEnv, RewardConfig, run_episode
-from assist_policy.observation import DISPLACEMENT_DIM, MAX_FEATURE_LAG_S, MAX_FEATURE_LAGS, feature_dim
+from assist_policy.actor import MAX_HISTORY_S
+from assist_policy.observation import (DISPLACEMENT_DIM, MAX_FEATURE_LAG_S, MAX_FEATURE_LAGS, feature_dim,
+                                       history_steps)
 from assist_policy.rules import rule, switched
 from assist_policy.scripted import NEAREST_PAD_VARIANTS
 from .td3 import TD3, OUNoise, ReplayBuffer, TD3Config, load_actor, save_actor
@@ -118,6 +120,11 @@ class TrainArgs:
     floor_descent_weight: float = setting(0.0, ge=0.0, le=1e6)
     feature_lags_s: tuple[float, ...] = setting((), gt=0.0, le=MAX_FEATURE_LAG_S, max_len=MAX_FEATURE_LAGS)
     memory_displacement: bool = False
+    history_s: float = setting(0.0, ge=0.0, le=MAX_HISTORY_S)
+    history_step_s: float = setting(0.25, gt=0.0, le=MAX_HISTORY_S)
+    history_hidden: int = setting(64, ge=1, le=4096)
+    goal_head: bool = False
+    goal_weight: float = setting(0.1, ge=0.0, le=1e6)
     arducopter_share: float = setting(0.0, ge=0.0, le=1.0)
     arducopter_spread: float = setting(0.0, ge=0.0, lt=1.0)
     workers: int = setting(1, ge=0, le=1024)
@@ -133,6 +140,15 @@ class TrainArgs:
             raise SettingsError('--memory-displacement true needs --feature-lags-s')
         if self.feature_lags_s and self.condition == 'end_to_end':
             raise SettingsError('--feature-lags-s needs the latent or oracle condition')
+        if self.history_s > 0 and self.condition == 'end_to_end':
+            raise SettingsError('--history-s needs the latent or oracle condition')
+        try:
+            history_steps(self.history_s, self.history_step_s)
+        except ValueError as exc:
+            raise SettingsError(f'--history-s/--history-step-s: {exc}') from None
+        if self.goal_head and self.demo_policy == 'init_actor':
+            raise SettingsError('--goal-head learns from the true goal of scripted demonstrations; '
+                                '--demo-policy init_actor gives none')
         if self.condition != 'latent' and self.encoder_path:
             raise SettingsError('--encoder-path is only used by the latent condition')
         if self.resume:
@@ -197,6 +213,13 @@ HELP = {
                       '(one copy per lag, e.g. 1 2); an --init-actor with fewer lags is widened with zero weights',
     'memory_displacement': 'with --feature-lags-s: the actor also sees how far the vehicle moved since each lagged '
                            'feature (odometry, 3 per lag); an --init-actor without them is widened with zero weights',
+    'history_s': 'history window: the actor also sees the flight\'s last this many seconds (observation.HistoryWindow) '
+                 'through a GRU (0 = none)',
+    'history_step_s': 'seconds between the history window\'s rows',
+    'history_hidden': 'GRU units reading the history window',
+    'goal_head': 'the actor also estimates the goal (a Gaussian over its offset), cloned from the true goal in the '
+                 'demonstrations and DAgger rounds',
+    'goal_weight': 'weight of the goal head\'s negative log-likelihood in cloning',
     'workers': 'env workers flying the landings of every phase (demonstrations, DAgger, TD3 collection, evaluation) '
                'while this process learns: 1 = all in this process (the single-process run, unchanged); 0 = one '
                'per CPU core (or per CPU of the --ray cluster). More than one changes the TD3 run: see '
@@ -229,6 +252,7 @@ def env_config_from(args: TrainArgs) -> EnvConfig:
     return EnvConfig(condition=args.condition, alpha=args.alpha, max_episode_s=args.max_episode_s,
                      encoder_path=args.encoder_path, pilot_family=args.pilot, paper_share=args.paper_share,
                      feature_lags_s=tuple(args.feature_lags_s), memory_displacement=bool(args.memory_displacement),
+                     history_s=float(args.history_s), history_step_s=float(args.history_step_s),
                      arducopter_share=float(args.arducopter_share), arducopter_spread=float(args.arducopter_spread),
                      safety=switched(rule('safety'), args.safety), override=switched(rule('override'), args.override),
                      reward=RewardConfig(landing_weight=args.landing_weight,
@@ -294,6 +318,9 @@ def init_actor(agent: TD3, path: str, condition: str) -> None:
     state = actor.state_dict()
     dst_lags = agent.meta.get('feature_lags_s', [])
     dst_disp = bool(agent.meta.get('memory_displacement', False))
+    for key in ('history_s', 'history_step_s', 'history_hidden', 'goal_head'):
+        if key in agent.meta and meta[key] != agent.meta[key]:
+            raise ValueError(f'{path}: actor has {key} {meta[key]!r}, this run {agent.meta[key]!r}')
     if list(meta['feature_lags_s']) != list(dst_lags) or meta['memory_displacement'] != dst_disp:
         state = widen_state(state, meta['feature_lags_s'], dst_lags, agent.meta['vec_dim'],
                             feature_dim(condition, int(agent.meta.get('latent_dim', 0))),
@@ -502,18 +529,22 @@ def _train(args: TrainArgs, pool: LandingPool | None) -> Path:
     env_cfg = env_config_from(args)
     env = make_env(env_cfg)
     eval_env = make_env(env_config_from(args)) if pool is None else None    # a pool's workers evaluate
+    td3_cfg = TD3Config(hidden=args.hidden, actor_lr=args.actor_lr, history_hidden=args.history_hidden,
+                        goal_head=args.goal_head, goal_weight=args.goal_weight)
     write_text_atomic(run_dir / 'config.json', json.dumps(
-        {'train': dataclasses.asdict(args), 'env': dataclasses.asdict(env_cfg),
-         'td3': dataclasses.asdict(TD3Config(hidden=args.hidden, actor_lr=args.actor_lr))}, indent=2, default=str))
+        {'train': dataclasses.asdict(args), 'env': dataclasses.asdict(env_cfg), 'td3': dataclasses.asdict(td3_cfg)},
+        indent=2, default=str))
     obs_dim = env.observation_space.shape[0]
     device = training_device(args.device)
     log.info('training on %s', device)
-    agent = TD3(obs_dim - env.image_size, cfg=TD3Config(hidden=args.hidden, actor_lr=args.actor_lr),
-                image=env.image_size > 0, seed=args.seed, device=device)
+    window = env.builder.window
+    agent = TD3(obs_dim - env.image_size, cfg=td3_cfg, image=env.image_size > 0, seed=args.seed, device=device,
+                history_steps=window.steps, history_row=window.row_dim if window.steps else 0)
     agent.meta.update(condition=args.condition, latent_dim=int(env_cfg.latent_dim),
                       max_speed=list(env_cfg.max_speed), blend_threshold=env_cfg.blend_threshold,
                       window_s=env_cfg.window_s, feature_lags_s=list(env_cfg.feature_lags_s),
-                      memory_displacement=bool(env_cfg.memory_displacement))
+                      memory_displacement=bool(env_cfg.memory_displacement), history_s=float(env_cfg.history_s),
+                      history_step_s=float(env_cfg.history_step_s))
     obs_dtype = np.float16 if env.image_size else np.float32
     buffer = ReplayBuffer(obs_dim, 3, args.buffer_size, obs_dtype=obs_dtype)
     rng = np.random.default_rng(args.seed)
@@ -560,7 +591,8 @@ def _train(args: TrainArgs, pool: LandingPool | None) -> Path:
         else:
             d_obs, d_act, d_res = collect_demos(env, args.demo_episodes, args.demo_noise, args.seed + 17, buffer,
                                                   args.demo_policy, label_fn=agent.act if anchored else None,
-                                                  pool=pool, weights=snapshot() if anchored else None)
+                                                  pool=pool, weights=snapshot() if anchored else None,
+                                                  goal_labels=args.goal_head)
             err = np.mean([r['error_m'] for r in d_res])
             succ = np.mean([r['success'] for r in d_res])
             log.info('demonstrations: %d landings, %d transitions, error %.3f m, success %.2f',
@@ -575,7 +607,8 @@ def _train(args: TrainArgs, pool: LandingPool | None) -> Path:
         for rnd in range(args.dagger_rounds):
             o, a, res = collect_demos(env, args.dagger_episodes, 0.0, args.seed * 1009 + 31 * (rnd + 1), buffer,
                                       args.demo_policy, act_fn=agent.act,
-                                      desc=f'DAgger {rnd + 1}/{args.dagger_rounds}', pool=pool, weights=snapshot())
+                                      desc=f'DAgger {rnd + 1}/{args.dagger_rounds}', pool=pool, weights=snapshot(),
+                                      goal_labels=args.goal_head)
             d_obs, d_act = np.concatenate([d_obs, o]), np.concatenate([d_act, a])
             mse = agent.behaviour_clone(d_obs, d_act, args.bc_steps)
             log.info('DAgger round %d: actor flew %d landings (error %.3f m, success %.2f, crash %.2f); '

@@ -197,3 +197,42 @@ def test_device_choice(tmp_path, monkeypatch, capsys):
     resumed = prepare_run(TrainArgs(resume=str(run), device='cuda', total_steps=60), given=['resume', 'device',
                                                                                           'total_steps'])
     assert resumed.device == 'cuda' and resumed.total_steps == 60
+
+
+def test_a_memory_actor_with_a_goal_head_clones_the_true_goal_and_evaluate_reports_its_inference(tmp_path):
+    """--history-s and --goal-head: demonstrations carry the true goal, the goal head learns it, the shipped file
+    declares the window, an init-actor without it is refused in one line, and evaluate scores the head."""
+    import numpy as np
+    from assist_lab.evaluate import GOAL_FIELDS, GoalHeadPolicy, make_policy, run_landing
+    from assist_lab.td3 import goal_nll
+    base = _tiny_run(tmp_path, total_steps=0, buffer_size=20000)
+    run = train(TrainArgs(name='mem', history_s=1.0, history_step_s=0.5, history_hidden=8, goal_head=True,
+                          demo_episodes=2, demo_noise=0.1, dagger_rounds=1, dagger_episodes=1, bc_steps=300,
+                          **base))
+    actor, meta = load_actor(run / 'actor_last.pt')
+    assert (meta['history_steps'], meta['goal_head'], meta['vec_dim']) == (2, True, 16 + 2 * (3 + 14))
+    with np.load(run / 'demos_bc.npz') as d:
+        obs, act = d['obs'], d['act']
+    # the label's goal is the true goal at that state: what the oracle observes first
+    assert act.shape[1] == 6 and np.allclose(act[:, 3:], obs[:, :3], atol=1e-5)
+    with torch.no_grad():
+        _, head = actor.act_and_goal(torch.as_tensor(obs))
+        untrained = TD3(meta['vec_dim'], cfg=TD3Config(hidden=(32, 32), history_hidden=8, goal_head=True),
+                        history_steps=2, history_row=3 + 14, seed=5).actor
+        _, head0 = untrained.act_and_goal(torch.as_tensor(obs))
+    goal = torch.as_tensor(act[:, 3:])
+    assert goal_nll(head, goal) < goal_nll(head0, goal) - 1.0                 # the head learned the goal
+    with pytest.raises(ValueError, match='history_s 1.0'):                   # a window that does not fit: one line
+        train(TrainArgs(name='other', init_actor=str(run / 'actor_last.pt'), history_s=2.0, history_step_s=0.5,
+                        history_hidden=8, goal_head=True, **base))
+    env, policy = make_policy('oracle', str(run / 'actor_last.pt'), '', 4.0, 0.5)
+    assert isinstance(policy, GoalHeadPolicy)
+    row = run_landing(env, policy, 11, 0.5)
+    assert 0.0 <= row['goal_acc'] <= 1.0 and row['goal_acc_0_1s'] != '' and not policy.trace
+    env2, plain = make_policy('oracle', str(first_plain(tmp_path, base)), '', 4.0, 0.5)
+    assert all(run_landing(env2, plain, 11, 0.5)[k] == '' for k in GOAL_FIELDS)
+
+
+def first_plain(tmp_path, base: dict):
+    """An oracle actor without goal head or window (a few cloning steps)."""
+    return train(TrainArgs(name='plain', demo_episodes=1, bc_steps=5, **base)) / 'actor_last.pt'

@@ -19,7 +19,9 @@ from torch import nn
 
 from assist_common.atomic import atomic_path
 
-from .observation import IMAGE_SHAPE, MAX_FEATURE_LAG_S, MAX_FEATURE_LAGS, Condition, vector_dim
+from .intent import LearnedGoal
+from .observation import (GOAL_SCALE, HISTORY_EXTRA_DIM, IMAGE_SHAPE, MAX_FEATURE_LAG_S, MAX_FEATURE_LAGS,
+                          Condition, feature_dim, history_steps, vector_dim)
 
 log = logging.getLogger(__name__)
 
@@ -68,18 +70,88 @@ def _mlp(in_dim: int, hidden: Sequence[int], out_dim: int) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+class _Memory(nn.Module):
+    """A GRU over the observation's history window (its last steps x row values, oldest row first): the rest of
+    the observation followed by the GRU's final state."""
+
+    def __init__(self, steps: int, row: int, hidden: int):
+        super().__init__()
+        self.steps, self.row = steps, row
+        self.gru = nn.GRU(row, hidden, batch_first=True)
+        self.out_extra = hidden - steps * row
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        n = self.steps * self.row
+        rows = x[:, x.shape[1] - n:].reshape(-1, self.steps, self.row)
+        _, h = self.gru(rows)
+        return torch.cat([x[:, :x.shape[1] - n], h[-1]], dim=1)
+
+
+GOAL_OUT = 4     # goal head: the goal's offset from the vehicle (3, as observation.oracle_feature scales it), log std
+GOAL_LOG_STD = (-5.0, 3.0)    # the goal head's log std (scaled units) is clamped to this range
+
+
 class Actor(nn.Module):
-    """Deterministic policy: observation -> raw action in [-1, 1]^act_dim (tanh)."""
+    """Deterministic policy: observation -> raw action in [-1, 1]^act_dim (tanh).
+
+    With a history window (`history_steps` rows of `history_row` values at the observation's end) a GRU of
+    `history_hidden` units reads it; with `goal_head` a linear head on the last hidden layer estimates the goal
+    (``goal``), trained on the true goal in simulation.
+    """
 
     def __init__(self, vec_dim: int, act_dim: int = 3, hidden: Sequence[int] = (256, 256),
-                 image: bool = False, image_channels: Sequence[int] = (32, 32, 64, 64)):
+                 image: bool = False, image_channels: Sequence[int] = (32, 32, 64, 64), history_steps: int = 0,
+                 history_row: int = 0, history_hidden: int = 64, goal_head: bool = False):
         super().__init__()
         self.trunk = _Trunk(vec_dim, image, image_channels)
-        self.head = _mlp(self.trunk.out_dim, hidden, act_dim)
+        in_dim = self.trunk.out_dim
+        self.memory = _Memory(history_steps, history_row, history_hidden) if history_steps else None
+        if self.memory is not None:
+            in_dim += self.memory.out_extra
+        self.head = _mlp(in_dim, hidden, act_dim)
+        self.goal_head = nn.Linear(hidden[-1], GOAL_OUT) if goal_head else None
+
+    def features(self, obs: torch.Tensor) -> torch.Tensor:
+        """The last hidden layer's activations for a batch of observations."""
+        x = self.trunk(obs)
+        if self.memory is not None:
+            x = self.memory(x)
+        return self.head[:-1](x)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         """Batch of observations -> batch of raw actions."""
-        return torch.tanh(self.head(self.trunk(obs)))
+        return torch.tanh(self.head[-1](self.features(obs)))
+
+    def act_and_goal(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Raw actions and the goal head's output (B, GOAL_OUT); ValueError without a goal head."""
+        if self.goal_head is None:
+            raise ValueError('this actor has no goal head')
+        f = self.features(obs)
+        return torch.tanh(self.head[-1](f)), self.goal_head(f)
+
+
+def learned_goal(head: np.ndarray, position: np.ndarray) -> LearnedGoal:
+    """A goal head's output (GOAL_OUT values) for a vehicle at `position` as a goal estimate in the same frame."""
+    head = np.asarray(head, dtype=float).reshape(GOAL_OUT)
+    mean = np.asarray(position, dtype=float).reshape(3) + head[:3] * GOAL_SCALE
+    return LearnedGoal(mean, float(np.exp(np.clip(head[3], *GOAL_LOG_STD))) * GOAL_SCALE)
+
+
+@torch.no_grad()
+def run_actor(actor: Actor, obs: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, LearnedGoal | None]:
+    """The raw action for one observation and, for an actor with a goal head, its goal estimate (else None)."""
+    x = torch.as_tensor(np.asarray(obs, dtype=np.float32)).unsqueeze(0)
+    if actor.goal_head is None:
+        return actor(x)[0].numpy().astype(float), None
+    action, head = actor.act_and_goal(x)
+    return action[0].numpy().astype(float), learned_goal(head[0].numpy(), position)
+
+
+def build_actor(meta: dict[str, Any]) -> Actor:
+    """The (untrained) network a validated actor metadata names."""
+    return Actor(meta['vec_dim'], meta['act_dim'], hidden=tuple(meta['hidden']), image=meta['image'],
+                 image_channels=tuple(meta['image_channels']), history_steps=meta['history_steps'],
+                 history_row=meta['history_row'], history_hidden=meta['history_hidden'], goal_head=meta['goal_head'])
 
 
 def save_actor(actor: Actor, meta: dict[str, Any], path: str | Path) -> None:
@@ -90,8 +162,10 @@ def save_actor(actor: Actor, meta: dict[str, Any], path: str | Path) -> None:
 
 META_DEFAULTS = {'act_dim': 3, 'image': False, 'image_channels': [32, 32, 64, 64], 'latent_dim': 0,
                  'max_speed': [1.0, 1.0, 0.6], 'window_s': 1.0,
-                 'feature_lags_s': [], 'memory_displacement': False}   # older actor files may lack these
-# (no lags, no displacement: the original layout)
+                 'feature_lags_s': [], 'memory_displacement': False,   # older actor files may lack these
+                 'history_s': 0.0, 'history_step_s': 0.25, 'history_hidden': 64, 'goal_head': False}
+# (no lags, no displacement, no history window, no goal head: the original layout)
+MAX_HISTORY_S = 60.0     # s
 MAX_ACTION_SPEED = 20.0   # m/s; an actor file claiming faster assistant actions is not one of ours
 
 
@@ -161,11 +235,25 @@ def validate_actor_meta(meta: Any) -> dict[str, Any]:
         raise ValueError(f"metadata 'memory_displacement' must be true or false, got {meta['memory_displacement']!r}")
     if meta['memory_displacement'] and not meta['feature_lags_s']:
         raise ValueError("metadata 'memory_displacement' needs 'feature_lags_s'")
-    expected = (vector_dim(cond, meta['latent_dim'], len(meta['feature_lags_s']), meta['memory_displacement'])
+    meta['history_s'] = _float(meta['history_s'], "'history_s'", 0.0, MAX_HISTORY_S)
+    meta['history_step_s'] = _float(meta['history_step_s'], "'history_step_s'", 0.0, MAX_HISTORY_S, lo_open=True)
+    meta['history_hidden'] = _int(meta, 'history_hidden', 1, 4096)
+    try:
+        meta['history_steps'] = history_steps(meta['history_s'], meta['history_step_s'])
+    except ValueError as exc:
+        raise ValueError(f'metadata history: {exc}') from None
+    if meta['history_steps'] and (cond is None or cond == 'end_to_end'):
+        raise ValueError("metadata 'history_s' needs a latent or oracle actor")
+    meta['history_row'] = (feature_dim(cond, meta['latent_dim']) + HISTORY_EXTRA_DIM) if meta['history_steps'] else 0
+    if not isinstance(meta['goal_head'], bool):
+        raise ValueError(f"metadata 'goal_head' must be true or false, got {meta['goal_head']!r}")
+    expected = (vector_dim(cond, meta['latent_dim'], len(meta['feature_lags_s']), meta['memory_displacement'],
+                           meta['history_steps'])
                 if cond is not None else None)
     if expected is not None and expected != meta['vec_dim']:
         raise ValueError(f"metadata 'vec_dim' {meta['vec_dim']} does not fit a {cond} actor "
-                         f"(latent_dim {meta['latent_dim']}: {expected})")
+                         f"(latent_dim {meta['latent_dim']}, {len(meta['feature_lags_s'])} feature lags, "
+                         f"{meta['history_steps']} history rows: {expected})")
     if cond is not None and (cond == 'end_to_end') != meta['image']:
         raise ValueError(f"metadata 'image' {meta['image']} does not fit a {cond} actor")
     return meta
@@ -202,8 +290,7 @@ def load_actor(path: str | Path) -> tuple[Actor, dict[str, Any]]:
             raise ValueError("not an actor file (no 'actor' weights)")
         meta = validate_actor_meta(blob.get('meta'))
         with torch.device('meta'):    # shapes only: metadata cannot make us allocate a huge network
-            actor = Actor(meta['vec_dim'], meta['act_dim'], hidden=tuple(meta['hidden']), image=meta['image'],
-                          image_channels=tuple(meta['image_channels']))
+            actor = build_actor(meta)
         try:
             actor.load_state_dict(blob['actor'], assign=True)
         except (RuntimeError, TypeError, KeyError, AttributeError) as exc:

@@ -16,7 +16,10 @@ one only ever seen cut by the image border). So the estimate is the pad the assi
 rules and the pilot together) is taking the vehicle to: confident when one pad stands out over the last second,
 spread over two pads while it is split between them. No pad mapped: no estimate. An assistant that knows the
 goal (mode oracle) reports that goal, confidence 1. A step where the actor did not run (stale inputs) reports
-no goal: the assistant is not steering.
+no goal: the assistant is not steering. An actor with a goal head (``actor.Actor.goal_head``) gives the estimate
+instead of the command: its Gaussian over the goal position (``LearnedGoal``) weighs the mapped pads, the belief is
+those weights normalised (no memory here: the actor's own history window is its memory), and with no pad mapped the
+estimate is the head's mean with its spread and confidence 0.
 
 Descent (``descent_ok``). True when the depth image shows a surface nearer than the floor under all four legs
 (no leg over the floor, none over a pad edge: the floor guard's leg test) or the camera is inside its blind range
@@ -100,6 +103,14 @@ class Intent:
 NO_INTENT = Intent(None, None, 0.0, None, None)
 
 
+@dataclass(frozen=True)
+class LearnedGoal:
+    """A goal head's estimate this step: the goal's mean position (odom, m) and its horizontal standard deviation."""
+
+    mean: np.ndarray
+    sigma_m: float
+
+
 class IntentEstimator:
     """The goal belief over the mapped pads of one flight, and the descent flag (module docstring)."""
 
@@ -143,10 +154,11 @@ class IntentEstimator:
         return source.pads
 
     def update(self, ctx: StepContext, velocity: np.ndarray, known_goal: np.ndarray | None = None,
-               assisting: bool = True) -> Intent:
+               assisting: bool = True, learned: LearnedGoal | None = None) -> Intent:
         """This step's intent from the context and the command `velocity` that flies (base_link, m/s); a known goal
-        (mode oracle) is the estimate itself. Not `assisting` (the actor did not run): the belief follows the
-        command all the same, but no goal is reported (the descent flag is)."""
+        (mode oracle) is the estimate itself, a `learned` one (a goal head) weighs the mapped pads. Not
+        `assisting` (the actor did not run): the belief follows the command all the same, but no goal is
+        reported (the descent flag is)."""
         c = self.cfg
         if not c.enabled:
             self.last = NO_INTENT
@@ -157,6 +169,8 @@ class IntentEstimator:
         if known_goal is not None:
             goal = np.asarray(known_goal, dtype=float).reshape(3)
             intent = Intent(goal.copy(), np.eye(3) * c.known_sigma_m ** 2, 1.0, None, None, 1)
+        elif learned is not None:
+            intent = self._learned(ctx, learned)
         else:
             intent = self._estimate(ctx, p, np.asarray(velocity, dtype=float).reshape(3), dt)
         ok = self._descent_ok(ctx, p, intent.goal)
@@ -183,16 +197,31 @@ class IntentEstimator:
                 self._log_belief[k] += keep * (float(log_like[k]) - self._log_belief[k])
             else:
                 self._log_belief.append(float(log_like[k]))
-        lb = np.array(self._log_belief)
-        b = np.exp(lb - lb.max())
+        return self._belief_intent(pads, centres, np.array(self._log_belief))
+
+    def _belief_intent(self, pads: list[MappedPad], centres: np.ndarray, log_belief: np.ndarray) -> Intent:
+        """The most believed pad of a log-belief over `pads`, its belief, and the belief-weighted spread of the pads
+        around it plus the mapped centre's own uncertainty as its covariance."""
+        b = np.exp(log_belief - log_belief.max())
         b /= b.sum()
         best = int(np.argmax(b))
-        goal = centres[best]
-        spread = centres - goal
-        cov = (spread * b[:, None]).T @ spread
-        sigma = c.pad_sigma_m if pads[best].whole else c.part_sigma_m
-        cov += np.eye(3) * sigma ** 2
-        return Intent(goal.copy(), cov, float(b[best]), best, None, len(pads))
+        spread = centres - centres[best]
+        sigma = self.cfg.pad_sigma_m if pads[best].whole else self.cfg.part_sigma_m
+        cov = (spread * b[:, None]).T @ spread + np.eye(3) * sigma ** 2
+        return Intent(centres[best].copy(), cov, float(b[best]), best, None, len(pads))
+
+    def _learned(self, ctx: StepContext, learned: LearnedGoal) -> Intent:
+        """The mapped pads weighed by the goal head's Gaussian (module docstring)."""
+        c = self.cfg
+        mean = np.asarray(learned.mean, dtype=float).reshape(3)
+        sigma = max(float(learned.sigma_m), c.pad_sigma_m)
+        pads = self._pads(ctx)
+        self._log_belief.clear()           # the command-following belief does not carry over a learned estimate
+        if not pads:
+            return Intent(mean.copy(), np.eye(3) * sigma ** 2, 0.0, None, None)
+        centres = np.array([pad.xyz for pad in pads], dtype=float)
+        log_like = -np.sum((centres[:, :2] - mean[:2]) ** 2, axis=1) / (2.0 * sigma ** 2)
+        return self._belief_intent(pads, centres, log_like)
 
     def _descent_ok(self, ctx: StepContext, p: np.ndarray, goal: np.ndarray | None) -> bool | None:
         """Descending here is safe (module docstring); None when the depth image cannot tell."""

@@ -17,7 +17,7 @@ import numpy as np
 from .assistant import Assistant, StepResult
 from .stage import DepthFrame, StepContext
 from .flight import FlightMonitor
-from .intent import IntentConfig, IntentEstimator
+from .intent import IntentConfig, IntentEstimator, LearnedGoal
 from .observation import Condition, ObservationBuilder
 
 
@@ -50,13 +50,13 @@ class AssistLoop:
         return StepContext(t, u, self.builder.history.means(t)[0], position, velocity, quaternion, frame, max_speed)
 
     def act(self, ctx: StepContext, agent: np.ndarray | None, key: str = '', reason: str = '',
-            known_goal: np.ndarray | None = None) -> StepResult:
+            known_goal: np.ndarray | None = None, learned_goal: LearnedGoal | None = None) -> StepResult:
         """The chain on the actor's action `agent` (None: it did not run; `key`/`reason` say why); the action
         history records a as it stood at blending, and the intent (``intent.last``) follows the command that flies
-        (`known_goal`: the goal an oracle assistant is given)."""
+        (`known_goal`: the goal an oracle assistant is given; `learned_goal`: the actor's goal head's estimate)."""
         res = self.assistant.step(ctx, agent, key, reason)
         self.builder.record(ctx.t, ctx.u, res.applied)
-        self.intent.update(ctx, res.velocity, known_goal, assisting=agent is not None)
+        self.intent.update(ctx, res.velocity, known_goal, assisting=agent is not None, learned=learned_goal)
         return res
 
     def idle(self, t: float, u: np.ndarray) -> None:

@@ -20,6 +20,13 @@ vector above, so it still knows where the pads were after they left the view. Ac
 after the lagged features, how far the vehicle has moved since each of them was seen
 (p_now - p_then in the odometry frame, metres, 3 per lag): a lagged view of the pad is relative to
 where the vehicle was then, and the displacement is what turns it into where the pad is now.
+
+History window (optional): an actor whose metadata sets ``history_s`` (e.g. 4) also sees, after all of the
+above, the flight's last ``history_s`` seconds sampled every ``history_step_s`` (``HistoryWindow``), oldest
+first, one row per sample: [feature, v (3), z / Z_SCALE, u (3), the agent action applied (3), p_now - p_then
+(3, clipped), valid (1)]. A learned memory (``actor.Actor``'s GRU) reads it, so persistent disagreement, pads seen
+earlier and keys reversing are learned rather than written as rules. Rows from before the flight began (the
+builder was reset at every flight boundary) are zeros with valid = 0: memory never reaches across a boundary.
 """
 from __future__ import annotations
 
@@ -114,6 +121,8 @@ class ActionHistory:
 
 MAX_FEATURE_LAGS = 8      # lagged copies of the feature an actor may ask for
 MAX_FEATURE_LAG_S = 30.0  # s
+MAX_HISTORY_STEPS = 200   # rows of a history window an actor may ask for
+HISTORY_EXTRA_DIM = 14    # history row after the feature: v (3), z (1), u (3), applied a (3), displacement (3), valid
 
 
 class FeatureMemory:
@@ -179,6 +188,87 @@ class FeatureMemory:
         return np.concatenate(out)
 
 
+def history_steps(history_s: float, step_s: float) -> int:
+    """Rows of a history window covering `history_s` seconds at one row per `step_s` (0 when history_s is 0)."""
+    if history_s <= 0.0:
+        return 0
+    if step_s <= 0.0:
+        raise ValueError(f'history step must be > 0 s, got {step_s!r}')
+    steps = int(round(history_s / step_s))
+    if not 1 <= steps <= MAX_HISTORY_STEPS:
+        raise ValueError(f'a history of {history_s:g} s at {step_s:g} s per row has {steps} rows; '
+                         f'1 to {MAX_HISTORY_STEPS} are allowed')
+    return steps
+
+
+class HistoryWindow:
+    """The flight's recent steps, sampled every `step_s` over the last `history_s` seconds (module docstring).
+
+    ``window`` records the step it is called for and returns the rows before it (oldest first, flattened);
+    ``applied`` fills in the agent action applied at that step once the chain has run.
+    """
+
+    def __init__(self, feature_size: int, history_s: float = 0.0, step_s: float = 0.25):
+        self.steps = history_steps(history_s, step_s)
+        self.step_s = float(step_s)
+        self.feature_size = int(feature_size)
+        self.row_dim = self.feature_size + HISTORY_EXTRA_DIM
+        self._items: deque[tuple[float, np.ndarray, np.ndarray]] = deque()   # (t, row without displacement, p)
+
+    @property
+    def dim(self) -> int:
+        """Values the window adds to the observation."""
+        return self.steps * self.row_dim
+
+    def clear(self) -> None:
+        """Forget every step (new episode or flight boundary)."""
+        self._items.clear()
+
+    def window(self, now: float, feature: np.ndarray, velocity: np.ndarray, altitude: float, u: np.ndarray,
+               position: np.ndarray | None) -> np.ndarray:
+        """Record this step and return the `steps` rows sampled at now - k * step_s, k = steps..1 (float32).
+
+        A row is the latest step recorded at or before its sample time; none recorded that early (the flight
+        is younger) gives a zero row with valid = 0. A clock that jumps backwards clears the window first.
+        ValueError for a non-finite time or position.
+        """
+        if not self.steps:
+            return np.zeros(0, np.float32)
+        if not np.isfinite(now):
+            raise ValueError(f'HistoryWindow.window: non-finite time {now!r}')
+        pos = np.zeros(3) if position is None else np.asarray(position, dtype=float).reshape(3)
+        if not np.all(np.isfinite(pos)):
+            raise ValueError('HistoryWindow.window: non-finite position')
+        if self._items and now < self._items[-1][0]:
+            self.clear()
+        out = np.zeros((self.steps, self.row_dim), np.float32)
+        targets = [now - k * self.step_s + TIME_EPS for k in range(self.steps, 0, -1)]
+        items = list(self._items)
+        j = -1
+        for i, target in enumerate(targets):
+            while j + 1 < len(items) and items[j + 1][0] <= target:
+                j += 1
+            if j < 0:
+                continue
+            _, row, then = items[j]
+            out[i, :row.size] = row
+            out[i, row.size:row.size + 3] = np.clip(pos - then, -DISPLACEMENT_CLIP_M, DISPLACEMENT_CLIP_M)
+            out[i, -1] = 1.0
+        row = np.concatenate([np.asarray(feature, dtype=float).reshape(-1),
+                              np.asarray(velocity, dtype=float).reshape(3), [float(altitude) / Z_SCALE],
+                              np.asarray(u, dtype=float).reshape(3), np.zeros(3)])
+        self._items.append((float(now), row, pos.copy()))
+        horizon = now - self.steps * self.step_s + TIME_EPS
+        while len(self._items) > 1 and self._items[1][0] <= horizon:     # keep one step at least a window old
+            self._items.popleft()
+        return out.reshape(-1)
+
+    def applied(self, now: float, a: np.ndarray) -> None:
+        """The agent action applied at the step recorded at `now` (ignored when no step was recorded then)."""
+        if self._items and abs(self._items[-1][0] - now) <= TIME_EPS:
+            self._items[-1][1][-3:] = np.asarray(a, dtype=float).reshape(3)
+
+
 def feature_dim(condition: Condition | str, latent_dim: int = 0) -> int:
     """Length of the condition-specific part of the vector observation."""
     condition = Condition(condition)
@@ -192,11 +282,12 @@ def feature_dim(condition: Condition | str, latent_dim: int = 0) -> int:
 
 
 def vector_dim(condition: Condition | str, latent_dim: int = 0, n_lags: int = 0,
-               displacement: bool = False) -> int:
-    """Length of the full vector observation for `condition` (with `n_lags` lagged copies of the feature
-    and, with `displacement`, the vehicle's displacement since each)."""
-    return (feature_dim(condition, latent_dim) * (1 + n_lags) + DYNAMICS_DIM + ACTIONS_DIM
-            + (DISPLACEMENT_DIM * n_lags if displacement else 0))
+               displacement: bool = False, n_history: int = 0) -> int:
+    """Length of the full vector observation for `condition` (with `n_lags` lagged copies of the feature,
+    with `displacement` the vehicle's displacement since each, and `n_history` history rows)."""
+    feat = feature_dim(condition, latent_dim)
+    return (feat * (1 + n_lags) + DYNAMICS_DIM + ACTIONS_DIM + (DISPLACEMENT_DIM * n_lags if displacement else 0)
+            + n_history * (feat + HISTORY_EXTRA_DIM))
 
 
 def oracle_feature(goal: np.ndarray, position: np.ndarray) -> np.ndarray:
@@ -240,19 +331,33 @@ class ObservationBuilder:
     window_s: float = 1.0
     feature_lags_s: tuple[float, ...] = ()
     memory_displacement: bool = False
+    history_s: float = 0.0          # history window (HistoryWindow); 0 = none
+    history_step_s: float = 0.25
 
     def __post_init__(self) -> None:
         self.condition = Condition(self.condition)
-        if self.feature_lags_s and self.condition is Condition.END_TO_END:
-            raise ValueError('feature lags need a vector feature (latent or oracle), not end_to_end')
+        if (self.feature_lags_s or self.history_s > 0) and self.condition is Condition.END_TO_END:
+            raise ValueError('feature lags and a history window need a vector feature (latent or oracle), '
+                             'not end_to_end')
         self.history = ActionHistory(self.window_s)
         self.memory = FeatureMemory(tuple(self.feature_lags_s), bool(self.memory_displacement))
-        self.dim = vector_dim(self.condition, self.latent_dim, len(self.memory.lags_s), self.memory.displacement)
+        feat = feature_dim(self.condition, self.latent_dim)
+        self.window = HistoryWindow(feat, float(self.history_s), float(self.history_step_s))
+        self.dim = vector_dim(self.condition, self.latent_dim, len(self.memory.lags_s), self.memory.displacement,
+                              self.window.steps)
+
+    @classmethod
+    def for_actor(cls, condition: Condition | str, meta: dict) -> ObservationBuilder:
+        """The builder an actor's (validated) metadata declares, for `condition`."""
+        return cls(Condition(condition), int(meta['latent_dim']), float(meta['window_s']),
+                   tuple(meta['feature_lags_s']), bool(meta['memory_displacement']), float(meta['history_s']),
+                   float(meta['history_step_s']))
 
     def reset(self) -> None:
         """Start a new episode."""
         self.history.clear()
         self.memory.clear()
+        self.window.clear()
 
     def build(self, now: float, feature: np.ndarray, velocity: np.ndarray, altitude: float,
               u: np.ndarray, position: np.ndarray | None = None) -> np.ndarray:
@@ -264,10 +369,12 @@ class ObservationBuilder:
             raise ValueError(f'{self.condition.value} feature has {feature.size} values, expected {expected}')
         mean_u, mean_a = self.history.means(now)
         obs = build_vector(feature, velocity, altitude, u, mean_u, mean_a)
-        if not self.memory.lags_s:
+        if not (self.memory.lags_s or self.window.steps):
             return obs
-        return np.concatenate([obs, self.memory.lagged(now, feature, position).astype(np.float32)])
+        return np.concatenate([obs, self.memory.lagged(now, feature, position).astype(np.float32),
+                               self.window.window(now, feature, velocity, altitude, u, position)])
 
     def record(self, now: float, u: np.ndarray, a: np.ndarray) -> None:
         """Remember the pilot action and agent action applied at time `now`."""
         self.history.push(now, u, a)
+        self.window.applied(now, a)

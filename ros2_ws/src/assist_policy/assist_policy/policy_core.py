@@ -28,7 +28,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from assist_common.frames import quat_to_matrix
 from assist_common.shipped import shipped_model_path
@@ -38,12 +37,12 @@ from .assistant import Assistant, AssistantConfig
 from .stage import DepthFrame
 from .blending import DEFAULT_THRESHOLD, MAX_SPEED_MPS, MAX_VERTICAL_MPS, MIN_SPEED_LIMIT_MPS, clamp_velocity
 from .flight import FlightConfig, FlightMonitor, surface_clearance
-from .intent import NO_INTENT, Intent, IntentConfig
+from .intent import NO_INTENT, Intent, IntentConfig, LearnedGoal
 from .loop import AssistLoop
 from .observation import Condition, ObservationBuilder, image_feature, oracle_feature
 from .poses import PoseHistory
 from .rules import RULES, all_settings, changed, rule_fields
-from .actor import load_actor
+from .actor import load_actor, run_actor
 from .settings import nested, node_param
 from assist_common.settings import check_named, setting
 
@@ -158,8 +157,7 @@ class PolicyCore:
         if trained is not None and trained != self.mode.value:
             raise ValueError(f'{actor_path}: actor was trained for {trained!r}, not mode {self.mode.value!r}')
         self.max_speed = tuple(float(v) for v in self.meta['max_speed'])
-        self.builder = ObservationBuilder(self.mode, int(self.meta['latent_dim']), float(self.meta['window_s']),
-                                          tuple(self.meta['feature_lags_s']), self.meta['memory_displacement'])
+        self.builder = ObservationBuilder.for_actor(self.mode, self.meta)
         if self.builder.dim != int(self.meta['vec_dim']):
             raise ValueError(f'{actor_path}: actor expects {self.meta["vec_dim"]} inputs, the {self.mode.value} '
                              f'observation has {self.builder.dim}')
@@ -495,25 +493,28 @@ XX
         vel_actor = (quat_to_matrix(self._attitude) @ vel
                      if c.actor_velocity == 'odom' and self._attitude is not None else vel)
         ctx = self.loop.context(now, u, pos, vel, self._attitude, self._frame_now(now), self.max_speed)
-        a, key, reason = self._actor(now, u, pos, vel_actor)
+        a, key, reason, learned = self._actor(now, u, pos, vel_actor)
         known = self._goal if self.mode is Condition.ORACLE else None
-        res = self.loop.act(ctx, a, key, reason, known_goal=known)
+        res = self.loop.act(ctx, a, key, reason, known_goal=known, learned_goal=learned)
         return PolicyOutput(res.agent, res.velocity, res.reason, res.key, intent=self.loop.intent.last)
 
-    def _actor(self, now: float, u: np.ndarray, pos: np.ndarray, vel: np.ndarray) -> tuple[np.ndarray | None, str, str]:
-        """The actor's action a (m/s), or (None, key, reason) when it cannot run."""
+    def _actor(self, now: float, u: np.ndarray, pos: np.ndarray,
+               vel: np.ndarray) -> tuple[np.ndarray | None, str, str, LearnedGoal | None]:
+        """The actor's action a (m/s) and its goal head's estimate (None without one), or (None, key, reason,
+        None) when it cannot run."""
         if self.mode is Condition.ORACLE:
             if self._goal is None:
-                return None, 'goal_absent', 'goal absent'
+                return None, 'goal_absent', 'goal absent', None
             feature = oracle_feature(self._goal, pos)
         else:
             if self._feature is None or not self._fresh(self._feature[0], now, self.cfg.feature_timeout_s):
-                return None, 'feature_stale', f'{self.mode.value} input stale or absent'
+                return None, 'feature_stale', f'{self.mode.value} input stale or absent', None
             feature = self._feature[1]
         obs = self.loop.observation(now, feature, vel, pos, u)
-        with torch.no_grad():
-            raw = self.actor(torch.as_tensor(obs).unsqueeze(0))[0].numpy().astype(float)
+        raw, learned = run_actor(self.actor, obs, pos)
         if not np.all(np.isfinite(raw)):
             self.rejected += 1
-            return None, 'actor_nonfinite', 'actor output not finite (rejected)'
-        return scale_action(raw, self.max_speed), '', ''
+            return None, 'actor_nonfinite', 'actor output not finite (rejected)', None
+        if learned is not None and not (np.all(np.isfinite(learned.mean)) and math.isfinite(learned.sigma_m)):
+            learned = None                  # a non-finite estimate is not published; the action still flies
+        return scale_action(raw, self.max_speed), '', '', learned

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from assist_common.settings import SettingsError
-from assist_policy.intent import ROTATION_VARIANCE, IntentConfig, IntentEstimator
+from assist_policy.intent import ROTATION_VARIANCE, IntentConfig, IntentEstimator, LearnedGoal
 from assist_policy.recall import MappedPad, PadRecall, RecallConfig
 from assist_policy.stage import DepthFrame, StepContext
 
@@ -163,3 +163,21 @@ def test_the_horizontal_sigma_is_the_wider_axis_of_the_covariance():
     out = fly(estimator(), 0.0, 3.0, (2.0, 0.0, 3.0), (0.0, 0.0, 0.0))
     assert out.sigma_xy_m == pytest.approx(np.sqrt(out.covariance[0, 0]))      # the pads stand in a row along x
     assert estimator().last.sigma_xy_m == np.inf                                # no estimate
+
+
+def test_a_goal_head_s_estimate_weighs_the_mapped_pads_whatever_the_command():
+    est = estimator()
+    fly(est, 0.0, 3.0, (1.5, 0.0, 3.0), (1.0, 0.0, 0.0))           # the command leads to B
+    # the head puts the goal near A (sd 1 m): A is the estimate, the command notwithstanding
+    near_a = LearnedGoal(np.array([0.5, 0, 0]), 1.0)
+    out = est.update(ctx(3.0, (1.5, 0.0, 3.0)), np.array([1.0, 0.0, 0.0]), learned=near_a)
+    assert out.index == 0 and out.confidence == pytest.approx(1 / (1 + np.exp(-(3.5 ** 2 - 0.5 ** 2) / 2)))
+    np.testing.assert_array_equal(out.goal, PAD_A)
+    # unsure (sd 4 m) half way: split between the two
+    out = est.update(ctx(3.05, (1.5, 0.0, 3.0)), np.zeros(3), learned=LearnedGoal(np.array([2.0, 0, 0]), 4.0))
+    assert out.confidence == pytest.approx(0.5)
+    # nothing mapped: the head's mean with its own spread, confidence 0
+    bare = IntentEstimator(IntentConfig(), PadRecall(RecallConfig()))
+    out = bare.update(ctx(0.0, (0.0, 0.0, 3.0)), np.zeros(3), learned=LearnedGoal(np.array([9.0, 1.0, 0.5]), 0.5))
+    np.testing.assert_array_equal(out.goal, [9.0, 1.0, 0.5])
+    assert out.confidence == 0.0 and out.covariance[0, 0] == pytest.approx(0.25)
