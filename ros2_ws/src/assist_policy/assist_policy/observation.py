@@ -26,7 +26,9 @@ above, the flight's last ``history_s`` seconds sampled every ``history_step_s`` 
 first, one row per sample: [feature, v (3), z / Z_SCALE, u (3), the agent action applied (3), p_now - p_then
 (3, clipped), valid (1)]. A learned memory (``actor.Actor``'s GRU) reads it, so persistent disagreement, pads seen
 earlier and keys reversing are learned rather than written as rules. Rows from before the flight began (the
-builder was reset at every flight boundary) are zeros with valid = 0: memory never reaches across a boundary.
+builder was reset at every flight boundary) or from a gap (no step within ``history_step_s`` before the row's time:
+the actor did not run, inputs stalled) are zeros with valid = 0: memory never reaches across a boundary or
+repeats a stale step.
 """
 from __future__ import annotations
 
@@ -228,8 +230,9 @@ class HistoryWindow:
                position: np.ndarray | None) -> np.ndarray:
         """Record this step and return the `steps` rows sampled at now - k * step_s, k = steps..1 (float32).
 
-        A row is the latest step recorded at or before its sample time; none recorded that early (the flight
-        is younger) gives a zero row with valid = 0. A clock that jumps backwards clears the window first.
+        A row is the latest step recorded at or before its sample time and less than `step_s` before it; none
+        (the flight is younger, or a gap: the actor did not run, inputs stalled) gives a zero row with valid = 0,
+        never an older step. A clock that jumps backwards clears the window first.
         ValueError for a non-finite time or position.
         """
         if not self.steps:
@@ -248,7 +251,7 @@ class HistoryWindow:
         for i, target in enumerate(targets):
             while j + 1 < len(items) and items[j + 1][0] <= target:
                 j += 1
-            if j < 0:
+            if j < 0 or target - items[j][0] >= self.step_s:
                 continue
             _, row, then = items[j]
             out[i, :row.size] = row

@@ -38,6 +38,15 @@ def test_a_young_flight_has_invalid_zero_rows_and_a_clock_reset_forgets():
     assert not fly(w, 0.0, 5.0).any()                    # clock went back (new episode): forgotten
 
 
+def test_a_gap_in_the_steps_leaves_invalid_rows_not_stale_ones():
+    w = HistoryWindow(LATENT, history_s=2.0, step_s=0.5)
+    for k in range(11):                       # 0 .. 1.0 s at 10 Hz, then nothing until 3.0 s (inputs stalled)
+        fly(w, k * 0.1, 0.0)
+    rows = fly(w, 3.0, 0.0).reshape(4, -1)    # rows at 1.0, 1.5, 2.0, 2.5: only 1.0 has a step within 0.5 s
+    assert rows[0, -1] == 1.0 and rows[0, 0] == pytest.approx(1.0)
+    assert not rows[1:].any()
+
+
 def test_displacement_is_clipped_and_bad_inputs_refused():
     w = HistoryWindow(LATENT, history_s=0.5, step_s=0.5)
     fly(w, 0.0, 0.0)
