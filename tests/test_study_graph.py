@@ -24,6 +24,7 @@ from assist_station.simulate_study import SimulateArgs, StudyGraph, free_tcp_por
 
 pytestmark = [pytest.mark.graph, pytest.mark.slow(seconds=150)]
 RTF = 3.0                      # sim seconds per wall second (the landings need not be flown well here)
+MAX_LANDING_S = 20.0           # sim seconds: a landing not done by then ends as a timeout (the protocol is tested)
 
 
 def rows(path: Path) -> list[dict]:
@@ -39,7 +40,7 @@ def events(path: Path) -> list[dict]:
 def study(tmp_path_factory, domain_id):
     out = tmp_path_factory.mktemp('study')
     args = SimulateArgs(out=str(out), participants=2, landings_per_block=2, practice=1, real_time_factor=RTF,
-                        browser_participants=1)
+                        browser_participants=1, max_landing_s=MAX_LANDING_S)
     sim_dir = out / '.simulation'
     sim_dir.mkdir()
     cfg, path = study_file(args, sim_dir)

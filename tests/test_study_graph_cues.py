@@ -28,7 +28,8 @@ PIDS = ('S03',)                # order: assisted_cues-unassisted-assisted
 def run(tmp_path_factory, domain_id):
     out = tmp_path_factory.mktemp('cues_study')
     args = SimulateArgs(out=str(out), participants=3, only=PIDS, landings_per_block=1, practice=0,
-                        real_time_factor=3.0, browser_participants=1, study=str(STUDY), domain_id=domain_id)
+                        real_time_factor=3.0, browser_participants=1, study=str(STUDY), domain_id=domain_id,
+                        max_landing_s=20.0)
     results = simulate(args)
     return out, {r['participant']: r for r in results}
 

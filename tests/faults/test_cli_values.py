@@ -220,7 +220,7 @@ def test_random_bad_values_are_one_error_line_and_exit_2(no_work, command, data)
 
 # ------------------------------------------------------------------ train_td3: resume and damaged checkpoints
 TINY = dict(total_steps=0, hidden=(32, 32), buffer_size=1000, max_episode_s=4.0, eval_every_episodes=1000,
-            start_steps=0)
+            eval_episodes_per_beta=1, start_steps=0)
 
 
 @pytest.fixture(scope='module')

@@ -21,8 +21,8 @@ from assist_lab.td3 import ReplayBuffer
 from assist_lab.train import TrainArgs, load_checkpoint, train
 
 BIN = Path(sys.executable).parent
-TINY = dict(start_steps=100, checkpoint_every_steps=100, eval_every_episodes=1000, hidden=(32, 32),
-            max_episode_s=4.0, buffer_size=5000)
+TINY = dict(start_steps=100, checkpoint_every_steps=100, eval_every_episodes=1000, eval_episodes_per_beta=1,
+            hidden=(32, 32), max_episode_s=4.0, buffer_size=5000)
 
 
 def assert_consistent(run: Path, min_step: int) -> None:

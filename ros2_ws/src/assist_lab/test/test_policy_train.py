@@ -12,11 +12,12 @@ from assist_lab.train import TrainArgs, load_checkpoint, train
 
 
 def _tiny_run(tmp_path, total_steps: int, buffer_size: int, checkpoint_every_steps: int = 1000, **extra) -> dict:
-    """TrainArgs fields of a seconds-long oracle run in tmp_path (32x32 actor, 4 s landings, no periodic eval)."""
+    """TrainArgs fields of a seconds-long oracle run in tmp_path (32x32 actor, 4 s landings, no periodic eval, one
+    landing per beta in the final one)."""
     torch.set_num_threads(1)
     return dict(runs_dir=str(tmp_path), total_steps=total_steps, start_steps=0,
                 checkpoint_every_steps=checkpoint_every_steps, eval_every_episodes=1000, hidden=(32, 32),
-                max_episode_s=4.0, buffer_size=buffer_size, **extra)
+                max_episode_s=4.0, buffer_size=buffer_size, **{'eval_episodes_per_beta': 1, **extra})
 
 
 def _first_actor(base: dict):
@@ -28,7 +29,7 @@ def _first_actor(base: dict):
 def test_train_writes_run_dir_and_resumes(tmp_path):
     torch.set_num_threads(1)
     args = TrainArgs(name='tiny', runs_dir=str(tmp_path), total_steps=400, start_steps=100,
-                     checkpoint_every_steps=200, eval_every_episodes=1000, hidden=(32, 32),
+                     checkpoint_every_steps=200, eval_every_episodes=1000, eval_episodes_per_beta=1, hidden=(32, 32),
                      max_episode_s=6.0, buffer_size=5000)
     run = train(args)
     cfg = json.loads((run / 'config.json').read_text())
@@ -207,7 +208,7 @@ def test_a_memory_actor_with_a_goal_head_clones_the_true_goal_and_evaluate_repor
     from assist_lab.td3 import goal_nll
     base = _tiny_run(tmp_path, total_steps=0, buffer_size=20000)
     run = train(TrainArgs(name='mem', history_s=1.0, history_step_s=0.5, history_hidden=8, goal_head=True,
-                          demo_episodes=2, demo_noise=0.1, dagger_rounds=1, dagger_episodes=1, bc_steps=300,
+                          demo_episodes=2, demo_noise=0.1, dagger_rounds=1, dagger_episodes=1, bc_steps=200,
                           **base))
     actor, meta = load_actor(run / 'actor_last.pt')
     assert (meta['history_steps'], meta['goal_head'], meta['vec_dim']) == (2, True, 16 + 2 * (3 + 14))

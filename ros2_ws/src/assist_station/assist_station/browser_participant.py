@@ -24,6 +24,7 @@ from .testing import start_browser
 
 log = logging.getLogger(__name__)
 PILOT_WAIT_S = 60.0
+POLL_S = 0.05             # s between checks of the page while waiting for a form's answer (selenium's default: 0.5 s)
 
 # one round trip per pilot step: set the held keys by dispatching key events, return what the page knows
 STEP_JS = """
@@ -110,7 +111,7 @@ class BrowserParticipant:
         selector = (By.CSS_SELECTOR, f'input[name="{name}"][value="{value}"]')
         for attempt in range(3):            # the form may be redrawn between finding and clicking
             try:
-                WebDriverWait(self.driver, STEP_TIMEOUT_S).until(
+                WebDriverWait(self.driver, STEP_TIMEOUT_S, poll_frequency=POLL_S).until(
                     expected_conditions.element_to_be_clickable(selector)).click()
                 return
             except StaleElementReferenceException:

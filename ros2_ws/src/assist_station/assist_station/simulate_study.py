@@ -55,6 +55,7 @@ class SimulateArgs:
     families: tuple[str, ...] = setting(DEFAULT_FAMILIES, min_len=1)
     seed: int = setting(0, ge=0, le=2 ** 31 - 1)
     real_time_factor: float = setting(2.0, gt=0.0, le=20.0)
+    max_landing_s: float = setting(0.0, ge=0.0, le=3600.0)
     browser_participants: int = setting(0, ge=0, le=500)
     record_bags: bool = True
     domain_id: int = setting(0, ge=0, le=232)
@@ -96,6 +97,8 @@ HELP = {
     'families': 'pilot families of assist_sim.pilots, assigned to participants in turn',
     'seed': 'seed of the participants (skills, families, answers, pilots)',
     'real_time_factor': 'sim seconds per wall second (the graph must keep up: 2 on two cores)',
+    'max_landing_s': 'a landing not done after this many sim seconds ends as a timeout (sim_node episode_timeout_s; '
+                     'a quick dry run of the protocol); 0: the sim\'s own limit (90 s)',
     'browser_participants': 'the first N participants use the station page in headless Chromium',
     'record_bags': 'record a bag per landing (the study file\'s record_bags; false saves disk for big runs)',
     'domain_id': 'ROS_DOMAIN_ID of the graph (0: pick a free one)',
@@ -152,7 +155,8 @@ def graph_params(cfg: StudyConfig, args: SimulateArgs, study_path: Path, out: Pa
     models = {'encoder_node': cfg.encoder_model, 'policy_node': cfg.policy_model}
     nodes = {
         'sim_node': {'seed': int(args.seed), 'real_time_factor': float(args.real_time_factor), 'auto_reset': False,
-                     'scene_seed': int(cfg.scene_seed), 'camera_rate_hz': 20.0},
+                     'scene_seed': int(cfg.scene_seed), 'camera_rate_hz': 20.0,
+                     'episode_timeout_s': float(args.max_landing_s)},
         'encoder_node': {'use_sim_time': True},
         'policy_node': {'use_sim_time': True, 'mode': cfg.assistant_mode, 'assist_enabled': False},
         'pilot_station': {'use_sim_time': True, 'port': int(port), 'study_config': str(study_path.resolve()),

@@ -382,3 +382,13 @@ def test_simulate_refuses_a_path_prefix_before_writing(tmp_path, monkeypatch):
     with pytest.raises(StudyError, match='participant ID'):
         sim.simulate(sim.SimulateArgs(out=str(tmp_path / 'o'), participants=1, id_prefix='../x'))
     assert list(tmp_path.iterdir()) == []
+
+
+def test_simulate_study_max_landing_s_is_sim_node_s_episode_timeout(tmp_path, capsys):
+    cfg, path = sim.study_file(sim.SimulateArgs(out=str(tmp_path)), tmp_path)
+    for given, timeout in ((0.0, 0.0), (20.0, 20.0)):           # 0: the sim's own limit
+        args = sim.SimulateArgs(out=str(tmp_path), max_landing_s=given)
+        assert sim.graph_params(cfg, args, path, tmp_path, 8080)['sim_node']['episode_timeout_s'] == timeout
+    with pytest.raises(SystemExit) as exit_:
+        sim.main(['--out', str(tmp_path / 'o'), '--max-landing-s', '-1'])
+    assert exit_.value.code == 2 and '--max-landing-s' in capsys.readouterr().err
