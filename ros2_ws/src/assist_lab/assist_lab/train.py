@@ -190,9 +190,10 @@ HELP = {
     'actor_start_steps': 'update only the critic (on the run\'s own landings) until this many environment steps, '
                          'so a fine-tuned actor is not moved by a critic that has not yet seen it fly',
     'demo_policy': 'demonstrator: oracle (knows the goal), init_actor (the --init-actor itself, frozen: TD3+BC '
-                   'fine-tuning anchored to the actor it starts from) or a goal-agnostic nearest-pad teacher, '
-                   'imitable from the latent (scripted.NEAREST_PAD_VARIANTS, each documented in ScriptedConfig): '
-                   + ', '.join(NEAREST_PAD_VARIANTS),
+                   'fine-tuning anchored to the actor it starts from) or a nearest-pad teacher '
+                   '(scripted.NEAREST_PAD_VARIANTS, each documented in ScriptedConfig; goal-agnostic and imitable '
+                   'from the latent, but for nearest_pad_goal_commit, which helps over the goal pad only: a '
+                   'privileged teacher for an actor that infers the goal): ' + ', '.join(NEAREST_PAD_VARIANTS),
     'demo_bc_file': 'demos_bc.npz of an earlier run: reuse its demonstrations for behaviour cloning / TD3+BC '
                     'instead of collecting new ones (preload its demos.npz with --preload)',
     'bc_alpha': 'TD3+BC regulariser weight (0 = plain TD3); keeps the actor near the demonstrations',

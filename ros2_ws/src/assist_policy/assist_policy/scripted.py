@@ -76,6 +76,10 @@ class ScriptedConfig:
     # Aim where the vehicle will be `lead_s` seconds from now (position + lead_s x horizontal velocity), not where it
     # is: damps the overshoot a lagging autopilot adds (LEAD_S). 0 = aim at the current position.
     lead_s: float = 0.0
+    # Privileged (knows the goal; a teacher for actors that infer it, never a reference of what is perceivable):
+    # the nearest-pad assistant relinquishes over any pad but the pilot's goal. Imitated from what the actor sees,
+    # its action is the helping one scaled by how sure the actor can be that the pad below is the goal.
+    goal_gated: bool = False
 
 
 class ScriptedOracle:
@@ -115,7 +119,7 @@ class ScriptedOracle:
                               self.max_speed)
 
 
-# Named nearest-pad teachers (all goal-agnostic; `nearest_pad` is the reference script).
+# Named nearest-pad teachers (goal-agnostic but for the goal-gated one; `nearest_pad` is the reference script).
 NEAREST_PAD_VARIANTS = {
     'nearest_pad': {},                                                # centre and push down
     'nearest_pad_yield': {'yield_speed_mps': YIELD_SPEED_MPS},        # + let a held-key correction through
@@ -127,6 +131,8 @@ NEAREST_PAD_VARIANTS = {
                                  'yield_speed_mps': YIELD_SPEED_MPS},
     # the commit teacher aiming ahead of a lagging autopilot (LEAD_S)
     'nearest_pad_commit_lead': {'gentle_descent': True, 'commit_height_m': COMMIT_HEIGHT_M, 'lead_s': LEAD_S},
+    # privileged: the commit teacher over the goal pad only (a teacher for an actor that infers the goal)
+    'nearest_pad_goal_commit': {'gentle_descent': True, 'commit_height_m': COMMIT_HEIGHT_M, 'goal_gated': True},
 }
 
 
@@ -158,13 +164,20 @@ class ScriptedNearestPad:
         return float(np.asarray(pilot, dtype=float)[2]) >= 0.0 and holds_key(mean_pilot, c.yield_speed_mps)
 
     def velocity(self, pads: np.ndarray, position: np.ndarray, pilot: np.ndarray,
-                 mean_pilot: np.ndarray | None = None, velocity: np.ndarray | None = None) -> np.ndarray:
-        """Assistant velocity toward the pad nearest to the vehicle, or zero in transit (or when yielding)."""
+                 mean_pilot: np.ndarray | None = None, velocity: np.ndarray | None = None,
+                 goal: np.ndarray | None = None) -> np.ndarray:
+        """Assistant velocity toward the pad nearest to the vehicle, or zero in transit (or when yielding, or,
+        goal-gated, over a pad that is not the one nearest `goal`)."""
         if self.yields(pilot, mean_pilot):
             return np.zeros(3)
         p = np.asarray(position, dtype=float)
         pads = np.asarray(pads, dtype=float)
         k = int(np.argmin(np.linalg.norm(pads[:, :2] - p[:2], axis=1)))
+        if self.cfg.goal_gated:
+            if goal is None:
+                raise ValueError('a goal-gated teacher needs the goal')
+            if k != int(np.argmin(np.linalg.norm(pads[:, :2] - np.asarray(goal, dtype=float)[:2], axis=1))):
+                return np.zeros(3)
         height = p[2] - pads[k, 2]          # over the pad below
         descending = float(np.asarray(pilot, dtype=float)[2]) < 0
         if not (descending or height < self.low_height_m):
@@ -176,10 +189,11 @@ class ScriptedNearestPad:
         return a
 
     def raw_action(self, env) -> np.ndarray:
-        """Raw action in [-1, 1]^3 for the env's current state (pad positions, no goal)."""
+        """Raw action in [-1, 1]^3 for the env's current state (pad positions; the goal only when goal-gated)."""
         mean_u = None
         if self.cfg.yield_speed_mps > 0:
             mean_u, _ = env.builder.history.means(env.elapsed_s)
         st = env.world.state
+        goal = env.world.goal_position if self.cfg.goal_gated else None
         return unscale_action(self.velocity(env.world.pad_top_centers, st.position, env.pilot_action, mean_u,
-                                            st.velocity), self.max_speed)
+                                            st.velocity, goal), self.max_speed)
