@@ -18,8 +18,8 @@ spread over two pads while it is split between them. No pad mapped: no estimate.
 goal (mode oracle) reports that goal, confidence 1. A step where the actor did not run (stale inputs) reports
 no goal: the assistant is not steering. An actor with a goal head (``actor.Actor.goal_head``) gives the estimate
 instead of the command: its Gaussian over the goal position (``LearnedGoal``) weighs the mapped pads, the belief is
-those weights normalised (no memory here: the actor's own history window is its memory), and with no pad mapped the
-estimate is the head's mean with its spread and confidence 0.
+those weights normalised (no memory here: the actor's own history window is its memory); with no pad mapped there is
+no estimate (the contract's goal estimate is a pad's centre).
 
 Descent (``descent_ok``). True when the depth image shows a surface nearer than the floor under all four legs
 (no leg over the floor, none over a pad edge: the floor guard's leg test) or the camera is inside its blind range
@@ -218,7 +218,7 @@ class IntentEstimator:
         pads = self._pads(ctx)
         self._log_belief.clear()           # the command-following belief does not carry over a learned estimate
         if not pads:
-            return Intent(mean.copy(), np.eye(3) * sigma ** 2, 0.0, None, None)
+            return Intent(None, None, 0.0, None, None)
         centres = np.array([pad.xyz for pad in pads], dtype=float)
         log_like = -np.sum((centres[:, :2] - mean[:2]) ** 2, axis=1) / (2.0 * sigma ** 2)
         return self._belief_intent(pads, centres, log_like)

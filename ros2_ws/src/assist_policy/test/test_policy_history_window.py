@@ -7,6 +7,7 @@ from assist_policy.actor import Actor, build_actor, load_actor, save_actor, vali
 from assist_policy.observation import (DISPLACEMENT_CLIP_M, HISTORY_EXTRA_DIM, Condition, HistoryWindow,
                                        ObservationBuilder, history_steps, vector_dim)
 from assist_policy.policy_core import PolicyCore, PolicyCoreConfig
+from assist_policy.recall import MappedPad
 
 LATENT = 2
 
@@ -129,7 +130,10 @@ def test_policy_core_builds_the_window_and_publishes_the_goal_head_s_estimate(tm
     core.set_odom(1.0, [1, 0, 2], [0, 0, 0])
     core.set_pilot(1.0, [0, 1, 0])
     core.set_latent(1.0, np.zeros(LATENT))
-    out = core.step(1.0)
-    # no pad mapped (no depth image): the head's mean with its spread, confidence 0
-    np.testing.assert_allclose(out.intent.goal, [3.0, 0.0, 1.0], atol=1e-6)
-    assert out.intent.confidence == 0.0 and out.intent.covariance[0, 0] == pytest.approx(1.0)
+    assert core.step(1.0).intent.goal is None                 # no pad mapped yet (no depth image): no estimate
+    recall = core.assistant.recall                            # pads mapped near (3, 0) and at (7, 0)
+    recall.map.pads[:] = [MappedPad(np.array([3.2, 0.0, 0.8]), True, 100),
+                          MappedPad(np.array([7.0, 0.0, 0.8]), True, 100)]
+    out = core.step(1.05)
+    np.testing.assert_allclose(out.intent.goal, [3.2, 0.0, 0.8])     # the head's mean is (3, 0, 1), sd 1 m
+    assert out.intent.confidence > 0.99
