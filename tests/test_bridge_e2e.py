@@ -304,13 +304,14 @@ def test_parameters_ranges_runtime_sets_and_startup_refusals(ros, start_node, wa
     finally:
         probe.close()
         vehicle.close()
-    for params, words in (({'velocity_scale': 2.0}, "'velocity_scale' must be"),
-                          ({'connection': '/usr/bin/python3'}, 'serial device'),
-                          ({'connection': 'udp:0.0.0.0:14550'}, 'unsupported MAVLink endpoint'),
-                          ({'setpoint_rate_hz': -1.0}, "'setpoint_rate_hz' must be"),
-                          ({'auto_guided': True}, 'auto_guided was removed')):
-        node = start_node('mavlink_bridge_node', params)
-        assert node.proc.wait(30) == 1, node.log()
+    refused = [(start_node('mavlink_bridge_node', params), words)      # started together: each must refuse alone
+               for params, words in (({'velocity_scale': 2.0}, "'velocity_scale' must be"),
+                                     ({'connection': '/usr/bin/python3'}, 'serial device'),
+                                     ({'connection': 'udp:0.0.0.0:14550'}, 'unsupported MAVLink endpoint'),
+                                     ({'setpoint_rate_hz': -1.0}, "'setpoint_rate_hz' must be"),
+                                     ({'auto_guided': True}, 'auto_guided was removed'))]
+    for node, words in refused:
+        assert node.proc.wait(60) == 1, node.log()
         errors = [line for line in node.log().splitlines() if line.startswith('error:')]
         assert len(errors) == 1 and words in errors[0], node.log()
         assert 'Traceback' not in node.log()
