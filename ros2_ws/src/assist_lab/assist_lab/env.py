@@ -159,6 +159,8 @@ class LandingAssistEnv(gym.Env):
         # the goal head's estimate for the next step, set by whoever ran the actor (evaluate's GoalHeadPolicy) as
         # policy_node's core hands it to the loop; used by that step only
         self.learned_goal: LearnedGoal | None = None
+        # per step with a learned goal: (episode time, whether the estimate is nearest the pilot's goal pad then)
+        self.goal_trace: list[tuple[float, bool]] = []
 
     @property
     def pilot_action(self) -> np.ndarray:
@@ -221,6 +223,7 @@ class LandingAssistEnv(gym.Env):
         self.loop.restart()                        # a new episode is a new flight (the world teleports the vehicle)
         self.last_command = None
         self.learned_goal = None
+        self.goal_trace = []
         self._steps = 0
         self._u = self.pilot.act(st.position, None)
         self._dist = self._goal_dist(st.position)
@@ -276,6 +279,10 @@ class LandingAssistEnv(gym.Env):
             known = self.world.goal_position if self.condition is Condition.ORACLE else None
             res = self.loop.act(ctx, a, known_goal=known, learned_goal=self.learned_goal)
             a, v, acted = res.agent, res.velocity, res.acted
+            if self.learned_goal is not None:
+                pads = self.world.pad_top_centers
+                nearest = int(np.argmin(np.linalg.norm(pads[:, :2] - self.learned_goal.mean[:2], axis=1)))
+                self.goal_trace.append((t, nearest == self.world.goal_index))
         self.learned_goal = None
         self.pilot.see_cue(cue_of(self.loop.intent.last) if self.cfg.cues else None)
         active = float(np.linalg.norm(a)) > self.cfg.blend_threshold

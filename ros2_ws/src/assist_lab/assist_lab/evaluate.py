@@ -363,38 +363,31 @@ def make_policy(condition: str, model: str, encoder_path: str, max_episode_s: fl
 
 
 class GoalHeadPolicy:
-    """An actor with a goal head flown in `env`: the raw action, and per step the time and whether the head's
-    estimate (vehicle position + offset) is horizontally nearest the pilot's goal pad of that step (``trace``)."""
+    """An actor with a goal head flown in `env`: the raw action; its goal estimate goes to the env for the step
+    (``env.learned_goal``: the intent, as policy_node's core hands it on, and the env's ``goal_trace``)."""
 
     def __init__(self, env: LandingAssistEnv, actor: torch.nn.Module):
         self.env, self.actor = env, actor
-        self.trace: list[tuple[float, bool]] = []
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
-        """The raw action for `obs`; the estimate goes to the env (its intent, as policy_node's) and the trace."""
-        world = self.env.world
-        action, goal = run_actor(self.actor, obs, world.state.position)
-        self.env.learned_goal = goal
-        pads = world.pad_top_centers
-        nearest = int(np.argmin(np.linalg.norm(pads[:, :2] - goal.mean[:2], axis=1)))
-        self.trace.append((self.env.elapsed_s, nearest == world.goal_index))
+        """The raw action for `obs`."""
+        action, self.env.learned_goal = run_actor(self.actor, obs, self.env.world.state.position)
         return action
 
-    def accuracy(self, duration_s: float) -> dict[str, float | str]:
-        """The GOAL_FIELDS of the landing just flown (its trace then cleared); '' where no step falls."""
-        hits = [(duration_s - t, ok) for t, ok in self.trace]
-        self.trace = []
-        out: dict[str, float | str] = {'goal_acc': round(float(np.mean([ok for _, ok in hits])), 3) if hits else ''}
-        for (lo, hi), name in zip(GOAL_WINDOWS_S, GOAL_FIELDS[1:]):
-            inside = [ok for left, ok in hits if lo <= left < hi]
-            out[name] = round(float(np.mean(inside)), 3) if inside else ''
-        return out
+
+def goal_inference(trace: list[tuple[float, bool]], duration_s: float) -> dict[str, float | str]:
+    """GOAL_FIELDS of a landing from its goal trace (env.goal_trace: time, estimate nearest the goal pad); '' where
+    no step falls (every field '' for an assistant without a learned goal)."""
+    hits = [(duration_s - t, ok) for t, ok in trace]
+    out: dict[str, float | str] = {'goal_acc': round(float(np.mean([ok for _, ok in hits])), 3) if hits else ''}
+    for (lo, hi), name in zip(GOAL_WINDOWS_S, GOAL_FIELDS[1:]):
+        inside = [ok for left, ok in hits if lo <= left < hi]
+        out[name] = round(float(np.mean(inside)), 3) if inside else ''
+    return out
 
 
 def run_landing(env: LandingAssistEnv, policy, seed: int, beta: float) -> dict:
     """One landing with the given seed and pilot skill; the result row."""
-    if isinstance(policy, GoalHeadPolicy):
-        policy.trace = []
     res = run_episode(env, policy, seed, {'beta': beta})
     return {'beta': beta, 'seed': seed, 'scene_seed': res['scene_seed'], 'goal_index': res['goal_index'],
             'landed_index': res['landed_index'], 'nearest_index': res['nearest_index'],
@@ -406,8 +399,7 @@ def run_landing(env: LandingAssistEnv, policy, seed: int, beta: float) -> dict:
             'wall_fraction': round(res['wall_fraction'], 3),
             'autopilot_landed': '' if res.get('autopilot_landed') is None else bool(res['autopilot_landed']),
             'path_m': round(float(res['path_m']), 3),
-            **(policy.accuracy(float(res['duration_s'])) if isinstance(policy, GoalHeadPolicy)
-               else dict.fromkeys(GOAL_FIELDS, ''))}
+            **goal_inference(env.goal_trace, float(res['duration_s']))}
 
 
 def summarize(rows: list[dict]) -> dict:

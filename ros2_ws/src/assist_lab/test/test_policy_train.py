@@ -229,7 +229,7 @@ def test_a_memory_actor_with_a_goal_head_clones_the_true_goal_and_evaluate_repor
     env, policy = make_policy('oracle', str(run / 'actor_last.pt'), '', 4.0, 0.5)
     assert isinstance(policy, GoalHeadPolicy)
     row = run_landing(env, policy, 11, 0.5)
-    assert 0.0 <= row['goal_acc'] <= 1.0 and row['goal_acc_0_1s'] != '' and not policy.trace
+    assert 0.0 <= row['goal_acc'] <= 1.0 and row['goal_acc_0_1s'] != '' and len(env.goal_trace) > 10
     env2, plain = make_policy('oracle', str(first_plain(tmp_path, base)), '', 4.0, 0.5)
     assert all(run_landing(env2, plain, 11, 0.5)[k] == '' for k in GOAL_FIELDS)
 
@@ -237,3 +237,11 @@ def test_a_memory_actor_with_a_goal_head_clones_the_true_goal_and_evaluate_repor
 def first_plain(tmp_path, base: dict):
     """An oracle actor without goal head or window (a few cloning steps)."""
     return train(TrainArgs(name='plain', demo_episodes=1, bc_steps=5, **base)) / 'actor_last.pt'
+
+
+def test_goal_inference_is_scored_per_window_of_time_before_the_landing_ended():
+    from assist_lab.evaluate import GOAL_FIELDS, goal_inference
+    out = goal_inference([(0.0, True), (7.0, True), (9.5, False), (9.8, True)], 10.0)
+    assert out == {'goal_acc': 0.75, 'goal_acc_0_1s': 0.5, 'goal_acc_1_2s': '', 'goal_acc_2_4s': 1.0,
+                   'goal_acc_4_8s': ''}
+    assert goal_inference([], 10.0) == dict.fromkeys(GOAL_FIELDS, '')
