@@ -73,8 +73,7 @@ def test_init_actor_starts_from_a_saved_actor_and_rejects_a_foreign_one(tmp_path
     base = _tiny_run(tmp_path, total_steps=150, buffer_size=2000, checkpoint_every_steps=100)
     first, src = _first_actor(base)
     # the step-0 evaluation writes actor_best.pt: it must be the initial actor, weight for weight
-    second = train(TrainArgs(name='second', init_actor=str(first / 'actor_last.pt'), eval_episodes_per_beta=1,
-                             **base))
+    second = train(TrainArgs(name='second', init_actor=str(first / 'actor_last.pt'), **base))
     step0, meta = load_actor(second / 'actor_best.pt')
     rows = list(csv.DictReader(open(second / 'eval.csv')))
     assert rows[0]['step'] == '0'
