@@ -96,7 +96,7 @@ class Actor(nn.Module):
 
     With a history window (`history_steps` rows of `history_row` values at the observation's end) a GRU of
     `history_hidden` units reads it; with `goal_head` a linear head on the last hidden layer estimates the goal
-    (``goal``), trained on the true goal in simulation.
+    (``act_and_goal``), trained on the true goal in simulation.
     """
 
     def __init__(self, vec_dim: int, act_dim: int = 3, hidden: Sequence[int] = (256, 256),
