@@ -122,31 +122,34 @@ def fork_server(sock: Path, root: Path, env: dict) -> Iterator[Path]:
 def test_documented_commands_run_as_written(tmp_path):
     log = tmp_path / 'calls.jsonl'
     domains = private_domain_ids(len(GROUPS))             # a private DDS domain per group
+    (tmp_path / 'home').mkdir()
+    base = dict(os.environ, HOME=str(tmp_path / 'home'), DOC_SHIM_REPO=str(REPO), DOC_SHIM_REAL_BIN=str(REAL_BIN),
+                DOC_SHIM_LOG=str(log), MPLBACKEND='Agg')
+    base.pop('DISPLAY', None)
 
-    def run_group(index: int) -> list[str]:
+    def run_group(index: int, sock: Path) -> list[str]:
         scratch = tmp_path / f'group{index}'
         scratch.mkdir()
         root = scratch_root(scratch)
         (scratch / 'home').mkdir()
-        env = dict(os.environ, PATH=f'{root / ".venv" / "bin"}:{scratch / "shims"}:{os.environ["PATH"]}',
-                   HOME=str(scratch / 'home'), DOC_SHIM_REPO=str(REPO), DOC_SHIM_REAL_BIN=str(REAL_BIN),
-                   DOC_SHIM_LOG=str(log), ROS_DOMAIN_ID=str(domains[index]), MPLBACKEND='Agg')
-        env.pop('DISPLAY', None)
+        # each call hands the fork server its own directory and environment: one server serves every group
+        env = dict(base, PATH=f'{root / ".venv" / "bin"}:{scratch / "shims"}:{os.environ["PATH"]}',
+                   HOME=str(scratch / 'home'), ROS_DOMAIN_ID=str(domains[index]), DOC_SHIM_FORKSERVER=str(sock))
         failures = []
-        with fork_server(scratch / 'fork.sock', root, env) as sock:
-            env['DOC_SHIM_FORKSERVER'] = str(sock)
-            for doc in GROUPS[index]:
-                for k, block in enumerate(shell_blocks(REPO / doc)):
-                    proc = subprocess.run(['bash', '-eu', '-o', 'pipefail', '-c', block], cwd=root, env=env,
-                                          stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=900)
-                    if proc.returncode != 0:
-                        failures.append(f'--- {doc}, block {k + 1} (exit {proc.returncode}):\n{block}\n'
-                                        f'{proc.stdout[-1500:]}\n{proc.stderr[-2500:]}')
+        for doc in GROUPS[index]:
+            for k, block in enumerate(shell_blocks(REPO / doc)):
+                proc = subprocess.run(['bash', '-eu', '-o', 'pipefail', '-c', block], cwd=root, env=env,
+                                      stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=900)
+                if proc.returncode != 0:
+                    failures.append(f'--- {doc}, block {k + 1} (exit {proc.returncode}):\n{block}\n'
+                                    f'{proc.stdout[-1500:]}\n{proc.stderr[-2500:]}')
         return failures
     # two groups at a time alone; one at a time beside another test worker (make test), which keeps the machine's
     # load what the graph tests beside it are written for
-    with ThreadPoolExecutor(1 if os.environ.get('PYTEST_XDIST_WORKER') else 2) as pool:
-        failures = [f for group_failures in pool.map(run_group, range(len(GROUPS))) for f in group_failures]
+    with fork_server(tmp_path / 'fork.sock', tmp_path, base) as sock, \
+            ThreadPoolExecutor(1 if os.environ.get('PYTEST_XDIST_WORKER') else 2) as pool:
+        failures = [f for group_failures in pool.map(run_group, range(len(GROUPS)), [sock] * len(GROUPS))
+                    for f in group_failures]
     calls = [json.loads(line) for line in log.read_text().splitlines()]
     assert not failures, '\n'.join(failures)
     unavailable = {c['program'] for c in calls if c['how'] == 'unavailable'}
