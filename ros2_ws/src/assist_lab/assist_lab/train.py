@@ -146,9 +146,9 @@ class TrainArgs:
             history_steps(self.history_s, self.history_step_s)
         except ValueError as exc:
             raise SettingsError(f'--history-s/--history-step-s: {exc}') from None
-        if self.goal_head and self.demo_policy == 'init_actor':
-            raise SettingsError('--goal-head learns from the true goal of scripted demonstrations; '
-                                '--demo-policy init_actor gives none')
+        if self.goal_head and (self.demo_policy == 'init_actor' or self.demo_bc_file or not self.demo_episodes):
+            raise SettingsError('--goal-head is cloned from the true goal of the scripted demonstrations this run '
+                                'flies: it needs --demo-episodes with a scripted --demo-policy (no --demo-bc-file)')
         if self.condition != 'latent' and self.encoder_path:
             raise SettingsError('--encoder-path is only used by the latent condition')
         if self.resume:

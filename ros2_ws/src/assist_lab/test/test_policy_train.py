@@ -244,3 +244,12 @@ def test_goal_inference_is_scored_per_window_of_time_before_the_landing_ended():
     assert out == {'goal_acc': 0.75, 'goal_acc_0_1s': 0.5, 'goal_acc_1_2s': '', 'goal_acc_2_4s': 1.0,
                    'goal_acc_4_8s': ''}
     assert goal_inference([], 10.0) == dict.fromkeys(GOAL_FIELDS, '')
+
+
+@pytest.mark.parametrize('extra', [{}, {'demo_episodes': 2, 'demo_bc_file': 'demos_bc.npz'},
+                                   {'demo_episodes': 2, 'demo_policy': 'init_actor', 'init_actor': 'a.pt'}])
+def test_a_goal_head_without_scripted_demonstrations_is_refused_up_front(extra):
+    from assist_common.settings import SettingsError
+    with pytest.raises(SettingsError, match='--goal-head is cloned from the true goal'):
+        TrainArgs(goal_head=True, **extra).check_relations()
+    TrainArgs(goal_head=True, demo_episodes=2).check_relations()
