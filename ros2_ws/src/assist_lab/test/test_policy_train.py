@@ -224,7 +224,7 @@ def test_a_memory_actor_with_a_goal_head_clones_the_true_goal_and_evaluate_repor
     assert goal_nll(head, goal) < goal_nll(head0, goal) - 1.0                 # the head learned the goal
     with pytest.raises(ValueError, match='history_s 1.0'):                   # a window that does not fit: one line
         train(TrainArgs(name='other', init_actor=str(run / 'actor_last.pt'), history_s=2.0, history_step_s=0.5,
-                        history_hidden=8, goal_head=True, **base))
+                        history_hidden=8, goal_head=True, demo_episodes=1, **base))
     env, policy = make_policy('oracle', str(run / 'actor_last.pt'), '', 4.0, 0.5)
     assert isinstance(policy, GoalHeadPolicy)
     row = run_landing(env, policy, 11, 0.5)
