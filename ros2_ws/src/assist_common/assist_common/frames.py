@@ -163,3 +163,9 @@ def attitude_ned_frd_to_enu_flu(roll: float, pitch: float, yaw: float) -> np.nda
 def attitude_enu_flu_to_ned_frd(r_enu_flu: np.ndarray) -> tuple[float, float, float]:
     """Rotation matrix odom(ENU)_from_base_link(FLU) -> ArduPilot (roll, pitch, yaw) NED/FRD."""
     return matrix_to_euler(_ENU_NED @ np.asarray(r_enu_flu, dtype=float) @ _FLU_FRD)
+
+
+def nearest_xy(points: np.ndarray, xy: Sequence[float]) -> int:
+    """Index of the point (rows of x, y[, z]) horizontally nearest to `xy` (its first two values)."""
+    pts = np.asarray(points, dtype=float)
+    return int(np.argmin(np.linalg.norm(pts[:, :2] - np.asarray(xy, dtype=float)[:2], axis=1)))

@@ -40,7 +40,7 @@ from gymnasium import spaces
 
 from assist_sim.core.arducopter import randomised
 from assist_sim.core.config import WorldConfig
-from assist_common.frames import quat_to_matrix
+from assist_common.frames import nearest_xy, quat_to_matrix
 from assist_sim.core.world import LandingWorld
 from assist_sim.cues import Cue, CueConfig
 from assist_sim.pilot import PilotConfig, SimulatedPilot
@@ -253,7 +253,7 @@ class LandingAssistEnv(gym.Env):
     def aimed_index(self) -> int:
         """Pad nearest (horizontally) to the pilot's current goal estimate: the pad it is heading for."""
         pads = self.world.pad_top_centers
-        return int(np.argmin(np.linalg.norm(pads[:, :2] - self.pilot.goal_estimate[:2], axis=1)))
+        return nearest_xy(pads, self.pilot.goal_estimate)
 
     def step(self, action):
         """Blend, fly one control period, update the pilot, score (see module docstring)."""
@@ -280,8 +280,7 @@ class LandingAssistEnv(gym.Env):
             res = self.loop.act(ctx, a, known_goal=known, learned_goal=self.learned_goal)
             a, v, acted = res.agent, res.velocity, res.acted
             if self.learned_goal is not None:
-                pads = self.world.pad_top_centers
-                nearest = int(np.argmin(np.linalg.norm(pads[:, :2] - self.learned_goal.mean[:2], axis=1)))
+                nearest = nearest_xy(self.world.pad_top_centers, self.learned_goal.mean)
                 self.goal_trace.append((t, nearest == self.world.goal_index))
         self.learned_goal = None
         self.pilot.see_cue(cue_of(self.loop.intent.last) if self.cfg.cues else None)

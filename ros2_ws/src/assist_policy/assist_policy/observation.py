@@ -217,11 +217,6 @@ class HistoryWindow:
         self.row_dim = self.feature_size + HISTORY_EXTRA_DIM
         self._items: deque[tuple[float, np.ndarray, np.ndarray]] = deque()   # (t, row without displacement, p)
 
-    @property
-    def dim(self) -> int:
-        """Values the window adds to the observation."""
-        return self.steps * self.row_dim
-
     def clear(self) -> None:
         """Forget every step (new episode or flight boundary)."""
         self._items.clear()

@@ -11,6 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from assist_common.frames import nearest_xy
+
 from .actions import DEFAULT_MAX_SPEED, unscale_action
 
 
@@ -172,11 +174,11 @@ class ScriptedNearestPad:
             return np.zeros(3)
         p = np.asarray(position, dtype=float)
         pads = np.asarray(pads, dtype=float)
-        k = int(np.argmin(np.linalg.norm(pads[:, :2] - p[:2], axis=1)))
+        k = nearest_xy(pads, p)
         if self.cfg.goal_gated:
             if goal is None:
                 raise ValueError('a goal-gated teacher needs the goal')
-            if k != int(np.argmin(np.linalg.norm(pads[:, :2] - np.asarray(goal, dtype=float)[:2], axis=1))):
+            if k != nearest_xy(pads, goal):
                 return np.zeros(3)
         height = p[2] - pads[k, 2]          # over the pad below
         descending = float(np.asarray(pilot, dtype=float)[2]) < 0
