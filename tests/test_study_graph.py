@@ -9,6 +9,7 @@ analyze_study then reads both participants. Chromium comes from Debian (`make te
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import csv
 import json
 import threading
@@ -54,6 +55,16 @@ def study(tmp_path_factory, domain_id):
         graph.stop()
 
 
+@contextlib.contextmanager
+def node_logs_on_failure(graph: StudyGraph):
+    """A participant that fails: the failure carries the end of every node's log (what the graph was doing)."""
+    try:
+        yield
+    except (Exception, pytest.fail.Exception) as exc:
+        tails = '\n'.join(f'--- {name}:\n{graph.group.tail(name, 2500)}' for name in graph.group.procs)
+        raise AssertionError(f'{type(exc).__name__}: {exc}\n{tails}') from exc
+
+
 def check_participant(d: Path, n_practice: int) -> list[dict]:
     table = rows(d / 'landings.csv')
     keys = [(r['block'], r['trial']) for r in table]
@@ -75,8 +86,9 @@ def check_participant(d: Path, n_practice: int) -> list[dict]:
 
 def test_browser_participant_goes_through_the_page(study):
     out, graph, profiles = study
-    res = BrowserParticipant(graph.url, profiles[0], RTF, out / '.simulation' / 'browser',
-                             reload_during=('block2', 1)).run()        # the page reloaded in block 2's first landing
+    with node_logs_on_failure(graph):
+        res = BrowserParticipant(graph.url, profiles[0], RTF, out / '.simulation' / 'browser',
+                                 reload_during=('block2', 1)).run()    # the page reloaded in block 2's first landing
     assert res['landings_flown'] == 5 and res['reconnects'] == 1
     table = check_participant(out / 'S01', 1)
     assert table[1]['condition'] == 'unassisted'               # S01: odd, starts unassisted
@@ -97,27 +109,28 @@ def test_station_killed_mid_block_resumes_without_loss_or_duplicates(study):
             result['res'] = asyncio.run(part.run())
         except Exception as exc:  # noqa: BLE001 - handed to the test thread
             result['error'] = exc
-    t = threading.Thread(target=run, daemon=True)
-    t.start()
-    log = out / 'S02' / 'protocol.log'
-    end = time.monotonic() + 240
-    while time.monotonic() < end:               # the second landing of block 1 in flight: kill the station
-        if log.exists():
-            ev = events(log)
-            if ev[-1]['event'] == 'landing_started' and ev[-1]['landing'] == 'block1_01':
-                break
-        assert t.is_alive(), result
-        time.sleep(0.2)
-    else:
-        pytest.fail('S02 never reached block1_01')
-    time.sleep(1.0)
-    graph.kill_station()
-    recorded = rows(out / 'S02' / 'landings.csv')
-    graph.start_station()
-    t.join(300)
-    assert not t.is_alive(), 'S02 did not finish after the station restart'
-    assert 'error' not in result, result.get('error')
-    assert result['res']['reconnects'] >= 1
+    with node_logs_on_failure(graph):
+        t = threading.Thread(target=run, daemon=True)
+        t.start()
+        log = out / 'S02' / 'protocol.log'
+        end = time.monotonic() + 240
+        while time.monotonic() < end:               # the second landing of block 1 in flight: kill the station
+            if log.exists():
+                ev = events(log)
+                if ev[-1]['event'] == 'landing_started' and ev[-1]['landing'] == 'block1_01':
+                    break
+            assert t.is_alive(), result
+            time.sleep(0.2)
+        else:
+            pytest.fail('S02 never reached block1_01')
+        time.sleep(1.0)
+        graph.kill_station()
+        recorded = rows(out / 'S02' / 'landings.csv')
+        graph.start_station()
+        t.join(300)
+        assert not t.is_alive(), 'S02 did not finish after the station restart'
+        assert 'error' not in result, result.get('error')
+        assert result['res']['reconnects'] >= 1
     table = check_participant(out / 'S02', 1)
     assert table[:len(recorded)] == recorded                   # rows written before the crash kept as they were
     ev = events(log)

@@ -256,7 +256,9 @@ class LaunchContext:
         self.environment = os.environ
         self.locals = SimpleNamespace()
         self._handlers: list[EventHandler] = []
-        self._events: queue.Queue[Event] = queue.Queue()
+        # SimpleQueue: put() is reentrant, so the SIGINT/SIGTERM handlers (which run on the main thread,
+        # possibly inside get()) can queue a Shutdown without deadlocking on a Queue's mutex.
+        self._events: queue.SimpleQueue[Event] = queue.SimpleQueue()
         self._is_shutdown = False
         self.processes: list = []          # running ExecuteProcess actions (stand-in bookkeeping)
 

@@ -113,23 +113,34 @@ class _Call:
 
     `again` (idempotent requests only: setting or reading parameters) sends the same request anew: a call not
     answered within its time is sent again up to SERVICE_RETRIES times before the step fails (a loaded machine
-    can hold a parameter service's answer back for seconds).
+    can hold a parameter service's answer back for seconds). The answer to any of the tries counts: a node
+    whose queue runs longer than `timeout_s` answers the first request after the second was sent.
     """
 
     def __init__(self, what: str, future: Any, on_done: Callable[[Any], None], timeout_s: float = SERVICE_WAIT_S,
                  again: Callable[[], Any] | None = None):
-        self.what, self.future, self.on_done, self.again = what, future, on_done, again
+        self.what, self.on_done, self.again = what, on_done, again
+        self.futures = [future]
         self.timeout_s = timeout_s
         self.deadline = time.monotonic() + timeout_s
-        self.tries = 1
+
+    @property
+    def tries(self) -> int:
+        """How many times the request has been sent."""
+        return len(self.futures)
+
+    @property
+    def future(self) -> Any:
+        """The first try's future that is done (the latest try's while none is)."""
+        return next((f for f in self.futures if f.done()), self.futures[-1])
 
     def retry(self) -> bool:
-        """Send the request again (a fresh future and deadline); False when it may not or has been sent enough."""
+        """Send the request again (one more future, a fresh deadline); False when it may not or has been sent
+        enough."""
         if self.again is None or self.tries > SERVICE_RETRIES:
             return False
-        self.future = self.again()
+        self.futures.append(self.again())
         self.deadline = time.monotonic() + self.timeout_s
-        self.tries += 1
         return True
 
 

@@ -198,6 +198,16 @@ def test_calls_not_answered_in_time_are_sent_again_then_fail_the_step_once(h, mo
     sent[-1].answer = 'ok'
     h.driver.tick()                                  # the second request's answer is taken
     assert answered == ['ok'] and not h.driver._calls and not h.errors()
+    # a node whose queue runs longer than the wait answers the first request after the second was sent: taken
+    first_try = Future()
+    late = study_station._Call('setting policy_node parameters', first_try, answered.append, again=again)
+    h.driver._calls.append(late)
+    now[0] += study_station.SERVICE_WAIT_S + 0.1
+    h.driver.tick()
+    assert len(sent) == 2 and late.tries == 2 and h.driver._calls == [late]
+    first_try.answer = 'late'
+    h.driver.tick()
+    assert answered == ['ok', 'late'] and not h.driver._calls and not h.errors()
     # two calls out of time and out of tries: the first fails the step and drops the second, which is not
     # touched again (it used to raise from the tick: list.remove of a call already dropped)
     first = study_station._Call('setting policy_node parameters', Future(), answered.append)
@@ -206,4 +216,4 @@ def test_calls_not_answered_in_time_are_sent_again_then_fail_the_step_once(h, mo
     now[0] += study_station.SERVICE_WAIT_S + 0.1
     h.driver.tick()
     assert h.errors() == ['setting policy_node parameters: no answer within 10 s (1 tries)']
-    assert not h.driver._calls and answered == ['ok']
+    assert not h.driver._calls and answered == ['ok', 'late']
