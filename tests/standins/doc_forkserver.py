@@ -22,7 +22,7 @@ import threading
 import traceback
 
 # what the tools import, loaded once (none of it starts a thread: checked before the first fork)
-PRELOAD = ('torch', 'torch.onnx', 'onnxruntime', 'numpy', 'matplotlib', 'matplotlib.pyplot', 'pybullet',
+PRELOAD = ('torch', 'torch.onnx', 'onnx', 'onnxruntime', 'numpy', 'matplotlib', 'matplotlib.pyplot', 'pybullet',
            'assist_perception.encoder_core', 'assist_lab.evaluate', 'assist_lab.train', 'assist_lab.graph_eval',
            'assist_lab.compare', 'assist_lab.cmvae_train', 'assist_bags.replay', 'assist_station.simulate_study',
            'assist_station.analyze_study')

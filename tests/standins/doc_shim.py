@@ -4,7 +4,7 @@
 $DOC_SHIM_LOG ({program, args, how, rc}). `how` is one of:
 
 - `run`: the workspace's own command-line tools run for real, with their long budgets cut (one landing
-  of at most 4 s, one beta, eight frames, one epoch, a few training steps; see `budget`), each in a child forked
+  of at most LANDING_S, one beta, eight frames, one epoch, a few training steps; see `budget`), each in a child forked
   from the test's fork server when $DOC_SHIM_FORKSERVER names one (tests/standins/doc_forkserver.py);
   bag_record / bag_play run for real and get a Ctrl-C after a few seconds, as the docs say to stop them.
 - `checked`: what cannot run inside a test without a robot or the ROS 2 CLI is checked instead of run:
@@ -44,6 +44,8 @@ def _node_modules() -> dict[str, str]:
 
 
 NODES = _node_modules()
+# sim seconds a documented landing may last: the commands' plumbing is what is checked, not the landing
+LANDING_S = 2.5
 STOPPED_BY_CTRL_C = {'bag_record': 4.0, 'bag_play': 4.0}     # seconds they run before the Ctrl-C
 
 
@@ -98,17 +100,17 @@ def budget(program: str, args: list[str]) -> list[str]:
     if program == 'evaluate' and '--from-csv' not in args:
         # one landing, no figure (evaluate's plot is tested by the lab's own tests)
         args = _cap(_first(_set(_set(args, '--landings', '1'), '--plot', 'false'), '--betas', '0.5'),
-                    '--max-episode-s', 4)
+                    '--max-episode-s', LANDING_S)
         return _set(args, '--workers', '1') if '--workers' in args else args     # a few landings: no worker processes
     if program == 'evaluate_graph':
         args = _cap(_first(_set(_set(args, '--landings', '1'), '--plot', 'false'), '--betas', '0.5'),
-                    '--max-episode-s', 4)
+                    '--max-episode-s', LANDING_S)
         conditions = _values(args, '--conditions')
         return _set(args, '--conditions', conditions[-1]) if conditions else args
     if program == 'train_td3':
         for opt, most in (('--total-steps', 40), ('--start-steps', 20), ('--demo-episodes', 1),
                           ('--dagger-episodes', 1), ('--bc-steps', 5), ('--critic-warmup-updates', 5),
-                          ('--eval-episodes-per-beta', 1), ('--buffer-size', 5000), ('--max-episode-s', 4)):
+                          ('--eval-episodes-per-beta', 1), ('--buffer-size', 5000), ('--max-episode-s', LANDING_S)):
             args = _cap(args, opt, most,
                         default_when_absent=opt in ('--total-steps', '--max-episode-s', '--eval-episodes-per-beta'))
         args = _set(args, '--workers', '1') if '--workers' in args else args   # no pool (the lab's tests fly one)

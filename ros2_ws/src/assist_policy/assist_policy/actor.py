@@ -36,8 +36,12 @@ class ImageFeatures(nn.Module):
             layers += [nn.Conv2d(c_in, c, 3, stride=2, padding=1), nn.ReLU()]
             c_in = c
         self.net = nn.Sequential(*layers, nn.Flatten())
-        with torch.no_grad():
-            self.out_dim = int(self.net(torch.zeros(1, *in_shape)).shape[1])
+        # each 3x3 stride-2 convolution with padding 1 maps a side n to (n - 1) // 2 + 1; worked out rather than
+        # run, since a forward pass on the 'meta' device (load_actor) pulls in torch._dynamo (~2 s per process)
+        h, w = in_shape[1:]
+        for _ in channels:
+            h, w = (h - 1) // 2 + 1, (w - 1) // 2 + 1
+        self.out_dim = int(channels[-1] * h * w) if channels else int(np.prod(in_shape))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Image batch (B, 4, 64, 64) -> (B, out_dim)."""
