@@ -44,19 +44,29 @@ def override_landing(tmp_path_factory):
     return out / 'bags' / landing_bag_name('latent+override', row['beta'], row['seed']), row
 
 
-@pytest.fixture(scope='module')
-def rules_landing(tmp_path_factory):
-    """One latent landing flown with every non-learned rule on, each of which acts in it (low_flyer, beta 0.5); the
-    assistant's intent shown (--cues) to a pilot who does not read it, so the bag records the intent."""
-    out = tmp_path_factory.mktemp('eval_rules')
-    code = evaluate.main(['--out', str(out), '--conditions', 'latent', '--betas', '0.5', '--landings', '1',
-                          '--seed', '3025', '--pilot', 'low_flyer', '--safety', 'true', '--override', 'true',
-                          '--recall', 'true', '--damper', 'true', '--max-episode-s', '25',
+RULE_FLAGS = ('guard', 'override', 'recall', 'damper')
+
+
+def _fly_with_every_rule(out: Path, pilot: str, seed: int, beta: float, max_s: float) -> tuple[Path, dict]:
+    """One latent landing flown with every non-learned rule on and recorded; the assistant's intent shown (--cues) to
+    a pilot who does not read it, so the bag records the intent. (bag, landings.csv row)"""
+    code = evaluate.main(['--out', str(out), '--conditions', 'latent', '--betas', str(beta), '--landings', '1',
+                          '--seed', str(seed), '--pilot', pilot, '--safety', 'true', '--override', 'true',
+                          '--recall', 'true', '--damper', 'true', '--max-episode-s', str(max_s),
                           '--record-dir', str(out / 'bags'), '--plot', 'false', '--cues', '--cue-trust', '0'])
     assert code == 0
     cond = 'latent+guard+override+recall+damper+cues'
     row = evaluate.read_landings(out / 'landings.csv')[cond][0]
     return out / 'bags' / landing_bag_name(cond, row['beta'], row['seed']), row
+
+
+@pytest.fixture(scope='module')
+def rules_landings(tmp_path_factory):
+    """Two landings between which every rule acts: a low flyer the floor guard, override and recall act on, and a
+    delayed pilot circling its pad at beta 1, whom the damper (with override and recall) damps. Which rule acts in a
+    landing depends on its whole trajectory, so no single landing is asked to show all four."""
+    return [_fly_with_every_rule(tmp_path_factory.mktemp('eval_rules'), 'low_flyer', 3025, 0.5, 25.0),
+            _fly_with_every_rule(tmp_path_factory.mktemp('eval_damped'), 'delay', 10014, 1.0, 40.0)]
 
 
 def test_landing_bag_matches_its_csv_row(landing):
@@ -166,24 +176,24 @@ def test_plot_flight_without_scene_marks_the_goal_from_sim_goal(landing, tmp_pat
     assert (tmp_path / 'p' / 'no_scene_landing0.png').stat().st_size > 10_000
 
 
-def test_replay_runs_the_rules_the_bag_was_flown_with(rules_landing, landing):
+def test_replay_runs_the_rules_the_bag_was_flown_with(rules_landings, landing):
     """Depth frames and attitude reach the core, so the floor guard, override, recall and damper act as they flew."""
-    bag, row = rules_landing
-    for rule in ('guard', 'override', 'recall', 'damper'):
-        assert float(row[f'{rule}_fraction']) > 0, rule          # each rule acted in this landing
-    with BagReader(bag) as r:
-        assert DEPTH_NOISE_KEY in r.metadata['custom_data']      # the encoder's noise seeds, the depth as rendered
-    s = summarize(replay(bag, ReplayConfig()))
-    assert s['rules'] == {'safety': True, 'override': True, 'recall': True, 'damper': True}
-    assert s['depth_noise'] is not None and s['velocity_frame'] == 'odom'
-    assert s['latent']['max'] < 1e-5                             # the same noise re-applied to the same frames
-    assert s['agent_cmd']['max'] < 1e-4 and s['cmd_vel']['max'] < 1e-4
-    assert s['agent_cmd']['only_new'] == s['agent_cmd']['only_recorded'] == 0
-    # the assistant's intent as it was recorded: every goal estimate and descent flag, the same
-    assert s['goal_estimate']['compared'] > 50 and s['goal_estimate']['max'] < 1e-9
-    assert s['descent_ok']['compared'] == s['steps'] and s['descent_ok']['agree'] == s['steps']
-    for rule in ('safety', 'override', 'recall', 'damper'):    # each one's commands are in the bag
-        off = summarize(replay(bag, ReplayConfig(latent='recorded', **{rule: 'off'})))
+    acted = {rule: [bag for bag, row in rules_landings if float(row[f'{rule}_fraction']) > 0] for rule in RULE_FLAGS}
+    assert all(acted.values()), {rule: len(bags) for rule, bags in acted.items()}    # each rule acted in a landing
+    for bag, _ in rules_landings:
+        with BagReader(bag) as r:
+            assert DEPTH_NOISE_KEY in r.metadata['custom_data']      # the encoder's noise seeds, the depth as rendered
+        s = summarize(replay(bag, ReplayConfig()))
+        assert s['rules'] == {'safety': True, 'override': True, 'recall': True, 'damper': True}
+        assert s['depth_noise'] is not None and s['velocity_frame'] == 'odom'
+        assert s['latent']['max'] < 1e-5                             # the same noise re-applied to the same frames
+        assert s['agent_cmd']['max'] < 1e-4 and s['cmd_vel']['max'] < 1e-4
+        assert s['agent_cmd']['only_new'] == s['agent_cmd']['only_recorded'] == 0
+        # the assistant's intent as it was recorded: every goal estimate and descent flag, the same
+        assert s['goal_estimate']['compared'] > 50 and s['goal_estimate']['max'] < 1e-9
+        assert s['descent_ok']['compared'] == s['steps'] and s['descent_ok']['agree'] == s['steps']
+    for flag, rule in zip(RULE_FLAGS, ('safety', 'override', 'recall', 'damper')):   # each one's commands are in
+        off = summarize(replay(acted[flag][0], ReplayConfig(latent='recorded', **{rule: 'off'})))   # a bag it acted in
         assert off['rules'][rule] is False and off['cmd_vel']['max'] > 0.05, rule
     # a bag evaluate flew without rules replays without them; a graph's bag (no condition) with all, as policy_node
     assert summarize(replay(landing[0], ReplayConfig(latent='recorded')))['rules'] == dict.fromkeys(
@@ -192,7 +202,7 @@ def test_replay_runs_the_rules_the_bag_was_flown_with(rules_landing, landing):
     assert rules_on(ReplayConfig(), '', [], 'oracle') == {'safety': True, 'override': False, 'recall': False,
                                                           'damper': False}
     with pytest.raises(ValueError, match='recall must be'):
-        replay(bag, ReplayConfig(recall='sometimes'))
+        replay(rules_landings[0][0], ReplayConfig(recall='sometimes'))
 
 
 def test_replay_a_folder_of_bags(landing, override_landing, tmp_path, capsys):

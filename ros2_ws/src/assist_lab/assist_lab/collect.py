@@ -121,8 +121,9 @@ class LandingTask:
 
 @dataclass
 class FlownLanding:
-    """A flown landing: its transitions (done = terminated or truncated, as the buffer stores it), the
-    demonstrator's labels (demo) and the env's result."""
+    """A flown landing: its transitions (done = terminated or truncated, as the buffer stores it) with the
+    privileged values of each observation (env.privileged, for an asymmetric critic), the demonstrator's labels
+    (demo) and the env's result."""
 
     episode: int
     obs: np.ndarray
@@ -135,6 +136,8 @@ class FlownLanding:
     beta: float
     episode_return: float
     active_steps: int
+    priv: np.ndarray
+    next_priv: np.ndarray
 
     @property
     def steps(self) -> int:
@@ -142,30 +145,34 @@ class FlownLanding:
         return len(self.act)
 
     def into(self, buffer: ReplayBuffer) -> None:
-        """Append the transitions to `buffer`."""
-        buffer.extend(self.obs, self.act, self.rew, self.next_obs, self.done)
+        """Append the transitions to `buffer` (with their privileged values when it keeps them)."""
+        if buffer.priv_dim:
+            buffer.extend(self.obs, self.act, self.rew, self.next_obs, self.done, self.priv, self.next_priv)
+        else:
+            buffer.extend(self.obs, self.act, self.rew, self.next_obs, self.done)
 
 
 def _landing(env: LandingAssistEnv, seed: int, episode: int, choose: Callable[[np.ndarray], tuple]) -> FlownLanding:
     """Fly one landing from `env.reset(seed)`; `choose(obs)` -> (flown action, label or None)."""
     obs, info = env.reset(seed=seed)
+    priv = env.privileged()
     rows: list[tuple] = []
     labels: list = []
     active = 0
     while True:
         act, label = choose(obs)
         nxt, rew, term, trunc, sinfo = env.step(act)
-        rows.append((obs, act, rew, nxt, term or trunc))
+        nxt_priv = env.privileged()
+        rows.append((obs, act, rew, nxt, term or trunc, priv, nxt_priv))
         labels.append(label)
         active += int(sinfo['active'])
-        obs = nxt
+        obs, priv = nxt, nxt_priv
         if term or trunc:
             break
-    obs_a, act_a, rew_a, nxt_a, done_a = (np.asarray(col) for col in zip(*rows))
-    return FlownLanding(episode, obs_a.astype(np.float32), act_a.astype(np.float32), rew_a.astype(np.float32),
-                        nxt_a.astype(np.float32), done_a.astype(np.float32),
+    obs_a, act_a, rew_a, nxt_a, done_a, priv_a, nxt_priv_a = (np.asarray(col, np.float32) for col in zip(*rows))
+    return FlownLanding(episode, obs_a, act_a, rew_a, nxt_a, done_a,
                         None if labels[0] is None else np.asarray(labels, np.float32), dict(sinfo['result']),
-                        float(info['beta']), float(env.episode_return), active)
+                        float(info['beta']), float(env.episode_return), active, priv_a, nxt_priv_a)
 
 
 def fly_demo(env: LandingAssistEnv, seed: int, episode: int, rng: np.random.Generator, noise: float,

@@ -22,7 +22,12 @@ Reward (paper, "TD3 implementation"), weights in ``RewardConfig``:
   (iii) each step: -action_weight * |a_t| (m/s);
   (iv)  optional safety term (not in the paper, 0 by default): each step below floor_descent_height_m
         with no pad under the vehicle (privileged pad geometry, ``over_pad``), -floor_descent_weight *
-        the flown descent speed (m/s), so descending over bare floor costs more than countering it.
+        the flown descent speed (m/s), so descending over bare floor costs more than countering it;
+  (v)   optional action-rate term (not in the paper, 0 by default): each step, -action_rate_weight *
+        |a_t - a_{t-1}| (m/s), so an assistant that jerks between actions pays for it.
+
+``privileged()`` is what an asymmetric critic sees besides the observation (never the actor): the true goal and
+the pilot's own goal estimate relative to the vehicle, and the pilot's alpha and beta.
 An episode cut at max_episode_s gets the landing term for where the vehicle is (so stalling a
 landing never pays); trainers treat it as terminal.
 """
@@ -59,6 +64,9 @@ from .episodes_plan import landing_plan
 
 log = logging.getLogger(__name__)
 
+# privileged(): true goal offset (3), the pilot's goal estimate offset (3), alpha, beta
+PRIVILEGED_DIM = 8
+
 
 @dataclass
 class RewardConfig:
@@ -73,6 +81,7 @@ class RewardConfig:
     floor_descent_weight: float = 0.0  # per m/s of flown descent over bare floor, every step (not in the paper)
     floor_descent_height_m: float = 1.5  # the safety term counts below this height above the floor
     floor_pad_margin_m: float = 0.15   # a pad footprint grown by this (the legs' reach) counts as under
+    action_rate_weight: float = 0.0    # per m/s of change in the assistant action between steps (not in the paper)
 
 
 @dataclass
@@ -156,6 +165,8 @@ class LandingAssistEnv(gym.Env):
         self.episode_return = 0.0
         self.path_m = 0.0                                # distance flown this episode (m, 3-D)
         self.last_command: tuple[np.ndarray, np.ndarray] | None = None   # (a, V) applied in the last step
+        self._beta = 0.0                                 # this landing's pilot skill (privileged)
+        self._last_a: np.ndarray | None = None           # the assistant action of the step before (action rate)
         # the goal head's estimate for the next step, set by whoever ran the actor (evaluate's GoalHeadPolicy) as
         # policy_node's core hands it to the loop; used by that step only
         self.learned_goal: LearnedGoal | None = None
@@ -173,9 +184,13 @@ class LandingAssistEnv(gym.Env):
 
         Counted, not read as world time - reset time: the world's clock runs on across episodes, and
         the rounding of that difference depends on how long it has run, so a landing's time limit
-        fell one step later or earlier depending on the landings flown before it.
+        fell one step later or earlier depending on the landings flown before it. Whole nanoseconds, as a
+        landing's bag stamps it and replay reads it back (ns x 1e-9): the assistant's timers (a key held
+        reversal_s ago, a window of persist_s) then compare the same numbers in the env and in replay, where
+        steps x dt and the stamp differed in the last bit and a sample exactly on a window's edge fell on
+        either side.
         """
-        return self._steps * self.dt
+        return round(self._steps * self.dt * 1e9) * 1e-9
 
     # -------------------------------------------------------------- helpers
     def _feature(self, pos: np.ndarray) -> np.ndarray:
@@ -210,6 +225,7 @@ class LandingAssistEnv(gym.Env):
                             paper_share=self.cfg.paper_share, scene_seed=options.get('scene_seed'),
                             pilot_named='pilot' in options)
         scene_seed, beta = plan.scene_seed, plan.beta
+        self._beta = float(beta)
         st = self.world.reset(seed=scene_seed, goal_index=options.get('goal_index'))
         self.pilot = make_pilot(plan.pilot_family, plan.alpha, beta, self.pilot_cfg,
                                 np.random.default_rng(plan.pilot_seed), pads=self.world.pad_top_centers,
@@ -222,6 +238,7 @@ class LandingAssistEnv(gym.Env):
             latent_reset(noise_seed)             # the camera noise of this landing depends on its seed only
         self.loop.restart()                        # a new episode is a new flight (the world teleports the vehicle)
         self.last_command = None
+        self._last_a = None
         self.learned_goal = None
         self.goal_trace = []
         self._steps = 0
@@ -249,6 +266,14 @@ class LandingAssistEnv(gym.Env):
     def goal_label(self) -> np.ndarray:
         """The true goal relative to the vehicle now, as the oracle observes it (a goal head's training target)."""
         return oracle_feature(self.world.goal_position, self.world.state.position)
+
+    def privileged(self) -> np.ndarray:
+        """What an asymmetric critic sees besides the observation (PRIVILEGED_DIM values, float32): the true goal and
+        the pilot's goal estimate relative to the vehicle (scaled as the oracle's feature), the pilot's alpha, beta."""
+        pos = self.world.state.position
+        return np.concatenate([oracle_feature(self.world.goal_position, pos),
+                               oracle_feature(self.pilot.goal_estimate, pos),
+                               [self.pilot.alpha, self._beta]]).astype(np.float32)
 
     def aimed_index(self) -> int:
         """Pad nearest (horizontally) to the pilot's current goal estimate: the pad it is heading for."""
@@ -297,6 +322,10 @@ class LandingAssistEnv(gym.Env):
         r = self.cfg.reward
         d = self._goal_dist(st.position)
         reward = -r.action_weight * float(np.linalg.norm(a))
+        if r.action_rate_weight > 0:
+            before_a = np.zeros(3) if self._last_a is None else self._last_a
+            reward -= r.action_rate_weight * float(np.linalg.norm(a - before_a))
+        self._last_a = np.array(a, dtype=float)
         if d < r.progress_radius_m:
             reward += r.progress_weight * (self._dist - d)
         if (r.floor_descent_weight > 0 and v[2] < 0 and st.position[2] < r.floor_descent_height_m

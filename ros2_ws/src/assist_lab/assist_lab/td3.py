@@ -3,6 +3,8 @@
 Paper hyper-parameters ("TD3 implementation"): actor and critic learning rate 1e-3, discount 0.99,
 batch 100, target update rate tau 0.01. Exploration is an Ornstein-Uhlenbeck process decayed over
 successive landings. The replay buffer can be saved and preloaded from earlier runs (off-policy).
+With ``privileged_dim`` the critic is asymmetric (as in Backman et al. 2023 and Pinto et al. 2018's asymmetric
+actor-critic): it also sees what only the simulator knows (``env.privileged``), the actor still only its observation.
 
 The actor network and its file format live in ``actor`` (what a vehicle loads, without this training code).
 """
@@ -47,6 +49,10 @@ class TD3Config:
     history_hidden: int = 64        # GRU units over the observation's history window (when it has one)
     goal_head: bool = False         # the actor also estimates the goal (trained in behaviour cloning)
     goal_weight: float = 0.1        # weight of the goal head's Gaussian negative log-likelihood in cloning
+    # asymmetric critic: it also sees this many privileged values stored after each observation (env.privileged:
+    # the true goal, the pilot's estimate and parameters), the actor never; 0 = the paper's critic. The first three
+    # are the goal head's label: with a goal head the TD3 actor loss keeps it trained on them (goal_weight)
+    privileged_dim: int = 0
 
 
 def goal_nll(head: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
@@ -109,10 +115,16 @@ class OUNoise:
 
 
 class ReplayBuffer:
-    """Fixed-capacity ring buffer of (obs, act, reward, next_obs, done) in numpy, saveable to .npz."""
+    """Fixed-capacity ring buffer of (obs, act, reward, next_obs, done) in numpy, saveable to .npz.
+
+    With `priv_dim` > 0 (an asymmetric critic) each stored observation is followed by that many privileged values:
+    ``add``/``extend`` take them beside the observations, ``sample`` returns the joined rows and ``obs_dim`` counts
+    both."""
 
     def __init__(self, obs_dim: int, act_dim: int = 3, capacity: int = 1_000_000,
-                 obs_dtype: Any = np.float32):
+                 obs_dtype: Any = np.float32, priv_dim: int = 0):
+        self.priv_dim = int(priv_dim)
+        obs_dim = int(obs_dim) + self.priv_dim
         self.capacity, self.obs_dim, self.act_dim = int(capacity), obs_dim, act_dim
         self.obs = np.zeros((self.capacity, obs_dim), dtype=obs_dtype)
         self.next_obs = np.zeros((self.capacity, obs_dim), dtype=obs_dtype)
@@ -122,8 +134,24 @@ class ReplayBuffer:
         self.ptr = 0
         self.size = 0
 
-    def add(self, obs, act, rew: float, next_obs, done: bool) -> None:
-        """Store one transition (done = terminal, not a time-limit truncation)."""
+    def _joined(self, obs, priv, what: str) -> np.ndarray:
+        """`obs` with its privileged values after it (rows or one observation); ValueError when they are missing
+        or this buffer keeps none."""
+        if self.priv_dim == 0:
+            if priv is not None:
+                raise ValueError(f'{what}: privileged values given to a buffer that keeps none')
+            return obs
+        if priv is None:
+            raise ValueError(f'{what}: this buffer keeps {self.priv_dim} privileged values per observation')
+        priv = np.asarray(priv, dtype=np.float32)
+        if priv.shape[-1] != self.priv_dim:
+            raise ValueError(f'{what}: {priv.shape[-1]} privileged values, expected {self.priv_dim}')
+        return np.concatenate([np.asarray(obs, dtype=np.float32), priv], axis=-1)
+
+    def add(self, obs, act, rew: float, next_obs, done: bool, priv=None, next_priv=None) -> None:
+        """Store one transition (done = terminal, not a time-limit truncation); `priv`/`next_priv` are the
+        privileged values of each observation when the buffer keeps them."""
+        obs, next_obs = self._joined(obs, priv, 'add'), self._joined(next_obs, next_priv, 'add')
         i = self.ptr
         self.obs[i], self.act[i], self.rew[i, 0] = obs, act, rew
         self.next_obs[i], self.done[i, 0] = next_obs, float(done)
@@ -149,14 +177,21 @@ class ReplayBuffer:
         with np.load(path, allow_pickle=False) as data:
             obs = data['obs']
             if obs.shape[1] != self.obs_dim:
-                raise ValueError(f'{path}: observation size {obs.shape[1]} != {self.obs_dim}')
+                extra = f' ({self.priv_dim} of them privileged values)' if self.priv_dim else ''
+                raise ValueError(f'{path}: observation size {obs.shape[1]} != {self.obs_dim}{extra}')
             arrays = (obs, data['act'], data['rew'], data['next_obs'], data['done'])  # each read once
-        self.extend(*arrays)
+        self._append(*arrays)
         return obs.shape[0]
 
-    def extend(self, obs, act, rew, next_obs, done) -> None:
-        """Append transitions given as arrays (one row each; rew and done may be flat); when more than
-        `capacity` come, only the newest fit."""
+    def extend(self, obs, act, rew, next_obs, done, priv=None, next_priv=None) -> None:
+        """Append transitions given as arrays (one row each; rew and done may be flat; `priv`/`next_priv` the
+        observations' privileged values when the buffer keeps them); when more than `capacity` come, only the
+        newest fit."""
+        obs, next_obs = self._joined(obs, priv, 'extend'), self._joined(next_obs, next_priv, 'extend')
+        self._append(obs, act, rew, next_obs, done)
+
+    def _append(self, obs, act, rew, next_obs, done) -> None:
+        """Append stored rows (observations with their privileged values already joined)."""
         arrays = [np.asarray(a) for a in (obs, act, rew, next_obs, done)]
         arrays[2], arrays[4] = arrays[2].reshape(-1, 1), arrays[4].reshape(-1, 1)
         n = arrays[0].shape[0]
@@ -184,7 +219,8 @@ class TD3:
         kw = dict(hidden=self.cfg.hidden, image=image, image_channels=self.cfg.image_channels)
         self.actor = Actor(vec_dim, act_dim, **kw, history_steps=history_steps, history_row=history_row,
                            history_hidden=self.cfg.history_hidden, goal_head=self.cfg.goal_head).to(self.device)
-        self.critic = Critic(vec_dim, act_dim, **kw).to(self.device)
+        self.priv = int(self.cfg.privileged_dim)
+        self.critic = Critic(vec_dim + self.priv, act_dim, **kw).to(self.device)
         self.actor_target = copy.deepcopy(self.actor)
         self.critic_target = copy.deepcopy(self.critic)
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=self.cfg.actor_lr)
@@ -211,10 +247,15 @@ class TD3:
         demonstrations where the critic has no evidence for something better.
         """
         c = self.cfg
+        if buffer.priv_dim != self.priv:
+            raise ValueError(f'the critic sees {self.priv} privileged values per observation, the buffer keeps '
+                             f'{buffer.priv_dim}')
         obs, act, rew, nxt, done = (x.to(self.device) for x in buffer.sample(c.batch_size, self.rng))
+        # the critic sees the stored rows whole, the actor without their privileged tail
+        own = (lambda x: x[:, :x.shape[1] - self.priv]) if self.priv else (lambda x: x)
         with torch.no_grad():
             noise = (torch.randn_like(act) * c.policy_noise).clamp(-c.noise_clip, c.noise_clip)
-            nxt_act = (self.actor_target(nxt) + noise).clamp(-1.0, 1.0)
+            nxt_act = (self.actor_target(own(nxt)) + noise).clamp(-1.0, 1.0)
             q1t, q2t = self.critic_target(nxt, nxt_act)
             target = rew + c.gamma * (1.0 - done) * torch.min(q1t, q2t)
         q1, q2 = self.critic(obs, act)
@@ -226,17 +267,26 @@ class TD3:
         out = {'critic_loss': float(critic_loss.detach()), 'q_mean': float(q1.detach().mean())}
         if self.updates % c.policy_delay == 0:
             if train_actor:
-                q = self.critic.q1_only(obs, self.actor(obs))
+                if self.actor.goal_head is not None:
+                    if self.priv < 3:
+                        raise ValueError('an actor with a goal head learns in TD3 only with the asymmetric critic\'s '
+                                         'privileged values (the first three are its label)')
+                    pred, head = self.actor.act_and_goal(own(obs))
+                    goal_loss = goal_nll(head, obs[:, obs.shape[1] - self.priv:][:, :3])
+                    out['goal_nll'] = float(goal_loss.detach())
+                else:
+                    pred, goal_loss = self.actor(own(obs)), 0.0
+                q = self.critic.q1_only(obs, pred)
                 if demos is not None and bc_alpha > 0:
                     idx = self.rng.integers(0, len(demos[0]), size=c.batch_size)
                     d_obs = torch.as_tensor(np.asarray(demos[0][idx], dtype=np.float32), device=self.device)
                     d_act = torch.as_tensor(np.asarray(demos[1][idx, :3], dtype=np.float32), device=self.device)
                     lam = bc_alpha / q.abs().mean().detach().clamp(min=1e-3)
                     bc = F.mse_loss(self.actor(d_obs), d_act)
-                    actor_loss = -lam * q.mean() + bc
+                    actor_loss = -lam * q.mean() + bc + c.goal_weight * goal_loss
                     out['bc_loss'] = float(bc.detach())
                 else:
-                    actor_loss = -q.mean()
+                    actor_loss = -q.mean() + c.goal_weight * goal_loss
                 self.actor_opt.zero_grad()
                 actor_loss.backward()
                 self.actor_opt.step()

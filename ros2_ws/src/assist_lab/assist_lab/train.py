@@ -52,7 +52,7 @@ from .cluster import DirectoryBusy, RayUnreachable, WorkerDied, exit_worker_died
 from .collect import (DEMO_POLICIES, ActorWeights, LandingPool, LandingTask, collect_demos,
                       make_env)
 from .episodes_plan import landing_seeds
-from .env import EnvConfig, LandingAssistEnv, RewardConfig, run_episode
+from .env import PRIVILEGED_DIM, EnvConfig, LandingAssistEnv, RewardConfig, run_episode
 from assist_policy.actor import MAX_HISTORY_S
 from assist_policy.observation import (DISPLACEMENT_DIM, MAX_FEATURE_LAG_S, MAX_FEATURE_LAGS, feature_dim,
                                        history_steps)
@@ -125,6 +125,8 @@ class TrainArgs:
     history_hidden: int = setting(64, ge=1, le=4096)
     goal_head: bool = False
     goal_weight: float = setting(0.1, ge=0.0, le=1e6)
+    asymmetric_critic: bool = False
+    action_rate_weight: float = setting(0.0, ge=0.0, le=1e6)
     arducopter_share: float = setting(0.0, ge=0.0, le=1.0)
     arducopter_spread: float = setting(0.0, ge=0.0, lt=1.0)
     workers: int = setting(1, ge=0, le=1024)
@@ -149,6 +151,9 @@ class TrainArgs:
         if self.goal_head and (self.demo_policy == 'init_actor' or self.demo_bc_file or not self.demo_episodes):
             raise SettingsError('--goal-head is cloned from the true goal of the scripted demonstrations this run '
                                 'flies: it needs --demo-episodes with a scripted --demo-policy (no --demo-bc-file)')
+        if self.goal_head and self.total_steps > 0 and not self.asymmetric_critic:
+            raise SettingsError('--goal-head in a TD3 phase (--total-steps > 0) is kept trained on the true goal the '
+                                'asymmetric critic\'s values carry: add --asymmetric-critic true')
         if self.condition != 'latent' and self.encoder_path:
             raise SettingsError('--encoder-path is only used by the latent condition')
         if self.resume:
@@ -221,6 +226,11 @@ HELP = {
     'goal_head': 'the actor also estimates the goal (a Gaussian over its offset), cloned from the true goal in the '
                  'demonstrations and DAgger rounds',
     'goal_weight': 'weight of the goal head\'s negative log-likelihood in cloning',
+    'asymmetric_critic': 'the TD3 critic also sees what only the simulator knows (the true goal, the pilot\'s own '
+                         'goal estimate, alpha and beta: env.privileged), the actor never; the buffer then keeps '
+                         'those values beside each observation (its files and --preload files hold them too)',
+    'action_rate_weight': 'reward term: cost per m/s of change in the assistant action between steps (0 = the '
+                          'paper reward)',
     'workers': 'env workers flying the landings of every phase (demonstrations, DAgger, TD3 collection, evaluation) '
                'while this process learns: 1 = all in this process (the single-process run, unchanged); 0 = one '
                'per CPU core (or per CPU of the --ray cluster). More than one changes the TD3 run: see '
@@ -262,7 +272,8 @@ def env_config_from(args: TrainArgs) -> EnvConfig:
                                          action_weight=args.action_weight,
                                          success_bonus=args.success_bonus,
                                          crash_penalty=args.crash_penalty,
-                                         floor_descent_weight=args.floor_descent_weight))
+                                         floor_descent_weight=args.floor_descent_weight,
+                                         action_rate_weight=args.action_rate_weight))
 
 
 def evaluate_agent(env: LandingAssistEnv | None, agent: TD3, per_beta: int, seed: int = 12345,
@@ -531,7 +542,8 @@ def _train(args: TrainArgs, pool: LandingPool | None) -> Path:
     env = make_env(env_cfg)
     eval_env = make_env(env_config_from(args)) if pool is None else None    # a pool's workers evaluate
     td3_cfg = TD3Config(hidden=args.hidden, actor_lr=args.actor_lr, history_hidden=args.history_hidden,
-                        goal_head=args.goal_head, goal_weight=args.goal_weight)
+                        goal_head=args.goal_head, goal_weight=args.goal_weight,
+                        privileged_dim=PRIVILEGED_DIM if args.asymmetric_critic else 0)
     write_text_atomic(run_dir / 'config.json', json.dumps(
         {'train': dataclasses.asdict(args), 'env': dataclasses.asdict(env_cfg), 'td3': dataclasses.asdict(td3_cfg)},
         indent=2, default=str))
@@ -547,7 +559,7 @@ def _train(args: TrainArgs, pool: LandingPool | None) -> Path:
                       memory_displacement=bool(env_cfg.memory_displacement), history_s=float(env_cfg.history_s),
                       history_step_s=float(env_cfg.history_step_s))
     obs_dtype = np.float16 if env.image_size else np.float32
-    buffer = ReplayBuffer(obs_dim, 3, args.buffer_size, obs_dtype=obs_dtype)
+    buffer = ReplayBuffer(obs_dim, 3, args.buffer_size, obs_dtype=obs_dtype, priv_dim=td3_cfg.privileged_dim)
     rng = np.random.default_rng(args.seed)
     noise = OUNoise(3, args.ou_theta, args.ou_sigma, args.ou_sigma_min, args.ou_decay, rng=rng)
     step, episode, best = 0, 0, math.inf
@@ -699,6 +711,7 @@ def _train(args: TrainArgs, pool: LandingPool | None) -> Path:
         """TD3 collection in this process: one landing after another, updates interleaved with its steps."""
         while step < args.total_steps:
             obs, info = env.reset(seed=int(args.seed * 1_000_003 + episode))
+            priv = env.privileged() if buffer.priv_dim else None
             noise.reset()
             losses: list[dict] = []
             n_active = n_steps = 0
@@ -708,8 +721,9 @@ def _train(args: TrainArgs, pool: LandingPool | None) -> Path:
                 else:
                     act = np.clip(agent.act(obs) + noise.sample(), -1.0, 1.0)
                 nxt, rew, term, trunc, sinfo = env.step(act)
-                buffer.add(obs, act, rew, nxt, term or trunc)
-                obs = nxt
+                nxt_priv = env.privileged() if buffer.priv_dim else None
+                buffer.add(obs, act, rew, nxt, term or trunc, priv, nxt_priv)
+                obs, priv = nxt, nxt_priv
                 n_steps += 1
                 n_active += int(sinfo['active'])
                 stepped(losses)

@@ -225,3 +225,39 @@ def test_the_envs_rules_are_off_unless_switched_on_and_settings_left_out_are_the
         assert [getattr(env.assistant.cfg, r.field).enabled for r in RULES] == [False, True, False, False]
     finally:
         env.close()
+
+
+def test_action_rate_term_costs_the_change_in_action_between_steps():
+    cfg = EnvConfig(condition='oracle', max_episode_s=30.0,
+                    reward=RewardConfig(landing_weight=0.0, progress_weight=0.0, action_weight=0.0,
+                                        action_rate_weight=2.0))
+    e = LandingAssistEnv(cfg)
+    e.reset(seed=3, options={'beta': 0.5})
+    _, r0, *_ = e.step(np.zeros(3))
+    assert r0 == 0.0                                        # no action, none before: nothing changed
+    _, r1, *_ = e.step(np.array([1.0, 0.0, 0.0]))
+    assert r1 == pytest.approx(-2.0 * cfg.max_speed[0])     # from 0 to max_speed forward
+    _, r2, *_ = e.step(np.array([1.0, 0.0, 0.0]))
+    assert r2 == 0.0                                        # held: no change
+    _, r3, *_ = e.step(np.array([-1.0, 0.0, 0.0]))
+    assert r3 == pytest.approx(-2.0 * 2 * cfg.max_speed[0])  # reversed
+    e.reset(seed=3, options={'beta': 0.5})                  # a new landing starts from no action
+    _, r4, *_ = e.step(np.array([1.0, 0.0, 0.0]))
+    assert r4 == pytest.approx(-2.0 * cfg.max_speed[0])
+    e.close()
+
+
+def test_privileged_values_are_the_true_goal_the_pilots_estimate_and_its_parameters(env):
+    from assist_lab.env import PRIVILEGED_DIM
+    from assist_policy.observation import oracle_feature
+    _, info = env.reset(seed=11, options={'beta': 0.3, 'alpha': 0.7})
+    p = env.privileged()
+    assert p.shape == (PRIVILEGED_DIM,) and p.dtype == np.float32
+    pos = env.world.state.position
+    np.testing.assert_allclose(p[:3], env.goal_label(), rtol=1e-6)
+    np.testing.assert_allclose(p[3:6], oracle_feature(env.pilot.goal_estimate, pos), rtol=1e-6)
+    assert p[6] == pytest.approx(0.7) and p[7] == pytest.approx(info['beta']) and info['beta'] == pytest.approx(0.3)
+    env.step(np.array([0.5, 0.0, 0.0]))                     # the vehicle moved: the offsets follow it
+    q = env.privileged()
+    np.testing.assert_allclose(q[:3], oracle_feature(env.world.goal_position, env.world.state.position), rtol=1e-6)
+    assert not np.allclose(p[:3], q[:3])

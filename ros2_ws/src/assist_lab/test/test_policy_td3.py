@@ -107,3 +107,82 @@ def test_end_to_end_networks_accept_images():
     agent = TD3(16, 3, TD3Config(hidden=(32,), image_channels=(8, 8, 8, 8)), image=True, seed=0)
     obs = np.zeros(4 * 64 * 64 + 16, np.float32)
     assert agent.act(obs).shape == (3,)
+
+
+def test_replay_buffer_keeps_privileged_values_beside_each_observation(tmp_path):
+    buf = ReplayBuffer(2, 3, capacity=10, priv_dim=1)
+    assert buf.obs_dim == 3
+    buf.add([1, 2], [0, 0, 0], 0.5, [3, 4], False, priv=[9], next_priv=[8])
+    buf.extend(np.array([[5, 6]]), np.zeros((1, 3)), [1.0], np.array([[7, 8]]), [True],
+               priv=np.array([[7]]), next_priv=np.array([[6]]))
+    np.testing.assert_array_equal(buf.obs[:2], [[1, 2, 9], [5, 6, 7]])
+    np.testing.assert_array_equal(buf.next_obs[:2], [[3, 4, 8], [7, 8, 6]])
+    with pytest.raises(ValueError, match='keeps 1 privileged'):
+        buf.add([1, 2], [0, 0, 0], 0.0, [3, 4], False)
+    with pytest.raises(ValueError, match='2 privileged values, expected 1'):
+        buf.add([1, 2], [0, 0, 0], 0.0, [3, 4], False, priv=[1, 2], next_priv=[1, 2])
+    with pytest.raises(ValueError, match='keeps none'):
+        ReplayBuffer(2, 3, 10).add([1, 2], [0, 0, 0], 0.0, [3, 4], False, priv=[1], next_priv=[1])
+    buf.save(tmp_path / 'p.npz')
+    again = ReplayBuffer(2, 3, capacity=10, priv_dim=1)
+    assert again.load(tmp_path / 'p.npz') == 2
+    np.testing.assert_array_equal(again.obs[:2], buf.obs[:2])
+    with pytest.raises(ValueError, match=r'observation size 3 != 2'):
+        ReplayBuffer(2, 3, 10).load(tmp_path / 'p.npz')
+
+
+def test_asymmetric_critic_sees_the_privileged_values_and_the_actor_does_not():
+    """One-step task whose best action depends on a value only the critic sees in training (the 'goal' side,
+    +-1) but that the observation also carries: the critic learns from it, the actor acts on the observation."""
+    torch.set_num_threads(1)
+    rng = np.random.default_rng(0)
+    agent = TD3(2, 3, TD3Config(hidden=(32, 32), batch_size=32, privileged_dim=1), seed=0)
+    assert agent.critic.q1[0].in_features == 2 + 1 + 3 and agent.actor.head[0].in_features == 2
+    buf = ReplayBuffer(2, 3, 10_000, priv_dim=1)
+    with pytest.raises(ValueError, match='the buffer keeps 0'):
+        agent.update(ReplayBuffer(2, 3, 10))
+    for step in range(1000):
+        side = rng.choice([-1.0, 1.0])
+        o = np.array([side, rng.uniform(-1, 1)])
+        a = np.clip(agent.act(o) + rng.normal(0, 0.3, 3), -1, 1) if step > 300 else rng.uniform(-1, 1, 3)
+        buf.add(o, a, -float((a[0] - 0.6 * side) ** 2), o, True, priv=[side], next_priv=[side])
+        if buf.size >= 32:
+            agent.update(buf)
+    for side in (-1.0, 1.0):
+        assert agent.act(np.array([side, 0.0]))[0] == pytest.approx(0.6 * side, abs=0.15)
+    # the privileged value reaches the critic only: the actor's action for an observation is the same whatever
+    # was stored beside it
+    with torch.no_grad():
+        act = agent.actor(torch.tensor([[1.0, 0.0]]))
+        q_plus = float(agent.critic.q1_only(torch.tensor([[1.0, 0.0, 1.0]]), act))
+        q_minus = float(agent.critic.q1_only(torch.tensor([[1.0, 0.0, -1.0]]), act))
+    assert q_plus > q_minus       # the action suits side +1: the critic, told the side, values it there
+
+
+def test_td3_keeps_a_goal_head_trained_on_the_privileged_goal():
+    """The first three privileged values are the goal head's label: TD3's actor updates keep the head on them; an
+    actor with a head but no privileged values is refused (its head would drift with the shared layers)."""
+    from assist_lab.td3 import goal_nll
+    torch.set_num_threads(1)
+    rng = np.random.default_rng(1)
+    cfg = TD3Config(hidden=(16, 16), batch_size=32, goal_head=True, privileged_dim=3, goal_weight=1.0)
+    agent = TD3(2, 3, cfg, seed=1)
+    buf = ReplayBuffer(2, 3, 2000, priv_dim=3)
+    obs = rng.uniform(-1, 1, (500, 2)).astype(np.float32)
+    goal = np.stack([obs[:, 0], -obs[:, 1], obs[:, 0] * 0.5], axis=1)      # a function of what the actor sees
+    buf.extend(obs, rng.uniform(-1, 1, (500, 3)), np.zeros(500), obs, np.ones(500), priv=goal, next_priv=goal)
+
+    def nll() -> float:
+        with torch.no_grad():
+            return float(goal_nll(agent.actor.act_and_goal(torch.as_tensor(obs))[1], torch.as_tensor(goal)))
+    before = nll()
+    out = {}
+    for _ in range(400):
+        out = agent.update(buf) or out
+    assert nll() < before - 1.0 and 'goal_nll' in out
+    plain = TD3(2, 3, TD3Config(hidden=(16, 16), batch_size=32, goal_head=True), seed=1)
+    flat = ReplayBuffer(2, 3, 100)
+    flat.extend(obs[:50], np.zeros((50, 3)), np.zeros(50), obs[:50], np.ones(50))
+    with pytest.raises(ValueError, match='goal head learns in TD3 only with'):
+        for _ in range(cfg.policy_delay):
+            plain.update(flat)

@@ -252,4 +252,47 @@ def test_a_goal_head_without_scripted_demonstrations_is_refused_up_front(extra):
     from assist_common.settings import SettingsError
     with pytest.raises(SettingsError, match='--goal-head is cloned from the true goal'):
         TrainArgs(goal_head=True, **extra).check_relations()
-    TrainArgs(goal_head=True, demo_episodes=2).check_relations()
+    TrainArgs(goal_head=True, demo_episodes=2, total_steps=0).check_relations()
+    with pytest.raises(SettingsError, match='add --asymmetric-critic true'):  # a TD3 phase keeps the head on the goal
+        TrainArgs(goal_head=True, demo_episodes=2, total_steps=100).check_relations()
+    TrainArgs(goal_head=True, demo_episodes=2, total_steps=100, asymmetric_critic=True).check_relations()
+
+
+def test_an_asymmetric_critic_learns_on_the_privileged_values_stored_beside_each_observation(tmp_path):
+    import numpy as np
+    from assist_lab.collect import LandingTask, LandingWorker
+    from assist_lab.env import PRIVILEGED_DIM
+    from assist_lab.td3 import ReplayBuffer
+    base = _tiny_run(tmp_path, total_steps=60, buffer_size=2000, demo_episodes=1, bc_steps=5)
+    run = train(TrainArgs(name='asym', asymmetric_critic=True, action_rate_weight=0.1, **base))
+    state, replay = load_checkpoint(run)
+    assert state['agent']['critic']['q1.0.weight'].shape[1] == 16 + PRIVILEGED_DIM + 3
+    assert state['agent']['actor']['head.0.weight'].shape[1] == 16             # the actor sees no more than before
+    with np.load(replay) as data:
+        obs, nxt = data['obs'], data['next_obs']
+    assert obs.shape[1] == 16 + PRIVILEGED_DIM and len(obs) == state['buffer_size']
+    priv = obs[:, 16:]
+    assert np.all(priv[:, 6] == np.float32(0.5)) and np.all((priv[:, 7] >= 0) & (priv[:, 7] <= 1))   # alpha, beta
+    np.testing.assert_array_equal(priv[:, :3], obs[:, :3])     # the oracle's feature is the true goal offset
+    np.testing.assert_array_equal(obs[1:4, 16:], nxt[:3, 16:])  # a landing's next values are its next step's
+    assert json.loads((run / 'config.json').read_text())['td3']['privileged_dim'] == PRIVILEGED_DIM
+    # a pool's worker hands the values back with the landing, and the landing fills either kind of buffer
+    worker = LandingWorker(json_env(run), 'oracle')
+    try:
+        landing = worker.fly(LandingTask('td3', 0, 5, noise_seed=(0, 0), random_actions=True), None)
+    finally:
+        worker.close()
+    assert landing.priv.shape == (landing.steps, PRIVILEGED_DIM)
+    np.testing.assert_array_equal(landing.priv[1:], landing.next_priv[:-1])
+    wide, plain = ReplayBuffer(16, 3, 5000, priv_dim=PRIVILEGED_DIM), ReplayBuffer(16, 3, 5000)
+    landing.into(wide)
+    landing.into(plain)
+    np.testing.assert_array_equal(wide.obs[:landing.steps, :16], plain.obs[:landing.steps])
+    np.testing.assert_array_equal(wide.obs[:landing.steps, 16:], landing.priv)
+
+
+def json_env(run):
+    """The EnvConfig a run trained on, from its config.json."""
+    from assist_lab.train import env_config_from
+    saved = json.loads((run / 'config.json').read_text())['train']
+    return env_config_from(TrainArgs(**{k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()}))

@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from .participant import (STEP_TIMEOUT_S, Flyer, ParticipantError, Profile, cue_shown, felt, sus_answers,
-                          survey_answers)
+from .participant import (FLIGHT_START_TIMEOUT_S, STEP_TIMEOUT_S, Flyer, ParticipantError, Profile, cue_shown, felt,
+                          sus_answers, survey_answers)
 from .study import CUE_CONDITION, phase_block
 from .testing import start_browser
 
@@ -204,7 +204,8 @@ class BrowserParticipant:
             return
         self._act('study-start')
         st = self._wait(lambda s: not same(s) or (s['study'].get('stage') == 'flying' and s['pose'] is not None
-                                                   and s['scene'] is not None), 'the landing in flight', 60.0)
+                                                   and s['scene'] is not None), 'the landing in flight',
+                       FLIGHT_START_TIMEOUT_S)
         if not same(st):
             return
         flyer = Flyer(self.profile, self.landings_flown, st['scene'], np.array(st['pose']['p']),

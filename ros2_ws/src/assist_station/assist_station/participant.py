@@ -42,6 +42,9 @@ VERTICAL_THRESHOLD_MPS = 0.1
 HEARTBEAT_S = 0.25
 ASSIST_PERCEPTION_MPS = 0.25      # velocity beyond the keys' own that the participant takes for the assistant
 STEP_TIMEOUT_S = 30.0             # a study step the station does not answer within this (wall) is an error
+# a landing not in flight this long after it began is an error: the station waits up to GRAPH_WAIT_S (60 s) for the
+# graph's nodes, then sets their parameters and resets the world
+FLIGHT_START_TIMEOUT_S = 90.0
 DEFAULT_FAMILIES = ('paper', 'delay', 'tapper', 'bang_bang', 'keyboard', 'cautious')
 CUE_TRUST = (0.5, 1.0)            # a participant's cue_trust is drawn uniformly between these
 CUE_TRUST_SALT = 0x637565         # its own generator: drawing it changes none of the other profile values
@@ -365,7 +368,7 @@ class Participant:
             return
         await self._step('start')
         await self._wait(lambda: self.view.get('stage') == 'flying' or not self._same_landing(key),
-                         'the landing in flight', timeout_s=60.0)
+                         'the landing in flight', timeout_s=FLIGHT_START_TIMEOUT_S)
         if not self._same_landing(key):
             return
         await self._wait(lambda: self.state is not None and self.state.get('pose') is not None

@@ -51,6 +51,9 @@ from .study import (PRACTICE_BLOCK, KeyCounter, LandingSpec, StudyConfig, StudyE
 
 EPISODE_RE = re.compile(r'^episode (\d+): goal pad (\d+)')
 SERVICE_WAIT_S = 10.0          # a node's parameter service / /sim/reset not answering this long: sent again or failed
+# a landing's graph (sim_node, policy_node for an assisted one) not up this long after the landing began: the step
+# fails; nodes that load torch and their models on a busy machine take tens of seconds to start
+GRAPH_WAIT_S = 60.0
 SERVICE_RETRIES = 2            # a parameter request (idempotent) is sent again this many times before the step fails
 BAG_WARMUP_S = 0.6             # the landing's bag subscribes before the episode starts
 BAG_TAIL_S = 0.5               # ... and keeps recording this long after the result
@@ -396,7 +399,7 @@ class StudyDriver:
         self.bag = None if bag is None else str(bag)
         self.episode, self.start_xy, self.error = None, None, None
         self.stage = 'waiting_graph'       # until sim_node (and for an assisted landing policy_node) answer
-        self._graph_deadline = time.monotonic() + SERVICE_WAIT_S
+        self._graph_deadline = time.monotonic() + GRAPH_WAIT_S
         self._configure()
 
     def _graph_missing(self) -> list[str]:
@@ -411,7 +414,7 @@ class StudyDriver:
         missing = self._graph_missing()
         if missing:
             if time.monotonic() > self._graph_deadline:
-                self._fail(f'not available after {SERVICE_WAIT_S:.0f} s: {", ".join(missing)}')
+                self._fail(f'not available after {GRAPH_WAIT_S:.0f} s: {", ".join(missing)}')
             return
         spec = self.spec
         self.stage = 'configuring'
