@@ -121,16 +121,22 @@ def _matrix_to_quaternion_closed_form(m):
     return -qa if qa[3] < 0.0 else qa
 
 
-def test_scipy_paths_match_the_closed_forms():
+def test_euler_and_quaternion_conversions_agree_with_scipy_and_the_textbook_forms():
+    from scipy.spatial.transform import Rotation
     rng = np.random.default_rng(11)
     angles = [(rng.uniform(-3.1, 3.1), rng.uniform(-1.5, 1.5), rng.uniform(-3.1, 3.1)) for _ in range(200)]
-    angles += [(0.0, 0.0, math.pi), (math.pi, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, math.pi / 2 - 1e-9, 0.3)]
+    angles += [(0.0, 0.0, math.pi), (math.pi, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, math.pi / 2 - 1e-9, 0.3),
+               (math.pi, 0.0, math.pi), (0.0, math.pi, 0.0), (math.pi / 2, 0.0, math.pi)]   # w ~ 0: x, y or z leads
     for roll, pitch, yaw in angles:
         r = F.euler_to_matrix(roll, pitch, yaw)
+        np.testing.assert_allclose(r, Rotation.from_euler('ZYX', [yaw, pitch, roll]).as_matrix(), atol=1e-12)
         np.testing.assert_allclose(r, _euler_to_matrix_closed_form(roll, pitch, yaw), atol=1e-12)
         q = F.matrix_to_quaternion(r)
-        assert q[3] >= 0.0
-        np.testing.assert_allclose(q, _matrix_to_quaternion_closed_form(r), atol=1e-12)
+        assert q[3] >= 0.0 and abs(np.linalg.norm(q) - 1.0) < 1e-12
+        ref = Rotation.from_matrix(r).as_quat()
+        np.testing.assert_allclose(q, -ref if ref[3] < 0 else ref, atol=1e-9)
+        np.testing.assert_allclose(q, _matrix_to_quaternion_closed_form(r), atol=1e-9)
+        np.testing.assert_allclose(F.quat_to_matrix(q), r, atol=1e-12)
 
 
 def test_quaternion_helpers_agree_with_scipy():
