@@ -2,14 +2,19 @@
 from __future__ import annotations
 
 import os
+import tempfile
 
 import pytest
 
 
 def pytest_configure(config):
-    """Under pytest-xdist each worker gets its own DDS domains: ROS_DOMAIN_ID (the default graph of tests that take
+    """The suite's exported encoders are cached in the temporary folder, not the user's home (every process that
+    builds the CM-VAE's ONNX session, graph nodes included, inherits ASSIST_CACHE_DIR).
+
+    Under pytest-xdist each worker gets its own DDS domains: ROS_DOMAIN_ID (the default graph of tests that take
     it from the environment) and a disjoint slice of the private domains (assist_common.domains), so two workers'
     graphs never meet."""
+    os.environ.setdefault('ASSIST_CACHE_DIR', os.path.join(tempfile.gettempdir(), f'assist-test-cache-{os.getuid()}'))
     worker = os.environ.get('PYTEST_XDIST_WORKER')
     if worker:
         from assist_common.domains import DOMAIN_IDS_ENV, split_range

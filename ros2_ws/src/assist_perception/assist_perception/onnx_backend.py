@@ -4,25 +4,41 @@ Why: at batch 1 on a 64x64 frame torch's per-operator dispatch dominates the CM-
 Runtime runs the same graph (batch-norms folded, convolutions in its blocked layout) in ~0.13 ms
 instead of ~0.7 ms back to back, and ~0.6 ms instead of ~1.7-2.3 ms when each frame follows a
 50 ms pause as at 20 Hz (cold caches; bench `perception` row "CM-VAE mu + xyz, torch / onnxruntime").
-There is no second model file and no second model definition: the session is exported in memory
-from the loaded `CMVAE` at start-up (~0.2 s), so it always has the weights torch has. mu and the
-pad XYZ agree with torch to ~1e-6 (test_perception_onnx_backend.py).
+There is no second model file to ship and no second model definition: the session is exported from
+the loaded `CMVAE` at start-up, so it always has the weights torch has. mu and the pad XYZ agree with
+torch to ~1e-6 (test_perception_onnx_backend.py).
+
+An export costs ~2 s of start-up (importing `onnx` and tracing), so the exported bytes are kept in a
+cache keyed by a hash of the weights, the model config, torch's version and the export settings
+(`$ASSIST_CACHE_DIR/onnx`, default `$XDG_CACHE_HOME/assist/onnx` or `~/.cache/assist/onnx`; set
+`ASSIST_CACHE_DIR=off` to export every time). A cached session must reproduce torch's mu and pad XYZ on
+a probe frame before it is used; a cache file that does not load or does not agree is exported again
+and replaced; a cache that cannot be written (read-only or full disk) is only logged. The newest
+`CACHE_KEEP` files are kept.
 """
 from __future__ import annotations
 
+import hashlib
 import importlib.util
 import io
 import logging
+import os
 import warnings
+from pathlib import Path
 
 import numpy as np
 import torch
 from torch import nn
 
+from assist_common.atomic import write_bytes_atomic
+
 from .model import CMVAE, preprocess_tensor
 
 _LOG = logging.getLogger(__name__)
 BACKENDS = ('auto', 'torch', 'onnxruntime')
+CACHE_ENV = 'ASSIST_CACHE_DIR'
+CACHE_KEEP = 16                 # exported models kept in the cache, newest first (~2 MB each)
+EXPORT_VERSION = 1              # bump when export_mu_xyz changes what it exports
 
 
 class _MuXyz(nn.Module):
@@ -78,6 +94,58 @@ def export_mu_xyz(model: CMVAE) -> bytes:
     return buf.getvalue()
 
 
+def cache_dir() -> Path | None:
+    """Where exported encoders are cached (None when ASSIST_CACHE_DIR is 'off')."""
+    root = os.environ.get(CACHE_ENV, '')
+    if root.lower() == 'off':
+        return None
+    if not root:
+        root = os.path.join(os.environ.get('XDG_CACHE_HOME') or os.path.join(Path.home(), '.cache'), 'assist')
+    return Path(root) / 'onnx'
+
+
+def export_key(model: CMVAE) -> str:
+    """A hash of everything the export depends on: weights and buffers, config, torch version, export version."""
+    h = hashlib.sha256(f'{EXPORT_VERSION}|{torch.__version__}|{model.cfg!r}'.encode())
+    for name, tensor in model.state_dict().items():
+        t = tensor.detach().cpu().contiguous()
+        h.update(f'{name}|{t.dtype}|{tuple(t.shape)}'.encode())
+        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()[:32]
+
+
+def _store(path: Path, data: bytes) -> None:
+    """Write one export to the cache and drop the oldest beyond CACHE_KEEP; a failure is logged, not raised."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_bytes_atomic(path, data)
+        files = sorted(path.parent.glob('*.onnx'), key=lambda f: f.stat().st_mtime, reverse=True)
+        for old in files[CACHE_KEEP:]:
+            old.unlink(missing_ok=True)
+    except OSError as exc:
+        _LOG.warning('could not cache the exported CM-VAE encoder in %s (%s): it is exported at every start',
+                     path.parent, exc)
+
+
+def _check_against_torch(session, model: CMVAE, tol: float = 1e-3) -> None:
+    """ValueError unless `session` gives torch's mu and pad XYZ on a fixed probe frame (to `tol`)."""
+    s = model.cfg.image_size
+    gen = torch.Generator().manual_seed(0)
+    rgb = torch.randint(0, 256, (1, s, s, 3), dtype=torch.uint8, generator=gen)
+    depth = 0.5 + 9.5 * torch.rand(1, s, s, generator=gen)
+    was_training = model.training
+    model.eval()
+    try:
+        with torch.no_grad():
+            mu_t, xyz_t, _ = _MuXyz(model)(rgb, depth)
+    finally:
+        model.train(was_training)
+    mu_o, xyz_o, _ = session.run(None, {'rgb': rgb.numpy(), 'depth': depth.numpy()})
+    err = max(float(np.max(np.abs(mu_o - mu_t.numpy()))), float(np.max(np.abs(xyz_o - xyz_t.numpy()))))
+    if not err <= tol:
+        raise ValueError(f'its output differs from the model by {err:.3g}')
+
+
 class OnnxMuXyz:
     """An ONNX Runtime session computing (mu, xyz, valid-depth fraction) from raw 64x64 RGB-D frames."""
 
@@ -93,8 +161,27 @@ class OnnxMuXyz:
         opts.add_session_config_entry('session.intra_op.allow_spinning', '0')
         opts.log_severity_level = 3       # errors only: ORT's info lines are not for our users
         model_cpu = model if next(model.parameters()).device.type == 'cpu' else model.cpu()
-        self.session = ort.InferenceSession(export_mu_xyz(model_cpu), opts, providers=['CPUExecutionProvider'])
+        self.session = self._session(ort, model_cpu, opts)
         _LOG.debug('onnxruntime %s session for the CM-VAE (%d intra-op threads)', ort.__version__, threads)
+
+    @staticmethod
+    def _session(ort, model: CMVAE, opts):
+        """A session from the cached export of `model` when there is a loadable one, else from a new export."""
+        folder = cache_dir()
+        path = folder / f'{export_key(model)}.onnx' if folder is not None else None
+        if path is not None and path.is_file():
+            try:
+                session = ort.InferenceSession(str(path), opts, providers=['CPUExecutionProvider'])
+                _check_against_torch(session, model)
+                os.utime(path)                    # recently used: kept by the pruning
+                return session
+            except Exception as exc:  # noqa: BLE001 - ORT raises its own types for a corrupt file
+                _LOG.warning('cached CM-VAE export %s is not usable (%s): exporting it again', path, exc)
+        data = export_mu_xyz(model)
+        session = ort.InferenceSession(data, opts, providers=['CPUExecutionProvider'])
+        if path is not None:
+            _store(path, data)
+        return session
 
     def __call__(self, rgb: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """rgb (N,64,64,3) uint8, depth (N,64,64) metres -> mu (N,L), xyz (N,3), valid (N,), float32."""

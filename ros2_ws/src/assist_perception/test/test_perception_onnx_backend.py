@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from assist_perception.encoder_core import BadFrame, LatentEncoder, default_model_path
-from assist_perception.model import CMVAE, CMVAEConfig, load_model, save_model
+from assist_perception.model import CMVAE, CMVAEConfig, load_model, preprocess_tensor, save_model
 from assist_perception.onnx_backend import OnnxMuXyz, resolve_backend
 
 
@@ -81,3 +81,67 @@ def test_preprocess_is_the_documented_scaling_bit_for_bit():
     ref[:, 3] = d / cfg.depth_scale_m
     out = preprocess(rgb, depth, cfg).numpy()
     assert out.dtype == np.float32 and np.array_equal(out, ref)
+
+
+def _small(seed: int) -> CMVAE:
+    torch.manual_seed(seed)
+    return CMVAE(CMVAEConfig(latent_dim=8)).eval()
+
+
+def test_export_cached_by_weights_and_reused(tmp_path, monkeypatch):
+    from assist_perception import onnx_backend
+    monkeypatch.setenv('ASSIST_CACHE_DIR', str(tmp_path / 'cache'))
+    model = _small(5)
+    rgb, depth = _frames(2)
+    first = OnnxMuXyz(model)
+    files = list((tmp_path / 'cache' / 'onnx').glob('*.onnx'))
+    assert [f.stem for f in files] == [onnx_backend.export_key(model)]
+
+    def no_export(_model):
+        raise AssertionError('exported although the cache holds this model')
+    monkeypatch.setattr(onnx_backend, 'export_mu_xyz', no_export)
+    second = OnnxMuXyz(model)
+    np.testing.assert_array_equal(first(rgb, depth)[0], second(rgb, depth)[0])
+    # other weights: another key (here refused because exporting is patched out)
+    other = _small(6)
+    assert onnx_backend.export_key(other) != onnx_backend.export_key(model)
+    with pytest.raises(AssertionError, match='exported although'):
+        OnnxMuXyz(other)
+
+
+@pytest.mark.parametrize('damage', ['corrupt', 'other_model'])
+def test_a_bad_cache_file_is_exported_again_and_replaced(damage, tmp_path, monkeypatch, caplog):
+    from assist_perception import onnx_backend
+    monkeypatch.setenv('ASSIST_CACHE_DIR', str(tmp_path))
+    model = _small(7)
+    path = tmp_path / 'onnx' / f'{onnx_backend.export_key(model)}.onnx'
+    path.parent.mkdir()
+    path.write_bytes(b'\x00garbage' if damage == 'corrupt' else onnx_backend.export_mu_xyz(_small(8)))
+    rgb, depth = _frames(3)
+    enc = OnnxMuXyz(model)
+    assert 'is not usable' in caplog.text
+    with torch.no_grad():
+        mu_t, _ = model.encode(preprocess_tensor(torch.from_numpy(rgb), torch.from_numpy(depth), model.cfg))
+    np.testing.assert_allclose(enc(rgb, depth)[0], mu_t.numpy(), atol=2e-5, rtol=1e-5)
+    caplog.clear()
+    OnnxMuXyz(model)                                            # the replaced file is good
+    assert 'is not usable' not in caplog.text
+
+
+def test_cache_off_unwritable_and_pruned(tmp_path, monkeypatch, caplog):
+    from assist_perception import onnx_backend
+    monkeypatch.setenv('ASSIST_CACHE_DIR', 'off')
+    OnnxMuXyz(_small(1))
+    assert onnx_backend.cache_dir() is None
+    blocker = tmp_path / 'file'
+    blocker.write_text('a file where the cache folder would be')
+    monkeypatch.setenv('ASSIST_CACHE_DIR', str(blocker))
+    rgb, depth = _frames(1)
+    assert OnnxMuXyz(_small(1))(rgb, depth)[0].shape == (1, 8)      # works, the failure only logged
+    assert 'could not cache' in caplog.text
+    monkeypatch.setenv('ASSIST_CACHE_DIR', str(tmp_path / 'c'))
+    monkeypatch.setattr(onnx_backend, 'CACHE_KEEP', 2)
+    for seed in (1, 2, 3):
+        OnnxMuXyz(_small(seed))
+    kept = {f.stem for f in (tmp_path / 'c' / 'onnx').glob('*.onnx')}
+    assert kept == {onnx_backend.export_key(_small(2)), onnx_backend.export_key(_small(3))}
