@@ -21,8 +21,10 @@ import sys
 import threading
 import traceback
 
-# what the tools import, loaded once (none of it starts a thread: checked before the first fork)
-PRELOAD = ('torch', 'torch.onnx', 'onnx', 'onnxruntime', 'numpy', 'matplotlib', 'matplotlib.pyplot', 'pybullet',
+# what the tools import, loaded once (none of it starts a thread: checked before the first fork); torch._dynamo is
+# what a torch optimizer's first use imports (~2 s in each training call)
+PRELOAD = ('torch', 'torch._dynamo', 'torch.onnx', 'onnx', 'onnxruntime', 'numpy', 'matplotlib', 'matplotlib.pyplot',
+           'pybullet',
            'assist_perception.encoder_core', 'assist_lab.evaluate', 'assist_lab.train', 'assist_lab.graph_eval',
            'assist_lab.compare', 'assist_lab.cmvae_train', 'assist_bags.replay', 'assist_station.simulate_study',
            'assist_station.analyze_study')

@@ -109,7 +109,7 @@ def budget(program: str, args: list[str]) -> list[str]:
         return _set(args, '--conditions', conditions[-1]) if conditions else args
     if program == 'train_td3':
         for opt, most in (('--total-steps', 40), ('--start-steps', 20), ('--demo-episodes', 1),
-                          ('--dagger-episodes', 1), ('--bc-steps', 5), ('--critic-warmup-updates', 5),
+                          ('--dagger-episodes', 1), ('--bc-steps', 2), ('--critic-warmup-updates', 5),
                           ('--eval-episodes-per-beta', 1), ('--buffer-size', 5000), ('--max-episode-s', LANDING_S)):
             args = _cap(args, opt, most,
                         default_when_absent=opt in ('--total-steps', '--max-episode-s', '--eval-episodes-per-beta'))
