@@ -29,7 +29,7 @@ def run(tmp_path_factory, domain_id):
     out = tmp_path_factory.mktemp('cues_study')
     args = SimulateArgs(out=str(out), participants=3, only=PIDS, landings_per_block=1, practice=0,
                         real_time_factor=3.0, browser_participants=1, study=str(STUDY), domain_id=domain_id,
-                        max_landing_s=30.0)         # as tests/test_study_graph.py: MAX_LANDING_S
+                        max_landing_s=20.0)         # as tests/test_study_graph.py: MAX_LANDING_S
     results = simulate(args)
     return out, {r['participant']: r for r in results}
 

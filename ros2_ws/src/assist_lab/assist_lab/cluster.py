@@ -14,6 +14,7 @@ import fcntl
 import logging
 import multiprocessing
 import multiprocessing.connection
+import multiprocessing.context
 import os
 import signal
 import socket
@@ -50,9 +51,34 @@ def cpu_cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else (os.cpu_count() or 1)
 
 
+class _CtrlCBlockedProcess(multiprocessing.context.SpawnProcess):
+    """A spawned process born with SIGINT blocked (the mask survives fork and exec).
+
+    A worker leaves Ctrl-C to its parent (ignore_ctrl_c), but only from its initializer on: a pool starts workers
+    when work is first submitted, and a Ctrl-C while one was still importing raised KeyboardInterrupt in it (a
+    traceback on the terminal). Blocking SIGINT in the starting thread, not ignoring it, loses no Ctrl-C for the
+    parent: the kernel hands it to another thread or keeps it pending for this one until the mask is restored."""
+
+    @staticmethod
+    def _Popen(process_obj):
+        if not hasattr(signal, 'pthread_sigmask'):
+            return multiprocessing.context.SpawnProcess._Popen(process_obj)
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            return multiprocessing.context.SpawnProcess._Popen(process_obj)
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+class _WorkerContext(multiprocessing.context.SpawnContext):
+    """The spawn start method with _CtrlCBlockedProcess."""
+    Process = _CtrlCBlockedProcess
+
+
 def process_context() -> multiprocessing.context.BaseContext:
-    """The start method for worker processes: spawn (a fresh interpreter: no forked torch or pybullet state)."""
-    return multiprocessing.get_context('spawn')
+    """The start method for worker processes: spawn (a fresh interpreter: no forked torch or pybullet state), each
+    worker born deaf to Ctrl-C (_CtrlCBlockedProcess)."""
+    return _WorkerContext()
 
 
 class DirectoryBusy(RuntimeError):

@@ -243,6 +243,22 @@ def test_a_ctrl_c_taken_by_another_thread_is_raised_while_waiting_for_workers(wa
             signal.signal(signal.SIGINT, previous)
 
 
+def test_a_worker_is_deaf_to_ctrl_c_from_its_birth_and_the_parent_is_not():
+    """A Ctrl-C that reaches a worker while it still starts (before its initializer) neither kills it nor prints a
+    traceback: workers are born with SIGINT blocked; the parent's own mask is left as it was."""
+    from assist_lab import cluster
+    ctx = cluster.process_context()
+    before = signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    proc = ctx.Process(target=time.sleep, args=(0.5,))
+    proc.start()
+    os.kill(proc.pid, signal.SIGINT)              # at once: the child is still importing
+    proc.join(60)
+    assert proc.exitcode == 0
+    assert signal.pthread_sigmask(signal.SIG_BLOCK, []) == before and signal.SIGINT not in before
+    with cluster.ProcessPoolExecutor(1, mp_context=ctx) as pool:
+        assert signal.SIGINT in pool.submit(signal.pthread_sigmask, signal.SIG_BLOCK, []).result(60)
+
+
 def test_completed_in_turn_yields_each_future_once_in_completion_order():
     import time
     from concurrent.futures import ThreadPoolExecutor
