@@ -209,7 +209,11 @@ def test_blur_with_a_key_held_stops_the_vehicle(station):
     d.execute_script("window.dispatchEvent(new Event('blur'))")
     assert wait_for(lambda: any(np.allclose(v, 0) for _, v in probe.cmds_since(t_blur)), 1.0)
     time.sleep(0.5)
-    assert all(np.allclose(v, 0) for _, v in probe.cmds_since(t_blur + 0.2))
+    # from the first stop on (one publisher, reliable: in order) nothing moves the vehicle again; commands sent
+    # before the blur may still arrive after t_blur on a loaded machine
+    after = [v for _, v in probe.cmds_since(t_blur)]
+    first_stop = next(i for i, v in enumerate(after) if np.allclose(v, 0))
+    assert len(after) - first_stop >= 3 and all(np.allclose(v, 0) for v in after[first_stop:]), after
     s = stats(d)
     assert s['releases'] == releases + 1 and s['held'] == []
     key(d, 'd', False)
