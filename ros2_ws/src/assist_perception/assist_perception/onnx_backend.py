@@ -18,6 +18,7 @@ and replaced; a cache that cannot be written (read-only or full disk) is only lo
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib.util
 import io
@@ -74,13 +75,22 @@ def resolve_backend(backend: str, device: torch.device) -> str:
     return backend
 
 
+@contextlib.contextmanager
+def _eval_mode(model: CMVAE):
+    """`model` in eval mode inside the block, back in the mode it had after it."""
+    was_training = model.training
+    model.eval()
+    try:
+        yield model
+    finally:
+        model.train(was_training)
+
+
 def export_mu_xyz(model: CMVAE) -> bytes:
     """ONNX bytes of input scaling + encoder mean + pad-XYZ head, batch dynamic (model left unchanged)."""
     s = model.cfg.image_size
-    was_training = model.training
-    model.eval()
     buf = io.BytesIO()
-    try:
+    with _eval_mode(model):
         with warnings.catch_warnings():
             # torch 2.13's TorchScript-based exporter warns that it is legacy; it needs no onnxscript and
             # exports this plain conv net exactly (checked against torch in the tests)
@@ -89,8 +99,6 @@ def export_mu_xyz(model: CMVAE) -> bytes:
             torch.onnx.export(_MuXyz(model), (torch.zeros(1, s, s, 3, dtype=torch.uint8), torch.ones(1, s, s)),
                               buf, input_names=['rgb', 'depth'], output_names=['mu', 'xyz', 'valid'],
                               dynamic_axes={'rgb': {0: 'n'}, 'depth': {0: 'n'}}, dynamo=False)
-    finally:
-        model.train(was_training)
     return buf.getvalue()
 
 
@@ -133,13 +141,8 @@ def _check_against_torch(session, model: CMVAE, tol: float = 1e-3) -> None:
     gen = torch.Generator().manual_seed(0)
     rgb = torch.randint(0, 256, (1, s, s, 3), dtype=torch.uint8, generator=gen)
     depth = 0.5 + 9.5 * torch.rand(1, s, s, generator=gen)
-    was_training = model.training
-    model.eval()
-    try:
-        with torch.no_grad():
-            mu_t, xyz_t, _ = _MuXyz(model)(rgb, depth)
-    finally:
-        model.train(was_training)
+    with _eval_mode(model), torch.no_grad():
+        mu_t, xyz_t, _ = _MuXyz(model)(rgb, depth)
     mu_o, xyz_o, _ = session.run(None, {'rgb': rgb.numpy(), 'depth': depth.numpy()})
     # equal_nan: a model whose output overflows gives inf/NaN in both (encoder_core reports such frames as bad)
     if not all(np.allclose(o, t.numpy(), rtol=0.0, atol=tol, equal_nan=True)
