@@ -8,8 +8,8 @@ import pytest
 
 
 def pytest_configure(config):
-    """The suite's exported encoders are cached in the temporary folder, not the user's home (every process that
-    builds the CM-VAE's ONNX session, graph nodes included, inherits ASSIST_CACHE_DIR).
+    """The suite's cache (exported encoders, generated textures: assist_common.cache) is in the temporary folder,
+    not the user's home (every process the tests start, graph nodes included, inherits ASSIST_CACHE_DIR).
 
     Under pytest-xdist each worker gets its own DDS domains: ROS_DOMAIN_ID (the default graph of tests that take
     it from the environment) and a disjoint slice of the private domains (assist_common.domains), so two workers'

@@ -244,6 +244,16 @@ def colcon_workspace(tmp_path_factory):
     return _get
 
 
+@pytest.fixture(scope='session')
+def study_max_landing_s() -> float:
+    """Sim seconds a landing of the study graph tests may last before it ends as a timeout (test_study_graph*).
+
+    Those tests check the protocol, not the flying: most landings end by themselves in 19-23 s, and at their
+    real-time factor 3 this is ~7 s of wall time, far longer than the station's switching of the assistant (a
+    parameter call to policy_node, answered within a second) and a browser reload 1 s into a landing."""
+    return 20.0
+
+
 #: Shared libraries only a program's own imports load (rclpy, torch, pybullet, OpenCV), never the interpreter.
 HEAVY_LIBRARIES = ('_rclpy_pybind11', 'libtorch', 'pybullet', 'cv2')
 

@@ -25,10 +25,6 @@ from assist_station.simulate_study import SimulateArgs, StudyGraph, free_tcp_por
 
 pytestmark = [pytest.mark.graph, pytest.mark.slow(seconds=150)]
 RTF = 3.0                      # sim seconds per wall second (the landings need not be flown well here)
-# sim seconds: a landing not done by then ends as a timeout (the protocol is tested, most landings end by themselves
-# in 19-23 s). ~7 s of wall time at RTF 3: the station's switching of the assistant (a parameter call to policy_node,
-# answered within a second here) and the browser's reload 1 s into a landing are far inside
-MAX_LANDING_S = 20.0
 
 
 def rows(path: Path) -> list[dict]:
@@ -41,10 +37,10 @@ def events(path: Path) -> list[dict]:
 
 
 @pytest.fixture(scope='module')
-def study(tmp_path_factory, domain_id):
+def study(tmp_path_factory, domain_id, study_max_landing_s):
     out = tmp_path_factory.mktemp('study')
     args = SimulateArgs(out=str(out), participants=2, landings_per_block=2, practice=1, real_time_factor=RTF,
-                        browser_participants=1, max_landing_s=MAX_LANDING_S)
+                        browser_participants=1, max_landing_s=study_max_landing_s)
     sim_dir = out / '.simulation'
     sim_dir.mkdir()
     cfg, path = study_file(args, sim_dir)

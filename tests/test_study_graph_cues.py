@@ -25,11 +25,11 @@ PIDS = ('S03',)                # order: assisted_cues-unassisted-assisted
 
 
 @pytest.fixture(scope='module')
-def run(tmp_path_factory, domain_id):
+def run(tmp_path_factory, domain_id, study_max_landing_s):
     out = tmp_path_factory.mktemp('cues_study')
     args = SimulateArgs(out=str(out), participants=3, only=PIDS, landings_per_block=1, practice=0,
                         real_time_factor=3.0, browser_participants=1, study=str(STUDY), domain_id=domain_id,
-                        max_landing_s=20.0)         # as tests/test_study_graph.py: MAX_LANDING_S
+                        max_landing_s=study_max_landing_s)
     results = simulate(args)
     return out, {r['participant']: r for r in results}
 

@@ -32,12 +32,12 @@ import torch
 from torch import nn
 
 from assist_common.atomic import write_bytes_atomic
+from assist_common.cache import cache_dir as user_cache_dir
 
 from .model import CMVAE, preprocess_tensor
 
 _LOG = logging.getLogger(__name__)
 BACKENDS = ('auto', 'torch', 'onnxruntime')
-CACHE_ENV = 'ASSIST_CACHE_DIR'
 CACHE_KEEP = 16                 # exported models kept in the cache, newest first (~2 MB each)
 EXPORT_VERSION = 1              # bump when export_mu_xyz changes what it exports
 
@@ -104,12 +104,7 @@ def export_mu_xyz(model: CMVAE) -> bytes:
 
 def cache_dir() -> Path | None:
     """Where exported encoders are cached (None when ASSIST_CACHE_DIR is 'off')."""
-    root = os.environ.get(CACHE_ENV, '')
-    if root.lower() == 'off':
-        return None
-    if not root:
-        root = os.path.join(os.environ.get('XDG_CACHE_HOME') or os.path.join(Path.home(), '.cache'), 'assist')
-    return Path(root) / 'onnx'
+    return user_cache_dir('onnx')
 
 
 def export_key(model: CMVAE) -> str:

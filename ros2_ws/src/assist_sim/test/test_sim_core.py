@@ -1,6 +1,7 @@
 """Unit tests of the pure simulation core (no ROS)."""
 import math
 
+import cv2
 import numpy as np
 import pytest
 
@@ -51,6 +52,17 @@ def test_scene_is_deterministic_and_matches_the_paper_layout():
     assert 3.7 < gaps.mean() < 4.3                      # paper: mean gap near 4 m
     mats = {p.material for p in a.pads} | {a.floor_material, a.wall_material}
     assert len(mats) == 7                                # distinct textures in one scene
+
+
+def test_textures_are_files_in_the_user_cache_and_still_made_with_the_cache_off(monkeypatch, tmp_path):
+    from assist_sim.core import textures
+    monkeypatch.setenv('ASSIST_CACHE_DIR', str(tmp_path))
+    png = textures.texture_path(3, 16)
+    assert png.parent == tmp_path / f'textures_v{textures.TEXTURE_VERSION}' and png.is_file()
+    assert cv2.imread(str(png)).shape == (16, 16, 3)
+    monkeypatch.setenv('ASSIST_CACHE_DIR', 'off')             # pybullet reads files: a scratch folder then
+    scratch = textures.texture_path(3, 16)
+    assert scratch.is_file() and not scratch.is_relative_to(tmp_path)
 
 
 def test_52_distinct_deterministic_materials():

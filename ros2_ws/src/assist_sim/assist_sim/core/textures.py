@@ -7,6 +7,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from assist_common.cache import scratch_dir
+
 TEXTURE_VERSION = 1
 _PATTERNS = ('checker', 'stripes', 'noise', 'bricks', 'wood', 'dots', 'tiles', 'gradient',
              'marble', 'grid', 'plaid', 'speckle', 'hexish')
@@ -83,10 +85,8 @@ def make_texture(index: int, size: int = 64) -> np.ndarray:
 
 
 def texture_cache_dir() -> Path:
-    """Folder for generated texture PNGs (pybullet loads textures from files)."""
-    root = os.environ.get('ASSIST_SIM_CACHE') or os.path.join(
-        os.environ.get('XDG_CACHE_HOME', os.path.expanduser('~/.cache')), 'assist_sim')
-    return Path(root) / f'textures_v{TEXTURE_VERSION}'
+    """Folder for generated texture PNGs in the user's cache (pybullet loads textures from files)."""
+    return scratch_dir(f'textures_v{TEXTURE_VERSION}')
 
 
 def texture_path(index: int, size: int = 64) -> Path:

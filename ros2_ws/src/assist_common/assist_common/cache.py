@@ -1,0 +1,42 @@
+"""The user's cache: files the stack can always make again (exported models, generated textures).
+
+One root for every package: `$ASSIST_CACHE_DIR` when set, else `$XDG_CACHE_HOME/assist` (an absolute
+XDG_CACHE_HOME only, as the XDG base-directory specification says), else `~/.cache/assist`. Each user of
+the cache has its own folder below the root. `ASSIST_CACHE_DIR=off` turns caching off: `cache_dir`
+then returns None and its caller keeps what it makes in memory, or in `scratch_dir` when it needs files.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+CACHE_ENV = 'ASSIST_CACHE_DIR'
+OFF = 'off'
+
+
+def cache_root() -> Path | None:
+    """The cache's root folder (None when ASSIST_CACHE_DIR is 'off')."""
+    root = os.environ.get(CACHE_ENV, '')
+    if root.lower() == OFF:
+        return None
+    if not root:
+        xdg = os.environ.get('XDG_CACHE_HOME', '')
+        root = os.path.join(xdg if os.path.isabs(xdg) else os.path.join(Path.home(), '.cache'), 'assist')
+    return Path(root)
+
+
+def cache_dir(name: str) -> Path | None:
+    """The cache folder of one kind of file, `name` (e.g. 'onnx'); None when caching is off."""
+    root = cache_root()
+    return None if root is None else root / name
+
+
+def scratch_dir(name: str) -> Path:
+    """`cache_dir(name)`, or when caching is off a folder of this user's in the system's temporary directory
+    (for files a library can only read from disk, such as pybullet's textures)."""
+    folder = cache_dir(name)
+    if folder is not None:
+        return folder
+    uid = os.getuid() if hasattr(os, 'getuid') else 0
+    return Path(tempfile.gettempdir()) / f'assist-scratch-{uid}' / name
