@@ -65,11 +65,32 @@ def test_help_lists_every_parameter(answers, name):
 
 @pytest.mark.parametrize('name', NODES)
 def test_version_is_the_package_version(answers, name):
-    package, _ = NODES[name]
     code, stdout, stderr = answers[(name, '--version')]
-    version = ET.parse(REPO / 'ros2_ws' / 'src' / package / 'package.xml').getroot().findtext('version')
     assert code == 0, stderr[-3000:]
-    assert stdout == f'{name} ({package}) {version}\n'
+    assert stdout == answers_version(name)
+
+
+def test_version_is_answered_without_importing_the_node(tmp_path):
+    """A node's --version comes from its package, before the node's module (rclpy, torch) is imported: with a torch
+    that cannot be imported, --version still answers and --help fails."""
+    broken = tmp_path / 'torch'
+    broken.mkdir()
+    (broken / '__init__.py').write_text("raise ImportError('torch is not importable in this test')\n")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), os.environ.get('PYTHONPATH', '')]),
+               ROS_DOMAIN_ID=str(private_domain_id()))
+    version = subprocess.run([str(BIN / 'policy_node'), '--version', '--ros-args', '-p', 'mode:=latent'],
+                             capture_output=True, text=True, timeout=60, env=env)
+    assert version.returncode == 0 and version.stdout == answers_version('policy_node'), version.stderr
+    helped = subprocess.run([str(BIN / 'policy_node'), '--version', '--help'], capture_output=True, text=True,
+                            timeout=60, env=env)
+    assert helped.returncode != 0 and 'torch is not importable in this test' in helped.stderr
+
+
+def answers_version(name: str) -> str:
+    """What `name --version` prints: 'name (package) version' from the package's package.xml."""
+    package, _ = NODES[name]
+    version = ET.parse(REPO / 'ros2_ws' / 'src' / package / 'package.xml').getroot().findtext('version')
+    return f'{name} ({package}) {version}\n'
 
 
 def test_flags_after_ros_args_are_not_ours():

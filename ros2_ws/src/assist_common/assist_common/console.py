@@ -7,22 +7,57 @@ Each package's `entry_points` module names its executables with `quiet_main`: th
 when the program runs, and a Ctrl-C before `main` has installed its own handling ends the program
 without a traceback. While importing, SIGINT exits at once (nothing is open yet): a KeyboardInterrupt
 raised inside a C extension's initialisation comes out as an unrelated ImportError (rclpy's
-"C extension ... isn't present on the system"), so catching it would not be enough.
+"C extension ... isn't present on the system"), so catching it would not be enough. A node's `--version`
+is answered here, before the import (the version is the package's, not the module's).
 """
 from __future__ import annotations
 
 import importlib
+import importlib.metadata
 import logging
 import os
 import signal
 import sys
 import typing
+import xml.etree.ElementTree as ET
 from collections.abc import Callable, Iterable
 
 #: Exit code of a ROS node stopped by Ctrl-C: it did what was asked, as run_node returns after a Ctrl-C.
 NODE_INTERRUPTED = 0
 #: Exit code of a command-line tool stopped by Ctrl-C (the shell convention, 128 + SIGINT).
 TOOL_INTERRUPTED = 130
+HELP_FLAGS = ('-h', '--help')
+VERSION_FLAG = '--version'
+
+
+def package_version(package: str) -> str:
+    """Version of an installed package: its Python distribution's, else its package.xml's in the ament index."""
+    try:
+        return importlib.metadata.version(package)
+    except importlib.metadata.PackageNotFoundError:
+        pass
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        version = ET.parse(os.path.join(get_package_share_directory(package), 'package.xml')).findtext('version')
+    except (ImportError, LookupError, OSError, ValueError, ET.ParseError):
+        version = None
+    return (version or 'unknown').strip()
+
+
+def version_text(prog: str, package: str) -> str:
+    """The --version answer of executable `prog` of `package`: 'prog (package) version'."""
+    return f'{prog} ({package}) {package_version(package)}\n'
+
+
+def own_arguments(argv: list[str]) -> list[str]:
+    """A node's own command-line arguments: those before --ros-args (the rest are ROS's)."""
+    return argv[:argv.index('--ros-args')] if '--ros-args' in argv else list(argv)
+
+
+def asks_only_version(argv: list[str]) -> bool:
+    """True when a node's own arguments ask for --version and not for --help."""
+    own = own_arguments(argv)
+    return VERSION_FLAG in own and not any(a in HELP_FLAGS for a in own)
 
 
 def quiet_main(target: str, interrupted: int = NODE_INTERRUPTED) -> Callable[[], int]:
@@ -35,6 +70,10 @@ def quiet_main(target: str, interrupted: int = NODE_INTERRUPTED) -> Callable[[],
         os._exit(interrupted)
 
     def main() -> int:
+        if interrupted == NODE_INTERRUPTED and asks_only_version(sys.argv[1:]):
+            # answered without importing the node (torch and rclpy are seconds of start-up)
+            sys.stdout.write(version_text(os.path.basename(sys.argv[0]), target.split('.')[0]))
+            return 0
         quiet = signal.getsignal(signal.SIGINT) is signal.default_int_handler   # not when SIGINT is ignored
         if quiet:
             signal.signal(signal.SIGINT, exit_now)

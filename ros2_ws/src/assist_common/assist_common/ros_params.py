@@ -2,11 +2,8 @@
 --help text and table, and the start-up error every node reports in one line."""
 from __future__ import annotations
 
-import importlib.metadata
 import math
-import os
 import sys
-import xml.etree.ElementTree as ET
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -14,6 +11,8 @@ from typing import Any
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+
+from .console import HELP_FLAGS, VERSION_FLAG, own_arguments, package_version, version_text  # noqa: F401 - re-exported
 
 
 class StartupError(RuntimeError):
@@ -184,22 +183,6 @@ def check_overrides(node: Node) -> None:
 
 
 
-HELP_FLAGS = ('-h', '--help')
-VERSION_FLAG = '--version'
-
-
-def package_version(package: str) -> str:
-    """Version of an installed package: its Python distribution's, else its package.xml's in the ament index."""
-    try:
-        return importlib.metadata.version(package)
-    except importlib.metadata.PackageNotFoundError:
-        pass
-    try:
-        from ament_index_python.packages import get_package_share_directory
-        version = ET.parse(os.path.join(get_package_share_directory(package), 'package.xml')).findtext('version')
-    except (ImportError, LookupError, OSError, ValueError, ET.ParseError):
-        version = None
-    return (version or 'unknown').strip()
 
 
 def _param_type(p: Param) -> str:
@@ -250,7 +233,7 @@ def console_request(factory: Callable[[], Node], args: list[str] | None,
                     params: Mapping[str, Param] | None) -> str | None:
     """The text --help or --version asks for (flags before --ros-args only), else None: the node should start."""
     argv = sys.argv[1:] if args is None else list(args)
-    own = argv[:argv.index('--ros-args')] if '--ros-args' in argv else argv
+    own = own_arguments(argv)
     if not any(a in HELP_FLAGS or a == VERSION_FLAG for a in own):
         return None
     module = getattr(factory, '__module__', None) or __name__
@@ -259,8 +242,3 @@ def console_request(factory: Callable[[], Node], args: list[str] | None,
         doc = (getattr(sys.modules.get(module), '__doc__', None) or '').strip()
         return node_help(prog, doc.splitlines()[0] if doc else '', params)
     return version_text(prog, package)
-
-
-def version_text(prog: str, package: str) -> str:
-    """The --version answer of executable `prog` of `package`: 'prog (package) version'."""
-    return f'{prog} ({package}) {package_version(package)}\n'
