@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from .participant import (FLIGHT_START_TIMEOUT_S, STEP_TIMEOUT_S, Flyer, ParticipantError, Profile, cue_shown, felt,
-                          sus_answers, survey_answers)
+                          step_key, sus_answers, survey_answers)
 from .study import CUE_CONDITION, phase_block
 from .testing import start_browser
 
@@ -91,12 +91,10 @@ class BrowserParticipant:
         """Click a study button and wait until the station's view moves on to another step (participant, phase,
         trial or a landing begun) or an error shows; a view of the same step (its stage changing, say) is not the
         result of the click."""
-        def step(view: dict[str, Any] | None) -> tuple | None:
-            return None if view is None else tuple(view.get(k) for k in ('participant', 'phase', 'trial', 'in_flight'))
-        before = step(self._view())
+        before = step_key(self._view())
         errors = self._stats()['errors']
         self._click(element_id)
-        st = self._wait(lambda s: step(s['study']) != before or s['errors'] > errors, f'the result of {element_id}')
+        st = self._wait(lambda s: step_key(s['study']) != before or s['errors'] > errors, f'the result of {element_id}')
         if st['errors'] > errors:
             text = self.driver.execute_script("const e = document.getElementById('study-error'); "
                                               "return e ? e.textContent : '';")

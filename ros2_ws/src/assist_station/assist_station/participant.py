@@ -50,6 +50,12 @@ CUE_TRUST = (0.5, 1.0)            # a participant's cue_trust is drawn uniformly
 CUE_TRUST_SALT = 0x637565         # its own generator: drawing it changes none of the other profile values
 
 
+def step_key(view: dict[str, Any] | None) -> tuple | None:
+    """Which step of the protocol a study view shows (participant, phase, trial, a landing in flight): a study
+    action's result is a view with another key."""
+    return None if view is None else tuple(view.get(k) for k in ('participant', 'phase', 'trial', 'in_flight'))
+
+
 class ParticipantError(RuntimeError):
     """The station refused a step or stopped answering."""
 
@@ -305,12 +311,13 @@ class Participant:
         await self.ws.send_str(json.dumps(obj))
 
     async def _step(self, action: str, **data: Any) -> None:
-        """Send a study step and wait until the station's view moves on (or reports an error)."""
-        before = json.dumps(self.view, sort_keys=True)
+        """Send a study step and wait until the station's view moves on to another step (`step_key`) or reports an
+        error; a view of the same step (its stage changing as the last landing's bag closes, say) is not the result
+        of this one, and taking it for one would send the step twice."""
+        before = step_key(self.view)
         n_err = len(self.errors)
         await self._send({'type': 'study', 'action': action, **data})
-        await self._wait(lambda: json.dumps(self.view, sort_keys=True) != before or len(self.errors) > n_err,
-                         f'the result of {action}')
+        await self._wait(lambda: step_key(self.view) != before or len(self.errors) > n_err, f'the result of {action}')
         if len(self.errors) > n_err:
             raise ParticipantError(f'station refused {action}: {self.errors[-1]}')
 
