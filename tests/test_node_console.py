@@ -71,11 +71,11 @@ def test_version_is_the_package_version(answers, name):
 
 
 def test_version_is_answered_without_importing_the_node(tmp_path):
-    """A node's --version comes from its package, before the node's module (rclpy, torch) is imported: with a torch
+    """A node's --version comes from its package, before the node's module (rclpy, torch) is imported: with an rclpy
     that cannot be imported, --version still answers and --help fails."""
-    broken = tmp_path / 'torch'
+    broken = tmp_path / 'rclpy'
     broken.mkdir()
-    (broken / '__init__.py').write_text("raise ImportError('torch is not importable in this test')\n")
+    (broken / '__init__.py').write_text("raise ImportError('rclpy is not importable in this test')\n")
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), os.environ.get('PYTHONPATH', '')]),
                ROS_DOMAIN_ID=str(private_domain_id()))
     version = subprocess.run([str(BIN / 'policy_node'), '--version', '--ros-args', '-p', 'mode:=latent'],
@@ -83,7 +83,7 @@ def test_version_is_answered_without_importing_the_node(tmp_path):
     assert version.returncode == 0 and version.stdout == answers_version('policy_node'), version.stderr
     helped = subprocess.run([str(BIN / 'policy_node'), '--version', '--help'], capture_output=True, text=True,
                             timeout=60, env=env)
-    assert helped.returncode != 0 and 'torch is not importable in this test' in helped.stderr
+    assert helped.returncode != 0 and 'rclpy is not importable in this test' in helped.stderr
 
 
 def answers_version(name: str) -> str:
