@@ -29,6 +29,7 @@ def run() -> list[dict]:
     hz = _rate(lambda: agent.act(obs), 2000)
     rows.append({'name': 'actor inference (latent, 256x256 MLP, 1 thread)', 'value': 1e3 / hz, 'unit': 'ms',
                  'target': '< 2 ms (20 Hz policy)'})
+    rows += _actor_backend_rows()
     buf = ReplayBuffer(dim, 3, 10_000)
     rng = np.random.default_rng(0)
     for _ in range(1000):
@@ -72,6 +73,32 @@ def run() -> list[dict]:
     rows.append({'name': 'latent env steps/s per CPU-second (render + depth noise + CM-VAE, 1 thread)',
                  'value': sps, 'unit': 'steps/s', 'target': '>= 500'})
     rows += _batched_encoder_rows()
+    return rows
+
+
+def _actor_backend_rows(n: int = 2000) -> list[dict]:
+    """The shipped latent actor one observation at a time on torch and on ONNX Runtime (policy_node's backends), and
+    the CPU seconds of importing policy_node's module with and without torch."""
+    import subprocess
+    import sys
+
+    from assist_policy.actor_runtime import load_actor_runtime, observation_size
+    from assist_policy.policy_core import default_model_path
+    path = default_model_path('latent')
+    rows = []
+    for backend in ('torch', 'onnxruntime'):
+        actor = load_actor_runtime(path, backend, threads=1)
+        obs, pos = np.zeros(observation_size(actor.meta), np.float32), np.zeros(3)
+        actor(obs, pos)
+        hz = _rate(lambda a=actor, o=obs, p=pos: a(o, p), n)
+        rows.append({'name': f'shipped latent actor per step, {backend} (1 thread)', 'value': 1e3 / hz, 'unit': 'ms',
+                     'target': '< 2 ms (20 Hz policy)'})
+    for what, code in (('policy_node module (no torch)', 'import assist_policy.policy_node'),
+                       ('policy_node module + torch', 'import assist_policy.policy_node, torch')):
+        out = subprocess.run([sys.executable, '-c', f'import resource; {code}; r = resource.getrusage(0); '
+                              'print(r.ru_utime + r.ru_stime)'], capture_output=True, text=True, check=True)
+        rows.append({'name': f'import CPU time: {what}', 'value': float(out.stdout.split()[-1]), 'unit': 's',
+                     'target': 'lower is better (once per node start)'})
     return rows
 
 

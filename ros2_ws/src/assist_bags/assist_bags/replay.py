@@ -358,7 +358,8 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
             core_cfg = settings.config_from(PolicyCoreConfig, flown, mode=mode, actor_velocity=frame)
         except (TypeError, ValueError) as exc:
             raise BagError(f'{bag}: policy_node parameters recorded in the bag are not usable: {exc}') from None
-        core = PolicyCore(actor, core_cfg)
+        # the actor on what the node ran it on (a graph bag records actor_backend; evaluate's bags run torch)
+        core = PolicyCore(actor, core_cfg, str(pp.get('actor_backend', 'torch')))
         encode = None
         noise_seeds = _noise_seeds(custom.get(DEPTH_NOISE_KEY))
         ep = encoder_params or {}

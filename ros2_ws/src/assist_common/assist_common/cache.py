@@ -7,9 +7,12 @@ then returns None and its caller keeps what it makes in memory, or in `scratch_d
 """
 from __future__ import annotations
 
+import logging
 import os
 import tempfile
 from pathlib import Path
+
+_LOG = logging.getLogger(__name__)
 
 CACHE_ENV = 'ASSIST_CACHE_DIR'
 OFF = 'off'
@@ -40,3 +43,27 @@ def scratch_dir(name: str) -> Path:
         return folder
     uid = os.getuid() if hasattr(os, 'getuid') else 0
     return Path(tempfile.gettempdir()) / f'assist-scratch-{uid}' / name
+
+
+def store(path: Path, data: bytes, keep: int, what: str) -> bool:
+    """Write `data` to `path` in the cache (atomic) and keep only the newest `keep` files with its suffix in its
+    folder; a failure (read-only or full disk) is logged as a warning naming `what`, not raised. True when stored."""
+    from .atomic import write_bytes_atomic
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_bytes_atomic(path, data)
+        files = sorted(path.parent.glob(f'*{path.suffix}'), key=lambda f: f.stat().st_mtime, reverse=True)
+        for old in files[keep:]:
+            old.unlink(missing_ok=True)
+        return True
+    except OSError as exc:
+        _LOG.warning('could not cache %s in %s (%s): it is made again at every start', what, path.parent, exc)
+        return False
+
+
+def touch(path: Path) -> None:
+    """Mark a cache file as just used (the pruning in `store` keeps the newest); a failure is only debug-logged."""
+    try:
+        os.utime(path)
+    except OSError as exc:
+        _LOG.debug('could not mark %s as used (%s)', path, exc)

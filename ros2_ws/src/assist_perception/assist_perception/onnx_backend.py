@@ -23,7 +23,6 @@ import hashlib
 import importlib.util
 import io
 import logging
-import os
 import warnings
 from pathlib import Path
 
@@ -31,8 +30,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from assist_common.atomic import write_bytes_atomic
-from assist_common.cache import cache_dir as user_cache_dir
+from assist_common.cache import cache_dir as user_cache_dir, store, touch
 
 from .model import CMVAE, preprocess_tensor
 
@@ -117,19 +115,6 @@ def export_key(model: CMVAE) -> str:
     return h.hexdigest()[:32]
 
 
-def _store(path: Path, data: bytes) -> None:
-    """Write one export to the cache and drop the oldest beyond CACHE_KEEP; a failure is logged, not raised."""
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        write_bytes_atomic(path, data)
-        files = sorted(path.parent.glob('*.onnx'), key=lambda f: f.stat().st_mtime, reverse=True)
-        for old in files[CACHE_KEEP:]:
-            old.unlink(missing_ok=True)
-    except OSError as exc:
-        _LOG.warning('could not cache the exported CM-VAE encoder in %s (%s): it is exported at every start',
-                     path.parent, exc)
-
-
 def _check_against_torch(session, model: CMVAE, tol: float = 1e-3) -> None:
     """ValueError unless `session` gives torch's mu and pad XYZ on a fixed probe frame (to `tol`)."""
     s = model.cfg.image_size
@@ -175,15 +160,12 @@ class OnnxMuXyz:
             except Exception as exc:  # noqa: BLE001 - ORT raises its own types for a corrupt file
                 _LOG.warning('cached CM-VAE export %s is not usable (%s): exporting it again', path, exc)
             else:
-                try:
-                    os.utime(path)                # recently used: kept by the pruning
-                except OSError as exc:
-                    _LOG.debug('could not mark %s as used (%s)', path, exc)
+                touch(path)                       # recently used: kept by the pruning
                 return session
         data = export_mu_xyz(model)
         session = ort.InferenceSession(data, opts, providers=['CPUExecutionProvider'])
         if path is not None:
-            _store(path, data)
+            store(path, data, CACHE_KEEP, 'the exported CM-VAE encoder')
         return session
 
     def __call__(self, rgb: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -42,7 +42,7 @@ from .loop import AssistLoop
 from .observation import Condition, ObservationBuilder, image_feature, oracle_feature
 from .poses import PoseHistory
 from .rules import RULES, all_settings, changed, rule_fields
-from .actor import load_actor, run_actor
+from .actor_runtime import image_size, load_actor_runtime
 from .settings import nested, node_param
 from assist_common.settings import check_named, setting
 
@@ -149,10 +149,13 @@ class PolicyOutput:
 class PolicyCore:
     """Holds the latest inputs, builds observations, runs the actor, applies the blending rule."""
 
-    def __init__(self, actor_path: str | Path, cfg: PolicyCoreConfig | None = None):
+    def __init__(self, actor_path: str | Path, cfg: PolicyCoreConfig | None = None, actor_backend: str = 'torch',
+                 actor_threads: int = 1):
         self.cfg = cfg or PolicyCoreConfig()
         self.mode = Condition(self.cfg.mode)
-        self.actor, self.meta = load_actor(actor_path)      # metadata and weights validated there
+        # metadata and weights validated there; 'torch' is the lab's path (actor_runtime.BACKENDS)
+        self.actor = load_actor_runtime(actor_path, actor_backend, actor_threads)
+        self.meta = self.actor.meta
         trained = self.meta.get('condition')
         if trained is not None and trained != self.mode.value:
             raise ValueError(f'{actor_path}: actor was trained for {trained!r}, not mode {self.mode.value!r}')
@@ -345,9 +348,9 @@ XX
             feature = image_feature(rgb, depth).reshape(-1)
         except ValueError as exc:
             raise self._reject('image_size', str(exc)) from None
-        if feature.size != self.actor.trunk.img_size:
+        if feature.size != image_size(self.meta):
             raise self._reject('image_size', f'image of {feature.size} values, the actor expects '
-                                              f'{self.actor.trunk.img_size}')
+                                              f'{image_size(self.meta)}')
         self._feature = (t, feature)
 
     def set_depth(self, t: float, depth: np.ndarray, stamp: float | None = None) -> None:
@@ -511,7 +514,7 @@ XX
                 return None, 'feature_stale', f'{self.mode.value} input stale or absent', None
             feature = self._feature[1]
         obs = self.loop.observation(now, feature, vel, pos, u)
-        raw, learned = run_actor(self.actor, obs, pos)
+        raw, learned = self.actor(obs, pos)
         if not np.all(np.isfinite(raw)):
             self.rejected += 1
             return None, 'actor_nonfinite', 'actor output not finite (rejected)', None

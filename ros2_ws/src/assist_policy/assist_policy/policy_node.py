@@ -28,7 +28,6 @@ import threading
 import time
 
 import numpy as np
-import torch
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PointStamped, PoseWithCovarianceStamped, TwistStamped
 from nav_msgs.msg import Odometry
@@ -46,6 +45,7 @@ from assist_common.ros_run import executor_param, exit_process, realtime_priorit
 
 from . import settings
 from .flight import REASONS as FLIGHT_REASONS, LandedState
+from .actor_runtime import BACKENDS
 from .policy_core import InputRejected, PolicyCore, PolicyCoreConfig, PolicyOutput, default_model_path
 from .poses import header_seconds
 from .rules import RULES
@@ -58,8 +58,11 @@ NODE_PARAMS = {
                             'end_to_end (raw RGB-D images).', choices=('latent', 'oracle', 'end_to_end')),
     'rate_hz': Param(20.0, 'Actor rate (the training control rate is 20 Hz).', min=0.0, max=200.0,
                      min_exclusive=True),
-    'torch_threads': Param(1, 'Intra-op CPU threads for the actor (1 is fastest for this small network).',
-                           min=1, max=64),
+    'actor_backend': Param('auto', 'What runs the actor: onnxruntime (an export of the actor file, cached by its '
+                                   'hash: no torch at start-up), torch (as evaluate and training), or auto '
+                                   '(onnxruntime when installed).', choices=BACKENDS),
+    'torch_threads': Param(1, 'Intra-op CPU threads for the actor, on either backend (1 is fastest for this small '
+                              'network).', min=1, max=64),
     'error_after_faults': Param(20, 'Consecutive failed steps (exceptions or non-finite actor output) after which '
                                     'diagnostics report ERROR (20 = 1 s at 20 Hz).', min=1, max=100_000),
     'warn_period_s': Param(2.0, 'Minimum seconds between repeated warnings of the same reason.', min=0.0,
@@ -131,13 +134,12 @@ class PolicyNode(Node):
         self.p['mode'] = mode
         self.diag = Diagnostics(self)
         self._warn_throttle = ReasonThrottle(self.p['warn_period_s'])
-        # a 256x256 MLP gains nothing from intra-op threads; spinning OpenMP workers would starve
-        # the sim and the other nodes on a small machine
-        torch.set_num_threads(int(self.p['torch_threads']))
         path = self.p['model_path'] or str(default_model_path(mode))
         try:
             cfg = settings.config_from(PolicyCoreConfig, self.p, mode=mode)
-            self.core = PolicyCore(path, cfg)
+            # a 256x256 MLP gains nothing from intra-op threads; spinning workers would starve the sim and the
+            # other nodes on a small machine
+            self.core = PolicyCore(path, cfg, self.p['actor_backend'], int(self.p['torch_threads']))
         except ValueError as exc:
             raise StartupError(f'policy_node: {exc}') from None
         self._lock = threading.Lock()
@@ -177,11 +179,13 @@ class PolicyNode(Node):
                           callback_group=MutuallyExclusiveCallbackGroup())
         self.diag.set('model_path', path)
         self.diag.set('mode', mode)
+        self.diag.set('actor_backend', self.core.actor.backend)
         self.diag.set('assist_enabled', 'on' if self.p['assist_enabled'] else 'off')
         for switch in RULE_SWITCHES:
             self.diag.set(switch, 'on' if self.p[switch] else 'off')
         self.diag.status(DiagnosticStatus.WARN, 'relinquished: waiting for inputs')
-        self.get_logger().info(f'policy_node: {mode} actor {path} at {self.p["rate_hz"]} Hz')
+        self.get_logger().info(f'policy_node: {mode} actor {path} on {self.core.actor.backend} '
+                               f'at {self.p["rate_hz"]} Hz')
 
     # ------------------------------------------------------------- parameters
     def _on_params(self, changed: dict) -> None:
