@@ -64,10 +64,14 @@ def test_onnxruntime_gives_torch_s_action_and_goal_for_every_kind_of_actor(tmp_p
 
 
 def test_a_start_with_a_cached_export_imports_neither_torch_nor_onnx(tmp_path, cache):
+    """policy_node's module and its core on the auto backend: with the export cached, no torch, no onnx."""
     path = write_actor(tmp_path / 'a.pt', 'memory')
     load_actor_runtime(path, 'onnxruntime')                       # fills the cache
-    code = ('import sys, numpy as np; from assist_policy.actor_runtime import load_actor_runtime, observation_size\n'
-            f'a = load_actor_runtime({str(path)!r}, "auto")\n'
+    code = ('import sys, numpy as np\n'
+            'import assist_policy.policy_node\n'
+            'from assist_policy.actor_runtime import observation_size\n'
+            'from assist_policy.policy_core import PolicyCore, PolicyCoreConfig\n'
+            f'a = PolicyCore({str(path)!r}, PolicyCoreConfig(mode="latent"), "auto").actor\n'
             'raw, goal = a(np.zeros(observation_size(a.meta), np.float32), np.zeros(3))\n'
             'print(type(a).__name__, "torch" in sys.modules, "onnx" in sys.modules, raw.shape, goal is not None)')
     out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=120,
