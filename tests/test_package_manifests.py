@@ -36,7 +36,7 @@ OPTIONAL = {'ray': {'assist_lab'}}
 ROS = {'rclpy', 'launch', 'launch_ros', 'ament_index_python', 'builtin_interfaces', 'rosidl_runtime_py'}
 # Needed at run time though never imported by name: torch.onnx.export loads onnx.
 RUNTIME_ONLY = {('assist_perception', 'python3-onnx-pip'): 'torch.onnx.export (the onnxruntime backend) needs it',
-                ('assist_policy', 'python3-onnx-pip'): 'torch.onnx.export (policy_node\'s actor_backend onnxruntime) needs it'}
+                ('assist_policy', 'python3-onnx-pip'): 'torch.onnx.export (actor_backend onnxruntime) needs it'}
 # Started by a launch file only under a launch argument that a vehicle does not use; not a dependency.
 OPTIONAL_LAUNCH = {('assist_bridge', 'assist_sim'): 'onboard.launch.py camera:=sim tries the split without hardware',
                    ('assist_bridge', 'realsense2_camera'): "the camera's driver, from the ROS distribution"}

@@ -114,7 +114,15 @@ def test_exception_anywhere_in_the_step_relinquishes_counts_and_stays_up(make):
 def test_broken_actor_output_is_an_error_state_not_ok(make):
     n = make(error_after_faults=5)
     n.inputs()
-    n.node.core.actor.forward = lambda obs: torch.full((1, 3), math.nan)
+    actor = n.node.core.actor
+
+    class Overflowing:
+        """The actor of the node (its metadata and backend) with a network that overflows at run time."""
+        meta, backend = actor.meta, actor.backend
+
+        def __call__(self, obs, position):
+            return np.full(3, math.nan), None
+    n.node.core.actor = Overflowing()
     n.tick()
     assert n.level[0] == WARN and 'not finite' in n.level[1]
     n.inputs()

@@ -64,7 +64,7 @@ def test_nonfinite_actor_output_never_reaches_velocity(tmp_path):
     # NaN weights are refused at load (test_policy_td3); a network can still overflow at run time
     core = PolicyCore(constant_actor(tmp_path / 'a.pt', [0.5, 0.5, 0.5]), PolicyCoreConfig(mode='latent'))
     with torch.no_grad():
-        core.actor.head[-1].bias.fill_(float('nan'))
+        core.actor.net.head[-1].bias.fill_(float('nan'))
     feed(core, 1.0)
     out = core.step(1.0)
     assert out.agent is None and 'not finite' in out.reason and out.key == 'actor_nonfinite'
