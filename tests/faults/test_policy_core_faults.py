@@ -152,7 +152,7 @@ def test_any_exception_inside_step_relinquishes_to_the_pilot(actor_file):
 
     def broken(obs):
         raise RuntimeError('simulated actor failure')
-    core.actor.forward = broken             # the network itself raises
+    core.actor.net.forward = broken         # the network itself raises (PolicyCore runs torch by default)
     out = core.step(1.0)
     assert out.agent is None and out.key == 'step_error' and out.fault == 'RuntimeError'
     np.testing.assert_allclose(out.velocity, [1.5, 0.0, 0.5])      # V = u, clamped
