@@ -31,6 +31,7 @@ import torch
 from torch import nn
 
 from assist_common.cache import cache_dir as user_cache_dir, store, touch
+from assist_common.onnx_session import cpu_session
 
 from .model import CMVAE, preprocess_tensor
 
@@ -134,28 +135,18 @@ class OnnxMuXyz:
     """An ONNX Runtime session computing (mu, xyz, valid-depth fraction) from raw 64x64 RGB-D frames."""
 
     def __init__(self, model: CMVAE, threads: int = 1):
-        import onnxruntime as ort   # imported here: only this backend needs it
-
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = max(0, int(threads))    # 0 = ORT's default (one per core)
-        opts.inter_op_num_threads = 1
-        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        # idle intra-op threads sleep instead of spinning: the per-frame path must not burn a core
-        opts.add_session_config_entry('session.intra_op.allow_spinning', '0')
-        opts.log_severity_level = 3       # errors only: ORT's info lines are not for our users
+        self.threads = threads
         model_cpu = model if next(model.parameters()).device.type == 'cpu' else model.cpu()
-        self.session = self._session(ort, model_cpu, opts)
-        _LOG.debug('onnxruntime %s session for the CM-VAE (%d intra-op threads)', ort.__version__, threads)
+        self.session = self._session(model_cpu)
+        _LOG.debug('onnxruntime session for the CM-VAE (%d intra-op threads)', threads)
 
-    @staticmethod
-    def _session(ort, model: CMVAE, opts):
+    def _session(self, model: CMVAE):
         """A session from the cached export of `model` when there is a loadable one, else from a new export."""
         folder = cache_dir()
         path = folder / f'{export_key(model)}.onnx' if folder is not None else None
         if path is not None and path.is_file():
             try:
-                session = ort.InferenceSession(str(path), opts, providers=['CPUExecutionProvider'])
+                session = cpu_session(path, self.threads)
                 _check_against_torch(session, model)
             except Exception as exc:  # noqa: BLE001 - ORT raises its own types for a corrupt file
                 _LOG.warning('cached CM-VAE export %s is not usable (%s): exporting it again', path, exc)
@@ -163,7 +154,7 @@ class OnnxMuXyz:
                 touch(path)                       # recently used: kept by the pruning
                 return session
         data = export_mu_xyz(model)
-        session = ort.InferenceSession(data, opts, providers=['CPUExecutionProvider'])
+        session = cpu_session(data, self.threads)
         if path is not None:
             store(path, data, CACHE_KEEP, 'the exported CM-VAE encoder')
         return session

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from assist_common.cache import cache_dir, store, touch
+from assist_common.onnx_session import cpu_session
 
 from .actor_meta import learned_goal, validate_actor_meta
 from .intent import LearnedGoal
@@ -79,21 +80,11 @@ class OnnxActor:
     backend = 'onnxruntime'
 
     def __init__(self, path: str | Path, threads: int = 1):
-        import onnxruntime as ort   # imported here: only this backend needs it
-
-        self.path = Path(path)
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = max(0, int(threads))    # 0 = ORT's default (one per core)
-        opts.inter_op_num_threads = 1
-        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        opts.add_session_config_entry('session.intra_op.allow_spinning', '0')   # idle threads must not burn a core
-        opts.log_severity_level = 3       # errors only
-        self._ort, self._opts = ort, opts
+        self.path, self.threads = Path(path), threads
         self.session, self.meta = self._load()
 
-    def _session(self, data: bytes | str):
-        return self._ort.InferenceSession(data, self._opts, providers=['CPUExecutionProvider'])
+    def _session(self, model: bytes | Path):
+        return cpu_session(model, self.threads)
 
     def _load(self) -> tuple[Any, dict[str, Any]]:
         """(session, metadata) from the cache when it holds a usable export of this file, else from a new export."""
@@ -104,7 +95,7 @@ class OnnxActor:
             try:
                 probe = json.loads(onnx_path.with_suffix('.json').read_text())
                 meta = validate_actor_meta(probe['meta'])
-                session = self._session(str(onnx_path))
+                session = self._session(onnx_path)
                 _check(self._run(session, np.asarray(probe['obs'], np.float32), meta['goal_head']),
                        np.asarray(probe['action'], np.float32),
                        None if probe['head'] is None else np.asarray(probe['head'], np.float32))
