@@ -7,6 +7,7 @@ then returns None and its caller keeps what it makes in memory, or in `scratch_d
 """
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
 import tempfile
@@ -45,19 +46,35 @@ def scratch_dir(name: str) -> Path:
     return Path(tempfile.gettempdir()) / f'assist-scratch-{uid}' / name
 
 
-def store(path: Path, data: bytes, keep: int, what: str) -> bool:
-    """Write `data` to `path` in the cache (atomic) and keep only the newest `keep` files with its suffix in its
-    folder; a failure (read-only or full disk) is logged as a warning naming `what`, not raised. True when stored."""
+def file_key(path: str | Path, *parts: str) -> str:
+    """A cache key for what is made from one file: a hash of `parts` (versions, settings) and the file's bytes."""
+    h = hashlib.sha256('|'.join(parts).encode() + b'|')
+    with open(path, 'rb') as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b''):
+            h.update(chunk)
+    return h.hexdigest()[:32]
+
+
+def store_entry(folder: Path, key: str, files: dict[str, bytes], keep: int, what: str) -> bool:
+    """Write one cache entry, files `key + suffix` (atomic each, in the order given: write the file that marks the
+    entry complete last), then drop the oldest entries beyond `keep` in `folder` (an entry: the files of one key).
+    A failure (read-only or full disk) is logged as a warning naming `what`, not raised. True when stored."""
     from .atomic import write_bytes_atomic
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        write_bytes_atomic(path, data)
-        files = sorted(path.parent.glob(f'*{path.suffix}'), key=lambda f: f.stat().st_mtime, reverse=True)
-        for old in files[keep:]:
-            old.unlink(missing_ok=True)
+        folder.mkdir(parents=True, exist_ok=True)
+        for suffix, data in files.items():
+            write_bytes_atomic(folder / f'{key}{suffix}', data)
+        entries: dict[str, float] = {}
+        for f in folder.iterdir():
+            if f.is_file() and not f.name.startswith('.'):
+                k = f.name.split('.', 1)[0]
+                entries[k] = max(entries.get(k, 0.0), f.stat().st_mtime)
+        for old in sorted(entries, key=entries.get, reverse=True)[keep:]:
+            for f in folder.glob(f'{old}.*'):
+                f.unlink(missing_ok=True)
         return True
     except OSError as exc:
-        _LOG.warning('could not cache %s in %s (%s): it is made again at every start', what, path.parent, exc)
+        _LOG.warning('could not cache %s in %s (%s): it is made again at every start', what, folder, exc)
         return False
 
 

@@ -12,17 +12,25 @@ from __future__ import annotations
 import threading
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Generic, TypeVar
+from typing import TYPE_CHECKING, Any, Generic, TypeVar
+
+import logging
 
 import cv2
 import numpy as np
-import torch
 
 from assist_common.images import COLOR_ENCODINGS, DEPTH_ENCODINGS, BadFrame, decode_color, decode_depth  # noqa: F401
 from assist_common.shipped import shipped_model_path
 
-from .model import CMVAE, load_model, preprocess
-from .onnx_backend import OnnxMuXyz, resolve_backend
+from .errors import ModelLoadError
+from .onnx_backend import OnnxCMVAE, resolve_backend
+
+if TYPE_CHECKING:
+    import torch
+
+    from .model import CMVAE
+
+_LOG = logging.getLogger(__name__)
 
 _T = TypeVar('_T')
 
@@ -71,6 +79,7 @@ def resize_pair(rgb: np.ndarray, depth: np.ndarray, size: int) -> tuple[np.ndarr
 
 def check_device(device: str) -> torch.device:
     """Parse a torch device string and check it exists here; raises ValueError."""
+    import torch
     try:
         dev = torch.device(device)
     except (RuntimeError, TypeError) as exc:
@@ -83,58 +92,95 @@ def check_device(device: str) -> torch.device:
 
 
 class LatentEncoder:
-    """Loads the CM-VAE once and encodes RGB-D frames (any resolution) to mu / pad XYZ / depth."""
+    """Loads the CM-VAE once and encodes RGB-D frames (any resolution) to mu / pad XYZ / depth.
+
+    On the onnxruntime backend with the export cached (onnx_backend) no torch is imported: the torch model
+    (`model`) is loaded only when something asks for it."""
 
     def __init__(self, model_path: str | Path | None = None, device: str = 'cpu',
                  threads: int = 1, min_valid_fraction: float = 0.01, warm_up: bool = True,
                  backend: str = 'auto'):
         self.model_path = Path(model_path) if model_path else default_model_path()
-        self.device = check_device(device)
-        self.backend = resolve_backend(backend, self.device)
-        if threads > 0:
-            torch.set_num_threads(threads)
-        self.model: CMVAE = load_model(self.model_path, self.device)
-        # NHWC ("channels last") weights and inputs: on CPU the 64x64 convolutions and the max-pool
-        # run ~2.3x faster than NCHW (bench `perception`); mu agrees with NCHW to ~1e-6
-        self.model.to(memory_format=torch.channels_last)
-        # mu + pad XYZ (the per-frame path) through ONNX Runtime on CPU: same weights, exported in memory
-        self._ort = OnnxMuXyz(self.model, threads) if self.backend == 'onnxruntime' else None
+        # 'cpu' is known without torch; any other device string is torch's to parse
+        self.device = 'cpu' if device == 'cpu' else check_device(device)
+        self.backend = resolve_backend(backend, 'cpu' if device == 'cpu' else self.device.type)
+        self.threads = int(threads)
         self.min_valid_fraction = float(min_valid_fraction)
+        self._model: CMVAE | None = None
+        self._ort: OnnxCMVAE | None = None
+        if not self.model_path.is_file():
+            raise ModelLoadError(f'CM-VAE weights file not found: {self.model_path}')
+        if self.backend == 'onnxruntime':
+            try:
+                # mu + pad XYZ (the per-frame path) and the depth decoder through ONNX Runtime: same weights
+                self._ort = OnnxCMVAE(self.model_path, lambda: self.model, self.threads)
+            except ModelLoadError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - the exporter and ORT raise many types
+                if backend == 'onnxruntime':
+                    raise ValueError(f'CM-VAE {self.model_path}: cannot run it on onnxruntime '
+                                     f'({type(exc).__name__}: {exc})') from None
+                _LOG.warning('CM-VAE %s: cannot run it on onnxruntime (%s: %s); running it on torch',
+                             self.model_path, type(exc).__name__, exc)
+                self.backend = 'torch'
+        if self._ort is not None:
+            self.image_size, self._latent_dim = self._ort.image_size, self._ort.latent_dim
+        else:
+            self.image_size, self._latent_dim = int(self.model.cfg.image_size), int(self.model.cfg.latent_dim)
         if warm_up:
             self.warm_up()
 
-    @torch.inference_mode()
+    @property
+    def model(self) -> CMVAE:
+        """The torch CM-VAE (loaded on first use: the onnxruntime backend with a cached export never needs it)."""
+        if self._model is None:
+            import torch
+
+            from .model import load_model
+            if self.threads > 0:
+                torch.set_num_threads(self.threads)
+            model = load_model(self.model_path, self.device)
+            # NHWC ("channels last") weights and inputs: on CPU the 64x64 convolutions and the max-pool
+            # run ~2.3x faster than NCHW (bench `perception`); mu agrees with NCHW to ~1e-6
+            self._model = model.to(memory_format=torch.channels_last)
+        return self._model
+
     def warm_up(self) -> None:
-        """Run every network once on a synthetic frame: torch's first inference allocates and picks
-        kernels (~15 ms instead of ~1 ms), which must not land on the first real frame."""
-        s = self.model.cfg.image_size
+        """Run every network once on a synthetic frame: the first inference allocates and picks kernels (~15 ms
+        instead of ~1 ms on torch), which must not land on the first real frame."""
+        s = self.image_size
         rgb = np.full((1, s, s, 3), 128, np.uint8)
         depth = np.full((1, s, s), 2.5, np.float32)
         for _ in range(2):
             mu, _, _ = self._mu_xyz(rgb, depth)
-            self.model.decode_depth(torch.as_tensor(mu, device=self.device))
+            self.decode_depth(mu[0])
 
     def _mu_xyz(self, rgb64: np.ndarray, d64: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(N,64,64,3) uint8 + (N,64,64) depth -> mu (N,L), pad XYZ (N,3), valid-depth fraction (N,)."""
         if self._ort is not None:
             return self._ort(rgb64, d64)
-        mu, _ = self.model.encode(self._input(rgb64, d64))
-        xyz = self.model.decode_xyz(mu)
-        return mu.cpu().numpy().astype(np.float32), xyz.cpu().numpy().astype(np.float32), valid_fraction(d64)
+        import torch
+        with torch.inference_mode():
+            mu, _ = self.model.encode(self._input(rgb64, d64))
+            xyz = self.model.decode_xyz(mu)
+            return mu.cpu().numpy().astype(np.float32), xyz.cpu().numpy().astype(np.float32), valid_fraction(d64)
 
     def _input(self, rgb64: np.ndarray, d64: np.ndarray) -> torch.Tensor:
         """Prepared 64x64 frame(s) -> the network input on the device, channels-last like the weights."""
+        import torch
+
+        from .model import preprocess
         x = preprocess(rgb64, d64, self.model.cfg)
         return x.to(self.device).contiguous(memory_format=torch.channels_last)
 
     @property
     def latent_dim(self) -> int:
         """Size of mu."""
-        return int(self.model.cfg.latent_dim)
+        return self._latent_dim
 
     def _sized(self, rgb: np.ndarray, depth_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """A decoded frame checked and resized to the network's input size; raises BadFrame."""
-        s = self.model.cfg.image_size
+        s = self.image_size
         if (rgb.shape == (s, s, 3) and rgb.dtype == np.uint8 and depth_m.shape == (s, s)
                 and depth_m.dtype == np.float32):
             return rgb, depth_m        # already the network's size (the simulator's camera): no copies
@@ -168,7 +214,6 @@ class LatentEncoder:
         self._check_valid(float(valid_fraction(d64)))
         return rgb64, d64
 
-    @torch.inference_mode()
     def encode(self, rgb: np.ndarray, depth_m: np.ndarray, want_depth: bool = False,
                want_xyz: bool = True) -> EncoderOutput:
         """Encode one frame (uint8 RGB HxWx3, depth metres HxW); raises BadFrame.
@@ -184,16 +229,19 @@ class LatentEncoder:
         depth = self.decode_depth(mu) if want_depth else None
         return EncoderOutput(mu, xyz, depth)
 
-    @torch.inference_mode()
     def decode_depth(self, mu: np.ndarray) -> np.ndarray:
         """Denoised depth (64x64 float32 metres) of one latent mean (after publishing mu); raises BadFrame."""
-        z = torch.as_tensor(np.asarray(mu, np.float32)[None], device=self.device)
-        depth = self.model.decode_depth(z)[0].cpu().numpy().astype(np.float32)
+        if self._ort is not None:
+            depth = self._ort.decode_depth(np.asarray(mu, np.float32)[None])[0]
+        else:
+            import torch
+            with torch.inference_mode():
+                z = torch.as_tensor(np.asarray(mu, np.float32)[None], device=self.device)
+                depth = self.model.decode_depth(z)[0].cpu().numpy().astype(np.float32)
         if not np.all(np.isfinite(depth)):
             raise BadFrame('nonfinite_output', 'the depth decoder produced non-finite values')
         return depth
 
-    @torch.inference_mode()
     def encode_mu_batch(self, rgbs: list[np.ndarray], depths: list[np.ndarray]) -> np.ndarray:
         """mu of N frames in one forward pass (vectorised environments): (N, latent_dim) float32.
 

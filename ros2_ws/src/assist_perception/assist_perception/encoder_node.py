@@ -34,7 +34,7 @@ from assist_common.ros_run import executor_param, exit_process, realtime_priorit
 
 from .encoder_core import BadFrame, LatentEncoder, LatestOnly, StampPairer, decode_color, decode_depth
 from .level import DEFAULT_MIN_TILT_DEG, AttitudeBuffer, level_frame, level_rotation, tilt_deg
-from .model import ModelLoadError
+from .errors import ModelLoadError
 from .noise import apply_depth_noise, frame_rng
 from .onnx_backend import BACKENDS
 

@@ -21,13 +21,11 @@ from torch.nn import functional as F
 from assist_common.atomic import atomic_path
 from assist_common.settings import SettingsError, check_named, setting
 
+from .errors import ModelLoadError
+
 MODEL_FORMAT = 'assist_perception.cmvae'
 MODEL_VERSION = 1
 MAX_RANGE_M = 1000.0      # no depth scale, depth limit or pad coordinate of a downward camera exceeds this
-
-
-class ModelLoadError(RuntimeError):
-    """A CM-VAE weights file is missing, corrupt or of the wrong kind (one clear message)."""
 
 
 def _plain(v: Any) -> Any:

@@ -99,12 +99,12 @@ def test_construction_warms_every_network_up_once_unless_told_not_to(encoder, mo
     assert calls == {'encode': 0, 'decode_xyz': 0, 'decode_depth': 0}
     LatentEncoder(encoder.model_path, threads=1, backend='torch')
     assert all(n >= 1 for n in calls.values()), calls
-    # the onnxruntime backend: its session runs at start-up too (the export traces the torch model once)
-    from assist_perception.onnx_backend import OnnxMuXyz
+    # the onnxruntime backend: its sessions run at start-up too, beyond the one probe frame that checks an export
+    from assist_perception.onnx_backend import OnnxCMVAE
     runs = []
-    orig_call = OnnxMuXyz.__call__
-    monkeypatch.setattr(OnnxMuXyz, '__call__', lambda self, rgb, d: runs.append(rgb.shape) or orig_call(self, rgb, d))
+    orig_call = OnnxCMVAE.__call__
+    monkeypatch.setattr(OnnxCMVAE, '__call__', lambda self, rgb, d: runs.append(rgb.shape) or orig_call(self, rgb, d))
     LatentEncoder(encoder.model_path, threads=1, warm_up=False, backend='onnxruntime')
-    assert runs == []
+    assert runs == [(1, 64, 64, 3)]                       # the probe check only
     LatentEncoder(encoder.model_path, threads=1, backend='onnxruntime')
-    assert len(runs) >= 1, runs
+    assert len(runs) >= 3, runs                           # its probe check and the warm-up frames

@@ -5,7 +5,8 @@ import torch
 
 from assist_perception.encoder_core import BadFrame, LatentEncoder, default_model_path
 from assist_perception.model import CMVAE, CMVAEConfig, load_model, preprocess_tensor, save_model
-from assist_perception.onnx_backend import OnnxMuXyz, resolve_backend
+from assist_perception import onnx_backend
+from assist_perception.onnx_backend import OnnxCMVAE, export_depth, export_mu_xyz, resolve_backend
 
 
 def _frames(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -36,7 +37,7 @@ def test_mu_and_xyz_match_torch(which, tmp_path):
     # batched (vectorised envs): one ORT run with a dynamic batch axis
     np.testing.assert_allclose(ort_enc.encode_mu_batch(list(rgb), list(depth)),
                                torch_enc.encode_mu_batch(list(rgb), list(depth)), atol=2e-5, rtol=1e-5)
-    # the depth decoder (on demand) still runs on torch and agrees
+    # the depth decoder (on demand) runs on ONNX Runtime too and agrees
     np.testing.assert_allclose(ort_enc.encode(rgb[0], depth[0], want_depth=True).depth,
                                torch_enc.encode(rgb[0], depth[0], want_depth=True).depth, atol=1e-6)
 
@@ -44,19 +45,19 @@ def test_mu_and_xyz_match_torch(which, tmp_path):
 def test_export_leaves_the_model_in_its_mode():
     model = load_model(default_model_path())
     model.train()
-    OnnxMuXyz(model)
+    export_mu_xyz(model)
+    export_depth(model)
     assert model.training
 
 
 def test_backend_choice():
-    cpu = torch.device('cpu')
-    assert resolve_backend('auto', cpu) == 'onnxruntime'
-    assert resolve_backend('torch', cpu) == 'torch'
+    assert resolve_backend('auto', 'cpu') == 'onnxruntime'
+    assert resolve_backend('torch', 'cpu') == 'torch'
     with pytest.raises(ValueError, match='unknown inference backend'):
-        resolve_backend('tensorrt', cpu)
+        resolve_backend('tensorrt', 'cpu')
     with pytest.raises(ValueError, match='CPU only'):
-        resolve_backend('onnxruntime', torch.device('cuda'))
-    assert resolve_backend('auto', torch.device('cuda')) == 'torch'
+        resolve_backend('onnxruntime', 'cuda')
+    assert resolve_backend('auto', 'cuda') == 'torch'
 
 
 def test_onnx_backend_rejects_what_torch_rejects():
@@ -88,60 +89,109 @@ def _small(seed: int) -> CMVAE:
     return CMVAE(CMVAEConfig(latent_dim=8)).eval()
 
 
-def test_export_cached_by_weights_and_reused(tmp_path, monkeypatch):
-    from assist_perception import onnx_backend
+def _small_file(path, seed: int):
+    save_model(path, _small(seed))
+    return path
+
+
+def _loader(path):
+    return lambda: load_model(path)
+
+
+def _no_model():
+    raise AssertionError('the torch model was loaded although the cache holds this file')
+
+
+def test_export_cached_by_file_and_reused_without_the_torch_model(tmp_path, monkeypatch):
     monkeypatch.setenv('ASSIST_CACHE_DIR', str(tmp_path / 'cache'))
-    model = _small(5)
+    path = _small_file(tmp_path / 'm.pt', 5)
     rgb, depth = _frames(2)
-    first = OnnxMuXyz(model)
-    files = list((tmp_path / 'cache' / 'onnx').glob('*.onnx'))
-    assert [f.stem for f in files] == [onnx_backend.export_key(model)]
-
-    def no_export(_model):
-        raise AssertionError('exported although the cache holds this model')
-    monkeypatch.setattr(onnx_backend, 'export_mu_xyz', no_export)
-    second = OnnxMuXyz(model)
+    first = OnnxCMVAE(path, _loader(path))
+    key = onnx_backend.export_key(path)
+    assert sorted(f.name for f in (tmp_path / 'cache' / 'onnx').iterdir()) == [f'{key}.depth.onnx', f'{key}.json',
+                                                                              f'{key}.onnx']
+    second = OnnxCMVAE(path, _no_model)
+    assert (second.latent_dim, second.image_size) == (8, 64)
     np.testing.assert_array_equal(first(rgb, depth)[0], second(rgb, depth)[0])
-    # other weights: another key (here refused because exporting is patched out)
-    other = _small(6)
-    assert onnx_backend.export_key(other) != onnx_backend.export_key(model)
-    with pytest.raises(AssertionError, match='exported although'):
-        OnnxMuXyz(other)
+    np.testing.assert_array_equal(first.decode_depth(first(rgb, depth)[0]), second.decode_depth(second(rgb, depth)[0]))
+    # other weights in the same file: another key, so never the old export
+    _small_file(path, 6)
+    assert onnx_backend.export_key(path) != key
+    with pytest.raises(AssertionError, match='torch model was loaded'):
+        OnnxCMVAE(path, _no_model)
 
 
-@pytest.mark.parametrize('damage', ['corrupt', 'other_model'])
-def test_a_bad_cache_file_is_exported_again_and_replaced(damage, tmp_path, monkeypatch, caplog):
-    from assist_perception import onnx_backend
+def test_a_start_with_a_cached_export_imports_neither_torch_nor_onnx(tmp_path):
+    import os
+    import subprocess
+    import sys
+    env = dict(os.environ, ASSIST_CACHE_DIR=str(tmp_path / 'cache'))
+    code = ('import sys, numpy as np\n'
+            'import assist_perception.encoder_node\n'
+            'from assist_perception.encoder_core import LatentEncoder\n'
+            'e = LatentEncoder(threads=1)\n'
+            'out = e.encode(np.full((48, 64, 3), 100, np.uint8), np.full((48, 64), 2.0, np.float32), want_depth=True)\n'
+            'print(e.backend, "torch" in sys.modules, "onnx" in sys.modules, out.mu.shape, out.depth.shape)')
+    runs = [subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=120, env=env)
+            for _ in range(2)]
+    assert all(r.returncode == 0 for r in runs), runs[-1].stderr
+    assert runs[0].stdout.split()[:2] == ['onnxruntime', 'True']        # the first start exports
+    assert runs[1].stdout.split() == ['onnxruntime', 'False', 'False', '(10,)', '(64,', '64)']
+
+
+@pytest.mark.parametrize('damage', ['corrupt', 'other_model', 'bad_probe', 'no_depth'])
+def test_a_bad_cache_entry_is_exported_again_and_replaced(damage, tmp_path, monkeypatch, caplog):
     monkeypatch.setenv('ASSIST_CACHE_DIR', str(tmp_path))
-    model = _small(7)
-    path = tmp_path / 'onnx' / f'{onnx_backend.export_key(model)}.onnx'
-    path.parent.mkdir()
-    path.write_bytes(b'\x00garbage' if damage == 'corrupt' else onnx_backend.export_mu_xyz(_small(8)))
+    path = _small_file(tmp_path / 'm.pt', 7)
+    OnnxCMVAE(path, _loader(path))
+    key = onnx_backend.export_key(path)
+    onnx_file, probe = tmp_path / 'onnx' / f'{key}.onnx', tmp_path / 'onnx' / f'{key}.json'
+    if damage == 'corrupt':
+        onnx_file.write_bytes(b'\x00garbage')
+    elif damage == 'other_model':
+        onnx_file.write_bytes(export_mu_xyz(_small(8)))
+    elif damage == 'bad_probe':
+        probe.write_text('{"latent_dim": 8')
+    else:
+        (tmp_path / 'onnx' / f'{key}.depth.onnx').unlink()
     rgb, depth = _frames(3)
-    enc = OnnxMuXyz(model)
+    enc = OnnxCMVAE(path, _loader(path))
     assert 'is not usable' in caplog.text
+    model = load_model(path)
     with torch.no_grad():
         mu_t, _ = model.encode(preprocess_tensor(torch.from_numpy(rgb), torch.from_numpy(depth), model.cfg))
     np.testing.assert_allclose(enc(rgb, depth)[0], mu_t.numpy(), atol=2e-5, rtol=1e-5)
     caplog.clear()
-    OnnxMuXyz(model)                                            # the replaced file is good
+    OnnxCMVAE(path, _no_model)                                  # the replaced entry is good
     assert 'is not usable' not in caplog.text
 
 
+def test_an_export_that_disagrees_with_torch_is_never_run(tmp_path, monkeypatch, caplog):
+    monkeypatch.setenv('ASSIST_CACHE_DIR', str(tmp_path / 'cache'))
+    monkeypatch.setattr(onnx_backend, 'PROBE_TOL', -1.0)         # no export can pass: as if ORT computed otherwise
+    path = _small_file(tmp_path / 'm.pt', 2)
+    with pytest.raises(ValueError, match='differs from torch'):
+        LatentEncoder(path, backend='onnxruntime')
+    enc = LatentEncoder(path, backend='auto')
+    assert enc.backend == 'torch' and 'running it on torch' in caplog.text
+    assert not (tmp_path / 'cache' / 'onnx').exists()
+
+
 def test_cache_off_unwritable_and_pruned(tmp_path, monkeypatch, caplog):
-    from assist_perception import onnx_backend
+    paths = [_small_file(tmp_path / f'm{seed}.pt', seed) for seed in (1, 2, 3)]
     monkeypatch.setenv('ASSIST_CACHE_DIR', 'off')
-    OnnxMuXyz(_small(1))
+    OnnxCMVAE(paths[0], _loader(paths[0]))
     assert onnx_backend.cache_dir() is None
     blocker = tmp_path / 'file'
     blocker.write_text('a file where the cache folder would be')
     monkeypatch.setenv('ASSIST_CACHE_DIR', str(blocker))
     rgb, depth = _frames(1)
-    assert OnnxMuXyz(_small(1))(rgb, depth)[0].shape == (1, 8)      # works, the failure only logged
+    assert OnnxCMVAE(paths[0], _loader(paths[0]))(rgb, depth)[0].shape == (1, 8)    # works, the failure only logged
     assert 'could not cache' in caplog.text
     monkeypatch.setenv('ASSIST_CACHE_DIR', str(tmp_path / 'c'))
     monkeypatch.setattr(onnx_backend, 'CACHE_KEEP', 2)
-    for seed in (1, 2, 3):
-        OnnxMuXyz(_small(seed))
-    kept = {f.stem for f in (tmp_path / 'c' / 'onnx').glob('*.onnx')}
-    assert kept == {onnx_backend.export_key(_small(2)), onnx_backend.export_key(_small(3))}
+    for path in paths:
+        OnnxCMVAE(path, _loader(path))
+    kept = {f.name.split('.')[0] for f in (tmp_path / 'c' / 'onnx').iterdir()}
+    assert kept == {onnx_backend.export_key(paths[1]), onnx_backend.export_key(paths[2])}
+    assert len(list((tmp_path / 'c' / 'onnx').iterdir())) == 6          # whole entries: onnx, depth and probe

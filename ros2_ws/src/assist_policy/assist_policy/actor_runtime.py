@@ -14,8 +14,6 @@ run it. The two agree to ~1e-6 in the raw action (test_policy_actor_runtime.py).
 """
 from __future__ import annotations
 
-import hashlib
-import importlib.metadata
 import importlib.util
 import io
 import json
@@ -26,7 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from assist_common.cache import cache_dir, store, touch
+from assist_common.cache import cache_dir, file_key, store_entry, touch
+from assist_common.console import package_version
 from assist_common.onnx_session import cpu_session
 
 from .actor_meta import learned_goal, validate_actor_meta
@@ -89,9 +88,9 @@ class OnnxActor:
     def _load(self) -> tuple[Any, dict[str, Any]]:
         """(session, metadata) from the cache when it holds a usable export of this file, else from a new export."""
         folder = cache_dir(CACHE_FOLDER)
-        key = file_key(self.path)
+        key = export_key(self.path)
         onnx_path = folder / f'{key}.onnx' if folder is not None else None
-        if onnx_path is not None and onnx_path.is_file():
+        if onnx_path is not None and onnx_path.with_suffix('.json').is_file():
             try:
                 probe = json.loads(onnx_path.with_suffix('.json').read_text())
                 meta = validate_actor_meta(probe['meta'])
@@ -114,9 +113,9 @@ class OnnxActor:
         if onnx_path is not None:
             entry = {'meta': torch_actor.meta, 'obs': obs.tolist(), 'action': action.tolist(),
                      'head': None if head is None else head.tolist(), 'source': str(self.path)}
-            # the probe first: an export without its probe is never read as a hit
-            if store(onnx_path.with_suffix('.json'), json.dumps(entry).encode(), CACHE_KEEP, 'an actor probe'):
-                store(onnx_path, data, CACHE_KEEP, 'the exported actor')
+            # the probe last: an entry without it is never read as a hit
+            store_entry(onnx_path.parent, key, {'.onnx': data, '.json': json.dumps(entry).encode()}, CACHE_KEEP,
+                        'the exported actor')
         return session, torch_actor.meta
 
     @staticmethod
@@ -131,17 +130,9 @@ class OnnxActor:
         return raw, (None if head is None else learned_goal(head[0], position))
 
 
-def file_key(path: Path) -> str:
+def export_key(path: Path) -> str:
     """A hash of what an export depends on: the actor file's bytes, torch's version, the export version."""
-    try:
-        torch_version = importlib.metadata.version('torch')
-    except importlib.metadata.PackageNotFoundError:
-        torch_version = 'none'
-    h = hashlib.sha256(f'{EXPORT_VERSION}|{torch_version}|'.encode())
-    with open(path, 'rb') as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b''):
-            h.update(chunk)
-    return h.hexdigest()[:32]
+    return file_key(path, str(EXPORT_VERSION), package_version('torch'))
 
 
 def probe_observation(size: int) -> np.ndarray:
