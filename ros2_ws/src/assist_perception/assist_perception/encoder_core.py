@@ -153,7 +153,7 @@ class LatentEncoder:
         depth = np.full((1, s, s), 2.5, np.float32)
         for _ in range(2):
             mu, _, _ = self._mu_xyz(rgb, depth)
-            self.decode_depth(mu[0])
+            self._depth(mu)
 
     def _mu_xyz(self, rgb64: np.ndarray, d64: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(N,64,64,3) uint8 + (N,64,64) depth -> mu (N,L), pad XYZ (N,3), valid-depth fraction (N,)."""
@@ -164,6 +164,15 @@ class LatentEncoder:
             mu, _ = self.model.encode(self._input(rgb64, d64))
             xyz = self.model.decode_xyz(mu)
             return mu.cpu().numpy().astype(np.float32), xyz.cpu().numpy().astype(np.float32), valid_fraction(d64)
+
+    def _depth(self, mu: np.ndarray) -> np.ndarray:
+        """(N, L) latent means -> (N, 64, 64) float32 denoised depth in metres (unchecked)."""
+        if self._ort is not None:
+            return self._ort.decode_depth(mu)
+        import torch
+        with torch.inference_mode():
+            z = torch.as_tensor(mu, device=self.device)
+            return self.model.decode_depth(z).cpu().numpy().astype(np.float32)
 
     def _input(self, rgb64: np.ndarray, d64: np.ndarray) -> torch.Tensor:
         """Prepared 64x64 frame(s) -> the network input on the device, channels-last like the weights."""
@@ -231,13 +240,7 @@ class LatentEncoder:
 
     def decode_depth(self, mu: np.ndarray) -> np.ndarray:
         """Denoised depth (64x64 float32 metres) of one latent mean (after publishing mu); raises BadFrame."""
-        if self._ort is not None:
-            depth = self._ort.decode_depth(np.asarray(mu, np.float32)[None])[0]
-        else:
-            import torch
-            with torch.inference_mode():
-                z = torch.as_tensor(np.asarray(mu, np.float32)[None], device=self.device)
-                depth = self.model.decode_depth(z)[0].cpu().numpy().astype(np.float32)
+        depth = self._depth(np.asarray(mu, np.float32)[None])[0]
         if not np.all(np.isfinite(depth)):
             raise BadFrame('nonfinite_output', 'the depth decoder produced non-finite values')
         return depth
