@@ -503,6 +503,15 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
                 elif alt > stamp:
                     maybe.setdefault(alt, []).append((k, mu))
                     return
+            # no neighbouring pad estimate gives it (the bag ended before the next frame's pad estimate): the
+            # complete frames right after and before this one in the bag
+            complete = sorted(s for s, (c, d) in frames.items() if c is not None and d is not None and s != stamp)
+            for alt in [s for s in complete if s > stamp][:1] + [s for s in complete if s < stamp][-1:]:
+                other = encode_frame(alt, count=False)
+                if is_recorded(other, k):
+                    counts['latent_frames_realigned'] += 1
+                    use_latent(k, other, t, now)
+                    return
             use_latent(k, mu, t, now)
 
         try:
