@@ -465,6 +465,7 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
         # frame stamp -> (recorded latent, the latent of the frame it was paired with) that wait for a neighbouring
         # frame still on its way, which may be the one it encodes
         maybe: dict[int, list[tuple[int, np.ndarray]]] = {}
+        next_frame: list[tuple[int, int, np.ndarray]] = []    # (frame stamp, latent, its mu): for the next frame
 
         def use_latent(k: int, mu: np.ndarray, t: int, now: float) -> None:
             """Hand re-encoded latent k to the core at bag time `t`."""
@@ -506,12 +507,16 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
             # no neighbouring pad estimate gives it (the bag ended before the next frame's pad estimate): the
             # complete frames right after and before this one in the bag
             complete = sorted(s for s, (c, d) in frames.items() if c is not None and d is not None and s != stamp)
-            for alt in [s for s in complete if s > stamp][:1] + [s for s in complete if s < stamp][-1:]:
+            later = [s for s in complete if s > stamp][:1]
+            for alt in later + [s for s in complete if s < stamp][-1:]:
                 other = encode_frame(alt, count=False)
                 if is_recorded(other, k):
                     counts['latent_frames_realigned'] += 1
                     use_latent(k, other, t, now)
                     return
+            if not later:                 # the next frame is still on its way (recorded after this latent)
+                next_frame.append((stamp, k, mu))
+                return
             use_latent(k, mu, t, now)
 
         try:
@@ -569,6 +574,12 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
                         if at_latents and rgb is not None and depth is not None:
                             for k in waiting.pop(st, []):     # latents the recorder got before their frame
                                 apply_latent(k, st, t, now)
+                            for entry in [e for e in next_frame if e[0] < st]:
+                                next_frame.remove(entry)
+                                other = encode_frame(st, count=False)
+                                hit = is_recorded(other, entry[1])
+                                counts['latent_frames_realigned'] += hit
+                                use_latent(entry[1], other if hit else entry[2], t, now)
                             pending = maybe.pop(st, [])
                             other = encode_frame(st, count=False) if pending else None    # once per frame
                             for k, mu in pending:
@@ -635,6 +646,8 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
     for pending in maybe.values():      # the bag ended before the neighbouring frame: the frame paired by order
         for k, mu in pending:
             res.latents[k] = mu
+    for _, k, mu in next_frame:
+        res.latents[k] = mu
     # recorded agent_cmd -> the step whose /cmd_vel carries the same header stamp (policy_node stamps both alike)
     keys = cmd_stamps if ticks_from_bag else res.times_ns
     steps_of: dict[int, list[int]] = {}
