@@ -574,13 +574,9 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
                         if at_latents and rgb is not None and depth is not None:
                             for k in waiting.pop(st, []):     # latents the recorder got before their frame
                                 apply_latent(k, st, t, now)
-                            for entry in [e for e in next_frame if e[0] < st]:
-                                next_frame.remove(entry)
-                                other = encode_frame(st, count=False)
-                                hit = is_recorded(other, entry[1])
-                                counts['latent_frames_realigned'] += hit
-                                use_latent(entry[1], other if hit else entry[2], t, now)
-                            pending = maybe.pop(st, [])
+                            # latents waiting for the next frame after theirs, then those waiting for this one
+                            pending = [(k, mu) for s0, k, mu in next_frame if s0 < st] + maybe.pop(st, [])
+                            next_frame[:] = [e for e in next_frame if e[0] >= st]
                             other = encode_frame(st, count=False) if pending else None    # once per frame
                             for k, mu in pending:
                                 hit = is_recorded(other, k)

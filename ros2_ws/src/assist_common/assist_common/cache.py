@@ -79,7 +79,7 @@ def store_entry(folder: Path, key: str, files: dict[str, bytes], keep: int, what
 
 
 def touch(path: Path) -> None:
-    """Mark a cache file as just used (the pruning in `store` keeps the newest); a failure is only debug-logged."""
+    """Mark a cache file as just used (store_entry's pruning keeps the newest); a failure is only debug-logged."""
     try:
         os.utime(path)
     except OSError as exc:
