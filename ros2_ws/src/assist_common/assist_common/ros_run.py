@@ -2,6 +2,7 @@
 (``run_node``, ``exit_process``)."""
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import faulthandler
 import gc
@@ -252,6 +253,31 @@ def spin_off_main_thread(spinner, teardown: Callable[[], None] | None = None, co
         raise failure[0]
 
 
+@contextlib.contextmanager
+def _stop_signals_deferred():
+    """A SIGINT/SIGTERM arriving inside the block is acted on (KeyboardInterrupt) when the block ends.
+
+    rclpy's Executor.__init__ interrupted half-way leaves an object whose __del__ fails (CI: "Exception
+    ignored in Executor.__del__ ... no attribute '_sigint_gc'" after a Ctrl-C during start-up), so an
+    executor is built whole or not at all. From the main thread only (signal handlers live there).
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received: list[int] = []
+
+    def hold(signum, frame) -> None:
+        received.append(signum)
+    previous = {sig: signal.signal(sig, hold) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    if received:
+        raise KeyboardInterrupt(f'signal {received[0]}')
+
+
 def _interrupt(signum, frame) -> None:
     """SIGTERM handler: stop the node as a Ctrl-C does (rclpy's own handler is not installed)."""
     raise KeyboardInterrupt(f'signal {signum}')
@@ -320,8 +346,9 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None,
         kind = executor or ('single' if num_threads <= 1 else 'multi')
         if node.has_parameter(EXECUTOR_PARAM):
             kind = node.get_parameter(EXECUTOR_PARAM).value
-        spinner = make_executor(kind, num_threads)
-        spinner.add_node(node)
+        with _stop_signals_deferred():
+            spinner = make_executor(kind, num_threads)
+            spinner.add_node(node)
         _apply_realtime_priority(node)
         freeze_startup_heap()
         spin_off_main_thread(spinner, teardown=close_node)

@@ -381,3 +381,47 @@ def test_a_stop_signal_taken_by_another_thread_still_stops_the_spin():
     finally:
         signal.signal(signal.SIGINT, previous)
         rclpy.try_shutdown(context=context)
+
+
+EXECUTOR_INTERRUPTED_SCRIPT = textwrap.dedent('''
+    import os, signal, sys, time
+    import rclpy.executors
+    from rclpy.node import Node
+    from assist_common import ros_run as rc
+
+    real_guard = rclpy.executors.SignalHandlerGuardCondition
+
+    def guard_after_a_ctrl_c(context):
+        """The Ctrl-C lands half-way through the executor's __init__ (before it has its guard condition)."""
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)
+        return real_guard(context)
+
+    rclpy.executors.SignalHandlerGuardCondition = guard_after_a_ctrl_c
+
+    class N(Node):
+        def __init__(self):
+            super().__init__('interrupted_executor')
+
+        def close(self):
+            print('closed', flush=True)
+
+    code = rc.run_node(N, sys.argv[1:], executor='single')
+    print('exit code', code, flush=True)
+    sys.exit(code)
+''')
+
+
+def test_a_ctrl_c_while_the_executor_is_being_built_stops_the_node_quietly(tmp_path):
+    """A Ctrl-C half-way through rclpy's Executor.__init__ (seen in CI during start-up) waits until the
+    executor is whole: the node stops as after any Ctrl-C (close, exit 0) and no half-built executor is
+    left for the garbage collector ("Exception ignored in Executor.__del__ ... '_sigint_gc'")."""
+    import os
+    script = tmp_path / 'node.py'
+    script.write_text(EXECUTOR_INTERRUPTED_SCRIPT)
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60,
+                          env={**os.environ, 'ROS_DOMAIN_ID': str(private_domain_id())})
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out
+    assert 'Traceback' not in out and 'Exception ignored' not in out and 'KeyboardInterrupt' not in out, out
+    assert proc.stdout.splitlines() == ['closed', 'exit code 0'], out
