@@ -29,7 +29,7 @@ from assist_station.participant import Participant, draw_profiles
 from assist_station.simulate_study import SimulateArgs, StudyGraph, free_tcp_port, graph_params, study_file
 from assist_station.study import ALL_CONDITIONS, MEASURE_COLUMNS, condition_order
 
-pytestmark = [pytest.mark.graph, pytest.mark.slow(seconds=150)]
+pytestmark = [pytest.mark.graph, pytest.mark.slow(seconds=110)]
 RTF = 3.0                      # sim seconds per wall second (the landings need not be flown well here)
 STUDY = Path(__file__).resolve().parents[1] / 'ros2_ws' / 'src' / 'assist_station' / 'config' / 'study_cues.yaml'
 
