@@ -116,11 +116,11 @@ def budget(program: str, args: list[str]) -> list[str]:
         args = _set(args, '--workers', '1') if '--workers' in args else args   # no pool (the lab's tests fly one)
         return _cap(args, '--dagger-rounds', 1, default_when_absent=False)
     if program == 'simulate_study':
-        # the graph at 3x real time, as tests/test_study_graph.py flies it, and landings of at most 12 s (the
-        # landings need not be flown well: the protocol and its files are what is checked)
+        # the graph at 3x real time, as tests/test_study_graph.py flies it, and landings of at most 6 s (the
+        # landings need not be flown well: the protocol, its files and their analysis are what is checked)
         for opt, value in (('--participants', '1'), ('--landings-per-block', '1'), ('--practice', '0'),
                            ('--browser-participants', '0'), ('--record-bags', 'false'), ('--real-time-factor', '3'),
-                           ('--max-landing-s', '12')):
+                           ('--max-landing-s', '6')):
             args = _set(args, opt, value)
         return args
     if program == 'make_dataset':
