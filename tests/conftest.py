@@ -1,6 +1,7 @@
 """Shared fixtures for graph tests: a private ROS_DOMAIN_ID, an rclpy probe node, node subprocesses."""
 from __future__ import annotations
 
+import fcntl
 import os
 import shutil
 import subprocess
@@ -216,30 +217,49 @@ def wait():
 class ColconWorkspace:
     """A colcon build of a copy of this checkout (ros2_ws/src + models/, laid out as in the repo)."""
 
+    BUILT = 'colcon_build_done'       # written last: a folder without it holds a build that did not finish
+
     def __init__(self, root: Path, symlink: bool):
         self.root, self.symlink = root, symlink
         self.ws = root / 'ros2_ws'
         self.install = self.ws / 'install'
-        shutil.copytree(REPO / 'ros2_ws' / 'src', self.ws / 'src',
-                        ignore=shutil.ignore_patterns('__pycache__', '*.egg-info'))
-        shutil.copytree(REPO / 'models', root / 'models')
-        cmd = [str(BIN / 'colcon'), 'build'] + (['--symlink-install'] if symlink else [])
-        proc = subprocess.run(cmd, cwd=self.ws, capture_output=True, text=True, timeout=600)
-        assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+        if not (root / self.BUILT).is_file():
+            self._build()
         # what `source install/setup.bash` gives a ROS user
         out = subprocess.run(['bash', '-c', f'source {self.install}/setup.bash && env -0'],
                              capture_output=True, text=True, timeout=60, check=True).stdout
         self.env = dict(item.split('=', 1) for item in out.split('\0') if '=' in item)
 
+    def _build(self) -> None:
+        for part in (self.ws, self.root / 'models'):       # a build a killed run left unfinished
+            shutil.rmtree(part, ignore_errors=True)
+        shutil.copytree(REPO / 'ros2_ws' / 'src', self.ws / 'src',
+                        ignore=shutil.ignore_patterns('__pycache__', '*.egg-info'))
+        shutil.copytree(REPO / 'models', self.root / 'models')
+        cmd = [str(BIN / 'colcon'), 'build'] + (['--symlink-install'] if self.symlink else [])
+        proc = subprocess.run(cmd, cwd=self.ws, capture_output=True, text=True, timeout=600)
+        assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+        (self.root / self.BUILT).write_text('')
+
 
 @pytest.fixture(scope='session')
 def colcon_workspace(tmp_path_factory):
-    """Factory: colcon_workspace(symlink=False) -> ColconWorkspace, each kind built once per session."""
+    """Factory: colcon_workspace(symlink=False) -> ColconWorkspace, each kind built once per run.
+
+    Under pytest-xdist the builds live in the run's folder that every worker shares, behind a lock: the first
+    worker to need a kind builds it and the others use that build (test_workspace and test_launch_files run on
+    different workers; building on each cost ~40 s of CPU). Tests only read and run what is installed."""
+    base = tmp_path_factory.getbasetemp()
+    shared = base.parent if os.environ.get('PYTEST_XDIST_WORKER') else base
     built: dict[bool, ColconWorkspace] = {}
 
     def _get(symlink: bool = False) -> ColconWorkspace:
         if symlink not in built:
-            built[symlink] = ColconWorkspace(tmp_path_factory.mktemp('symlink' if symlink else 'plain'), symlink)
+            root = shared / ('colcon_symlink' if symlink else 'colcon_plain')
+            root.mkdir(exist_ok=True)
+            with open(shared / f'{root.name}.lock', 'w') as lock:
+                fcntl.flock(lock, fcntl.LOCK_EX)        # released when the file closes
+                built[symlink] = ColconWorkspace(root, symlink)
         return built[symlink]
     return _get
 
