@@ -35,7 +35,7 @@ return arguments[0].filter(([name, value]) => {
 #: answers not checked afterwards.
 ANSWERS_CLICK_JS = """
 const find = ([name, value]) => document.querySelector(`input[name="${name}"][value="${value}"]`);
-for (const answer of arguments[0]) { const e = find(answer); if (!e.checked) e.click(); }
+for (const answer of arguments[0]) { const e = find(answer); if (e && !e.checked) e.click(); }
 return arguments[0].filter((answer) => { const e = find(answer); return !e || !e.checked; })
                    .map(([name, value]) => `${name}=${value}`);
 """
