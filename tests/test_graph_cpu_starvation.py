@@ -1,8 +1,8 @@
 """The assisted graph with a late pilot link on a loaded CPU: the pilot's late commands still fly the vehicle.
 
-evaluate_graph flies assisted landings at 4x real time while busy processes (one per core) load
-the CPU, and every pilot command reaches policy_node LATE_S of sim time after its stamp (a relay in this
-process holds each one back; on a starved onboard computer the delay comes from the scheduler). A pilot command
+evaluate_graph flies assisted landings at 2x real time while busy processes (one per core) load the CPU (at 4x
+the policy ran only 46-59 % of the control steps and where a landing ended was left to chance), and every pilot
+command reaches policy_node LATE_S of sim time after its stamp (a relay in this process holds each one back; on a starved onboard computer the delay comes from the scheduler). A pilot command
 stamped more than pilot_timeout_s before its arrival is still the pilot's latest and is flown (policy_node's
 README, "Late inputs"): dropping them left the vehicle hovering with u = 0 until the episode's timeout.
 """
@@ -107,7 +107,7 @@ def late_link(domain_id, monkeypatch):
 def test_a_late_pilot_on_a_loaded_cpu_still_flies_to_the_pad(domain_id, tmp_path, cpu_load, late_link):
     out = tmp_path / 'eval'
     args = graph_eval.GraphEvalArgs(out=str(out), conditions=('latent',), betas=(0.5, 1.0), landings=2,
-                                    seed=2024, pilot='paper', real_time_factor=4.0, domain_id=domain_id,
+                                    seed=2024, pilot='paper', real_time_factor=2.0, domain_id=domain_id,
                                     landing_timeout_s=300.0, startup_timeout_s=300.0, plot=False)
     graph_eval.evaluate_graph(args)
     assert all(p.is_alive() for p in cpu_load), 'the load ended before the landings did'
