@@ -2,9 +2,10 @@
 
 evaluate_graph flies assisted landings at 2x real time while busy processes (one per core) load the CPU (at 4x
 the policy ran only 46-59 % of the control steps and where a landing ended was left to chance), and every pilot
-command reaches policy_node LATE_S of sim time after its stamp (a relay in this process holds each one back; on a starved onboard computer the delay comes from the scheduler). A pilot command
-stamped more than pilot_timeout_s before its arrival is still the pilot's latest and is flown (policy_node's
-README, "Late inputs"): dropping them left the vehicle hovering with u = 0 until the episode's timeout.
+command reaches policy_node LATE_S of sim time after its stamp (a relay in this process holds each one back; on a
+starved onboard computer the delay comes from the scheduler). A pilot command stamped more than pilot_timeout_s
+before its arrival is still the pilot's latest and is flown (policy_node's README, "Late inputs"): dropping them
+left the vehicle hovering with u = 0 until the episode's timeout.
 """
 from __future__ import annotations
 
