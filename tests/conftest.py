@@ -231,7 +231,7 @@ class ColconWorkspace:
         self.env = dict(item.split('=', 1) for item in out.split('\0') if '=' in item)
 
     def _build(self) -> None:
-        for part in (self.ws, self.root / 'models'):       # a build a killed run left unfinished
+        for part in (self.ws, self.root / 'models'):       # what a failed build of another worker left
             shutil.rmtree(part, ignore_errors=True)
         shutil.copytree(REPO / 'ros2_ws' / 'src', self.ws / 'src',
                         ignore=shutil.ignore_patterns('__pycache__', '*.egg-info'))
