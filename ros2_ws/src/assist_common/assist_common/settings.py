@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import logging
 import math
 import sys
@@ -121,6 +122,13 @@ def _shown(value: Any) -> str:
     return text if len(text) <= 80 else text[:77] + '...'
 
 
+@functools.cache
+def _type_hints(cls: type) -> dict[str, Any]:
+    """typing.get_type_hints of a settings class, once per class (it compiles every string annotation anew, and
+    some settings objects are made per camera frame)."""
+    return typing.get_type_hints(cls)
+
+
 def check_settings(obj: Any) -> None:
     """SettingsError (one line, naming the --flag) unless every field of dataclass `obj` fits its type and Rule.
 
@@ -128,7 +136,7 @@ def check_settings(obj: Any) -> None:
     SettingsError itself).
     """
     cls = type(obj)
-    hints = typing.get_type_hints(cls)
+    hints = _type_hints(cls)
     for f in dataclasses.fields(cls):
         value = getattr(obj, f.name)
         why = _type_problem(hints.get(f.name, Any), value)

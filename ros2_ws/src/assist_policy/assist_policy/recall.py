@@ -211,8 +211,7 @@ class PadMap:
         xy = pts[..., :2].reshape(-1, 2)
         xy = xy[np.all(np.isfinite(xy), axis=1)]
         if len(xy):
-            cells = np.unique(np.floor(xy / c.cell_m).astype(np.int64), axis=0)
-            self.seen.update(map(tuple, cells.tolist()))
+            self.seen.update(_distinct_cells(np.floor(xy / c.cell_m).astype(np.int64)))
             if len(self.seen) > c.max_seen_cells:
                 self._forget_far(np.asarray(position, dtype=float)[:2])
         zw = pts[..., 2]
@@ -422,6 +421,16 @@ def depth_points(depth: np.ndarray, position: np.ndarray, quaternion: np.ndarray
     r_wo = r_wb @ R_BODY_FROM_OPTICAL
     cam = np.asarray(position, dtype=float).reshape(3) + r_wb @ np.array([0.0, 0.0, -camera_offset_m])
     return optical @ r_wo.T + cam
+
+
+def _distinct_cells(ij: np.ndarray) -> list[tuple[int, int]]:
+    """The distinct (i, j) rows of an Nx2 int64 array, as tuples: each row packed into one int64 (i in the high
+    half, j's low 32 bits in the low half) so that one 1-D sort finds them (np.unique(axis=0) sorts rows as
+    bytes, ~10x slower, and this runs on every depth frame)."""
+    keys = np.unique((ij[:, 0] << 32) | (ij[:, 1] & 0xFFFFFFFF))
+    i = keys >> 32
+    j = ((keys & 0xFFFFFFFF) ^ 0x80000000) - 0x80000000        # the low half back to a signed 32-bit value
+    return list(zip(i.tolist(), j.tolist()))
 
 
 def _thinnest_spread(xy: np.ndarray) -> float:
