@@ -275,6 +275,18 @@ def test_the_ground_seen_is_bounded_on_a_long_flight():
         RecallConfig(max_seen_cells=10)
 
 
+def test_the_ground_seen_is_every_cell_a_depth_pixel_fell_on_on_both_sides_of_the_origin():
+    m = PadMap(RecallConfig())
+    floor = np.full((48, 64), 2.95, np.float32)
+    pose = np.array([-0.3, 0.1, 3.0])                          # the view straddles x = 0 and y = 0
+    m.update(floor, pose)
+    xy = m.points(floor, pose, None)[..., :2].reshape(-1, 2)
+    cells = {(int(i), int(j)) for i, j in np.floor(xy / m.cfg.cell_m).astype(int)}
+    assert m.seen == cells and len(cells) > 100
+    assert {i < 0 for i, _ in cells} == {True, False} and {j < 0 for _, j in cells} == {True, False}
+    assert all(type(i) is int and type(j) is int for i, j in m.seen)
+
+
 def test_config_rejects_nonsense():
     with pytest.raises(ValueError):
         RecallConfig(radius_m=float('nan'))
