@@ -28,6 +28,7 @@ from pathlib import Path
 
 import pytest
 
+from assist_common.cache import CACHE_ENV, OFF, cache_root
 from assist_common.domains import private_domain_ids
 
 pytestmark = pytest.mark.slow(seconds=350)
@@ -126,6 +127,10 @@ def test_documented_commands_run_as_written(tmp_path):
     base = dict(os.environ, HOME=str(tmp_path / 'home'), DOC_SHIM_REPO=str(REPO), DOC_SHIM_REAL_BIN=str(REAL_BIN),
                 DOC_SHIM_LOG=str(log), MPLBACKEND='Agg')
     base.pop('DISPLAY', None)
+    # the user's cache (exported actors and encoders, generated textures), as every other test uses it: with only
+    # the scratch HOME, each group's first node start would export the models again (torch, ~5 s of CPU a node)
+    root = cache_root()
+    base[CACHE_ENV] = str(root) if root is not None else OFF
 
     def run_group(index: int, sock: Path) -> list[str]:
         scratch = tmp_path / f'group{index}'
