@@ -45,7 +45,7 @@ def _node_modules() -> dict[str, str]:
 
 NODES = _node_modules()
 # sim seconds a documented landing may last: the commands' plumbing is what is checked, not the landing
-LANDING_S = 2.5
+LANDING_S = 1.5
 STOPPED_BY_CTRL_C = {'bag_record': 4.0, 'bag_play': 4.0}     # seconds they run before the Ctrl-C
 
 
@@ -116,11 +116,11 @@ def budget(program: str, args: list[str]) -> list[str]:
         args = _set(args, '--workers', '1') if '--workers' in args else args   # no pool (the lab's tests fly one)
         return _cap(args, '--dagger-rounds', 1, default_when_absent=False)
     if program == 'simulate_study':
-        # the graph at 3x real time, as tests/test_study_graph.py flies it, and landings of at most 6 s (the
+        # the graph at 3x real time, as tests/test_study_graph.py flies it, and landings of at most 3 s (the
         # landings need not be flown well: the protocol, its files and their analysis are what is checked)
         for opt, value in (('--participants', '1'), ('--landings-per-block', '1'), ('--practice', '0'),
                            ('--browser-participants', '0'), ('--record-bags', 'false'), ('--real-time-factor', '3'),
-                           ('--max-landing-s', '6')):
+                           ('--max-landing-s', '3')):
             args = _set(args, opt, value)
         return args
     if program == 'make_dataset':
