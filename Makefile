@@ -56,12 +56,17 @@ lint: $(STAMP)
 # Two worker processes (TEST_WORKERS), a test file per worker at a time, in the order conftest.py sets (the slow
 # files first, longest first; xdist would otherwise put the files with the most tests first); each worker has its
 # own DDS domains. The scale and stress checks (marker `scale`) have their own target; .ci/run runs both.
+# Bytecode is written even where the environment says not to (PYTHONDONTWRITEBYTECODE): the sources are compiled
+# once before the workers start, so each worker's collection and each of the hundreds of node and tool processes
+# the tests start reads them instead of compiling them again, and pytest keeps its rewritten test modules.
 TEST_WORKERS ?= 2
 test: $(STAMP) browser netns lint
-	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m "not scale"
+	$(PY) -m compileall -q -j 0 ros2_ws/src tests bench > /dev/null
+	PYTHONDONTWRITEBYTECODE= $(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m "not scale"
 
 test-scale: $(STAMP)
-	$(PY) -m pytest -p no:cacheprovider -m scale
+	$(PY) -m compileall -q -j 0 ros2_ws/src tests bench > /dev/null
+	PYTHONDONTWRITEBYTECODE= $(PY) -m pytest -p no:cacheprovider -m scale
 
 bench: $(STAMP)
 	$(PY) -m bench
