@@ -74,7 +74,8 @@ def test_colcon_build_installs_executables_where_ros2_run_looks(colcon_workspace
         assert (share / pkg / 'package.xml').exists()
         for sub in ('config', 'launch'):
             src_files = sorted(p.name for p in (SRC / pkg / sub).glob('*') if p.suffix in ('.yaml', '.py', '.parm'))
-            inst_files = sorted(p.name for p in (share / pkg / sub).glob('*'))
+            # (__pycache__: what Python writes beside a launch file it loaded, e.g. in test_launch_files)
+            inst_files = sorted(p.name for p in (share / pkg / sub).glob('*') if p.name != '__pycache__')
             assert src_files == inst_files, (pkg, sub)
 
 
