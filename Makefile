@@ -12,7 +12,7 @@ PKG_INPUTS := $(foreach p,$(PKGS),ros2_ws/src/$(p)/setup.py ros2_ws/src/$(p)/set
 export ROS_DOMAIN_ID ?= 42
 export RMW_IMPLEMENTATION ?= rmw_fastrtps_cpp
 
-.PHONY: venv demo test test-scale lint bench soak colcon clean help browser netns
+.PHONY: venv demo test test-scale lint bench soak colcon clean help browser netns bytecode
 
 help:
 	@echo "make demo   - run the simulated landing demo (creates .venv)"
@@ -60,12 +60,13 @@ lint: $(STAMP)
 # once before the workers start, so each worker's collection and each of the hundreds of node and tool processes
 # the tests start reads them instead of compiling them again, and pytest keeps its rewritten test modules.
 TEST_WORKERS ?= 2
-test: $(STAMP) browser netns lint
+bytecode: $(STAMP)
 	$(PY) -m compileall -q -j 0 ros2_ws/src tests bench > /dev/null
+
+test: $(STAMP) browser netns lint bytecode
 	PYTHONDONTWRITEBYTECODE= $(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder -m "not scale"
 
-test-scale: $(STAMP)
-	$(PY) -m compileall -q -j 0 ros2_ws/src tests bench > /dev/null
+test-scale: $(STAMP) bytecode
 	PYTHONDONTWRITEBYTECODE= $(PY) -m pytest -p no:cacheprovider -m scale
 
 bench: $(STAMP)
