@@ -129,15 +129,16 @@ def test_station_killed_mid_block_resumes_without_loss_or_duplicates(study):
         t.start()
         log = out / 'S02' / 'protocol.log'
         end = time.monotonic() + 240
-        while time.monotonic() < end:               # block 1's landing in flight: kill the station
+        while time.monotonic() < end:   # block 1's landing in flight (its bag open, not only started): kill the station
             if log.exists():
                 ev = events(log)
-                if ev[-1]['event'] == 'landing_started' and ev[-1]['landing'] == 'block1_00':
+                if ev[-1]['event'] == 'landing_started' and ev[-1]['landing'] == 'block1_00' \
+                        and (out / 'S02' / 'bags' / 'block1_00').is_dir():
                     break
             assert t.is_alive(), result
             time.sleep(0.2)
         else:
-            pytest.fail('S02 never reached block1_00')
+            pytest.fail('S02 never reached block1_00 with its bag open')
         time.sleep(1.0)
         graph.kill_station()
         recorded = rows(out / 'S02' / 'landings.csv')

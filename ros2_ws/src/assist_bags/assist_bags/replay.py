@@ -638,12 +638,11 @@ def replay(bag: str | Path, cfg: ReplayConfig, progress: bool = False) -> Replay
                 bar.close()
     if not res.times_ns:
         raise BagError(f'{bag}: no policy step could be replayed (no inputs in the bag)')
-    counts['latent_frames_missing'] += sum(len(ks) for ks in waiting.values())
-    for pending in maybe.values():      # the bag ended before the neighbouring frame: the frame paired by order
-        for k, mu in pending:
-            res.latents[k] = mu
-    for _, k, mu in next_frame:
-        res.latents[k] = mu
+    # the bag ended before these latents' frames: those waiting for their frame, and those whose frame paired by order
+    # encodes to another latent while the frame after it, which may be theirs, was never recorded (the recorder
+    # stopped between a latent and its images): not replayed, as a latent whose frame is missing
+    counts['latent_frames_missing'] += (sum(len(ks) for ks in waiting.values())
+                                        + sum(len(p) for p in maybe.values()) + len(next_frame))
     # recorded agent_cmd -> the step whose /cmd_vel carries the same header stamp (policy_node stamps both alike)
     keys = cmd_stamps if ticks_from_bag else res.times_ns
     steps_of: dict[int, list[int]] = {}
