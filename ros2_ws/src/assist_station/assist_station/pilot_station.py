@@ -326,9 +326,8 @@ class PilotStation(Node):
         except InputError as exc:
             self._rejected('landing_rejected', exc)
             return
-        if self.study is not None:       # the study driver records its landings and gives practice feedback
-            if self.study.on_landing(landing):
-                self.server.push_event(landing_feedback(landing, 'study'))      # "Landing recorded", no result
+        if self.study is not None:       # the study driver records its landings and tells the page
+            self.study.on_landing(landing)
             return
         self.server.push_event(landing_feedback(landing, self.p['mode']))
 

@@ -43,6 +43,8 @@ class Graph:
         for name, value in (('scene_seed', 0), ('goal_index', 0), ('auto_reset', True)):
             self.sim.declare_parameter(name, value)
         self.episodes = 0
+        self.land_before_answer = False      # /sim/reset: the episode's result reaches the station before the answer
+        self.early: list[bool] = []          # what the driver said to each such result
         self.sim.create_service(Trigger, '/sim/reset', self._reset)
         self.policy = Node('policy_node', context=ctx)
         for name, value in (('assist_enabled', False), ('mode', 'latent'), ('model_path', '')):
@@ -59,6 +61,8 @@ class Graph:
         self.episodes += 1
         response.success = True
         response.message = f"episode {self.episodes}: goal pad {self.sim.get_parameter('goal_index').value}"
+        if self.land_before_answer:      # a short landing on a loaded machine: over before the answer is handled
+            self.early.append(self.driver.on_landing(result(self.driver.spec, self.episodes)))
         return response
 
     def cues(self):
@@ -94,6 +98,13 @@ def graph(tmp_path):
         rclpy.shutdown(context=ctx)
 
 
+def result(spec, episode: int) -> dict:
+    """sim_node's /sim/landing result of `episode`: a success on the spec's goal pad."""
+    return {'episode': episode, 'goal_index': spec.goal_index, 'landed_index': spec.goal_index,
+            'nearest_index': spec.goal_index, 'error_m': 0.1, 'nearest_error_m': 0.1, 'success': True,
+            'crash': False, 'outcome': 'success', 'duration_s': 12.0, 'assisted': spec.assisted}
+
+
 def fly_landing(g, keys):
     """Start the next landing, fly TRACK and `keys` (held sets in turn), land; returns (spec, cues while flying,
     assist_enabled while flying)."""
@@ -106,10 +117,7 @@ def fly_landing(g, keys):
     now = time.monotonic()
     for held in keys:
         g.keys.set(held, now)
-    result = {'episode': g.driver.episode, 'goal_index': spec.goal_index, 'landed_index': spec.goal_index,
-              'nearest_index': spec.goal_index, 'error_m': 0.1, 'nearest_error_m': 0.1, 'success': True,
-              'crash': False, 'outcome': 'success', 'duration_s': 12.0, 'assisted': spec.assisted}
-    assert g.driver.on_landing(result) is True
+    assert g.driver.on_landing(result(spec, g.driver.episode)) is True
     return spec, cues, assisted
 
 
@@ -171,3 +179,22 @@ def test_without_stamps_a_step_over_a_metre_is_a_teleport(graph):
     g.driver.stage = 'idle'
     g.driver.note_odom((0.6, 3.0, 2.0))          # not flying: not part of a landing's path
     assert g.driver.path_m == pytest.approx(0.6 + 0.8)
+
+
+def test_a_result_that_comes_before_the_resets_answer_is_recorded_when_the_answer_comes(graph, tmp_path):
+    """sim_node ends a short landing before its /sim/reset answer reaches the station: the result is kept, not
+    dropped (the landing would otherwise wait for a result that already came, then be aborted and flown again)."""
+    g = graph
+    g.step('begin', participant='P01')
+    g.step('consent')
+    g.land_before_answer = True
+    g.step('start')
+    g.until(lambda: g.driver.stage == 'closing', 'the landing recorded')
+    assert g.early == [False]                         # held while the answer was on its way, recorded on the answer
+    assert g.errors() == []
+    with open(tmp_path / 'P01' / 'landings.csv') as f:
+        rows = list(csv.DictReader(f))
+    assert [(r['block'], r['trial'], r['episode'], r['outcome']) for r in rows] == [('0', '0', '1', 'success')]
+    assert [e['text'] for e in g.events if e['type'] == 'landing'] == ['Landing recorded']
+    log = (tmp_path / 'P01' / 'protocol.log').read_text()
+    assert 'landing_aborted' not in log and log.count('landing_started') == 1
