@@ -55,7 +55,6 @@ SERVICE_WAIT_S = 10.0          # a node's parameter service / /sim/reset not ans
 # fails; nodes that load torch and their models on a busy machine take tens of seconds to start
 GRAPH_WAIT_S = 60.0
 SERVICE_RETRIES = 2            # a parameter request (idempotent) is sent again this many times before the step fails
-EARLY_LANDINGS_KEPT = 4         # /sim/landing results held while /sim/reset's answer is awaited
 BAG_WARMUP_S = 0.6             # the landing's bag subscribes before the episode starts
 BAG_TAIL_S = 0.5               # ... and keeps recording this long after the result
 INBOX_SIZE = 64                # page steps waiting for the node's timer at most (more are dropped)
@@ -176,9 +175,9 @@ class StudyDriver:
         self._graph_deadline = math.inf
         self.spec: LandingSpec | None = None
         self.episode: int | None = None
-        # /sim/landing results that came while /sim/reset's answer was on its way (a short landing on a loaded
-        # machine ends before the answer is handled): episode -> result, for the answer to claim
-        self._early_landings: dict[int, dict[str, Any]] = {}
+        # the latest /sim/landing result that came while /sim/reset's answer was on its way (a short landing on a
+        # loaded machine ends before the answer is handled), for the answer to claim when it names that episode
+        self._early_landing: dict[str, Any] | None = None
         self.started_at = math.inf
         self.start_xy: np.ndarray | None = None
         self.last_xy: np.ndarray | None = None
@@ -402,7 +401,7 @@ class StudyDriver:
         self.spec = self.session.start_landing(bag=None if bag is None else bag.name)
         self.bag = None if bag is None else str(bag)
         self.episode, self.start_xy, self.error = None, None, None
-        self._early_landings.clear()
+        self._early_landing = None
         self.stage = 'waiting_graph'       # until sim_node (and for an assisted landing policy_node) answer
         self._graph_deadline = time.monotonic() + GRAPH_WAIT_S
         self._configure()
@@ -527,9 +526,8 @@ class StudyDriver:
             if self.keys is not None:
                 self.keys.start()
             self._view_dirty = True
-            early = self._early_landings.pop(episode, None)
-            self._early_landings.clear()
-            if early is not None:           # the episode ended before this answer came: its result is recorded now
+            early, self._early_landing = self._early_landing, None
+            if early is not None and early['episode'] == episode:    # the episode ended before this answer came
                 self.on_landing(early)
         self._calls.append(_Call('/sim/reset', self.reset_client.call_async(Trigger.Request()), done))
 
@@ -540,9 +538,7 @@ class StudyDriver:
         one) and recorded when the answer comes."""
         episode = landing.get('episode')
         if self.stage == 'resetting' and self.session is not None and isinstance(episode, int):
-            self._early_landings[episode] = landing
-            while len(self._early_landings) > EARLY_LANDINGS_KEPT:
-                del self._early_landings[next(iter(self._early_landings))]
+            self._early_landing = landing
             return False
         if self.stage != 'flying' or self.session is None or episode != self.episode:
             return False
@@ -607,7 +603,7 @@ class StudyDriver:
         self._close_bag()
         self.stage = 'idle'
         self.episode = None
-        self._early_landings.clear()
+        self._early_landing = None
         self._view_dirty = True
 
     def _close_bag(self) -> None:
